@@ -1,0 +1,58 @@
+"""ament_python package ``ppoe_ros`` (Python packages ``ppoe_core`` and ``ppoe_ros``).
+
+``colcon build`` installs the node executables under ``lib/ppoe_ros`` and the
+config under ``share/ppoe_ros``; ``pip install .`` gives the same executables as
+console scripts.  The ROS 2 Jazzy wheels from PyPI are behind the ``ros`` extra
+so that users with ROS 2 from apt install without them.
+"""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "ppoe_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=["ppoe_core", "ppoe_core.*", "ppoe_ros", "ppoe_ros.*"]),
+    package_data={"ppoe_core": ["py.typed"], "ppoe_ros": ["py.typed"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
+        ("share/" + PACKAGE, ["package.xml"]),
+        ("share/" + PACKAGE + "/config", sorted(glob("config/*.*"))),
+        ("share/" + PACKAGE + "/launch", sorted(glob("launch/*.py"))),
+    ],
+    python_requires=">=3.10",
+    install_requires=[
+        "numpy>=1.24",
+        "scipy>=1.10",
+        "PyYAML>=6",
+        "opencv-python-headless>=4.8",
+        "rosbags>=0.10",
+        "matplotlib>=3.7",
+    ],
+    extras_require={
+        "ros": [
+            "ros-jazzy-rclpy",
+            "ros-jazzy-common-interfaces",
+            "ros-jazzy-rmw-fastrtps-cpp",
+        ],
+        "test": ["pytest>=7", "hypothesis>=6", "pytest-timeout>=2", "pytransform3d>=3.6"],
+    },
+    zip_safe=True,
+    maintainer="ppoe_ros developers",
+    maintainer_email="ppoe@example.com",
+    description="Probabilistic Product-of-Exponentials kinematics and Lie-group EKF fusion for ROS 2 Jazzy",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "ppoe = ppoe_ros.cli:main",
+            "kinematics_node = ppoe_ros.kinematics_node:main",
+            "tag_bearing_node = ppoe_ros.tag_bearing_node:main",
+            "contact_node = ppoe_ros.contact_node:main",
+            "fusion_node = ppoe_ros.fusion_node:main",
+        ],
+    },
+)
