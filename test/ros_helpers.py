@@ -1,0 +1,232 @@
+"""Helpers for tests that run ROS 2 nodes as separate processes through live topics.
+
+* :func:`ros_env` / :func:`random_domain_id`: an environment with an isolated DDS
+  domain (random ``ROS_DOMAIN_ID`` in 1..200, ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``),
+  the repo on ``PYTHONPATH`` and ROS logs under a temporary directory.
+* :class:`NodeProcess`: start a node (``python -m ppoe_ros.<module> --ros-args ...``)
+  or ``ppoe`` subcommand in its own process group; :meth:`NodeProcess.stop` sends
+  SIGINT then SIGKILL to the whole group.  Use it as a context manager (or call
+  ``stop`` in ``finally``) so no child outlives the test.
+* :class:`Probe`: an rclpy node inside the test process, in the same domain, to
+  publish inputs and collect outputs with timeouts.
+* :func:`write_params_file`: a ``--params-file`` YAML for one node.
+
+Usage::
+
+    env = ros_env(tmp_path)
+    with Probe(env) as probe, NodeProcess.node("kinematics_node", env, tmp_path,
+                                               params_file=pf) as proc:
+        out = probe.collect("/ppoe/pose", PoseWithCovarianceStamped)
+        pub = probe.publisher("/joint_states", JointState)
+        probe.wait_for_subscribers(pub, proc)
+        ...
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+
+__all__ = [
+    "REPO",
+    "random_domain_id",
+    "ros_env",
+    "write_params_file",
+    "NodeProcess",
+    "Probe",
+]
+
+
+def random_domain_id() -> int:
+    """A random DDS domain id in 1..200 (one per test run)."""
+    return random.SystemRandom().randint(1, 200)
+
+
+def ros_env(tmp_dir: Path | str, domain_id: int | None = None) -> dict[str, str]:
+    """Environment for node processes: isolated DDS domain, repo importable, logs in ``tmp_dir``."""
+    env = dict(os.environ)
+    env["ROS_DOMAIN_ID"] = str(random_domain_id() if domain_id is None else domain_id)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    env.pop("ROS_LOCALHOST_ONLY", None)
+    env["ROS_LOG_DIR"] = str(Path(tmp_dir) / "ros_log")
+    env["PYTHONUNBUFFERED"] = "1"
+    env["RCUTILS_LOGGING_BUFFERED_STREAM"] = "0"
+    env["RCUTILS_COLORIZED_OUTPUT"] = "0"
+    env["PYTHONPATH"] = str(REPO) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    return env
+
+
+def write_params_file(path: Path | str, params: Mapping[str, Any], node_name: str = "/**") -> Path:
+    """Write ``{node_name: {ros__parameters: params}}`` to ``path`` and return it."""
+    path = Path(path)
+    path.write_text(yaml.safe_dump({node_name: {"ros__parameters": dict(params)}}, sort_keys=False))
+    return path
+
+
+class NodeProcess:
+    """A child process in its own process group, output captured to a log file."""
+
+    def __init__(self, cmd: Sequence[str], env: Mapping[str, str], log_path: Path | str,
+                 cwd: Path | str | None = None) -> None:
+        self.cmd = list(cmd)
+        self.log_path = Path(log_path)
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen(
+            self.cmd, env=dict(env), cwd=str(cwd or REPO), stdout=self._log,
+            stderr=subprocess.STDOUT, start_new_session=True,
+        )
+
+    @classmethod
+    def node(cls, module: str, env: Mapping[str, str], tmp_dir: Path | str,
+             params: Mapping[str, Any] | None = None, params_file: Path | str | None = None,
+             name: str | None = None) -> "NodeProcess":
+        """Start ``ppoe_ros.<module>`` with ``--ros-args`` parameters (``-p k:=v``) and/or a params file."""
+        cmd = [sys.executable, "-m", f"ppoe_ros.{module}", "--ros-args"]
+        if params_file is not None:
+            cmd += ["--params-file", str(params_file)]
+        for k, v in (params or {}).items():
+            cmd += ["-p", f"{k}:={_param_text(v)}"]
+        return cls(cmd, env, Path(tmp_dir) / f"{name or module}.log")
+
+    @classmethod
+    def ppoe(cls, args: Sequence[str], env: Mapping[str, str], tmp_dir: Path | str,
+             name: str) -> "NodeProcess":
+        """Start ``python -m ppoe_ros.cli <args>`` (the ``ppoe`` entry point)."""
+        return cls([sys.executable, "-m", "ppoe_ros.cli", *args], env, Path(tmp_dir) / f"{name}.log")
+
+    def alive(self) -> bool:
+        """True while the process runs."""
+        return self.proc.poll() is None
+
+    def output(self) -> str:
+        """Everything the process wrote so far (stdout + stderr)."""
+        if not self._log.closed:
+            self._log.flush()
+        return self.log_path.read_text(errors="replace")
+
+    def wait(self, timeout: float) -> int:
+        """Wait for the process to exit by itself; return its code (kills it on timeout)."""
+        try:
+            return self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.stop()
+            raise AssertionError(f"{self.cmd} did not exit within {timeout} s:\n{self.output()[-3000:]}")
+
+    def stop(self, timeout: float = 5.0) -> int | None:
+        """SIGINT the process group, then SIGKILL after ``timeout`` s; return the exit code."""
+        if self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+            try:
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                try:
+                    os.killpg(self.proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                self.proc.wait(timeout=5)
+        else:  # the leader exited: make sure nothing of its group is left
+            try:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+        self._log.close()
+        return self.proc.returncode
+
+    def __enter__(self) -> "NodeProcess":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+
+def _param_text(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return "[" + ",".join(_param_text(x) for x in v) + "]"
+    return str(v)
+
+
+class Probe:
+    """An rclpy node in the test process, on the domain of ``env``, to drive and observe nodes."""
+
+    def __init__(self, env: Mapping[str, str], name: str = "test_probe") -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        os.environ.pop("ROS_LOCALHOST_ONLY", None)
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=int(env["ROS_DOMAIN_ID"]))
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def publisher(self, topic: str, msg_type: Any, qos: Any = 100) -> Any:
+        """Create a publisher (default reliable depth 100)."""
+        return self.node.create_publisher(msg_type, topic, qos)
+
+    def collect(self, topic: str, msg_type: Any, qos: Any = 1000) -> list[Any]:
+        """Subscribe ``topic``; returns the list that received messages are appended to."""
+        box: list[Any] = []
+        self.node.create_subscription(msg_type, topic, box.append, qos)
+        return box
+
+    def spin_for(self, seconds: float) -> None:
+        """Process callbacks for ``seconds``."""
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.executor.spin_once(timeout_sec=min(0.02, max(0.0, end - time.monotonic())))
+
+    def spin_until(self, pred: Callable[[], bool], timeout: float,
+                   proc: NodeProcess | None = None, what: str = "condition") -> None:
+        """Spin until ``pred()`` is true; AssertionError (with the node's log) after ``timeout`` s."""
+        end = time.monotonic() + timeout
+        while not pred():
+            if time.monotonic() > end:
+                log = proc.output()[-4000:] if proc is not None else ""
+                raise AssertionError(f"timeout after {timeout} s waiting for {what}\n--- node log ---\n{log}")
+            if proc is not None and not proc.alive():
+                raise AssertionError(f"node exited (code {proc.proc.returncode}) while waiting for "
+                                     f"{what}\n--- node log ---\n{proc.output()[-4000:]}")
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def wait_for_subscribers(self, pub: Any, proc: NodeProcess | None = None, n: int = 1,
+                             timeout: float = 15.0) -> None:
+        """Wait until ``pub`` has ``n`` matched subscriptions (the node under test is up)."""
+        self.spin_until(lambda: pub.get_subscription_count() >= n, timeout, proc,
+                        f"a subscriber on {pub.topic_name}")
+
+    def wait_for_publishers(self, topic: str, proc: NodeProcess | None = None, n: int = 1,
+                            timeout: float = 15.0) -> None:
+        """Wait until ``topic`` has ``n`` publishers."""
+        self.spin_until(lambda: self.node.count_publishers(topic) >= n, timeout, proc,
+                        f"a publisher on {topic}")
+
+    def close(self) -> None:
+        """Destroy the node and shut the context down."""
+        try:
+            self.executor.shutdown(timeout_sec=1.0)
+            self.node.destroy_node()
+        finally:
+            self.context.try_shutdown()
+
+    def __enter__(self) -> "Probe":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
