@@ -1,0 +1,698 @@
+"""ROS-free core of the fusion node: prior buffer, measurement updates, carried correction.
+
+The fusion node (``ppoe_ros/fusion_node.py``) and the offline replay (``ppoe evaluate``)
+run the SAME code: this module.  It knows nothing about ROS messages; stamps are float
+seconds, poses ``(4, 4)`` arrays, covariances ``(6, 6)`` arrays in the tangent space of the
+tool frame (right perturbation ``T = Tbar @ Exp(xi)``, ``xi = [rho; theta]``).
+
+Data flow (see ``docs/fusion_node.md`` for the design discussion)::
+
+    add_prior(t, T_base_tool, cov_tool, joints)      # kinematics output, e.g. /ppoe/pose
+        -> PriorBuffer (last `buffer_duration` s)   # SE(3) interpolation at any stamp inside
+        -> pending measurements whose stamp is now covered are processed
+        -> returns the fused estimate at t: prior (+) carried correction
+
+    add_measurement(Measurement(t, source, payload))
+        t < oldest prior            -> dropped ("stale"), counted
+        t > newest prior            -> pending until a prior covers it (or `flush`)
+        otherwise                   -> prior at t (interpolated), carried correction applied,
+                                       iterated LG-EKF update by the injected `updater`
+                                       (gating inside), new carried correction
+
+The carried correction is an *equivalent measurement of the tool-frame error* of the prior:
+information matrix ``I_c = P_post^-1 - P_prior^-1`` and information vector
+``y_c = P_post^-1 delta`` with ``delta = Log(T_prior^-1 T_post)``.  For a later prior
+``(T, P)`` and a weight ``w`` in [0, 1] (1 = fresh, decays with time and arm motion) the fused
+estimate is the Kalman update of ``(T, P)`` with that equivalent measurement, its noise scaled
+by ``1 / w``.  At the measurement's own stamp (``w = 1``) it reproduces the posterior exactly;
+as ``w -> 0`` it falls back to the prior; at ``w = 0`` the correction is dropped.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from ppoe_core import lie
+from ppoe_core.errors import CovarianceError, MeasurementError, PpoeError
+
+__all__ = [
+    "PriorSample",
+    "PriorBuffer",
+    "LookupStatus",
+    "Measurement",
+    "UpdateResult",
+    "MeasurementUpdater",
+    "CorrectionPolicy",
+    "CarriedCorrection",
+    "FusedEstimate",
+    "MeasurementOutcome",
+    "FusionPipeline",
+]
+
+Array = np.ndarray
+
+#: jitter [m^2 or rad^2] added to a covariance's diagonal before it is inverted
+_INV_JITTER = 1e-14
+
+
+# ----------------------------------------------------------------------------
+# Prior buffer
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PriorSample:
+    """One prior: the kinematics' estimate of the tool pose at a stamp.
+
+    Attributes
+    ----------
+    stamp : float
+        Time [s] (the joint-state stamp).
+    T_base_tool : ndarray, shape (4, 4)
+        Mean pose of the tool in the reference (base) frame.
+    cov_tool : ndarray, shape (6, 6)
+        Covariance in the tangent space at ``T_base_tool`` (tool frame, ``[rho; theta]``).
+    joints : ndarray, shape (n,), optional
+        Joint positions [rad or m] at ``stamp`` (used to measure arm motion), or None.
+    """
+
+    stamp: float
+    T_base_tool: Array
+    cov_tool: Array
+    joints: Array | None = None
+
+
+class LookupStatus:
+    """Outcome codes of :meth:`PriorBuffer.lookup`."""
+
+    OK = "ok"
+    EMPTY = "empty"
+    TOO_OLD = "too_old"  # older than the oldest prior kept
+    TOO_NEW = "too_new"  # newer than the newest prior
+    GAP = "gap"  # inside the buffer, but between two priors further apart than max_gap
+
+
+class PriorBuffer:
+    """Time-ordered buffer of priors with SE(3) interpolation at any stamp inside it.
+
+    Parameters
+    ----------
+    duration : float
+        Length [s] of history kept, counted back from the newest stamp.
+    max_gap : float
+        Two neighbouring priors further apart than this [s] are not interpolated between
+        (the arm may have moved without joint states, e.g. between the stops of a static
+        dataset); a stamp in such a gap takes the nearer prior if it is within ``max_hold``.
+    max_hold : float
+        How far [s] a stamp may lie from the nearest prior when interpolation is not possible
+        (gap, or slightly newer than the newest prior in :meth:`lookup_hold`).
+
+    Notes
+    -----
+    Interpolation between the bracketing priors ``(t0, T0, P0)`` and ``(t1, T1, P1)`` at
+    ``s = (t - t0) / (t1 - t0)`` is the geodesic ``T0 Exp(s Log(T0^-1 T1))``
+    (:func:`ppoe_core.lie.interpolate`); the covariance is blended linearly,
+    ``(1 - s) P0 + s P1``, which is positive semi-definite and first-order exact for the short
+    gaps between joint states (both live in the tool tangent spaces of nearby poses).
+    """
+
+    def __init__(self, duration: float = 1.0, max_gap: float = 0.2, max_hold: float = 0.5) -> None:
+        if not (duration > 0.0 and math.isfinite(duration)):
+            raise PpoeError(f"PriorBuffer: duration must be a positive number of seconds, got {duration!r}")
+        if not (max_gap > 0.0):
+            raise PpoeError(f"PriorBuffer: max_gap must be > 0 s, got {max_gap!r}")
+        if not (max_hold >= 0.0):
+            raise PpoeError(f"PriorBuffer: max_hold must be >= 0 s, got {max_hold!r}")
+        self.duration = float(duration)
+        self.max_gap = float(max_gap)
+        self.max_hold = float(max_hold)
+        self._stamps: list[float] = []
+        self._samples: list[PriorSample] = []
+
+    def __len__(self) -> int:
+        return len(self._samples)
+
+    @property
+    def oldest(self) -> float | None:
+        """Stamp [s] of the oldest prior kept, or None if empty."""
+        return self._stamps[0] if self._stamps else None
+
+    @property
+    def newest(self) -> float | None:
+        """Stamp [s] of the newest prior, or None if empty."""
+        return self._stamps[-1] if self._stamps else None
+
+    def latest(self) -> PriorSample | None:
+        """The newest prior, or None."""
+        return self._samples[-1] if self._samples else None
+
+    def clear(self) -> None:
+        """Forget every prior."""
+        self._stamps.clear()
+        self._samples.clear()
+
+    def add(self, sample: PriorSample) -> bool:
+        """Insert a prior; returns False (and keeps nothing) if it is older than the buffer.
+
+        A stamp equal to a kept one replaces it.  Out-of-order stamps inside the window are
+        inserted at their place.  Priors older than ``newest - duration`` are evicted.
+        """
+        t = float(sample.stamp)
+        if self._stamps and t < self._stamps[-1] - self.duration:
+            return False
+        i = bisect.bisect_left(self._stamps, t)
+        if i < len(self._stamps) and self._stamps[i] == t:
+            self._samples[i] = sample
+        else:
+            self._stamps.insert(i, t)
+            self._samples.insert(i, sample)
+        cutoff = self._stamps[-1] - self.duration
+        k = bisect.bisect_left(self._stamps, cutoff)
+        if k > 0:
+            del self._stamps[:k]
+            del self._samples[:k]
+        return True
+
+    def lookup(self, stamp: float) -> tuple[str, PriorSample | None]:
+        """Prior at ``stamp``: interpolated inside the buffer (see class notes).
+
+        Returns
+        -------
+        (status, sample)
+            ``status`` one of :class:`LookupStatus`; ``sample`` is None unless ``OK``.
+        """
+        t = float(stamp)
+        if not self._stamps:
+            return LookupStatus.EMPTY, None
+        if t < self._stamps[0]:
+            return LookupStatus.TOO_OLD, None
+        if t > self._stamps[-1]:
+            return LookupStatus.TOO_NEW, None
+        i = bisect.bisect_left(self._stamps, t)
+        if self._stamps[i] == t:
+            return LookupStatus.OK, self._samples[i]
+        a, b = self._samples[i - 1], self._samples[i]
+        t0, t1 = self._stamps[i - 1], self._stamps[i]
+        if t1 - t0 > self.max_gap:
+            near = a if (t - t0) <= (t1 - t) else b
+            if abs(t - near.stamp) <= self.max_hold:
+                return LookupStatus.OK, _held(near, t)
+            return LookupStatus.GAP, None
+        return LookupStatus.OK, _interpolate(a, b, t)
+
+    def lookup_hold(self, stamp: float) -> tuple[str, PriorSample | None]:
+        """Like :meth:`lookup`, but a stamp newer than the newest prior by at most
+        ``max_hold`` takes the newest prior (zero-order hold: the arm is assumed at rest)."""
+        status, sample = self.lookup(stamp)
+        if status == LookupStatus.TOO_NEW and float(stamp) - self._stamps[-1] <= self.max_hold:
+            return LookupStatus.OK, _held(self._samples[-1], float(stamp))
+        return status, sample
+
+
+def _held(sample: PriorSample, t: float) -> PriorSample:
+    return PriorSample(t, sample.T_base_tool, sample.cov_tool, sample.joints)
+
+
+def _interpolate(a: PriorSample, b: PriorSample, t: float) -> PriorSample:
+    s = (t - a.stamp) / (b.stamp - a.stamp)
+    T = lie.interpolate(a.T_base_tool, b.T_base_tool, s)
+    cov = (1.0 - s) * a.cov_tool + s * b.cov_tool
+    joints = None
+    if a.joints is not None and b.joints is not None and a.joints.shape == b.joints.shape:
+        joints = (1.0 - s) * a.joints + s * b.joints
+    return PriorSample(t, T, cov, joints)
+
+
+# ----------------------------------------------------------------------------
+# Measurements and the update hook
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """A measurement waiting for its prior.
+
+    Attributes
+    ----------
+    stamp : float
+        Measurement time [s].
+    source : str
+        Where it came from (topic name): used in counts and error messages.
+    payload : Any
+        Whatever the injected updater needs (e.g. a measurement model and ``z``).
+    """
+
+    stamp: float
+    source: str
+    payload: Any
+
+
+@dataclass(frozen=True)
+class UpdateResult:
+    """What an updater returns.
+
+    Attributes
+    ----------
+    T_base_tool : ndarray, shape (4, 4)
+        Posterior mean (equal to the input prior if rejected).
+    cov_tool : ndarray, shape (6, 6)
+        Posterior covariance in the tangent space at the posterior mean (tool frame).
+    accepted : bool
+        False if the gate rejected the measurement.
+    nis : float
+        Normalised innovation squared at the prior (for diagnostics), NaN if unknown.
+    """
+
+    T_base_tool: Array
+    cov_tool: Array
+    accepted: bool
+    nis: float = float("nan")
+
+
+class MeasurementUpdater(Protocol):
+    """``updater(T_base_tool, cov_tool, measurement) -> UpdateResult``.
+
+    ``cov_tool`` lives in the tangent space at ``T_base_tool``.  Raises
+    :class:`~ppoe_core.errors.MeasurementError` for an unusable measurement.
+    """
+
+    def __call__(self, T_base_tool: Array, cov_tool: Array, measurement: Measurement) -> UpdateResult:
+        ...
+
+
+# ----------------------------------------------------------------------------
+# Carried correction
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CorrectionPolicy:
+    """When a carried correction fades and when it is dropped.
+
+    Each enabled limit gives a ratio ``r`` = (change since the correction's measurement) /
+    limit: elapsed time ``|dt| / timeout``, joint motion ``max_i |q_i - q_i,0| /
+    joint_motion``, tool translation ``|dp| / tool_translation`` and rotation angle
+    ``|dtheta| / tool_rotation`` (the tool motion is read off the priors, so it also works
+    without joint positions).  With ``r = max`` over the enabled ratios the weight is
+    ``w = 1 - r`` (``decay="linear"``) or ``w = 1`` while ``r < 1`` (``decay="step"``);
+    the correction is dropped once ``r >= 1``.  A limit ``<= 0`` disables that ratio.
+
+    Attributes
+    ----------
+    timeout : float
+        [s], default 10.0.
+    joint_motion : float
+        [rad or m], max-abs over joints, default 0.05.
+    tool_translation : float
+        [m], default 0.05.
+    tool_rotation : float
+        [rad], default 0.1.
+    decay : str
+        ``"linear"`` (default) or ``"step"``.
+    """
+
+    timeout: float = 10.0
+    joint_motion: float = 0.05
+    tool_translation: float = 0.05
+    tool_rotation: float = 0.1
+    decay: str = "linear"
+
+    def __post_init__(self) -> None:
+        if self.decay not in ("linear", "step"):
+            raise PpoeError(f"CorrectionPolicy.decay must be 'linear' or 'step', got {self.decay!r}")
+        for name in ("timeout", "joint_motion", "tool_translation", "tool_rotation"):
+            v = getattr(self, name)
+            if not math.isfinite(v):
+                raise PpoeError(f"CorrectionPolicy.{name} must be finite, got {v!r}")
+        if max(self.timeout, self.joint_motion, self.tool_translation, self.tool_rotation) <= 0.0:
+            raise PpoeError("CorrectionPolicy: every limit is disabled; a correction would never be dropped")
+
+    def ratio(self, anchor: PriorSample, prior: PriorSample) -> float:
+        """Largest change ratio between the correction's anchor prior and ``prior``."""
+        r = 0.0
+        if self.timeout > 0.0:
+            r = max(r, abs(prior.stamp - anchor.stamp) / self.timeout)
+        if self.joint_motion > 0.0 and anchor.joints is not None and prior.joints is not None:
+            if anchor.joints.shape == prior.joints.shape and anchor.joints.size:
+                r = max(r, float(np.max(np.abs(prior.joints - anchor.joints))) / self.joint_motion)
+        if self.tool_translation > 0.0 or self.tool_rotation > 0.0:
+            T_rel = lie.inverse(anchor.T_base_tool) @ prior.T_base_tool
+            if self.tool_translation > 0.0:
+                r = max(r, float(np.linalg.norm(T_rel[:3, 3])) / self.tool_translation)
+            if self.tool_rotation > 0.0:
+                c = np.clip((np.trace(T_rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+                r = max(r, float(np.arccos(c)) / self.tool_rotation)
+        return r
+
+    def weight(self, anchor: PriorSample, prior: PriorSample) -> float:
+        """Weight in [0, 1] of the correction made at ``anchor`` when applied to ``prior``."""
+        r = self.ratio(anchor, prior)
+        if r >= 1.0:
+            return 0.0
+        return 1.0 - r if self.decay == "linear" else 1.0
+
+
+@dataclass(frozen=True)
+class CarriedCorrection:
+    """The information the measurements added to the prior, as an equivalent measurement.
+
+    Attributes
+    ----------
+    anchor : PriorSample
+        The (interpolated) prior at the stamp of the last accepted measurement.
+    H : ndarray, shape (r, 6)
+        Observed directions in the tool tangent space (orthonormal rows).
+    R : ndarray, shape (r,)
+        Variances of the equivalent measurement along those directions.
+    z : ndarray, shape (r,)
+        Equivalent measurement of the tool-frame error of the prior.
+    """
+
+    anchor: PriorSample
+    H: Array
+    R: Array
+    z: Array
+
+    @staticmethod
+    def from_update(anchor: PriorSample, T_post: Array, cov_post: Array) -> "CarriedCorrection | None":
+        """Build the correction that turns ``anchor`` into ``(T_post, cov_post)``.
+
+        ``delta = Log(T_prior^-1 T_post)`` (tool frame); ``I_c = P_post^-1 - P_prior^-1``
+        (clipped to PSD), ``y = P_post^-1 delta``; ``I_c = V diag(lam) V^T`` with the
+        significant eigenvalues gives ``H = V^T``, ``R = 1 / lam``, ``z = R * (V^T y)``.
+        Inverses are taken in the range ``U`` of ``P_prior`` (eigenvectors with non-negligible
+        eigenvalues): a direction the prior is certain about carries no correction.
+        ``cov_post`` is read as a covariance in the tool tangent space at ``T_post``; the
+        change of tangent space between ``T_prior`` and ``T_post`` (second order in
+        ``delta``) is neglected.  Returns None if the update added no information.
+        """
+        # work in the range of the prior covariance: directions the prior is certain about
+        # carry no correction (and P_prior^-1 is not needed there)
+        s0, U = np.linalg.eigh(_sym(anchor.cov_tool))
+        keep0 = s0 > 1e-12 * max(float(s0.max()), 1e-300)
+        if not np.any(keep0):
+            return None
+        U = U[:, keep0]
+        info0 = np.diag(1.0 / s0[keep0])
+        P1 = U.T @ _sym(cov_post) @ U
+        P1 = _sym(P1) + _INV_JITTER * np.eye(P1.shape[0])
+        info1 = np.linalg.inv(P1)
+        delta = lie.log(lie.inverse(anchor.T_base_tool) @ T_post)
+        y = info1 @ (U.T @ delta)
+        lam, V = np.linalg.eigh(_sym(info1 - info0))
+        keep = lam > 1e-9 * max(float(np.max(np.abs(lam))), 1e-300)
+        if not np.any(keep):
+            return None
+        lam, V = lam[keep], V[:, keep]
+        H = V.T @ U.T
+        R = 1.0 / lam
+        z = R * (V.T @ y)
+        return CarriedCorrection(anchor, H, R, z)
+
+    def apply(self, prior: PriorSample, weight: float) -> tuple[Array, Array]:
+        """Fused ``(T_base_tool, cov_tool)`` for ``prior`` with this correction at ``weight``.
+
+        Kalman update of ``(prior.T_base_tool, prior.cov_tool)`` with the equivalent
+        measurement ``z = H e + n``, ``n ~ N(0, diag(R) / weight)``; covariance in Joseph form
+        (tool tangent space at the returned pose).
+        """
+        P = _sym(prior.cov_tool)
+        if weight <= 0.0:
+            return prior.T_base_tool, P
+        H = self.H
+        Rw = np.diag(self.R / weight)
+        S = H @ P @ H.T + Rw
+        K = np.linalg.solve(S, H @ P).T  # P H^T S^-1
+        m = K @ self.z
+        IKH = np.eye(6) - K @ H
+        cov = _sym(IKH @ P @ IKH.T + K @ Rw @ K.T)
+        return prior.T_base_tool @ lie.exp(m), cov
+
+
+def _sym(A: Array) -> Array:
+    A = np.asarray(A, dtype=np.float64)
+    return 0.5 * (A + A.T)
+
+
+# ----------------------------------------------------------------------------
+# The pipeline
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FusedEstimate:
+    """Fused tool pose at a stamp.
+
+    Attributes
+    ----------
+    stamp : float
+        [s]
+    T_base_tool : ndarray, shape (4, 4)
+    cov_tool : ndarray, shape (6, 6)
+        In the tangent space at ``T_base_tool`` (tool frame).
+    weight : float
+        Weight of the carried correction (0 = none applied, pure prior).
+    prior : PriorSample
+        The prior it was made from.
+    """
+
+    stamp: float
+    T_base_tool: Array
+    cov_tool: Array
+    weight: float
+    prior: PriorSample
+
+
+@dataclass(frozen=True)
+class MeasurementOutcome:
+    """What happened to one measurement.
+
+    ``status`` is one of ``"accepted"``, ``"rejected"`` (gate), ``"stale"`` (older than the
+    buffer), ``"no_prior"`` (no prior within reach), ``"bad"`` (updater raised
+    MeasurementError / CovarianceError; ``error`` holds the message) or ``"pending"``
+    (waiting for a newer prior).  ``estimate`` is the posterior at the measurement stamp
+    for accepted ones.
+    """
+
+    measurement: Measurement
+    status: str
+    estimate: FusedEstimate | None = None
+    nis: float = float("nan")
+    error: str = ""
+
+
+COUNT_KEYS = (
+    "priors",
+    "priors_late",
+    "resets",
+    "measurements",
+    "accepted",
+    "rejected",
+    "dropped_stale",
+    "dropped_no_prior",
+    "bad",
+    "corrections_dropped",
+)
+
+
+class FusionPipeline:
+    """Prior buffer + measurement updates + carried correction; no ROS.
+
+    Parameters
+    ----------
+    updater : MeasurementUpdater
+        ``updater(T_base_tool, cov_tool, measurement) -> UpdateResult``: the iterated LG-EKF
+        update with gating (``ppoe_core.fusion``), built for the measurement's model.
+    buffer_duration : float
+        History of priors kept [s] (default 1.0); older measurements are dropped.
+    max_gap, max_hold : float
+        See :class:`PriorBuffer` [s].
+    policy : CorrectionPolicy
+        When the carried correction fades and is dropped.
+    max_pending : int
+        Measurements newer than the newest prior waiting for it (oldest dropped beyond).
+    reset_jump : float
+        A prior stamp more than this [s] behind the newest one is a time jump (a bag
+        restarted): buffer, pending measurements and correction are cleared.
+
+    Notes
+    -----
+    ``counts`` holds the counters listed in ``COUNT_KEYS``.  The order of calls is the order
+    of arrival; a measurement older than the correction's anchor is still processed (the
+    carried correction is applied to its prior with a weight from ``|dt|`` and the motion).
+    """
+
+    def __init__(
+        self,
+        updater: MeasurementUpdater | Callable[[Array, Array, Measurement], UpdateResult],
+        buffer_duration: float = 1.0,
+        max_gap: float = 0.2,
+        max_hold: float = 0.5,
+        policy: CorrectionPolicy | None = None,
+        max_pending: int = 20,
+        reset_jump: float = 2.0,
+    ) -> None:
+        self.updater = updater
+        self.buffer = PriorBuffer(buffer_duration, max_gap, max_hold)
+        self.policy = policy if policy is not None else CorrectionPolicy()
+        if max_pending < 0:
+            raise PpoeError(f"FusionPipeline: max_pending must be >= 0, got {max_pending}")
+        self.max_pending = int(max_pending)
+        self.reset_jump = float(reset_jump)
+        self.correction: CarriedCorrection | None = None
+        self.pending: list[Measurement] = []
+        self.counts: dict[str, int] = {k: 0 for k in COUNT_KEYS}
+        self.last_nis: float = float("nan")
+
+    # -- priors ---------------------------------------------------------------
+
+    def add_prior(
+        self,
+        stamp: float,
+        T_base_tool: Array,
+        cov_tool: Array,
+        joints: Array | None = None,
+    ) -> tuple[FusedEstimate | None, list[MeasurementOutcome]]:
+        """Add a kinematics prior; process pending measurements it covers.
+
+        Parameters
+        ----------
+        stamp : float
+            [s]
+        T_base_tool : ndarray, shape (4, 4)
+        cov_tool : ndarray, shape (6, 6)
+            Covariance in the tangent space at ``T_base_tool`` (tool frame).
+        joints : ndarray, shape (n,), optional
+            Joint positions at ``stamp`` for the arm-motion limit.
+
+        Returns
+        -------
+        (estimate, outcomes)
+            The fused estimate at ``stamp`` (None if the prior was too late to keep) and the
+            outcomes of the pending measurements processed now.
+        """
+        T = np.asarray(T_base_tool, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise MeasurementError(f"prior at stamp {stamp}: T_base_tool must be a finite 4x4, got shape {T.shape}")
+        cov = lie.check_covariance(cov_tool, name=f"prior at stamp {stamp}", size=6)
+        q = None if joints is None else np.asarray(joints, dtype=np.float64).reshape(-1)
+        sample = PriorSample(float(stamp), T, cov, q)
+        newest = self.buffer.newest
+        if newest is not None and sample.stamp < newest - self.reset_jump:
+            self.reset()
+            self.counts["resets"] += 1
+        if not self.buffer.add(sample):
+            self.counts["priors_late"] += 1
+            return None, []
+        self.counts["priors"] += 1
+        outcomes: list[MeasurementOutcome] = []
+        if self.pending:
+            ready = [m for m in self.pending if m.stamp <= sample.stamp]
+            self.pending = [m for m in self.pending if m.stamp > sample.stamp]
+            for m in ready:
+                outcomes.append(self._process(m, hold=False))
+        return self.fuse(sample), outcomes
+
+    def reset(self) -> None:
+        """Forget priors, pending measurements and the carried correction (counts stay)."""
+        self.buffer.clear()
+        self.pending.clear()
+        self.correction = None
+
+    # -- measurements ---------------------------------------------------------
+
+    def add_measurement(self, measurement: Measurement) -> MeasurementOutcome:
+        """Process a measurement now, or keep it pending if no prior is new enough yet."""
+        self.counts["measurements"] += 1
+        newest = self.buffer.newest
+        if newest is not None and measurement.stamp > newest:
+            self.pending.append(measurement)
+            self.pending.sort(key=lambda m: m.stamp)
+            while len(self.pending) > self.max_pending:
+                old = self.pending.pop(0)
+                self.counts["dropped_no_prior"] += 1
+                if old is measurement:
+                    return MeasurementOutcome(measurement, "no_prior")
+            return MeasurementOutcome(measurement, "pending")
+        return self._process(measurement, hold=False)
+
+    def flush(self, older_than: float | None = None) -> list[MeasurementOutcome]:
+        """Process pending measurements with a zero-order hold of the newest prior.
+
+        Parameters
+        ----------
+        older_than : float, optional
+            Only measurements with stamp ``< older_than`` [s] (e.g. node clock minus a
+            waiting time); all if None (end of an offline replay).  Those further than
+            ``max_hold`` from the newest prior are dropped as ``no_prior``.
+        """
+        if older_than is None:
+            ready, self.pending = self.pending, []
+        else:
+            ready = [m for m in self.pending if m.stamp < older_than]
+            self.pending = [m for m in self.pending if m.stamp >= older_than]
+        return [self._process(m, hold=True) for m in ready]
+
+    # -- queries --------------------------------------------------------------
+
+    def fuse(self, prior: PriorSample) -> FusedEstimate:
+        """Apply the carried correction to ``prior``; drops it if it has expired."""
+        if self.correction is None:
+            return FusedEstimate(prior.stamp, prior.T_base_tool, prior.cov_tool, 0.0, prior)
+        w = self.policy.weight(self.correction.anchor, prior)
+        if w <= 0.0:
+            # expired: dropped for good only when the prior is not older than the anchor
+            # (a late, older query must not erase a correction that is still valid now)
+            if prior.stamp >= self.correction.anchor.stamp:
+                self.correction = None
+                self.counts["corrections_dropped"] += 1
+            return FusedEstimate(prior.stamp, prior.T_base_tool, prior.cov_tool, 0.0, prior)
+        T, cov = self.correction.apply(prior, w)
+        return FusedEstimate(prior.stamp, T, cov, w, prior)
+
+    def fused_at(self, stamp: float) -> FusedEstimate | None:
+        """Fused estimate at any stamp inside the buffer (None if no prior there)."""
+        status, prior = self.buffer.lookup(stamp)
+        if status != LookupStatus.OK or prior is None:
+            return None
+        return self.fuse(prior)
+
+    def latest(self) -> FusedEstimate | None:
+        """Fused estimate at the newest prior."""
+        prior = self.buffer.latest()
+        return None if prior is None else self.fuse(prior)
+
+    # -- internals ------------------------------------------------------------
+
+    def _process(self, measurement: Measurement, hold: bool) -> MeasurementOutcome:
+        lookup = self.buffer.lookup_hold if hold else self.buffer.lookup
+        status, prior = lookup(measurement.stamp)
+        if status == LookupStatus.TOO_OLD:
+            self.counts["dropped_stale"] += 1
+            return MeasurementOutcome(measurement, "stale")
+        if status != LookupStatus.OK or prior is None:
+            self.counts["dropped_no_prior"] += 1
+            return MeasurementOutcome(measurement, "no_prior")
+        est = self.fuse(prior)
+        try:
+            res = self.updater(est.T_base_tool, est.cov_tool, measurement)
+        except (MeasurementError, CovarianceError) as exc:
+            self.counts["bad"] += 1
+            return MeasurementOutcome(measurement, "bad", error=f"{measurement.source}: {exc}")
+        self.last_nis = float(res.nis)
+        if not res.accepted:
+            self.counts["rejected"] += 1
+            return MeasurementOutcome(measurement, "rejected", nis=float(res.nis))
+        self.counts["accepted"] += 1
+        T_post = np.asarray(res.T_base_tool, dtype=np.float64)
+        cov_post = _sym(res.cov_tool)
+        corr = CarriedCorrection.from_update(prior, T_post, cov_post)
+        if corr is not None:
+            self.correction = corr
+        post = FusedEstimate(prior.stamp, T_post, cov_post, 1.0, prior)
+        return MeasurementOutcome(measurement, "accepted", post, nis=float(res.nis))
