@@ -1,0 +1,334 @@
+"""AprilTag / ArUco rendering and detection with OpenCV (``cv2.aruco``).
+
+Tag frame (the OpenCV ArUco convention): origin at the tag centre, ``x`` to the
+right and ``y`` up when the tag is read upright, ``z`` out of the printed face
+(towards a camera that sees it).  ``size`` is the edge of the black square
+(the outer black border included, the white quiet zone around it excluded), in
+metres.
+
+Corner order (used everywhere in the project, also as ``corner`` 1..4 of
+``/tag_bearing/observations``; 0 is the centre)::
+
+    corner 1: (-s/2, +s/2)  top-left       corner 2: (+s/2, +s/2)  top-right
+    corner 4: (-s/2, -s/2)  bottom-left    corner 3: (+s/2, -s/2)  bottom-right
+
+i.e. clockwise in the image of an upright tag: the order ``cv2.aruco`` returns.
+The centre pixel is the intersection of the diagonals of the four detected
+corners, which is the exact image of the tag centre for a pinhole camera.
+
+Pixel coordinates follow OpenCV: the centre of pixel (row r, column c) is (u, v) = (c, r).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Any, NamedTuple, Sequence
+
+import numpy as np
+
+from ppoe_core.errors import MeasurementError
+
+__all__ = [
+    "TagDetection",
+    "TAG_CORNERS_UNIT",
+    "aruco_dictionary",
+    "tag_points_local",
+    "project_points",
+    "undistort_pixels",
+    "detect_tags",
+    "render_tags",
+]
+
+#: corners 1..4 of a tag of unit size in the tag frame (x, y), see the module docstring
+TAG_CORNERS_UNIT = np.array([[-0.5, 0.5], [0.5, 0.5], [0.5, -0.5], [-0.5, -0.5]])
+
+_ALIASES = {
+    "tag36h11": "DICT_APRILTAG_36h11",
+    "tag36h10": "DICT_APRILTAG_36h10",
+    "tag25h9": "DICT_APRILTAG_25h9",
+    "tag16h5": "DICT_APRILTAG_16h5",
+    "aruco_original": "DICT_ARUCO_ORIGINAL",
+    "aruco_mip_36h12": "DICT_ARUCO_MIP_36h12",
+}
+
+
+class TagDetection(NamedTuple):
+    """One detected tag: ``id``, ``corners`` (4,2) pixels in the documented order, ``centre`` (2,)."""
+
+    id: int
+    corners: np.ndarray
+    centre: np.ndarray
+
+
+@lru_cache(maxsize=None)
+def aruco_dictionary(name: str = "tag36h11") -> Any:
+    """OpenCV dictionary by name: ``tag36h11`` (default), ``tag36h10``, ``tag25h9``,
+    ``tag16h5``, ``aruco_original``, ``4x4_50`` ... ``7x7_1000``, or any ``DICT_*`` name.
+
+    Raises
+    ------
+    MeasurementError
+        Unknown dictionary name (the message lists the known ones).
+    """
+    import cv2
+
+    key = name.strip()
+    cand = _ALIASES.get(key.lower())
+    if cand is None:
+        up = key.upper()
+        cand = up if up.startswith("DICT_") else "DICT_" + up
+    if not hasattr(cv2.aruco, cand):
+        known = sorted(set(_ALIASES) | {a[5:].lower() for a in dir(cv2.aruco)
+                                        if a.startswith("DICT_") and "APRILTAG" not in a})
+        raise MeasurementError(f"unknown tag dictionary {name!r}; known: {known}")
+    return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, cand))
+
+
+def tag_points_local(size: float) -> np.ndarray:
+    """Centre and corners 1..4 of a tag in its own frame, (5, 3) [m] (rows = corner 0..4)."""
+    pts = np.zeros((5, 3))
+    pts[1:, :2] = TAG_CORNERS_UNIT * float(size)
+    return pts
+
+
+def project_points(P_cam: np.ndarray, K: np.ndarray, D: np.ndarray | Sequence[float]) -> np.ndarray:
+    """Project points in the camera optical frame with the plumb_bob model.
+
+    Parameters
+    ----------
+    P_cam : (..., 3)
+        Points in the camera optical frame [m] (z forward).
+    K : (3, 3), D : (k,)
+        Intrinsics and plumb_bob distortion (k1, k2, p1, p2, k3).
+
+    Returns
+    -------
+    (..., 2) distorted pixel coordinates.
+    """
+    import cv2
+
+    P = np.asarray(P_cam, dtype=float)
+    flat = P.reshape(-1, 3)
+    uv, _ = cv2.projectPoints(flat, np.zeros(3), np.zeros(3), np.asarray(K, float),
+                              np.asarray(D, float).reshape(-1))
+    return uv.reshape(P.shape[:-1] + (2,))
+
+
+def undistort_pixels(uv: np.ndarray, K: np.ndarray, D: np.ndarray | Sequence[float]) -> np.ndarray:
+    """Distorted pixels (..., 2) -> undistorted normalised coordinates (x = X/Z, y = Y/Z), (..., 2)."""
+    import cv2
+
+    uv = np.asarray(uv, dtype=float)
+    flat = uv.reshape(-1, 1, 2)
+    if flat.shape[0] == 0:
+        return uv.copy()
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+    xy = cv2.undistortPoints(flat, np.asarray(K, float), np.asarray(D, float).reshape(-1), R=np.eye(3),
+                             P=np.eye(3), criteria=crit)
+    return xy.reshape(uv.shape)
+
+
+def _diagonal_intersection(c: np.ndarray) -> np.ndarray:
+    """Intersection of the diagonals 1-3 and 2-4 of a quadrilateral (4,2)."""
+    p1, p2, p3, p4 = (np.append(c[i], 1.0) for i in range(4))
+    x = np.cross(np.cross(p1, p3), np.cross(p2, p4))
+    if abs(x[2]) < 1e-12:
+        return c.mean(axis=0)
+    return x[:2] / x[2]
+
+
+def detect_tags(image: np.ndarray, dictionary: str = "tag36h11", refine: str = "subpix") -> list[TagDetection]:
+    """Detect tags in an image.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8
+        Mono or BGR image.
+    dictionary
+        Dictionary name, see :func:`aruco_dictionary`.
+    refine
+        Corner refinement: ``"subpix"`` (default), ``"contour"``, ``"apriltag"`` or ``"none"``.
+
+    Returns
+    -------
+    list of TagDetection sorted by id; ``corners`` (4, 2) in the module's corner order,
+    ``centre`` (2,) the diagonal intersection.
+
+    Raises
+    ------
+    MeasurementError
+        Empty image or wrong dtype/shape.
+    """
+    import cv2
+
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or img.ndim not in (2, 3) or img.size == 0:
+        raise MeasurementError(f"detect_tags: need a non-empty uint8 (H,W) or (H,W,3) image, "
+                               f"got {img.dtype} {img.shape}")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    params = cv2.aruco.DetectorParameters()
+    methods = {"subpix": cv2.aruco.CORNER_REFINE_SUBPIX, "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+               "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG, "none": cv2.aruco.CORNER_REFINE_NONE}
+    if refine not in methods:
+        raise MeasurementError(f"detect_tags: refine must be one of {sorted(methods)}, got {refine!r}")
+    params.cornerRefinementMethod = methods[refine]
+    params.cornerRefinementWinSize = 3
+    params.cornerRefinementMinAccuracy = 0.01
+    params.cornerRefinementMaxIterations = 50
+    detector = cv2.aruco.ArucoDetector(aruco_dictionary(dictionary), params)
+    corners, ids, _ = detector.detectMarkers(img)
+    out: list[TagDetection] = []
+    if ids is None:
+        return out
+    for c, i in zip(corners, ids.reshape(-1)):
+        c4 = np.asarray(c, dtype=float).reshape(4, 2)
+        out.append(TagDetection(int(i), c4, _diagonal_intersection(c4)))
+    out.sort(key=lambda d: d.id)
+    return out
+
+
+@lru_cache(maxsize=64)
+def _texture(dictionary: str, tag_id: int, px_per_cell: int, border_cells: int) -> np.ndarray:
+    """Tag bitmap with its black border plus ``border_cells`` of white quiet zone, float32 in [0, 1]."""
+    import cv2
+
+    d = aruco_dictionary(dictionary)
+    n_cells = int(d.markerSize) + 2
+    if not 0 <= tag_id < d.bytesList.shape[0]:
+        raise MeasurementError(f"tag id {tag_id} is not in dictionary {dictionary} "
+                               f"(0..{d.bytesList.shape[0] - 1})")
+    marker = cv2.aruco.generateImageMarker(d, int(tag_id), n_cells * px_per_cell, borderBits=1)
+    pad = border_cells * px_per_cell
+    tex = np.pad(marker, pad, constant_values=255).astype(np.float32) / 255.0
+    return tex
+
+
+@lru_cache(maxsize=4)
+def _ray_grid(width: int, height: int, K_key: tuple[float, ...], D_key: tuple[float, ...],
+              ss: int) -> np.ndarray:
+    """Undistorted normalised coordinates of every sub-pixel sample, (H*ss, W*ss, 2) float32."""
+    K = np.array(K_key).reshape(3, 3)
+    D = np.array(D_key)
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    us = (np.arange(width)[:, None] + off[None, :]).reshape(-1)
+    vs = (np.arange(height)[:, None] + off[None, :]).reshape(-1)
+    uu, vv = np.meshgrid(us, vs)
+    uv = np.stack([uu, vv], axis=-1)
+    if np.any(D != 0):
+        xy = undistort_pixels(uv, K, D)
+    else:
+        xy = np.stack([(uu - K[0, 2] - K[0, 1] * (vv - K[1, 2]) / K[1, 1]) / K[0, 0],
+                       (vv - K[1, 2]) / K[1, 1]], axis=-1)
+    return xy.astype(np.float32)
+
+
+def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequence[float],
+                T_cam_tag_list: np.ndarray | Sequence[np.ndarray], ids: Sequence[int], size: float | Sequence[float],
+                dictionary: str = "tag36h11", background: np.ndarray | int = 128, border_cells: float = 1.0,
+                black: int = 25, white: int = 235, supersample: int = 3, noise_sigma: float = 0.0,
+                rng: np.random.Generator | None = None, min_depth: float = 0.05,
+                max_angle_deg: float = 80.0) -> tuple[np.ndarray, list[int]]:
+    """Draw tags at their true pose into a grey image (per-pixel inverse mapping).
+
+    Every sub-pixel sample's camera ray (through the plumb_bob model, inverted
+    exactly) is intersected with the tag plane; the tag texture (black square
+    plus a white quiet zone of ``border_cells`` cells) is sampled there, and
+    ``supersample`` x ``supersample`` samples are averaged per pixel.
+
+    Parameters
+    ----------
+    image_size : (width, height)
+    K : (3, 3), D : (k,)
+        Camera intrinsics and plumb_bob distortion.
+    T_cam_tag_list : (N, 4, 4)
+        Tag poses in the camera optical frame (tag frame as in the module docstring).
+    ids : (N,)
+        Tag ids in ``dictionary``.
+    size : float or (N,)
+        Black-square edge [m].
+    background
+        Grey value or a (H, W) uint8 image to draw into.
+    noise_sigma
+        Standard deviation of additive Gaussian pixel noise [grey levels] (needs ``rng``).
+    min_depth
+        A tag with any corner (quiet zone included) closer than this [m] in z is not drawn.
+    max_angle_deg
+        Tags seen at more than this angle between their normal and the viewing ray are not drawn.
+
+    Returns
+    -------
+    image : (H, W) uint8
+    drawn : list of the ids drawn (in view, in front, facing the camera).
+    """
+    import cv2
+
+    w, h = int(image_size[0]), int(image_size[1])
+    K = np.asarray(K, dtype=float)
+    D = np.asarray(D, dtype=float).reshape(-1)
+    if np.isscalar(background):
+        canvas = np.full((h, w), float(background), dtype=np.float32)  # type: ignore[arg-type]
+    else:
+        bg = np.asarray(background)
+        if bg.shape != (h, w):
+            raise MeasurementError(f"render_tags: background shape {bg.shape} != {(h, w)}")
+        canvas = bg.astype(np.float32)
+    T_all = np.asarray(T_cam_tag_list, dtype=float).reshape(-1, 4, 4)
+    ids = [int(i) for i in ids]
+    sizes = np.broadcast_to(np.asarray(size, dtype=float), (len(ids),))
+    if T_all.shape[0] != len(ids):
+        raise MeasurementError(f"render_tags: {T_all.shape[0]} poses but {len(ids)} ids")
+    ss = max(1, int(supersample))
+    rays = None
+    drawn: list[int] = []
+    cos_max = np.cos(np.deg2rad(max_angle_deg))
+    order = np.argsort(-T_all[:, 2, 3])  # far to near, so near tags occlude far ones
+    for k in order:
+        T = T_all[k]
+        tag_id, s = ids[k], float(sizes[k])
+        n_cells = int(aruco_dictionary(dictionary).markerSize) + 2
+        half = 0.5 * s * (n_cells + 2 * border_cells) / n_cells  # half edge incl. quiet zone
+        R, t = T[:3, :3], T[:3, 3]
+        outer = np.array([[-half, half, 0], [half, half, 0], [half, -half, 0], [-half, -half, 0]])
+        P = outer @ R.T + t
+        if np.any(P[:, 2] < min_depth):
+            continue
+        normal = R[:, 2]
+        view = t / np.linalg.norm(t)
+        if -float(normal @ view) < cos_max:  # back side, or too grazing
+            continue
+        uv = project_points(P, K, D)
+        u0, v0 = np.floor(uv.min(axis=0)).astype(int) - 2
+        u1, v1 = np.ceil(uv.max(axis=0)).astype(int) + 2
+        u0, v0, u1, v1 = max(u0, 0), max(v0, 0), min(u1, w - 1), min(v1, h - 1)
+        if u1 <= u0 or v1 <= v0:
+            continue
+        if rays is None:
+            rays = _ray_grid(w, h, tuple(K.reshape(-1)), tuple(D), ss)
+        xy = rays[v0 * ss:(v1 + 1) * ss, u0 * ss:(u1 + 1) * ss].astype(float)
+        # ray r = (x, y, 1); plane point p = R^T (s r - t), with normal_c . (s r - t) = 0
+        d = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=-1)
+        denom = d @ normal
+        lam = float(normal @ t) / np.where(np.abs(denom) < 1e-12, 1e-12, denom)
+        p_tag = (lam[..., None] * d - t) @ R  # (.., 3) in tag frame
+        tex = _texture(dictionary, tag_id, 16, 0)
+        tex_n = tex.shape[0]
+        # texture of the black square spans [-s/2, s/2]; quiet zone is white (value 1)
+        scale = tex_n / s
+        map_x = ((p_tag[..., 0] + 0.5 * s) * scale - 0.5).astype(np.float32)
+        map_y = ((0.5 * s - p_tag[..., 1]) * scale - 0.5).astype(np.float32)
+        val = cv2.remap(tex, map_x, map_y, interpolation=cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+        inside = ((np.abs(p_tag[..., 0]) <= half) & (np.abs(p_tag[..., 1]) <= half) & (lam > 0)).astype(np.float32)
+        grey = black + (white - black) * val
+        hh, ww = (v1 - v0 + 1), (u1 - u0 + 1)
+        cover = inside.reshape(hh, ss, ww, ss).mean(axis=(1, 3))
+        col = (grey * inside).reshape(hh, ss, ww, ss).sum(axis=(1, 3)) / (ss * ss)
+        patch = canvas[v0:v1 + 1, u0:u1 + 1]
+        canvas[v0:v1 + 1, u0:u1 + 1] = patch * (1.0 - cover) + col
+        drawn.append(tag_id)
+    if noise_sigma > 0:
+        if rng is None:
+            raise MeasurementError("render_tags: noise_sigma > 0 needs an rng (np.random.default_rng(seed))")
+        canvas = canvas + rng.normal(0.0, noise_sigma, canvas.shape).astype(np.float32)
+    return np.clip(np.rint(canvas), 0, 255).astype(np.uint8), sorted(drawn)

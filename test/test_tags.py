@@ -1,0 +1,97 @@
+"""Render tags at known poses with ppoe_core.tags and detect them again."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ppoe_core import tags
+from ppoe_core.errors import MeasurementError
+
+K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+D = np.array([-0.1, 0.05, 0.001, -0.001, 0.0])
+
+
+def _pose(rpy: tuple[float, float, float], t: tuple[float, float, float]) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+# tag z must point towards the camera: roll about pi
+POSES = [
+    ((np.pi, 0.0, 0.0), (0.0, 0.0, 0.5)),
+    ((np.pi + 0.4, 0.3, 0.2), (0.1, -0.05, 0.6)),
+    ((np.pi - 0.5, -0.4, 1.0), (-0.15, 0.1, 0.8)),
+    ((np.pi, 0.2, 2.5), (0.2, 0.15, 1.2)),
+    ((np.pi + 0.7, 0.0, -0.7), (-0.25, -0.2, 0.9)),
+]
+
+
+@pytest.mark.parametrize("rpy,t", POSES)
+def test_render_then_detect_matches_projection(rpy: tuple, t: tuple) -> None:
+    T = _pose(rpy, t)
+    size = 0.06
+    img, drawn = tags.render_tags((640, 480), K, D, [T], [7], size, noise_sigma=1.0,
+                                  rng=np.random.default_rng(0))
+    assert drawn == [7]
+    det = tags.detect_tags(img)
+    assert [d.id for d in det] == [7]
+    P = tags.tag_points_local(size) @ T[:3, :3].T + T[:3, 3]
+    uv = tags.project_points(P, K, D)
+    err_corners = np.linalg.norm(det[0].corners - uv[1:], axis=1)
+    assert err_corners.max() < 0.6, err_corners
+    # centre: diagonal intersection; with lens distortion it is within a fraction of a pixel
+    assert np.linalg.norm(det[0].centre - uv[0]) < 0.6
+
+
+def test_several_tags_and_visibility() -> None:
+    T_front = _pose((np.pi, 0, 0), (-0.1, 0, 0.6))
+    T_front2 = _pose((np.pi, 0, 0.3), (0.12, 0.05, 0.7))
+    T_back = _pose((0.0, 0, 0), (0.0, -0.15, 0.6))         # printed face away from camera
+    T_behind = _pose((np.pi, 0, 0), (0.0, 0.0, -0.5))       # behind the camera
+    T_outside = _pose((np.pi, 0, 0), (3.0, 0.0, 0.5))       # outside the field of view
+    img, drawn = tags.render_tags((640, 480), K, D, [T_front, T_front2, T_back, T_behind, T_outside],
+                                  [1, 2, 3, 4, 5], 0.05)
+    assert drawn == [1, 2]
+    assert [d.id for d in tags.detect_tags(img)] == [1, 2]
+
+
+def test_other_dictionary_and_bgr_input() -> None:
+    T = _pose((np.pi, 0.1, 0.0), (0.0, 0.0, 0.5))
+    img, drawn = tags.render_tags((320, 240), K * np.array([[0.5], [0.5], [1]]), np.zeros(5), [T], [11], 0.08,
+                                  dictionary="4x4_50")
+    assert drawn == [11]
+    bgr = np.repeat(img[..., None], 3, axis=2)
+    assert [d.id for d in tags.detect_tags(bgr, dictionary="DICT_4X4_50")] == [11]
+    # the same image holds no tag36h11
+    assert tags.detect_tags(img, dictionary="tag36h11") == []
+
+
+def test_corner_order_is_documented_order() -> None:
+    # camera looking at an upright tag: corner 1 top-left, 2 top-right, 3 bottom-right, 4 bottom-left
+    T = _pose((np.pi, 0, 0), (0, 0, 0.5))  # tag x = camera x, tag y = -camera y (up in the image)
+    img, _ = tags.render_tags((640, 480), K, np.zeros(5), [T], [0], 0.1)
+    c = tags.detect_tags(img)[0].corners
+    assert c[0, 0] < c[1, 0] and c[0, 1] < c[3, 1]          # 1 left of 2, 1 above 4
+    assert c[2, 0] > c[3, 0] and c[2, 1] > c[1, 1]          # 3 right of 4, 3 below 2
+
+
+def test_errors_name_the_problem() -> None:
+    with pytest.raises(MeasurementError, match="unknown tag dictionary 'tag99'"):
+        tags.aruco_dictionary("tag99")
+    with pytest.raises(MeasurementError, match="uint8"):
+        tags.detect_tags(np.zeros((10, 10), dtype=float))
+    with pytest.raises(MeasurementError, match="2 poses but 1 ids"):
+        tags.render_tags((64, 48), K, D, [np.eye(4), np.eye(4)], [1], 0.05)
+
+
+def test_undistort_inverts_project() -> None:
+    rng = np.random.default_rng(3)
+    P = np.column_stack([rng.uniform(-0.3, 0.3, (50, 2)), rng.uniform(0.5, 2.0, 50)])
+    uv = tags.project_points(P, K, D)
+    xy = tags.undistort_pixels(uv, K, D)
+    np.testing.assert_allclose(xy, P[:, :2] / P[:, 2:], atol=1e-8)
