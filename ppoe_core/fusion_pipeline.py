@@ -52,6 +52,10 @@ __all__ = [
     "FusedEstimate",
     "MeasurementOutcome",
     "FusionPipeline",
+    "TagPoints",
+    "PlaneContact",
+    "ModelUpdater",
+    "COUNT_KEYS",
 ]
 
 Array = np.ndarray
@@ -275,13 +279,18 @@ class UpdateResult:
 
 
 class MeasurementUpdater(Protocol):
-    """``updater(T_base_tool, cov_tool, measurement) -> UpdateResult``.
+    """``updater(T_base_tool, cov_tool, measurement, prior) -> UpdateResult``.
 
-    ``cov_tool`` lives in the tangent space at ``T_base_tool``.  Raises
-    :class:`~ppoe_core.errors.MeasurementError` for an unusable measurement.
+    ``(T_base_tool, cov_tool)`` is the estimate to update (the prior at the measurement's
+    stamp with the carried correction applied); ``cov_tool`` lives in the tangent space at
+    ``T_base_tool``.  ``prior`` is the raw prior sample at that stamp (its ``joints`` place
+    sensors on moving links).  Raises :class:`~ppoe_core.errors.MeasurementError` (or
+    :class:`~ppoe_core.errors.CovarianceError`) for an unusable measurement.
     """
 
-    def __call__(self, T_base_tool: Array, cov_tool: Array, measurement: Measurement) -> UpdateResult:
+    def __call__(
+        self, T_base_tool: Array, cov_tool: Array, measurement: Measurement, prior: PriorSample
+    ) -> UpdateResult:
         ...
 
 
@@ -338,8 +347,11 @@ class CorrectionPolicy:
         if self.timeout > 0.0:
             r = max(r, abs(prior.stamp - anchor.stamp) / self.timeout)
         if self.joint_motion > 0.0 and anchor.joints is not None and prior.joints is not None:
-            if anchor.joints.shape == prior.joints.shape and anchor.joints.size:
-                r = max(r, float(np.max(np.abs(prior.joints - anchor.joints))) / self.joint_motion)
+            if anchor.joints.shape == prior.joints.shape:
+                dq = np.abs(prior.joints - anchor.joints)
+                dq = dq[np.isfinite(dq)]  # NaN = joint not (yet) known
+                if dq.size:
+                    r = max(r, float(dq.max()) / self.joint_motion)
         if self.tool_translation > 0.0 or self.tool_rotation > 0.0:
             T_rel = lie.inverse(anchor.T_base_tool) @ prior.T_base_tool
             if self.tool_translation > 0.0:
@@ -473,8 +485,8 @@ class MeasurementOutcome:
     """What happened to one measurement.
 
     ``status`` is one of ``"accepted"``, ``"rejected"`` (gate), ``"stale"`` (older than the
-    buffer), ``"no_prior"`` (no prior within reach), ``"bad"`` (updater raised
-    MeasurementError / CovarianceError; ``error`` holds the message) or ``"pending"``
+    buffer), ``"no_prior"`` (no prior within reach), ``"bad"`` (updater raised a
+    PpoeError, e.g. MeasurementError; ``error`` holds the message) or ``"pending"``
     (waiting for a newer prior).  ``estimate`` is the posterior at the measurement stamp
     for accepted ones.
     """
@@ -506,8 +518,9 @@ class FusionPipeline:
     Parameters
     ----------
     updater : MeasurementUpdater
-        ``updater(T_base_tool, cov_tool, measurement) -> UpdateResult``: the iterated LG-EKF
-        update with gating (``ppoe_core.fusion``), built for the measurement's model.
+        ``updater(T_base_tool, cov_tool, measurement, prior) -> UpdateResult``: the iterated
+        LG-EKF update with gating (``ppoe_core.fusion``) for the measurement's model, e.g.
+        :class:`ModelUpdater`.
     buffer_duration : float
         History of priors kept [s] (default 1.0); older measurements are dropped.
     max_gap, max_hold : float
@@ -529,7 +542,7 @@ class FusionPipeline:
 
     def __init__(
         self,
-        updater: MeasurementUpdater | Callable[[Array, Array, Measurement], UpdateResult],
+        updater: MeasurementUpdater | Callable[[Array, Array, Measurement, PriorSample], UpdateResult],
         buffer_duration: float = 1.0,
         max_gap: float = 0.2,
         max_hold: float = 0.5,
@@ -680,8 +693,8 @@ class FusionPipeline:
             return MeasurementOutcome(measurement, "no_prior")
         est = self.fuse(prior)
         try:
-            res = self.updater(est.T_base_tool, est.cov_tool, measurement)
-        except (MeasurementError, CovarianceError) as exc:
+            res = self.updater(est.T_base_tool, est.cov_tool, measurement, prior)
+        except PpoeError as exc:  # MeasurementError, CovarianceError, unknown frame/joint
             self.counts["bad"] += 1
             return MeasurementOutcome(measurement, "bad", error=f"{measurement.source}: {exc}")
         self.last_nis = float(res.nis)
@@ -696,3 +709,222 @@ class FusionPipeline:
             self.correction = corr
         post = FusedEstimate(prior.stamp, T_post, cov_post, 1.0, prior)
         return MeasurementOutcome(measurement, "accepted", post, nis=float(res.nis))
+
+
+# ----------------------------------------------------------------------------
+# Measurement payloads and the model-based updater (PPOEModel + fusion.py)
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TagPoints:
+    """Payload of one ``/tag_bearing/observations`` message (one image).
+
+    Attributes
+    ----------
+    camera_frame : str
+        Camera optical frame (URDF link; ``header.frame_id`` of the image).
+    ids : ndarray, shape (n,), int
+        Tag id of each point.
+    corners : ndarray, shape (n,), int
+        0 = tag centre, 1..4 = corners in the order of :mod:`ppoe_core.tags`.
+    xy : ndarray, shape (n, 2)
+        Undistorted normalised image coordinates ``(X/Z, Y/Z)``.
+    uv : ndarray, shape (n, 2), optional
+        Raw (distorted) pixels, used to infer the focal lengths when ``fx``/``fy`` are None.
+    fx, fy : float, optional
+        Focal lengths [px] (``camera_info`` K); they turn the pixel noise into normalised units.
+    """
+
+    camera_frame: str
+    ids: Array
+    corners: Array
+    xy: Array
+    uv: Array | None = None
+    fx: float | None = None
+    fy: float | None = None
+
+
+@dataclass(frozen=True)
+class PlaneContact:
+    """Payload of one ``/contact/plane`` message: the tool point lies on this plane.
+
+    Attributes
+    ----------
+    frame : str
+        Frame the plane pose is given in (``header.frame_id``).
+    T_frame_plane : ndarray, shape (4, 4)
+        Plane pose; plane normal = plane z axis.
+    cov_plane : ndarray, shape (6, 6)
+        ``Sigma_v`` in the tangent space at the plane pose (plane frame, local convention).
+    """
+
+    frame: str
+    T_frame_plane: Array
+    cov_plane: Array
+
+
+def _focal_from_points(uv: Array, xy: Array, where: str) -> tuple[float, float]:
+    """Least-squares fit ``u = fx x + cx``, ``v = fy y + cy`` (distortion neglected)."""
+    out = []
+    for k, axis in enumerate("xy"):
+        a = xy[:, k]
+        if a.size < 2 or float(np.ptp(a)) < 1e-6:
+            raise MeasurementError(
+                f"{where}: no camera_info focal length and the points do not spread in {axis} "
+                "to infer it"
+            )
+        A = np.stack([a, np.ones_like(a)], axis=1)
+        f = float(np.linalg.lstsq(A, uv[:, k], rcond=None)[0][0])
+        if not f > 0.0:
+            raise MeasurementError(f"{where}: inferred focal length f{axis} = {f:.4g} is not positive")
+        out.append(f)
+    return out[0], out[1]
+
+
+class ModelUpdater:
+    """Iterated LG-EKF updates of ``T_base_tool`` for the project's measurement payloads.
+
+    The measurement models of :mod:`ppoe_core.measurements` are built per measurement from
+    the PPOE model: tag mounts (``tags`` section) and the contact tool point (``contact``
+    section) in the tool frame via ``model.fk_mean(joints, tool, link)``; the camera pose
+    ``T_base_camera`` and its PPOE covariance (camera frame) via ``model.fk(joints, base,
+    camera)``, entering the tag model as noise through ``M``; a plane given in another
+    frame is moved into ``base`` with ``model.fk_mean``.  ``joints`` are the prior's joint
+    positions at the measurement's stamp (``model.joint_names`` order, NaN = unknown); a
+    chain that needs an unknown joint makes the measurement bad (the error names it).
+
+    Parameters
+    ----------
+    model : PPOEModel
+    base_frame, tool_frame : str
+        Frames of the state ``T_base_tool`` (the prior's ``header.frame_id`` and target).
+    pixel_sigma : float, optional
+        1-sigma pixel noise [px]; None = model YAML ``camera.pixel_sigma`` (default 0.5).
+    max_iterations : int
+        Relinearisations of the iterated update (1 = plain LG-EKF).
+    gate_probability : float or None
+        Chi-square gate probability (None = no gating).
+    camera_covariance : bool
+        Let the PPOE covariance of the camera chain enter the tag model.
+    use_centre, use_corners : bool
+        Which tag points enter the update (centre, corners 1..4).
+    contact_distance_sigma : float
+        Extra 1-sigma noise of the contact distance [m].
+    """
+
+    def __init__(
+        self,
+        model: Any,
+        base_frame: str,
+        tool_frame: str,
+        pixel_sigma: float | None = None,
+        max_iterations: int = 5,
+        gate_probability: float | None = 0.9973,
+        camera_covariance: bool = True,
+        use_centre: bool = True,
+        use_corners: bool = True,
+        contact_distance_sigma: float = 0.0,
+    ) -> None:
+        if not (use_centre or use_corners):
+            raise PpoeError("ModelUpdater: use_centre and use_corners are both false: no tag point would be used")
+        self.model = model
+        self.base_frame = base_frame
+        self.tool_frame = tool_frame
+        cfg = model.config
+        cam_sigma = cfg.camera.pixel_sigma if getattr(cfg, "camera", None) is not None else 0.5
+        self.pixel_sigma = float(cam_sigma if pixel_sigma is None else pixel_sigma)
+        self.max_iterations = int(max_iterations)
+        self.gate_probability = gate_probability
+        self.camera_covariance = bool(camera_covariance)
+        self.use_centre = bool(use_centre)
+        self.use_corners = bool(use_corners)
+        self.contact_distance_sigma = float(contact_distance_sigma)
+        self.tags = cfg.tags.by_id() if getattr(cfg, "tags", None) is not None else {}
+        self.contact = getattr(cfg, "contact", None)
+        #: tag points ignored because their id is not in the model YAML
+        self.unknown_tag_points = 0
+        self.last_result: Any = None
+
+    def _joints(self, prior: PriorSample | None) -> dict[str, float]:
+        if prior is None or prior.joints is None:
+            return {}
+        names = self.model.joint_names
+        return {n: float(v) for n, v in zip(names, prior.joints) if math.isfinite(float(v))}
+
+    def build(self, measurement: Measurement, prior: PriorSample | None) -> tuple[Any, Array]:
+        """Measurement model and ``z`` for ``measurement`` (see class docstring)."""
+        from ppoe_core import measurements as mm
+
+        joints = self._joints(prior)
+        p = measurement.payload
+        where = f"{measurement.source} at stamp {measurement.stamp:.6f}"
+        if isinstance(p, TagPoints):
+            ids = np.asarray(p.ids).astype(int).reshape(-1)
+            corners = np.asarray(p.corners).astype(int).reshape(-1)
+            xy = np.asarray(p.xy, dtype=np.float64).reshape(-1, 2)
+            if not (ids.shape[0] == corners.shape[0] == xy.shape[0]):
+                raise MeasurementError(f"{where}: ids, corners and xy differ in length")
+            if not np.all(np.isfinite(xy)):
+                raise MeasurementError(f"{where}: NaN/inf in the normalised coordinates")
+            fx, fy = p.fx, p.fy
+            if fx is None or fy is None:
+                if p.uv is None:
+                    raise MeasurementError(f"{where}: no focal length (camera_info) and no pixels")
+                fx, fy = _focal_from_points(np.asarray(p.uv, float).reshape(-1, 2), xy, where)
+            pts, keep, labels = [], [], []
+            T_tool_link: dict[str, Array] = {}
+            for i, (tid, c) in enumerate(zip(ids, corners)):
+                item = self.tags.get(int(tid))
+                if item is None:
+                    self.unknown_tag_points += 1
+                    continue
+                if not 0 <= c <= 4:
+                    raise MeasurementError(f"{where}: tag {tid} has corner index {c}, expected 0..4")
+                if (c == 0 and not self.use_centre) or (c > 0 and not self.use_corners):
+                    continue
+                if item.link not in T_tool_link:
+                    T_tool_link[item.link] = self.model.fk_mean(joints, self.tool_frame, item.link)
+                pts.append(mm.tag_points(item.size, T_tool_link[item.link] @ item.T_link_tag)[c])
+                keep.append(i)
+                labels.append(f"tag {tid} corner {c}")
+            if not pts:
+                raise MeasurementError(f"{where}: no point of a tag configured in the model YAML (ids {sorted(set(ids.tolist()))})")
+            if self.camera_covariance:
+                T_base_cam, cov_cam = self.model.fk(joints, self.base_frame, p.camera_frame)
+                if float(np.max(np.abs(cov_cam))) == 0.0:
+                    cov_cam = None
+            else:
+                T_base_cam, cov_cam = self.model.fk_mean(joints, self.base_frame, p.camera_frame), None
+            K = np.array([[fx, 0.0, 0.0], [0.0, fy, 0.0], [0.0, 0.0, 1.0]])
+            obs = mm.TagObservation(
+                np.asarray(pts), K, None, pixel_sigma=self.pixel_sigma, mode="normalized",
+                T_ref_camera=T_base_cam, cov_camera=cov_cam, labels=labels, name=where,
+            )
+            return obs, xy[keep].reshape(-1)
+        if isinstance(p, PlaneContact):
+            if self.contact is None:
+                raise MeasurementError(f"{where}: the model YAML has no 'contact' section (tool point)")
+            T_base_frame = self.model.fk_mean(joints, self.base_frame, p.frame)
+            T_tool_link = self.model.fk_mean(joints, self.tool_frame, self.contact.tool_link)
+            point_tool = T_tool_link[:3, :3] @ self.contact.tool_xyz + T_tool_link[:3, 3]
+            obs = mm.ContactPlane(
+                T_base_frame @ np.asarray(p.T_frame_plane, float), p.cov_plane, point_tool,
+                distance_sigma=self.contact_distance_sigma, name=where,
+            )
+            return obs, np.zeros(1)
+        raise MeasurementError(f"{where}: unknown payload type {type(p).__name__}")
+
+    def __call__(
+        self, T_base_tool: Array, cov_tool: Array, measurement: Measurement, prior: PriorSample | None = None
+    ) -> UpdateResult:
+        """Iterated LG-EKF update (``ppoe_core.fusion.iterated_update``) with gating."""
+        from ppoe_core.fusion import iterated_update
+
+        obs, z = self.build(measurement, prior)
+        res = iterated_update(
+            T_base_tool, cov_tool, z, obs,
+            max_iterations=self.max_iterations, gate_probability=self.gate_probability,
+        )
+        self.last_result = res
+        return UpdateResult(res.T, res.cov, bool(res.accepted), float(res.nis))

@@ -40,7 +40,7 @@ class LinearUpdater:
         self.gate = gate
         self.calls = 0
 
-    def __call__(self, T, P, m: Measurement) -> UpdateResult:
+    def __call__(self, T, P, m: Measurement, prior=None) -> UpdateResult:
         self.calls += 1
         T_meas, H, R = m.payload
         if not np.all(np.isfinite(T_meas)):
