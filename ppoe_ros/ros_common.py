@@ -26,6 +26,7 @@ never imported by :mod:`ppoe_core`.
 from __future__ import annotations
 
 import functools
+import importlib
 import math
 import sys
 import time
@@ -83,6 +84,7 @@ __all__ = [
     "check_nonempty",
     "check_length",
     "mapping_get",
+    "message_class",
 ]
 
 
@@ -257,7 +259,8 @@ def declare_parameters(
     Values come from ``--ros-args -p`` / ``--params-file`` overrides, else the
     spec's default.  A later ``set_parameters`` call is refused with the reason
     when a value fails its check (or the parameter is read-only); accepted
-    changes of writable parameters are passed to ``on_change({name: value})``.
+    changes of writable parameters are passed to ``on_change({name: value})``,
+    which may refuse them by raising :class:`PpoeError` (its message is the reason).
 
     Raises
     ------
@@ -308,7 +311,10 @@ def declare_parameters(
                 return SetParametersResult(successful=False, reason=f"parameter '{p.name}' {reason}")
             changed[p.name] = p.value
         if changed and on_change is not None:
-            on_change(changed)
+            try:
+                on_change(changed)
+            except PpoeError as exc:  # the node refuses the combination (e.g. release >= enter)
+                return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
 
     node.add_on_set_parameters_callback(_on_set)
@@ -613,3 +619,24 @@ def mapping_get(d: Mapping[str, Any] | None, *keys: str, default: Any = None) ->
         cur = cur[k]
     return cur
 
+
+def message_class(type_name: str) -> type:
+    """ROS message class from its type name (``"sensor_msgs/msg/JointState"`` or ``"sensor_msgs/JointState"``).
+
+    Raises
+    ------
+    PpoeError
+        Malformed name, or the message package is not installed (message names the type).
+    """
+    parts = type_name.split("/")
+    if len(parts) == 2:
+        parts = [parts[0], "msg", parts[1]]
+    if len(parts) != 3 or not all(parts):
+        raise PpoeError(f"message type '{type_name}' is not of the form package/msg/Name")
+    pkg, kind, name = parts
+    try:
+        module = importlib.import_module(f"{pkg}.{kind}")
+        cls = getattr(module, name)
+    except (ImportError, AttributeError):
+        raise PpoeError(f"message type '{type_name}' is not installed (no Python module {pkg}.{kind}.{name})") from None
+    return cls

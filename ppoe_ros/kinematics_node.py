@@ -1,0 +1,234 @@
+"""Kinematics node: joint states -> PPOE pose with covariance (``/ppoe/pose``).
+
+Subscriptions
+    ``/joint_states`` (``sensor_msgs/JointState``, sensor-data QoS): one output per message.
+    ``/robot_description`` (``std_msgs/String``, transient local) unless the
+    ``robot_description`` parameter holds the URDF.
+Publications
+    ``/ppoe/pose`` (``geometry_msgs/PoseWithCovarianceStamped``): ``T_reference_target``
+    with ``header.frame_id = reference_frame`` and ``header.stamp`` = the joint-state
+    stamp; the covariance is ``cov_target`` (local, right perturbation, paper
+    eq. 8-9/18) converted to the ROS convention of CONTRACT.md sec. 2.
+    ``/ppoe/<frame>/pose`` (same type) for each of ``extra_target_frames``.
+    ``/diagnostics``: counters ``received``, ``published``, ``bad``, ``dropped``.
+
+Bad input never stops the node: a message with a missing joint the chain needs,
+a NaN/inf position, mismatched ``name``/``position`` lengths, or a stamp older
+than the previous one is logged (throttled), counted as ``bad`` and dropped.
+A backward jump larger than ``stamp_reset_threshold`` (a replayed bag looping,
+a simulator reset) is logged and counted too, but taken as the start of a new
+timeline: that message is published.  Joint states that arrive before the URDF
+are counted as ``dropped``.  Joints the chain does not use are ignored.
+
+Parameters: see ``config/kinematics_node.yaml`` (every key documented there) and
+:data:`PARAMS`.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import yaml
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rcl_interfaces.msg import ParameterType
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+
+from ppoe_core import lie
+from ppoe_core.errors import ModelConfigError, PpoeError
+from ppoe_ros.ros_common import (
+    LATCHED_QOS,
+    DiagnosticsPublisher,
+    NodeStats,
+    ParamSpec,
+    check_nonempty,
+    declare_parameters,
+    guarded,
+    mapping_get,
+    pose_msg_from_matrix,
+    reliable_qos,
+    sensor_qos,
+    stamp_to_ns,
+)
+
+__all__ = ["KinematicsNode", "PARAMS", "main", "load_model_yaml", "output_topic"]
+
+_STRING_ARRAY = ParameterType.PARAMETER_STRING_ARRAY
+
+#: Parameters of the node (defaults; documented in config/kinematics_node.yaml).
+PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("model_file", "", "model YAML (perturbations, frames, ...); empty = exact URDF, zero covariance"),
+    ParamSpec("robot_description", "", "URDF XML; empty = take it from the robot_description topic"),
+    ParamSpec("robot_description_topic", "/robot_description", "latched std_msgs/String topic carrying the URDF",
+              check=check_nonempty),
+    ParamSpec("joint_states_topic", "/joint_states", "sensor_msgs/JointState input", check=check_nonempty),
+    ParamSpec("reference_frame", "", "frame the pose is expressed in; empty = model YAML frames.base, else the URDF root link"),
+    ParamSpec("target_frame", "", "frame whose pose is published; empty = model YAML frames.tool, else tool0"),
+    ParamSpec("pose_topic", "/ppoe/pose", "output topic of the target frame", check=check_nonempty),
+    ParamSpec("extra_target_frames", [], "more target frames, published on /ppoe/<frame>/pose", ptype=_STRING_ARRAY),
+    ParamSpec("order", 2, "covariance propagation order (paper eq. 15/18: 2; 4 = fourth order)",
+              check=lambda v: None if v in (2, 4) else f"must be 2 or 4, got {v}"),
+    ParamSpec("qos_depth", 100, "history depth of the joint-state subscription (sensor-data QoS)",
+              min_value=1, max_value=100000),
+    ParamSpec("stamp_reset_threshold", 1.0, "a stamp this much older than the last one starts a new timeline",
+              unit="s", min_value=0.0),
+    ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
+    ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
+              min_value=0.0),
+)
+
+
+def output_topic(frame: str) -> str:
+    """Topic of an extra target frame: ``/ppoe/<frame>/pose``."""
+    return f"/ppoe/{frame.strip('/')}/pose"
+
+
+def load_model_yaml(path: str) -> dict[str, Any]:
+    """Read the model YAML (``{}`` for an empty path).
+
+    Raises
+    ------
+    ModelConfigError
+        The file is missing or not a YAML mapping (message names the file).
+    """
+    if not path:
+        return {}
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except OSError as exc:
+        raise ModelConfigError(f"model file {p}: cannot read: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ModelConfigError(f"model file {p}: not valid YAML: {exc}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ModelConfigError(f"model file {p}: top level must be a mapping, got {type(data).__name__}")
+    return data
+
+
+class _Target:
+    """One output: a target frame, its publisher and a reused message object."""
+
+    __slots__ = ("frame", "pub", "msg")
+
+    def __init__(self, frame: str, pub: Any) -> None:
+        self.frame = frame
+        self.pub = pub
+        self.msg = PoseWithCovarianceStamped()
+
+
+class KinematicsNode(Node):
+    """Publishes ``T_reference_target`` and its ROS-convention covariance for every joint state."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("kinematics_node", **kwargs)
+        p = declare_parameters(self, PARAMS)
+        self.params = p
+        self.stats = NodeStats(self, ("received", "published", "bad", "dropped"), p["log_throttle"])
+        self.model_yaml = load_model_yaml(p["model_file"])
+        frames = self._frames = mapping_get(self.model_yaml, "frames", default={}) or {}
+        # "" = the URDF root link, resolved when the URDF arrives
+        self.reference = p["reference_frame"] or frames.get("base") or ""
+        target = p["target_frame"] or frames.get("tool") or "tool0"
+        self.order = int(p["order"])
+        self.reset_ns = int(round(p["stamp_reset_threshold"] * 1e9))
+        self.model: Any = None
+        self._urdf: str | None = None
+        self._last_ns: int | None = None
+
+        out_qos = reliable_qos(100)
+        self.targets = [_Target(target, self.create_publisher(PoseWithCovarianceStamped, p["pose_topic"], out_qos))]
+        for frame in p["extra_target_frames"]:
+            if frame == target or frame in (t.frame for t in self.targets):
+                raise ModelConfigError(f"node {self.get_name()}: parameter 'extra_target_frames' repeats '{frame}'")
+            self.targets.append(_Target(frame, self.create_publisher(
+                PoseWithCovarianceStamped, output_topic(frame), out_qos)))
+
+        self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
+        js_topic = p["joint_states_topic"]
+        self._on_joint_state = guarded(self.stats, js_topic)(self._joint_state)
+        self.create_subscription(JointState, js_topic, self._on_joint_state, sensor_qos(p["qos_depth"]))
+
+        if p["robot_description"]:
+            # a bad URDF in the parameter is a start-up error (PpoeError -> exit code 2)
+            self._set_model(p["robot_description"], "parameter robot_description")
+        else:
+            topic = p["robot_description_topic"]
+            self.create_subscription(String, topic, guarded(self.stats, topic)(self._robot_description),
+                                     LATCHED_QOS)
+            self.get_logger().info(f"waiting for the URDF on {topic}")
+        self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
+
+    # ------------------------------------------------------------------ model
+    def _set_model(self, urdf_xml: str, where: str) -> None:
+        from ppoe_core.model import PPOEModel
+
+        try:
+            model = PPOEModel.from_strings(urdf_xml, self.model_yaml)
+            reference = self.params["reference_frame"] or self._frames.get("base") or model.robot.root
+            model.robot.check_link(reference)  # check the frames now, not at the first joint state
+            for t in self.targets:
+                model.robot.check_link(t.frame)
+                t.msg.header.frame_id = reference
+        except PpoeError as exc:
+            raise type(exc)(f"{where}: {exc}") from None
+        self.reference = reference
+        self.model = model
+        self._urdf = urdf_xml
+        self.get_logger().info(
+            f"model from {where}: {len(model.joint_names)} joints; publishing "
+            + ", ".join(f"{self.reference}->{t.frame} on {t.pub.topic_name}" for t in self.targets))
+
+    def _robot_description(self, msg: String) -> None:
+        if msg.data == self._urdf:
+            return
+        self._set_model(msg.data, f"topic {self.params['robot_description_topic']}")
+        self.diagnostics.set_status(None, "")
+
+    # --------------------------------------------------------------- callback
+    def _joint_state(self, msg: JointState) -> None:
+        stats = self.stats
+        stats.counts["received"] += 1
+        model = self.model
+        if model is None:
+            stats.bad(self.params["joint_states_topic"], "no URDF yet (waiting for robot_description)",
+                      kind="dropped")
+            return
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        last = self._last_ns
+        if last is not None and stamp_ns < last:
+            jump = (last - stamp_ns) * 1e-9
+            if last - stamp_ns <= self.reset_ns:
+                raise ValueError(f"stamp {stamp_ns * 1e-9:.9f} s jumped back by {jump:.6f} s: message dropped")
+            stats.bad(self.params["joint_states_topic"],
+                      f"stamp jumped back by {jump:.3f} s (> stamp_reset_threshold): new timeline")
+        names = msg.name
+        if len(names) != len(msg.position):
+            raise ValueError(f"{len(names)} names but {len(msg.position)} positions")
+        joints = dict(zip(names, msg.position))
+        for t in self.targets:
+            T, cov_local = model.fk(joints, self.reference, t.frame, order=self.order)
+            cov_ros = lie.cov_local_to_ros(T, cov_local)
+            out = t.msg
+            out.header.stamp = msg.header.stamp
+            pose_msg_from_matrix(T, out.pose.pose)
+            out.pose.covariance = cov_ros.ravel()
+            t.pub.publish(out)
+        self._last_ns = stamp_ns
+        stats.counts["published"] += 1
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point ``kinematics_node`` (``--ros-args`` accepted)."""
+    from ppoe_ros.ros_common import run_node
+
+    return run_node(KinematicsNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
