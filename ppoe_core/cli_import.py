@@ -2,13 +2,14 @@
 
 ::
 
-    ppoe import hilti FILE.yaml --out BAG [--urdf trailblazer.urdf] [--force] [--json]
+    ppoe import hilti FILE.yaml --out BAG [--urdf trailblazer.urdf] [--ppoe-model OUT.yaml] [--force] [--json]
     ppoe import motoman FILE.mat --model-yaml MODEL.yaml --out BAG [--urdf URDF]
                         [--ppoe-model OUT.yaml] [--force] [--json]
 
 The bag layouts are documented in :mod:`ppoe_core.importers.hilti` and
-:mod:`ppoe_core.importers.motoman`.  The datasets are third-party data: never commit
-the bags (or the generated model YAML) these commands write.
+:mod:`ppoe_core.importers.motoman`.  Both also write a ppoe model YAML next to the bag
+(``BAG.model.yaml``) for ``ppoe evaluate``.  The datasets are third-party data: never
+commit the bags (or the generated model YAML) these commands write.
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     h.add_argument("file", metavar="FILE.yaml", help="dataset file, e.g. flat.yaml")
     h.add_argument("--out", required=True, metavar="BAG", help="output bag directory")
     h.add_argument("--urdf", default=None, help="robot URDF (default: trailblazer.urdf next to FILE)")
+    h.add_argument(
+        "--ppoe-model", default=None, metavar="OUT.yaml", help="where to write the ppoe model (default: BAG.model.yaml)"
+    )
     m = sub.add_parser("motoman", help="Motoman Leica .mat -> contract bag + ppoe model YAML")
     m.add_argument("file", metavar="FILE.mat", help="dataset file, e.g. leica_right_hand_6x6x6_dataset.mat")
     m.add_argument("--model-yaml", required=True, metavar="MODEL.yaml", help="the dataset's model.yaml")
@@ -46,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
     if args.dataset == "hilti":
         from ppoe_core.importers.hilti import import_hilti
 
-        result = {"bag": args.out, "counts": import_hilti(args.file, args.out, urdf=args.urdf, overwrite=args.force)}
+        res = import_hilti(args.file, args.out, urdf=args.urdf, overwrite=args.force, ppoe_model_out=args.ppoe_model)
+        result = {"bag": args.out, **res}
     else:
         from ppoe_core.importers.motoman import import_motoman
 

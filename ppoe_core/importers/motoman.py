@@ -260,18 +260,11 @@ def load_marker_poses(model_yaml: str | Path) -> dict[int, np.ndarray]:
 
 
 def undistort(uv: np.ndarray, camera: MotomanCamera) -> np.ndarray:
-    """Raw pixels ``(M, 2)`` -> undistorted normalised coordinates ``(M, 2)`` (x = X/Z, y = Y/Z)."""
-    import cv2
+    """Raw pixels ``(M, 2)`` -> undistorted normalised coordinates ``(M, 2)`` (x = X/Z, y = Y/Z),
+    with the tag bearing node's :func:`ppoe_core.tags.undistort_pixels`."""
+    from ppoe_core.tags import undistort_pixels
 
-    if len(uv) == 0:
-        return np.zeros((0, 2))
-    pts = cv2.undistortPoints(
-        uv.reshape(-1, 1, 2).astype(np.float64),
-        camera.K,
-        camera.D,
-        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14),
-    )
-    return pts.reshape(-1, 2)
+    return undistort_pixels(np.asarray(uv, float).reshape(-1, 2), camera.K, camera.D)
 
 
 def motoman_model_dict(model_yaml: str | Path) -> dict[str, Any]:
