@@ -204,7 +204,10 @@ class ModelConfig:
     camera, tags, contact, tracker, naive : optional sections (None if absent)
     imus : dict[str, ImuConfig]
     effects : list[dict]
-        ``{"name", "location", "parameters"[, "ci"]}``, names from CONTRACT section 6.
+        ``{"name", "location", "parameters"[, "ci", "variable", "reference"]}``, names from
+        CONTRACT section 6.
+    effect_wheres : list[str]
+        ``file:line`` of each effect entry (for messages of ``effects.effect_from_config``).
     source : str
         File name, ``"<string>"`` or ``"<dict>"``.
     """
@@ -219,6 +222,7 @@ class ModelConfig:
     imus: dict[str, ImuConfig] = field(default_factory=dict)
     naive: Optional[NaiveConfig] = None
     effects: list[dict] = field(default_factory=list)
+    effect_wheres: list[str] = field(default_factory=list)
     source: str = "<dict>"
 
 
@@ -280,6 +284,7 @@ class _Ctx:
 
     def __init__(self, source: str) -> None:
         self.source = source
+        self.effect_wheres: list[str] = []
 
     def at(self, obj: Any = None, key: Any = None) -> str:
         line = None
@@ -553,6 +558,7 @@ def _naive(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[NaiveCon
 
 
 def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
+    wheres: list[str] = ctx.effect_wheres
     if sec is None:
         return []
     if not isinstance(sec, list):
@@ -561,7 +567,8 @@ def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
     for i, e in enumerate(sec):
         path = f"effects[{i}]"
         e = _mapping(ctx, e, sec, None, path)
-        _check_keys(ctx, e, ("name", "location", "parameters", "ci"), path, required=("name", "location"))
+        _check_keys(ctx, e, ("name", "location", "parameters", "ci", "variable", "reference"), path,
+                    required=("name", "location"))
         name = e["name"]
         if name not in EFFECT_NAMES:
             raise ctx.error(e, "name", path + ".name",
@@ -580,6 +587,13 @@ def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
         entry: dict[str, Any] = {"name": name, "location": loc, "parameters": pclean}
         if "ci" in e:
             entry["ci"] = _plain(e["ci"])
+        if "variable" in e:  # thermal_growth: name of the context variable (e.g. temperature)
+            if not isinstance(e["variable"], str):
+                raise ctx.error(e, "variable", path + ".variable", f"must be a string, got {e['variable']!r}")
+            entry["variable"] = e["variable"]
+        if "reference" in e:  # thermal_growth: reference value of that variable
+            entry["reference"] = _number(ctx, e["reference"], e, "reference", path + ".reference")
+        wheres.append(ctx.at(e))
         out.append(entry)
     return out
 
@@ -679,4 +693,4 @@ def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Rob
         raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {type(data).__name__}")
     _check_keys(ctx, data, tuple(_SECTIONS), "model")
     kwargs = {name: fn(ctx, robot, data.get(name), data) for name, fn in _SECTIONS.items()}
-    return ModelConfig(source=where, **kwargs)
+    return ModelConfig(source=where, effect_wheres=list(ctx.effect_wheres), **kwargs)

@@ -1,0 +1,50 @@
+"""ppoe_core: the Probabilistic Product-of-Exponentials robot model (pure Python + numpy).
+
+Public API::
+
+    from ppoe_core import PPOEModel, parse_urdf, load_model_config
+    model = PPOEModel.from_files("config/arm7.urdf", "config/arm7_model.yaml")
+    T_base_tool, cov_tool = model.fk({"joint_1": 0.1, ...}, "base_link", "tool0")
+
+No ROS import anywhere in this package.
+"""
+
+from __future__ import annotations
+
+from .config import ModelConfig, load_model_config
+from .errors import (
+    BagError,
+    CovarianceError,
+    DatasetError,
+    JointValueError,
+    MeasurementError,
+    ModelConfigError,
+    PpoeError,
+    ScenarioError,
+    UnknownFrameError,
+    UnknownJointError,
+    UrdfError,
+)
+from .model import PPOEModel
+from .urdf import Joint, Link, Robot, parse_urdf
+
+__all__ = [
+    "PPOEModel",
+    "parse_urdf",
+    "load_model_config",
+    "Robot",
+    "Joint",
+    "Link",
+    "ModelConfig",
+    "PpoeError",
+    "UrdfError",
+    "ModelConfigError",
+    "UnknownJointError",
+    "UnknownFrameError",
+    "JointValueError",
+    "CovarianceError",
+    "MeasurementError",
+    "BagError",
+    "ScenarioError",
+    "DatasetError",
+]

@@ -1,0 +1,895 @@
+"""The Probabilistic Product-of-Exponentials (PPOE) model of a URDF robot.
+
+One link of the chain is (paper eq. 16, CONTRACT section 1)::
+
+    X_i,i+1(q_i) = Exp(p_i) [Exp(dxi_i)] Exp(xi_i) Exp(zeta_i q_i) [Exp(zeta_i n_i)]
+
+with ``Exp(p_i)`` the joint's static URDF origin, ``xi_i ~ N(0, Sigma_i)`` its
+perturbation (model YAML ``perturbations``), ``zeta_i`` the unit joint twist,
+``n_i ~ N(0, sigma_i^2)`` the optional joint-value noise (``joint_noise``, the
+``xi = zeta`` case of paper IV-D) and ``dxi_i`` the non-zero-mean twist of
+systematic effects (``effects``, ARCHITECTURE.md "Effects hook").  The chain
+between ANY two links ``frm`` and ``to`` goes up from ``frm`` to the lowest common
+ancestor (each link inverted: ``(X Exp(xi))^-1 = Exp(-xi) X^-1``, again a
+zero-mean perturbation at another place) and down to ``to`` (eq. 17).
+
+Mean pose = the chain with every ``xi = 0``, ``n = 0`` (eq. 17).  Covariance in
+the tangent space at ``T_frm_to`` (right perturbation, frame ``to``):
+
+* ``order=2``: paper eq. 15/18, ``Sigma = sum_k Ad_{B_k^-1} Sigma_k Ad_{B_k^-1}^T``
+  with ``B_k`` the product of everything after perturbation ``k``;
+* ``order=4``: Barfoot & Furgale (2014), "Associating uncertainty with
+  three-dimensional poses for use in estimation problems", IEEE T-RO 30(3),
+  fourth-order compounding (their eq. 55), applied sequentially to the local
+  perturbations ``Ad_{B_k^-1} xi_k`` (right form: ``X1 Exp(x1) X2 Exp(x2) = X1 X2
+  Exp(Ad_{X2^-1} x1) Exp(x2)``).  The fourth-order terms are ported from
+  pytransform3d's ``concat_globally_uncertain_transforms`` (BSD-3), written here in
+  our ``[rho; theta]`` order, batched.
+
+Implementation notes (speed): every chain ``(frm, to)`` is compiled once into a
+program of constant 4x4 factors and joint motions about the local z axis (each
+joint frame is rotated by a constant ``Q`` with ``Q e_z = axis``, so a revolute
+motion only mixes two columns).  The batched path keeps poses as ``(3, 4, N)``
+(batch last, structure of arrays), the single-configuration path uses a
+log-depth prefix product over stacked ``(K, 4, 4)`` factors.  Covariances use the
+low-rank factors ``Sigma_k = L_k L_k^T``: ``Sigma = G G^T`` with
+``G = [Ad_{B_k^-1} L_k]_k``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any, Mapping, Optional, Sequence, Union
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from . import lie
+from .config import ModelConfig, load_model_config
+from .errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
+from .urdf import Robot, parse_urdf
+
+__all__ = ["PPOEModel", "compound_fourth_order"]
+
+Array = np.ndarray
+Joints = Union[Mapping[str, ArrayLike], ArrayLike]
+
+
+# ----------------------------------------------------------------------------
+# Small private helpers
+# ----------------------------------------------------------------------------
+
+
+def _rot_z_to(axis: Array) -> Array:
+    """A rotation ``Q`` (3, 3) with ``Q @ e_z = axis`` (identity for axis = e_z)."""
+    a = np.asarray(axis, dtype=float)
+    if np.allclose(a, [0.0, 0.0, 1.0], atol=0.0, rtol=0.0):
+        return np.eye(3)
+    ez = np.array([0.0, 0.0, 1.0])
+    v = np.cross(ez, a)
+    s = float(np.linalg.norm(v))
+    c = float(a[2])
+    if s < 1e-12:  # a = -e_z
+        return np.diag([1.0, -1.0, -1.0])
+    return lie.so3_exp(v / s * np.arctan2(s, c))
+
+
+def _pose(R: Array, t: Optional[Array] = None) -> Array:
+    T = np.eye(4)
+    T[:3, :3] = R
+    if t is not None:
+        T[:3, 3] = t
+    return T
+
+
+def _inv(T: Array) -> Array:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def _rot6(R: Array) -> Array:
+    """``blockdiag(R, R)`` = adjoint of a pure rotation."""
+    out = np.zeros((6, 6))
+    out[:3, :3] = R
+    out[3:, 3:] = R
+    return out
+
+
+# Levi-Civita tensor: hat(t)[i, j] = sum_k _EPS[i, j, k] t[k]
+_EPS = np.zeros((3, 3, 3))
+_EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = -1.0
+_EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = 1.0
+
+
+def _covop1(A: Array) -> Array:
+    """Barfoot's ``<<A>> = -tr(A) I + A`` for ``(..., 3, 3)``."""
+    tr = np.trace(A, axis1=-2, axis2=-1)
+    return A - tr[..., None, None] * np.eye(3)
+
+
+def _covop2(A: Array, B: Array) -> Array:
+    """Barfoot's ``<<A, B>> = <<A>> <<B>> + <<B A>>``."""
+    return _covop1(A) @ _covop1(B) + _covop1(B @ A)
+
+
+def compound_fourth_order(cov1: ArrayLike, cov2: ArrayLike) -> Array:
+    """Covariance of ``Exp(xi1) Exp(xi2)`` to fourth order (Barfoot & Furgale 2014, eq. 55).
+
+    Both covariances live in the SAME tangent space (transport them first, e.g. for right
+    perturbations ``X1 Exp(x1) X2 Exp(x2) = X1 X2 Exp(Ad_{X2^-1} x1) Exp(x2)`` gives
+    ``cov1 = Ad_{X2^-1} Sigma_1 Ad^T``, ``cov2 = Sigma_2``, both at ``X1 X2``).  Ported from
+    pytransform3d's ``_compound_cov_fourth_order_terms`` (which orders twists
+    ``[omega; v]``) to our ``[rho; theta]`` order, broadcasting over batch axes.
+
+    Parameters
+    ----------
+    cov1, cov2 : array_like, shape (..., 6, 6)
+        Covariances of the left and the right factor's twist ``[rho; theta]``.
+
+    Returns
+    -------
+    ndarray, shape (..., 6, 6)
+        ``cov1 + cov2 + (A1 cov2 + cov2 A1^T + A2 cov1 + cov1 A2^T) / 12 + B / 4``.
+    """
+    c1 = np.asarray(cov1, dtype=float)
+    c2 = np.asarray(cov2, dtype=float)
+    c1, c2 = np.broadcast_arrays(c1, c2)
+    s1_rr, s1_rt, s1_tt = c1[..., :3, :3], c1[..., :3, 3:], c1[..., 3:, 3:]
+    s2_rr, s2_rt, s2_tt = c2[..., :3, :3], c2[..., :3, 3:], c2[..., 3:, 3:]
+    s1_tr = np.swapaxes(s1_rt, -1, -2)
+    s2_tr = np.swapaxes(s2_rt, -1, -2)
+    shape = c1.shape
+    A1 = np.zeros(shape)
+    A1[..., :3, :3] = A1[..., 3:, 3:] = _covop1(s1_tt)
+    A1[..., :3, 3:] = _covop1(s1_rt + s1_tr)
+    A2 = np.zeros(shape)
+    A2[..., :3, :3] = A2[..., 3:, 3:] = _covop1(s2_tt)
+    A2[..., :3, 3:] = _covop1(s2_rt + s2_tr)
+    B = np.zeros(shape)
+    B[..., :3, :3] = (
+        _covop2(s1_tt, s2_rr) + _covop2(s1_tr, s2_rt) + _covop2(s1_rt, s2_tr) + _covop2(s1_rr, s2_tt)
+    )
+    B12 = _covop2(s1_tt, s2_tr) + _covop2(s1_tr, s2_tt)
+    B[..., :3, 3:] = B12
+    B[..., 3:, :3] = np.swapaxes(B12, -1, -2)
+    B[..., 3:, 3:] = _covop2(s1_tt, s2_tt)
+    A1T = np.swapaxes(A1, -1, -2)
+    A2T = np.swapaxes(A2, -1, -2)
+    return c1 + c2 + (A1 @ c2 + c2 @ A1T + A2 @ c1 + c1 @ A2T) / 12.0 + B / 4.0
+
+
+# ----------------------------------------------------------------------------
+# Compiled chain
+# ----------------------------------------------------------------------------
+
+# program op codes
+_S, _RZ, _TZ, _D, _SITE = 0, 1, 2, 3, 4
+
+
+@dataclass
+class _Chain:
+    """A compiled chain ``frm -> to``.
+
+    ``ops`` is a list of ``(code, arg)``:
+      * ``(_S, M)``: multiply by the constant 4x4 ``M``;
+      * ``(_RZ, i)`` / ``(_TZ, i)``: rotate about / translate along local z by motion ``i``;
+      * ``(_D, k)``: multiply by ``Exp(dxi)`` of effect site ``k`` (effects only);
+      * ``(_SITE, k)``: perturbation site ``k`` (its prefix product is recorded).
+    """
+
+    frm: str
+    to: str
+    ops: list
+    # motions (one per movable joint on the chain)
+    motion_joint: list  # joint name
+    motion_master: list  # independent master joint name
+    motion_slot: Array  # (n_motion,) index into `masters`
+    motion_mult: Array  # (n_motion,) sign * multiplier
+    motion_off: Array  # (n_motion,) sign * offset
+    motion_sign: Array  # (n_motion,) +1 down, -1 up
+    motion_kind: list  # _RZ or _TZ
+    masters: list  # independent joints the chain needs, first-use order
+    # perturbation sites
+    site_L: list  # (6, r_k) factors in the canonical frame at the site
+    site_label: list  # "xi:<joint>" / "noise:<joint>"
+    L_all: Array  # (m, 6) all factor columns stacked (rows = columns of L_k)
+    col_site: Array  # (m,) site index of each column
+    # effect sites
+    d_joint: list  # joint name of each _D site
+    d_map: list  # (6, 6) map of the joint's dxi into the canonical twist (sign included)
+    # single-configuration program
+    f_static: Array  # (n_f, 4, 4) factors with identities at motion/D slots
+    f_motion_idx: Array  # factor index of each motion
+    f_d_idx: Array  # factor index of each D op
+    site_pos: Array  # (n_sites,) number of factors before each site
+    motion_pos: Array  # (n_motion,) number of factors up to and including each motion
+
+
+def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects: bool) -> _Chain:
+    """Build the program of the chain ``frm -> to`` (see :class:`_Chain`)."""
+    up, down = robot.chain(frm, to)
+    ops: list = []
+    pending = np.eye(4)  # constant factor not yet emitted
+    has_pending = False
+
+    def static(M: Array) -> None:
+        nonlocal pending, has_pending
+        pending = pending @ M
+        has_pending = True
+
+    def flush() -> None:
+        nonlocal pending, has_pending
+        if has_pending and not np.array_equal(pending, np.eye(4)):
+            ops.append((_S, pending))
+        pending = np.eye(4)
+        has_pending = False
+
+    motion_joint, motion_master, motion_mult, motion_off, motion_sign, motion_kind = [], [], [], [], [], []
+    site_L: list = []
+    site_label: list = []
+    d_joint: list = []
+    d_map: list = []
+    masters: list = []
+
+    def motion(jn: str, sign: float) -> None:
+        j = robot.joints[jn]
+        if j.mimic_root is not None:
+            master, mult, off = j.mimic_root
+        else:
+            master, mult, off = jn, 1.0, 0.0
+        if master not in masters:
+            masters.append(master)
+        flush()
+        kind = _TZ if j.type == "prismatic" else _RZ
+        ops.append((kind, len(motion_joint)))
+        motion_joint.append(jn)
+        motion_master.append(master)
+        motion_mult.append(sign * mult)
+        motion_off.append(sign * off)
+        motion_sign.append(sign)
+        motion_kind.append(kind)
+
+    def site(L: Array, label: str) -> None:
+        if L.shape[1] == 0:
+            return
+        flush()
+        ops.append((_SITE, len(site_L)))
+        site_L.append(L)
+        site_label.append(label)
+
+    def dsite(jn: str, M6: Array) -> None:
+        if not with_effects:
+            return
+        flush()
+        ops.append((_D, len(d_joint)))
+        d_joint.append(jn)
+        d_map.append(M6)
+
+    def noise_L(jn: str) -> Array:
+        sigma = config.joint_noise.get(jn, 0.0)
+        if sigma <= 0.0:
+            return np.zeros((6, 0))
+        L = np.zeros((6, 1))
+        L[2 if robot.joints[jn].type == "prismatic" else 5, 0] = sigma
+        return L
+
+    def xi_L(jn: str) -> Array:
+        p = config.perturbations.get(jn)
+        return np.zeros((6, 0)) if p is None else p.factor
+
+    # up-branch: (O Exp(d) Exp(xi) Q Mz(q) Q^T Exp(n))^-1
+    #          = Exp(-n) Q Mz(-q) Q^T Exp(-xi) Exp(-d) O^-1
+    #          = Q Exp(-Ad_{Q^T} n) Mz(-q) Exp(-Ad_Q xi) Exp(-Ad_Q d) Q^T O^-1
+    for jn in up:
+        j = robot.joints[jn]
+        if j.movable:
+            Q = _rot_z_to(j.axis)
+            static(_pose(Q))
+            site(noise_L(jn), "noise:" + jn)  # already along z in the Q frame
+            motion(jn, -1.0)
+            site(_rot6(Q) @ xi_L(jn), "xi:" + jn)
+            dsite(jn, -_rot6(Q))
+            static(_pose(Q.T) @ _inv(j.origin))
+        else:
+            site(xi_L(jn), "xi:" + jn)
+            dsite(jn, -np.eye(6))
+            static(_inv(j.origin))
+    # down-branch: O Exp(d) Exp(xi) Q Mz(q) Q^T Exp(n)
+    #            = (O Q) Exp(Ad_{Q^T} d) Exp(Ad_{Q^T} xi) Mz(q) Exp(Ad_{Q^T} n) Q^T
+    for jn in down:
+        j = robot.joints[jn]
+        if j.movable:
+            Q = _rot_z_to(j.axis)
+            static(j.origin @ _pose(Q))
+            dsite(jn, _rot6(Q.T))
+            site(_rot6(Q.T) @ xi_L(jn), "xi:" + jn)
+            motion(jn, 1.0)
+            site(noise_L(jn), "noise:" + jn)
+            static(_pose(Q.T))
+        else:
+            static(j.origin)
+            dsite(jn, np.eye(6))
+            site(xi_L(jn), "xi:" + jn)
+    flush()
+
+    # stacked low-rank columns
+    if site_L:
+        L_all = np.concatenate([L.T for L in site_L], axis=0)
+        col_site = np.concatenate([np.full(L.shape[1], k) for k, L in enumerate(site_L)]).astype(int)
+    else:
+        L_all = np.zeros((0, 6))
+        col_site = np.zeros(0, dtype=int)
+
+    # single-config program: factor list
+    factors, f_motion_idx, f_d_idx = [], [], []
+    site_pos = np.zeros(len(site_L), dtype=int)
+    motion_pos = np.zeros(len(motion_joint), dtype=int)
+    for code, arg in ops:
+        if code == _S:
+            factors.append(arg)
+        elif code in (_RZ, _TZ):
+            f_motion_idx.append(len(factors))
+            factors.append(np.eye(4))
+            motion_pos[arg] = len(factors)
+        elif code == _D:
+            f_d_idx.append(len(factors))
+            factors.append(np.eye(4))
+        else:
+            site_pos[arg] = len(factors)
+    if not factors:
+        factors.append(np.eye(4))
+    slot = np.array([masters.index(m) for m in motion_master], dtype=int)
+    return _Chain(
+        frm=frm,
+        to=to,
+        ops=ops,
+        motion_joint=motion_joint,
+        motion_master=motion_master,
+        motion_slot=slot,
+        motion_mult=np.array(motion_mult, dtype=float),
+        motion_off=np.array(motion_off, dtype=float),
+        motion_sign=np.array(motion_sign, dtype=float),
+        motion_kind=motion_kind,
+        masters=masters,
+        site_L=site_L,
+        site_label=site_label,
+        L_all=L_all,
+        col_site=col_site,
+        d_joint=d_joint,
+        d_map=d_map,
+        f_static=np.array(factors),
+        f_motion_idx=np.array(f_motion_idx, dtype=int),
+        f_d_idx=np.array(f_d_idx, dtype=int),
+        site_pos=site_pos,
+        motion_pos=motion_pos,
+    )
+
+
+# ----------------------------------------------------------------------------
+# Chain evaluation
+# ----------------------------------------------------------------------------
+
+
+def _eval_single(ch: _Chain, theta: Array, D: Optional[Array]) -> tuple[Array, Array]:
+    """One configuration: ``theta`` (n_motion,), ``D`` (n_d, 4, 4) or None.
+
+    Returns ``(T (4, 4), prefixes (n_f + 1, 4, 4))`` with ``prefixes[k]`` = product of
+    the first ``k`` factors.
+    """
+    F = ch.f_static.copy()
+    if theta.size:
+        kinds = ch.motion_kind
+        c, s = np.cos(theta), np.sin(theta)
+        for i, fi in enumerate(ch.f_motion_idx):
+            if kinds[i] == _RZ:
+                F[fi, 0, 0] = F[fi, 1, 1] = c[i]
+                F[fi, 0, 1] = -s[i]
+                F[fi, 1, 0] = s[i]
+            else:
+                F[fi, 2, 3] = theta[i]
+    if D is not None and len(ch.f_d_idx):
+        F[ch.f_d_idx] = D
+    # Hillis-Steele inclusive prefix product (log depth, order-preserving)
+    n = F.shape[0]
+    d = 1
+    while d < n:
+        F[d:] = F[:-d] @ F[d:]
+        d *= 2
+    P = np.empty((n + 1, 4, 4))
+    P[0] = np.eye(4)
+    P[1:] = F
+    return F[-1], P
+
+
+def _eval_batch(
+    ch: _Chain,
+    theta: Array,
+    D: Optional[Array],
+    pert: Optional[list],
+    record_sites: bool,
+    record_motions: bool,
+) -> tuple[Array, list, list]:
+    """Many configurations, poses as ``(3, 4, N)`` (batch last).
+
+    Parameters
+    ----------
+    theta : (n_motion, N)
+    D : (n_d, 4, 4, N) or None
+        ``Exp(dxi)`` per effect site.
+    pert : list of (4, 4, N) or None
+        ``Exp(xi_k)`` per site (Monte-Carlo), right-multiplied at the site.
+
+    Returns
+    -------
+    P : (3, 4, N) the chain's pose rows; site prefixes; motion prefixes (after the motion).
+    """
+    N = theta.shape[1]
+    P: Optional[Array] = None  # None = identity
+    sites: list = [None] * len(ch.site_L)
+    motions: list = [None] * len(ch.motion_joint)
+    c = s = None
+    if theta.size:
+        c, s = np.cos(theta), np.sin(theta)
+
+    def ident() -> Array:
+        out = np.zeros((3, 4, N))
+        out[0, 0] = out[1, 1] = out[2, 2] = 1.0
+        return out
+
+    for code, arg in ch.ops:
+        if code == _S:
+            if P is None:
+                P = np.repeat(arg[:3, :, None], N, axis=2)
+            else:
+                P = np.einsum("ijn,jk->ikn", P, arg)
+        elif code == _RZ:
+            if P is None:
+                P = ident()
+            p0 = P[:, 0].copy()
+            p1 = P[:, 1]
+            ci, si = c[arg], s[arg]
+            P[:, 0] = p0 * ci + p1 * si
+            P[:, 1] = p1 * ci - p0 * si
+            if record_motions:
+                motions[arg] = P.copy()
+        elif code == _TZ:
+            if P is None:
+                P = ident()
+            P[:, 3] += P[:, 2] * theta[arg]
+            if record_motions:
+                motions[arg] = P.copy()
+        elif code == _D:
+            if P is None:
+                P = ident()
+            P = np.einsum("ijn,jkn->ikn", P, D[arg])
+        else:  # site
+            if P is None:
+                P = ident()
+            if record_sites:
+                sites[arg] = P.copy()
+            if pert is not None:
+                P = np.einsum("ijn,jkn->ikn", P, pert[arg])
+    if P is None:
+        P = ident()
+    return P, sites, motions
+
+
+def _exp_batch_last(xi: Array) -> Array:
+    """``lie.exp`` for twists ``(6, N)`` -> ``(4, 4, N)``."""
+    return np.moveaxis(lie.exp(xi.T), 0, -1)
+
+
+# ----------------------------------------------------------------------------
+# The model
+# ----------------------------------------------------------------------------
+
+
+class PPOEModel:
+    """PPOE forward kinematics of a URDF robot: mean pose and 6x6 covariance between links.
+
+    Parameters
+    ----------
+    robot : Robot
+    config : ModelConfig, optional
+        Perturbations, joint noise, effects, ... (None: every joint exact).
+    effects : sequence of effect objects, optional
+        Overrides ``config.effects``: objects with ``corrections(q, context) -> (dq, dxi)``
+        (see ``ppoe_core.effects``).  None: built from ``config.effects`` with
+        ``ppoe_core.effects.effect_from_config`` (imported only if there are any).
+
+    Attributes
+    ----------
+    robot : Robot
+    config : ModelConfig
+    joint_names : list[str]
+        Independent movable joints (no fixed, no mimic) in URDF order: the order of an
+        array ``joints`` argument.
+    """
+
+    def __init__(self, robot: Robot, config: Optional[ModelConfig] = None, effects: Optional[Sequence[Any]] = None) -> None:
+        self.robot = robot
+        self.config = config if config is not None else load_model_config(None, robot)
+        self.joint_names: list[str] = robot.independent_joints
+        self._index = {n: i for i, n in enumerate(self.joint_names)}
+        self._chains: dict[tuple[str, str, bool], _Chain] = {}
+        self._effects: Optional[list] = list(effects) if effects is not None else None
+
+    # -- construction -----------------------------------------------------------
+    @classmethod
+    def from_files(cls, urdf_path: Union[str, os.PathLike], model_yaml_path: Union[str, os.PathLike, None] = None) -> "PPOEModel":
+        """Model from a URDF file and an optional model YAML file."""
+        robot = parse_urdf(os.fspath(urdf_path) if not isinstance(urdf_path, os.PathLike) else urdf_path)
+        return cls(robot, load_model_config(model_yaml_path, robot))
+
+    @classmethod
+    def from_strings(cls, urdf_xml: str, yaml_text_or_dict: Union[str, Mapping, None] = None) -> "PPOEModel":
+        """Model from URDF XML text and optional model YAML text or mapping."""
+        if not urdf_xml.lstrip().startswith("<"):
+            from .errors import UrdfError
+
+            raise UrdfError("from_strings: URDF text must start with '<' (use from_files for paths)")
+        robot = parse_urdf(urdf_xml)
+        if isinstance(yaml_text_or_dict, str) and "\n" not in yaml_text_or_dict and ":" not in yaml_text_or_dict:
+            raise ModelConfigError("from_strings: model YAML text expected (use from_files for paths)")
+        return cls(robot, load_model_config(yaml_text_or_dict, robot))
+
+    def with_effects(self, effects: Sequence[Any]) -> "PPOEModel":
+        """A model sharing robot and config whose effects are ``effects`` (e.g. candidates)."""
+        return PPOEModel(self.robot, self.config, effects=effects)
+
+    @property
+    def effects(self) -> list:
+        """The effect objects applied in :meth:`fk` (built lazily from ``config.effects``)."""
+        if self._effects is None:
+            if self.config.effects:
+                from . import effects as _effects_mod  # lazy: only when effects are configured
+
+                wheres = list(self.config.effect_wheres) + ["effects"] * len(self.config.effects)
+                self._effects = [
+                    _effects_mod.effect_from_config(e, self.robot, where=f"{wheres[i]}: effects[{i}]")
+                    for i, e in enumerate(self.config.effects)
+                ]
+            else:
+                self._effects = []
+        return self._effects
+
+    # -- chains -----------------------------------------------------------------
+    def _frames(self, frm: Optional[str], to: Optional[str]) -> tuple[str, str]:
+        frames = self.config.frames
+        if frm is None:
+            frm = frames.base if frames is not None else self.robot.root
+        if to is None:
+            to = frames.tool if frames is not None else None
+            if to is None:
+                raise UnknownFrameError(
+                    f"no target frame given and the model has no default tool frame (URDF {self.robot.source})"
+                )
+        self.robot.check_link(frm)
+        self.robot.check_link(to)
+        return frm, to
+
+    def _chain(self, frm: str, to: str, with_effects: bool) -> _Chain:
+        key = (frm, to, with_effects)
+        ch = self._chains.get(key)
+        if ch is None:
+            ch = _compile(self.robot, self.config, frm, to, with_effects)
+            self._chains[key] = ch
+        return ch
+
+    def chain_joints(self, frm: Optional[str] = None, to: Optional[str] = None) -> list[str]:
+        """Independent joints whose values the chain ``frm -> to`` needs."""
+        frm, to = self._frames(frm, to)
+        return list(self._chain(frm, to, False).masters)
+
+    # -- joint values -----------------------------------------------------------
+    def _joint_values(self, joints: Joints, names: list[str], frm: str, to: str) -> tuple[Array, tuple]:
+        """Values of ``names`` as ``(len(names), N)`` and the batch shape."""
+        if isinstance(joints, Mapping):
+            cols = []
+            for n in names:
+                if n not in joints:
+                    raise JointValueError(
+                        f"missing value for joint '{n}' (needed by the chain {frm} -> {to}; got "
+                        f"{', '.join(sorted(map(str, joints))) or 'no joints'})"
+                    )
+                try:
+                    v = np.asarray(joints[n], dtype=float)
+                except (TypeError, ValueError):
+                    raise JointValueError(f"joint '{n}': value is not numeric: {joints[n]!r}") from None
+                cols.append(v)
+            try:
+                shape = np.broadcast_shapes(*[c.shape for c in cols]) if cols else ()
+            except ValueError:
+                raise JointValueError(
+                    "joint values have incompatible batch shapes: "
+                    + ", ".join(f"{n}{c.shape}" for n, c in zip(names, cols))
+                ) from None
+            N = int(np.prod(shape)) if shape else 1
+            q = np.empty((len(names), N))
+            for i, c in enumerate(cols):
+                q[i] = np.broadcast_to(c, shape).reshape(N)
+        else:
+            try:
+                arr = np.asarray(joints, dtype=float)
+            except (TypeError, ValueError):
+                raise JointValueError(f"joint values must be a mapping name -> value or a numeric array, got {type(joints).__name__}") from None
+            n = len(self.joint_names)
+            if arr.ndim == 0 or arr.shape[-1] != n:
+                raise JointValueError(
+                    f"joint array must have shape (..., {n}) in model.joint_names order "
+                    f"({', '.join(self.joint_names)}), got shape {arr.shape}"
+                )
+            shape = arr.shape[:-1]
+            N = int(np.prod(shape)) if shape else 1
+            idx = [self._index[m] for m in names]
+            q = np.ascontiguousarray(arr.reshape(N, n)[:, idx].T)
+        if not np.all(np.isfinite(q)):
+            bad = [names[i] for i in range(len(names)) if not np.all(np.isfinite(q[i]))]
+            raise JointValueError(f"NaN or infinite value for joint(s) {', '.join(repr(b) for b in bad)}")
+        return q, tuple(shape)
+
+    def _all_joint_dict(self, joints: Joints, shape: tuple) -> dict[str, Array]:
+        """Every available joint value (independent given + mimic derived), batch shape ``shape``."""
+        out: dict[str, Array] = {}
+        if isinstance(joints, Mapping):
+            for n in self.joint_names:
+                if n in joints:
+                    out[n] = np.broadcast_to(np.asarray(joints[n], dtype=float), shape)
+        else:
+            arr = np.asarray(joints, dtype=float)
+            for i, n in enumerate(self.joint_names):
+                out[n] = arr[..., i]
+        for j in self.robot.joints.values():
+            if j.mimic_root is not None and j.mimic_root[0] in out:
+                m, mult, off = j.mimic_root
+                out[j.name] = mult * out[m] + off
+        return out
+
+    # -- core evaluation ----------------------------------------------------------
+    def _prepare(self, joints: Joints, frm: Optional[str], to: Optional[str], context: Optional[Mapping]):
+        frm, to = self._frames(frm, to)
+        effects = self.effects
+        ch = self._chain(frm, to, bool(effects))
+        q, shape = self._joint_values(joints, ch.masters, frm, to)
+        N = q.shape[1]
+        theta = ch.motion_mult[:, None] * q[ch.motion_slot] + ch.motion_off[:, None] if len(ch.motion_joint) else np.zeros((0, N))
+        D = None
+        if effects:
+            qd = self._all_joint_dict(joints, shape)
+            dq_tot: dict[str, Array] = {}
+            dxi_tot: dict[str, Array] = {}
+            for eff in effects:
+                dq, dxi = eff.corrections(qd, dict(context or {}))
+                for k, v in dq.items():
+                    dq_tot[k] = dq_tot.get(k, 0.0) + np.broadcast_to(np.asarray(v, dtype=float), shape).reshape(N)
+                for k, v in dxi.items():
+                    dxi_tot[k] = dxi_tot.get(k, 0.0) + np.broadcast_to(np.asarray(v, dtype=float), shape + (6,)).reshape(N, 6)
+            for k in list(dq_tot) + list(dxi_tot):
+                if k not in self.robot.joints:
+                    raise UnknownJointError(f"an effect returned a correction for unknown joint '{k}'")
+            if dq_tot:
+                theta = theta.copy()
+                for i, jn in enumerate(ch.motion_joint):
+                    if jn in dq_tot:
+                        theta[i] += ch.motion_sign[i] * dq_tot[jn]
+            if len(ch.d_joint):
+                D = np.empty((len(ch.d_joint), 4, 4, N))
+                for k, jn in enumerate(ch.d_joint):
+                    if jn in dxi_tot:
+                        D[k] = _exp_batch_last((dxi_tot[jn] @ ch.d_map[k].T).T)
+                    else:
+                        D[k] = np.eye(4)[:, :, None]
+        return ch, theta, D, shape, N
+
+    def fk_mean(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None,
+                context: Optional[Mapping[str, Any]] = None) -> Array:
+        """Mean pose ``T_frm_to`` (eq. 17 with all perturbations zero, effects applied).
+
+        Parameters
+        ----------
+        joints : mapping name -> float/array, or array (..., n) in ``joint_names`` order
+        frm, to : str, optional
+            URDF links; default ``config.frames.base`` / ``.tool``.
+        context : mapping, optional
+            Passed to the effects (e.g. temperature).
+
+        Returns
+        -------
+        ndarray, shape (..., 4, 4)
+        """
+        ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
+        if N == 1:
+            T, _ = _eval_single(ch, theta[:, 0], None if D is None else D[..., 0])
+            return T.reshape(shape + (4, 4))
+        P, _, _ = _eval_batch(ch, theta, D, None, False, False)
+        return _rows_to_T(P).reshape(shape + (4, 4))
+
+    def fk(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None, order: int = 2,
+           context: Optional[Mapping[str, Any]] = None) -> tuple[Array, Array]:
+        """Mean pose and covariance of ``T_frm_to`` (paper eq. 15-18).
+
+        Parameters
+        ----------
+        joints : mapping name -> float/array, or array (..., n) in ``joint_names`` order
+            Names the chain does not use are ignored; mimic joints follow their master.
+        frm, to : str, optional
+            URDF links (any two links of the tree); default ``config.frames.base`` / ``.tool``.
+        order : {2, 4}
+            2: paper eq. 15/18; 4: Barfoot & Furgale (2014) fourth-order compounding.
+        context : mapping, optional
+            Passed to the effects.
+
+        Returns
+        -------
+        T_frm_to : ndarray, shape (..., 4, 4)
+        cov_to : ndarray, shape (..., 6, 6)
+            Covariance of ``[rho; theta]`` in the tangent space at ``T_frm_to`` (frame ``to``,
+            right perturbation).
+
+        Raises
+        ------
+        UnknownFrameError, JointValueError, ModelConfigError
+        """
+        if order not in (2, 4):
+            raise ModelConfigError(f"fk: order must be 2 or 4, got {order!r}")
+        ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
+        if N == 1:
+            T, P = _eval_single(ch, theta[:, 0], None if D is None else D[..., 0])
+            if ch.L_all.shape[0] == 0:
+                return T.reshape(shape + (4, 4)), np.zeros(shape + (6, 6))
+            G = _local_columns_single(ch, T, P)  # (m, 6)
+            if order == 2:
+                cov = G.T @ G
+            else:
+                cov = _fourth_order(ch, G[:, None, :])[0]
+            return T.reshape(shape + (4, 4)), cov.reshape(shape + (6, 6))
+        P, sites, _ = _eval_batch(ch, theta, D, None, True, False)
+        T = _rows_to_T(P)
+        if ch.L_all.shape[0] == 0:
+            return T.reshape(shape + (4, 4)), np.zeros(shape + (6, 6))
+        G = _local_columns_batch(ch, P, sites)  # (m, 6, N)
+        if order == 2:
+            cov = np.einsum("min,mjn->nij", G, G)
+        else:
+            cov = _fourth_order(ch, np.moveaxis(G, 2, 1))
+        return T.reshape(shape + (4, 4)), cov.reshape(shape + (6, 6))
+
+    def sample(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None, n: int = 1000,
+               rng: Optional[np.random.Generator] = None, context: Optional[Mapping[str, Any]] = None) -> Array:
+        """Monte-Carlo samples of ``T_frm_to`` from the same model.
+
+        Every perturbation ``xi_k ~ N(0, Sigma_k)`` (and joint noise) is drawn independently
+        and inserted into the chain at its place (eq. 16-17); nothing is linearised.
+
+        Returns
+        -------
+        ndarray, shape (n, ..., 4, 4)
+        """
+        rng = np.random.default_rng() if rng is None else rng
+        n = int(n)
+        if n < 1:
+            raise ModelConfigError(f"sample: n must be >= 1, got {n}")
+        ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
+        NN = n * N
+        theta_r = np.tile(theta, (1, n))
+        D_r = None if D is None else np.tile(D, (1, 1, 1, n))
+        pert = []
+        for L in ch.site_L:
+            z = rng.standard_normal((L.shape[1], NN))
+            pert.append(_exp_batch_last(L @ z))
+        P, _, _ = _eval_batch(ch, theta_r, D_r, pert, False, False)
+        return _rows_to_T(P).reshape((n,) + shape + (4, 4))
+
+    def jacobian_joints(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None,
+                        context: Optional[Mapping[str, Any]] = None) -> Array:
+        """Right-tangent derivative of ``T_frm_to`` w.r.t. the independent joint values.
+
+        ``T(q + dq) ~= T(q) Exp(J dq)``; mimic joints contribute through their master
+        (times the multiplier); effects are held fixed.
+
+        Returns
+        -------
+        ndarray, shape (..., 6, len(joint_names))
+            Columns in ``joint_names`` order (zero for joints off the chain), in the tangent
+            space at ``T_frm_to`` (frame ``to``).
+        """
+        ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
+        P, _, motions = _eval_batch(ch, theta, D, None, False, True)
+        J = np.zeros((6, len(self.joint_names), N))
+        if len(ch.motion_joint):
+            R, t = P[:, :3], P[:, 3]
+            for i, jn in enumerate(ch.motion_joint):
+                M = motions[i]
+                z = M[:, 2]  # (3, N): joint axis in frm coordinates
+                if ch.motion_kind[i] == _RZ:
+                    w = z
+                    v = np.cross(M[:, 3], z, axis=0)
+                else:
+                    w = np.zeros_like(z)
+                    v = z
+                # global twist -> local at T: Ad_{T^-1}
+                wl = np.einsum("jin,jn->in", R, w)
+                vl = np.einsum("jin,jn->in", R, v - np.cross(t, w, axis=0))
+                col = self._index[ch.motion_master[i]]
+                scale = ch.motion_mult[i]
+                J[:3, col] += scale * vl
+                J[3:, col] += scale * wl
+        return np.moveaxis(J, 2, 0).reshape(shape + (6, len(self.joint_names)))
+
+    def perturbation_labels(self, frm: Optional[str] = None, to: Optional[str] = None) -> list[str]:
+        """Perturbation sites on the chain (``"xi:<joint>"``, ``"noise:<joint>"``), chain order."""
+        frm, to = self._frames(frm, to)
+        return list(self._chain(frm, to, False).site_label)
+
+
+# ----------------------------------------------------------------------------
+# Covariance pieces
+# ----------------------------------------------------------------------------
+
+
+def _rows_to_T(P: Array) -> Array:
+    """``(3, 4, N)`` pose rows -> ``(N, 4, 4)``."""
+    N = P.shape[-1]
+    T = np.zeros((N, 4, 4))
+    T[:, :3, :] = np.moveaxis(P, 2, 0)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _local_columns_single(ch: _Chain, T: Array, P: Array) -> Array:
+    """``G`` (m, 6): columns ``Ad_{T^-1} Ad_{P_k} L_k`` for one configuration."""
+    Pk = P[ch.site_pos[ch.col_site]]  # (m, 4, 4)
+    R = Pk[:, :3, :3]
+    t = Pk[:, :3, 3]
+    Lv = ch.L_all[:, :3]
+    Lw = ch.L_all[:, 3:]
+    w = np.einsum("mij,mj->mi", R, Lw)
+    v = np.einsum("mij,mj->mi", R, Lv) + np.cross(t, w)
+    # Ad_{T^-1}: [R^T (v - t x w); R^T w]  (row form: x @ R)
+    RT = T[:3, :3]
+    tT = T[:3, 3]
+    G = np.empty((ch.L_all.shape[0], 6))
+    G[:, 3:] = w @ RT
+    G[:, :3] = (v - np.cross(tT, w)) @ RT
+    return G
+
+
+def _local_columns_batch(ch: _Chain, P: Array, sites: list) -> Array:
+    """``G`` (m, 6, N): columns ``Ad_{T^-1} Ad_{P_k} L_k`` for many configurations."""
+    N = P.shape[-1]
+    m = ch.L_all.shape[0]
+    G = np.empty((m, 6, N))
+    RT, tT = P[:, :3], P[:, 3]
+    c0 = 0
+    for k, L in enumerate(ch.site_L):
+        r = L.shape[1]
+        S = sites[k]
+        R, t = S[:, :3], S[:, 3]  # (3, 3, N), (3, N)
+        w = np.einsum("ijn,jr->rin", R, L[3:])  # (r, 3, N)
+        v = np.einsum("ijn,jr->rin", R, L[:3]) + np.cross(t[None], w, axis=1)
+        G[c0:c0 + r, 3:] = w
+        G[c0:c0 + r, :3] = v - np.cross(tT[None], w, axis=1)
+        c0 += r
+    # rotate into the tool frame: x_local = R_T^T x
+    Gv = np.einsum("jin,mjn->min", RT, G[:, :3])
+    Gw = np.einsum("jin,mjn->min", RT, G[:, 3:])
+    G[:, :3] = Gv
+    G[:, 3:] = Gw
+    return G
+
+
+def _fourth_order(ch: _Chain, G: Array) -> Array:
+    """Sequential fourth-order compounding of the local site covariances.
+
+    ``G`` (m, N, 6) local columns; returns ``(N, 6, 6)``.
+    """
+    cov = None
+    for k in range(len(ch.site_L)):
+        Gk = G[ch.col_site == k]  # (r, N, 6)
+        Sk = np.einsum("rni,rnj->nij", Gk, Gk)
+        cov = Sk if cov is None else compound_fourth_order(cov, Sk)
+    assert cov is not None
+    return cov
