@@ -1,0 +1,330 @@
+"""Tests of ``ppoe import hilti|motoman`` (ppoe_core.importers).
+
+The dataset tests read ``$PPOE_DATASETS`` (default ``<repo>/../shared/datasets``) and are
+marked ``datasets``; they are skipped only when that folder is absent.  Nothing they write is
+kept (pytest tmp dirs).  The expected counts and baseline numbers are those stated in the
+datasets' README files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+import yaml
+
+from ppoe_core.bagio import read_bag
+from ppoe_core.errors import DatasetError
+from ppoe_core.importers import read_stop_info
+from ppoe_core.importers import hilti as hi
+from ppoe_core.importers import motoman as mo
+
+DATASETS = Path(os.environ.get("PPOE_DATASETS", Path(__file__).resolve().parents[2] / "shared" / "datasets"))
+HILTI = DATASETS / "hilti_stationing"
+MOTOMAN = DATASETS / "motoman_leica"
+needs_data = pytest.mark.skipif(not DATASETS.is_dir(), reason=f"datasets folder {DATASETS} not present")
+
+
+# ----------------------------------------------------------------------------- synthetic (no data)
+
+_HILTI_WAYPOINT = {
+    "id": 0,
+    "time": 100.0,
+    "upside_down": False,
+    "doosan_cmd": [0.25, 0.15, 0.48],
+    "joint_states": [2.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6],
+    "prism_position": [1.0, 2.0, 3.0],
+    "tilt_sensor_base_accel": [0.0, 0.0, 9.8],
+    "tilt_sensor_column_accel": [0.0, 0.1, 9.8],
+}
+
+
+def _hilti_doc(**changes):
+    wp = dict(_HILTI_WAYPOINT, **changes)
+    wp2 = dict(_HILTI_WAYPOINT, id=1, time=110.0, doosan_cmd=[0.3, 0.0, 0.4])
+    return {
+        "joint_names": ["column_prismatic_joint"] + [f"dsr_joint{i}" for i in range(1, 7)],
+        "column_heights": {2.0: {"solution_spaces": {0: {"stationing_measurements": [wp],
+                                                        "evaluation_measurements": [wp2]}}}},
+    }
+
+
+def test_hilti_parse_synthetic(tmp_path):
+    f = tmp_path / "x.yaml"
+    f.write_text(yaml.safe_dump(_hilti_doc()))
+    ds = hi.load_hilti(f)
+    assert [s.role for s in ds.stops] == ["stationing", "evaluation"]
+    s0 = ds.stops[0]
+    assert s0.station == "h2_s0" and s0.point_sets == ["cross"]
+    assert ds.stops[1].point_sets == []  # evaluation stops belong to no stationing set
+    np.testing.assert_allclose(s0.prism_position, [1.0, 2.0, 3.0])
+
+
+@pytest.mark.parametrize(
+    "change, needle",
+    [
+        ({"joint_states": [1.0, 2.0]}, "joint_states"),
+        ({"prism_position": [1.0, float("nan"), 3.0]}, "prism_position"),
+        ({"time": "soon"}, "bad value"),
+    ],
+)
+def test_hilti_bad_values_name_the_waypoint(tmp_path, change, needle):
+    f = tmp_path / "bad.yaml"
+    f.write_text(yaml.safe_dump(_hilti_doc(**change)))
+    with pytest.raises(DatasetError) as ei:
+        hi.load_hilti(f)
+    msg = str(ei.value)
+    assert str(f) in msg and "stationing_measurements[0]" in msg and needle in msg
+
+
+def test_hilti_missing_key_and_wrong_joints(tmp_path):
+    doc = _hilti_doc()
+    del doc["column_heights"][2.0]["solution_spaces"][0]["stationing_measurements"][0]["prism_position"]
+    f = tmp_path / "a.yaml"
+    f.write_text(yaml.safe_dump(doc))
+    with pytest.raises(DatasetError, match="missing key 'prism_position'"):
+        hi.load_hilti(f)
+    doc = _hilti_doc()
+    doc["joint_names"][0] = "lift"
+    f.write_text(yaml.safe_dump(doc))
+    with pytest.raises(DatasetError, match="joint_names"):
+        hi.load_hilti(f)
+    with pytest.raises(DatasetError, match="cannot read"):
+        hi.load_hilti(tmp_path / "missing.yaml")
+
+
+def test_hilti_synthetic_bag_layout(tmp_path):
+    f = tmp_path / "x.yaml"
+    f.write_text(yaml.safe_dump(_hilti_doc()))
+    urdf = tmp_path / "r.urdf"
+    urdf.write_text('<robot name="r"><link name="base_link"/></robot>')
+    res = hi.import_hilti(f, tmp_path / "bag", urdf=urdf)
+    data = read_bag(tmp_path / "bag")
+    assert len(data.joint_states) == 2 * hi.BURST_COUNT
+    assert len(data.ground_truth_point) == 2 and data.ground_truth_point.frame_ids[0] == hi.TRACKER_FRAME
+    assert set(data.imus) == {"base", "column_tip"}
+    assert data.imus["base"].frame_ids[0] == "tilt_sensor_base"
+    np.testing.assert_allclose(data.imus["column_tip"].linear_acceleration[0], [0.0, 0.1, 9.8])
+    # every measurement is stamped inside its stop, after the joint-state burst
+    js_t = data.joint_states.stamps
+    for t in data.ground_truth_point.stamps:
+        burst = js_t[(js_t <= t) & (js_t > t - 1.0)]
+        assert len(burst) == hi.BURST_COUNT
+    stops = read_stop_info(str(tmp_path / "bag"))
+    assert [s[1]["role"] for s in stops] == ["stationing", "evaluation"]
+    assert Path(res["model"]).is_file()
+
+
+def _motoman_rows():
+    """Two poses, three observations; the second pose has no Leica point."""
+    D = np.zeros((3, 26))
+    D[:, 0] = [1, 1, 2]
+    D[:, 1] = [3, 4, 3]
+    D[:, 2] = 1
+    D[:, 3] = [1, 2, 1]
+    D[:, 4:6] = [[2000, 3000], [2100, 2900], [1900, 3100]]
+    D[:2, 6:13] = 0.1
+    D[2, 6:13] = 0.2
+    D[:2, 19:22] = [1.0, 2.0, 3.0]
+    D[2, 19:26] = np.nan
+    return D
+
+
+def test_motoman_parse_synthetic(tmp_path):
+    f = tmp_path / "m.mat"
+    scipy.io.savemat(f, {"dataset": _motoman_rows()})
+    ds = mo.load_motoman(f)
+    assert list(ds.pose_ids) == [1, 2]
+    assert list(ds.has_tracker) == [True, False]
+    assert list(ds.obs_camera) == [1, 2, 1] and list(ds.obs_pose) == [0, 0, 1]
+
+
+@pytest.mark.parametrize(
+    "mutate, needle",
+    [
+        (lambda D: D.__setitem__((1, 2), 2), "row 2: arm number 2"),
+        (lambda D: D.__setitem__((0, 3), 3), "row 1: camera number 3"),
+        (lambda D: D.__setitem__((1, 7), 0.5), "row 2: joint/Leica values differ"),
+        (lambda D: D.__setitem__((2, 8), np.nan), "row 3: NaN"),
+        (lambda D: D.__setitem__((0, 1), 21), "marker face 21"),
+    ],
+)
+def test_motoman_bad_rows(tmp_path, mutate, needle):
+    D = _motoman_rows()
+    mutate(D)
+    f = tmp_path / "m.mat"
+    scipy.io.savemat(f, {"dataset": D})
+    with pytest.raises(DatasetError) as ei:
+        mo.load_motoman(f)
+    assert needle in str(ei.value) and str(f) in str(ei.value)
+
+
+def test_motoman_wrong_shape_and_variable(tmp_path):
+    f = tmp_path / "m.mat"
+    scipy.io.savemat(f, {"dataset": np.zeros((3, 20))})
+    with pytest.raises(DatasetError, match="N x 26"):
+        mo.load_motoman(f)
+    scipy.io.savemat(f, {"other": np.zeros((3, 26))})
+    with pytest.raises(DatasetError, match="no variable 'dataset'"):
+        mo.load_motoman(f)
+
+
+# ----------------------------------------------------------------------------- real datasets
+
+
+@pytest.fixture(scope="module")
+def flat_bag(tmp_path_factory):
+    out = tmp_path_factory.mktemp("hilti") / "flat_bag"
+    res = hi.import_hilti(HILTI / "flat.yaml", out)
+    return out, res
+
+
+@pytest.fixture(scope="module")
+def moto_bag(tmp_path_factory):
+    out = tmp_path_factory.mktemp("motoman") / "m6_bag"
+    res = mo.import_motoman(MOTOMAN / "leica_right_hand_6x6x6_dataset.mat", MOTOMAN / "model.yaml", out)
+    return out, res
+
+
+@pytest.mark.datasets
+@needs_data
+def test_hilti_flat_counts_match_readme(flat_bag):
+    out, res = flat_bag
+    ds = hi.load_hilti(HILTI / "flat.yaml")
+    assert len(ds.stations) == 15  # 5 heights x 3 solution spaces
+    stationed = {s.station for s in ds.stops if s.role == "stationing"}
+    assert len(stationed) == 10  # README: 10 stations (spaces 0 and 7)
+    n_eval = sum(1 for s in ds.stops if s.role == "evaluation" and s.station in stationed)
+    assert n_eval == 321  # README: flat.yaml eval pts
+    data = read_bag(out)
+    n = len(ds.stops)
+    assert 430 <= n <= 450  # README: about 440 waypoints per file
+    assert len(data.joint_states) == hi.BURST_COUNT * n
+    assert len(data.ground_truth_point) == n and len(data.imus["base"]) == n and len(data.imus["column_tip"]) == n
+    assert data.joint_states.names == ds.joint_names
+    stops = read_stop_info(str(out))
+    assert len(stops) == n
+    assert sum(1 for _, s in stops if s["role"] == "evaluation" and s["station"] in stationed) == 321
+    # the bag keeps the file's values
+    i = int(np.argmin(np.abs(data.ground_truth_point.stamps - (ds.stops[7].time + hi.MEASUREMENT_DELAY_S))))
+    np.testing.assert_allclose(data.ground_truth_point.p[i], ds.stops[7].prism_position, atol=1e-12)
+    assert "prism_calib" in data.robot_description
+
+
+@pytest.mark.datasets
+@needs_data
+def test_motoman_counts_match_readme(moto_bag):
+    out, res = moto_bag
+    data = read_bag(out)
+    assert len(data.joint_states) == mo.BURST_COUNT * 216
+    assert len(data.ground_truth_point) == 212  # README: 212 poses with Leica
+    obs = data.tag_observations
+    cam = np.array([obs.frame_ids[i] for i in obs.msg_index])
+    assert np.sum(cam == "camera_1_optical_frame") == 503 and np.sum(cam == "camera_2_optical_frame") == 811
+    assert set(obs.corners.tolist()) == {0} and obs.ids.min() >= 1 and obs.ids.max() <= 20
+    assert res["counts"]["points:camera_1"] == 503 and res["counts"]["points:camera_2"] == 811
+    assert data.joint_states.names == mo.JOINT_NAMES
+    # undistorted x, y project back onto the raw pixels with the camera_info of that camera
+    import cv2
+
+    for frame in ("camera_1_optical_frame", "camera_2_optical_frame"):
+        k = data.camera_info.frame_ids.index(frame)
+        sel = cam == frame
+        P = np.column_stack([obs.xy[sel], np.ones(sel.sum())])
+        uv, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), data.camera_info.K[k], data.camera_info.D[k])
+        np.testing.assert_allclose(uv.reshape(-1, 2), obs.uv[sel], atol=1e-6)
+
+
+@pytest.mark.datasets
+@needs_data
+def test_motoman_model_yaml_validates(moto_bag):
+    from ppoe_core.config import load_model_config
+    from ppoe_core.urdf import parse_urdf
+
+    out, res = moto_bag
+    robot = parse_urdf(MOTOMAN / "motoman_right.urdf")
+    cfg = load_model_config(res["model"], robot)
+    assert len(cfg.tags.items) == 20 and cfg.tracker.link == "LR1"
+    assert {t.link for t in cfg.tags.items} == {"EE1"}
+
+
+@pytest.mark.datasets
+@needs_data
+def test_motoman_tracker_and_reprojection_baselines():
+    """README (i) 0.34 mm Leica RMS and (ii) 23.5 / 25.0 px marker RMS, with our model."""
+    from ppoe_core.evaluate import kabsch
+    from ppoe_core.model import PPOEModel
+    from ppoe_core.tags import project_points
+
+    ds = mo.load_motoman(MOTOMAN / "leica_right_hand_6x6x6_dataset.mat")
+    model = PPOEModel.from_files(MOTOMAN / "motoman_right.urdf")
+    q = {n: ds.joints[:, j] for j, n in enumerate(mo.JOINT_NAMES)}
+    T_base_lr = model.fk_mean(q, "base", "LR1")
+    ok = ds.has_tracker
+    p_fk = T_base_lr[ok, :3, 3]
+    T = kabsch(p_fk, ds.leica[ok])
+    res = np.linalg.norm(p_fk @ T[:3, :3].T + T[:3, 3] - ds.leica[ok], axis=1)
+    assert ok.sum() == 212
+    assert abs(np.sqrt(np.mean(res**2)) - 0.34e-3) < 0.005e-3
+    assert abs(res.max() - 0.63e-3) < 0.005e-3
+    cams = mo.load_motoman_cameras(MOTOMAN / "model.yaml")
+    expected = {1: 23.5, 2: 25.0}
+    for n, cam in cams.items():
+        sel = np.flatnonzero(ds.obs_camera == n)
+        qs = {k: v[ds.obs_pose[sel]] for k, v in q.items()}
+        err = np.empty(len(sel))
+        for face in np.unique(ds.obs_face[sel]):
+            f = ds.obs_face[sel] == face
+            qf = {k: v[f] for k, v in qs.items()}
+            T_cam_mk = model.fk_mean(qf, cam.frame, f"MK1{face:02d}")
+            uv = project_points(T_cam_mk[:, :3, 3], cam.K, cam.D)
+            err[f] = np.linalg.norm(uv - ds.obs_uv[sel][f], axis=1)
+        assert abs(np.sqrt(np.mean(err**2)) - expected[n]) < 0.05, (n, np.sqrt(np.mean(err**2)))
+
+
+@pytest.mark.datasets
+@needs_data
+def test_hilti_nominal_baseline_cross_set():
+    """README: flat.yaml, cross set, per-station Kabsch: RMS 3D 8.64 mm, max 24.66 mm (mimic-aware FK)."""
+    from ppoe_core.evaluate import kabsch
+    from ppoe_core.model import PPOEModel
+
+    ds = hi.load_hilti(HILTI / "flat.yaml")
+    model = PPOEModel.from_files(HILTI / "trailblazer.urdf")
+    Q = np.array([s.joints for s in ds.stops])
+    p = model.fk_mean({n: Q[:, j] for j, n in enumerate(ds.joint_names)}, "base_link", "prism")[:, :3, 3]
+    errs = []
+    for station in ds.stations:
+        idx = [i for i, s in enumerate(ds.stops) if s.station == station]
+        fit = [i for i in idx if "cross" in ds.stops[i].point_sets]
+        ev = [i for i in idx if ds.stops[i].role == "evaluation"]
+        if len(fit) < 3:
+            continue
+        T = kabsch(p[fit], np.array([ds.stops[i].prism_position for i in fit]))
+        pred = p[ev] @ T[:3, :3].T + T[:3, 3]
+        errs.append(np.linalg.norm(np.array([ds.stops[i].prism_position for i in ev]) - pred, axis=1))
+    e = np.concatenate(errs)
+    assert e.size == 321
+    assert abs(np.sqrt(np.mean(e**2)) - 8.64e-3) < 0.1e-3
+    assert abs(e.max() - 24.66e-3) < 0.1e-3
+
+
+def test_cli_import_json(tmp_path, capsys):
+    """``ppoe import hilti --json`` prints one JSON document with the counts."""
+    from ppoe_ros.cli import main
+
+    f = tmp_path / "x.yaml"
+    f.write_text(yaml.safe_dump(_hilti_doc()))
+    urdf = tmp_path / "r.urdf"
+    urdf.write_text('<robot name="r"><link name="base_link"/></robot>')
+    rc = main(["import", "hilti", str(f), "--out", str(tmp_path / "b"), "--urdf", str(urdf), "--json"])
+    assert rc == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["counts"]["/joint_states"] == 2 * hi.BURST_COUNT
+    # a second import to the same place is refused without --force, naming the bag
+    rc = main(["import", "hilti", str(f), "--out", str(tmp_path / "b"), "--urdf", str(urdf)])
+    assert rc == 2 and "exists" in capsys.readouterr().err
