@@ -262,13 +262,18 @@ def numerical_jacobian_noise(
     return M
 
 
-def _jacobians(
+def _linearize(
     model: MeasurementModelLike, T: np.ndarray, jacobians: str
-) -> Tuple[np.ndarray, np.ndarray]:
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(h(T), H, M)``; uses ``model.linearize`` when the model has it (shared work)."""
     H = M = None
-    if jacobians != "numerical":
-        H = model.jacobian_state(T)
-        M = model.jacobian_noise(T)
+    if jacobians != "numerical" and hasattr(model, "linearize"):
+        z_pred, H, M = model.linearize(T)
+    else:
+        z_pred = model.h(T)
+        if jacobians != "numerical":
+            H = model.jacobian_state(T)
+            M = model.jacobian_noise(T)
     if jacobians == "analytic" and (H is None or M is None):
         raise MeasurementError(f"{model.name}: no analytic Jacobian available")
     if H is None:
@@ -282,7 +287,7 @@ def _jacobians(
             f"{model.name}: Jacobian shapes H {H.shape}, M {M.shape} do not match "
             f"dim {model.dim}, noise_dim {model.noise_dim}"
         )
-    return H, M
+    return z_pred, H, M
 
 
 def chi2_gate(dim: int, probability: float) -> float:
@@ -358,8 +363,8 @@ def iterated_update(
     converged = False
     I6 = np.eye(6)
     for it in range(1, max_iterations + 1):
-        H, M = _jacobians(model, Xi, jacobians)
-        r = np.asarray(model.residual(z, model.h(Xi)), dtype=float)
+        z_pred, H, M = _linearize(model, Xi, jacobians)
+        r = np.asarray(model.residual(z, z_pred), dtype=float)
         if it == 1:
             e = np.zeros(6)
             Pi = P0

@@ -146,6 +146,11 @@ class MeasurementModel:
     def jacobian_noise(self, T_state: np.ndarray) -> Optional[np.ndarray]:
         return None
 
+    def linearize(self, T_state: np.ndarray):
+        """``(h(T), H, M)`` in one call (models override it to share work); H or M may be
+        None (numerical)."""
+        return self.h(T_state), self.jacobian_state(T_state), self.jacobian_noise(T_state)
+
     def _noise(self, v: Optional[np.ndarray]) -> np.ndarray:
         if v is None:
             return np.zeros(self.noise_dim)
@@ -368,33 +373,33 @@ class TagObservation(MeasurementModel):
         uv, _ = project_points(self.points_camera(T_state, w), self.K, self.D, self.mode)
         return uv.ravel() + v[: self.dim]
 
-    def _point_jacobians(self, T_state: np.ndarray):
+    def linearize(self, T_state: np.ndarray):
+        """``(h(T), H, M)`` sharing one projection (see :meth:`jacobian_state`,
+        :meth:`jacobian_noise`)."""
         p_c = self.points_camera(T_state)
-        _, Jproj = project_points(p_c, self.K, self.D, self.mode)
-        return p_c, Jproj
-
-    def jacobian_state(self, T_state: np.ndarray) -> np.ndarray:
-        """``H`` (2n, 6): ``d pi / d p_c * R_camera_tool [I, -[p_i]x]``."""
-        p_c, Jproj = self._point_jacobians(T_state)
-        R_ct = (self.T_camera_ref @ T_state)[:3, :3]
+        uv, Jproj = project_points(p_c, self.K, self.D, self.mode)
         n = p_c.shape[0]
+        R_ct = (self.T_camera_ref @ T_state)[:3, :3]
         Jx = np.empty((n, 3, 6))
         Jx[:, :, :3] = R_ct
         Jx[:, :, 3:] = -R_ct @ _hat(self.points_tool)
-        return np.einsum("nij,njk->nik", Jproj, Jx).reshape(2 * n, 6)
-
-    def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray:
-        """``M`` (2n, 2n[+6]): identity for the pixel noise, ``d pi/d p_c [-I, [p_c]x]`` for w."""
+        H = np.einsum("nij,njk->nik", Jproj, Jx).reshape(2 * n, 6)
         M = np.zeros((self.dim, self.noise_dim))
         M[:, : self.dim] = np.eye(self.dim)
         if self.has_camera_noise:
-            p_c, Jproj = self._point_jacobians(T_state)
-            n = p_c.shape[0]
             Jw = np.empty((n, 3, 6))
             Jw[:, :, :3] = -np.eye(3)
             Jw[:, :, 3:] = _hat(p_c)
             M[:, self.dim :] = np.einsum("nij,njk->nik", Jproj, Jw).reshape(2 * n, 6)
-        return M
+        return uv.ravel(), H, M
+
+    def jacobian_state(self, T_state: np.ndarray) -> np.ndarray:
+        """``H`` (2n, 6): ``d pi / d p_c * R_camera_tool [I, -[p_i]x]``."""
+        return self.linearize(T_state)[1]
+
+    def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray:
+        """``M`` (2n, 2n[+6]): identity for the pixel noise, ``d pi/d p_c [-I, [p_c]x]`` for w."""
+        return self.linearize(T_state)[2]
 
 
 # --------------------------------------------------------------------------- contact
