@@ -70,6 +70,8 @@ TRUTH_EFFECTS: dict[str, tuple[str, ...]] = {
     "backlash": ("play",),
     "thermal_growth": ("alpha",),
     "time_offset": ("dt",),
+    # outside the CONTRACT sec. 6 vocabulary (for testing that diagnose reports it as unexplained):
+    "transmission_error": ("amplitude", "periods"),
 }
 
 SCENARIO_DOC = """\
@@ -93,6 +95,8 @@ truth:
     - {name: backlash, location: JOINT, parameters: {play: 0.002}}             # dq = play * sign(last motion) [rad|m]
     - {name: thermal_growth, location: JOINT, parameters: {alpha: 1e-6}}      # origin of JOINT grows by alpha*(t - start_time) [1/s]
     - {name: time_offset, location: /joint_states, parameters: {dt: 0.02}}     # joint states stamped t carry q(t - dt) [s]
+    - {name: transmission_error, location: JOINT, parameters: {amplitude: 0.003, periods: 3}}  # NOT in the
+      # contract vocabulary: cyclic gear error dq = amplitude sin(periods q) [rad, periods per rad]
 trajectory:
   joint_rate: 100.0        # /joint_states rate [Hz] (>= 50) [100.0]
   dwell: 0.5               # default time at each stop [s] [0.5]
@@ -314,7 +318,7 @@ class TrueRobot:
         elif name != "time_offset":
             if loc not in self.robot.joints:
                 raise ScenarioError(f"{where}: location '{loc}' is not a joint of {self.robot.source}")
-            if name in ("joint_offset", "gravity_compliance", "backlash") and not self.robot.joints[loc].movable:
+            if name in ("joint_offset", "gravity_compliance", "backlash", "transmission_error") and not self.robot.joints[loc].movable:
                 raise ScenarioError(f"{where}: {name} needs a movable joint, '{loc}' is {self.robot.joints[loc].type}")
         return {"name": name, "location": loc,
                 "parameters": {k: float(params.get(k, 0.0)) for k in TRUTH_EFFECTS[name]}}
@@ -416,6 +420,8 @@ class TrueRobot:
             nm, loc, p = e["name"], e["location"], e["parameters"]
             if nm == "joint_offset":
                 add_dq(loc, p["offset"])
+            elif nm == "transmission_error":
+                add_dq(loc, p["amplitude"] * np.sin(p["periods"] * np.asarray(q[loc], float)))
             elif nm == "backlash":
                 add_dq(loc, p["play"] * np.asarray(motion_sign.get(loc, np.zeros(n)), float))
             elif nm in ("link_error", "camera_extrinsics"):
@@ -1027,6 +1033,9 @@ class _Sim:
         if self.gt_point is not None:
             T = self.gt_point["T_tracker_base"]
             d["T_tracker_base"] = [[float(x) for x in row] for row in T]
+            d["tracker_registration"] = {"frame": self.gt_point["frame"],
+                                         "xyz": [float(x) for x in self.gt_point["T_cfg"].get("xyz", [0, 0, 0])],
+                                         "rpy": [float(x) for x in self.gt_point["T_cfg"].get("rpy", [0, 0, 0])]}
         if self.cam is not None:
             d["camera"] = {"frame": self.cam["frame"], "K": self.cam["K"].tolist(), "D": self.cam["D"].tolist(),
                            "width": self.cam["w"], "height": self.cam["h"]}
