@@ -64,7 +64,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("wrench_topic", "/wrench", "geometry_msgs/WrenchStamped input", check=check_nonempty),
     ParamSpec("contact_flag_topic", "", "std_msgs/Bool contact flag used instead of the wrench when set"),
     ParamSpec("plane_topic", "/contact/plane", "output topic", check=check_nonempty),
-    ParamSpec("plane_frame", "", "frame of the plane pose; empty = model YAML contact.plane.frame"),
+    ParamSpec("plane_frame", "", "frame of the plane pose; empty = model YAML contact.plane.frame, else "
+              "frames.base"),
     ParamSpec("plane_xyz", [], "plane origin in plane_frame; empty = model YAML", unit="m",
               ptype=_DOUBLE_ARRAY, check=check_length(0, 3)),
     ParamSpec("plane_rpy", [], "plane orientation (roll, pitch, yaw) in plane_frame; empty = model YAML", unit="rad",
@@ -106,9 +107,10 @@ def plane_from_config(model_yaml: dict[str, Any], params: dict[str, Any], where:
     """
     contact = mapping_get(model_yaml, "contact", default={}) or {}
     plane = contact.get("plane", {}) or {}
-    frame = params["plane_frame"] or plane.get("frame")
+    frame = params["plane_frame"] or plane.get("frame") or mapping_get(model_yaml, "frames", "base")
     if not frame:
-        raise ModelConfigError(f"{where}: no contact plane frame (parameter plane_frame or contact.plane.frame)")
+        raise ModelConfigError(f"{where}: no contact plane frame (parameter plane_frame, contact.plane.frame "
+                               "or frames.base)")
 
     def vec(param: str, key: str, n: int, default: Any) -> np.ndarray:
         v = params[param] if len(params[param]) else plane.get(key, default)

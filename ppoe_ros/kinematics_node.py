@@ -20,13 +20,22 @@ a simulator reset) is logged and counted too, but taken as the start of a new
 timeline: that message is published.  Joint states that arrive before the URDF
 are counted as ``dropped``.  Joints the chain does not use are ignored.
 
+Throughput: the subscription callback only validates a message and queues its
+joint vector; a worker thread runs the FK on everything queued since its last
+call as one vectorised batch (``model.fk`` broadcasts over a batch axis) and
+publishes one output per message, in order.  At low rates batches hold one
+message; when the FK falls behind they grow, so the node keeps up with 1 kHz joint
+states (``bench/bench_nodes.py``).  ``max_batch: 1`` computes in the callback.
+
 Parameters: see ``config/kinematics_node.yaml`` (every key documented there) and
 :data:`PARAMS`.
 """
 
 from __future__ import annotations
 
+import collections
 import sys
+import threading
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -39,7 +48,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from ppoe_core import lie
-from ppoe_core.errors import ModelConfigError, PpoeError
+from ppoe_core.errors import JointValueError, ModelConfigError, PpoeError
 from ppoe_ros.ros_common import (
     LATCHED_QOS,
     DiagnosticsPublisher,
@@ -49,7 +58,6 @@ from ppoe_ros.ros_common import (
     declare_parameters,
     guarded,
     mapping_get,
-    pose_msg_from_matrix,
     reliable_qos,
     sensor_qos,
     stamp_to_ns,
@@ -72,6 +80,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("extra_target_frames", [], "more target frames, published on /ppoe/<frame>/pose", ptype=_STRING_ARRAY),
     ParamSpec("order", 2, "covariance propagation order (paper eq. 15/18: 2; 4 = fourth order)",
               check=lambda v: None if v in (2, 4) else f"must be 2 or 4, got {v}"),
+    ParamSpec("max_batch", 100, "largest batch of queued joint states per FK call; 1 = compute in the "
+              "subscription callback (no worker thread)", min_value=1, max_value=100000),
+    ParamSpec("max_queue", 2000, "joint states waiting for the FK worker beyond this are dropped (oldest first)",
+              min_value=1, max_value=1000000),
     ParamSpec("qos_depth", 100, "history depth of the joint-state subscription (sensor-data QoS)",
               min_value=1, max_value=100000),
     ParamSpec("stamp_reset_threshold", 1.0, "a stamp this much older than the last one starts a new timeline",
@@ -140,6 +152,11 @@ class KinematicsNode(Node):
         self.model: Any = None
         self._urdf: str | None = None
         self._last_ns: int | None = None
+        self._cached_names: list[str] | None = None
+        self._needed: list[str] = []
+        self._model_joints: list[str] = []
+        self._src = self._dst = np.zeros(0, dtype=np.intp)
+        self._worker: _BatchWorker | None = None
 
         out_qos = reliable_qos(100)
         self.targets = [_Target(target, self.create_publisher(PoseWithCovarianceStamped, p["pose_topic"], out_qos))]
@@ -152,6 +169,8 @@ class KinematicsNode(Node):
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         js_topic = p["joint_states_topic"]
         self._on_joint_state = guarded(self.stats, js_topic)(self._joint_state)
+        if p["max_batch"] > 1:
+            self._worker = _BatchWorker(self._process, self.stats, p["max_batch"], p["max_queue"], js_topic)
         self.create_subscription(JointState, js_topic, self._on_joint_state, sensor_qos(p["qos_depth"]))
 
         if p["robot_description"]:
@@ -177,6 +196,13 @@ class KinematicsNode(Node):
                 t.msg.header.frame_id = reference
         except PpoeError as exc:
             raise type(exc)(f"{where}: {exc}") from None
+        needed: list[str] = []
+        for t in self.targets:
+            needed += [n for n in model.chain_joints(reference, t.frame) if n not in needed]
+        self._model_joints = list(model.joint_names)
+        self._needed = needed
+        self._dst = np.array([self._model_joints.index(n) for n in needed], dtype=np.intp)
+        self._cached_names = None
         self.reference = reference
         self.model = model
         self._urdf = urdf_xml
@@ -192,6 +218,7 @@ class KinematicsNode(Node):
 
     # --------------------------------------------------------------- callback
     def _joint_state(self, msg: JointState) -> None:
+        """Validate one joint state (in arrival order) and process it, or queue it for the worker."""
         stats = self.stats
         stats.counts["received"] += 1
         model = self.model
@@ -207,20 +234,124 @@ class KinematicsNode(Node):
                 raise ValueError(f"stamp {stamp_ns * 1e-9:.9f} s jumped back by {jump:.6f} s: message dropped")
             stats.bad(self.params["joint_states_topic"],
                       f"stamp jumped back by {jump:.3f} s (> stamp_reset_threshold): new timeline")
-        names = msg.name
-        if len(names) != len(msg.position):
-            raise ValueError(f"{len(names)} names but {len(msg.position)} positions")
-        joints = dict(zip(names, msg.position))
-        for t in self.targets:
-            T, cov_local = model.fk(joints, self.reference, t.frame, order=self.order)
-            cov_ros = lie.cov_local_to_ros(T, cov_local)
-            out = t.msg
-            out.header.stamp = msg.header.stamp
-            pose_msg_from_matrix(T, out.pose.pose)
-            out.pose.covariance = cov_ros.ravel()
-            t.pub.publish(out)
+        q = self._joint_vector(msg)  # raises JointValueError / ValueError naming the joint
         self._last_ns = stamp_ns
-        stats.counts["published"] += 1
+        item = (msg.header.stamp, q, model)
+        if self._worker is None:
+            self._process([item])
+        else:
+            self._worker.put(item)
+
+    def _joint_vector(self, msg: JointState) -> np.ndarray:
+        """Joint values in ``model.joint_names`` order; the needed ones checked present and finite."""
+        names = msg.name
+        pos = msg.position
+        if len(names) != len(pos):
+            raise ValueError(f"{len(names)} names but {len(pos)} positions")
+        if names != self._cached_names:  # name layout changed: rebuild the index maps
+            where = {n: i for i, n in enumerate(names)}
+            missing = [n for n in self._needed if n not in where]
+            if missing:
+                raise JointValueError(
+                    f"missing value for joint(s) {', '.join(repr(m) for m in missing)} needed by "
+                    f"{self.reference} -> {', '.join(t.frame for t in self.targets)} (got {', '.join(names) or 'none'})")
+            self._src = np.array([where[n] for n in self._needed], dtype=np.intp)
+            self._cached_names = list(names)
+        values = np.asarray(pos, dtype=float)[self._src]
+        if not np.all(np.isfinite(values)):
+            bad = [n for n, v in zip(self._needed, values) if not np.isfinite(v)]
+            raise JointValueError(f"NaN or infinite value for joint(s) {', '.join(repr(b) for b in bad)}")
+        q = np.zeros(len(self._model_joints))
+        q[self._dst] = values
+        return q
+
+    def _process(self, items: list[tuple[Any, np.ndarray, Any]]) -> None:
+        """FK of a batch of validated joint states (one model call per target) and publish each."""
+        model = items[0][2]
+        if any(it[2] is not model for it in items):  # URDF changed inside the batch: split it
+            cut = next(i for i, it in enumerate(items) if it[2] is not model)
+            self._process(items[:cut])
+            self._process(items[cut:])
+            return
+        q = np.stack([it[1] for it in items])
+        try:
+            results = []
+            for t in self.targets:
+                T, cov_local = model.fk(q, self.reference, t.frame, order=self.order)
+                cov_ros = lie.cov_local_to_ros(T, cov_local)
+                quat = lie.quat_from_matrix(T[:, :3, :3])
+                results.append((t, T[:, :3, 3].tolist(), quat.tolist(), cov_ros.reshape(len(items), 36)))
+        except PpoeError as exc:
+            for _ in items:
+                self.stats.bad(self.params["joint_states_topic"], str(exc))
+            return
+        for k, (stamp, _, _) in enumerate(items):
+            for t, xyz, quat, cov in results:
+                out = t.msg
+                out.header.stamp = stamp
+                pose = out.pose.pose
+                pose.position.x, pose.position.y, pose.position.z = xyz[k]
+                o = pose.orientation
+                o.x, o.y, o.z, o.w = quat[k]
+                out.pose.covariance = cov[k]
+                t.pub.publish(out)
+            self.stats.counts["published"] += 1
+
+    def destroy_node(self) -> None:
+        """Stop the worker thread, then destroy the node."""
+        if self._worker is not None:
+            self._worker.stop()
+        super().destroy_node()
+
+
+class _BatchWorker:
+    """Worker thread: processes whatever joint states queued up since its last batch.
+
+    At low rates every batch holds one message (no added latency); when the FK falls
+    behind, batches grow and the vectorised FK catches up.  A queue longer than
+    ``max_queue`` drops its oldest entries (counted as ``dropped``).
+    """
+
+    def __init__(self, process: Any, stats: NodeStats, max_batch: int, max_queue: int, topic: str) -> None:
+        self._process = process
+        self._stats = stats
+        self._max_batch = max_batch
+        self._max_queue = max_queue
+        self._topic = topic
+        self._queue: collections.deque = collections.deque()
+        self._cv = threading.Condition()
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="ppoe_fk_worker", daemon=True)
+        self._thread.start()
+
+    def put(self, item: Any) -> None:
+        with self._cv:
+            self._queue.append(item)
+            if len(self._queue) > self._max_queue:
+                self._queue.popleft()
+                self._stats.bad(self._topic, f"FK queue longer than {self._max_queue}: oldest dropped",
+                                kind="dropped")
+            self._cv.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                while not self._queue and not self._stop:
+                    self._cv.wait(0.2)
+                if self._stop:
+                    return
+                n = min(len(self._queue), self._max_batch)
+                batch = [self._queue.popleft() for _ in range(n)]
+            try:
+                self._process(batch)
+            except Exception as exc:  # noqa: BLE001 - the worker must survive anything
+                self._stats.error(self._topic, exc)
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+        self._thread.join(timeout=2.0)
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -206,10 +206,16 @@ class Probe:
             self.executor.spin_once(timeout_sec=0.02)
 
     def wait_for_subscribers(self, pub: Any, proc: NodeProcess | None = None, n: int = 1,
-                             timeout: float = 15.0) -> None:
-        """Wait until ``pub`` has ``n`` matched subscriptions (the node under test is up)."""
+                             timeout: float = 15.0, settle: float = 0.5) -> None:
+        """Wait until ``pub`` has ``n`` matched subscriptions (the node under test is up).
+
+        The publisher sees the match before the subscriber has matched the publisher
+        (discovery is asymmetric), and a best-effort subscriber drops what arrives
+        before; so spin ``settle`` seconds more.
+        """
         self.spin_until(lambda: pub.get_subscription_count() >= n, timeout, proc,
                         f"a subscriber on {pub.topic_name}")
+        self.spin_for(settle)
 
     def wait_for_publishers(self, topic: str, proc: NodeProcess | None = None, n: int = 1,
                             timeout: float = 15.0) -> None:

@@ -1,0 +1,80 @@
+"""``colcon build`` of the package installs the executables under lib/ppoe_ros and the config under share/ppoe_ros.
+
+The package sources are copied to a temporary workspace first, so the build
+leaves nothing (egg-info, build/) in the repository.  Needs colcon-core,
+colcon-ros and colcon-python-setup-py (PyPI).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE_ITEMS = ["package.xml", "setup.py", "setup.cfg", "resource", "ppoe_core", "ppoe_ros", "config", "launch"]
+NODES = ["kinematics_node", "contact_node", "tag_bearing_node", "fusion_node"]
+
+pytest.importorskip("colcon_core", reason="colcon-core not installed (pip install colcon-core colcon-ros "
+                                          "colcon-python-setup-py)")
+
+
+@pytest.fixture(scope="module")
+def install_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    ws = tmp_path_factory.mktemp("colcon_ws")
+    src = ws / "src" / "ppoe_ros"
+    src.mkdir(parents=True)
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info")
+    for item in PACKAGE_ITEMS:
+        p = REPO / item
+        if p.is_dir():
+            shutil.copytree(p, src / item, ignore=ignore)
+        else:
+            shutil.copy2(p, src / item)
+    colcon = [sys.executable, "-c", "import sys; from colcon_core.command import main; sys.exit(main())"]
+    env = dict(os.environ, COLCON_HOME=str(ws / "colcon_home"))
+    res = subprocess.run(
+        colcon + ["--log-base", str(ws / "log"), "build", "--base-paths", str(ws / "src"),
+                  "--build-base", str(ws / "build"), "--install-base", str(ws / "install")],
+        cwd=ws, env=env, capture_output=True, text=True, timeout=120,
+    )
+    assert res.returncode == 0, f"colcon build failed:\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}"
+    assert "Finished <<< ppoe_ros" in res.stdout
+    return ws / "install" / "ppoe_ros"
+
+
+def test_executables_installed_under_lib(install_dir: Path) -> None:
+    lib = install_dir / "lib" / "ppoe_ros"
+    for exe in NODES + ["ppoe"]:
+        path = lib / exe
+        assert path.is_file(), f"{path} not installed"
+        assert os.access(path, os.X_OK), f"{path} is not executable"
+        assert f"'{exe}'" in path.read_text(), f"{path} is not the {exe} entry point"
+
+
+def test_config_and_launch_installed_under_share(install_dir: Path) -> None:
+    share = install_dir / "share" / "ppoe_ros"
+    assert (share / "package.xml").is_file()
+    assert (install_dir / "share" / "ament_index" / "resource_index" / "packages" / "ppoe_ros").is_file()
+    expected = sorted(p.name for p in (REPO / "config").glob("*.*"))
+    installed = sorted(p.name for p in (share / "config").iterdir())
+    assert installed == expected
+    assert {"kinematics_node.yaml", "contact_node.yaml"} <= set(installed)
+    assert (share / "launch" / "ppoe.launch.py").is_file()
+
+
+def test_installed_ppoe_entry_point_runs(install_dir: Path) -> None:
+    site = next((install_dir / "lib").glob("python3*/site-packages"))
+    env = dict(os.environ, PYTHONPATH=str(site))
+    res = subprocess.run([sys.executable, str(install_dir / "lib" / "ppoe_ros" / "ppoe"), "play", "--help"],
+                         cwd=install_dir, env=env, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert "--clock" in res.stdout and "--rate" in res.stdout
+    # the installed copy is the one that ran, not the repository
+    probe = subprocess.run([sys.executable, "-c", "import ppoe_ros; print(ppoe_ros.__file__)"],
+                           cwd=install_dir, env=env, capture_output=True, text=True, timeout=60)
+    assert probe.stdout.strip().startswith(str(site))

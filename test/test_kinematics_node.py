@@ -1,0 +1,232 @@
+"""kinematics_node through live topics: a separate process in an isolated DDS domain.
+
+The node gets the URDF of config/arm7.urdf on the latched /robot_description topic
+and config/arm7_model.yaml; its /ppoe/pose output must equal PPOEModel.fk (pose and
+cov_ros) and ``ppoe fk`` for the same joints; bad joint states are logged, counted
+on /diagnostics, and the node keeps publishing on good input.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
+from ros_helpers import REPO, NodeProcess, Probe, ros_env, write_params_file  # noqa: E402
+from sensor_msgs.msg import JointState  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+
+from ppoe_core import lie  # noqa: E402
+from ppoe_core.model import PPOEModel  # noqa: E402
+from ppoe_ros.ros_common import LATCHED_QOS, ns_to_stamp, pose_cov_from_msg, stamp_to_ns  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+URDF = REPO / "config" / "arm7.urdf"
+MODEL = REPO / "config" / "arm7_model.yaml"
+ARM = [f"joint_{i}" for i in range(1, 8)]
+EXTRA = "camera_optical_frame"
+
+
+@pytest.fixture(scope="module")
+def model() -> PPOEModel:
+    return PPOEModel.from_files(URDF, MODEL)
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory: pytest.TempPathFactory):
+    """One kinematics node process (URDF from the topic) and a probe, for the whole module."""
+    tmp = tmp_path_factory.mktemp("kin")
+    env = ros_env(tmp)
+    with Probe(env) as probe:
+        desc = probe.publisher("/robot_description", String, LATCHED_QOS)
+        desc.publish(String(data=URDF.read_text()))
+        poses = probe.collect("/ppoe/pose", PoseWithCovarianceStamped)
+        extra = probe.collect(f"/ppoe/{EXTRA}/pose", PoseWithCovarianceStamped)
+        diags = probe.collect("/diagnostics", DiagnosticArray)
+        js = probe.publisher("/joint_states", JointState, 1000)
+        with NodeProcess.node("kinematics_node", env, tmp, params={
+                "model_file": str(MODEL), "extra_target_frames": [EXTRA], "diagnostics_period": 0.2,
+                "log_throttle": 0.0}) as proc:
+            probe.wait_for_subscribers(js, proc)
+            probe.wait_for_publishers("/ppoe/pose", proc)
+            probe.spin_until(lambda: "model from topic /robot_description" in proc.output(), 15, proc,
+                             "the model to be built from /robot_description")
+            yield {"probe": probe, "proc": proc, "js": js, "poses": poses, "extra": extra, "diags": diags,
+                   "clock": [1000.0]}
+
+
+def _send(live, names, positions) -> int:
+    """Publish one JointState with the next stamp (10 ms steps); returns its stamp in ns."""
+    live["clock"][0] += 0.01
+    ns = int(round(live["clock"][0] * 1e9))
+    msg = JointState(name=list(names), position=[float(p) for p in positions])
+    msg.header.stamp = ns_to_stamp(ns)
+    live["js"].publish(msg)
+    return ns
+
+
+def _send_at(live, ns, names, positions) -> None:
+    msg = JointState(name=list(names), position=[float(p) for p in positions])
+    msg.header.stamp = ns_to_stamp(ns)
+    live["js"].publish(msg)
+
+
+def _wait_count(live, box, n, what) -> None:
+    live["probe"].spin_until(lambda: len(box) >= n, 10, live["proc"], what)
+
+
+def _last_counts(live) -> dict[str, int]:
+    for arr in reversed(live["diags"]):
+        for st in arr.status:
+            if st.name == "kinematics_node":
+                return {kv.key: int(kv.value) for kv in st.values if kv.value.isdigit()}
+    return {}
+
+
+def test_output_equals_model_fk(live, model) -> None:
+    rng = np.random.default_rng(7)
+    n0, e0 = len(live["poses"]), len(live["extra"])
+    sent = []
+    for _ in range(20):
+        q = rng.uniform(-2.0, 2.0, 7)
+        # shuffled order, plus a joint the chain does not use and one the URDF does not know
+        names = ARM + ["finger_left_joint", "not_a_urdf_joint"]
+        values = list(q) + [0.01, 3.0]
+        perm = rng.permutation(len(names))
+        stamp = _send(live, [names[i] for i in perm], [values[i] for i in perm])
+        sent.append((stamp, q))
+    _wait_count(live, live["poses"], n0 + 20, "20 poses")
+    _wait_count(live, live["extra"], e0 + 20, f"20 poses of {EXTRA}")
+    outs, extras = live["poses"][n0:], live["extra"][e0:]
+    assert [stamp_to_ns(m.header.stamp) for m in outs] == [s for s, _ in sent]
+    for (_, q), msg, msg_c in zip(sent, outs, extras):
+        joints = dict(zip(ARM, q))
+        T_ref, cov_ref = model.fk(joints, "base_link", "tool0")
+        T, cov_ros, _, frame = pose_cov_from_msg(msg)
+        assert frame == "base_link"
+        np.testing.assert_allclose(T, T_ref, atol=1e-12)
+        np.testing.assert_allclose(cov_ros, lie.cov_local_to_ros(T_ref, cov_ref), rtol=1e-10, atol=1e-18)
+        # the ROS covariance is not the local one (rotated axes): the conversion was applied
+        assert not np.allclose(cov_ros, cov_ref, rtol=1e-3)
+        Tc_ref, covc_ref = model.fk(joints, "base_link", EXTRA)
+        Tc, covc_ros, _, frame_c = pose_cov_from_msg(msg_c)
+        assert frame_c == "base_link"
+        np.testing.assert_allclose(Tc, Tc_ref, atol=1e-12)
+        np.testing.assert_allclose(covc_ros, lie.cov_local_to_ros(Tc_ref, covc_ref), rtol=1e-10, atol=1e-18)
+
+
+def test_output_equals_ppoe_fk_cli(live) -> None:
+    q = [0.3, -0.7, 0.2, 1.1, -0.4, 0.9, 0.05]
+    n0 = len(live["poses"])
+    _send(live, ARM, q)
+    _wait_count(live, live["poses"], n0 + 1, "one pose")
+    T, cov_ros, _, _ = pose_cov_from_msg(live["poses"][n0])
+    res = subprocess.run(
+        [sys.executable, "-m", "ppoe_ros.cli", "fk", "--urdf", str(URDF), "--model", str(MODEL),
+         "--from", "base_link", "--to", "tool0", "--json", "--joints", *[f"{n}={v!r}" for n, v in zip(ARM, q)]],
+        cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    ref = json.loads(res.stdout)
+    np.testing.assert_allclose(T, np.array(ref["T"]), atol=1e-12)
+    np.testing.assert_allclose(cov_ros, np.array(ref["cov_ros"]), rtol=1e-9, atol=1e-18)
+
+
+def test_bad_messages_logged_counted_and_node_survives(live) -> None:
+    probe, proc = live["probe"], live["proc"]
+    n0 = len(live["poses"])
+    bad0 = _last_counts(live).get("bad", 0)
+    good_q = [0.1] * 7
+    s1 = _send(live, ARM, good_q)
+    _send(live, ARM[:2] + ARM[3:], [0.1] * 6)                       # joint_3 missing
+    _send(live, ["not_a_urdf_joint"], [0.2])                        # only an unknown name
+    _send(live, ARM, [0.1, 0.1, float("nan"), 0.1, 0.1, 0.1, 0.1])  # NaN in a chain joint
+    _send(live, ARM, [0.1] * 6)                                     # 7 names, 6 positions
+    _send_at(live, s1 - 5_000_000, ARM, good_q)                     # stamp 5 ms before an earlier one
+    s_ok = _send(live, ARM + ["finger_left_joint"], good_q + [float("nan")])  # NaN in an unused joint: fine
+    s_ok2 = _send(live, ARM, good_q)
+    _wait_count(live, live["poses"], n0 + 3, "the good poses after the bad messages")
+    probe.spin_for(0.3)
+    got = [stamp_to_ns(m.header.stamp) for m in live["poses"][n0:]]
+    assert got == [s1, s_ok, s_ok2], "only the valid joint states are published, in order"
+    probe.spin_until(lambda: _last_counts(live).get("bad", 0) >= bad0 + 5, 5, proc, "bad == +5 on /diagnostics")
+    assert _last_counts(live)["bad"] == bad0 + 5
+    log = proc.output()
+    assert "bad message on /joint_states: missing value for joint(s) 'joint_3' needed by" in log
+    assert "missing value for joint(s) 'joint_1', 'joint_2'" in log
+    assert "NaN or infinite value for joint(s) 'joint_3'" in log
+    assert "7 names but 6 positions" in log
+    assert "jumped back by 0.005" in log
+    assert "finger_left_joint" not in log.split("NaN or infinite")[-1], "unused joints are not checked"
+    assert proc.alive()
+
+
+def test_broken_urdf_on_topic_is_refused_and_old_model_kept(live) -> None:
+    probe, proc = live["probe"], live["proc"]
+    pub = probe.publisher("/robot_description", String, LATCHED_QOS)
+    pub.publish(String(data="<robot name='x'><link name='a'/><joint name='j' type='revolute'></robot>"))
+    probe.spin_until(lambda: "bad message on /robot_description: topic /robot_description:" in proc.output(),
+                     10, proc, "the broken URDF to be reported")
+    n0 = len(live["poses"])
+    _send(live, ARM, [0.2] * 7)
+    _wait_count(live, live["poses"], n0 + 1, "a pose after the broken URDF")
+    probe.node.destroy_publisher(pub)
+
+
+def test_stamp_reset_starts_new_timeline(live) -> None:
+    n0 = len(live["poses"])
+    s_new = int((live["clock"][0] - 100.0) * 1e9)  # 100 s back: a bag loop
+    _send_at(live, s_new, ARM, [0.3] * 7)
+    live["clock"][0] -= 100.0
+    s_next = _send(live, ARM, [0.3] * 7)
+    _wait_count(live, live["poses"], n0 + 2, "poses after the clock reset")
+    assert [stamp_to_ns(m.header.stamp) for m in live["poses"][n0:]] == [s_new, s_next]
+    assert "(> stamp_reset_threshold): new timeline" in live["proc"].output()
+
+
+def test_parameter_urdf_sim_time_and_synchronous_mode(tmp_path: Path) -> None:
+    """URDF from the parameter, use_sim_time (diagnostics stamped from /clock), max_batch 1."""
+    from rosgraph_msgs.msg import Clock
+
+    env = ros_env(tmp_path)
+    pf = write_params_file(tmp_path / "p.yaml", {
+        "robot_description": URDF.read_text(), "model_file": str(MODEL), "use_sim_time": True,
+        "max_batch": 1, "diagnostics_period": 0.1, "target_frame": "arm_link_4", "pose_topic": "/elbow"})
+    with Probe(env) as probe, NodeProcess.node("kinematics_node", env, tmp_path, params_file=pf) as proc:
+        clock = probe.publisher("/clock", Clock, 10)
+        js = probe.publisher("/joint_states", JointState, 100)
+        out = probe.collect("/elbow", PoseWithCovarianceStamped)
+        diags = probe.collect("/diagnostics", DiagnosticArray)
+        probe.wait_for_subscribers(js, proc)
+        probe.wait_for_subscribers(clock, proc)
+        clock.publish(Clock(clock=ns_to_stamp(777_000_000_000)))
+        msg = JointState(name=ARM[:4], position=[0.1, 0.2, 0.3, 0.4])  # the elbow needs joints 1-4 only
+        msg.header.stamp = ns_to_stamp(5_000_000_000)
+        js.publish(msg)
+        probe.spin_until(lambda: len(out) >= 1, 10, proc, "an elbow pose")
+        assert stamp_to_ns(out[0].header.stamp) == 5_000_000_000
+        probe.spin_until(lambda: any(abs(stamp_to_ns(d.header.stamp) - 777e9) < 1e9 for d in diags), 10, proc,
+                         "diagnostics stamped with the simulated time")
+        T, _, _, _ = pose_cov_from_msg(out[0])
+        ref = PPOEModel.from_files(URDF, MODEL).fk_mean(dict(zip(ARM[:4], [0.1, 0.2, 0.3, 0.4])),
+                                                          "base_link", "arm_link_4")
+        np.testing.assert_allclose(T, ref, atol=1e-12)
+
+
+def test_invalid_parameter_refused_at_startup(tmp_path: Path) -> None:
+    env = ros_env(tmp_path)
+    proc = NodeProcess.node("kinematics_node", env, tmp_path, params={"order": 3})
+    try:
+        code = proc.wait(20)
+    finally:
+        proc.stop()
+    assert code == 2
+    assert "parameter 'order' must be 2 or 4, got 3" in proc.output()
