@@ -1,0 +1,125 @@
+"""Speed of ``ppoe evaluate`` on a long simulated bag.
+
+Generates (in a temp dir, with ``ppoe_core.simulate``) a 10-minute bag of the rover of the
+Table I study: ``/joint_states`` at 100 Hz on a smooth trajectory near the "close and rotated"
+configuration of experiment I, camera images (PNG, 640x480) at ``--camera-rate`` with the tags
+rendered, ``/ground_truth/pose`` at ``--gt-rate``.  Then runs the full offline replay
+(:func:`ppoe_core.evaluate.evaluate_bag`: batched PPOE FK of every joint state, tag detection
+on every image, the PPOE and the naive fusion pipelines, scoring) and, as the baseline measured
+in the same run, only reading the bag (:func:`ppoe_core.bagio.read_bag`).
+
+Prints ``name: value unit`` lines, among them ``joint_states_per_s`` and
+``bag_seconds_per_wall_second``.
+
+Run: ``cd /work/main && python bench/bench_evaluate.py [--duration 600] [--keep DIR]``
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # one core, before numpy is imported
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import yaml  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from ppoe_core.bagio import read_bag  # noqa: E402
+from ppoe_core.evaluate import EvaluateOptions, evaluate_bag  # noqa: E402
+from ppoe_core.simulate import simulate  # noqa: E402
+
+__all__ = ["main", "scenario"]
+
+#: experiment I centre configuration of bags/table1_exp1.yaml [rad]
+_CENTRE = {"pan_joint": -2.97, "tilt_joint": 0.65, "arm_joint_1": 0.37, "arm_joint_2": -0.54,
+           "arm_joint_3": 1.93, "arm_joint_4": -0.72, "arm_joint_5": 1.39, "arm_joint_6": 0.0}
+
+
+def scenario(duration: float, rate: float, camera_rate: float, gt_rate: float) -> dict:
+    """The benchmark scenario (``ppoe simulate`` format, see ``--help-scenario``)."""
+    return {
+        "robot": {"urdf": str(REPO / "config" / "rover.urdf"), "model": str(REPO / "config" / "rover_model.yaml")},
+        "seed": 5,
+        "start_time": 100.0,
+        "truth": {"perturbations": "once", "joint_noise": True, "effects": []},
+        "trajectory": {
+            "joint_rate": rate,
+            "smooth": {
+                "duration": duration,
+                "centre": _CENTRE,
+                "amplitude": {"arm_joint_1": 0.05, "arm_joint_2": 0.04, "arm_joint_4": 0.1, "arm_joint_6": 0.2},
+                "period": {"arm_joint_1": 23.0, "arm_joint_2": 17.0, "arm_joint_4": 29.0, "arm_joint_6": 31.0},
+            },
+        },
+        "camera": {"width": 640, "height": 480, "intrinsics": [600.0, 600.0, 320.0, 240.0],
+                   "D": [-0.05, 0.02, 0.0, 0.0, 0.0], "rate": camera_rate, "during": "always", "format": "png"},
+        "ground_truth": {"pose": {"frame": "base_link", "target": "tool_link", "rate": gt_rate}},
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=600.0, help="bag length [s] (default 600)")
+    ap.add_argument("--rate", type=float, default=100.0, help="joint-state rate [Hz] (default 100)")
+    ap.add_argument("--camera-rate", type=float, default=1.0, help="image rate [Hz] (default 1)")
+    ap.add_argument("--gt-rate", type=float, default=10.0, help="ground-truth rate [Hz] (default 10)")
+    ap.add_argument("--keep", default=None, help="generate the bag here and keep it")
+    args = ap.parse_args(argv)
+
+    tmp = None
+    if args.keep:
+        work = Path(args.keep)
+        work.mkdir(parents=True, exist_ok=True)
+    else:
+        tmp = tempfile.TemporaryDirectory(prefix="bench_evaluate_")
+        work = Path(tmp.name)
+    try:
+        sc = work / "scenario.yaml"
+        sc.write_text(yaml.safe_dump(scenario(args.duration, args.rate, args.camera_rate, args.gt_rate)))
+        bag = work / "bag"
+        t0 = time.perf_counter()
+        simulate(sc, bag, overwrite=True)
+        t_gen = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        data = read_bag(bag)
+        t_read = time.perf_counter() - t0
+        n_js = len(data.joint_states)
+        span = float(data.joint_states.stamps[-1] - data.joint_states.stamps[0])
+
+        t0 = time.perf_counter()
+        ev = evaluate_bag(bag, REPO / "config" / "rover_model.yaml", EvaluateOptions(progress=False))
+        t_eval = time.perf_counter() - t0
+        s = ev.summary
+        counts = s["methods"]["ppoe"]["measurements"]["counts"]
+        print(f"bag_duration: {span:.1f} s")
+        print(f"joint_states: {n_js} messages")
+        print(f"images: {s['measurements'].get('images', 0)} messages")
+        print(f"ground_truth_samples: {s['ground_truth']['samples']} messages")
+        print(f"tag_updates_accepted: {counts['accepted']} updates")
+        print(f"generate_time: {t_gen:.2f} s")
+        print(f"read_bag_time: {t_read:.2f} s")
+        print(f"evaluate_time: {t_eval:.2f} s")
+        print(f"joint_states_per_s: {n_js / t_eval:.0f} 1/s")
+        print(f"bag_seconds_per_wall_second: {span / t_eval:.1f} s/s")
+        print(f"evaluate_over_read_bag_ratio: {t_eval / t_read:.2f} x")
+        fk, pp = s["methods"]["fk"]["lateral"], s["methods"]["ppoe"]["lateral"]
+        print(f"fk_lateral_mean: {1e3 * fk['mean']:.2f} mm")
+        print(f"ppoe_lateral_mean: {1e3 * pp['mean']:.2f} mm")
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
