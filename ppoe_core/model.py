@@ -165,6 +165,9 @@ def compound_fourth_order(cov1: ArrayLike, cov2: ArrayLike) -> Array:
 # Compiled chain
 # ----------------------------------------------------------------------------
 
+#: batch chunk size of the batched path (working set stays in cache)
+_CHUNK = 2048
+
 # program op codes
 _S, _RZ, _TZ, _D, _SITE = 0, 1, 2, 3, 4
 
@@ -187,6 +190,7 @@ class _Chain:
     motion_joint: list  # joint name
     motion_master: list  # independent master joint name
     motion_slot: Array  # (n_motion,) index into `masters`
+    motion_col: Array  # (n_motion,) index of the master in robot.independent_joints
     motion_mult: Array  # (n_motion,) sign * multiplier
     motion_off: Array  # (n_motion,) sign * offset
     motion_sign: Array  # (n_motion,) +1 down, -1 up
@@ -196,13 +200,20 @@ class _Chain:
     site_L: list  # (6, r_k) factors in the canonical frame at the site
     site_label: list  # "xi:<joint>" / "noise:<joint>"
     L_all: Array  # (m, 6) all factor columns stacked (rows = columns of L_k)
+    H_all: Array  # (m, 3, 3) hat of the rotational part of each column
+    X_rows: Array  # (m, 2, 3) rows [v^T; w^T] of each column
+    col_pos: Array  # (m,) suffix index (site position) of each column
     col_site: Array  # (m,) site index of each column
+    site_cols: list  # per site: (LvT (r, 3), LwT (r, 3), H (r, 3, 3), rot_only, c0, c1)
+    site_sparse: list  # per site: None (dense) or [(column, v non-zeros, w non-zeros), ...]
     # effect sites
     d_joint: list  # joint name of each _D site
     d_map: list  # (6, 6) map of the joint's dxi into the canonical twist (sign included)
     # single-configuration program
     f_static: Array  # (n_f, 4, 4) factors with identities at motion/D slots
     f_motion_idx: Array  # factor index of each motion
+    f_rz: tuple  # (motion indices, factor indices) of the revolute motions
+    f_tz: tuple  # (motion indices, factor indices) of the prismatic motions
     f_d_idx: Array  # factor index of each D op
     site_pos: Array  # (n_sites,) number of factors before each site
     motion_pos: Array  # (n_motion,) number of factors up to and including each motion
@@ -323,6 +334,23 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
         L_all = np.zeros((0, 6))
         col_site = np.zeros(0, dtype=int)
 
+    site_cols = []
+    site_sparse: list = []
+    c0 = 0
+    for L in site_L:
+        r = L.shape[1]
+        site_cols.append((L[:3].T.copy(), L[3:].T.copy(), lie.hat3(L[3:].T), not np.any(L[:3]), c0, c0 + r))
+        if all(np.count_nonzero(L[:, i]) <= 2 for i in range(r)):
+            site_sparse.append([
+                (c0 + i,
+                 tuple((j, float(L[j, i])) for j in range(3) if L[j, i] != 0.0),
+                 tuple((j, float(L[3 + j, i])) for j in range(3) if L[3 + j, i] != 0.0))
+                for i in range(r)
+            ])
+        else:
+            site_sparse.append(None)
+        c0 += r
+
     # single-config program: factor list
     factors, f_motion_idx, f_d_idx = [], [], []
     site_pos = np.zeros(len(site_L), dtype=int)
@@ -349,6 +377,7 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
         motion_joint=motion_joint,
         motion_master=motion_master,
         motion_slot=slot,
+        motion_col=np.array([robot.independent_joints.index(mj) for mj in motion_master], dtype=int),
         motion_mult=np.array(motion_mult, dtype=float),
         motion_off=np.array(motion_off, dtype=float),
         motion_sign=np.array(motion_sign, dtype=float),
@@ -357,11 +386,20 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
         site_L=site_L,
         site_label=site_label,
         L_all=L_all,
+        H_all=lie.hat3(L_all[:, 3:]),
+        X_rows=L_all.reshape(-1, 2, 3).copy(),
+        col_pos=site_pos[col_site],
         col_site=col_site,
+        site_cols=site_cols,
+        site_sparse=site_sparse,
         d_joint=d_joint,
         d_map=d_map,
         f_static=np.array(factors),
         f_motion_idx=np.array(f_motion_idx, dtype=int),
+        f_rz=(np.array([i for i, k in enumerate(motion_kind) if k == _RZ], dtype=int),
+              np.array([f_motion_idx[i] for i, k in enumerate(motion_kind) if k == _RZ], dtype=int)),
+        f_tz=(np.array([i for i, k in enumerate(motion_kind) if k == _TZ], dtype=int),
+              np.array([f_motion_idx[i] for i, k in enumerate(motion_kind) if k == _TZ], dtype=int)),
         f_d_idx=np.array(f_d_idx, dtype=int),
         site_pos=site_pos,
         motion_pos=motion_pos,
@@ -376,32 +414,167 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
 def _eval_single(ch: _Chain, theta: Array, D: Optional[Array]) -> tuple[Array, Array]:
     """One configuration: ``theta`` (n_motion,), ``D`` (n_d, 4, 4) or None.
 
-    Returns ``(T (4, 4), prefixes (n_f + 1, 4, 4))`` with ``prefixes[k]`` = product of
-    the first ``k`` factors.
+    Returns ``(T (4, 4), suffixes (n_f + 1, 4, 4))`` with ``suffixes[k]`` = product of the
+    factors ``k, k+1, ...`` (``suffixes[n_f]`` = identity, ``suffixes[0]`` = T).
     """
     F = ch.f_static.copy()
     if theta.size:
-        kinds = ch.motion_kind
-        c, s = np.cos(theta), np.sin(theta)
-        for i, fi in enumerate(ch.f_motion_idx):
-            if kinds[i] == _RZ:
-                F[fi, 0, 0] = F[fi, 1, 1] = c[i]
-                F[fi, 0, 1] = -s[i]
-                F[fi, 1, 0] = s[i]
-            else:
-                F[fi, 2, 3] = theta[i]
+        rz, fz = ch.f_rz
+        if fz.size:
+            th = theta[rz]
+            c, s = np.cos(th), np.sin(th)
+            F[fz, 0, 0] = c
+            F[fz, 1, 1] = c
+            F[fz, 0, 1] = -s
+            F[fz, 1, 0] = s
+        tz, ft = ch.f_tz
+        if ft.size:
+            F[ft, 2, 3] = theta[tz]
     if D is not None and len(ch.f_d_idx):
         F[ch.f_d_idx] = D
-    # Hillis-Steele inclusive prefix product (log depth, order-preserving)
+    # Hillis-Steele inclusive suffix product (log depth, order-preserving)
     n = F.shape[0]
+    S = np.empty((n + 1, 4, 4))
+    S[:n] = F
+    S[n] = np.eye(4)
     d = 1
     while d < n:
-        F[d:] = F[:-d] @ F[d:]
+        S[: n - d] = S[: n - d] @ S[d:n]
         d *= 2
-    P = np.empty((n + 1, 4, 4))
-    P[0] = np.eye(4)
-    P[1:] = F
-    return F[-1], P
+    return S[0], S
+
+
+def _columns(B: Array, LvT: Array, LwT: Array, H: Array, rot_only: bool) -> Array:
+    """``Ad_{B^-1} L`` for poses ``B`` as rows ``(3, 4, N)``; returns ``(r, 6, N)``.
+
+    ``Ad_{B^-1} [v; w] = [R^T (v + w x t); R^T w]`` (paper eq. 7 for the inverse pose).
+    """
+    R = B[:, :3]
+    t = B[:, 3]
+    r = LwT.shape[0]
+    N = B.shape[-1]
+    out = np.empty((r, 6, N))
+    out[:, 3:] = np.tensordot(LwT, R, axes=1)
+    u = np.tensordot(H, t, axes=1)  # (r, 3, N): w x t
+    if not rot_only:
+        u += LvT[:, :, None]
+    out[:, :3] = u[:, 0, None] * R[0] + u[:, 1, None] * R[1] + u[:, 2, None] * R[2]
+    return out
+
+
+# (e_j x t) = sum over (k, sign, l): sign * t_l e_k
+_CROSS_E = (((1, -1.0, 2), (2, 1.0, 1)), ((0, 1.0, 2), (2, -1.0, 0)), ((0, -1.0, 1), (1, 1.0, 0)))
+
+
+def _sparse_column(B: Array, vnz: tuple, wnz: tuple, out: Array) -> None:
+    """``Ad_{B^-1} L`` for one column with few non-zeros, written into ``out`` (6, N).
+
+    ``vnz`` / ``wnz``: ``((j, value), ...)`` of the translational / rotational part; the
+    result is ``[R^T (v + w x t); R^T w]`` with ``R^T e_j`` = row ``j`` of ``R``.
+    """
+    R = B[:, :3]
+    t = B[:, 3]
+    first_v = True
+    first_w = True
+    for j, b in wnz:
+        if first_w:
+            np.multiply(R[j], b, out=out[3:])
+            first_w = False
+        else:
+            out[3:] += b * R[j]
+        for k, sg, l in _CROSS_E[j]:
+            term = (sg * b) * t[l] * R[k]
+            if first_v:
+                out[:3] = term
+                first_v = False
+            else:
+                out[:3] += term
+    for j, a in vnz:
+        if first_v:
+            np.multiply(R[j], a, out=out[:3])
+            first_v = False
+        else:
+            out[:3] += a * R[j]
+    if first_w:
+        out[3:] = 0.0
+    if first_v:
+        out[:3] = 0.0
+
+
+def _eval_backward(
+    ch: _Chain, theta: Array, D: Optional[Array], want_cov: bool, want_jac: bool
+) -> tuple[Array, Optional[Array], Optional[Array]]:
+    """Many configurations, walking the chain backwards with ``B`` = product of the rest.
+
+    At a perturbation site, ``B`` is the paper's "everything after it", so the site's local
+    columns are ``Ad_{B^-1} L_k`` (eq. 15/18) without any inverse; at the end ``B = T``.
+
+    Parameters
+    ----------
+    theta : (n_motion, N)
+    D : (n_d, 4, 4, N) or None
+
+    Returns
+    -------
+    B : (3, 4, N) rows of ``T_frm_to``
+    G : (m, 6, N) local covariance columns (``cov = G^T G``) or None
+    J : (n_motion, 6, N) local joint-motion columns (unit joint speed, before the sign /
+        multiplier) or None
+    """
+    N = theta.shape[1]
+    B: Optional[Array] = None  # None = identity
+    G = np.empty((ch.L_all.shape[0], 6, N)) if want_cov else None
+    J = np.empty((len(ch.motion_joint), 6, N)) if want_jac else None
+    c = s = None
+    if theta.size:
+        c, s = np.cos(theta), np.sin(theta)
+
+    def ident() -> Array:
+        out = np.zeros((3, 4, N))
+        out[0, 0] = out[1, 1] = out[2, 2] = 1.0
+        return out
+
+    for code, arg in reversed(ch.ops):
+        if code == _S:
+            if B is None:
+                B = np.repeat(arg[:3, :, None], N, axis=2)
+            else:
+                B = np.tensordot(arg[:3, :3], B, axes=1)
+                B[:, 3] += arg[:3, 3, None]
+            continue
+        if B is None:
+            B = ident()
+        if code == _RZ or code == _TZ:
+            if J is not None:
+                if code == _RZ:  # Ad_{B^-1} [0; e_z]: [R^T (e_z x t); R^T e_z]
+                    J[arg, 3:] = B[2, :3]
+                    J[arg, :3] = B[1, :3] * B[0, 3] - B[0, :3] * B[1, 3]
+                else:  # Ad_{B^-1} [e_z; 0]
+                    J[arg, :3] = B[2, :3]
+                    J[arg, 3:] = 0.0
+            if code == _RZ:
+                b0 = B[0].copy()
+                ci, si = c[arg], s[arg]
+                B[0] = ci * b0 - si * B[1]
+                B[1] = si * b0 + ci * B[1]
+            else:
+                B[2, 3] += theta[arg]
+        elif code == _D:
+            Dk = D[arg]
+            Bn = np.einsum("ijn,jkn->ikn", Dk[:3, :3], B)
+            Bn[:, 3] += Dk[:3, 3]
+            B = Bn
+        elif G is not None:  # site
+            LvT, LwT, H, rot_only, c0, c1 = ch.site_cols[arg]
+            sparse = ch.site_sparse[arg]
+            if sparse is None:
+                G[c0:c1] = _columns(B, LvT, LwT, H, rot_only)
+            else:
+                for col, vnz, wnz in sparse:
+                    _sparse_column(B, vnz, wnz, G[col])
+    if B is None:
+        B = ident()
+    return B, G, J
 
 
 def _eval_batch(
@@ -649,14 +822,48 @@ class PPOEModel:
         return out
 
     # -- core evaluation ----------------------------------------------------------
+    def _lookup(self, frm: Optional[str], to: Optional[str]) -> _Chain:
+        with_effects = bool(self._effects) if self._effects is not None else bool(self.effects)
+        ch = self._chains.get((frm, to, with_effects))  # type: ignore[arg-type]
+        if ch is None:
+            frm, to = self._frames(frm, to)
+            ch = self._chain(frm, to, with_effects)
+            self._chains[(frm, to, with_effects)] = ch
+        return ch
+
+    def _single_theta(self, joints: Joints, ch: _Chain) -> Optional[Array]:
+        """Lean path: motion values of ONE configuration without effects, or None (use the
+        general path, which also produces the error messages)."""
+        if self._effects:
+            return None
+        if type(joints) is np.ndarray:
+            if joints.ndim != 1 or joints.shape[0] != len(self.joint_names) or joints.dtype.kind != "f":
+                return None
+            th = joints[ch.motion_col]
+        elif isinstance(joints, dict):
+            try:
+                th = np.array([joints[n] for n in ch.motion_master], dtype=float)
+            except (KeyError, TypeError, ValueError):
+                return None
+            if th.ndim != 1:
+                return None
+        else:
+            return None
+        if not np.isfinite(th).all():
+            return None
+        return th * ch.motion_mult + ch.motion_off
+
     def _prepare(self, joints: Joints, frm: Optional[str], to: Optional[str], context: Optional[Mapping]):
-        frm, to = self._frames(frm, to)
-        effects = self.effects
-        ch = self._chain(frm, to, bool(effects))
-        q, shape = self._joint_values(joints, ch.masters, frm, to)
+        """Chain, motion values ``theta`` (n_motion, N), effect factors, batch shape, N."""
+        ch = self._lookup(frm, to)
+        q, shape = self._joint_values(joints, ch.masters, ch.frm, ch.to)
         N = q.shape[1]
-        theta = ch.motion_mult[:, None] * q[ch.motion_slot] + ch.motion_off[:, None] if len(ch.motion_joint) else np.zeros((0, N))
+        if len(ch.motion_joint):
+            theta = ch.motion_mult[:, None] * q[ch.motion_slot] + ch.motion_off[:, None]
+        else:
+            theta = np.zeros((0, N))
         D = None
+        effects = self._effects
         if effects:
             qd = self._all_joint_dict(joints, shape)
             dq_tot: dict[str, Array] = {}
@@ -700,12 +907,21 @@ class PPOEModel:
         -------
         ndarray, shape (..., 4, 4)
         """
+        ch = self._lookup(frm, to)
+        th = self._single_theta(joints, ch)
+        if th is not None:
+            return _eval_single(ch, th, None)[0]
         ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
         if N == 1:
             T, _ = _eval_single(ch, theta[:, 0], None if D is None else D[..., 0])
             return T.reshape(shape + (4, 4))
-        P, _, _ = _eval_batch(ch, theta, D, None, False, False)
-        return _rows_to_T(P).reshape(shape + (4, 4))
+        T = np.zeros((N, 4, 4))
+        T[:, 3, 3] = 1.0
+        for a in range(0, N, _CHUNK):
+            b = min(N, a + _CHUNK)
+            B, _, _ = _eval_backward(ch, theta[:, a:b], None if D is None else D[..., a:b], False, False)
+            T[a:b, :3, :] = np.moveaxis(B, 2, 0)
+        return T.reshape(shape + (4, 4))
 
     def fk(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None, order: int = 2,
            context: Optional[Mapping[str, Any]] = None) -> tuple[Array, Array]:
@@ -733,28 +949,48 @@ class PPOEModel:
         ------
         UnknownFrameError, JointValueError, ModelConfigError
         """
-        if order not in (2, 4):
+        if order != 2 and order != 4:
             raise ModelConfigError(f"fk: order must be 2 or 4, got {order!r}")
+        ch = self._lookup(frm, to)
+        m = ch.L_all.shape[0]
+        th = self._single_theta(joints, ch)
+        if th is not None and order == 2:
+            T, S = _eval_single(ch, th, None)
+            if m == 0:
+                return T, np.zeros((6, 6))
+            G = _local_columns_single(ch, S)
+            return T, G.T @ G
         ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
         if N == 1:
-            T, P = _eval_single(ch, theta[:, 0], None if D is None else D[..., 0])
-            if ch.L_all.shape[0] == 0:
+            T, S = _eval_single(ch, theta[:, 0], None if D is None else D[..., 0])
+            if m == 0:
                 return T.reshape(shape + (4, 4)), np.zeros(shape + (6, 6))
-            G = _local_columns_single(ch, T, P)  # (m, 6)
-            if order == 2:
-                cov = G.T @ G
-            else:
-                cov = _fourth_order(ch, G[:, None, :])[0]
+            G = _local_columns_single(ch, S)  # (m, 6)
+            cov = G.T @ G if order == 2 else _fourth_order(ch, G[:, None, :])[0]
             return T.reshape(shape + (4, 4)), cov.reshape(shape + (6, 6))
-        P, sites, _ = _eval_batch(ch, theta, D, None, True, False)
-        T = _rows_to_T(P)
-        if ch.L_all.shape[0] == 0:
-            return T.reshape(shape + (4, 4)), np.zeros(shape + (6, 6))
-        G = _local_columns_batch(ch, P, sites)  # (m, 6, N)
-        if order == 2:
-            cov = np.einsum("min,mjn->nij", G, G)
-        else:
-            cov = _fourth_order(ch, np.moveaxis(G, 2, 1))
+        T = np.zeros((N, 4, 4))
+        T[:, 3, 3] = 1.0
+        cov = np.zeros((N, 6, 6))
+        # chunks keep the (3, 4, n) working set in cache
+        for a in range(0, N, _CHUNK):
+            b = min(N, a + _CHUNK)
+            Dc = None if D is None else D[..., a:b]
+            B, G, _ = _eval_backward(ch, theta[:, a:b], Dc, m > 0, False)
+            T[a:b, :3, :] = np.moveaxis(B, 2, 0)
+            if m == 0:
+                continue
+            assert G is not None
+            if order == 2:
+                cc = np.empty((6, 6, b - a))
+                for i in range(6):
+                    Gi = G[:, i]
+                    for j in range(i, 6):
+                        cc[i, j] = np.einsum("mn,mn->n", Gi, G[:, j])
+                        if j != i:
+                            cc[j, i] = cc[i, j]
+                cov[a:b] = cc.transpose(2, 0, 1)
+            else:
+                cov[a:b] = _fourth_order(ch, np.moveaxis(G, 2, 1))
         return T.reshape(shape + (4, 4)), cov.reshape(shape + (6, 6))
 
     def sample(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None, n: int = 1000,
@@ -797,26 +1033,11 @@ class PPOEModel:
             space at ``T_frm_to`` (frame ``to``).
         """
         ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
-        P, _, motions = _eval_batch(ch, theta, D, None, False, True)
+        _, _, Jm = _eval_backward(ch, theta, D, False, True)
         J = np.zeros((6, len(self.joint_names), N))
-        if len(ch.motion_joint):
-            R, t = P[:, :3], P[:, 3]
-            for i, jn in enumerate(ch.motion_joint):
-                M = motions[i]
-                z = M[:, 2]  # (3, N): joint axis in frm coordinates
-                if ch.motion_kind[i] == _RZ:
-                    w = z
-                    v = np.cross(M[:, 3], z, axis=0)
-                else:
-                    w = np.zeros_like(z)
-                    v = z
-                # global twist -> local at T: Ad_{T^-1}
-                wl = np.einsum("jin,jn->in", R, w)
-                vl = np.einsum("jin,jn->in", R, v - np.cross(t, w, axis=0))
-                col = self._index[ch.motion_master[i]]
-                scale = ch.motion_mult[i]
-                J[:3, col] += scale * vl
-                J[3:, col] += scale * wl
+        if Jm is not None:
+            for i in range(len(ch.motion_joint)):
+                J[:, self._index[ch.motion_master[i]]] += ch.motion_mult[i] * Jm[i]
         return np.moveaxis(J, 2, 0).reshape(shape + (6, len(self.joint_names)))
 
     def perturbation_labels(self, frm: Optional[str] = None, to: Optional[str] = None) -> list[str]:
@@ -839,46 +1060,16 @@ def _rows_to_T(P: Array) -> Array:
     return T
 
 
-def _local_columns_single(ch: _Chain, T: Array, P: Array) -> Array:
-    """``G`` (m, 6): columns ``Ad_{T^-1} Ad_{P_k} L_k`` for one configuration."""
-    Pk = P[ch.site_pos[ch.col_site]]  # (m, 4, 4)
-    R = Pk[:, :3, :3]
-    t = Pk[:, :3, 3]
-    Lv = ch.L_all[:, :3]
-    Lw = ch.L_all[:, 3:]
-    w = np.einsum("mij,mj->mi", R, Lw)
-    v = np.einsum("mij,mj->mi", R, Lv) + np.cross(t, w)
-    # Ad_{T^-1}: [R^T (v - t x w); R^T w]  (row form: x @ R)
-    RT = T[:3, :3]
-    tT = T[:3, 3]
-    G = np.empty((ch.L_all.shape[0], 6))
-    G[:, 3:] = w @ RT
-    G[:, :3] = (v - np.cross(tT, w)) @ RT
-    return G
+def _local_columns_single(ch: _Chain, S: Array) -> Array:
+    """``G`` (m, 6): columns ``Ad_{B_k^-1} L_k`` for one configuration (suffixes ``S``).
 
-
-def _local_columns_batch(ch: _Chain, P: Array, sites: list) -> Array:
-    """``G`` (m, 6, N): columns ``Ad_{T^-1} Ad_{P_k} L_k`` for many configurations."""
-    N = P.shape[-1]
-    m = ch.L_all.shape[0]
-    G = np.empty((m, 6, N))
-    RT, tT = P[:, :3], P[:, 3]
-    c0 = 0
-    for k, L in enumerate(ch.site_L):
-        r = L.shape[1]
-        S = sites[k]
-        R, t = S[:, :3], S[:, 3]  # (3, 3, N), (3, N)
-        w = np.einsum("ijn,jr->rin", R, L[3:])  # (r, 3, N)
-        v = np.einsum("ijn,jr->rin", R, L[:3]) + np.cross(t[None], w, axis=1)
-        G[c0:c0 + r, 3:] = w
-        G[c0:c0 + r, :3] = v - np.cross(tT[None], w, axis=1)
-        c0 += r
-    # rotate into the tool frame: x_local = R_T^T x
-    Gv = np.einsum("jin,mjn->min", RT, G[:, :3])
-    Gw = np.einsum("jin,mjn->min", RT, G[:, 3:])
-    G[:, :3] = Gv
-    G[:, 3:] = Gw
-    return G
+    ``Ad_{B^-1} [v; w] = [R^T (v + w x t); R^T w]``, evaluated as row vectors
+    ``[(v + w x t)^T; w^T] @ R`` for all columns in one stacked product.
+    """
+    Bk = S[ch.col_pos]  # (m, 4, 4): everything after each column's site
+    X = ch.X_rows.copy()  # (m, 2, 3): rows [v^T; w^T]
+    X[:, 0] += (ch.H_all @ Bk[:, :3, 3:])[:, :, 0]  # + (w x t)^T
+    return (X @ Bk[:, :3, :3]).reshape(-1, 6)
 
 
 def _fourth_order(ch: _Chain, G: Array) -> Array:
