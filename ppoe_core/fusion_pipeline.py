@@ -57,6 +57,7 @@ __all__ = [
     "ModelUpdater",
     "COUNT_KEYS",
     "posterior_cost",
+    "apply_corrections",
 ]
 
 Array = np.ndarray
@@ -392,8 +393,19 @@ class CarriedCorrection:
     z: Array
 
     @staticmethod
-    def from_update(anchor: PriorSample, T_post: Array, cov_post: Array) -> "CarriedCorrection | None":
-        """Build the correction that turns ``anchor`` into ``(T_post, cov_post)``.
+    def from_update(
+        anchor: PriorSample,
+        T_post: Array,
+        cov_post: Array,
+        T_pre: Array | None = None,
+        cov_pre: Array | None = None,
+    ) -> "CarriedCorrection | None":
+        """Build the correction that turns ``(T_pre, cov_pre)`` into ``(T_post, cov_post)``.
+
+        ``(T_pre, cov_pre)`` is the estimate the update started from (default: the raw
+        prior ``anchor``; with corrections of other sources applied otherwise).  The
+        equivalent measurement is finally re-expressed as a measurement of the error of the
+        raw prior ``anchor.T_base_tool``: ``z += H Log(T_anchor^-1 T_pre)`` (first order).
 
         ``delta = Log(T_prior^-1 T_post)`` (tool frame); ``I_c = P_post^-1 - P_prior^-1``
         (clipped to PSD), ``y = P_post^-1 delta``; ``I_c = V diag(lam) V^T`` with the
@@ -406,7 +418,9 @@ class CarriedCorrection:
         """
         # work in the range of the prior covariance: directions the prior is certain about
         # carry no correction (and P_prior^-1 is not needed there)
-        s0, U = np.linalg.eigh(_sym(anchor.cov_tool))
+        T_pre = anchor.T_base_tool if T_pre is None else np.asarray(T_pre, dtype=np.float64)
+        cov_pre = anchor.cov_tool if cov_pre is None else cov_pre
+        s0, U = np.linalg.eigh(_sym(cov_pre))
         keep0 = s0 > 1e-12 * max(float(s0.max()), 1e-300)
         if not np.any(keep0):
             return None
@@ -415,7 +429,7 @@ class CarriedCorrection:
         P1 = U.T @ _sym(cov_post) @ U
         P1 = _sym(P1) + _INV_JITTER * np.eye(P1.shape[0])
         info1 = np.linalg.inv(P1)
-        delta = lie.log(lie.inverse(anchor.T_base_tool) @ T_post)
+        delta = lie.log(lie.inverse(T_pre) @ T_post)
         y = info1 @ (U.T @ delta)
         lam, V = np.linalg.eigh(_sym(info1 - info0))
         keep = lam > 1e-9 * max(float(np.max(np.abs(lam))), 1e-300)
@@ -424,7 +438,7 @@ class CarriedCorrection:
         lam, V = lam[keep], V[:, keep]
         H = V.T @ U.T
         R = 1.0 / lam
-        z = R * (V.T @ y)
+        z = R * (V.T @ y) + H @ lie.log(lie.inverse(anchor.T_base_tool) @ T_pre)
         return CarriedCorrection(anchor, H, R, z)
 
     def apply(self, prior: PriorSample, weight: float) -> tuple[Array, Array]:
@@ -434,17 +448,30 @@ class CarriedCorrection:
         measurement ``z = H e + n``, ``n ~ N(0, diag(R) / weight)``; covariance in Joseph form
         (tool tangent space at the returned pose).
         """
-        P = _sym(prior.cov_tool)
-        if weight <= 0.0:
-            return prior.T_base_tool, P
-        H = self.H
-        Rw = np.diag(self.R / weight)
-        S = H @ P @ H.T + Rw
-        K = np.linalg.solve(S, H @ P).T  # P H^T S^-1
-        m = K @ self.z
-        IKH = np.eye(6) - K @ H
-        cov = _sym(IKH @ P @ IKH.T + K @ Rw @ K.T)
-        return prior.T_base_tool @ lie.exp(m), cov
+        return apply_corrections(prior, [(self, weight)])
+
+
+def apply_corrections(
+    prior: PriorSample, corrections: "list[tuple[CarriedCorrection, float]]"
+) -> tuple[Array, Array]:
+    """Apply several weighted corrections (independent equivalent measurements) at once.
+
+    One linear Kalman update of the raw prior ``(T, P)`` with the stacked ``H``, ``z`` and
+    ``diag(R / w)``; returns ``(T Exp(K z), (I-KH) P (I-KH)^T + K R K^T)`` (tool frame).
+    """
+    P = _sym(prior.cov_tool)
+    active = [(c, w) for c, w in corrections if w > 0.0]
+    if not active:
+        return prior.T_base_tool, P
+    H = np.concatenate([c.H for c, _ in active])
+    Rw = np.diag(np.concatenate([c.R / w for c, w in active]))
+    z = np.concatenate([c.z for c, _ in active])
+    S = H @ P @ H.T + Rw
+    K = np.linalg.solve(S, H @ P).T  # P H^T S^-1
+    m = K @ z
+    IKH = np.eye(6) - K @ H
+    cov = _sym(IKH @ P @ IKH.T + K @ Rw @ K.T)
+    return prior.T_base_tool @ lie.exp(m), cov
 
 
 def _sym(A: Array) -> Array:
@@ -537,8 +564,14 @@ class FusionPipeline:
     Notes
     -----
     ``counts`` holds the counters listed in ``COUNT_KEYS``.  The order of calls is the order
-    of arrival; a measurement older than the correction's anchor is still processed (the
-    carried correction is applied to its prior with a weight from ``|dt|`` and the motion).
+    of arrival; a measurement older than a correction's anchor is still processed (the
+    carried corrections are applied to its prior with weights from ``|dt|`` and the motion).
+
+    Corrections are kept **per source** (``Measurement.source``, the topic): a new accepted
+    measurement of a source replaces that source's previous correction (the update starts
+    from the prior with only the *other* sources' corrections applied), while different
+    sources combine.  So a 100 Hz contact stream, or a camera re-observing the same tags with
+    the same camera-chain error, does not count its (systematic) error again and again.
     """
 
     def __init__(
@@ -558,7 +591,7 @@ class FusionPipeline:
             raise PpoeError(f"FusionPipeline: max_pending must be >= 0, got {max_pending}")
         self.max_pending = int(max_pending)
         self.reset_jump = float(reset_jump)
-        self.correction: CarriedCorrection | None = None
+        self.corrections: dict[str, CarriedCorrection] = {}
         self.pending: list[Measurement] = []
         self.counts: dict[str, int] = {k: 0 for k in COUNT_KEYS}
         self.last_nis: float = float("nan")
@@ -613,10 +646,10 @@ class FusionPipeline:
         return self.fuse(sample), outcomes
 
     def reset(self) -> None:
-        """Forget priors, pending measurements and the carried correction (counts stay)."""
+        """Forget priors, pending measurements and the carried corrections (counts stay)."""
         self.buffer.clear()
         self.pending.clear()
-        self.correction = None
+        self.corrections.clear()
 
     # -- measurements ---------------------------------------------------------
 
@@ -654,20 +687,35 @@ class FusionPipeline:
 
     # -- queries --------------------------------------------------------------
 
-    def fuse(self, prior: PriorSample) -> FusedEstimate:
-        """Apply the carried correction to ``prior``; drops it if it has expired."""
-        if self.correction is None:
+    @property
+    def correction(self) -> CarriedCorrection | None:
+        """The most recent carried correction of any source (None if there is none)."""
+        if not self.corrections:
+            return None
+        return max(self.corrections.values(), key=lambda c: c.anchor.stamp)
+
+    def fuse(self, prior: PriorSample, exclude: str | None = None) -> FusedEstimate:
+        """Apply the carried corrections (all sources but ``exclude``) to ``prior``.
+
+        Expired corrections (weight 0) are dropped and counted, but only when ``prior`` is
+        not older than their anchor (a late query must not erase a correction that is still
+        valid now).  ``weight`` of the result is the largest weight applied.
+        """
+        applied: list[tuple[CarriedCorrection, float]] = []
+        for source in list(self.corrections):
+            corr = self.corrections[source]
+            w = self.policy.weight(corr.anchor, prior)
+            if w <= 0.0:
+                if prior.stamp >= corr.anchor.stamp:
+                    del self.corrections[source]
+                    self.counts["corrections_dropped"] += 1
+                continue
+            if source != exclude:
+                applied.append((corr, w))
+        if not applied:
             return FusedEstimate(prior.stamp, prior.T_base_tool, prior.cov_tool, 0.0, prior)
-        w = self.policy.weight(self.correction.anchor, prior)
-        if w <= 0.0:
-            # expired: dropped for good only when the prior is not older than the anchor
-            # (a late, older query must not erase a correction that is still valid now)
-            if prior.stamp >= self.correction.anchor.stamp:
-                self.correction = None
-                self.counts["corrections_dropped"] += 1
-            return FusedEstimate(prior.stamp, prior.T_base_tool, prior.cov_tool, 0.0, prior)
-        T, cov = self.correction.apply(prior, w)
-        return FusedEstimate(prior.stamp, T, cov, w, prior)
+        T, cov = apply_corrections(prior, applied)
+        return FusedEstimate(prior.stamp, T, cov, max(w for _, w in applied), prior)
 
     def fused_at(self, stamp: float) -> FusedEstimate | None:
         """Fused estimate at any stamp inside the buffer (None if no prior there)."""
@@ -692,7 +740,7 @@ class FusionPipeline:
         if status != LookupStatus.OK or prior is None:
             self.counts["dropped_no_prior"] += 1
             return MeasurementOutcome(measurement, "no_prior")
-        est = self.fuse(prior)
+        est = self.fuse(prior, exclude=measurement.source)
         try:
             res = self.updater(est.T_base_tool, est.cov_tool, measurement, prior)
         except PpoeError as exc:  # MeasurementError, CovarianceError, unknown frame/joint
@@ -705,9 +753,11 @@ class FusionPipeline:
         self.counts["accepted"] += 1
         T_post = np.asarray(res.T_base_tool, dtype=np.float64)
         cov_post = _sym(res.cov_tool)
-        corr = CarriedCorrection.from_update(prior, T_post, cov_post)
+        corr = CarriedCorrection.from_update(prior, T_post, cov_post, est.T_base_tool, est.cov_tool)
         if corr is not None:
-            self.correction = corr
+            self.corrections[measurement.source] = corr
+        else:
+            self.corrections.pop(measurement.source, None)
         post = FusedEstimate(prior.stamp, T_post, cov_post, 1.0, prior)
         return MeasurementOutcome(measurement, "accepted", post, nis=float(res.nis))
 

@@ -315,6 +315,28 @@ def test_pipeline_sequential_updates_accumulate_information():
     assert pipe.counts["accepted"] == 2
 
 
+def test_pipeline_same_source_replaces_its_correction():
+    """A source repeating the same (systematically wrong) measurement does not pile up
+    confidence: the second update replaces the first; another source still combines."""
+    rng, T_true, T_prior, P, upd, pipe = _setup(seed=6)
+    pipe.add_prior(0.0, T_prior, P)
+    pipe.add_prior(0.1, T_prior, P)
+    m = Measurement(0.05, "/contact", (T_true, np.eye(6)[:1], np.array([[1e-4]])))
+    pipe.add_measurement(m)
+    cov_once = pipe.fused_at(0.05).cov_tool
+    for _ in range(20):
+        pipe.add_measurement(m)
+    np.testing.assert_allclose(pipe.fused_at(0.05).cov_tool, cov_once, rtol=1e-6, atol=1e-14)
+    assert len(pipe.corrections) == 1 and pipe.counts["accepted"] == 21
+    # the single update equals the 1D linear Kalman update of the prior
+    ref = LinearUpdater()(T_prior, P, m)
+    np.testing.assert_allclose(cov_once, ref.cov_tool, rtol=1e-6, atol=1e-14)
+    pipe.add_measurement(Measurement(0.05, "/tag", (T_true, np.eye(6)[1:2], np.array([[1e-4]]))))
+    assert len(pipe.corrections) == 2
+    assert pipe.fused_at(0.05).cov_tool[1, 1] < 0.6 * cov_once[1, 1]
+    assert pipe.fused_at(0.05).cov_tool[0, 0] == pytest.approx(cov_once[0, 0], rel=0.2)
+
+
 def test_pipeline_fused_error_monte_carlo_consistency():
     """Seeded Monte-Carlo: with a correct prior covariance and a 1D measurement, the fused
     error at a later static prior has the covariance the pipeline reports."""
