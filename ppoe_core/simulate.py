@@ -821,7 +821,7 @@ class _Sim:
             v = s.q[pj]
             for _ in range(30):  # secant / Newton with numeric slope
                 f = depth(v) - target
-                if abs(f) < 1e-7:
+                if abs(f) < 1e-10:
                     break
                 h = 1e-4
                 slope = (depth(v + h) - depth(v - h)) / (2 * h)
@@ -848,13 +848,8 @@ class _Sim:
         t0, dt = self.sc.start_time, 1.0 / self.rate
         nj = len(self.joints)
         if self.smooth is not None:
-            sm = self.smooth
-            t = t0 + np.arange(int(round(sm["duration"] * self.rate)) + 1) * dt
-            Q = np.zeros((t.shape[0], nj))
-            for i, j in enumerate(self.joints):
-                a = sm["amplitude"].get(j, 0.0)
-                per = sm["period"].get(j, 10.0)
-                Q[:, i] = sm["centre"][j] + a * np.sin(2 * np.pi * (t - t0) / per + sm["phase"].get(j, 0.0))
+            t = t0 + np.arange(int(round(self.smooth["duration"] * self.rate)) + 1) * dt
+            Q = self._smooth_q(t)
             self.t, self.Q = t, Q
             self.set_idx = np.zeros(t.shape[0], int)
             self.windows: list[tuple[float, float, int]] = []
@@ -867,7 +862,7 @@ class _Sim:
                 qk = np.array([s.q[j] for j in self.joints])
                 if k > 0:
                     nmove = int(round(self.move_time * self.rate))
-                    for i in range(1, nmove + 1):
+                    for i in range(nmove):
                         ts.append(now + i * dt)
                         qs.append(qprev + (qk - qprev) * _min_jerk(np.array(i / nmove)))
                         sets.append(s.draw)
@@ -895,6 +890,16 @@ class _Sim:
             signs[i] = last
         self.signs = signs
 
+    def _smooth_q(self, ts: np.ndarray) -> np.ndarray:
+        """Commanded joints of the smooth motion at stamps ``ts`` (analytic), (n, nj)."""
+        sm, t0 = self.smooth, self.sc.start_time
+        Q = np.zeros((ts.shape[0], len(self.joints)))
+        for i, j in enumerate(self.joints):
+            a = sm["amplitude"].get(j, 0.0)
+            per = sm["period"].get(j, 10.0)
+            Q[:, i] = sm["centre"][j] + a * np.sin(2 * np.pi * (ts - t0) / per + sm["phase"].get(j, 0.0))
+        return Q
+
     def sensor_times(self, rate: float, during: str = "stops") -> np.ndarray:
         """Sample stamps: inside each stop window after ``settle`` (rate 0 = once per stop), or the whole bag."""
         if self.smooth is not None or during == "always":
@@ -919,6 +924,8 @@ class _Sim:
         span = np.where(nxt > idx, self.t[nxt] - self.t[idx], 1.0)
         w = np.clip((ts - self.t[idx]) / span, 0.0, 1.0)[:, None]
         Q = self.Q[idx] * (1 - w) + self.Q[nxt] * w
+        if self.smooth is not None:
+            Q = self._smooth_q(ts)
         return Q, self.set_idx[idx], self.signs[idx]
 
     # -- run ------------------------------------------------------------------

@@ -1,0 +1,278 @@
+"""ppoe simulate: determinism, truth vs. the effects catalogue, sensors at the true pose, shipped bags."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from ppoe_core import bagio, effects, lie, tags
+from ppoe_core.errors import ScenarioError
+from ppoe_core.simulate import TrueRobot, load_scenario, simulate
+from ppoe_core.urdf import parse_urdf
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / "config"
+BAGS = REPO / "bags"
+
+ARM7_START = {"joint_1": 0.3, "joint_2": 0.6, "joint_3": 0.0, "joint_4": -1.2, "joint_5": 0.0, "joint_6": 0.9,
+              "joint_7": 0.0, "finger_left_joint": 0.02}
+
+
+def _scenario(tmp_path: Path, name: str = "s.yaml", **over: object) -> Path:
+    sc: dict = {
+        "robot": {"urdf": str(CONFIG / "arm7.urdf"), "model": str(CONFIG / "arm7_model.yaml")},
+        "seed": 5,
+        "truth": {"perturbations": "once", "joint_noise": True, "effects": []},
+        "trajectory": {"joint_rate": 100.0, "dwell": 0.3, "move_time": 0.3, "start": dict(ARM7_START),
+                       "stops": [{"joints": {}}, {"joints": {"joint_1": 0.5, "joint_4": -1.0}},
+                                 {"joints": {"joint_2": 0.4, "joint_6": 1.1}}]},
+        "ground_truth": {"pose": {"sigma_xyz": 0.0001, "sigma_rot": 0.0002},
+                         "point": {"T_tracker_base": {"xyz": [2.0, 1.0, 0.3], "rpy": [0.0, 0.0, 1.0]}}},
+        "imus": {"rate": 0.0},
+    }
+    sc.update(over)
+    p = tmp_path / name
+    p.write_text(yaml.safe_dump(sc))
+    return p
+
+
+def _md5(bag: Path) -> str:
+    return hashlib.md5(next(bag.glob("*.mcap")).read_bytes()).hexdigest()
+
+
+def test_deterministic_for_a_seed(tmp_path: Path) -> None:
+    sc = _scenario(tmp_path)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    simulate(sc, tmp_path / "a" / "bag")
+    simulate(sc, tmp_path / "b" / "bag")
+    assert _md5(tmp_path / "a" / "bag") == _md5(tmp_path / "b" / "bag")
+    simulate(sc, tmp_path / "c", seed=6)
+    a = bagio.read_bag(tmp_path / "a" / "bag")
+    c = bagio.read_bag(tmp_path / "c")
+    np.testing.assert_array_equal(a.joint_states.positions, c.joint_states.positions)  # same trajectory
+    assert np.abs(a.ground_truth_pose.T - c.ground_truth_pose.T).max() > 1e-4          # other draws
+
+
+def test_ground_truth_equals_nominal_fk_without_errors(tmp_path: Path) -> None:
+    sc = _scenario(tmp_path, truth={"perturbations": "none", "joint_noise": False, "effects": []},
+                   ground_truth={"pose": {"sigma_xyz": 0.0, "sigma_rot": 0.0},
+                                 "point": {"sigma": 0.0, "frame": "laser",
+                                           "T_tracker_base": {"xyz": [2.0, 1.0, 0.3], "rpy": [0.1, 0.0, 1.0]}}},
+                   imus={"rate": 0.0, "sigma": 0.0})
+    res = simulate(sc, tmp_path / "bag")
+    d = bagio.read_bag(tmp_path / "bag")
+    assert res.n_stops == 3 and len(d.ground_truth_pose) == 3
+    assert d.robot_description == (CONFIG / "arm7.urdf").read_text()
+    tree = effects.KinematicTree(parse_urdf(d.robot_description))
+    js = d.joint_states
+    idx = np.searchsorted(js.stamps, d.ground_truth_pose.stamps, side="right") - 1
+    q = {n: js.positions[idx, i] for i, n in enumerate(js.names)}
+    poses = tree.link_poses(q)
+    np.testing.assert_allclose(d.ground_truth_pose.T, poses["tool0"], atol=1e-9)
+    assert d.ground_truth_pose.frame_ids == ["base_link"] * 3
+    T_tb = lie.from_xyz_rpy([2.0, 1.0, 0.3], [0.1, 0.0, 1.0])
+    p = (T_tb @ poses["tool0"] @ np.array([0, 0, 0.02, 1.0]))[:, :3]
+    np.testing.assert_allclose(d.ground_truth_point.p, p, atol=1e-9)
+    assert d.ground_truth_point.frame_ids == ["laser"] * 3
+    # accelerometer at rest: +g along the root z, in the IMU link axes
+    R = poses["arm_link_4"][:, :3, :3]
+    np.testing.assert_allclose(d.imus["forearm"].linear_acceleration,
+                               np.einsum("nji,j->ni", R, [0, 0, 9.80665]), atol=1e-9)
+    # joint states: every stop inside a burst, >= 50 Hz
+    assert d.rate("/joint_states") == pytest.approx(100.0)
+    assert d.joint_states.names[:7] == [f"joint_{i}" for i in range(1, 8)]
+
+
+ARM7 = parse_urdf(str(CONFIG / "arm7.urdf"))
+
+
+@pytest.mark.parametrize("entry", [
+    {"name": "joint_offset", "location": "joint_2", "parameters": {"offset": 0.02}},
+    {"name": "gravity_compliance", "location": "joint_2", "parameters": {"compliance": 3e-4}},
+    {"name": "gravity_compliance", "location": "joint_4", "parameters": {"compliance": 5e-4}},
+    {"name": "mount_bending", "location": "mount_joint", "parameters": {"compliance_x": 2e-4, "compliance_y": 1e-4}},
+    {"name": "link_error", "location": "joint_3", "parameters": {"x": 0.002, "rz": 0.004}},
+    {"name": "camera_extrinsics", "location": "camera_joint", "parameters": {"y": 0.01, "rx": 0.01}},
+])
+def test_true_effects_match_the_catalogue(entry: dict) -> None:
+    """The simulator's physics (own code) agrees with ppoe_core.effects' parametrisation."""
+    rng = np.random.default_rng(2)
+    n = 7
+    q = {j: rng.uniform(-1.2, 1.2, n) for j in ARM7.independent_joints}
+    true = TrueRobot(ARM7, [entry])
+    P_true = true.poses(q, {}, {}, {}, np.zeros(n), n)
+    tree = effects.KinematicTree(ARM7)
+    eff = effects.effect_from_config(entry, tree)
+    dq, dxi = eff.corrections(q, {})
+    P_cat = tree.link_poses(q, dq, dxi)
+    for link in ("tool0", "camera_optical_frame", "arm_link_4"):
+        np.testing.assert_allclose(P_true[link], P_cat[link], atol=1e-12)
+    # and the effect is not nothing
+    P0 = tree.link_poses(q)
+    moved = np.abs(P_true["tool0"] - P0["tool0"]).max() + np.abs(P_true["camera_optical_frame"] - P0["camera_optical_frame"]).max()
+    assert moved > 1e-3
+
+
+def test_backlash_and_thermal_growth_match_the_catalogue() -> None:
+    n = 4
+    q = {j: np.linspace(-0.5, 0.5, n) for j in ARM7.independent_joints}
+    sign = {"joint_3": np.array([1.0, -1.0, 1.0, 0.0])}
+    t = np.array([0.0, 10.0, 100.0, 1000.0])
+    entries = [{"name": "backlash", "location": "joint_3", "parameters": {"play": 0.003}},
+               {"name": "thermal_growth", "location": "joint_4", "parameters": {"alpha": 2e-5}}]
+    P_true = TrueRobot(ARM7, entries).poses(q, {}, {}, sign, t, n)
+    tree = effects.KinematicTree(ARM7)
+    effs = [effects.effect_from_config(entries[0], tree),
+            effects.effect_from_config({**entries[1], "variable": "time", "reference": 0.0}, tree)]
+    dq, dxi = effects.apply_corrections(effs, q, {"motion_sign": sign, "time": t})
+    np.testing.assert_allclose(P_true["tool0"], tree.link_poses(q, dq, dxi)["tool0"], atol=1e-12)
+
+
+def test_tags_rendered_at_true_pose_with_camera_error(tmp_path: Path) -> None:
+    cam_err = {"name": "camera_extrinsics", "location": "camera_joint", "parameters": {"x": 0.01, "ry": 0.01}}
+    sc = _scenario(tmp_path, truth={"perturbations": "none", "joint_noise": False, "effects": [cam_err]},
+                   camera={"width": 640, "height": 480, "intrinsics": [700, 700, 320, 240],
+                           "D": [-0.05, 0.02, 0, 0, 0], "rate": 1.0, "noise_sigma": 1.0},
+                   ground_truth=None, imus=None)
+    sc_text = yaml.safe_load(sc.read_text())
+    sc_text["trajectory"]["stops"] = [{"joints": {}}, {"joints": {"joint_1": 0.35}}]
+    sc.write_text(yaml.safe_dump(sc_text))
+    res = simulate(sc, tmp_path / "bag")
+    d = bagio.read_bag(tmp_path / "bag")
+    assert len(d.images) == 2 and len(d.camera_info) == 2
+    np.testing.assert_array_equal(d.images.stamps, d.camera_info.stamps)
+    scen = load_scenario(sc)
+    model = scen.model
+    js = d.joint_states
+    true = TrueRobot(scen.robot, [cam_err])
+    tree = effects.KinematicTree(scen.robot)
+    errs_true, errs_nominal, n_det = [], [], 0
+    for i in range(len(d.images)):
+        k = int(np.searchsorted(js.stamps, d.images.stamps[i], side="right") - 1)
+        q = {n: js.positions[k:k + 1, j] for j, n in enumerate(js.names)}
+        det = {t.id: t for t in tags.detect_tags(d.images.decode(i))}
+        n_det += len(det)
+        for P, errs in ((true.poses(q, {}, {}, {}, np.zeros(1), 1), errs_true), (tree.link_poses(q), errs_nominal)):
+            T_cam = lie.inverse(P["camera_optical_frame"][0])
+            for item in model.tags.items:
+                if item.id in det:
+                    T = T_cam @ P[item.link][0] @ item.T_link_tag
+                    pts = tags.tag_points_local(item.size) @ T[:3, :3].T + T[:3, 3]
+                    uv = tags.project_points(pts, d.camera_info.K[i], d.camera_info.D[i])
+                    errs.append(np.abs(det[item.id].corners - uv[1:]).max())
+    assert n_det >= 2 and res.visible_tags
+    # tags drawn at the true pose (corner detection of ~20 px tags is good to about 1 px)
+    assert max(errs_true) < 2.0 and np.mean(errs_true) < 1.2
+    assert min(errs_nominal) > 3.0          # and the camera error is visible against the nominal one
+
+
+def test_time_offset_and_smooth_motion(tmp_path: Path) -> None:
+    dt = 0.05
+    sc = _scenario(tmp_path, truth={"perturbations": "none", "joint_noise": False,
+                                    "effects": [{"name": "time_offset", "location": "/joint_states",
+                                                 "parameters": {"dt": dt}}]},
+                   trajectory={"joint_rate": 200.0, "start": dict(ARM7_START),
+                               "smooth": {"duration": 2.0, "amplitude": {"joint_1": 0.4}, "period": {"joint_1": 2.0}}},
+                   ground_truth={"pose": {"sigma_xyz": 0.0, "sigma_rot": 0.0, "rate": 50.0}}, imus=None)
+    simulate(sc, tmp_path / "bag")
+    d = bagio.read_bag(tmp_path / "bag")
+    js = d.joint_states
+    assert d.rate("/joint_states") == pytest.approx(200.0) and d.rate("/ground_truth/pose") == pytest.approx(50.0)
+    t = js.stamps - js.stamps[0]
+    np.testing.assert_allclose(js.column("joint_1"), 0.3 + 0.4 * np.sin(2 * np.pi * (t - dt) / 2.0), atol=1e-9)
+
+
+def test_contact_wrench_reaches_the_commanded_force(tmp_path: Path) -> None:
+    sc = {"robot": {"urdf": str(CONFIG / "humanoid.urdf"), "model": str(CONFIG / "humanoid_model.yaml")},
+          "seed": 3, "truth": {"perturbations": "once"},
+          "trajectory": {"start": {"shoulder_pitch_joint": -0.5, "elbow_joint": -1.2, "wrist_flex_joint": 0.6,
+                                   "index_mcp_joint": 0.3, "index_pip_joint": -0.2, "index_dip_joint": -0.1},
+                         "dwell": 0.5, "move_time": 0.5,
+                         "stops": [{"joints": {"shoulder_pitch_joint": -0.8}},
+                                   {"joints": {}, "contact": {"press_joint": "shoulder_pitch_joint", "force": 12.0}}]},
+          "contact": {"stiffness": 1e5, "force_sigma": 0.0}}
+    p = tmp_path / "c.yaml"
+    p.write_text(yaml.safe_dump(sc))
+    simulate(p, tmp_path / "bag")
+    d = bagio.read_bag(tmp_path / "bag")
+    f = np.linalg.norm(d.wrench.force, axis=1)
+    assert f.max() == pytest.approx(12.0, abs=1e-3)
+    assert f[0] == 0.0                       # free at the start
+    assert d.rate("/wrench") == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("patch,match", [
+    ({"bogus": 1}, r"unknown keys \['bogus'\]"),
+    ({"truth": {"effects": [{"name": "wobble", "location": "joint_2"}]}}, "unknown effect 'wobble'"),
+    ({"truth": {"effects": [{"name": "joint_offset", "location": "mount_joint", "parameters": {"offset": 1}}]}},
+     "needs a movable joint"),
+    ({"trajectory": {"joint_rate": 20.0, "stops": [{"joints": {}}]}}, r"joint_rate = 20.0 out of range"),
+    ({"trajectory": {"stops": [{"joints": {"nojoint": 1.0}}]}}, "'nojoint' is not a movable joint"),
+    ({"camera": {"rate": 60.0}}, r"camera.rate = 60.0 out of range"),
+])
+def test_scenario_errors_name_file_and_key(tmp_path: Path, patch: dict, match: str) -> None:
+    sc = _scenario(tmp_path, **patch)
+    with pytest.raises(ScenarioError, match=match) as exc:
+        simulate(sc, tmp_path / "bag")
+    assert str(sc) in str(exc.value)
+
+
+def test_cli_writes_bag_and_truth(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from ppoe_ros.cli import main
+
+    sc = _scenario(tmp_path, truth={"perturbations": "once",
+                                    "effects": [{"name": "joint_offset", "location": "joint_2",
+                                                 "parameters": {"offset": 0.01}}]})
+    assert main(["simulate", str(sc), "--out", str(tmp_path / "bag"), "--seed", "9", "--json"]) == 0
+    out = yaml.safe_load(capsys.readouterr().out)
+    assert out["counts"]["/ground_truth/pose"] == 3
+    truth = yaml.safe_load((tmp_path / "bag.truth.yaml").read_text())
+    assert truth["seed"] == 9 and truth["effects"][0]["parameters"]["offset"] == 0.01
+    assert main(["simulate", str(sc), "--out", str(tmp_path / "bag")]) == 2       # exists, no --force
+
+
+# ------------------------------------------------------------------ shipped bags
+SHIPPED = ["table1_exp1", "table1_exp2", "contact", "no_effect", "effect_joint_offset",
+           "effect_gravity_compliance", "effect_mount_bending", "effect_unexplained"]
+
+
+def test_shipped_bags_total_size() -> None:
+    total = sum(f.stat().st_size for name in SHIPPED for f in (BAGS / name).rglob("*") if f.is_file())
+    assert total < 40e6
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_bag_follows_the_contract(name: str) -> None:
+    path = BAGS / name
+    first = next(bagio.iter_raw(path))
+    assert first.topic == "/robot_description"
+    d = bagio.read_bag(path)
+    assert d.unknown_topics == {}
+    for topic, (msgtype, _) in d.topics.items():
+        expected = bagio.CONTRACT_TYPES.get(topic, "sensor_msgs/msg/Imu" if topic.startswith("/imu/") else None)
+        assert msgtype == expected, topic
+    robot = parse_urdf(d.require_robot_description())
+    assert set(robot.independent_joints) <= set(d.joint_states.names)
+    assert not np.isnan(d.joint_states.positions).any()
+    assert d.rate("/joint_states") >= 50.0
+    assert np.all(np.diff(d.joint_states.stamps) > 0)
+    truth = yaml.safe_load((BAGS / f"{name}.truth.yaml").read_text())
+    scen = yaml.safe_load((BAGS / f"{name}.yaml").read_text())
+    assert truth["effects"] == [dict(e, parameters={**dict.fromkeys(e["parameters"], 0.0), **e["parameters"]})
+                                for e in truth["effects"]]  # plain mapping
+    assert [e["name"] for e in truth["effects"]] == [e["name"] for e in scen["truth"]["effects"]]
+    if len(d.images):
+        assert d.rate(d.images.topic) <= 30.0
+        np.testing.assert_array_equal(d.images.stamps, d.camera_info.stamps)   # camera_info with each image
+        assert set(d.images.formats) == {"png"}
+        # every stop's ground truth and measurements are stamped inside a joint-state burst
+        for i in range(0, len(d.images), 7):                                 # a sample of the images
+            assert tags.detect_tags(d.images.decode(i)), f"{name}: no tag detected in image {i}"
+    if len(d.ground_truth_pose):
+        gaps = np.min(np.abs(d.joint_states.stamps[None, :] - d.ground_truth_pose.stamps[:, None]), axis=1)
+        assert gaps.max() < 0.011
