@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Optional, Union
@@ -270,6 +271,12 @@ def _construct_sequence(loader: _Loader, node: yaml.SequenceNode) -> _LList:
     return out
 
 
+# YAML 1.2 floats: PyYAML (YAML 1.1) reads "1e-5" (no dot) as a string; model files use it a lot.
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
 _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
 _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_sequence)
 
@@ -658,7 +665,8 @@ def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Rob
     else:
         text: Optional[str] = None
         if isinstance(source, os.PathLike) or (
-            isinstance(source, str) and "\n" not in source and (Path(source).suffix in (".yaml", ".yml") or Path(source).exists())
+            isinstance(source, str) and source.strip() != "" and "\n" not in source
+            and (Path(source).suffix in (".yaml", ".yml") or Path(source).is_file())
         ):
             path = Path(source)
             try:
