@@ -91,7 +91,7 @@ truth:
     - {name: camera_extrinsics, location: JOINT, parameters: {x: .., rz: ..}}   # dxi at the camera's fixed joint [m, rad]
     - {name: gravity_compliance, location: JOINT, parameters: {compliance: 1e-4}}  # dq = c * gravity torque [rad/(N m)]
     - {name: mount_bending, location: JOINT, parameters: {compliance_x: 1e-4, compliance_y: 1e-4}}  # theta = c * moment [rad/(N m)]
-    - {name: base_tilt, location: ROOT_LINK, parameters: {tilt_x: 0.002, tilt_y: 0.0}}  # root rotated about x, y [rad]
+    - {name: base_tilt, location: ROOT_LINK, parameters: {tilt_x: 0.002, tilt_y: 0.0}}  # robot tilted about root x, y [rad]
     - {name: backlash, location: JOINT, parameters: {play: 0.002}}             # dq = play * sign(last motion) [rad|m]
     - {name: thermal_growth, location: JOINT, parameters: {alpha: 1e-6}}      # origin of JOINT grows by alpha*(t - start_time) [1/s]
     - {name: time_offset, location: /joint_states, parameters: {dt: 0.02}}     # joint states stamped t carry q(t - dt) [s]
@@ -415,7 +415,6 @@ class TrueRobot:
         def add_fx(j: str, v: np.ndarray) -> None:
             fx[j] = fx.get(j, np.zeros((n, 6))) + v
 
-        tilt = None
         for e in self.effects:
             nm, loc, p = e["name"], e["location"], e["parameters"]
             if nm == "joint_offset":
@@ -433,7 +432,12 @@ class TrueRobot:
                 v[:, :3] = p["alpha"] * np.asarray(elapsed)[:, None] * d
                 add_fx(loc, v)
             elif nm == "base_tilt":
-                tilt = lie.exp(np.array([0, 0, 0, p["tilt_x"], p["tilt_y"], 0.0]))
+                # everything hanging on the root rotates about the root's x and y axes:
+                # Exp(w) Exp(p_j) = Exp(p_j) Exp(Ad(Exp(p_j)^-1) w) for each child joint j of the root
+                w = np.array([0, 0, 0, p["tilt_x"], p["tilt_y"], 0.0])
+                for jn in self.robot.children(self.robot.root):
+                    Ad = lie.adjoint(lie.inverse(self.robot.joints[jn].origin))
+                    add_fx(jn, np.broadcast_to(Ad @ w, (n, 6)))
 
         def build(dq_: Mapping[str, np.ndarray], fx_: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
             dx = {}
@@ -446,34 +450,25 @@ class TrueRobot:
                 dx[jn] = T
             return self.link_poses(q, dq_, dx, n)
 
-        # gravity-dependent effects: loads evaluated on the chain without them (first order)
+        # gravity-dependent effects: loads evaluated on the chain without them (first order in the
+        # deflection); gravity is -z of the root link
         grav = [e for e in self.effects if e["name"] in ("gravity_compliance", "mount_bending")]
         if grav:
             base = build(dq, fx)
-            if tilt is not None:
-                base = {k: tilt @ v for k, v in base.items()}
             for e in grav:
                 loc, p = e["location"], e["parameters"]
                 if e["name"] == "gravity_compliance":
                     j = self.robot.joints[loc]
-                    F, M = self._gravity_in(base, loc, True, tilt)
+                    F, M = self.gravity_moment(base, loc, after_motion=True)
                     tau = (F if j.type == "prismatic" else M) @ j.axis
                     add_dq(loc, p["compliance"] * tau)
                 else:
-                    _, M = self._gravity_in(base, loc, False, tilt)
+                    _, M = self.gravity_moment(base, loc, after_motion=False)
                     v = np.zeros((n, 6))
                     v[:, 3] = p["compliance_x"] * M[:, 0]
                     v[:, 4] = p["compliance_y"] * M[:, 1]
                     add_fx(loc, v)
-        out = build(dq, fx)
-        if tilt is not None:
-            out = {k: tilt @ v for k, v in out.items()}
-        return out
-
-    def _gravity_in(self, poses: Mapping[str, np.ndarray], joint: str, after_motion: bool,
-                    tilt: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        # poses already include the tilt, i.e. they are in a gravity-aligned frame
-        return self.gravity_moment(poses, joint, after_motion)
+        return build(dq, fx)
 
 
 # =============================================================================

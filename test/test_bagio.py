@@ -164,3 +164,33 @@ def test_raw_iteration_and_padding_tolerance(tmp_path: Path) -> None:
     np.testing.assert_allclose(js.positions, [[1.0]])
     assert list(bagio.iter_raw(path2, topics=["/nothing"])) == []
     assert bagio.bag_topics(path2) == {"/joint_states": ("sensor_msgs/msg/JointState", 1)}
+
+
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+_NAMES = [f"j{i}" for i in range(6)]
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.lists(st.permutations(_NAMES).flatmap(lambda p: st.integers(1, 6).map(lambda k: p[:k])),
+                min_size=1, max_size=6),
+       st.integers(0, 2**31 - 1))
+def test_joint_alignment_property(tmp_path_factory: pytest.TempPathFactory, orders: list, seed: int) -> None:
+    """Any order and subset of joints per message reads back aligned by name (NaN where absent)."""
+    rng = np.random.default_rng(seed)
+    path = tmp_path_factory.mktemp("prop") / "bag"
+    truth = []
+    with bagio.BagWriter(path) as bag:
+        for i, names in enumerate(orders):
+            vals = rng.normal(size=len(names))
+            bag.write_joint_state(0.01 * (i + 1), names, vals)
+            truth.append(dict(zip(names, vals)))
+    js = bagio.read_bag(path).joint_states
+    assert len(js) == len(orders)
+    assert sorted(js.names) == sorted({n for o in orders for n in o})
+    for i, row in enumerate(truth):
+        for j, n in enumerate(js.names):
+            if n in row:
+                assert js.positions[i, j] == row[n]
+            else:
+                assert np.isnan(js.positions[i, j])

@@ -98,6 +98,7 @@ ARM7 = parse_urdf(str(CONFIG / "arm7.urdf"))
     {"name": "mount_bending", "location": "mount_joint", "parameters": {"compliance_x": 2e-4, "compliance_y": 1e-4}},
     {"name": "link_error", "location": "joint_3", "parameters": {"x": 0.002, "rz": 0.004}},
     {"name": "camera_extrinsics", "location": "camera_joint", "parameters": {"y": 0.01, "rx": 0.01}},
+    {"name": "base_tilt", "location": "base_link", "parameters": {"tilt_x": 0.01, "tilt_y": -0.02}},
 ])
 def test_true_effects_match_the_catalogue(entry: dict) -> None:
     """The simulator's physics (own code) agrees with ppoe_core.effects' parametrisation."""
