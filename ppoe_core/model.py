@@ -293,7 +293,7 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
 
     # up-branch: (O Exp(d) Exp(xi) Q Mz(q) Q^T Exp(n))^-1
     #          = Exp(-n) Q Mz(-q) Q^T Exp(-xi) Exp(-d) O^-1
-    #          = Q Exp(-Ad_{Q^T} n) Mz(-q) Exp(-Ad_Q xi) Exp(-Ad_Q d) Q^T O^-1
+    #          = Q Exp(-Ad_{Q^T} n) Mz(-q) Exp(-Ad_{Q^T} xi) Exp(-Ad_{Q^T} d) Q^T O^-1
     for jn in up:
         j = robot.joints[jn]
         if j.movable:
@@ -301,8 +301,8 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
             static(_pose(Q))
             site(noise_L(jn), "noise:" + jn)  # already along z in the Q frame
             motion(jn, -1.0)
-            site(_rot6(Q) @ xi_L(jn), "xi:" + jn)
-            dsite(jn, -_rot6(Q))
+            site(_rot6(Q.T) @ xi_L(jn), "xi:" + jn)
+            dsite(jn, -_rot6(Q.T))
             static(_pose(Q.T) @ _inv(j.origin))
         else:
             site(xi_L(jn), "xi:" + jn)

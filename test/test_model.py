@@ -1,0 +1,412 @@
+"""PPOEModel against an independent, literal implementation of eq. 15-18 (no shortcuts)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ppoe_core import PPOEModel, lie, load_model_config, parse_urdf
+from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError
+from ppoe_core.model import compound_fourth_order
+
+DATA = Path(__file__).parent / "data"
+EDGE = DATA / "ppoe_edge.urdf"
+EDGE_YAML = DATA / "ppoe_edge_model.yaml"
+PLANAR = DATA / "planar3.urdf"
+
+
+@pytest.fixture(scope="module")
+def edge():
+    return PPOEModel.from_files(EDGE, EDGE_YAML)
+
+
+# ----------------------------------------------------------------------------
+# Literal reference: the chain as a list of 4x4 factors and perturbation covariances
+# ----------------------------------------------------------------------------
+
+
+def _qval(robot, qd, jn, dq):
+    j = robot.joints[jn]
+    if j.mimic_root is not None:
+        m, mult, off = j.mimic_root
+        v = mult * qd[m] + off
+    else:
+        v = qd[jn]
+    return v + dq.get(jn, 0.0)
+
+
+def _link_items(robot, config, qd, jn, dq, dxi):
+    """eq. 16: Exp(p) Exp(dxi) Exp(xi) Exp(zeta q) Exp(zeta n) as [('M', T) | ('P', Sigma)]."""
+    j = robot.joints[jn]
+    items = [("M", j.origin)]
+    if jn in dxi:
+        items.append(("M", lie.exp(dxi[jn])))
+    if jn in config.perturbations:
+        items.append(("P", config.perturbations[jn].covariance))
+    if j.movable:
+        items.append(("M", lie.exp(j.twist * _qval(robot, qd, jn, dq))))
+        s = config.joint_noise.get(jn, 0.0)
+        if s > 0:
+            items.append(("P", s**2 * np.outer(j.twist, j.twist)))
+    return items
+
+
+def reference_chain(model, qd, frm, to, dq=None, dxi=None):
+    """Items of T_frm_to: up-branch links inverted (Exp(-xi) has the same covariance)."""
+    dq, dxi = dq or {}, dxi or {}
+    robot, config = model.robot, model.config
+    up, down = robot.chain(frm, to)
+    items = []
+    for jn in up:
+        for kind, val in reversed(_link_items(robot, config, qd, jn, dq, dxi)):
+            items.append((kind, lie.inverse(val) if kind == "M" else val))
+    for jn in down:
+        items.extend(_link_items(robot, config, qd, jn, dq, dxi))
+    return items
+
+
+def reference_fk(items):
+    """Mean and second-order covariance, eq. 15/18, with explicit adjoints of B_k^-1."""
+    T = np.eye(4)
+    for kind, val in items:
+        if kind == "M":
+            T = T @ val
+    cov = np.zeros((6, 6))
+    for k, (kind, val) in enumerate(items):
+        if kind != "P":
+            continue
+        B = np.eye(4)
+        for kind2, val2 in items[k + 1:]:
+            if kind2 == "M":
+                B = B @ val2
+        Ad = lie.adjoint(lie.inverse(B))
+        cov += Ad @ val @ Ad.T
+    return T, cov
+
+
+def _random_q(model, rng, shape=()):
+    return rng.uniform(-1.2, 1.2, size=shape + (len(model.joint_names),))
+
+
+# ----------------------------------------------------------------------------
+# Mean pose
+# ----------------------------------------------------------------------------
+
+
+def test_joint_names_are_independent_movable_in_urdf_order(edge):
+    assert edge.joint_names == ["j1", "j2", "j3", "j4"]
+
+
+def test_mean_between_all_link_pairs(edge):
+    rng = np.random.default_rng(1)
+    q = _random_q(edge, rng)
+    qd = dict(zip(edge.joint_names, q))
+    links = list(edge.robot.links)
+    for frm in links:
+        for to in links:
+            T_ref, _ = reference_fk(reference_chain(edge, qd, frm, to))
+            np.testing.assert_allclose(edge.fk_mean(q, frm, to), T_ref, atol=1e-12, err_msg=f"{frm}->{to}")
+
+
+def test_inverted_chain_camera_to_tool(edge):
+    q = np.array([0.3, -0.7, 0.12, 1.1])
+    T_ct, cov_ct = edge.fk(q, "camera_optical_frame", "tool0")
+    T_tc, cov_tc = edge.fk(q, "tool0", "camera_optical_frame")
+    np.testing.assert_allclose(T_ct, lie.inverse(T_tc), atol=1e-13)
+    T_bc = edge.fk_mean(q, "base_link", "camera_optical_frame")
+    T_bt = edge.fk_mean(q, "base_link", "tool0")
+    np.testing.assert_allclose(T_ct, lie.inverse(T_bc) @ T_bt, atol=1e-13)
+    # second order is linear transport: inverse pose covariance = Ad_T cov Ad_T^T
+    Ad = lie.adjoint(T_tc)
+    np.testing.assert_allclose(cov_ct, Ad @ cov_tc @ Ad.T, atol=1e-15)
+    assert np.trace(cov_ct) > 0
+
+
+def test_same_frame_is_identity(edge):
+    T, cov = edge.fk(np.zeros(4), "link3", "link3")
+    np.testing.assert_array_equal(T, np.eye(4))
+    np.testing.assert_array_equal(cov, np.zeros((6, 6)))
+
+
+def test_mimic_joint_follows_master(edge):
+    q = np.array([0.0, 0.0, 0.0, 0.8])
+    T = edge.fk_mean(q, "link4", "finger")
+    expected = edge.robot.joints["finger_joint"].origin @ lie.exp(np.array([0, 0, 0, 0, 1.0, 0]) * (-0.5 * 0.8 + 0.1))
+    np.testing.assert_allclose(T, expected, atol=1e-14)
+    # a value given for the mimic joint itself is ignored: the master rules
+    qd = {"j1": 0.0, "j2": 0.0, "j3": 0.0, "j4": 0.8, "finger_joint": 5.0, "not_in_urdf": 1.0}
+    np.testing.assert_allclose(edge.fk_mean(qd, "link4", "finger"), expected, atol=1e-14)
+
+
+# ----------------------------------------------------------------------------
+# Covariance (second order) against the literal reference
+# ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "frm, to",
+    [("base_link", "tool0"), ("camera_optical_frame", "tool0"), ("finger", "camera_optical_frame"),
+     ("tool0", "base_link"), ("link2", "finger")],
+)
+def test_covariance_matches_eq15_reference(edge, frm, to):
+    rng = np.random.default_rng(2)
+    for _ in range(3):
+        q = _random_q(edge, rng)
+        T_ref, cov_ref = reference_fk(reference_chain(edge, dict(zip(edge.joint_names, q)), frm, to))
+        T, cov = edge.fk(q, frm, to)
+        np.testing.assert_allclose(T, T_ref, atol=1e-12)
+        np.testing.assert_allclose(cov, cov_ref, rtol=1e-9, atol=1e-18)
+        # batched path (N > 1) gives the same
+        Tb, covb = edge.fk(np.stack([q, q]), frm, to)
+        np.testing.assert_allclose(covb[1], cov_ref, rtol=1e-9, atol=1e-18)
+
+
+def test_fig3a_first_joint_only_gives_rank1_position_covariance():
+    model = PPOEModel.from_files(PLANAR, None)
+    model = PPOEModel(model.robot, load_model_config(
+        {"perturbations": {"joint1": {"sigma": [0, 0, 0, 0, 0, np.deg2rad(10)]}}}, model.robot))
+    for q in ([0.0, 0.0, 0.0], [0.4, 0.9, -0.6], [1.0, -1.5, 0.7]):
+        T, cov = model.fk(np.array(q), "base_link", "tool0")
+        cov_pos = lie.cov_local_to_ros(T, cov)[:3, :3]  # position covariance in base axes
+        ev, V = np.linalg.eigh(cov_pos)
+        assert ev[-1] > 1e-3
+        assert abs(ev[0]) < 1e-12 * ev[-1] and abs(ev[1]) < 1e-12 * ev[-1]
+        # the one direction is the arc tangent at the tool: e_z x p_tool
+        d = np.cross([0, 0, 1], T[:3, 3])
+        assert abs(abs(V[:, -1] @ d) / np.linalg.norm(d) - 1) < 1e-10
+        # and the tool rotation varies only about z
+        cov_rot = cov[3:, 3:]
+        np.testing.assert_allclose(cov_rot[2, 2], np.deg2rad(10) ** 2)
+        assert np.linalg.matrix_rank(cov, tol=1e-12) == 1
+
+
+def test_no_perturbations_zero_covariance():
+    model = PPOEModel.from_files(EDGE)
+    T, cov = model.fk(np.array([0.1, 0.2, 0.0, -0.3]), "base_link", "tool0")
+    np.testing.assert_array_equal(cov, np.zeros((6, 6)))
+    _, covb = model.fk(np.zeros((3, 4)), "base_link", "tool0", order=4)
+    np.testing.assert_array_equal(covb, np.zeros((3, 6, 6)))
+
+
+def test_joint_noise_equals_axis_perturbation():
+    """xi = zeta (paper IV-D): noise along the axis after the motion == axis perturbation before it."""
+    robot = parse_urdf(EDGE)
+    a4 = robot.joints["j4"].axis
+    m_noise = PPOEModel(robot, load_model_config({"joint_noise": {"j4": 0.01, "j3": 0.002}}, robot))
+    m_pert = PPOEModel(robot, load_model_config({"perturbations": {
+        "j4": {"covariance": (1e-4 * np.outer(np.r_[0, 0, 0, a4], np.r_[0, 0, 0, a4])).tolist()},
+        "j3": {"sigma": [0, 0.002, 0, 0, 0, 0]},
+    }}, robot))
+    q = np.array([0.2, -0.4, 0.1, 0.9])
+    for frm, to in (("base_link", "tool0"), ("tool0", "camera_optical_frame")):
+        _, c1 = m_noise.fk(q, frm, to)
+        _, c2 = m_pert.fk(q, frm, to)
+        np.testing.assert_allclose(c1, c2, rtol=1e-9, atol=1e-20)
+
+
+# ----------------------------------------------------------------------------
+# Batching
+# ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_batched_equals_looped_single(edge, order):
+    rng = np.random.default_rng(3)
+    Q = _random_q(edge, rng, (2, 3))
+    T, cov = edge.fk(Q, "camera_optical_frame", "tool0", order=order)
+    assert T.shape == (2, 3, 4, 4) and cov.shape == (2, 3, 6, 6)
+    for i in range(2):
+        for k in range(3):
+            Ti, ci = edge.fk(Q[i, k], "camera_optical_frame", "tool0", order=order)
+            np.testing.assert_allclose(T[i, k], Ti, atol=1e-13)
+            np.testing.assert_allclose(ci, cov[i, k], rtol=1e-9, atol=1e-20)
+
+
+def test_batched_over_chunks_and_dict_broadcast(edge):
+    rng = np.random.default_rng(4)
+    n = 2600  # more than one internal chunk
+    Q = _random_q(edge, rng, (n,))
+    T, cov = edge.fk(Q, "base_link", "tool0")
+    for i in (0, 2047, 2048, 2599):
+        Ti, ci = edge.fk(Q[i], "base_link", "tool0")
+        np.testing.assert_allclose(T[i], Ti, atol=1e-13)
+        np.testing.assert_allclose(cov[i], ci, rtol=1e-9, atol=1e-20)
+    # mapping: scalars broadcast against arrays
+    qd = {"j1": Q[:5, 0], "j2": 0.3, "j3": Q[:5, 2], "j4": -0.2}
+    Td = edge.fk_mean(qd, "base_link", "tool0")
+    assert Td.shape == (5, 4, 4)
+    ref = np.stack([edge.fk_mean(np.array([Q[i, 0], 0.3, Q[i, 2], -0.2]), "base_link", "tool0") for i in range(5)])
+    np.testing.assert_allclose(Td, ref, atol=1e-13)
+
+
+def test_default_frames_from_config(edge):
+    q = np.array([0.1, 0.2, 0.05, 0.3])
+    np.testing.assert_array_equal(edge.fk(q)[0], edge.fk(q, "base_link", "tool0")[0])
+
+
+# ----------------------------------------------------------------------------
+# Jacobian
+# ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("frm, to", [("base_link", "tool0"), ("camera_optical_frame", "finger"), ("tool0", "link1")])
+def test_jacobian_joints_central_differences(edge, frm, to):
+    rng = np.random.default_rng(5)
+    q = _random_q(edge, rng)
+    J = edge.jacobian_joints(q, frm, to)
+    assert J.shape == (6, 4)
+    eps = 1e-6
+    T0 = edge.fk_mean(q, frm, to)
+    for i in range(4):
+        dq = np.zeros(4)
+        dq[i] = eps
+        fd = lie.log(lie.inverse(edge.fk_mean(q - dq, frm, to)) @ edge.fk_mean(q + dq, frm, to)) / (2 * eps)
+        np.testing.assert_allclose(J[:, i], fd, atol=1e-8, err_msg=f"column {edge.joint_names[i]}")
+    assert np.all(np.isfinite(T0))
+    Jb = edge.jacobian_joints(np.stack([q, q, q]), frm, to)
+    np.testing.assert_allclose(Jb[2], J, atol=1e-14)
+
+
+def test_jacobian_zero_for_joints_off_the_chain(edge):
+    J = edge.jacobian_joints(np.array([0.3, 0.2, 0.1, 0.4]), "link1", "camera_optical_frame")
+    np.testing.assert_array_equal(J, np.zeros((6, 4)))
+
+
+# ----------------------------------------------------------------------------
+# Fourth order: port check against pytransform3d
+# ----------------------------------------------------------------------------
+
+
+def test_fourth_order_terms_match_pytransform3d():
+    from pytransform3d.uncertainty._composition import _compound_cov_fourth_order_terms
+
+    rng = np.random.default_rng(6)
+    A = rng.normal(size=(6, 6)) * 0.1
+    B = rng.normal(size=(6, 6)) * 0.1
+    c1, c2 = A @ A.T, B @ B.T
+    swap = np.r_[3, 4, 5, 0, 1, 2]  # [rho; theta] <-> [omega; v]
+    ref = _compound_cov_fourth_order_terms(c1[np.ix_(swap, swap)], c2[np.ix_(swap, swap)])[np.ix_(swap, swap)]
+    ours = compound_fourth_order(c1, c2) - c1 - c2
+    np.testing.assert_allclose(ours, ref, rtol=1e-12, atol=1e-15)
+    # batched
+    out = compound_fourth_order(np.stack([c1, c2]), np.stack([c2, c1]))
+    np.testing.assert_allclose(out[0], compound_fourth_order(c1, c2), atol=1e-15)
+
+
+# ----------------------------------------------------------------------------
+# Effects hook
+# ----------------------------------------------------------------------------
+
+
+class _FakeEffect:
+    """dq on j2 proportional to the context temperature, a constant twist at j3."""
+
+    def __init__(self):
+        self.calls = []
+
+    def corrections(self, q, context):
+        self.calls.append((sorted(q), dict(context)))
+        shape = np.shape(q["j1"])
+        dq = {"j2": np.full(shape, 0.01 * context.get("temperature", 0.0))}
+        dxi = {"j3": np.broadcast_to(np.array([0.001, 0.0, 0.002, 0.01, -0.02, 0.005]), shape + (6,))}
+        return dq, dxi
+
+
+def test_effect_hook_mean_and_covariance(edge):
+    fake = _FakeEffect()
+    model = edge.with_effects([fake])
+    q = np.array([0.3, -0.2, 0.1, 0.5])
+    qd = dict(zip(edge.joint_names, q))
+    dq = {"j2": 0.01 * 25.0}
+    dxi = {"j3": np.array([0.001, 0.0, 0.002, 0.01, -0.02, 0.005])}
+    for frm, to in (("base_link", "tool0"), ("tool0", "camera_optical_frame")):
+        T, cov = model.fk(q, frm, to, context={"temperature": 25.0})
+        T_ref, cov_ref = reference_fk(reference_chain(edge, qd, frm, to, dq, dxi))
+        np.testing.assert_allclose(T, T_ref, atol=1e-12)
+        np.testing.assert_allclose(cov, cov_ref, rtol=1e-9, atol=1e-18)
+        T0 = edge.fk_mean(q, frm, to)
+        assert np.abs(T - T0).max() > 1e-3  # the effect really moved the pose
+    assert fake.calls[-1][1] == {"temperature": 25.0}
+    assert "finger_joint" in fake.calls[-1][0]  # mimic values are passed to effects too
+    # batched path with effects
+    Tb, covb = model.fk(np.stack([q, q]), "base_link", "tool0", context={"temperature": 25.0})
+    T1, cov1 = model.fk(q, "base_link", "tool0", context={"temperature": 25.0})
+    np.testing.assert_allclose(Tb[1], T1, atol=1e-13)
+    np.testing.assert_allclose(covb[1], cov1, rtol=1e-9, atol=1e-20)
+
+
+def test_effects_from_config_are_built_lazily(monkeypatch):
+    """config.effects -> ppoe_core.effects.effect_from_config(entry, robot, where=...)."""
+    import sys
+    import types
+
+    built = []
+
+    def effect_from_config(entry, robot, where="effects"):
+        built.append((entry["name"], where))
+        return _FakeEffect()
+
+    monkeypatch.setitem(sys.modules, "ppoe_core.effects", types.SimpleNamespace(effect_from_config=effect_from_config))
+    import ppoe_core
+
+    monkeypatch.setattr(ppoe_core, "effects", sys.modules["ppoe_core.effects"], raising=False)
+    text = EDGE_YAML.read_text() + "effects:\n  - {name: joint_offset, location: j2, parameters: {offset: 0.01}}\n"
+    model = PPOEModel.from_strings(EDGE.read_text(), text)
+    assert built == []  # nothing imported or built before the first use
+    T = model.fk_mean(np.zeros(4), "base_link", "tool0", context={"temperature": 10.0})
+    assert built == [("joint_offset", f"<string>:{text.count(chr(10))}: effects[0]")]
+    edge = PPOEModel.from_files(EDGE, EDGE_YAML)
+    dxi = {"j3": np.array([0.001, 0.0, 0.002, 0.01, -0.02, 0.005])}
+    T_ref, _ = reference_fk(reference_chain(edge, dict.fromkeys(edge.joint_names, 0.0), "base_link", "tool0",
+                                            {"j2": 0.1}, dxi))
+    np.testing.assert_allclose(T, T_ref, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------
+# Bad input
+# ----------------------------------------------------------------------------
+
+
+def test_missing_joint_value_names_joint(edge):
+    with pytest.raises(JointValueError, match="'j3'"):
+        edge.fk({"j1": 0.0, "j2": 0.0, "j4": 0.0}, "base_link", "tool0")
+    # a joint the chain does not need may be missing
+    T = edge.fk_mean({"j1": 0.2}, "base_link", "camera_optical_frame")
+    assert T.shape == (4, 4)
+
+
+def test_nan_joint_value_names_joint(edge):
+    with pytest.raises(JointValueError, match="'j4'"):
+        edge.fk(np.array([0.0, 0.0, 0.0, np.nan]), "base_link", "tool0")
+    with pytest.raises(JointValueError, match="'j2'"):
+        edge.fk({"j1": 0.0, "j2": [0.0, np.inf], "j3": 0.0, "j4": 0.0}, "base_link", "tool0")
+    # NaN in a joint the chain does not use is fine
+    edge.fk(np.array([0.1, np.nan, np.nan, np.nan]), "base_link", "camera_optical_frame")
+
+
+def test_unknown_frame_and_bad_shapes(edge):
+    with pytest.raises(UnknownFrameError, match="tool_9"):
+        edge.fk(np.zeros(4), "base_link", "tool_9")
+    with pytest.raises(JointValueError, match=r"shape \(\.\.\., 4\)"):
+        edge.fk(np.zeros(3), "base_link", "tool0")
+    with pytest.raises(JointValueError, match="not numeric"):
+        edge.fk({"j1": "a", "j2": 0, "j3": 0, "j4": 0}, "base_link", "tool0")
+    with pytest.raises(ModelConfigError, match="order"):
+        edge.fk(np.zeros(4), "base_link", "tool0", order=3)
+
+
+def test_from_strings_matches_from_files(edge):
+    m = PPOEModel.from_strings(EDGE.read_text(), EDGE_YAML.read_text())
+    q = np.array([0.3, 0.1, 0.2, -0.5])
+    for a, b in zip(m.fk(q), edge.fk(q)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_sample_shapes_and_exact_model():
+    model = PPOEModel.from_files(EDGE)  # no perturbations: every sample is the mean
+    q = np.zeros((2, 4))
+    S = model.sample(q, "base_link", "tool0", n=5, rng=np.random.default_rng(0))
+    assert S.shape == (5, 2, 4, 4)
+    np.testing.assert_allclose(S, np.broadcast_to(model.fk_mean(q, "base_link", "tool0"), S.shape), atol=1e-14)
