@@ -113,6 +113,7 @@ trajectory:
     around: {}             # centre configuration (name: value); joints not listed come from `start`
     spread: 0.2            # uniform +- spread per joint [rad|m], or a mapping joint -> spread
     min_visible_tags: 0    # reject configurations where fewer model tags face the camera in view [0]
+    min_link_z: {}         # reject configurations where a link's origin is below this root-frame z [m] [{}]
     max_tries: 5000        # give up after this many rejected draws [5000]
   smooth:                  # optional instead of stops: q_j(t) = centre + amplitude sin(2 pi t / period + phase)
     duration: 60.0         # [s]
@@ -574,8 +575,13 @@ class _Sim:
             self.stops.append(_Stop(q, _num(s, "dwell", self.dwell, P, f"trajectory.stops[{i}]", minimum=0.0), c))
         self.random_cfg = None
         if tr.get("random_stops") is not None:
-            rs = _check_keys(tr["random_stops"], ("count", "around", "spread", "min_visible_tags", "max_tries"), P,
-                             "trajectory.random_stops")
+            rs = _check_keys(tr["random_stops"], ("count", "around", "spread", "min_visible_tags", "max_tries",
+                                                  "min_link_z"), P, "trajectory.random_stops")
+            min_z = rs.get("min_link_z") or {}
+            if not isinstance(min_z, Mapping) or any(k not in self.robot.links for k in min_z):
+                raise ScenarioError(f"{_where(P, 'trajectory.random_stops.min_link_z')} must map links of "
+                                    f"{self.robot.source} to heights [m]")
+            min_z = {str(k): _num(min_z, k, 0.0, P, "trajectory.random_stops.min_link_z") for k in min_z}
             spread = rs.get("spread", 0.2)
             around = {**self.start, **_joints_map(rs.get("around"), P, "trajectory.random_stops.around", self.robot)}
             if isinstance(spread, Mapping):
@@ -585,6 +591,7 @@ class _Sim:
             self.random_cfg = {"count": int(_num(rs, "count", 20, P, "trajectory.random_stops", minimum=1)),
                                "around": around, "spread": spread,
                                "min_visible": int(_num(rs, "min_visible_tags", 0, P, "trajectory.random_stops", minimum=0)),
+                               "min_z": min_z,
                                "max_tries": int(_num(rs, "max_tries", 5000, P, "trajectory.random_stops", minimum=1))}
         if not self.stops and self.random_cfg is None:
             raise ScenarioError(f"{_where(P, 'trajectory')}: needs stops, random_stops or smooth")
@@ -772,10 +779,15 @@ class _Sim:
             tries += 1
             if tries > cfg["max_tries"]:
                 raise ScenarioError(f"{_where(self.path, 'trajectory.random_stops')}: only {got} of {need} "
-                                    f"configurations with >= {cfg['min_visible']} visible tags in {cfg['max_tries']} tries")
+                                    f"acceptable configurations (min_visible_tags, min_link_z) in {cfg['max_tries']} tries")
             q = dict(cfg["around"])
             for j in names:
                 q[j] = float(np.clip(q[j] + self.rng.uniform(-cfg["spread"][j], cfg["spread"][j]), *lo_hi[j]))
+            if cfg["min_z"]:
+                Q = np.array([[q[j] for j in self.joints]])
+                poses = self.true.poses({j: Q[:, i] for i, j in enumerate(self.joints)}, {}, {}, {}, np.zeros(1), 1)
+                if any(poses[ln][0, 2, 3] < z for ln, z in cfg["min_z"].items()):
+                    continue
             if cfg["min_visible"] > 0:
                 if self.cam is None:
                     raise ScenarioError(f"{_where(self.path, 'trajectory.random_stops.min_visible_tags')} needs a camera")

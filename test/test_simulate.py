@@ -277,3 +277,53 @@ def test_shipped_bag_follows_the_contract(name: str) -> None:
     if len(d.ground_truth_pose):
         gaps = np.min(np.abs(d.joint_states.stamps[None, :] - d.ground_truth_pose.stamps[:, None]), axis=1)
         assert gaps.max() < 0.011
+
+
+# candidate effects for the identifiability check of the shipped arm7 bags
+_CANDIDATES = [("joint_offset", "joint_2"), ("gravity_compliance", "joint_2"), ("mount_bending", "mount_joint"),
+               ("joint_offset", "joint_3"), ("gravity_compliance", "joint_4"), ("joint_offset", "joint_4")]
+
+
+def _gls_fits(name: str) -> tuple[float, dict]:
+    """Single-effect GLS fits of tool positions (ground truth vs nominal FK, weighted by the PPOE covariance)."""
+    from ppoe_core.model import PPOEModel
+
+    d = bagio.read_bag(BAGS / name, load_images=False)
+    m = PPOEModel.from_files(str(CONFIG / "arm7.urdf"), str(CONFIG / "arm7_model.yaml"))
+    js, gt = d.joint_states, d.ground_truth_pose
+    idx = np.searchsorted(js.stamps, gt.stamps, side="right") - 1
+    q = {n: js.positions[idx, i] for i, n in enumerate(js.names)}
+    T, cov = m.fk(q, "base_link", "tool0")
+    R = T[:, :3, :3]
+    W = np.linalg.inv(R @ cov[:, :3, :3] @ np.swapaxes(R, 1, 2) + 1e-8 * np.eye(3))  # + tracker noise
+    r = gt.T[:, :3, 3] - T[:, :3, 3]
+    chi0 = np.einsum("ni,nij,nj->", r, W, r)
+    tree = effects.KinematicTree(m.robot)
+    fits = {}
+    for nm, loc in _CANDIDATES:
+        J = effects.make_effect(nm, loc, tree).point_jacobian(q, "tool0", np.zeros(3))
+        A = np.einsum("nip,nij,njq->pq", J, W, J)
+        x = np.linalg.solve(A, np.einsum("nip,nij,nj->p", J, W, r))
+        rr = r - np.einsum("nip,p->ni", J, x)
+        fits[(nm, loc)] = (x, np.sqrt(np.diag(np.linalg.inv(A))), chi0 - np.einsum("ni,nij,nj->", rr, W, rr))
+    return chi0 / r.size, fits
+
+
+@pytest.mark.parametrize("name", ["effect_joint_offset", "effect_gravity_compliance", "effect_mount_bending"])
+def test_shipped_effect_bags_are_identifiable(name: str) -> None:
+    """The bag's true effect is the best single candidate, and a GLS fit recovers it within 3 sigma."""
+    truth = yaml.safe_load((BAGS / f"{name}.truth.yaml").read_text())["effects"][0]
+    _, fits = _gls_fits(name)
+    key = (truth["name"], truth["location"])
+    best = max(fits, key=lambda k: fits[k][2])
+    assert best == key, {k: round(v[2], 1) for k, v in fits.items()}
+    x, sd, gain = fits[key]
+    true = np.array(list(truth["parameters"].values()))
+    assert np.all(np.abs(x - true) < 3 * sd), (x, sd, true)
+    assert gain > 50.0
+
+
+def test_shipped_no_effect_bag_is_consistent() -> None:
+    chi2_per_dof, fits = _gls_fits("no_effect")
+    assert chi2_per_dof < 1.5
+    assert max(f[2] for f in fits.values()) < 16.0   # no candidate explains much (max of 6 tests)
