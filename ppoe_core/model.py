@@ -637,22 +637,65 @@ def _eval_batch(
         elif code == _D:
             if P is None:
                 P = ident()
-            P = np.einsum("ijn,jkn->ikn", P, D[arg])
+            P = _mul_rows(P, D[arg])
         else:  # site
             if P is None:
                 P = ident()
             if record_sites:
                 sites[arg] = P.copy()
             if pert is not None:
-                P = np.einsum("ijn,jkn->ikn", P, pert[arg])
+                P = _mul_rows(P, pert[arg])
     if P is None:
         P = ident()
     return P, sites, motions
 
 
 def _exp_batch_last(xi: Array) -> Array:
-    """``lie.exp`` for twists ``(6, N)`` -> ``(4, 4, N)``."""
-    return np.moveaxis(lie.exp(xi.T), 0, -1)
+    """SE(3) ``Exp`` for twists ``(6, N)`` -> ``(4, 4, N)`` (batch last, elementwise).
+
+    Same map as :func:`ppoe_core.lie.exp` (paper eq. 3): ``R = I + A W + B W^2``,
+    ``t = (I + B W + C W^2) rho`` with ``A = sin t / t``, ``B = (1 - cos t) / t^2``,
+    ``C = (t - sin t) / t^3`` (Taylor series below ``t^2 < 1e-6``) and ``W^2 = w w^T - t^2 I``.
+    """
+    rho, w = xi[:3], xi[3:]
+    N = xi.shape[1]
+    t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    small = t2 < 1e-6
+    ts = np.sqrt(np.where(small, 1.0, t2))
+    st, ct = np.sin(ts), np.cos(ts)
+    A = np.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, st / ts)
+    B = np.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - ct) / np.where(small, 1.0, t2))
+    C = np.where(small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0, (ts - st) / (ts * np.where(small, 1.0, t2)))
+    out = np.zeros((4, 4, N))
+    # W w-cross matrix entries: W[0,1] = -w2, W[0,2] = w1, W[1,2] = -w0
+    for i in range(3):
+        for j in range(3):
+            ww = w[i] * w[j]
+            out[i, j] = B * ww
+            if i == j:
+                out[i, j] += 1.0 - B * t2
+    out[0, 1] -= A * w[2]
+    out[1, 0] += A * w[2]
+    out[0, 2] += A * w[1]
+    out[2, 0] -= A * w[1]
+    out[1, 2] -= A * w[0]
+    out[2, 1] += A * w[0]
+    # t = rho + B (w x rho) + C (w x (w x rho)),  w x (w x rho) = w (w.rho) - t2 rho
+    wxr = np.stack([w[1] * rho[2] - w[2] * rho[1], w[2] * rho[0] - w[0] * rho[2], w[0] * rho[1] - w[1] * rho[0]])
+    wr = w[0] * rho[0] + w[1] * rho[1] + w[2] * rho[2]
+    out[:3, 3] = rho + B * wxr + C * (w * wr - t2 * rho)
+    out[3, 3] = 1.0
+    return out
+
+
+def _mul_rows(P: Array, E: Array) -> Array:
+    """``P @ E`` for pose rows ``P`` (3, 4, N) and poses ``E`` (4, 4, N) (last row 0 0 0 1)."""
+    out = np.empty_like(P)
+    p0, p1, p2 = P[:, 0], P[:, 1], P[:, 2]
+    for k in range(4):
+        out[:, k] = p0 * E[0, k] + p1 * E[1, k] + p2 * E[2, k]
+    out[:, 3] += P[:, 3]
+    return out
 
 
 # ----------------------------------------------------------------------------
