@@ -682,7 +682,10 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         "methods": {},
     }
     samples: dict[str, np.ndarray] = {}
-    methods = ["fk"] + list(pipes)
+    # without any measurement the fused estimates are the priors: only FK is scored
+    methods = ["fk"] + (list(pipes) if meas else [])
+    if not meas:
+        summary["fusion"] = "no tag observations, images or contact planes in the bag: only forward kinematics scored"
 
     if kind == "pose":
         sel = np.flatnonzero(have)
@@ -752,6 +755,8 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
                 "nees": nees_stats(ne, 3),
             }
     for name, pipe in pipes.items():
+        if name not in methods:
+            continue
         v = np.array(nis[name]) if nis[name] else np.zeros((0, 2))
         summary["methods"][name]["measurements"] = {
             "counts": dict(pipe.counts),
@@ -810,6 +815,8 @@ def markdown_report(ev: Evaluation) -> str:
     lines.append(
         f"- measurements: {m['total']} ({m.get('tag_messages', 0)} tag messages, {m.get('tag_points', 0)} tag points)"
     )
+    if "fusion" in s:
+        lines.append(f"- {s['fusion']}")
     lines += [
         "",
         "Errors in mm (mean ± std, rms, max) and degrees; lateral = perpendicular to the tool z axis.",

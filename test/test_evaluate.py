@@ -222,7 +222,9 @@ def test_tiny_bag_fk_error_is_exact(tmp_path):
     fk = ev.summary["methods"]["fk"]
     np.testing.assert_allclose(fk["position_3d"]["mean"], 1.0, atol=1e-12)
     np.testing.assert_allclose(fk["rotation"]["mean"], 0.1, atol=1e-12)
-    assert "naive" not in ev.summary["methods"]  # the model YAML has no naive section
+    # no measurement in the bag: only forward kinematics is scored, and the report says so
+    assert set(ev.summary["methods"]) == {"fk"} and "only forward kinematics" in ev.summary["fusion"]
+    assert "only forward kinematics" in markdown_report(ev)
     paths = write_report(ev, tmp_path / "r")
     assert all(p.is_file() for p in paths)
 
@@ -240,7 +242,8 @@ def test_evaluate_hilti_reproduces_readme_baseline(tmp_path):
     ev = evaluate_bag(tmp_path / "flat", res["model"], EvaluateOptions(fit_set="cross"))
     fk = ev.summary["methods"]["fk"]["position_3d"]
     reg = ev.summary["ground_truth"]["registration"]
-    assert len(reg["groups"]) == 10 and fk["n"] == 321
+    assert len(reg["groups"]) == 10 and fk["n"] == 321 and reg["unscored"] == 45  # 5 upside-down stations
+    assert set(ev.summary["methods"]) == {"fk"}
     assert abs(fk["rms"] - 8.64e-3) < 0.1e-3 and abs(fk["max"] - 24.66e-3) < 0.1e-3
     sq = evaluate_bag(tmp_path / "flat", res["model"], EvaluateOptions(fit_set="square"))
     assert abs(sq.summary["methods"]["fk"]["position_3d"]["rms"] - 8.74e-3) < 0.1e-3
