@@ -381,10 +381,11 @@ class BagWriter:
                 raise BagError(f"topic {topic}: {len(names)} joint names but {arr.shape[0]} {what}")
             return arr
 
-        msg = typestore().types[T_JOINT_STATE](
-            header=_header(stamp_to_ns(stamp), ""), name=names, position=pos,
-            velocity=opt(velocities, "velocities"), effort=opt(efforts, "efforts"))
-        self.write_message(topic, msg, stamp)
+        ns = stamp_to_ns(stamp)
+        data = _cdr_joint_state(ns, names, pos, opt(velocities, "velocities"), opt(efforts, "efforts"))
+        conn = self._connection(topic, T_JOINT_STATE)
+        self._writer.write(conn, ns, data)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
 
     def write_camera_info(self, stamp: float, frame_id: str, width: int, height: int,
                           K: np.ndarray, D: Sequence[float] | np.ndarray,
@@ -535,6 +536,43 @@ class BagWriter:
                                 pose=types["geometry_msgs/msg/PoseWithCovariance"](
                                     pose=_pose_msg(T), covariance=cov.reshape(-1).copy()))
         self.write_message(topic, msg, stamp)
+
+
+def _cdr_joint_state(stamp_ns: int, names: Sequence[str], pos: np.ndarray, vel: np.ndarray,
+                     eff: np.ndarray, frame_id: str = "") -> bytes:
+    """CDR (little endian) bytes of a ``sensor_msgs/JointState``, byte-identical to rosbags'
+    ``serialize_cdr`` (tested) and about 20x faster for the high-rate topic."""
+    import struct
+
+    out = bytearray(b"\x00\x01\x00\x00")
+
+    def align(n: int) -> None:
+        pad = (-(len(out) - 4)) % n  # alignment is relative to the end of the encapsulation header
+        out.extend(b"\x00" * pad)
+
+    def string(txt: str) -> None:
+        raw = txt.encode("utf-8") + b"\x00"
+        align(4)
+        out.extend(struct.pack("<I", len(raw)))
+        out.extend(raw)
+
+    def doubles(arr: np.ndarray) -> None:
+        align(4)
+        out.extend(struct.pack("<I", arr.shape[0]))
+        if arr.shape[0]:
+            align(8)
+            out.extend(np.ascontiguousarray(arr, dtype="<f8").tobytes())
+
+    out.extend(struct.pack("<iI", int(stamp_ns // 1_000_000_000), int(stamp_ns % 1_000_000_000)))
+    string(frame_id)
+    align(4)
+    out.extend(struct.pack("<I", len(names)))
+    for n in names:
+        string(n)
+    doubles(pos)
+    doubles(vel)
+    doubles(eff)
+    return bytes(out)
 
 
 def _tag_cloud(ids: Any, corners: Any, uv: Any, xy: Any, topic: str) -> np.ndarray:

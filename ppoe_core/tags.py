@@ -278,15 +278,12 @@ def _texture(dictionary: str, tag_id: int, px_per_cell: int, border_cells: int) 
 
 
 @lru_cache(maxsize=4)
-def _ray_grid(width: int, height: int, K_key: tuple[float, ...], D_key: tuple[float, ...],
-              ss: int) -> np.ndarray:
-    """Undistorted normalised coordinates of every sub-pixel sample, (H*ss, W*ss, 2) float32."""
+def _ray_grid(width: int, height: int, K_key: tuple[float, ...], D_key: tuple[float, ...]) -> np.ndarray:
+    """Undistorted normalised coordinates at every pixel centre, with a 1-pixel border:
+    entry ``[r + 1, c + 1]`` belongs to pixel (u, v) = (c, r); shape (H + 2, W + 2, 2) float32."""
     K = np.array(K_key).reshape(3, 3)
     D = np.array(D_key)
-    off = (np.arange(ss) + 0.5) / ss - 0.5
-    us = (np.arange(width)[:, None] + off[None, :]).reshape(-1)
-    vs = (np.arange(height)[:, None] + off[None, :]).reshape(-1)
-    uu, vv = np.meshgrid(us, vs)
+    uu, vv = np.meshgrid(np.arange(-1.0, width + 1.0), np.arange(-1.0, height + 1.0))
     uv = np.stack([uu, vv], axis=-1)
     if np.any(D != 0):
         xy = undistort_pixels(uv, K, D)
@@ -294,6 +291,18 @@ def _ray_grid(width: int, height: int, K_key: tuple[float, ...], D_key: tuple[fl
         xy = np.stack([(uu - K[0, 2] - K[0, 1] * (vv - K[1, 2]) / K[1, 1]) / K[0, 0],
                        (vv - K[1, 2]) / K[1, 1]], axis=-1)
     return xy.astype(np.float32)
+
+
+def _rays(grid: np.ndarray, u0: int, v0: int, u1: int, v1: int, ss: int) -> np.ndarray:
+    """Normalised coordinates of the ``ss`` x ``ss`` sub-pixel samples of pixels [u0..u1] x [v0..v1],
+    bilinearly interpolated from the per-pixel grid (the distortion map is smooth), (.., .., 2)."""
+    import cv2
+
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    us = (np.arange(u0, u1 + 1)[:, None] + off[None, :]).reshape(-1) + 1.0
+    vs = (np.arange(v0, v1 + 1)[:, None] + off[None, :]).reshape(-1) + 1.0
+    mx, my = np.meshgrid(us.astype(np.float32), vs.astype(np.float32))
+    return cv2.remap(grid, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequence[float],
@@ -377,8 +386,8 @@ def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequ
         if u1 <= u0 or v1 <= v0:
             continue
         if rays is None:
-            rays = _ray_grid(w, h, tuple(K.reshape(-1)), tuple(D), ss)
-        xy = rays[v0 * ss:(v1 + 1) * ss, u0 * ss:(u1 + 1) * ss].astype(float)
+            rays = _ray_grid(w, h, tuple(K.reshape(-1)), tuple(D))
+        xy = _rays(rays, u0, v0, u1, v1, ss).astype(float)
         # ray r = (x, y, 1); plane point p = R^T (s r - t), with normal_c . (s r - t) = 0
         d = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=-1)
         denom = d @ normal

@@ -194,3 +194,19 @@ def test_joint_alignment_property(tmp_path_factory: pytest.TempPathFactory, orde
                 assert js.positions[i, j] == row[n]
             else:
                 assert np.isnan(js.positions[i, j])
+
+
+@pytest.mark.parametrize("names,pos,vel,eff", [
+    ([], [], None, None),
+    (["a"], [1.5], None, None),
+    (["joint_1", "j2", "abc"], [0.1, -0.2, 3.0], [1.0, 2.0, 3.0], None),
+    (["x" * 7, "yy"], [1e-9, -1e9], None, [4.0, 5.0]),
+])
+def test_fast_joint_state_cdr_equals_rosbags(names: list, pos: list, vel: list | None, eff: list | None) -> None:
+    ts = bagio.typestore()
+    JS = ts.types["sensor_msgs/msg/JointState"]
+    arr = lambda a: np.asarray(a if a is not None else [], dtype=np.float64)  # noqa: E731
+    for ns in (0, 1_234_567_891_011, 99):
+        msg = JS(header=bagio._header(ns, ""), name=names, position=arr(pos), velocity=arr(vel), effort=arr(eff))
+        ref = bagio.serialize(msg, JS.__msgtype__)
+        assert bagio._cdr_joint_state(ns, names, arr(pos), arr(vel), arr(eff)) == ref
