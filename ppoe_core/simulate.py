@@ -119,7 +119,8 @@ trajectory:
     duration: 60.0         # [s]
     centre: {}             # [rad|m]
     amplitude: {}          # [rad|m]
-    period: {}             # [s] (default 10)
+    period: {}             # [s] [10 for each joint]
+    phase: {}              # [rad] [0 for each joint]
 camera:                    # optional; needs the model's camera and tags sections [none]
   frame: camera_optical_frame  # optical frame link [model camera.frame]
   width: 640               # [px] [640]
