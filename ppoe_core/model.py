@@ -136,29 +136,37 @@ def compound_fourth_order(cov1: ArrayLike, cov2: ArrayLike) -> Array:
     """
     c1 = np.asarray(cov1, dtype=float)
     c2 = np.asarray(cov2, dtype=float)
-    c1, c2 = np.broadcast_arrays(c1, c2)
-    s1_rr, s1_rt, s1_tt = c1[..., :3, :3], c1[..., :3, 3:], c1[..., 3:, 3:]
-    s2_rr, s2_rt, s2_tt = c2[..., :3, :3], c2[..., :3, 3:], c2[..., 3:, 3:]
-    s1_tr = np.swapaxes(s1_rt, -1, -2)
-    s2_tr = np.swapaxes(s2_rt, -1, -2)
+    if c1.shape != c2.shape:
+        c1, c2 = np.broadcast_arrays(c1, c2)
+    rr1, rt1, tt1 = c1[..., :3, :3], c1[..., :3, 3:], c1[..., 3:, 3:]
+    rr2, rt2, tt2 = c2[..., :3, :3], c2[..., :3, 3:], c2[..., 3:, 3:]
+    tr1 = np.swapaxes(rt1, -1, -2)
+    tr2 = np.swapaxes(rt2, -1, -2)
+    # all <<.>> and <<., .>> operands stacked, so the work is a handful of numpy calls
+    # <<A, B>> = <<A>> <<B>> + <<B A>> for the pairs of Barfoot & Furgale's B blocks:
+    #   B_rr = <<tt1, rr2>> + <<tr1, rt2>> + <<rt1, tr2>> + <<rr1, tt2>>
+    #   B_rt = <<tt1, tr2>> + <<tr1, tt2>>,   B_tt = <<tt1, tt2>>
+    left = np.stack([tt1, tr1, rt1, rr1, tt1, tr1, tt1])
+    right = np.stack([rr2, rt2, tr2, tt2, tr2, tt2, tt2])
+    ops = _covop1(np.concatenate([left, right, right @ left, np.stack([rt1 + tr1, rt2 + tr2])]))
+    n = 7
+    pair = ops[:n] @ ops[n:2 * n] + ops[2 * n:3 * n]
     shape = c1.shape
-    A1 = np.zeros(shape)
-    A1[..., :3, :3] = A1[..., 3:, 3:] = _covop1(s1_tt)
-    A1[..., :3, 3:] = _covop1(s1_rt + s1_tr)
-    A2 = np.zeros(shape)
-    A2[..., :3, :3] = A2[..., 3:, 3:] = _covop1(s2_tt)
-    A2[..., :3, 3:] = _covop1(s2_rt + s2_tr)
-    B = np.zeros(shape)
-    B[..., :3, :3] = (
-        _covop2(s1_tt, s2_rr) + _covop2(s1_tr, s2_rt) + _covop2(s1_rt, s2_tr) + _covop2(s1_rr, s2_tt)
-    )
-    B12 = _covop2(s1_tt, s2_tr) + _covop2(s1_tr, s2_tt)
+    B = np.empty(shape)
+    B[..., :3, :3] = pair[0] + pair[1] + pair[2] + pair[3]
+    B12 = pair[4] + pair[5]
     B[..., :3, 3:] = B12
     B[..., 3:, :3] = np.swapaxes(B12, -1, -2)
-    B[..., 3:, 3:] = _covop2(s1_tt, s2_tt)
-    A1T = np.swapaxes(A1, -1, -2)
-    A2T = np.swapaxes(A2, -1, -2)
-    return c1 + c2 + (A1 @ c2 + c2 @ A1T + A2 @ c1 + c1 @ A2T) / 12.0 + B / 4.0
+    B[..., 3:, 3:] = pair[6]
+    # A_i = [[<<tt_i>>, <<rt_i + rt_i^T>>], [0, <<tt_i>>]]
+    A1 = np.zeros(shape)
+    A1[..., :3, :3] = A1[..., 3:, 3:] = ops[0]  # <<tt1>> (left[0] = tt1)
+    A1[..., :3, 3:] = ops[3 * n]
+    A2 = np.zeros(shape)
+    A2[..., :3, :3] = A2[..., 3:, 3:] = ops[n + 3]  # <<tt2>> (right[3] = tt2)
+    A2[..., :3, 3:] = ops[3 * n + 1]
+    X = A1 @ c2 + A2 @ c1
+    return c1 + c2 + (X + np.swapaxes(X, -1, -2)) / 12.0 + B / 4.0
 
 
 # ----------------------------------------------------------------------------
