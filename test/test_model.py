@@ -410,3 +410,37 @@ def test_sample_shapes_and_exact_model():
     S = model.sample(q, "base_link", "tool0", n=5, rng=np.random.default_rng(0))
     assert S.shape == (5, 2, 4, 4)
     np.testing.assert_allclose(S, np.broadcast_to(model.fk_mean(q, "base_link", "tool0"), S.shape), atol=1e-14)
+
+
+# ----------------------------------------------------------------------------
+# Properties over random link pairs and joint values (hypothesis)
+# ----------------------------------------------------------------------------
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_EDGE_MODEL = PPOEModel.from_files(EDGE, EDGE_YAML)
+_LINKS = list(_EDGE_MODEL.robot.links)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    frm=st.sampled_from(_LINKS),
+    to=st.sampled_from(_LINKS),
+    mid=st.sampled_from(_LINKS),
+    q=st.lists(st.floats(-3.0, 3.0), min_size=4, max_size=4),
+)
+def test_chain_properties(frm, to, mid, q):
+    """Inverse chain, composition through any third link, and covariance transport."""
+    m = _EDGE_MODEL
+    q = np.array(q)
+    T_ft, cov_ft = m.fk(q, frm, to)
+    T_tf, cov_tf = m.fk(q, to, frm)
+    np.testing.assert_allclose(T_ft @ T_tf, np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(m.fk_mean(q, frm, mid) @ m.fk_mean(q, mid, to), T_ft, atol=1e-12)
+    Ad = lie.adjoint(T_tf)
+    np.testing.assert_allclose(cov_ft, Ad @ cov_tf @ Ad.T, rtol=1e-8, atol=1e-16)
+    # symmetric PSD, and order 4 too
+    for cov in (cov_ft, m.fk(q, frm, to, order=4)[1]):
+        np.testing.assert_allclose(cov, cov.T, atol=1e-18)
+        assert np.linalg.eigvalsh(cov).min() > -1e-15
