@@ -37,10 +37,12 @@ from __future__ import annotations
 import bisect
 import math
 import sys
+import time
 from typing import Any, Sequence
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, JointState, PointCloud2
 from std_msgs.msg import String
@@ -101,10 +103,12 @@ PARAMS: tuple[ParamSpec, ...] = (
               min_value=1e-6, max_value=3600.0),
     ParamSpec("max_hold", 0.5, "max distance to the nearest prior when interpolation is impossible", unit="s",
               min_value=0.0, max_value=3600.0),
-    ParamSpec("max_pending", 20, "measurements newer than the newest prior kept waiting", min_value=0,
-              max_value=10000),
-    ParamSpec("pending_timeout", 0.5, "a pending measurement this much older than the node clock is "
-              "processed with the newest prior (hold) or dropped", unit="s", min_value=0.0, max_value=3600.0),
+    ParamSpec("max_pending", 200, "measurements newer than the newest prior kept waiting", min_value=0,
+              max_value=100000),
+    ParamSpec("min_interval", 0.05, "per source: a measurement less than this after the last one processed is "
+              "skipped (counted as throttled); 0 = process all", unit="s", min_value=0.0, max_value=3600.0),
+    ParamSpec("pending_timeout", 0.5, "when no prior arrived for this long (steady clock), pending measurements "
+              "are processed with the newest prior (hold) or dropped", unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("correction_timeout", 10.0, "a carried correction fades over / is dropped after this; <= 0 = off",
               unit="s", max_value=1e6),
     ParamSpec("correction_joint_motion", 0.05, "... after this max-abs joint motion; <= 0 = off", unit="rad or m",
@@ -129,15 +133,16 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("contact_distance_sigma", 0.0, "extra 1-sigma noise of the contact distance", unit="m",
               min_value=0.0, max_value=1e3),
     ParamSpec("publish_on_update", True, "publish the newest fused pose right after an accepted measurement"),
-    ParamSpec("qos_depth", 100, "history depth of the input subscriptions", min_value=1, max_value=100000),
+    ParamSpec("qos_depth", 1000, "history depth of the input subscriptions (a node that falls behind a "
+              "1 kHz prior stream catches up instead of losing priors)", min_value=1, max_value=100000),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
     ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
               min_value=0.0),
 )
 
 _STAT_KEYS = ("received", "published", "bad", "priors", "measurements", "accepted", "rejected", "dropped",
-              "dropped_stale", "dropped_no_prior", "corrections_dropped", "pending", "empty_observations",
-              "resets")
+              "dropped_stale", "dropped_no_prior", "dropped_no_model", "throttled", "corrections_dropped",
+              "pending", "empty_observations", "resets")
 
 
 class _JointBuffer:
@@ -204,7 +209,7 @@ class FusionNode(Node):
             raise ModelConfigError(f"node {self.get_name()}: correction_* parameters: {exc}") from None
         self.pipeline = FusionPipeline(
             self._update, buffer_duration=p["buffer_duration"], max_gap=p["max_gap"], max_hold=p["max_hold"],
-            policy=policy, max_pending=p["max_pending"])
+            policy=policy, max_pending=p["max_pending"], min_interval=p["min_interval"])
         self.updater: ModelUpdater | None = None
         self.model: Any = None
         self._urdf: str | None = None
@@ -225,7 +230,9 @@ class FusionNode(Node):
         sub(PoseWithCovarianceStamped, p["contact_topic"], self._contact, rel)
         sub(CameraInfo, p["camera_info_topic"], self._camera_info, qos)
         sub(JointState, p["joint_states_topic"], self._joint_state, qos)
-        self.create_timer(0.1, guarded(self.stats, "pending measurements")(self._expire_pending))
+        self._last_prior_wall = time.monotonic()
+        self.create_timer(0.1, guarded(self.stats, "pending measurements")(self._expire_pending),
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
 
         if p["robot_description"]:
             self._set_model(p["robot_description"], "parameter robot_description")
@@ -255,6 +262,10 @@ class FusionNode(Node):
                 contact_distance_sigma=p["contact_distance_sigma"])
         except PpoeError as exc:
             raise type(exc)(f"{where}: {exc}") from None
+        # import the update code now (scipy.stats ...), not while the first measurement waits
+        import ppoe_core.fusion  # noqa: F401
+        import ppoe_core.measurements  # noqa: F401
+
         self.model, self.updater, self._urdf = model, updater, urdf_xml
         self.joints.set_names(model.joint_names)
         self.get_logger().info(
@@ -291,6 +302,7 @@ class FusionNode(Node):
             raise MeasurementError(f"prior frame '{frame}' is not base_frame '{self.base_frame}'")
         cov_tool = lie.cov_ros_to_local(T, cov_ros)
         est, outcomes = self.pipeline.add_prior(stamp_ns * 1e-9, T, cov_tool, self.joints.at(stamp_ns))
+        self._last_prior_wall = time.monotonic()
         for o in outcomes:
             self._report(o)
         if est is not None:
@@ -317,14 +329,18 @@ class FusionNode(Node):
         self._measure(Measurement(stamp_ns * 1e-9, self.params["contact_topic"], PlaneContact(frame, T, cov_plane)))
 
     def _measure(self, m: Measurement) -> None:
+        if self.updater is None:
+            self.stats.bad(m.source, "no robot model yet (waiting for robot_description)", kind="dropped_no_model")
+            return
         self._report(self.pipeline.add_measurement(m))
         self._sync_counts()
 
     def _expire_pending(self) -> None:
-        if not self.pipeline.pending:
+        # measurements newer than the newest prior wait for it; only when the prior stream
+        # has gone quiet are they taken with the newest prior (hold) or dropped
+        if not self.pipeline.pending or time.monotonic() - self._last_prior_wall < self.params["pending_timeout"]:
             return
-        now = self.get_clock().now().nanoseconds * 1e-9
-        for o in self.pipeline.flush(older_than=now - self.params["pending_timeout"]):
+        for o in self.pipeline.flush():
             self._report(o)
         self._sync_counts()
 
@@ -351,7 +367,7 @@ class FusionNode(Node):
     def _sync_counts(self) -> None:
         c, s = self.pipeline.counts, self.stats.counts
         for k in ("priors", "measurements", "accepted", "rejected", "dropped_stale", "dropped_no_prior",
-                  "corrections_dropped", "resets"):
+                  "corrections_dropped", "resets", "throttled"):
             s[k] = c[k]
         s["dropped"] = c["dropped_stale"] + c["dropped_no_prior"]
         s["pending"] = len(self.pipeline.pending)

@@ -128,3 +128,130 @@ def test_fusion_node_live_corrects_prior_drops_stale_and_survives_bad_input(tmp_
     assert c["dropped"] == "1" and c["rejected"] == "0"
     assert "stale" in log and "no point of a tag configured" in log
     print(f"fusion node: prior position error {err_prior * 1000:.1f} mm, fused {err_fused * 1000:.1f} mm")
+
+
+# ----------------------------------------------------------------------------- end to end
+# ppoe play BAG -> kinematics_node + tag_bearing_node / contact_node + fusion_node
+# -> ppoe record -> compare /ppoe/pose and /ppoe/fused_pose with /ground_truth/pose
+
+
+def _run_chain(tmp_path, bag: Path, nodes, play_topics, rate: float):
+    """Play ``bag`` through ``nodes`` (list of (module, params)) and ``ppoe record`` the outputs.
+
+    Readiness comes from the recorder's log and ``ppoe play --wait-for-subscribers``.  The
+    recorder runs on wall time: with ``--use-sim-time`` its topic discovery timer would not
+    fire before ``/clock`` starts.  Comparisons use the message stamps only.
+    """
+    import time
+
+    from ros_helpers import NodeProcess, ros_env
+
+    env = ros_env(tmp_path)
+    out = tmp_path / "recorded"
+    procs = []
+    try:
+        for module, params in nodes:
+            procs.append(NodeProcess.node(module, env, tmp_path, params={"use_sim_time": True, **params}))
+        rec = NodeProcess.ppoe(["record", "--out", str(out), "/ppoe/pose", "/ppoe/fused_pose",
+                                "/diagnostics"], env, tmp_path, "record")
+        procs.append(rec)
+        deadline = time.monotonic() + 60
+        while not all(f"recording {t} " in rec.output() for t in ("/ppoe/pose", "/ppoe/fused_pose")):
+            if time.monotonic() > deadline or not all(p.alive() for p in procs):
+                raise AssertionError("recorder did not see the nodes' publishers:\n"
+                                     + "\n".join(p.output()[-1500:] for p in procs))
+            time.sleep(0.2)
+        play = NodeProcess.ppoe(["play", str(bag), "--clock", "--rate", str(rate), "--wait-for-subscribers", "30",
+                                 "--topics", *play_topics], env, tmp_path, "play")
+        procs.append(play)
+        assert play.wait(timeout=120) == 0, play.output()[-3000:]
+        time.sleep(4.0)  # let the nodes catch up with the last images / updates
+        for p in procs[:-2]:
+            assert p.alive(), f"{p.cmd} died:\n{p.output()[-3000:]}"
+        rec.stop(timeout=10)
+        logs = {p.log_path.stem: p.output() for p in procs}
+    finally:
+        for p in procs:
+            p.stop()
+    return out, logs
+
+
+def _errors_at_ground_truth(bag: Path, recorded: Path, window: float = 0.8):
+    """Per ground-truth pose: position error [m] of the prior and of the fused pose, both at
+    the newest fused stamp within ``window`` s after the ground-truth stamp (same stop: the
+    joints are checked to be unchanged)."""
+    from ppoe_core.bagio import read_bag
+
+    src, rec = read_bag(bag), read_bag(recorded)
+    prior = rec.poses_with_covariance["/ppoe/pose"]
+    fused = rec.poses_with_covariance["/ppoe/fused_pose"]
+    js = src.joint_states
+    e_prior, e_fused = [], []
+    for t_gt, T_gt in zip(src.ground_truth_pose.stamps, src.ground_truth_pose.T):
+        sel = np.flatnonzero((fused.stamps >= t_gt - 1e-6) & (fused.stamps <= t_gt + window))
+        if sel.size == 0:
+            continue
+        t_best = fused.stamps[sel].max()
+        i_f = sel[fused.stamps[sel] == t_best][-1]  # last published for that stamp
+        i_p = np.flatnonzero(np.abs(prior.stamps - t_best) < 1e-6)
+        assert i_p.size, f"no prior at {t_best}"
+        q0 = js.positions[np.argmin(np.abs(js.stamps - t_gt))]
+        q1 = js.positions[np.argmin(np.abs(js.stamps - t_best))]
+        assert np.nanmax(np.abs(q0 - q1)) < 1e-9, "arm moved inside the comparison window"
+        e_prior.append(np.linalg.norm(prior.T[i_p[-1]][:3, 3] - T_gt[:3, 3]))
+        e_fused.append(np.linalg.norm(fused.T[i_f][:3, 3] - T_gt[:3, 3]))
+    return np.array(e_prior), np.array(e_fused), len(src.ground_truth_pose.stamps)
+
+
+def _diag(logs_bag: Path, node: str) -> dict[str, str]:
+    from ppoe_core.bagio import iter_raw, deserialize
+
+    last = {}
+    for raw in iter_raw(logs_bag, ["/diagnostics"]):
+        msg = deserialize(raw.data, raw.msgtype, topic=raw.topic)
+        for st in msg.status:
+            if st.name == node:
+                last = {kv.key: kv.value for kv in st.values}
+    return last
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(150)
+def test_end_to_end_bag_with_tags(tmp_path):
+    bag = REPO / "bags" / "table1_exp1"
+    model = str(CONFIG / "rover_model.yaml")
+    nodes = [
+        ("kinematics_node", {"model_file": model, "qos_depth": 5000}),
+        ("tag_bearing_node", {"tag_ids": [0, 1, 2, 3], "qos_depth": 50}),
+        ("fusion_node", {"model_file": model, "diagnostics_period": 0.5, "buffer_duration": 5.0, "qos_depth": 5000}),
+    ]
+    recorded, logs = _run_chain(tmp_path, bag, nodes,
+                                ["/robot_description", "/joint_states", "/camera/camera_info",
+                                 "/camera/image_raw/compressed"], rate=2.0)
+    e_prior, e_fused, n_gt = _errors_at_ground_truth(bag, recorded)
+    diag = _diag(recorded, "fusion_node")
+    print(f"\ntable1_exp1 end to end: {len(e_fused)}/{n_gt} stops, position error mean prior "
+          f"{e_prior.mean() * 1000:.2f} mm, fused {e_fused.mean() * 1000:.2f} mm; fusion diagnostics {diag}")
+    assert len(e_fused) >= n_gt - 2  # a stop may lack fused poses when the machine is loaded
+    assert e_fused.mean() < 0.5 * e_prior.mean()
+    assert int(diag["accepted"]) >= n_gt
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(150)
+def test_end_to_end_bag_with_contact(tmp_path):
+    bag = REPO / "bags" / "contact"
+    model = str(CONFIG / "humanoid_model.yaml")
+    nodes = [
+        ("kinematics_node", {"model_file": model, "qos_depth": 5000}),
+        ("contact_node", {"model_file": model}),
+        ("fusion_node", {"model_file": model, "diagnostics_period": 0.5, "buffer_duration": 5.0, "qos_depth": 5000}),
+    ]
+    recorded, logs = _run_chain(tmp_path, bag, nodes, ["/robot_description", "/joint_states", "/wrench"], rate=2.0)
+    e_prior, e_fused, n_gt = _errors_at_ground_truth(bag, recorded)
+    diag = _diag(recorded, "fusion_node")
+    print(f"\ncontact end to end: {len(e_fused)}/{n_gt} stops, position error mean prior "
+          f"{e_prior.mean() * 1000:.2f} mm, fused {e_fused.mean() * 1000:.2f} mm; fusion diagnostics {diag}")
+    assert len(e_fused) >= n_gt // 2
+    assert e_fused.mean() < e_prior.mean()
+    assert int(diag["accepted"]) >= 8

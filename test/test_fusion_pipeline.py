@@ -530,3 +530,15 @@ def test_posterior_cost_equals_prior_nis_for_a_linear_model():
     res = iterated_update(T, P, z, obs, max_iterations=10, gate_probability=None)
     cost = posterior_cost(obs, res.T, res.residual, res.correction, P)
     assert cost == pytest.approx(res.nis, rel=1e-3)
+
+
+def test_pipeline_min_interval_throttles_per_source():
+    rng, T_true, T_prior, P, upd, pipe = _setup(min_interval=0.05)
+    for k in range(11):
+        pipe.add_prior(0.01 * k, T_prior, P)
+    m = (T_true, np.eye(6)[:1], np.array([[1e-4]]))
+    statuses = [pipe.add_measurement(Measurement(0.01 * k, "/contact", m)).status for k in range(11)]
+    assert statuses == ["accepted", "throttled", "throttled", "throttled", "throttled", "accepted",
+                        "throttled", "throttled", "throttled", "throttled", "accepted"]
+    assert pipe.add_measurement(Measurement(0.01, "/tag", m)).status == "accepted"  # other source
+    assert pipe.counts["throttled"] == 8 and upd.calls == 4
