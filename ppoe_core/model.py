@@ -224,7 +224,6 @@ class _Chain:
     f_tz: tuple  # (motion indices, factor indices) of the prismatic motions
     f_d_idx: Array  # factor index of each D op
     site_pos: Array  # (n_sites,) number of factors before each site
-    motion_pos: Array  # (n_motion,) number of factors up to and including each motion
 
 
 def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects: bool) -> _Chain:
@@ -362,14 +361,12 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
     # single-config program: factor list
     factors, f_motion_idx, f_d_idx = [], [], []
     site_pos = np.zeros(len(site_L), dtype=int)
-    motion_pos = np.zeros(len(motion_joint), dtype=int)
     for code, arg in ops:
         if code == _S:
             factors.append(arg)
         elif code in (_RZ, _TZ):
             f_motion_idx.append(len(factors))
             factors.append(np.eye(4))
-            motion_pos[arg] = len(factors)
         elif code == _D:
             f_d_idx.append(len(factors))
             factors.append(np.eye(4))
@@ -410,7 +407,6 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
               np.array([f_motion_idx[i] for i, k in enumerate(motion_kind) if k == _TZ], dtype=int)),
         f_d_idx=np.array(f_d_idx, dtype=int),
         site_pos=site_pos,
-        motion_pos=motion_pos,
     )
 
 
@@ -585,77 +581,46 @@ def _eval_backward(
     return B, G, J
 
 
-def _eval_batch(
-    ch: _Chain,
-    theta: Array,
-    D: Optional[Array],
-    pert: Optional[list],
-    record_sites: bool,
-    record_motions: bool,
-) -> tuple[Array, list, list]:
-    """Many configurations, poses as ``(3, 4, N)`` (batch last).
+def _eval_forward(ch: _Chain, theta: Array, D: Optional[Array], pert: list) -> Array:
+    """Forward product of the chain for many configurations with sampled perturbations.
+
+    Used by the Monte-Carlo sampler: every perturbation ``Exp(xi_k)`` is inserted at its
+    place (eq. 16-17), nothing is linearised.
 
     Parameters
     ----------
     theta : (n_motion, N)
     D : (n_d, 4, 4, N) or None
         ``Exp(dxi)`` per effect site.
-    pert : list of (4, 4, N) or None
-        ``Exp(xi_k)`` per site (Monte-Carlo), right-multiplied at the site.
+    pert : list of (4, 4, N)
+        ``Exp(xi_k)`` per perturbation site, right-multiplied at the site.
 
     Returns
     -------
-    P : (3, 4, N) the chain's pose rows; site prefixes; motion prefixes (after the motion).
+    ndarray, shape (3, 4, N)
+        Rows of ``T_frm_to``.
     """
     N = theta.shape[1]
-    P: Optional[Array] = None  # None = identity
-    sites: list = [None] * len(ch.site_L)
-    motions: list = [None] * len(ch.motion_joint)
-    c = s = None
+    P = np.zeros((3, 4, N))
+    P[0, 0] = P[1, 1] = P[2, 2] = 1.0
     if theta.size:
         c, s = np.cos(theta), np.sin(theta)
-
-    def ident() -> Array:
-        out = np.zeros((3, 4, N))
-        out[0, 0] = out[1, 1] = out[2, 2] = 1.0
-        return out
-
     for code, arg in ch.ops:
         if code == _S:
-            if P is None:
-                P = np.repeat(arg[:3, :, None], N, axis=2)
-            else:
-                P = np.einsum("ijn,jk->ikn", P, arg)
+            P = np.einsum("ijn,jk->ikn", P, arg)
         elif code == _RZ:
-            if P is None:
-                P = ident()
             p0 = P[:, 0].copy()
             p1 = P[:, 1]
-            ci, si = c[arg], s[arg]
-            P[:, 0] = p0 * ci + p1 * si
-            P[:, 1] = p1 * ci - p0 * si
-            if record_motions:
-                motions[arg] = P.copy()
+            P[:, 0] = p0 * c[arg] + p1 * s[arg]
+            P[:, 1] = p1 * c[arg] - p0 * s[arg]
         elif code == _TZ:
-            if P is None:
-                P = ident()
             P[:, 3] += P[:, 2] * theta[arg]
-            if record_motions:
-                motions[arg] = P.copy()
         elif code == _D:
-            if P is None:
-                P = ident()
+            assert D is not None
             P = _mul_rows(P, D[arg])
-        else:  # site
-            if P is None:
-                P = ident()
-            if record_sites:
-                sites[arg] = P.copy()
-            if pert is not None:
-                P = _mul_rows(P, pert[arg])
-    if P is None:
-        P = ident()
-    return P, sites, motions
+        else:  # perturbation site
+            P = _mul_rows(P, pert[arg])
+    return P
 
 
 def _exp_batch_last(xi: Array) -> Array:
@@ -1067,7 +1032,7 @@ class PPOEModel:
         for L in ch.site_L:
             z = rng.standard_normal((L.shape[1], NN))
             pert.append(_exp_batch_last(L @ z))
-        P, _, _ = _eval_batch(ch, theta_r, D_r, pert, False, False)
+        P = _eval_forward(ch, theta_r, D_r, pert)
         return _rows_to_T(P).reshape((n,) + shape + (4, 4))
 
     def jacobian_joints(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None,
