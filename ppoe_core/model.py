@@ -20,7 +20,7 @@ the tangent space at ``T_frm_to`` (right perturbation, frame ``to``):
   with ``B_k`` the product of everything after perturbation ``k``;
 * ``order=4``: Barfoot & Furgale (2014), "Associating uncertainty with
   three-dimensional poses for use in estimation problems", IEEE T-RO 30(3),
-  fourth-order compounding (their eq. 55), applied sequentially to the local
+  fourth-order compounding, applied sequentially (chain order) to the local
   perturbations ``Ad_{B_k^-1} xi_k`` (right form: ``X1 Exp(x1) X2 Exp(x2) = X1 X2
   Exp(Ad_{X2^-1} x1) Exp(x2)``).  The fourth-order terms are ported from
   pytransform3d's ``concat_globally_uncertain_transforms`` (BSD-3), written here in
@@ -29,11 +29,16 @@ the tangent space at ``T_frm_to`` (right perturbation, frame ``to``):
 Implementation notes (speed): every chain ``(frm, to)`` is compiled once into a
 program of constant 4x4 factors and joint motions about the local z axis (each
 joint frame is rotated by a constant ``Q`` with ``Q e_z = axis``, so a revolute
-motion only mixes two columns).  The batched path keeps poses as ``(3, 4, N)``
-(batch last, structure of arrays), the single-configuration path uses a
-log-depth prefix product over stacked ``(K, 4, 4)`` factors.  Covariances use the
-low-rank factors ``Sigma_k = L_k L_k^T``: ``Sigma = G G^T`` with
-``G = [Ad_{B_k^-1} L_k]_k``.
+motion only mixes two columns).  The chain is evaluated from its END: the running
+product ``B`` is exactly the paper's "everything after perturbation k", so no
+inverse is needed.  The batched path keeps poses as ``(3, 4, N)`` (batch last,
+structure of arrays, chunks of ``_CHUNK`` configurations), the single-configuration
+path uses a log-depth suffix product over stacked ``(K, 4, 4)`` factors.
+Covariances use the low-rank factors ``Sigma_k = L_k L_k^T`` (only the non-zero
+sigmas): ``Sigma = G^T G`` with rows ``G = [Ad_{B_k^-1} L_k]_k``.
+
+Effects: ``dq`` of a joint shifts that joint's own motion (a mimic joint does not
+inherit its master's ``dq``); ``dxi`` sits right before the joint's ``xi``.
 """
 
 from __future__ import annotations
