@@ -129,8 +129,9 @@ camera:                    # optional; needs the model's camera and tags section
   D: [0, 0, 0, 0, 0]       # plumb_bob k1 k2 p1 p2 k3 [zeros]
   rate: 5.0                # image rate [Hz] (<= 30) [5.0]
   during: stops            # stops: only inside stops; always: whole bag [stops]
-  format: png              # png | jpeg [png]
+  format: png              # png | jpeg (/camera/image_raw/compressed) or raw (mono8 /camera/image_raw) [png]
   noise_sigma: 1.0         # Gaussian grey-level noise [1.0]
+  blur_sigma: 0.0          # Gaussian blur before the noise [px] [0.0]
   background: 128          # grey level [128]
   time_offset: 0.0         # image stamps = true exposure time + this [s] [0.0]
 ground_truth:
@@ -602,7 +603,7 @@ class _Sim:
         self.cam = None
         if raw.get("camera") is not None:
             c = _check_keys(raw["camera"], ("frame", "width", "height", "intrinsics", "D", "rate", "during", "format",
-                                            "noise_sigma", "background", "time_offset"), P, "camera")
+                                            "noise_sigma", "blur_sigma", "background", "time_offset"), P, "camera")
             if m.tags is None:
                 raise ScenarioError(f"{_where(P, 'camera')}: the model {m.source} has no tags section to render")
             frame = c.get("frame") or (m.camera.frame if m.camera else None)
@@ -616,8 +617,8 @@ class _Sim:
                 raise ScenarioError(f"{_where(P, 'camera')}: intrinsics = [fx, fy, cx, cy], D = 5 plumb_bob numbers")
             fx, fy, cx, cy = (float(v) for v in intr)
             fmt = c.get("format", "png")
-            if fmt not in ("png", "jpeg"):
-                raise ScenarioError(f"{_where(P, 'camera.format')} must be png or jpeg")
+            if fmt not in ("png", "jpeg", "raw"):
+                raise ScenarioError(f"{_where(P, 'camera.format')} must be png, jpeg or raw")
             during = c.get("during", "stops")
             if during not in ("stops", "always"):
                 raise ScenarioError(f"{_where(P, 'camera.during')} must be stops or always")
@@ -625,6 +626,7 @@ class _Sim:
                         "D": D, "rate": _num(c, "rate", 5.0, P, "camera", minimum=0.01, maximum=30.0),
                         "during": during, "format": fmt,
                         "noise": _num(c, "noise_sigma", 1.0, P, "camera", minimum=0.0),
+                        "blur": _num(c, "blur_sigma", 0.0, P, "camera", minimum=0.0),
                         "background": int(_num(c, "background", 128, P, "camera", minimum=0, maximum=255)),
                         "time_offset": _num(c, "time_offset", 0.0, P, "camera")}
         gt = _check_keys(raw.get("ground_truth"), ("pose", "point"), P, "ground_truth")
@@ -956,7 +958,7 @@ class _Sim:
             for i, t in enumerate(ts):
                 img, drawn = render_tags((self.cam["w"], self.cam["h"]), self.cam["K"], self.cam["D"], Ts[i], ids, sizes,
                                          dictionary=self.model.tags.family, background=self.cam["background"],
-                                         noise_sigma=self.cam["noise"], rng=self.rng)
+                                         noise_sigma=self.cam["noise"], rng=self.rng, blur_sigma=self.cam["blur"])
                 visible_ids.update(drawn)
                 st = float(t + self.cam["time_offset"])
                 events.append((st, 1, "cam", (img,)))
@@ -1020,7 +1022,10 @@ class _Sim:
                     bag.write_joint_state(t, pl[0], pl[1])
                 elif kind == "cam":
                     bag.write_camera_info(t, cam_frame, self.cam["w"], self.cam["h"], self.cam["K"], self.cam["D"])
-                    bag.write_compressed_image(t, cam_frame, pl[0], self.cam["format"])
+                    if self.cam["format"] == "raw":
+                        bag.write_image(t, cam_frame, pl[0])
+                    else:
+                        bag.write_compressed_image(t, cam_frame, pl[0], self.cam["format"])
                 elif kind == "gtpose":
                     bag.write_ground_truth_pose(t, self.gt_pose["frame"], pl[0])
                 elif kind == "gtpoint":

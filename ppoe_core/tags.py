@@ -310,7 +310,7 @@ def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequ
                 dictionary: str = "tag36h11", background: np.ndarray | int = 128, border_cells: float = 1.0,
                 black: int = 25, white: int = 235, supersample: int = 3, noise_sigma: float = 0.0,
                 rng: np.random.Generator | None = None, min_depth: float = 0.05,
-                max_angle_deg: float = 80.0) -> tuple[np.ndarray, list[int]]:
+                max_angle_deg: float = 80.0, blur_sigma: float = 0.0) -> tuple[np.ndarray, list[int]]:
     """Draw tags at their true pose into a grey image (per-pixel inverse mapping).
 
     Every sub-pixel sample's camera ray (through the plumb_bob model, inverted
@@ -337,6 +337,8 @@ def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequ
         A tag with any corner (quiet zone included) closer than this [m] in z is not drawn.
     max_angle_deg
         Tags seen at more than this angle between their normal and the viewing ray are not drawn.
+    blur_sigma
+        Gaussian blur (optics, focus) applied before the noise [px]; 0 = none.
 
     Returns
     -------
@@ -409,6 +411,8 @@ def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequ
         patch = canvas[v0:v1 + 1, u0:u1 + 1]
         canvas[v0:v1 + 1, u0:u1 + 1] = patch * (1.0 - cover) + col
         drawn.append(tag_id)
+    if blur_sigma > 0:
+        canvas = cv2.GaussianBlur(canvas, (0, 0), float(blur_sigma))
     if noise_sigma > 0:
         if rng is None:
             raise MeasurementError("render_tags: noise_sigma > 0 needs an rng (np.random.default_rng(seed))")

@@ -172,6 +172,23 @@ def test_tags_rendered_at_true_pose_with_camera_error(tmp_path: Path) -> None:
     assert min(errs_nominal) > 3.0          # and the camera error is visible against the nominal one
 
 
+def test_raw_blurred_images_with_camera_time_offset(tmp_path: Path) -> None:
+    sc = _scenario(tmp_path, truth={"perturbations": "none", "joint_noise": False, "effects": []},
+                   camera={"width": 640, "height": 480, "intrinsics": [700, 700, 320, 240], "rate": 1.0,
+                           "format": "raw", "blur_sigma": 0.7, "noise_sigma": 0.0, "time_offset": 0.004},
+                   ground_truth={"pose": {"sigma_xyz": 0.0, "sigma_rot": 0.0}}, imus=None)
+    simulate(sc, tmp_path / "bag")
+    d = bagio.read_bag(tmp_path / "bag")
+    assert d.images.topic == "/camera/image_raw" and set(d.images.formats) == {"mono8"}
+    img = d.images.decode(0)
+    assert img.shape == (480, 640)
+    assert tags.detect_tags(img)                                   # still detectable when blurred
+    # blur: no pixel jumps by more than the blurred edge allows (sharp renders jump by ~200)
+    assert np.abs(np.diff(img.astype(int), axis=1)).max() < 140
+    # images stamped 4 ms after the ground truth taken at the same instant
+    np.testing.assert_allclose(d.images.stamps - d.ground_truth_pose.stamps, 0.004, atol=1e-9)
+
+
 def test_time_offset_and_smooth_motion(tmp_path: Path) -> None:
     dt = 0.05
     sc = _scenario(tmp_path, truth={"perturbations": "none", "joint_noise": False,
