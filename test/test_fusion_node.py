@@ -255,3 +255,27 @@ def test_end_to_end_bag_with_contact(tmp_path):
     assert len(e_fused) >= n_gt // 2
     assert e_fused.mean() < e_prior.mean()
     assert int(diag["accepted"]) >= 8
+
+
+@pytest.mark.parametrize("node", ["fusion_node", "tag_bearing_node"])
+def test_config_file_documents_every_parameter(node):
+    """config/<node>.yaml: every parameter of PARAMS, each with a comment above it, defaults as
+    in the code (except the example values listed here)."""
+    import importlib
+
+    import yaml
+
+    params = importlib.import_module(f"ppoe_ros.{node}").PARAMS
+    path = CONFIG / f"{node}.yaml"
+    values = yaml.safe_load(path.read_text())[node]["ros__parameters"]
+    assert set(values) == {p.name for p in params}
+    examples = {"fusion_node": {"model_file"}, "tag_bearing_node": {"tag_ids"}}[node]
+    for p in params:
+        if p.name not in examples:
+            assert values[p.name] == p.default, p.name
+    lines = path.read_text().splitlines()
+    for i, line in enumerate(lines):
+        key = line.strip().split(":")[0]
+        if line.startswith("    ") and not line.strip().startswith("#") and key in values:
+            assert lines[i - 1].strip().startswith("#"), f"{path.name}: '{key}' has no comment"
+            assert "Default" in " ".join(lines[max(0, i - 4):i]), f"{path.name}: '{key}' comment names no default"
