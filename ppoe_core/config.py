@@ -632,15 +632,19 @@ _SECTIONS = {
 # ----------------------------------------------------------------------------
 
 
-def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Robot) -> ModelConfig:
+def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Robot, *,
+                      is_text: bool = False) -> ModelConfig:
     """Load and validate a model YAML against ``robot``.
 
     Parameters
     ----------
     source : path-like, str, mapping or None
-        A file path, YAML text (a string containing a newline or ``:``, that is not an
-        existing file), an already-parsed mapping, or None (empty model: every joint exact).
+        A file path, YAML text, an already-parsed mapping, or None (empty model: every
+        joint exact).  A one-line string ending in ``.yaml``/``.yml`` or naming an existing
+        file is a path; any other string is YAML text.
     robot : Robot
+    is_text : bool
+        Treat a string ``source`` as YAML text, never as a path.
 
     Returns
     -------
@@ -665,7 +669,7 @@ def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Rob
     else:
         text: Optional[str] = None
         if isinstance(source, os.PathLike) or (
-            isinstance(source, str) and source.strip() != "" and "\n" not in source
+            isinstance(source, str) and not is_text and source.strip() != "" and "\n" not in source
             and (Path(source).suffix in (".yaml", ".yml") or Path(source).is_file())
         ):
             path = Path(source)

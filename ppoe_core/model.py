@@ -726,9 +726,7 @@ class PPOEModel:
 
             raise UrdfError("from_strings: URDF text must start with '<' (use from_files for paths)")
         robot = parse_urdf(urdf_xml)
-        if isinstance(yaml_text_or_dict, str) and "\n" not in yaml_text_or_dict and ":" not in yaml_text_or_dict:
-            raise ModelConfigError("from_strings: model YAML text expected (use from_files for paths)")
-        return cls(robot, load_model_config(yaml_text_or_dict, robot))
+        return cls(robot, load_model_config(yaml_text_or_dict, robot, is_text=True))
 
     def with_effects(self, effects: Sequence[Any]) -> "PPOEModel":
         """A model sharing robot and config whose effects are ``effects`` (e.g. candidates)."""

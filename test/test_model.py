@@ -444,3 +444,11 @@ def test_chain_properties(frm, to, mid, q):
     for cov in (cov_ft, m.fk(q, frm, to, order=4)[1]):
         np.testing.assert_allclose(cov, cov.T, atol=1e-18)
         assert np.linalg.eigvalsh(cov).min() > -1e-15
+
+
+def test_from_strings_empty_and_one_line_yaml():
+    text = EDGE.read_text()
+    assert PPOEModel.from_strings(text, "").config.perturbations == {}
+    assert PPOEModel.from_strings(text, "{}").config.perturbations == {}
+    m = PPOEModel.from_strings(text, "perturbations: {j1: {sigma: [0, 0, 0, 0, 0, 0.01]}}")
+    assert list(m.config.perturbations) == ["j1"]
