@@ -85,6 +85,7 @@ truth:
   perturbations: once      # draw the model's perturbations xi: once | per_stop | none [once]
   perturbation_scale: 1.0  # multiplies the drawn xi [1.0]
   joint_noise: true        # add the model's joint_noise (per stop) to the true joint values [true]
+  record_draws: false      # write each stop's window [s], drawn xi and joint errors to the truth file [false]
   effects:                 # systematic effects of the true robot, CONTRACT sec. 6 names [none]
     - {name: joint_offset, location: JOINT, parameters: {offset: 0.01}}        # q_true = q_meas + offset [rad|m]
     - {name: link_error, location: JOINT, parameters: {x: 0.001, rz: 0.002}}   # dxi at JOINT [m, rad]
@@ -516,13 +517,15 @@ class _Sim:
         raw = sc.raw
         self.robot = sc.robot
         self.model = sc.model
-        truth = _check_keys(raw.get("truth"), ("perturbations", "perturbation_scale", "joint_noise", "effects"),
+        truth = _check_keys(raw.get("truth"), ("perturbations", "perturbation_scale", "joint_noise", "effects",
+                                               "record_draws"),
                             self.path, "truth")
         self.draw = truth.get("perturbations", "once")
         if self.draw not in ("once", "per_stop", "none"):
             raise ScenarioError(f"{_where(self.path, 'truth.perturbations')} must be once, per_stop or none")
         self.pscale = _num(truth, "perturbation_scale", 1.0, self.path, "truth", minimum=0.0)
         self.use_joint_noise = bool(truth.get("joint_noise", True))
+        self.record_draws = bool(truth.get("record_draws", False))
         self.true = TrueRobot(self.robot, truth.get("effects") or [], where=f"scenario {self.path}: truth.effects")
         self.dt_js = self.true.effect_param("time_offset", "dt")
         self.joints = self.robot.independent_joints
@@ -670,7 +673,7 @@ class _Sim:
                             "contact")
             mc = m.contact
             if c.get("plane") is not None:
-                pl = c["plane"]
+                pl = _check_keys(c["plane"], ("frame", "xyz", "rpy"), P, "contact.plane")
                 frame = pl.get("frame", self.robot.root)
                 T_fp = _pose_cfg(pl, P, "contact.plane")
             elif mc is not None:
@@ -678,6 +681,8 @@ class _Sim:
             else:
                 raise ScenarioError(f"{_where(P, 'contact.plane')} is required (the model has no contact section)")
             tp = c.get("tool_point") or ({"link": mc.tool_link, "xyz": list(mc.tool_xyz)} if mc else None)
+            if tp is not None:
+                tp = _check_keys(tp, ("link", "xyz"), P, "contact.tool_point")
             if tp is None or tp.get("link") not in self.robot.links:
                 raise ScenarioError(f"{_where(P, 'contact.tool_point')}: needs a link of the URDF")
             if frame not in self.robot.links:
@@ -1064,6 +1069,11 @@ class _Sim:
                                   "T_frame_plane": self.contact["T_frame_plane"].tolist(),
                                   "stiffness": self.contact["k"]}
         d["stops"] = len(self.windows)
+        if self.record_draws:
+            d["stop_draws"] = [{"start": float(a), "end": float(b),
+                                "xi": {k: [float(x) for x in v] for k, v in self.xi_sets[self.stops[k_].draw].items()},
+                                "joint_noise": {k: float(v) for k, v in self.noise_sets[self.stops[k_].draw].items()}}
+                               for a, b, k_ in self.windows]
         return d
 
 
@@ -1100,5 +1110,5 @@ def simulate(scenario: str | os.PathLike | Scenario, out: str | os.PathLike, see
         return sim.run(out, storage=storage, overwrite=overwrite)
     except PpoeError:
         raise
-    except (KeyError, ValueError, TypeError) as exc:  # malformed values that slipped through
+    except (KeyError, ValueError, TypeError, AttributeError) as exc:  # malformed values that slipped through
         raise ScenarioError(f"scenario {sc.path}: {type(exc).__name__}: {exc}") from exc

@@ -91,6 +91,30 @@ def test_ground_truth_equals_nominal_fk_without_errors(tmp_path: Path) -> None:
 ARM7 = parse_urdf(str(CONFIG / "arm7.urdf"))
 
 
+def test_recorded_draws_reproduce_the_ground_truth(tmp_path: Path) -> None:
+    """With record_draws, the truth file's per-stop xi and joint errors give the ground truth exactly."""
+    sc = _scenario(tmp_path, truth={"perturbations": "per_stop", "joint_noise": True, "record_draws": True,
+                                    "effects": [{"name": "joint_offset", "location": "joint_2",
+                                                 "parameters": {"offset": 0.01}}]},
+                   ground_truth={"pose": {"sigma_xyz": 0.0, "sigma_rot": 0.0}}, imus=None)
+    res = simulate(sc, tmp_path / "bag")
+    d = bagio.read_bag(tmp_path / "bag")
+    draws = res.truth["stop_draws"]
+    assert len(draws) == 3
+    true = TrueRobot(ARM7, res.truth["effects"])
+    js = d.joint_states
+    for k, st in enumerate(draws):
+        t = d.ground_truth_pose.stamps[k]
+        assert st["start"] <= t <= st["end"]
+        i = int(np.searchsorted(js.stamps, t, side="right") - 1)
+        q = {n: js.positions[i:i + 1, j] for j, n in enumerate(js.names)}
+        xi = {j: np.array([v]) for j, v in st["xi"].items()}
+        noise = {j: np.array([v]) for j, v in st["joint_noise"].items()}
+        P = true.poses(q, xi, noise, {}, np.zeros(1), 1)
+        np.testing.assert_allclose(P["tool0"][0], d.ground_truth_pose.T[k], atol=1e-9)
+    assert draws[0]["xi"]["mount_joint"] != draws[1]["xi"]["mount_joint"]
+
+
 @pytest.mark.parametrize("entry", [
     {"name": "joint_offset", "location": "joint_2", "parameters": {"offset": 0.02}},
     {"name": "gravity_compliance", "location": "joint_2", "parameters": {"compliance": 3e-4}},
