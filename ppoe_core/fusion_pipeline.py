@@ -32,13 +32,13 @@ from __future__ import annotations
 
 import bisect
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
 import numpy as np
 
 from ppoe_core import lie
-from ppoe_core.errors import CovarianceError, MeasurementError, PpoeError
+from ppoe_core.errors import MeasurementError, PpoeError
 
 __all__ = [
     "PriorSample",
