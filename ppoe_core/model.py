@@ -210,13 +210,16 @@ class _Chain:
     motion_kind: list  # _RZ or _TZ
     masters: list  # independent joints the chain needs, first-use order
     # perturbation sites
-    site_L: list  # (6, r_k) factors in the canonical frame at the site
+    site_L: list  # (6, r_k) factors in the canonical frame at the site (negated on the
+    #               up-branch, where the link enters inverted: Exp(-xi)); the sign only
+    #               matters for cross-covariances between chains (fk_multi)
     site_label: list  # "xi:<joint>" / "noise:<joint>"
     L_all: Array  # (m, 6) all factor columns stacked (rows = columns of L_k)
     H_all: Array  # (m, 3, 3) hat of the rotational part of each column
     X_rows: Array  # (m, 2, 3) rows [v^T; w^T] of each column
     col_pos: Array  # (m,) suffix index (site position) of each column
     col_site: Array  # (m,) site index of each column
+    col_ids: list  # (m,) (site label, column of its factor): identifies the random source
     site_cols: list  # per site: (LvT (r, 3), LwT (r, 3), H (r, 3, 3), rot_only, c0, c1)
     site_sparse: list  # per site: None (dense) or [(column, v non-zeros, w non-zeros), ...]
     # effect sites
@@ -311,13 +314,13 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
         if j.movable:
             Q = _rot_z_to(j.axis)
             static(_pose(Q))
-            site(noise_L(jn), "noise:" + jn)  # already along z in the Q frame
+            site(-noise_L(jn), "noise:" + jn)  # Exp(-n): already along z in the Q frame
             motion(jn, -1.0)
-            site(_rot6(Q.T) @ xi_L(jn), "xi:" + jn)
+            site(-_rot6(Q.T) @ xi_L(jn), "xi:" + jn)
             dsite(jn, -_rot6(Q.T))
             static(_pose(Q.T) @ _inv(j.origin))
         else:
-            site(xi_L(jn), "xi:" + jn)
+            site(-xi_L(jn), "xi:" + jn)
             dsite(jn, -np.eye(6))
             static(_inv(j.origin))
     # down-branch: O Exp(d) Exp(xi) Q Mz(q) Q^T Exp(n)
@@ -400,6 +403,7 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
         X_rows=L_all.reshape(-1, 2, 3).copy(),
         col_pos=site_pos[col_site],
         col_site=col_site,
+        col_ids=[(site_label[k], i) for k, L in enumerate(site_L) for i in range(L.shape[1])],
         site_cols=site_cols,
         site_sparse=site_sparse,
         d_joint=d_joint,
@@ -1011,6 +1015,56 @@ class PPOEModel:
             else:
                 cov[a:b] = _fourth_order(ch, np.moveaxis(G, 2, 1))
         return T.reshape(shape + (4, 4)), cov.reshape(shape + (6, 6))
+
+    def fk_multi(self, joints: Joints, frm: Optional[str], tos: Sequence[str],
+                 context: Optional[Mapping[str, Any]] = None) -> tuple[Array, Array]:
+        """Mean poses of several frames and their JOINT second-order covariance.
+
+        Chains that share perturbations (e.g. ``base -> tool`` and ``base -> camera``) are
+        correlated; this returns the full covariance of the stacked local twists (eq. 15/18
+        applied to every target at once: ``cov = G^T G`` with the columns of each shared
+        perturbation ``L_k`` transported to every target).
+
+        Parameters
+        ----------
+        joints : as in :meth:`fk`
+        frm : str or None
+            Common reference link (default ``config.frames.base``).
+        tos : sequence of str
+            Target links.
+
+        Returns
+        -------
+        T : ndarray, shape (..., k, 4, 4)
+            ``T_frm_to`` for each target.
+        cov : ndarray, shape (..., 6k, 6k)
+            Block ``(i, j)`` = ``E[xi_i xi_j^T]``, ``xi_i`` the right perturbation of target
+            ``i`` in the tangent space at ``T[..., i]`` (frame ``tos[i]``).
+        """
+        tos = list(tos)
+        if not tos:
+            raise UnknownFrameError("fk_multi: no target frames given")
+        Ts, Gs, ids = [], [], []
+        shape: tuple = ()
+        N = 1
+        for to in tos:
+            ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
+            B, G, _ = _eval_backward(ch, theta, D, ch.L_all.shape[0] > 0, False)
+            Ts.append(_rows_to_T(B))
+            Gs.append(G)
+            ids.append(ch.col_ids)
+        index: dict = {}
+        for cid in ids:
+            for key in cid:
+                index.setdefault(key, len(index))
+        k = len(tos)
+        Gall = np.zeros((len(index), 6 * k, N))
+        for i, (G, cid) in enumerate(zip(Gs, ids)):
+            if G is not None and cid:
+                Gall[[index[key] for key in cid], 6 * i:6 * i + 6] = G
+        cov = np.einsum("min,mjn->nij", Gall, Gall)
+        T = np.stack(Ts, axis=1)
+        return T.reshape(shape + (k, 4, 4)), cov.reshape(shape + (6 * k, 6 * k))
 
     def sample(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None, n: int = 1000,
                rng: Optional[np.random.Generator] = None, context: Optional[Mapping[str, Any]] = None) -> Array:

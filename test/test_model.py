@@ -44,12 +44,12 @@ def _link_items(robot, config, qd, jn, dq, dxi):
     if jn in dxi:
         items.append(("M", lie.exp(dxi[jn])))
     if jn in config.perturbations:
-        items.append(("P", config.perturbations[jn].covariance))
+        items.append(("P", config.perturbations[jn].covariance, "xi:" + jn, 1.0))
     if j.movable:
         items.append(("M", lie.exp(j.twist * _qval(robot, qd, jn, dq))))
         s = config.joint_noise.get(jn, 0.0)
         if s > 0:
-            items.append(("P", s**2 * np.outer(j.twist, j.twist)))
+            items.append(("P", s**2 * np.outer(j.twist, j.twist), "noise:" + jn, 1.0))
     return items
 
 
@@ -60,8 +60,9 @@ def reference_chain(model, qd, frm, to, dq=None, dxi=None):
     up, down = robot.chain(frm, to)
     items = []
     for jn in up:
-        for kind, val in reversed(_link_items(robot, config, qd, jn, dq, dxi)):
-            items.append((kind, lie.inverse(val) if kind == "M" else val))
+        for item in reversed(_link_items(robot, config, qd, jn, dq, dxi)):
+            # inverted link: (X Exp(xi))^-1 = Exp(-xi) X^-1
+            items.append(("M", lie.inverse(item[1])) if item[0] == "M" else ("P", item[1], item[2], -1.0))
     for jn in down:
         items.extend(_link_items(robot, config, qd, jn, dq, dxi))
     return items
@@ -70,20 +71,27 @@ def reference_chain(model, qd, frm, to, dq=None, dxi=None):
 def reference_fk(items):
     """Mean and second-order covariance, eq. 15/18, with explicit adjoints of B_k^-1."""
     T = np.eye(4)
-    for kind, val in items:
-        if kind == "M":
-            T = T @ val
+    for item in items:
+        if item[0] == "M":
+            T = T @ item[1]
     cov = np.zeros((6, 6))
-    for k, (kind, val) in enumerate(items):
-        if kind != "P":
+    for J, S in reference_transport(items).values():
+        cov += J @ S @ J.T
+    return T, cov
+
+
+def reference_transport(items):
+    """source -> (J, Sigma): the target's local twist is ``sum_s J_s xi_s`` (first order)."""
+    out = {}
+    for k, item in enumerate(items):
+        if item[0] != "P":
             continue
         B = np.eye(4)
-        for kind2, val2 in items[k + 1:]:
-            if kind2 == "M":
-                B = B @ val2
-        Ad = lie.adjoint(lie.inverse(B))
-        cov += Ad @ val @ Ad.T
-    return T, cov
+        for item2 in items[k + 1:]:
+            if item2[0] == "M":
+                B = B @ item2[1]
+        out[item[2]] = (item[3] * lie.adjoint(lie.inverse(B)), item[1])
+    return out
 
 
 def _random_q(model, rng, shape=()):
@@ -452,3 +460,34 @@ def test_from_strings_empty_and_one_line_yaml():
     assert PPOEModel.from_strings(text, "{}").config.perturbations == {}
     m = PPOEModel.from_strings(text, "perturbations: {j1: {sigma: [0, 0, 0, 0, 0, 0.01]}}")
     assert list(m.config.perturbations) == ["j1"]
+
+
+# ----------------------------------------------------------------------------
+# Joint covariance of several targets
+# ----------------------------------------------------------------------------
+
+
+def test_fk_multi_joint_covariance_matches_reference(edge):
+    q = np.array([0.4, -0.6, 0.15, 0.9])
+    qd = dict(zip(edge.joint_names, q))
+    frm, tos = "link1", ["tool0", "camera_optical_frame", "finger", "base_link"]
+    T, cov = edge.fk_multi(q, frm, tos)
+    assert T.shape == (4, 4, 4) and cov.shape == (24, 24)
+    refs = [reference_transport(reference_chain(edge, qd, frm, to)) for to in tos]
+    for i, to in enumerate(tos):
+        Ti, ci = edge.fk(q, frm, to)
+        np.testing.assert_allclose(T[i], Ti, atol=1e-13)
+        np.testing.assert_allclose(cov[6 * i:6 * i + 6, 6 * i:6 * i + 6], ci, rtol=1e-9, atol=1e-20)
+        for j in range(len(tos)):
+            cross = np.zeros((6, 6))
+            for key, (Ji, S) in refs[i].items():
+                if key in refs[j]:
+                    cross += Ji @ S @ refs[j][key][0].T
+            np.testing.assert_allclose(cov[6 * i:6 * i + 6, 6 * j:6 * j + 6], cross, rtol=1e-9, atol=1e-18)
+    # the up-branch (link1 -> base_link) shares mount/j1 perturbations with nothing else here,
+    # but tool0 and finger share j2, j3, j4: a clearly non-zero cross block
+    assert np.abs(cov[0:6, 12:18]).max() > 1e-6
+    # batched
+    Tb, covb = edge.fk_multi(np.stack([q, q, q]), frm, tos)
+    assert covb.shape == (3, 24, 24)
+    np.testing.assert_allclose(covb[2], cov, rtol=1e-9, atol=1e-20)
