@@ -326,6 +326,8 @@ class Effect:
 
     name = ""
     units: tuple[str, ...] = ()
+    #: parameters that are physically non-negative (a compliance yields along the load)
+    nonnegative: tuple[str, ...] = ()
 
     def __init__(self, tree: KinematicTree, location: str, param_names: Sequence[str],
                  params: Optional[Sequence[float]] = None) -> None:
@@ -478,6 +480,7 @@ class GravityCompliance(Effect):
 
     name = "gravity_compliance"
     units = ("rad/(N m) or m/N",)
+    nonnegative = ("compliance",)
 
     def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None) -> None:
         _check_joint(tree, location, self.name, movable=True)
@@ -506,6 +509,7 @@ class MountBending(Effect):
 
     name = "mount_bending"
     units = ("rad/(N m)", "rad/(N m)")
+    nonnegative = ("compliance_x", "compliance_y")
 
     def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None) -> None:
         _check_joint(tree, location, self.name)

@@ -1,0 +1,1213 @@
+"""``ppoe diagnose``: trace the residual of a PPOE model to systematic effects, add them, report.
+
+Pipeline (issue 6, CONTRACT sec. 6):
+
+1. **Residuals.**  Static stops (:class:`Stops`): measured tracker points (a reflector on a link,
+   in the tracker's own frame, the tracker-to-base registration is a nuisance estimated per
+   session) or ground-truth poses (in the base frame).  The nominal model includes the effects
+   already declared in the model YAML.
+2. **Candidates.**  Every catalogue effect (:mod:`ppoe_core.effects`) at every plausible location
+   of the measured chain.  All effects are linear in their parameters and small, so the
+   measured quantity is linearised once at the nominal chain, ``x = x0 + G theta``; the
+   linearisation error is checked on the final model with the full nonlinear chain.
+3. **Fit.**  Gauss-Newton over the effect parameters and the per-session registrations
+   (left perturbation ``T <- Exp(delta) T``), the registrations eliminated by a Schur complement.
+4. **Selection.**  Greedy forward selection by held-out residual (cross-validation over stops
+   within sessions, or leave-one-group-out over bags/files): a candidate is added when it is
+   identifiable together with the registration and the effects already chosen (scaled
+   reduced information matrix: condition number below ``max_condition``; components a
+   ``link_error`` cannot separate are dropped), and when it lowers the held-out mean squared
+   error by at least ``min_gain`` (relative) with a paired one-sided t statistic of at least
+   ``min_t`` over the held-out stops (default 4.5: about 50 candidates are tested per round and
+   held-out errors within a session are correlated, so the usual 2-3 would over-select).
+   Compliances must come out non-negative (a structure yields along its load): a candidate
+   whose fit needs a negative compliance is rejected as unphysical rather than used to absorb
+   a residual of another shape.  What no candidate explains is reported as unexplained.
+5. **Confidence intervals** from the Gauss-Newton covariance ``s^2 H_red^-1`` (``s^2`` the
+   residual variance), 95 % two-sided normal.
+6. **Sigma refit.**  The first-order PPOE covariance of the measured point (model perturbations
+   and joint noise, eq. 18 to first order) plus the sensor noise is scaled by ``k^2`` so that the
+   mean held-out NEES equals its expectation (the measurement dimension).
+7. **Report**: JSON (contract keys ``effects``, ``residual_before``, ``residual_after``),
+   markdown, a PNG plot and the updated model YAML.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence
+
+import numpy as np
+import yaml
+
+from . import lie
+from .effects import Effect, KinematicTree, apply_corrections, effect_from_config, make_effect
+from .errors import BagError, ModelConfigError, PpoeError
+from .urdf import Robot
+
+__all__ = [
+    "Stops",
+    "Candidate",
+    "FitResult",
+    "DiagnoseOptions",
+    "DiagnoseResult",
+    "LinearProblem",
+    "candidate_effects",
+    "motion_signs",
+    "kabsch",
+    "diagnose",
+    "stops_from_bag",
+    "stops_from_hilti",
+    "make_folds",
+    "load_model",
+    "write_model_yaml",
+    "write_report",
+]
+
+_CHI2_DIM = {3: 3.0, 6: 6.0}
+
+
+# =============================================================================
+# Data
+# =============================================================================
+
+
+@dataclass
+class Stops:
+    """Static measurements, one row per stop.
+
+    Attributes
+    ----------
+    q : dict[str, ndarray (N,)]
+        Independent joint values [rad or m].
+    p_meas : ndarray (N, 3)
+        ``kind="point"``: reflector position in the tracker frame [m]; ``kind="pose"``: tool
+        position in the base frame [m].
+    R_meas : ndarray (N, 3, 3) or None
+        ``kind="pose"``: measured tool orientation in the base frame.
+    kind : str
+        ``"point"`` (tracker point, registration per session) or ``"pose"``.
+    link : str
+        Link that carries the reflector (``point``) or the tool frame (``pose``).
+    point : ndarray (3,)
+        Reflector position in ``link`` [m] (zeros for ``pose``).
+    sigma : float
+        1-sigma per axis of the position measurement [m].
+    sigma_rot : float
+        1-sigma per axis of the orientation measurement [rad] (``pose`` only).
+    session : ndarray (N,) int
+        Registration session of each stop (index into ``session_names``).
+    group : ndarray (N,) int
+        Source bag/file of each stop (index into ``group_names``), for leave-one-group-out.
+    reg_mask : ndarray (N,) bool
+        Stops allowed to define their session's registration when it is fitted for scoring
+        (Hilti: the stationing points).
+    score_mask : ndarray (N,) bool
+        Stops that are scored in such a session (Hilti: the evaluation points).
+    context : dict
+        Effect context per stop (``time`` (N,), ``motion_sign`` {joint: (N,)},
+        ``joint_velocity`` {joint: (N,)}).
+    """
+
+    q: dict[str, np.ndarray]
+    p_meas: np.ndarray
+    kind: str
+    link: str
+    point: np.ndarray
+    sigma: float
+    session: np.ndarray
+    session_names: list[str]
+    group: np.ndarray
+    group_names: list[str]
+    reg_mask: np.ndarray
+    score_mask: np.ndarray
+    context: dict[str, Any] = field(default_factory=dict)
+    R_meas: Optional[np.ndarray] = None
+    sigma_rot: float = 1e-3
+    base: str = ""
+
+    def __len__(self) -> int:
+        return int(self.p_meas.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """Residual dimension per stop (3 for points, 6 for poses)."""
+        return 3 if self.kind == "point" else 6
+
+    @staticmethod
+    def concat(parts: Sequence["Stops"]) -> "Stops":
+        """Stack stops of several bags/files (sessions and groups kept apart)."""
+        if not parts:
+            raise BagError("no stops to diagnose")
+        first = parts[0]
+        for p in parts[1:]:
+            if (p.kind, p.link) != (first.kind, first.link):
+                raise BagError(f"cannot mix measurements: {first.kind} on {first.link} and "
+                               f"{p.kind} on {p.link} ({p.group_names})")
+        so = np.cumsum([0] + [len(p.session_names) for p in parts])
+        go = np.cumsum([0] + [len(p.group_names) for p in parts])
+        joints = set.intersection(*[set(p.q) for p in parts])
+        ctx: dict[str, Any] = {}
+        for key in ("time", "temperature"):
+            if all(key in p.context for p in parts):
+                ctx[key] = np.concatenate([p.context[key] for p in parts])
+        for key in ("motion_sign", "joint_velocity"):
+            if all(key in p.context for p in parts):
+                names = set.intersection(*[set(p.context[key]) for p in parts])
+                ctx[key] = {n: np.concatenate([p.context[key][n] for p in parts]) for n in names}
+        return Stops(
+            q={j: np.concatenate([p.q[j] for p in parts]) for j in joints},
+            p_meas=np.concatenate([p.p_meas for p in parts]),
+            R_meas=None if first.R_meas is None else np.concatenate([p.R_meas for p in parts]),
+            kind=first.kind, link=first.link, point=first.point, sigma=first.sigma,
+            sigma_rot=first.sigma_rot, base=first.base,
+            session=np.concatenate([p.session + o for p, o in zip(parts, so)]),
+            session_names=[n for p in parts for n in p.session_names],
+            group=np.concatenate([p.group + o for p, o in zip(parts, go)]),
+            group_names=[n for p in parts for n in p.group_names],
+            reg_mask=np.concatenate([p.reg_mask for p in parts]),
+            score_mask=np.concatenate([p.score_mask for p in parts]),
+            context=ctx,
+        )
+
+    def subset(self, rows: np.ndarray) -> "Stops":
+        """The stops ``rows`` (index or bool array); session/group numbering is kept."""
+        def sub_ctx(v: Any) -> Any:
+            return {k: a[rows] for k, a in v.items()} if isinstance(v, dict) else v[rows]
+        return Stops(q={k: v[rows] for k, v in self.q.items()}, p_meas=self.p_meas[rows],
+                     R_meas=None if self.R_meas is None else self.R_meas[rows], kind=self.kind,
+                     link=self.link, point=self.point, sigma=self.sigma, sigma_rot=self.sigma_rot,
+                     base=self.base, session=self.session[rows], session_names=self.session_names,
+                     group=self.group[rows], group_names=self.group_names,
+                     reg_mask=self.reg_mask[rows], score_mask=self.score_mask[rows],
+                     context={k: sub_ctx(v) for k, v in self.context.items()})
+
+
+def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
+                 threshold: float = 1e-5) -> np.ndarray:
+    """Sign of each joint's last motion before each time ``at`` (backlash context).
+
+    Parameters
+    ----------
+    stamps : (M,) joint-state times [s], increasing
+    positions : (M, J) joint values
+    at : (N,) query times [s]
+    threshold : float
+        Changes between consecutive samples below this [rad or m] are not motion.
+
+    Returns
+    -------
+    ndarray (N, J) of -1, 0, +1 (0: no motion seen yet).
+    """
+    d = np.diff(positions, axis=0)
+    s = np.where(np.abs(d) > threshold, np.sign(d), 0.0)
+    last = np.zeros_like(positions)
+    cur = np.zeros(positions.shape[1])
+    for k in range(1, positions.shape[0]):
+        cur = np.where(s[k - 1] != 0, s[k - 1], cur)
+        last[k] = cur
+    idx = np.clip(np.searchsorted(stamps, at, side="right") - 1, 0, len(stamps) - 1)
+    return last[idx]
+
+
+def kabsch(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Rigid ``T`` (4, 4) minimising ``sum |Q_i - T P_i|^2`` (rotation + translation, no scale)."""
+    pc, qc = P.mean(0), Q.mean(0)
+    H = (P - pc).T @ (Q - qc)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return lie.from_rt(R, qc - R @ pc)
+
+
+# =============================================================================
+# Candidates and the linearised problem
+# =============================================================================
+
+
+@dataclass
+class Candidate:
+    """A candidate effect with its linearised measurement Jacobian.
+
+    ``G``: (N, dim, P) derivative of the predicted measurement (position in the base frame,
+    then for poses the right-tangent rotation of the tool) w.r.t. the effect parameters.
+    """
+
+    effect: Effect
+    G: np.ndarray
+
+    @property
+    def key(self) -> str:
+        comps = "" if self.effect.name != "link_error" else "[" + ",".join(self.effect.param_names) + "]"
+        return f"{self.effect.name}@{self.effect.location}{comps}"
+
+
+def _carried_mass(tree: KinematicTree, joint: str) -> float:
+    m = 0.0
+    for ln in tree.subtree_links(joint):
+        inert = tree.robot.links[ln].inertial
+        if inert is not None:
+            m += inert.mass
+    return m
+
+
+def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
+    """Catalogue effects at every plausible location of the measured chain (zero parameters).
+
+    * ``joint_offset``: every movable joint on the path to the measured link;
+    * ``gravity_compliance``: movable joints carrying mass (URDF inertials);
+    * ``mount_bending``: fixed joints carrying mass;
+    * ``link_error`` (6 components; unidentifiable ones are pruned during selection): every
+      joint on the path;
+    * ``backlash``: independent movable joints whose last-motion sign changes (context);
+    * ``thermal_growth`` over time: joints with an origin offset above 5 cm, if the data span
+      more than 10 minutes;
+    * ``time_offset``: if the joints move at the measurement times (context ``joint_velocity``).
+
+    ``base_tilt`` and ``camera_extrinsics`` need accelerometer / camera residuals, which this
+    version does not use; ``tracker_registration`` is always estimated per session.
+    """
+    robot = tree.robot
+    path = robot.path_from_root(stops.link)
+    if stops.kind == "pose" and stops.base and stops.base != robot.root:
+        base_path = set(robot.path_from_root(stops.base))
+        path = [j for j in path if j not in base_path]
+    out: list[Effect] = []
+    signs = stops.context.get("motion_sign", {})
+    t = stops.context.get("time")
+    vel = stops.context.get("joint_velocity", {})
+    for jn in path:
+        j = robot.joints[jn]
+        if j.movable:
+            out.append(make_effect("joint_offset", jn, tree))
+        out.append(make_effect("link_error", jn, tree))
+        mass = _carried_mass(tree, jn)
+        if j.movable and mass > 0.0:
+            out.append(make_effect("gravity_compliance", jn, tree))
+        if not j.movable and mass > 0.0:
+            out.append(make_effect("mount_bending", jn, tree))
+        if j.independent and jn in signs and np.ptp(signs[jn]) > 0:
+            out.append(make_effect("backlash", jn, tree))
+        if t is not None and np.ptp(t) > 600.0 and np.linalg.norm(j.origin[:3, 3]) > 0.05:
+            out.append(make_effect("thermal_growth", jn, tree, variable="time",
+                                   reference=float(np.min(t))))
+    if vel and max(float(np.max(np.abs(v))) for v in vel.values()) > 1e-6:
+        out.append(make_effect("time_offset", "/joint_states", tree))
+    return out
+
+
+def _predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect]
+                     ) -> tuple[np.ndarray, Optional[np.ndarray], dict, dict, dict]:
+    """Nominal prediction with the declared effects; returns x0 (N,3), R0, poses, dq, dxi."""
+    dq, dxi = apply_corrections(declared, stops.q, stops.context)
+    poses = tree.link_poses(stops.q, dq, dxi)
+    T = poses[stops.link]
+    if stops.kind == "pose" and stops.base and stops.base != tree.root:
+        T = lie.inverse(poses[stops.base]) @ T
+    x0 = (T @ np.append(stops.point, 1.0))[..., :3]
+    return x0, (T[..., :3, :3] if stops.kind == "pose" else None), poses, dq, dxi
+
+
+def _measurement_jacobian(tree: KinematicTree, stops: Stops, eff: Effect, nominal: Mapping,
+                          chain: tuple, base_R: Optional[np.ndarray]) -> np.ndarray:
+    """(N, dim, P): derivative of the predicted measurement w.r.t. the effect parameters."""
+    Jq, Jx, Fq, Fx = chain
+    Bq, Bx = eff.basis(stops.q, stops.context, nominal)
+    n = len(stops)
+    G = np.zeros((n, stops.dim, eff.n_params))
+    for k, b in Bq.items():
+        if k in Jq:
+            G[:, :3] += Jq[k][:, :, None] * b[:, None, :]
+            if stops.dim == 6:
+                G[:, 3:] += Fq[k][:, 3:, None] * b[:, None, :]
+    for k, b in Bx.items():
+        if k in Jx:
+            G[:, :3] += Jx[k] @ b
+            if stops.dim == 6:
+                G[:, 3:] += Fx[k][:, 3:] @ b
+    if base_R is not None:  # position derivative into the pose's base frame
+        G[:, :3] = np.einsum("nji,njp->nip", base_R, G[:, :3])
+    return G
+
+
+@dataclass
+class FitResult:
+    """Result of one fit: parameters, registrations, covariance and identifiability."""
+
+    theta: np.ndarray
+    regs: dict[int, np.ndarray]
+    cov: np.ndarray
+    s2: float
+    condition: float
+    absorbed: np.ndarray
+    rows: np.ndarray
+
+
+class LinearProblem:
+    """The linearised diagnosis problem ``x = x0 + G theta`` with per-session registration.
+
+    Parameters
+    ----------
+    stops : Stops
+    x0 : (N, 3) nominal predicted positions (base frame)
+    R0 : (N, 3, 3) or None, nominal tool orientation (``pose`` only)
+    """
+
+    def __init__(self, stops: Stops, x0: np.ndarray, R0: Optional[np.ndarray]) -> None:
+        self.stops = stops
+        self.x0 = x0
+        self.R0 = R0
+        self.register = stops.kind == "point"
+        if stops.kind == "pose":
+            self.r0_rot = lie.so3_log(np.swapaxes(R0, -1, -2) @ stops.R_meas)
+
+    # -- residuals ---------------------------------------------------------------
+    def _weights(self) -> np.ndarray:
+        s = self.stops
+        w = np.full(s.dim, 1.0 / s.sigma)
+        if s.dim == 6:
+            w[3:] = 1.0 / s.sigma_rot
+        return w
+
+    def _per_row(self, regs: Mapping[int, np.ndarray], sess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Registration of each row (n, 4, 4) and whether its session has one (n,)."""
+        table = np.full((len(self.stops.session_names) + 1, 4, 4), np.nan)
+        for k, T in regs.items():
+            table[k] = T
+        Tn = table[sess]
+        return Tn, np.isfinite(Tn[:, 0, 0])
+
+    def residuals(self, G: np.ndarray, theta: np.ndarray, regs: Mapping[int, np.ndarray],
+                  rows: np.ndarray) -> np.ndarray:
+        """Residuals measured minus predicted, (n, dim) [m, rad], NaN where no registration."""
+        s = self.stops
+        x = self.x0[rows] + (G[rows, :3] @ theta if theta.size else 0.0)
+        if self.register:
+            Tn, _ = self._per_row(regs, s.session[rows])
+            return s.p_meas[rows] - (np.einsum("nij,nj->ni", Tn[:, :3, :3], x) + Tn[:, :3, 3])
+        out = np.empty((rows.size, s.dim))
+        out[:, :3] = s.p_meas[rows] - x
+        out[:, 3:] = self.r0_rot[rows] - (G[rows, 3:] @ theta if theta.size else 0.0)
+        return out
+
+    def kabsch_regs(self, G: np.ndarray, theta: np.ndarray, rows: np.ndarray) -> dict[int, np.ndarray]:
+        """Registration per session from ``rows`` with ``theta`` fixed (Kabsch, batched over
+        sessions; sessions with fewer than 3 rows or collinear points get none)."""
+        s = self.stops
+        if not self.register or rows.size == 0:
+            return {}
+        rows = rows[np.argsort(s.session[rows], kind="stable")]
+        x = self.x0[rows] + (G[rows, :3] @ theta if theta.size else 0.0)
+        p = s.p_meas[rows]
+        sids, starts, counts = np.unique(s.session[rows], return_index=True, return_counts=True)
+        xc = np.add.reduceat(x, starts, axis=0) / counts[:, None]
+        pc = np.add.reduceat(p, starts, axis=0) / counts[:, None]
+        inv = np.repeat(np.arange(sids.size), counts)
+        H = np.add.reduceat(np.einsum("ni,nj->nij", x - xc[inv], p - pc[inv]), starts, axis=0)
+        U, S, Vt = np.linalg.svd(H)
+        d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+        D = np.broadcast_to(np.eye(3), H.shape).copy()
+        D[:, 2, 2] = d
+        R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+        t = pc - np.einsum("sij,sj->si", R, xc)
+        good = (counts >= 3) & (S[:, 1] > 1e-8 * np.maximum(S[:, 0], 1e-300))
+        return {int(k): lie.from_rt(R[i], t[i]) for i, k in enumerate(sids) if good[i]}
+
+    # -- fit ------------------------------------------------------------------------
+    def fit(self, G: np.ndarray, rows: np.ndarray, iterations: int = 2) -> FitResult:
+        """Gauss-Newton over ``theta`` and the registrations of the sessions of ``rows``.
+
+        Returns the estimate, the covariance ``s^2 H_red^-1`` of ``theta`` (H_red: information
+        reduced by the registrations, Schur complement), the condition number of the
+        column-scaled ``H_red`` and, per parameter, the fraction of its information absorbed
+        by the registrations.
+        """
+        s = self.stops
+        P = G.shape[-1]
+        theta = np.zeros(P)
+        regs = self.kabsch_regs(G, theta, rows)
+        if self.register:
+            rows = rows[np.isin(s.session[rows], list(regs))]
+            rows = rows[np.argsort(s.session[rows], kind="stable")]
+        w = self._weights()
+        Gr = G[rows]
+        if self.register:
+            sids, starts, inv = np.unique(s.session[rows], return_index=True, return_inverse=True)
+            T = np.stack([regs[int(k)] for k in sids]) if sids.size else np.zeros((0, 4, 4))
+
+            def seg(a: np.ndarray) -> np.ndarray:  # per-session sums of per-row terms
+                return np.add.reduceat(a, starts, axis=0) if a.shape[0] else a[:0]
+        H_red = np.zeros((P, P))
+        H_tt = np.zeros((P, P))
+        for it in range(iterations):
+            if self.register:
+                x = self.x0[rows] + Gr[:, :3] @ theta
+                Tn = T[inv]  # per-row registration
+                y = np.einsum("nij,nj->ni", Tn[:, :3, :3], x) + Tn[:, :3, 3]
+                r = (s.p_meas[rows] - y) * w[0]
+                Js = -np.concatenate([np.broadcast_to(np.eye(3), (y.shape[0], 3, 3)), -lie.hat3(y)],
+                                     axis=-1) * w[0]
+                JsT = np.swapaxes(Js, -1, -2)
+                Jts = -(Tn[:, :3, :3] @ Gr[:, :3]) * w[0]
+                Hss = seg(JsT @ Js) + 1e-12 * np.eye(6)
+                Hst = seg(JsT @ Jts)
+                gs = seg((JsT @ r[:, :, None])[..., 0])
+                Jf = Jts.reshape(Jts.shape[0] * 3, P)
+                H_tt = Jf.T @ Jf
+                g_t = Jf.T @ r.reshape(-1)
+                Hinv = np.linalg.inv(Hss)
+                HiHst = Hinv @ Hst  # (S, 6, P)
+                H_red = H_tt - np.einsum("sap,saq->pq", Hst, HiHst)
+                g_red = g_t - np.einsum("sap,sa->p", Hst, np.einsum("sab,sb->sa", Hinv, gs))
+                dtheta = -_solve(H_red, g_red) if P else np.zeros(0)
+                d = -(np.einsum("sab,sb->sa", Hinv, gs) + HiHst @ dtheta)
+                T = lie.exp(d) @ T
+                theta = theta + dtheta
+                if it > 0 and np.abs(d).max(initial=0.0) < 1e-12 and np.all(np.abs(dtheta) <= 1e-10 * (1 + np.abs(theta))):
+                    break
+            else:
+                r = self.residuals(G, theta, regs, rows) * w
+                Jf = (-Gr * w[None, :, None]).reshape(-1, P)
+                H_tt = H_red = Jf.T @ Jf
+                dtheta = -_solve(H_red, Jf.T @ r.reshape(-1)) if P else np.zeros(0)
+                theta = theta + dtheta
+                break  # linear in theta
+        if self.register:
+            regs = {int(k): T[i] for i, k in enumerate(sids)}
+        r = self.residuals(G, theta, regs, rows) * w
+        n_par = P + 6 * len(regs)
+        s2 = float(np.nansum(r ** 2) / max(r.size - n_par, 1))
+        cond, absorbed = _identifiability(H_red, H_tt, r.size)
+        cov = s2 * np.linalg.pinv(H_red) if P else np.zeros((0, 0))
+        return FitResult(theta, regs, cov, s2, cond, absorbed, rows)
+
+    def heldout(self, G: np.ndarray, folds: Sequence[tuple[np.ndarray, np.ndarray]]
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Held-out residuals over ``folds``: ``(r_meas, r_base)``, each (N, 3) [m], NaN where a
+        stop is not scored; ``r_meas`` in the measurement frame, ``r_base`` rotated into the
+        robot base frame axes.
+
+        A test stop whose session has training rows uses that session's training registration;
+        otherwise the registration is fitted on the session's ``reg_mask`` test rows with theta
+        fixed and only its ``score_mask`` rows that did not define it are scored (the Hilti
+        protocol).
+        """
+        s = self.stops
+        R = np.full((len(s), 3), np.nan)
+        Rb = np.full((len(s), 3), np.nan)
+        for train, test in folds:
+            fit = self.fit(G, train)
+            regs = dict(fit.regs)
+            scored = test
+            if self.register:
+                missing = np.setdiff1d(np.unique(s.session[test]), list(regs))
+                if missing.size:
+                    reg_rows = test[np.isin(s.session[test], missing) & s.reg_mask[test]]
+                    regs.update(self.kabsch_regs(G, fit.theta, reg_rows))
+                    own = np.isin(s.session[test], missing)
+                    scored = test[~own | (s.score_mask[test] & ~s.reg_mask[test])]
+            r = self.residuals(G, fit.theta, regs, scored)[:, :3]
+            R[scored] = r
+            if self.register:
+                for sid in np.unique(s.session[scored]):
+                    if int(sid) in regs:
+                        m = s.session[scored] == sid
+                        Rb[scored[m]] = r[m] @ regs[int(sid)][:3, :3]
+            else:
+                Rb[scored] = r
+        return R, Rb
+
+
+def _ssr(problem: LinearProblem, G: np.ndarray, rows: np.ndarray) -> float:
+    """In-sample sum of squared residuals after a fit (screening of candidates)."""
+    fit = problem.fit(G, rows, iterations=1)
+    return float(np.nansum(problem.residuals(G, fit.theta, fit.regs, fit.rows) ** 2))
+
+
+def _solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Minimum-norm solution of ``H x = g`` with column scaling; parameters that do not act
+    (information below 1e-12, see :func:`_identifiability`) stay at zero."""
+    x = np.zeros(len(g))
+    act = np.diag(H) > 1e-12
+    if not act.any():
+        return x
+    Ha = H[np.ix_(act, act)]
+    d = np.sqrt(np.diag(Ha))
+    Hs = Ha / d[:, None] / d[None, :]
+    x[act] = np.linalg.lstsq(Hs, g[act] / d, rcond=1e-12)[0] / d
+    return x
+
+
+def _identifiability(H_red: np.ndarray, H_tt: np.ndarray, n_res: int) -> tuple[float, np.ndarray]:
+    """Condition number of the column-scaled reduced information, and per parameter the
+    fraction of its information absorbed by the registrations (1 = fully absorbed; also 1 for
+    a parameter that moves the weighted measurement by less than 1e-6 sigma per unit over
+    the ``n_res`` residuals, i.e. does not act on it at all)."""
+    P = H_red.shape[0]
+    if P == 0:
+        return 1.0, np.zeros(0)
+    dt = np.diag(H_tt)
+    acts = dt > 1e-12 * max(n_res, 1)
+    absorbed = np.where(acts, 1.0 - np.diag(H_red) / np.where(acts, dt, 1.0), 1.0)
+    d = np.sqrt(np.maximum(np.diag(H_red), 1e-300))
+    ev = np.linalg.eigvalsh(H_red / d[:, None] / d[None, :])
+    cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
+    if np.any(np.diag(H_red) <= 0):
+        cond = math.inf
+    return cond, absorbed
+
+
+# =============================================================================
+# Selection
+# =============================================================================
+
+
+@dataclass
+class DiagnoseOptions:
+    """Selection settings.
+
+    Attributes
+    ----------
+    folds : int
+        Stop-wise cross-validation folds (within sessions) when there are fewer than 3 groups
+        or ``cv="stops"``.
+    cv : str
+        ``"auto"`` (leave-one-group-out with >= 3 groups, else stops), ``"groups"``, ``"stops"``.
+    min_gain : float
+        Minimum relative reduction of the held-out mean squared error to accept an effect.
+    min_t : float
+        Minimum paired one-sided t statistic of that reduction over held-out stops.
+    max_condition : float
+        Identifiability limit of the scaled reduced information matrix.
+    max_absorbed : float
+        A parameter whose information is absorbed by the registration beyond this fraction is
+        not separable from it.
+    max_effects : int
+    screen : int
+        Per round, only the candidates with the largest in-sample gain are cross-validated.
+    seed : int
+        Fold assignment.
+    candidates : list of str or None
+        Only candidate keys that start with one of these (e.g. ``"mount_bending"``).
+    """
+
+    folds: int = 5
+    cv: str = "auto"
+    min_gain: float = 0.03
+    min_t: float = 4.5
+    max_condition: float = 1e6
+    max_absorbed: float = 0.999
+    max_effects: int = 8
+    screen: int = 6
+    seed: int = 0
+    candidates: Optional[list[str]] = None
+
+
+@dataclass
+class DiagnoseResult:
+    """Everything ``ppoe diagnose`` reports."""
+
+    effects: list[dict[str, Any]]
+    residual_before: float
+    residual_after: float
+    residual_before_insample: float
+    residual_after_insample: float
+    noise_floor: float
+    unexplained: float
+    steps: list[dict[str, Any]]
+    rejected: list[dict[str, Any]]
+    nees_before: float
+    nees_after: float
+    sigma_scale: float
+    linearisation_error: float
+    cv: str
+    n_stops: int
+    n_sessions: int
+    e2_before: np.ndarray
+    e2_after: np.ndarray
+    chosen: list[Effect]
+    summary: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The contract JSON (sec. 6) plus details."""
+        return {
+            "effects": self.effects,
+            "residual_before": self.residual_before,
+            "residual_after": self.residual_after,
+            "residual_before_insample": self.residual_before_insample,
+            "residual_after_insample": self.residual_after_insample,
+            "noise_floor": self.noise_floor,
+            "unexplained": self.unexplained,
+            "nees_before": self.nees_before,
+            "nees_after": self.nees_after,
+            "sigma_scale": self.sigma_scale,
+            "linearisation_error": self.linearisation_error,
+            "cv": self.cv,
+            "n_stops": self.n_stops,
+            "n_sessions": self.n_sessions,
+            "steps": self.steps,
+            "rejected": self.rejected,
+            "summary": self.summary,
+            **self.extra,
+        }
+
+
+def make_folds(stops: Stops, options: DiagnoseOptions) -> tuple[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """Cross-validation folds ``(train_rows, test_rows)``; returns the scheme and the folds."""
+    n = len(stops)
+    groups = np.unique(stops.group)
+    mode = options.cv
+    if mode == "auto":
+        mode = "groups" if groups.size >= 3 else "stops"
+    if mode == "groups":
+        if groups.size < 2:
+            raise PpoeError("diagnose: leave-one-group-out needs at least 2 bags/files")
+        return mode, [(np.flatnonzero(stops.group != g), np.flatnonzero(stops.group == g)) for g in groups]
+    rng = np.random.default_rng(options.seed)
+    fold = np.zeros(n, dtype=int)
+    for sid in np.unique(stops.session):
+        idx = np.flatnonzero(stops.session == sid)
+        fold[idx] = rng.permutation(np.arange(idx.size) % options.folds)
+    return mode, [(np.flatnonzero(fold != k), np.flatnonzero(fold == k)) for k in range(options.folds)]
+
+
+def _stack(cands: Sequence[Candidate], n: int, dim: int) -> np.ndarray:
+    if not cands:
+        return np.zeros((n, dim, 0))
+    return np.concatenate([c.G for c in cands], axis=-1)
+
+
+def _restrict(c: Candidate, keep: Sequence[int], tree: KinematicTree) -> Candidate:
+    e = c.effect
+    comps = [e.param_names[i] for i in keep]
+    eff = make_effect(e.name, e.location, tree, components=comps)
+    return Candidate(eff, c.G[..., list(keep)])
+
+
+def _identifiable_subset(problem: LinearProblem, chosen: Sequence[Candidate], cand: Candidate,
+                         options: DiagnoseOptions, tree: KinematicTree, rows: np.ndarray
+                         ) -> tuple[Optional[Candidate], str, float]:
+    """Candidate (possibly with fewer link_error components) identifiable together with the
+    registration and ``chosen``, with physically signed parameters; also its in-sample SSR.
+
+    Returns ``(candidate or None, reason if None, in-sample weighted SSR)``.
+    """
+    base = _stack(chosen, len(problem.stops), problem.stops.dim)
+    nb = base.shape[-1]
+
+    def check(G_c: np.ndarray, names: Sequence[str]) -> tuple[bool, str, float]:
+        G = np.concatenate([base, G_c], axis=-1)
+        fit = problem.fit(G, rows, iterations=1)
+        if np.any(fit.absorbed[nb:] > options.max_absorbed):
+            return False, "not separable from the tracker registration", math.inf
+        if fit.condition > options.max_condition:
+            return False, (f"not separable from the effects already chosen (condition "
+                           f"{fit.condition:.2g})"), math.inf
+        th = fit.theta[nb:]
+        sd = np.sqrt(np.maximum(np.diag(fit.cov)[nb:], 0.0))
+        neg = [k for k, v, s in zip(names, th, sd) if k in cand.effect.nonnegative and v + 1.96 * s < 0]
+        if neg:
+            return False, f"fitted {', '.join(neg)} < 0: unphysical sign", math.inf
+        ssr = float(np.nansum(problem.residuals(G, fit.theta, fit.regs, fit.rows) ** 2))
+        return True, "", ssr
+
+    ok, why, ssr = check(cand.G, cand.effect.param_names)
+    if ok:
+        return cand, "", ssr
+    if cand.effect.name != "link_error" or "unphysical" in why:
+        return None, why, math.inf
+    keep: list[int] = []
+    for i in range(cand.G.shape[-1]):
+        ok_i, _, ssr_i = check(cand.G[..., keep + [i]], [cand.effect.param_names[j] for j in keep + [i]])
+        if ok_i:
+            keep.append(i)
+            ssr = ssr_i
+    if not keep:
+        return None, why, math.inf
+    return _restrict(cand, keep, tree), "", ssr
+
+
+def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
+             perturbation_cov: Optional[Mapping[str, np.ndarray]] = None,
+             joint_noise: Optional[Mapping[str, float]] = None,
+             options: Optional[DiagnoseOptions] = None) -> DiagnoseResult:
+    """Find the catalogue effects that explain the residual of ``stops`` (module docstring).
+
+    Parameters
+    ----------
+    robot : Robot
+    stops : Stops
+    declared : effects the model already declares (part of the nominal prediction)
+    perturbation_cov : joint -> 6x6 covariance of the model's perturbation xi_j, in the tangent
+        space right after the joint's origin (CONTRACT sec. 5)
+    joint_noise : joint -> 1-sigma along the joint axis [rad or m]
+    options : DiagnoseOptions
+
+    Returns
+    -------
+    DiagnoseResult
+    """
+    options = options or DiagnoseOptions()
+    tree = KinematicTree(robot)
+    n = len(stops)
+    if n < 6:
+        raise PpoeError(f"diagnose: only {n} stops with measurements; need at least 6")
+    x0, R0, poses, dq0, dxi0 = _predict_nominal(tree, stops, declared)
+    base_R = None
+    Jq, Jx = tree.point_jacobian(stops.q, stops.link, stops.point, poses, dq0, dxi0)
+    Fq, Fx = tree.frame_jacobian(stops.q, stops.link, poses, dq0, dxi0)
+    if stops.kind == "pose" and stops.base and stops.base != tree.root:
+        base_R = poses[stops.base][..., :3, :3]
+    nominal = tree.link_poses(stops.q)
+    problem = LinearProblem(stops, x0, R0)
+    cands = []
+    for eff in candidate_effects(tree, stops):
+        c = Candidate(eff, _measurement_jacobian(tree, stops, eff, nominal, (Jq, Jx, Fq, Fx), base_R))
+        if options.candidates and not any(c.key.startswith(p) for p in options.candidates):
+            continue
+        if np.abs(c.G).max() > 0.0:
+            cands.append(c)
+    mode, folds = make_folds(stops, options)
+    all_rows = np.arange(n)
+
+    chosen: list[Candidate] = []
+    R_before, Rb_before = problem.heldout(_stack(chosen, n, stops.dim), folds)
+    e2 = np.sum(R_before ** 2, axis=1)
+    e2_before = e2.copy()
+    R_after, Rb_after = R_before, Rb_before
+    steps: list[dict[str, Any]] = []
+    rejected: dict[str, str] = {}
+    while len(chosen) < options.max_effects:
+        best = None
+        screened = []
+        G_now = _stack(chosen, n, stops.dim)
+        ssr_now = _ssr(problem, G_now, all_rows)
+        for c in cands:
+            if c.key in rejected or any(c.key == k.key for k in chosen):
+                continue
+            if any(ch.effect.name == c.effect.name and ch.effect.location == c.effect.location for ch in chosen):
+                continue
+            c2, why, ssr = _identifiable_subset(problem, chosen, c, options, tree, all_rows)
+            if c2 is None:
+                rejected[c.key] = why
+                continue
+            screened.append((1.0 - ssr / ssr_now, c, c2))
+        screened.sort(key=lambda z: -z[0])
+        for _, c, c2 in screened[:options.screen]:
+            Rc, Rbc = problem.heldout(_stack(chosen + [c2], n, stops.dim), folds)
+            e2c = np.sum(Rc ** 2, axis=1)
+            ok = np.isfinite(e2) & np.isfinite(e2c)
+            if ok.sum() < 3:
+                continue
+            mse0, mse1 = float(np.mean(e2[ok])), float(np.mean(e2c[ok]))
+            d = e2[ok] - e2c[ok]
+            t = float(d.mean() / (d.std(ddof=1) / math.sqrt(d.size))) if d.std() > 0 else 0.0
+            gain = 1.0 - mse1 / mse0
+            if best is None or mse1 < best[1]:
+                best = (c2, mse1, gain, t, e2c, c.key, Rc, Rbc)
+        if best is None:
+            break
+        c2, mse1, gain, t, e2c, key, Rc, Rbc = best
+        if gain < options.min_gain or t < options.min_t:
+            steps.append({"candidate": c2.key, "accepted": False, "heldout_rms": math.sqrt(mse1),
+                          "gain": gain, "t": t})
+            break
+        steps.append({"candidate": c2.key, "accepted": True, "heldout_rms": math.sqrt(mse1),
+                      "gain": gain, "t": t})
+        chosen.append(c2)
+        e2 = e2c
+        R_after, Rb_after = Rc, Rbc
+
+    # final fit on all stops
+    G = _stack(chosen, n, stops.dim)
+    fit = problem.fit(G, all_rows)
+    fit0 = problem.fit(_stack([], n, stops.dim), all_rows)
+    ins_before = _rms3(problem.residuals(G[..., :0], np.zeros(0), fit0.regs, fit0.rows))
+    ins_after = _rms3(problem.residuals(G, fit.theta, fit.regs, fit.rows))
+    effects_out: list[dict[str, Any]] = []
+    found: list[Effect] = []
+    i = 0
+    mse_before = float(np.nanmean(e2_before))
+    for k, c in enumerate(chosen):
+        P = c.effect.n_params
+        th = fit.theta[i:i + P]
+        sd = np.sqrt(np.maximum(np.diag(fit.cov)[i:i + P], 0.0))
+        i += P
+        eff = c.effect.with_params(th)
+        found.append(eff)
+        entry = eff.to_config()
+        entry["ci"] = {name: [float(v - 1.96 * s), float(v + 1.96 * s)]
+                       for name, v, s in zip(eff.param_names, th, sd)}
+        entry["sigma"] = {name: float(s) for name, s in zip(eff.param_names, sd)}
+        prev = mse_before if k == 0 else steps[k - 1]["heldout_rms"] ** 2
+        entry["share"] = float((prev - steps[k]["heldout_rms"] ** 2) / mse_before)
+        effects_out.append(entry)
+
+    # linearisation check: full nonlinear chain with the found effects
+    lin_err = 0.0
+    if found:
+        x_nl, _, _, _, _ = _predict_nominal(tree, stops, list(declared) + found)
+        x_lin = x0 + G[:, :3] @ fit.theta
+        lin_err = float(np.max(np.linalg.norm(x_nl - x_lin, axis=1)))
+
+    # sigma refit (NEES on held-out stops)
+    ok = np.isfinite(e2)
+    nees_before, nees_after, k_scale, fitted_jn = _refit_sigma(
+        tree, stops, poses, dq0, dxi0, perturbation_cov or {}, joint_noise or {}, Rb_after)
+    floor = stops.sigma * math.sqrt(3.0)
+    rms_b = math.sqrt(float(np.nanmean(e2_before)))
+    rms_a = math.sqrt(float(np.nanmean(e2)))
+    unexplained = math.sqrt(max(rms_a ** 2 - floor ** 2, 0.0))
+    res = DiagnoseResult(
+        effects=effects_out, residual_before=rms_b, residual_after=rms_a,
+        residual_before_insample=ins_before, residual_after_insample=ins_after,
+        noise_floor=floor, unexplained=unexplained, steps=steps,
+        rejected=[{"candidate": k, "reason": v} for k, v in rejected.items()],
+        nees_before=nees_before, nees_after=nees_after, sigma_scale=k_scale,
+        linearisation_error=lin_err, cv=mode, n_stops=int(ok.sum()), n_sessions=len(np.unique(stops.session)),
+        e2_before=e2_before, e2_after=e2, chosen=found)
+    res.extra["per_group"] = {stops.group_names[g]: {"before": _scores(R_before[stops.group == g]),
+                                                     "after": _scores(R_after[stops.group == g])}
+                              for g in np.unique(stops.group)}
+    if fitted_jn:
+        res.extra["fitted_joint_noise"] = fitted_jn
+    res.summary = _summary(res)
+    return res
+
+
+def _rms3(r: np.ndarray) -> float:
+    r = r[np.all(np.isfinite(r), axis=1)]
+    return float(np.sqrt(np.mean(np.sum(r[:, :3] ** 2, axis=1)))) if r.size else float("nan")
+
+
+def _summary(res: DiagnoseResult) -> str:
+    if res.effects:
+        names = ", ".join(f"{e['name']} at {e['location']}" for e in res.effects)
+        head = f"found {len(res.effects)} effect(s): {names}"
+    else:
+        head = "no catalogue effect explains the residual significantly"
+    tail = (f"held-out RMS {1e3 * res.residual_before:.3f} mm -> {1e3 * res.residual_after:.3f} mm "
+            f"(noise floor {1e3 * res.noise_floor:.3f} mm)")
+    if res.residual_after > 1.5 * res.noise_floor:
+        tail += (f"; UNEXPLAINED: {1e3 * res.unexplained:.3f} mm RMS above the noise floor is not "
+                 f"explained by any catalogue effect")
+    return head + "; " + tail
+
+
+def _point_covariance(tree: KinematicTree, stops: Stops, poses: Mapping, dq: Mapping, dxi: Mapping,
+                      pert: Mapping[str, np.ndarray], jnoise: Mapping[str, float]) -> np.ndarray:
+    """First-order PPOE covariance (N, 3, 3) of the measured point in the base/root frame axes,
+    from the perturbation covariances (tangent right after each joint's origin) and joint noise."""
+    Jq, Jx = tree.point_jacobian(stops.q, stops.link, stops.point, poses, dq, dxi)
+    C = np.zeros((len(stops), 3, 3))
+    for jn, J in Jx.items():
+        if jn in pert:
+            C += J @ pert[jn] @ np.swapaxes(J, -1, -2)
+    for jn, s in jnoise.items():
+        if jn in Jq:
+            C += s ** 2 * Jq[jn][:, :, None] * Jq[jn][:, None, :]
+    return C
+
+
+def _scores(R: np.ndarray) -> dict[str, float]:
+    """Error statistics of residuals (n, 3) [m] in a z-up frame: RMS 3D, max 3D, r95 xy, r95 z."""
+    R = R[np.all(np.isfinite(R), axis=1)]
+    if not R.size:
+        return {"n": 0}
+    n3 = np.linalg.norm(R, axis=1)
+    return {"n": int(R.shape[0]), "rms": float(np.sqrt(np.mean(n3 ** 2))), "max": float(n3.max()),
+            "r95_xy": float(np.percentile(np.linalg.norm(R[:, :2], axis=1), 95)),
+            "r95_z": float(np.percentile(np.abs(R[:, 2]), 95))}
+
+
+def _refit_sigma(tree: KinematicTree, stops: Stops, poses: Mapping, dq: Mapping, dxi: Mapping,
+                 pert: Mapping[str, np.ndarray], jnoise: Mapping[str, float], Rb: np.ndarray
+                 ) -> tuple[float, float, float, Optional[dict[str, float]]]:
+    """Scale ``k`` of the model covariance so that the mean held-out NEES is 3.
+
+    ``C_i = k^2 C_model,i + sigma^2 I`` with ``C_model`` the first-order PPOE covariance of the
+    measured point (base-frame axes) and ``Rb`` the held-out residuals in base-frame axes.
+    A model without any uncertainty gets a common joint noise ``k`` [rad or m] on the movable
+    joints of the chain instead.  Returns ``(NEES at k=1, NEES at k, k, fitted joint noise)``.
+    """
+    fitted: Optional[dict[str, float]] = None
+    if pert or jnoise:
+        C_model = _point_covariance(tree, stops, poses, dq, dxi, pert, jnoise)
+    else:
+        unit = {j: 1.0 for j in tree.robot.path_from_root(stops.link) if tree.robot.joints[j].independent}
+        C_model = _point_covariance(tree, stops, poses, dq, dxi, {}, unit)
+    ok = np.all(np.isfinite(Rb), axis=1)
+    if not ok.any():
+        return float("nan"), float("nan"), 1.0, None
+    S0 = stops.sigma ** 2 * np.eye(3)
+
+    def nees(k: float) -> float:
+        C = k * k * C_model[ok] + S0
+        return float(np.mean(np.einsum("ni,nij,nj->n", Rb[ok], np.linalg.inv(C), Rb[ok])))
+
+    n1 = nees(1.0) if (pert or jnoise) else float("nan")
+    lo, hi = 1e-9, 1e4
+    if nees(lo) <= 3.0:
+        k = lo
+    elif nees(hi) >= 3.0:
+        k = hi
+    else:
+        for _ in range(100):
+            mid = math.sqrt(lo * hi)
+            lo, hi = (mid, hi) if nees(mid) > 3.0 else (lo, mid)
+        k = math.sqrt(lo * hi)
+    if not (pert or jnoise):
+        fitted = {j: float(k) for j in tree.robot.path_from_root(stops.link) if tree.robot.joints[j].independent}
+    return n1, nees(k), k, fitted
+
+
+# =============================================================================
+# Bags, model YAML, report
+# =============================================================================
+
+
+def _stop_info(path: str | Path) -> list[tuple[float, dict]]:
+    """``/dataset/stop`` JSON objects of a bag (importer metadata), with their stamps."""
+    from . import bagio
+
+    out = []
+    for msg in bagio.iter_raw(path, ["/dataset/stop"]):
+        m = bagio.deserialize(msg.data, msg.msgtype, topic=msg.topic)
+        try:
+            out.append((msg.stamp_ns * 1e-9, json.loads(m.data)))
+        except (ValueError, AttributeError) as exc:
+            raise BagError(f"bag {path}: topic /dataset/stop: message is not JSON: {exc}") from None
+    return out
+
+
+def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str] = None,
+                   tracker_xyz: Sequence[float] = (0.0, 0.0, 0.0), tracker_sigma: float = 5e-4,
+                   base: Optional[str] = None, tool: Optional[str] = None, pose_sigma: float = 5e-4,
+                   pose_sigma_rot: float = 1e-3, stationing_set: Optional[str] = "cross",
+                   group_name: Optional[str] = None) -> Stops:
+    """Measurements of a contract bag as :class:`Stops`.
+
+    ``/ground_truth/point`` (preferred) or ``/ground_truth/pose``; joint values are interpolated
+    at each measurement stamp; context ``time``, ``motion_sign`` and ``joint_velocity`` come
+    from ``/joint_states``.  One registration session per bag unless the bag carries importer
+    metadata ``/dataset/stop`` (``station``, ``role``, ``point_sets``): then one session per
+    station, stationing stops (of ``stationing_set`` if given) define the registration and
+    evaluation stops are scored.
+    """
+    from . import bagio
+
+    data = bagio.read_bag(path, load_images=False)
+    js = data.joint_states
+    if len(js) == 0:
+        raise BagError(f"bag {path}: no /joint_states")
+    name = group_name or Path(path).name
+    if len(data.ground_truth_point):
+        kind, meas, stamps = "point", data.ground_truth_point.p, data.ground_truth_point.stamps
+        link = tracker_link
+        if link is None:
+            raise ModelConfigError(f"bag {path} has /ground_truth/point but neither --tool nor the "
+                                   f"model's tracker.link names the link carrying the reflector")
+        point = np.asarray(tracker_xyz, dtype=float)
+        sigma, R_meas = tracker_sigma, None
+    elif len(data.ground_truth_pose):
+        kind, stamps = "pose", data.ground_truth_pose.stamps
+        meas, R_meas = data.ground_truth_pose.T[:, :3, 3], data.ground_truth_pose.T[:, :3, :3]
+        link = tool
+        if link is None:
+            raise ModelConfigError(f"bag {path} has /ground_truth/pose but no --tool/frames.tool")
+        point, sigma = np.zeros(3), pose_sigma
+    else:
+        raise BagError(f"bag {path}: neither /ground_truth/point nor /ground_truth/pose: nothing to "
+                       f"diagnose against")
+    robot.check_link(link)
+    order = np.argsort(js.stamps, kind="stable")
+    t_js = js.stamps[order]
+    q: dict[str, np.ndarray] = {}
+    vel: dict[str, np.ndarray] = {}
+    pos_cols = []
+    jnames = [j for j in robot.independent_joints if j in js.names]
+    for jn in jnames:
+        col = js.positions[order, js.names.index(jn)]
+        good = np.isfinite(col)
+        q[jn] = np.interp(stamps, t_js[good], col[good])
+        pos_cols.append(np.interp(t_js, t_js[good], col[good]))
+        v = np.gradient(col[good], t_js[good]) if good.sum() > 1 else np.zeros(good.sum())
+        vel[jn] = np.interp(stamps, t_js[good], v)
+    signs = motion_signs(t_js, np.column_stack(pos_cols), stamps) if pos_cols else np.zeros((len(stamps), 0))
+    ctx = {"time": stamps - t_js[0], "motion_sign": {j: signs[:, i] for i, j in enumerate(jnames)},
+           "joint_velocity": vel}
+    n = len(stamps)
+    session = np.zeros(n, dtype=int)
+    session_names = [name]
+    reg = np.ones(n, dtype=bool)
+    score = np.ones(n, dtype=bool)
+    info = _stop_info(path) if "/dataset/stop" in data.topics else []
+    if info:
+        t_info = np.array([t for t, _ in info])
+        k = np.clip(np.searchsorted(t_info, stamps, side="right") - 1, 0, len(info) - 1)
+        stations = [info[i][1].get("station", "?") for i in k]
+        session_names = [f"{name}:{s}" for s in dict.fromkeys(stations)]
+        session = np.array([session_names.index(f"{name}:{s}") for s in stations])
+        roles = [info[i][1].get("role", "") for i in k]
+        sets = [info[i][1].get("point_sets", []) for i in k]
+        reg = np.array([r == "stationing" and (stationing_set is None or stationing_set in s)
+                        for r, s in zip(roles, sets)])
+        score = np.array([r == "evaluation" for r in roles])
+    return Stops(q=q, p_meas=np.asarray(meas, dtype=float), R_meas=R_meas, kind=kind, link=link, point=point,
+                 sigma=float(sigma), sigma_rot=pose_sigma_rot, base=base or robot.root, session=session,
+                 session_names=session_names, group=np.zeros(n, dtype=int), group_names=[name],
+                 reg_mask=reg, score_mask=score, context=ctx)
+
+
+def stops_from_hilti(path: str | Path, robot: Robot, stationing_set: Optional[str] = "cross",
+                     tracker_link: str = "prism", sigma: float = 0.75e-3) -> Stops:
+    """A Hilti stationing dataset file (``../shared/datasets/hilti_stationing/*.yaml``) as
+    :class:`Stops`, read directly (same content as its ``ppoe import hilti`` bag).
+
+    One registration session per station (column height, solution space); the stationing points
+    of ``stationing_set`` define it when scored, evaluation points are scored (README protocol);
+    context ``time`` and ``motion_sign`` from the time-ordered waypoints.
+    """
+    from .importers.hilti import load_hilti
+
+    ds = load_hilti(path)
+    stops = ds.stops
+    J = np.array([s.joints for s in stops])
+    t = np.array([s.time for s in stops])
+    q = {name: J[:, i] for i, name in enumerate(ds.joint_names)}
+    signs = motion_signs(t, J, t)
+    name = Path(path).stem
+    stations = list(dict.fromkeys(s.station for s in stops))
+    return Stops(
+        q=q, p_meas=np.array([s.prism_position for s in stops]), kind="point", link=tracker_link,
+        point=np.zeros(3), sigma=sigma, base=robot.root,
+        session=np.array([stations.index(s.station) for s in stops]),
+        session_names=[f"{name}:{st}" for st in stations], group=np.zeros(len(stops), dtype=int),
+        group_names=[name],
+        reg_mask=np.array([s.role == "stationing" and (stationing_set is None or stationing_set in s.point_sets)
+                           for s in stops]),
+        score_mask=np.array([s.role == "evaluation" and s.solution_space != 4 for s in stops]),
+        context={"time": t - t[0], "motion_sign": {n: signs[:, i] for i, n in enumerate(ds.joint_names)}},
+    )
+
+
+def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseResult, out_path: str | Path,
+                     scale_sigmas: bool = True) -> Path:
+    """Updated model YAML: the input plus the found ``effects`` (with ``ci``) and, if
+    ``scale_sigmas``, perturbation sigmas / covariances and joint noise scaled by the NEES fit.
+    Comments of the input are not preserved (a header says where it came from)."""
+    if model_yaml is None:
+        doc: dict[str, Any] = {}
+    elif isinstance(model_yaml, Mapping):
+        doc = dict(model_yaml)
+    else:
+        with open(model_yaml, encoding="utf-8") as fh:
+            doc = yaml.safe_load(fh) or {}
+    effects = list(doc.get("effects") or [])
+    for e in result.effects:
+        entry = {"name": e["name"], "location": e["location"], "parameters": e["parameters"]}
+        for key in ("variable", "reference"):
+            if key in e:
+                entry[key] = e[key]
+        entry["ci"] = {k: [float(a), float(b)] for k, (a, b) in e["ci"].items()}
+        effects.append(entry)
+    doc["effects"] = effects
+    k = result.sigma_scale
+    if scale_sigmas and math.isfinite(k):
+        pert = doc.get("perturbations") or {}
+        if pert:
+            for jn, entry in pert.items():
+                if "sigma" in entry:
+                    entry["sigma"] = [float(v * k) for v in entry["sigma"]]
+                if "covariance" in entry:
+                    entry["covariance"] = [[float(v * k * k) for v in row] for row in entry["covariance"]]
+            jn_sec = doc.get("joint_noise") or {}
+            for jn in list(jn_sec):
+                jn_sec[jn] = float(jn_sec[jn] * k)
+        elif not doc.get("joint_noise") and result.extra.get("fitted_joint_noise"):
+            doc["joint_noise"] = result.extra["fitted_joint_noise"]
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    header = ("# Model updated by `ppoe diagnose`: effects found (with 95 % CIs) appended to `effects`,\n"
+              f"# perturbation sigmas scaled by {k:.4g} for held-out NEES = 3.\n")
+    out_path.write_text(header + yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+    return out_path
+
+
+def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe diagnose") -> dict[str, Path]:
+    """``diagnose.json``, ``diagnose.md`` and ``diagnose.png`` in ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"json": out / "diagnose.json", "md": out / "diagnose.md", "png": out / "diagnose.png"}
+    paths["json"].write_text(json.dumps(result.to_json(), indent=2), encoding="utf-8")
+    lines = [f"# {title}", "", result.summary, "",
+             f"* held-out residual (RMS 3D, {result.cv} cross-validation, {result.n_stops} stops, "
+             f"{result.n_sessions} sessions): before **{1e3 * result.residual_before:.3f} mm**, after "
+             f"**{1e3 * result.residual_after:.3f} mm**",
+             f"* in-sample: {1e3 * result.residual_before_insample:.3f} mm -> "
+             f"{1e3 * result.residual_after_insample:.3f} mm; sensor noise floor "
+             f"{1e3 * result.noise_floor:.3f} mm; unexplained above it {1e3 * result.unexplained:.3f} mm",
+             f"* NEES (held-out, expectation 3): {result.nees_before:.3g} with the model's sigmas, "
+             f"{result.nees_after:.3g} after scaling them by {result.sigma_scale:.4g}",
+             f"* linearisation error of the found effects: {1e6 * result.linearisation_error:.3f} um", "",
+             "| effect | location | parameter | value | 95 % CI | share of residual |",
+             "|---|---|---|---|---|---|"]
+    for e in result.effects:
+        for i, (k, v) in enumerate(e["parameters"].items()):
+            lo, hi = e["ci"][k]
+            share = f"{100 * e['share']:.1f} %" if i == 0 else ""
+            lines.append(f"| {e['name'] if i == 0 else ''} | {e['location'] if i == 0 else ''} | {k} | "
+                         f"{v:.6g} | [{lo:.6g}, {hi:.6g}] | {share} |")
+    if not result.effects:
+        lines.append("| (none) | | | | | |")
+    lines += ["", "## Selection steps", "", "| candidate | accepted | held-out RMS [mm] | gain | t |",
+              "|---|---|---|---|---|"]
+    for s in result.steps:
+        lines.append(f"| {s['candidate']} | {s['accepted']} | {1e3 * s['heldout_rms']:.3f} | "
+                     f"{100 * s['gain']:.1f} % | {s['t']:.2f} |")
+    if result.rejected:
+        lines += ["", "## Not identifiable (never attributed)", ""]
+        lines += [f"* {r['candidate']}: {r['reason']}" for r in result.rejected]
+    paths["md"].write_text("\n".join(lines) + "\n", encoding="utf-8")
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+        ok = np.isfinite(result.e2_before) & np.isfinite(result.e2_after)
+        eb, ea = 1e3 * np.sqrt(result.e2_before[ok]), 1e3 * np.sqrt(result.e2_after[ok])
+        bins = np.linspace(0, max(eb.max(initial=1e-3), ea.max(initial=1e-3)), 40)
+        ax[0].hist(eb, bins, alpha=0.6, label="before")
+        ax[0].hist(ea, bins, alpha=0.6, label="after")
+        ax[0].set_xlabel("held-out 3D error [mm]")
+        ax[0].legend()
+        rms = [1e3 * result.residual_before] + [1e3 * s["heldout_rms"] for s in result.steps if s["accepted"]]
+        ax[1].plot(range(len(rms)), rms, "o-")
+        ax[1].axhline(1e3 * result.noise_floor, ls="--", color="k", label="noise floor")
+        ax[1].set_xticks(range(len(rms)), ["nominal"] + [f"+{e['name']}\n{e['location']}" for e in result.effects],
+                         fontsize=6, rotation=30)
+        ax[1].set_ylabel("held-out RMS [mm]")
+        ax[1].legend()
+        fig.tight_layout()
+        fig.savefig(paths["png"], dpi=100)
+        plt.close(fig)
+    except ImportError:  # matplotlib is optional for the report
+        paths.pop("png")
+    return paths
+
+
+def load_model(model_yaml: str | Path | None, robot: Robot) -> tuple[Any, list[Effect], dict, dict]:
+    """Model YAML -> (config, declared effects, perturbation covariances, joint noise)."""
+    from .config import load_model_config
+
+    cfg = load_model_config(str(model_yaml) if model_yaml is not None else None, robot)
+    tree = KinematicTree(robot)
+    declared = [effect_from_config(e, tree, where=w) for e, w in
+                zip(cfg.effects, cfg.effect_wheres or [f"{model_yaml} effects[{i}]" for i in range(len(cfg.effects))])]
+    pert = {j: p.covariance for j, p in cfg.perturbations.items()}
+    return cfg, declared, pert, dict(cfg.joint_noise)
