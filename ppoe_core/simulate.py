@@ -409,6 +409,12 @@ class TrueRobot:
             Sign of each joint's last motion (backlash).
         elapsed : (n,)
             Seconds since the start of the bag (thermal growth).
+        n : int
+            Number of samples (the batch size of every array above).
+
+        Returns
+        -------
+        dict link -> (n, 4, 4) ``T_root_link`` of the true robot.
         """
         dq: dict[str, np.ndarray] = {k: np.asarray(v, float).copy() for k, v in dq_noise.items()}
         fx: dict[str, np.ndarray] = {}  # effect twists per joint (n, 6)
