@@ -58,6 +58,9 @@ __all__ = [
     "COUNT_KEYS",
     "posterior_cost",
     "apply_corrections",
+    "FUSION_SETTINGS",
+    "make_pipeline",
+    "make_updater",
 ]
 
 Array = np.ndarray
@@ -970,7 +973,9 @@ class ModelUpdater:
                 keep.append(i)
                 labels.append(f"tag {tid} corner {c}")
             if not pts:
-                raise MeasurementError(f"{where}: no point of a tag configured in the model YAML (ids {sorted(set(ids.tolist()))})")
+                raise MeasurementError(
+                    f"{where}: no point of a tag configured in the model YAML (ids {sorted(set(ids.tolist()))})"
+                )
             if self.camera_covariance:
                 T_base_cam, cov_cam = self.model.fk(joints, self.base_frame, p.camera_frame)
                 if float(np.max(np.abs(cov_cam))) == 0.0:
@@ -1050,3 +1055,92 @@ def posterior_cost(obs: Any, T_post: Array, residual: Array, correction: Array, 
     keep = s > 1e-12 * max(float(s.max()), 1e-300)
     dU = U[:, keep].T @ d
     return float(r @ np.linalg.solve(MRM, r) + dU @ (dU / s[keep]))
+
+
+# ----------------------------------------------------------------------------
+# One set of settings for the node and the offline replay
+# ----------------------------------------------------------------------------
+
+#: Fusion settings with their defaults: the fusion node's parameters of the same names
+#: (``config/fusion_node.yaml`` documents meaning and unit) and ``ppoe evaluate``'s replay.
+FUSION_SETTINGS: dict[str, Any] = {
+    "buffer_duration": 1.0,  # s
+    "max_gap": 0.2,  # s
+    "max_hold": 0.5,  # s
+    "max_pending": 200,
+    "min_interval": 0.05,  # s, per source
+    "correction_timeout": 10.0,  # s
+    "correction_joint_motion": 0.05,  # rad or m
+    "correction_tool_translation": 0.05,  # m
+    "correction_tool_rotation": 0.1,  # rad
+    "correction_decay": "linear",
+    "max_iterations": 5,
+    "gate_probability": 0.9999,  # >= 1.0: no gating
+    "gating": "posterior",
+    "pixel_sigma": 0.0,  # px; <= 0: model YAML camera.pixel_sigma
+    "use_tag_centre": True,
+    "use_tag_corners": True,
+    "camera_covariance": True,
+    "contact_distance_sigma": 0.0,  # m
+}
+
+
+def make_pipeline(
+    model: Any,
+    base_frame: str,
+    tool_frame: str,
+    settings: dict[str, Any] | None = None,
+    updater: Any = None,
+) -> FusionPipeline:
+    """A :class:`FusionPipeline` with a :class:`ModelUpdater`, configured by ``settings``.
+
+    Parameters
+    ----------
+    model : PPOEModel
+    base_frame, tool_frame : str
+        Frames of the state ``T_base_tool``.
+    settings : dict, optional
+        Keys of :data:`FUSION_SETTINGS` (missing ones take the default).
+    updater : callable, optional
+        Use this updater instead of building a :class:`ModelUpdater` (``model`` may then be
+        None), e.g. the node's wrapper that waits for the URDF.
+
+    Raises
+    ------
+    PpoeError
+        Unknown setting or a value the pipeline refuses (the message names the setting).
+    """
+    s = dict(FUSION_SETTINGS)
+    if settings:
+        unknown = sorted(set(settings) - set(FUSION_SETTINGS))
+        if unknown:
+            raise PpoeError(f"unknown fusion setting(s) {unknown}; known: {sorted(FUSION_SETTINGS)}")
+        s.update(settings)
+    if updater is None:
+        updater = make_updater(model, base_frame, tool_frame, s)
+    policy = CorrectionPolicy(
+        timeout=float(s["correction_timeout"]), joint_motion=float(s["correction_joint_motion"]),
+        tool_translation=float(s["correction_tool_translation"]),
+        tool_rotation=float(s["correction_tool_rotation"]), decay=str(s["correction_decay"]),
+    )
+    return FusionPipeline(
+        updater, buffer_duration=float(s["buffer_duration"]), max_gap=float(s["max_gap"]),
+        max_hold=float(s["max_hold"]), policy=policy, max_pending=int(s["max_pending"]),
+        min_interval=float(s["min_interval"]),
+    )
+
+
+def make_updater(
+    model: Any, base_frame: str, tool_frame: str, settings: dict[str, Any] | None = None
+) -> ModelUpdater:
+    """The :class:`ModelUpdater` of ``settings`` (keys of :data:`FUSION_SETTINGS`)."""
+    s = {**FUSION_SETTINGS, **(settings or {})}
+    return ModelUpdater(
+        model, base_frame, tool_frame,
+        pixel_sigma=float(s["pixel_sigma"]) if float(s["pixel_sigma"]) > 0 else None,
+        max_iterations=int(s["max_iterations"]),
+        gate_probability=None if float(s["gate_probability"]) >= 1.0 else float(s["gate_probability"]),
+        gating=str(s["gating"]), camera_covariance=bool(s["camera_covariance"]),
+        use_centre=bool(s["use_tag_centre"]), use_corners=bool(s["use_tag_corners"]),
+        contact_distance_sigma=float(s["contact_distance_sigma"]),
+    )

@@ -50,8 +50,7 @@ from std_msgs.msg import String
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, ModelConfigError, PpoeError
 from ppoe_core.fusion_pipeline import (
-    CorrectionPolicy,
-    FusionPipeline,
+    FUSION_SETTINGS,
     Measurement,
     MeasurementOutcome,
     ModelUpdater,
@@ -59,6 +58,8 @@ from ppoe_core.fusion_pipeline import (
     PriorSample,
     TagPoints,
     UpdateResult,
+    make_pipeline,
+    make_updater,
 )
 from ppoe_ros.kinematics_node import load_model_yaml
 from ppoe_ros.ros_common import (
@@ -82,7 +83,8 @@ from ppoe_ros.tag_bearing_node import observations_from_cloud
 
 __all__ = ["FusionNode", "PARAMS", "main"]
 
-_PROB = dict(min_value=0.5, max_value=1.0 - 1e-12)
+#: defaults shared with ``ppoe evaluate`` (ppoe_core.fusion_pipeline.FUSION_SETTINGS)
+_D = FUSION_SETTINGS
 
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("model_file", "", "model YAML: tags, camera, contact, perturbations (required)", check=check_nonempty),
@@ -97,41 +99,43 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("camera_info_topic", "/camera/camera_info", "CameraInfo for the focal lengths; empty = fit from u,v"),
     ParamSpec("joint_states_topic", "/joint_states", "JointState for joint positions at the prior stamps; empty = off"),
     ParamSpec("fused_topic", "/ppoe/fused_pose", "output topic (PoseWithCovarianceStamped)", check=check_nonempty),
-    ParamSpec("buffer_duration", 1.0, "history of priors kept; older measurements are dropped", unit="s",
-              min_value=1e-3, max_value=3600.0),
-    ParamSpec("max_gap", 0.2, "neighbouring priors further apart are not interpolated between", unit="s",
-              min_value=1e-6, max_value=3600.0),
-    ParamSpec("max_hold", 0.5, "max distance to the nearest prior when interpolation is impossible", unit="s",
-              min_value=0.0, max_value=3600.0),
-    ParamSpec("max_pending", 200, "measurements newer than the newest prior kept waiting", min_value=0,
-              max_value=100000),
-    ParamSpec("min_interval", 0.05, "per source: a measurement less than this after the last one processed is "
-              "skipped (counted as throttled); 0 = process all", unit="s", min_value=0.0, max_value=3600.0),
+    ParamSpec("buffer_duration", _D["buffer_duration"], "history of priors kept; older measurements are dropped",
+              unit="s", min_value=1e-3, max_value=3600.0),
+    ParamSpec("max_gap", _D["max_gap"], "neighbouring priors further apart are not interpolated between",
+              unit="s", min_value=1e-6, max_value=3600.0),
+    ParamSpec("max_hold", _D["max_hold"], "max distance to the nearest prior when interpolation is impossible",
+              unit="s", min_value=0.0, max_value=3600.0),
+    ParamSpec("max_pending", _D["max_pending"], "measurements newer than the newest prior kept waiting",
+              min_value=0, max_value=100000),
+    ParamSpec("min_interval", _D["min_interval"], "per source: a measurement less than this after the last one "
+              "processed is skipped (counted as throttled); 0 = process all", unit="s", min_value=0.0,
+              max_value=3600.0),
     ParamSpec("pending_timeout", 0.5, "when no prior arrived for this long (steady clock), pending measurements "
               "are processed with the newest prior (hold) or dropped", unit="s", min_value=0.0, max_value=3600.0),
-    ParamSpec("correction_timeout", 10.0, "a carried correction fades over / is dropped after this; <= 0 = off",
-              unit="s", max_value=1e6),
-    ParamSpec("correction_joint_motion", 0.05, "... after this max-abs joint motion; <= 0 = off", unit="rad or m",
-              max_value=1e6),
-    ParamSpec("correction_tool_translation", 0.05, "... after this tool translation; <= 0 = off", unit="m",
-              max_value=1e6),
-    ParamSpec("correction_tool_rotation", 0.1, "... after this tool rotation; <= 0 = off", unit="rad",
-              max_value=1e6),
-    ParamSpec("correction_decay", "linear", "linear: weight 1 - ratio; step: full weight until dropped",
-              check=lambda v: None if v in ("linear", "step") else f"must be 'linear' or 'step', got {v!r}"),
-    ParamSpec("max_iterations", 5, "relinearisations of the iterated LG-EKF update (1 = plain LG-EKF)",
-              min_value=1, max_value=100),
-    ParamSpec("gate_probability", 0.9999, "chi-square gate probability; 1.0 = no gating", min_value=0.5,
-              max_value=1.0),
-    ParamSpec("gating", "posterior", "posterior: cost of the iterated solution; prior: NIS at the prior",
+    ParamSpec("correction_timeout", _D["correction_timeout"], "a carried correction fades over / is dropped "
+              "after this; <= 0 = off", unit="s", max_value=1e6),
+    ParamSpec("correction_joint_motion", _D["correction_joint_motion"], "... after this max-abs joint motion; "
+              "<= 0 = off", unit="rad or m", max_value=1e6),
+    ParamSpec("correction_tool_translation", _D["correction_tool_translation"], "... after this tool "
+              "translation; <= 0 = off", unit="m", max_value=1e6),
+    ParamSpec("correction_tool_rotation", _D["correction_tool_rotation"], "... after this tool rotation; "
+              "<= 0 = off", unit="rad", max_value=1e6),
+    ParamSpec("correction_decay", _D["correction_decay"], "linear: weight 1 - ratio; step: full weight until "
+              "dropped", check=lambda v: None if v in ("linear", "step") else f"must be 'linear' or 'step', got {v!r}"),
+    ParamSpec("max_iterations", _D["max_iterations"], "relinearisations of the iterated LG-EKF update "
+              "(1 = plain LG-EKF)", min_value=1, max_value=100),
+    ParamSpec("gate_probability", _D["gate_probability"], "chi-square gate probability; 1.0 = no gating",
+              min_value=0.5, max_value=1.0),
+    ParamSpec("gating", _D["gating"], "posterior: cost of the iterated solution; prior: NIS at the prior",
               check=lambda v: None if v in ("posterior", "prior") else f"must be 'posterior' or 'prior', got {v!r}"),
-    ParamSpec("pixel_sigma", 0.0, "1-sigma pixel noise; <= 0 = model YAML camera.pixel_sigma", unit="px",
-              max_value=1e6),
-    ParamSpec("use_tag_centre", True, "use the tag centres (corner 0)"),
-    ParamSpec("use_tag_corners", True, "use the tag corners 1..4"),
-    ParamSpec("camera_covariance", True, "let the PPOE covariance of the camera chain enter the tag model"),
-    ParamSpec("contact_distance_sigma", 0.0, "extra 1-sigma noise of the contact distance", unit="m",
-              min_value=0.0, max_value=1e3),
+    ParamSpec("pixel_sigma", _D["pixel_sigma"], "1-sigma pixel noise; <= 0 = model YAML camera.pixel_sigma",
+              unit="px", max_value=1e6),
+    ParamSpec("use_tag_centre", _D["use_tag_centre"], "use the tag centres (corner 0)"),
+    ParamSpec("use_tag_corners", _D["use_tag_corners"], "use the tag corners 1..4"),
+    ParamSpec("camera_covariance", _D["camera_covariance"], "let the PPOE covariance of the camera chain "
+              "enter the tag model"),
+    ParamSpec("contact_distance_sigma", _D["contact_distance_sigma"], "extra 1-sigma noise of the contact "
+              "distance", unit="m", min_value=0.0, max_value=1e3),
     ParamSpec("publish_on_update", True, "publish the newest fused pose right after an accepted measurement"),
     ParamSpec("qos_depth", 1000, "history depth of the input subscriptions (a node that falls behind a "
               "1 kHz prior stream catches up instead of losing priors)", min_value=1, max_value=100000),
@@ -200,16 +204,12 @@ class FusionNode(Node):
         frames = mapping_get(self.model_yaml, "frames", default={}) or {}
         self.base_frame = p["base_frame"] or frames.get("base") or "base_link"
         self.tool_frame = p["tool_frame"] or frames.get("tool") or "tool0"
+        self.settings = {k: p[k] for k in FUSION_SETTINGS}
         try:
-            policy = CorrectionPolicy(
-                timeout=p["correction_timeout"], joint_motion=p["correction_joint_motion"],
-                tool_translation=p["correction_tool_translation"], tool_rotation=p["correction_tool_rotation"],
-                decay=p["correction_decay"])
+            self.pipeline = make_pipeline(None, self.base_frame, self.tool_frame, self.settings,
+                                          updater=self._update)
         except PpoeError as exc:
-            raise ModelConfigError(f"node {self.get_name()}: correction_* parameters: {exc}") from None
-        self.pipeline = FusionPipeline(
-            self._update, buffer_duration=p["buffer_duration"], max_gap=p["max_gap"], max_hold=p["max_hold"],
-            policy=policy, max_pending=p["max_pending"], min_interval=p["min_interval"])
+            raise ModelConfigError(f"node {self.get_name()}: {exc}") from None
         self.updater: ModelUpdater | None = None
         self.model: Any = None
         self._urdf: str | None = None
@@ -247,19 +247,11 @@ class FusionNode(Node):
     def _set_model(self, urdf_xml: str, where: str) -> None:
         from ppoe_core.model import PPOEModel
 
-        p = self.params
         try:
             model = PPOEModel.from_strings(urdf_xml, self.model_yaml)
             model.robot.check_link(self.base_frame)
             model.robot.check_link(self.tool_frame)
-            updater = ModelUpdater(
-                model, self.base_frame, self.tool_frame,
-                pixel_sigma=p["pixel_sigma"] if p["pixel_sigma"] > 0 else None,
-                max_iterations=p["max_iterations"],
-                gate_probability=None if p["gate_probability"] >= 1.0 else p["gate_probability"],
-                gating=p["gating"], camera_covariance=p["camera_covariance"],
-                use_centre=p["use_tag_centre"], use_corners=p["use_tag_corners"],
-                contact_distance_sigma=p["contact_distance_sigma"])
+            updater = make_updater(model, self.base_frame, self.tool_frame, self.settings)
         except PpoeError as exc:
             raise type(exc)(f"{where}: {exc}") from None
         # import the update code now (scipy.stats ...), not while the first measurement waits

@@ -70,11 +70,13 @@ _REFINE = ("subpix", "contour", "apriltag", "none")
 
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("image_topic", "/camera/image_raw/compressed", "image input topic", check=check_nonempty),
-    ParamSpec("compressed", True, "true: image_topic is sensor_msgs/CompressedImage (png/jpeg); false: sensor_msgs/Image"),
+    ParamSpec("compressed", True, "true: image_topic is sensor_msgs/CompressedImage (png/jpeg); "
+              "false: sensor_msgs/Image"),
     ParamSpec("camera_info_topic", "/camera/camera_info", "sensor_msgs/CameraInfo of the camera", check=check_nonempty),
-    ParamSpec("dictionary", "tag36h11", "tag family: tag36h11, tag36h10, tag25h9, tag16h5, aruco_original, 4x4_50 ... 7x7_1000",
-              check=check_nonempty),
-    ParamSpec("tag_ids", [], "tag ids to publish; empty = every detected tag", ptype=ParameterType.PARAMETER_INTEGER_ARRAY),
+    ParamSpec("dictionary", "tag36h11", "tag family: tag36h11, tag36h10, tag25h9, tag16h5, aruco_original, "
+              "4x4_50 ... 7x7_1000", check=check_nonempty),
+    ParamSpec("tag_ids", [], "tag ids to publish; empty = every detected tag",
+              ptype=ParameterType.PARAMETER_INTEGER_ARRAY),
     ParamSpec("corner_refinement", "subpix", "corner refinement: subpix, contour, apriltag or none",
               check=lambda v: None if v in _REFINE else f"must be one of {_REFINE}, got {v!r}"),
     ParamSpec("observations_topic", "/tag_bearing/observations", "output PointCloud2 topic", check=check_nonempty),

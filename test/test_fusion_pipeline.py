@@ -542,3 +542,23 @@ def test_pipeline_min_interval_throttles_per_source():
                         "throttled", "throttled", "throttled", "throttled", "accepted"]
     assert pipe.add_measurement(Measurement(0.01, "/tag", m)).status == "accepted"  # other source
     assert pipe.counts["throttled"] == 8 and upd.calls == 4
+
+
+def test_make_pipeline_settings_and_node_defaults_agree(rover):
+    """The node's parameter defaults and ppoe evaluate's replay use FUSION_SETTINGS."""
+    from ppoe_core.fusion_pipeline import FUSION_SETTINGS, make_pipeline
+
+    pipe = make_pipeline(rover, "base_link", "tool_link", {"min_interval": 0.2, "correction_decay": "step"})
+    assert pipe.min_interval == 0.2 and pipe.policy.decay == "step"
+    assert pipe.updater.gating == FUSION_SETTINGS["gating"]
+    assert pipe.max_pending == FUSION_SETTINGS["max_pending"]
+    with pytest.raises(PpoeError, match="unknown fusion setting.*'nope'"):
+        make_pipeline(rover, "base_link", "tool_link", {"nope": 1})
+    with pytest.raises(PpoeError, match="decay"):
+        make_pipeline(rover, "base_link", "tool_link", {"correction_decay": "exp"})
+    rclpy = pytest.importorskip("rclpy")  # noqa: F841
+    from ppoe_ros.fusion_node import PARAMS
+
+    defaults = {p.name: p.default for p in PARAMS}
+    for k, v in FUSION_SETTINGS.items():
+        assert defaults[k] == v, k
