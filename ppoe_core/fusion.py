@@ -35,6 +35,7 @@ When a model has no analytic Jacobian (``jacobian_state`` / ``jacobian_noise`` r
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any, Optional, Protocol, Tuple, runtime_checkable
 
@@ -290,8 +291,10 @@ def _linearize(
     return z_pred, H, M
 
 
+@functools.lru_cache(maxsize=256)
 def chi2_gate(dim: int, probability: float) -> float:
-    """Chi-square quantile used as Mahalanobis gate for a ``dim``-dimensional innovation."""
+    """Chi-square quantile used as Mahalanobis gate for a ``dim``-dimensional innovation
+    (cached: scipy's ppf costs more than a whole contact update)."""
     return float(scipy.stats.chi2.ppf(probability, dim))
 
 
@@ -386,7 +389,7 @@ def iterated_update(
             y0, S0 = r, S
             nis_value = float(r @ scipy.linalg.cho_solve(cho, r))
             if gate_probability is not None:
-                gate = chi2_gate(model.dim, gate_probability)
+                gate = chi2_gate(int(model.dim), float(gate_probability))
                 if not nis_value <= gate:
                     return UpdateResult(
                         T=X0.copy(), cov=P0.copy(), accepted=False, nis=nis_value, gate=gate,

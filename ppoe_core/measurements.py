@@ -368,6 +368,9 @@ class TagObservation(MeasurementModel):
 
     def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
         """Predicted ``[u_0, v_0, u_1, v_1, ...]`` (2n,) for ``T_state = T_ref_tool``."""
+        if v is None:
+            uv, _ = project_points(self.points_camera(T_state), self.K, self.D, self.mode)
+            return uv.ravel()
         v = self._noise(v)
         w = v[self.dim :] if self.has_camera_noise else None
         uv, _ = project_points(self.points_camera(T_state, w), self.K, self.D, self.mode)
@@ -460,6 +463,8 @@ class ContactPlane(MeasurementModel):
 
     def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
         """Signed distance (1,) [m], positive on the side the normal points to."""
+        if v is None:
+            return np.array([self.point_plane(T_state)[2]])
         v = self._noise(v)
         d = self.point_plane(T_state, v[:6])[2]
         if self.distance_sigma > 0:
@@ -546,6 +551,8 @@ class PointObservation(MeasurementModel):
 
     def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
         """Predicted point in the sensor frame (3,) [m]."""
+        if v is None:
+            return self.point_sensor(T_state)
         v = self._noise(v)
         w = v[3:] if self.has_sensor_noise else None
         return self.point_sensor(T_state, w) + v[:3]
