@@ -568,8 +568,7 @@ def joint_positions(msg: Any, topic: str = "/joint_states") -> dict[str, float]:
 # ---------------------------------------------------------------------------- main
 
 
-def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None,
-             executor: str = "single") -> int:
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
     """The standard ``main()`` of a node: init, build, spin, shut down; returns the exit code.
 
     Parameters
@@ -579,20 +578,18 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None,
         parameter, unreadable model file) is printed as one line and gives exit code 2.
     args : sequence of str or None
         Command line (``sys.argv`` when None), including ``--ros-args``.
-    executor : {"single", "events"}
-        ``SingleThreadedExecutor`` or rclpy's experimental ``EventsExecutor``.
+
+    Notes
+    -----
+    A ``SingleThreadedExecutor``: rclpy's experimental ``EventsExecutor`` (Jazzy) received
+    no messages and spun at 100 % CPU after SIGTERM in a trial here, so it is not offered.
     """
     rclpy.init(args=list(sys.argv if args is None else args))
     node: Node | None = None
     code = 0
     try:
         node = factory()
-        if executor == "events":
-            from rclpy.experimental import EventsExecutor
-
-            ex = EventsExecutor()
-        else:
-            ex = rclpy.executors.SingleThreadedExecutor()
+        ex = rclpy.executors.SingleThreadedExecutor()
         ex.add_node(node)
         ex.spin()
     except PpoeError as exc:
