@@ -13,6 +13,10 @@ import argparse
 import json
 import sys
 
+import yaml
+
+from ppoe_core.errors import ModelConfigError
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -29,9 +33,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--fit-set", default="cross", choices=("cross", "square", "all"),
         help="stationing set for per-station tracker registration (bags with /dataset/stop roles)",
     )
-    parser.add_argument("--iterations", type=int, default=5, help="iterations of the LG-EKF update (default 5)")
-    parser.add_argument("--gate", type=float, default=0.9973, help="chi-square gate probability; 0 = no gate")
-    parser.add_argument("--pixel-sigma", type=float, default=None, help="override camera.pixel_sigma [px]")
+    parser.add_argument(
+        "--fusion-params", default=None, metavar="PARAMS.yaml",
+        help="the fusion node's ROS 2 parameter file (buffer, gating, correction policy); default: the node's defaults",
+    )
+    parser.add_argument(
+        "--set", dest="fusion_set", action="append", default=[], metavar="KEY=VALUE",
+        help="override one fusion setting (a fusion node parameter, e.g. use_tag_corners=false); repeatable",
+    )
+    parser.add_argument("--iterations", type=int, default=None, help="override max_iterations of the LG-EKF update")
+    parser.add_argument("--gate", type=float, default=None, help="override gate_probability (>= 1 = no gate)")
+    parser.add_argument("--pixel-sigma", type=float, default=None, help="override pixel_sigma [px]")
     bar = parser.add_mutually_exclusive_group()
     bar.add_argument("--progress", dest="progress", action="store_true", default=None,
                      help="progress bar on stderr (default: only when stderr is a terminal)")
@@ -40,13 +52,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate, print and optionally write the report; returns 0."""
-    from ppoe_core.evaluate import EvaluateOptions, evaluate_bag, markdown_report, write_report
+    from ppoe_core.evaluate import EvaluateOptions, evaluate_bag, load_fusion_params, markdown_report, write_report
 
     progress = sys.stderr.isatty() if args.progress is None else bool(args.progress)
+    fusion = load_fusion_params(args.fusion_params) if args.fusion_params else {}
+    for key, value in (("max_iterations", args.iterations), ("gate_probability", args.gate),
+                       ("pixel_sigma", args.pixel_sigma)):
+        if value is not None:
+            fusion[key] = value
+    for item in args.fusion_set:
+        key, sep, text = item.partition("=")
+        if not sep:
+            raise ModelConfigError(f"--set {item!r}: expected KEY=VALUE")
+        fusion[key.strip()] = yaml.safe_load(text)
     opts = EvaluateOptions(
-        base=args.base, tool=args.tool, order=args.order, fit_set=args.fit_set,
-        max_iterations=args.iterations, gate_probability=(args.gate if args.gate > 0 else None),
-        pixel_sigma=args.pixel_sigma, progress=progress,
+        base=args.base, tool=args.tool, order=args.order, fit_set=args.fit_set, fusion=fusion, progress=progress,
     )
     ev = evaluate_bag(args.bag, args.model, opts)
     if args.out:

@@ -7,8 +7,9 @@ The replay runs the same core code as the live nodes:
 * tag bearing node -> :func:`ppoe_core.tags.detect_tags` on every camera image (only when the bag
   has images but no ``/tag_bearing/observations``: recorded observations are used as they are);
 * fusion node -> :class:`ppoe_core.fusion_pipeline.FusionPipeline` (prior buffer, iterated
-  LG-EKF update with gating, carried correction) with the updater of
-  :mod:`ppoe_core.fusion_pipeline`.
+  LG-EKF update with gating, carried correction) with its
+  :class:`~ppoe_core.fusion_pipeline.ModelUpdater`, built with the fusion node's parameters
+  (:data:`FUSION_DEFAULTS`, or a node parameter file via :func:`load_fusion_params`).
 
 Three estimates are scored at every ground-truth sample:
 
@@ -89,6 +90,8 @@ __all__ = [
     "METHODS",
     "markdown_report",
     "write_report",
+    "FUSION_DEFAULTS",
+    "load_fusion_params",
 ]
 
 #: scored methods, in report order
@@ -289,6 +292,64 @@ class ProgressBar:
 # ----------------------------------------------------------------------------
 
 
+#: fusion settings and their defaults: the fusion node's parameters of the same names
+#: (``ppoe_ros/fusion_node.py``), so that the replay runs the pipeline the node runs
+FUSION_DEFAULTS: dict[str, Any] = {
+    "buffer_duration": 1.0,  # s
+    "max_gap": 0.2,  # s
+    "max_hold": 0.5,  # s
+    "max_pending": 20,
+    "correction_timeout": 10.0,  # s
+    "correction_joint_motion": 0.05,  # rad or m
+    "correction_tool_translation": 0.05,  # m
+    "correction_tool_rotation": 0.1,  # rad
+    "correction_decay": "linear",
+    "max_iterations": 5,
+    "gate_probability": 0.9999,  # >= 1.0: no gating
+    "gating": "posterior",
+    "pixel_sigma": 0.0,  # <= 0: model YAML camera.pixel_sigma
+    "use_tag_centre": True,
+    "use_tag_corners": True,
+    "camera_covariance": True,
+    "contact_distance_sigma": 0.0,  # m
+}
+
+
+def load_fusion_params(path: str | Path) -> dict[str, Any]:
+    """The fusion settings of a ROS 2 parameter file of the fusion node.
+
+    Reads the first ``ros__parameters`` mapping of the file (``/**`` or the node's name) and
+    returns the keys of :data:`FUSION_DEFAULTS` it sets (for :attr:`EvaluateOptions.fusion`);
+    node-only keys (topics, QoS, diagnostics) are ignored.
+
+    Raises
+    ------
+    ModelConfigError
+        Unreadable file, no ``ros__parameters``, or a value of the wrong type (names the key).
+    """
+    import yaml
+
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ModelConfigError(f"{path}: cannot read fusion parameters: {exc}") from None
+    params = None
+    if isinstance(doc, dict):
+        for v in doc.values():
+            if isinstance(v, dict) and isinstance(v.get("ros__parameters"), dict):
+                params = v["ros__parameters"]
+                break
+    if params is None:
+        raise ModelConfigError(f"{path}: no '<node>: ros__parameters:' mapping (ROS 2 parameter file)")
+    out = {k: params[k] for k in FUSION_DEFAULTS if k in params}
+    try:
+        EvaluateOptions(fusion=out).fusion_settings()
+    except ModelConfigError as exc:
+        raise ModelConfigError(f"{path}: {exc}") from None
+    return out
+
+
 @dataclass
 class EvaluateOptions:
     """Options of :func:`evaluate_bag` (``ppoe evaluate`` flags).
@@ -302,12 +363,9 @@ class EvaluateOptions:
     fit_set : str
         Stationing point set fitted by the per-station registration of bags with
         ``/dataset/stop`` roles: ``"cross"`` (default), ``"square"`` or ``"all"``.
-    max_iterations : int
-        Relinearisations of the iterated LG-EKF update (as the fusion node, default 5).
-    gate_probability : float or None
-        Chi-square gate probability (default 0.9973; None = no gate).
-    pixel_sigma : float, optional
-        Override of the model YAML's ``camera.pixel_sigma`` [px].
+    fusion : dict
+        Fusion settings, keys and defaults of :data:`FUSION_DEFAULTS` (the fusion node's
+        parameters); missing keys take the defaults.
     progress : bool
         Draw a progress bar on stderr.
     """
@@ -316,10 +374,31 @@ class EvaluateOptions:
     tool: str | None = None
     order: int = 2
     fit_set: str = "cross"
-    max_iterations: int = 5
-    gate_probability: float | None = 0.9973
-    pixel_sigma: float | None = None
+    fusion: dict[str, Any] = field(default_factory=dict)
     progress: bool = False
+
+    def fusion_settings(self) -> dict[str, Any]:
+        """:data:`FUSION_DEFAULTS` updated with :attr:`fusion`.
+
+        Raises
+        ------
+        ModelConfigError
+            An unknown key or a value of the wrong type (names the key).
+        """
+        bad = sorted(set(self.fusion) - set(FUSION_DEFAULTS))
+        if bad:
+            raise ModelConfigError(f"unknown fusion setting(s) {bad}; known: {sorted(FUSION_DEFAULTS)}")
+        for k, v in self.fusion.items():
+            default = FUSION_DEFAULTS[k]
+            if isinstance(default, bool):
+                ok = isinstance(v, bool)
+            elif isinstance(default, str):
+                ok = isinstance(v, str)
+            else:
+                ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            if not ok:
+                raise ModelConfigError(f"fusion setting {k} = {v!r} has the wrong type (default {default!r})")
+        return {**FUSION_DEFAULTS, **self.fusion}
 
 
 @dataclass
@@ -550,7 +629,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         Bad model YAML or frame names.
     """
     from ppoe_core.bagio import read_bag
-    from ppoe_core.fusion_pipeline import FusionPipeline, ModelUpdater
+    from ppoe_core.fusion_pipeline import CorrectionPolicy, FusionPipeline, ModelUpdater
 
     opt = options or EvaluateOptions()
     bag = str(bag)
@@ -591,16 +670,33 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     tag_meas, tag_counts = _tag_measurements(data, model, bag)
     meas = sorted(tag_meas + _contact_measurements(data), key=lambda m: m.stamp)
 
+    fs = opt.fusion_settings()
     pipes: dict[str, Any] = {}
     updaters: dict[str, Any] = {}
-    for name, cam_cov in (("ppoe", True), ("naive", False)):
+    for name in ("ppoe", "naive"):
         if name == "naive" and cov_naive is None:
             continue
+        # as the fusion node builds them (ppoe_ros/fusion_node.py); the naive model knows
+        # nothing of the camera chain's covariance
         updaters[name] = ModelUpdater(
-            model, base, tool, pixel_sigma=opt.pixel_sigma, max_iterations=opt.max_iterations,
-            gate_probability=opt.gate_probability, camera_covariance=cam_cov,
+            model, base, tool,
+            pixel_sigma=fs["pixel_sigma"] if fs["pixel_sigma"] > 0 else None,
+            max_iterations=int(fs["max_iterations"]),
+            gate_probability=None if fs["gate_probability"] >= 1.0 else float(fs["gate_probability"]),
+            gating=fs["gating"],
+            camera_covariance=bool(fs["camera_covariance"]) and name == "ppoe",
+            use_centre=bool(fs["use_tag_centre"]), use_corners=bool(fs["use_tag_corners"]),
+            contact_distance_sigma=float(fs["contact_distance_sigma"]),
         )
-        pipes[name] = FusionPipeline(updaters[name])
+        policy = CorrectionPolicy(
+            timeout=fs["correction_timeout"], joint_motion=fs["correction_joint_motion"],
+            tool_translation=fs["correction_tool_translation"], tool_rotation=fs["correction_tool_rotation"],
+            decay=fs["correction_decay"],
+        )
+        pipes[name] = FusionPipeline(
+            updaters[name], buffer_duration=fs["buffer_duration"], max_gap=fs["max_gap"],
+            max_hold=fs["max_hold"], policy=policy, max_pending=int(fs["max_pending"]),
+        )
 
     gt_stamps = gt_pose.stamps if kind == "pose" else gt_point.stamps
     # events: (stamp, kind rank, index); priors first, then measurements, then ground truth
@@ -679,6 +775,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             "without_prior": int(np.sum(~have)),
         },
         "measurements": {"total": len(meas), **tag_counts},
+        "fusion_settings": fs,
         "methods": {},
     }
     samples: dict[str, np.ndarray] = {}
