@@ -7,7 +7,7 @@ PPOE=${PPOE:-"python -m ppoe_ros.cli"}
 NAMES=("$@")
 if [ ${#NAMES[@]} -eq 0 ]; then
   NAMES=(table1_exp1 table1_exp2 contact no_effect effect_joint_offset effect_gravity_compliance
-         effect_mount_bending effect_unexplained)
+         effect_mount_bending effect_unexplained effect_camera_extrinsics)
 fi
 for name in "${NAMES[@]}"; do
   PYTHONPATH=. $PPOE simulate "bags/${name}.yaml" --out "bags/${name}" --force

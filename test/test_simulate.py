@@ -280,7 +280,9 @@ def test_cli_writes_bag_and_truth(tmp_path: Path, capsys: pytest.CaptureFixture)
 
 # ------------------------------------------------------------------ shipped bags
 SHIPPED = ["table1_exp1", "table1_exp2", "contact", "no_effect", "effect_joint_offset",
-           "effect_gravity_compliance", "effect_mount_bending", "effect_unexplained"]
+           "effect_gravity_compliance", "effect_mount_bending", "effect_unexplained", "effect_camera_extrinsics"]
+#: least fraction of a bag's images with a detected tag
+MIN_DETECTED = {"table1_exp1": 1.0, "table1_exp2": 1.0, "effect_camera_extrinsics": 0.8}
 
 
 def test_shipped_bags_total_size() -> None:
@@ -312,10 +314,10 @@ def test_shipped_bag_follows_the_contract(name: str) -> None:
         assert d.rate(d.images.topic) <= 30.0
         np.testing.assert_array_equal(d.images.stamps, d.camera_info.stamps)   # camera_info with each image
         assert set(d.images.formats) == {"png"}
-        # every stop's ground truth and measurements are stamped inside a joint-state burst
-        for i in range(0, len(d.images), 7):                                 # a sample of the images
-            assert tags.detect_tags(d.images.decode(i)), f"{name}: no tag detected in image {i}"
+        detected = [bool(tags.detect_tags(d.images.decode(i))) for i in range(len(d.images))]
+        assert np.mean(detected) >= MIN_DETECTED[name], detected
     if len(d.ground_truth_pose):
+        # every stop's ground truth is stamped inside a joint-state burst
         gaps = np.min(np.abs(d.joint_states.stamps[None, :] - d.ground_truth_pose.stamps[:, None]), axis=1)
         assert gaps.max() < 0.011
 
