@@ -165,7 +165,7 @@ def _run_chain(tmp_path, bag: Path, nodes, play_topics, rate: float):
                                  "--topics", *play_topics], env, tmp_path, "play")
         procs.append(play)
         assert play.wait(timeout=120) == 0, play.output()[-3000:]
-        time.sleep(4.0)  # let the nodes catch up with the last images / updates
+        _wait_until_fusion_idle(env, procs)
         for p in procs[:-2]:
             assert p.alive(), f"{p.cmd} died:\n{p.output()[-3000:]}"
         rec.stop(timeout=10)
@@ -174,6 +174,32 @@ def _run_chain(tmp_path, bag: Path, nodes, play_topics, rate: float):
         for p in procs:
             p.stop()
     return out, logs
+
+
+def _wait_until_fusion_idle(env, procs, quiet: float = 2.0, timeout: float = 60.0) -> None:
+    """Wait until the fusion node's ``received`` counter on /diagnostics has not changed for
+    ``quiet`` s and nothing is pending (a loaded machine makes the nodes lag behind the player)."""
+    import time
+
+    from ros_helpers import Probe
+
+    with Probe(env, name="idle_probe") as probe:
+        diags = probe.collect("/diagnostics", DiagnosticArray)
+        state = {"value": None, "since": time.monotonic()}
+
+        def idle() -> bool:
+            for d in reversed(diags):
+                st = {s.name: s for s in d.status}.get("fusion_node")
+                if st is not None:
+                    kv = {k.key: k.value for k in st.values}
+                    break
+            else:
+                return False
+            if kv.get("received") != state["value"]:
+                state["value"], state["since"] = kv.get("received"), time.monotonic()
+            return kv.get("pending") == "0" and time.monotonic() - state["since"] > quiet
+
+        probe.spin_until(idle, timeout, procs[0], "the fusion node to finish the bag")
 
 
 def _errors_at_ground_truth(bag: Path, recorded: Path, window: float = 0.8):
