@@ -775,7 +775,9 @@ class PoseCovSeries:
 class BagData:
     """Everything a contract bag carries, as numpy arrays (stamps in seconds).
 
-    Absent optional topics give empty series (``len(...) == 0``).
+    Absent optional topics give empty series (``len(...) == 0``).  ``images`` is the camera
+    image stream: ``/camera/image_raw/compressed`` if the bag has it, else ``/camera/image_raw``;
+    a bag with both keeps the raw stream in ``raw_images`` as well.
     """
 
     path: str
@@ -783,6 +785,7 @@ class BagData:
     joint_states: JointStates = field(default_factory=JointStates)
     camera_info: CameraInfos = field(default_factory=CameraInfos)
     images: Images = field(default_factory=Images)
+    raw_images: Images = field(default_factory=Images)
     wrench: Wrenches = field(default_factory=Wrenches)
     ground_truth_pose: PoseSeries = field(default_factory=PoseSeries)
     ground_truth_point: PointSeries = field(default_factory=PointSeries)
@@ -818,6 +821,8 @@ class BagData:
             return table[topic]
         if topic == self.images.topic:
             return self.images.stamps
+        if topic == self.raw_images.topic:
+            return self.raw_images.stamps
         if topic.startswith(IMU_TOPIC_PREFIX) and topic[len(IMU_TOPIC_PREFIX):] in self.imus:
             return self.imus[topic[len(IMU_TOPIC_PREFIX):]].stamps
         if topic in self.poses_with_covariance:
@@ -965,10 +970,6 @@ def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_imag
             if wanted is not None and c.topic not in wanted:
                 continue
             parse.append(c)
-        image_topics = [c.topic for c in parse if c.topic in (TOPIC_IMAGE, TOPIC_COMPRESSED_IMAGE)]
-        if len(set(image_topics)) > 1:
-            raise BagError(f"bag {path}: carries both {TOPIC_IMAGE} and {TOPIC_COMPRESSED_IMAGE}; "
-                           "the contract allows one camera image topic")
 
         acc: dict[str, list[Any]] = {}
         counters: dict[str, int] = {}
@@ -1089,8 +1090,13 @@ def _finish(data: BagData, acc: dict[str, list[Any]]) -> None:
                                            np.array([e[4] for e in lst]), np.array([e[5] for e in lst]),
                                            [e[6] for e in lst])
         elif topic in (TOPIC_COMPRESSED_IMAGE, TOPIC_IMAGE):
-            data.images = Images(topic, stamps, frames, [e[2] for e in lst], [e[3] for e in lst],
-                                 [e[4] for e in lst])
+            imgs = Images(topic, stamps, frames, [e[2] for e in lst], [e[3] for e in lst], [e[4] for e in lst])
+            if topic == TOPIC_IMAGE:
+                data.raw_images = imgs
+                if not len(data.images):
+                    data.images = imgs
+            else:
+                data.images = imgs
         elif topic == TOPIC_WRENCH:
             data.wrench = Wrenches(stamps, frames, np.array([e[2] for e in lst]), np.array([e[3] for e in lst]))
         elif topic == TOPIC_GT_POSE:

@@ -210,3 +210,23 @@ def test_fast_joint_state_cdr_equals_rosbags(names: list, pos: list, vel: list |
         msg = JS(header=bagio._header(ns, ""), name=names, position=arr(pos), velocity=arr(vel), effort=arr(eff))
         ref = bagio.serialize(msg, JS.__msgtype__)
         assert bagio._cdr_joint_state(ns, names, arr(pos), arr(vel), arr(eff)) == ref
+
+
+def test_both_image_topics_and_empty_tag_observations(tmp_path: Path) -> None:
+    path = tmp_path / "bag"
+    img = np.full((8, 10), 7, dtype=np.uint8)
+    with bagio.BagWriter(path) as bag:
+        bag.write_image(1.0, "cam", img)
+        bag.write_compressed_image(1.0, "cam", img + 1)
+        bag.write_tag_observations(1.0, "cam", [], [], np.zeros((0, 2)), np.zeros((0, 2)))
+        bag.write_tag_observations(1.1, "cam", [4], [0], [[1.0, 2.0]], [[0.1, 0.2]])
+    d = bagio.read_bag(path)
+    assert d.images.topic == "/camera/image_raw/compressed" and d.images.decode(0)[0, 0] == 8
+    assert d.raw_images.topic == "/camera/image_raw" and d.raw_images.decode(0)[0, 0] == 7
+    assert d.rate("/camera/image_raw") == 0.0
+    to = d.tag_observations
+    assert len(to) == 2 and to.msg_index.tolist() == [1] and to.ids.tolist() == [4]
+    assert to.message(0)["uv"].shape == (0, 2)
+    with pytest.raises(BagError, match="/tag_bearing/observations: ids, corners, uv and xy"):
+        with bagio.BagWriter(tmp_path / "b2") as bag:
+            bag.write_tag_observations(1.0, "cam", [1, 2], [0], [[1.0, 2.0]], [[0.1, 0.2]])
