@@ -491,3 +491,52 @@ def test_fk_multi_joint_covariance_matches_reference(edge):
     Tb, covb = edge.fk_multi(np.stack([q, q, q]), frm, tos)
     assert covb.shape == (3, 24, 24)
     np.testing.assert_allclose(covb[2], cov, rtol=1e-9, atol=1e-20)
+
+
+# ----------------------------------------------------------------------------
+# Random kinematic trees (hypothesis): parser + compiled chains vs the literal reference
+# ----------------------------------------------------------------------------
+
+_AXES = [(0, 0, 1), (0, 0, -1), (1, 0, 0), (0, -2, 0), (0.3, -0.5, 0.8), (-1e-3, 0, -1)]
+
+
+@st.composite
+def _random_tree(draw):
+    n = draw(st.integers(1, 6))
+    f = st.floats(-1.0, 1.0)
+    joints, pert, noise = [], {}, {}
+    for i in range(n):
+        parent = draw(st.integers(0, i))
+        jtype = draw(st.sampled_from(["revolute", "continuous", "prismatic", "fixed"]))
+        axis = draw(st.sampled_from(_AXES))
+        xyz = [draw(f) for _ in range(3)]
+        rpy = [3 * draw(f) for _ in range(3)]
+        joints.append(
+            f'<joint name="j{i}" type="{jtype}"><parent link="l{parent}"/><child link="l{i + 1}"/>'
+            f'<origin xyz="{xyz[0]} {xyz[1]} {xyz[2]}" rpy="{rpy[0]} {rpy[1]} {rpy[2]}"/>'
+            f'<axis xyz="{axis[0]} {axis[1]} {axis[2]}"/></joint>'
+        )
+        if draw(st.booleans()):
+            pert[f"j{i}"] = {"sigma": [draw(st.floats(0.0, 0.01)) for _ in range(6)]}
+        if jtype != "fixed" and draw(st.booleans()):
+            noise[f"j{i}"] = draw(st.floats(0.0, 0.01))
+    links = "".join(f'<link name="l{i}"/>' for i in range(n + 1))
+    urdf = f'<robot name="r">{links}{"".join(joints)}</robot>'
+    return urdf, {"perturbations": pert, "joint_noise": noise}, n
+
+
+@settings(max_examples=30, deadline=None)
+@given(tree=_random_tree(), data=st.data())
+def test_random_trees_against_reference(tree, data):
+    urdf, cfg, n = tree
+    model = PPOEModel.from_strings(urdf, cfg)
+    frm = f"l{data.draw(st.integers(0, n))}"
+    to = f"l{data.draw(st.integers(0, n))}"
+    q = np.array([data.draw(st.floats(-3.0, 3.0)) for _ in model.joint_names])
+    T, cov = model.fk(q, frm, to)
+    T_ref, cov_ref = reference_fk(reference_chain(model, dict(zip(model.joint_names, q)), frm, to))
+    np.testing.assert_allclose(T, T_ref, atol=1e-11)
+    np.testing.assert_allclose(cov, cov_ref, rtol=1e-8, atol=1e-17)
+    Tb, covb = model.fk(np.stack([q, q]), frm, to)
+    np.testing.assert_allclose(Tb[0], T_ref, atol=1e-11)
+    np.testing.assert_allclose(covb[0], cov_ref, rtol=1e-8, atol=1e-17)
