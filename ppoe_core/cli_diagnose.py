@@ -36,8 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--folds", type=int, default=5, help="folds of the stop-wise cross-validation")
     parser.add_argument("--min-gain", type=float, default=0.03,
                         help="minimum relative held-out MSE reduction to accept an effect (default 0.03)")
-    parser.add_argument("--min-t", type=float, default=4.5,
-                        help="minimum paired t statistic of that reduction (default 4.5)")
+    parser.add_argument("--min-t", type=float, default=4.0,
+                        help="minimum paired t statistic of that reduction (default 4)")
     parser.add_argument("--max-effects", type=int, default=8, help="at most this many effects (default 8)")
     parser.add_argument("--stationing-set", default="cross", choices=("cross", "square", "all"),
                         help="stationing set defining the registration in bags with /dataset/stop roles")
@@ -74,14 +74,14 @@ def run(args: argparse.Namespace) -> int:
     opts = DiagnoseOptions(folds=args.folds, cv=args.cv, min_gain=args.min_gain, min_t=args.min_t,
                            max_effects=args.max_effects)
     res = diagnose(robot, stops, declared, pert, jnoise, opts)
+    paths = {}
     if args.out:
         paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))
         model_out = write_model_yaml(args.model, res, Path(args.out) / "model_diagnosed.yaml")
-        if not args.json:
-            print("wrote " + ", ".join(str(p) for p in [*paths.values(), model_out]), file=sys.stderr)
+        print("wrote " + ", ".join(str(p) for p in [*paths.values(), model_out]), file=sys.stderr)
     if args.json:
         json.dump(res.to_json(), sys.stdout)
         sys.stdout.write("\n")
     else:
-        print(Path(write_report(res, args.out)["md"]).read_text() if args.out else res.summary)
+        print(paths["md"].read_text() if paths else res.summary)
     return 0

@@ -18,7 +18,7 @@ Pipeline (issue 6, CONTRACT sec. 6):
    reduced information matrix: condition number below ``max_condition``; components a
    ``link_error`` cannot separate are dropped), and when it lowers the held-out mean squared
    error by at least ``min_gain`` (relative) with a paired one-sided t statistic of at least
-   ``min_t`` over the held-out stops (default 4.5: about 50 candidates are tested per round and
+   ``min_t`` over the held-out stops (default 4: about 50 candidates are tested per round and
    held-out errors within a session are correlated, so the usual 2-3 would over-select).
    Compliances must come out non-negative (a structure yields along its load): a candidate
    whose fit needs a negative compliance is rejected as unphysical rather than used to absorb
@@ -354,13 +354,20 @@ class LinearProblem:
     stops : Stops
     x0 : (N, 3) nominal predicted positions (base frame)
     R0 : (N, 3, 3) or None, nominal tool orientation (``pose`` only)
+    W_base : (N, 3, 3) or None
+        Whitening of the position residual in base-frame axes, ``L_i^-1`` with
+        ``L_i L_i^T = C_i`` the expected residual covariance of stop ``i`` (the model's PPOE
+        covariance of the point plus the sensor noise); None: ``I / sigma``.
     """
 
-    def __init__(self, stops: Stops, x0: np.ndarray, R0: Optional[np.ndarray]) -> None:
+    def __init__(self, stops: Stops, x0: np.ndarray, R0: Optional[np.ndarray],
+                 W_base: Optional[np.ndarray] = None) -> None:
         self.stops = stops
         self.x0 = x0
         self.R0 = R0
         self.register = stops.kind == "point"
+        self.W = (np.broadcast_to(np.eye(3) / stops.sigma, (len(stops), 3, 3)) if W_base is None
+                  else W_base)
         if stops.kind == "pose":
             self.r0_rot = lie.so3_log(np.swapaxes(R0, -1, -2) @ stops.R_meas)
 
@@ -391,6 +398,18 @@ class LinearProblem:
         out = np.empty((rows.size, s.dim))
         out[:, :3] = s.p_meas[rows] - x
         out[:, 3:] = self.r0_rot[rows] - (G[rows, 3:] @ theta if theta.size else 0.0)
+        return out
+
+    def whitened(self, r: np.ndarray, regs: Mapping[int, np.ndarray], rows: np.ndarray) -> np.ndarray:
+        """Residuals (n, dim) whitened: position part rotated into base axes, times ``W``."""
+        out = np.array(r, dtype=float)
+        if self.register:
+            Tn, _ = self._per_row(regs, self.stops.session[rows])
+            rb = np.einsum("nji,nj->ni", Tn[:, :3, :3], r[:, :3])
+        else:
+            rb = r[:, :3]
+            out[:, 3:] = r[:, 3:] / self.stops.sigma_rot
+        out[:, :3] = np.einsum("nij,nj->ni", self.W[rows], rb)
         return out
 
     def kabsch_regs(self, G: np.ndarray, theta: np.ndarray, rows: np.ndarray) -> dict[int, np.ndarray]:
@@ -434,6 +453,7 @@ class LinearProblem:
             rows = rows[np.argsort(s.session[rows], kind="stable")]
         w = self._weights()
         Gr = G[rows]
+        Wr = self.W[rows]
         if self.register:
             sids, starts, inv = np.unique(s.session[rows], return_index=True, return_inverse=True)
             T = np.stack([regs[int(k)] for k in sids]) if sids.size else np.zeros((0, 4, 4))
@@ -447,11 +467,12 @@ class LinearProblem:
                 x = self.x0[rows] + Gr[:, :3] @ theta
                 Tn = T[inv]  # per-row registration
                 y = np.einsum("nij,nj->ni", Tn[:, :3, :3], x) + Tn[:, :3, 3]
-                r = (s.p_meas[rows] - y) * w[0]
-                Js = -np.concatenate([np.broadcast_to(np.eye(3), (y.shape[0], 3, 3)), -lie.hat3(y)],
-                                     axis=-1) * w[0]
+                A = Wr @ np.swapaxes(Tn[:, :3, :3], -1, -2)  # whitening in the tracker axes
+                r = (A @ (s.p_meas[rows] - y)[:, :, None])[..., 0]
+                Js = -A @ np.concatenate([np.broadcast_to(np.eye(3), (y.shape[0], 3, 3)), -lie.hat3(y)],
+                                         axis=-1)
                 JsT = np.swapaxes(Js, -1, -2)
-                Jts = -(Tn[:, :3, :3] @ Gr[:, :3]) * w[0]
+                Jts = -(Wr @ Gr[:, :3])
                 Hss = seg(JsT @ Js) + 1e-12 * np.eye(6)
                 Hst = seg(JsT @ Jts)
                 gs = seg((JsT @ r[:, :, None])[..., 0])
@@ -469,15 +490,16 @@ class LinearProblem:
                 if it > 0 and np.abs(d).max(initial=0.0) < 1e-12 and np.all(np.abs(dtheta) <= 1e-10 * (1 + np.abs(theta))):
                     break
             else:
-                r = self.residuals(G, theta, regs, rows) * w
-                Jf = (-Gr * w[None, :, None]).reshape(-1, P)
+                r = self.whitened(self.residuals(G, theta, regs, rows), regs, rows)
+                Jw = -np.concatenate([Wr @ Gr[:, :3], Gr[:, 3:] / s.sigma_rot], axis=1)
+                Jf = Jw.reshape(-1, P)
                 H_tt = H_red = Jf.T @ Jf
                 dtheta = -_solve(H_red, Jf.T @ r.reshape(-1)) if P else np.zeros(0)
                 theta = theta + dtheta
                 break  # linear in theta
         if self.register:
             regs = {int(k): T[i] for i, k in enumerate(sids)}
-        r = self.residuals(G, theta, regs, rows) * w
+        r = self.whitened(self.residuals(G, theta, regs, rows), regs, rows)
         n_par = P + 6 * len(regs)
         s2 = float(np.nansum(r ** 2) / max(r.size - n_par, 1))
         cond, absorbed = _identifiability(H_red, H_tt, r.size)
@@ -485,10 +507,11 @@ class LinearProblem:
         return FitResult(theta, regs, cov, s2, cond, absorbed, rows)
 
     def heldout(self, G: np.ndarray, folds: Sequence[tuple[np.ndarray, np.ndarray]]
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """Held-out residuals over ``folds``: ``(r_meas, r_base)``, each (N, 3) [m], NaN where a
-        stop is not scored; ``r_meas`` in the measurement frame, ``r_base`` rotated into the
-        robot base frame axes.
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Held-out residuals over ``folds``: ``(r_meas, r_base, e2w)``; ``r_meas`` and ``r_base``
+        (N, 3) [m], NaN where a stop is not scored, in the measurement frame and rotated into
+        the robot base frame axes; ``e2w`` (N,) the whitened squared position error
+        ``|W r_base|^2`` (Mahalanobis distance under the model's covariance).
 
         A test stop whose session has training rows uses that session's training registration;
         otherwise the registration is fitted on the session's ``reg_mask`` test rows with theta
@@ -518,13 +541,14 @@ class LinearProblem:
                         Rb[scored[m]] = r[m] @ regs[int(sid)][:3, :3]
             else:
                 Rb[scored] = r
-        return R, Rb
+        return R, Rb, np.sum(np.einsum("nij,nj->ni", self.W, Rb) ** 2, axis=1)
 
 
 def _ssr(problem: LinearProblem, G: np.ndarray, rows: np.ndarray) -> float:
     """In-sample sum of squared residuals after a fit (screening of candidates)."""
     fit = problem.fit(G, rows, iterations=1)
-    return float(np.nansum(problem.residuals(G, fit.theta, fit.regs, fit.rows) ** 2))
+    return float(np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows),
+                                            fit.regs, fit.rows) ** 2))
 
 
 def _solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -597,7 +621,7 @@ class DiagnoseOptions:
     folds: int = 5
     cv: str = "auto"
     min_gain: float = 0.03
-    min_t: float = 4.5
+    min_t: float = 4.0
     max_condition: float = 1e6
     max_absorbed: float = 0.999
     max_effects: int = 8
@@ -712,7 +736,8 @@ def _identifiable_subset(problem: LinearProblem, chosen: Sequence[Candidate], ca
         neg = [k for k, v, s in zip(names, th, sd) if k in cand.effect.nonnegative and v + 1.96 * s < 0]
         if neg:
             return False, f"fitted {', '.join(neg)} < 0: unphysical sign", math.inf
-        ssr = float(np.nansum(problem.residuals(G, fit.theta, fit.regs, fit.rows) ** 2))
+        ssr = float(np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows),
+                                               fit.regs, fit.rows) ** 2))
         return True, "", ssr
 
     ok, why, ssr = check(cand.G, cand.effect.param_names)
@@ -763,7 +788,10 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     if stops.kind == "pose" and stops.base and stops.base != tree.root:
         base_R = poses[stops.base][..., :3, :3]
     nominal = tree.link_poses(stops.q)
-    problem = LinearProblem(stops, x0, R0)
+    C_exp = _point_covariance(tree, stops, poses, dq0, dxi0, perturbation_cov or {}, joint_noise or {})
+    C_exp = C_exp + stops.sigma ** 2 * np.eye(3)
+    W_base = np.linalg.inv(np.linalg.cholesky(C_exp))
+    problem = LinearProblem(stops, x0, R0, W_base)
     cands = []
     for eff in candidate_effects(tree, stops):
         c = Candidate(eff, _measurement_jacobian(tree, stops, eff, nominal, (Jq, Jx, Fq, Fx), base_R))
@@ -775,8 +803,7 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     all_rows = np.arange(n)
 
     chosen: list[Candidate] = []
-    R_before, Rb_before = problem.heldout(_stack(chosen, n, stops.dim), folds)
-    e2 = np.sum(R_before ** 2, axis=1)
+    R_before, Rb_before, e2 = problem.heldout(_stack(chosen, n, stops.dim), folds)
     e2_before = e2.copy()
     R_after, Rb_after = R_before, Rb_before
     steps: list[dict[str, Any]] = []
@@ -798,26 +825,26 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
             screened.append((1.0 - ssr / ssr_now, c, c2))
         screened.sort(key=lambda z: -z[0])
         for _, c, c2 in screened[:options.screen]:
-            Rc, Rbc = problem.heldout(_stack(chosen + [c2], n, stops.dim), folds)
-            e2c = np.sum(Rc ** 2, axis=1)
+            Rc, Rbc, e2c = problem.heldout(_stack(chosen + [c2], n, stops.dim), folds)
             ok = np.isfinite(e2) & np.isfinite(e2c)
             if ok.sum() < 3:
                 continue
             mse0, mse1 = float(np.mean(e2[ok])), float(np.mean(e2c[ok]))
             d = e2[ok] - e2c[ok]
             t = float(d.mean() / (d.std(ddof=1) / math.sqrt(d.size))) if d.std() > 0 else 0.0
+            z = _signed_rank_z(d)
             gain = 1.0 - mse1 / mse0
             if best is None or mse1 < best[1]:
-                best = (c2, mse1, gain, t, e2c, c.key, Rc, Rbc)
+                best = (c2, mse1, gain, (t, z), e2c, c.key, Rc, Rbc)
+    # (mse: mean whitened squared held-out error; reported RMS values are in metres)
         if best is None:
             break
-        c2, mse1, gain, t, e2c, key, Rc, Rbc = best
-        if gain < options.min_gain or t < options.min_t:
-            steps.append({"candidate": c2.key, "accepted": False, "heldout_rms": math.sqrt(mse1),
-                          "gain": gain, "t": t})
+        c2, mse1, gain, (t, z), e2c, key, Rc, Rbc = best
+        step = {"candidate": c2.key, "accepted": bool(gain >= options.min_gain and t >= options.min_t),
+                "heldout_rms": _rms_m(Rc), "heldout_mahalanobis2": mse1, "gain": gain, "t": t, "z": z}
+        steps.append(step)
+        if not step["accepted"]:
             break
-        steps.append({"candidate": c2.key, "accepted": True, "heldout_rms": math.sqrt(mse1),
-                      "gain": gain, "t": t})
         chosen.append(c2)
         e2 = e2c
         R_after, Rb_after = Rc, Rbc
@@ -831,7 +858,7 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     effects_out: list[dict[str, Any]] = []
     found: list[Effect] = []
     i = 0
-    mse_before = float(np.nanmean(e2_before))
+    mse_before = _rms_m(R_before) ** 2
     for k, c in enumerate(chosen):
         P = c.effect.n_params
         th = fit.theta[i:i + P]
@@ -858,9 +885,9 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     ok = np.isfinite(e2)
     nees_before, nees_after, k_scale, fitted_jn = _refit_sigma(
         tree, stops, poses, dq0, dxi0, perturbation_cov or {}, joint_noise or {}, Rb_after)
-    floor = stops.sigma * math.sqrt(3.0)
-    rms_b = math.sqrt(float(np.nanmean(e2_before)))
-    rms_a = math.sqrt(float(np.nanmean(e2)))
+    floor = math.sqrt(float(np.mean(np.trace(C_exp, axis1=-2, axis2=-1))))
+    rms_b = _rms_m(R_before)
+    rms_a = _rms_m(R_after)
     unexplained = math.sqrt(max(rms_a ** 2 - floor ** 2, 0.0))
     res = DiagnoseResult(
         effects=effects_out, residual_before=rms_b, residual_after=rms_a,
@@ -869,7 +896,7 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         rejected=[{"candidate": k, "reason": v} for k, v in rejected.items()],
         nees_before=nees_before, nees_after=nees_after, sigma_scale=k_scale,
         linearisation_error=lin_err, cv=mode, n_stops=int(ok.sum()), n_sessions=len(np.unique(stops.session)),
-        e2_before=e2_before, e2_after=e2, chosen=found)
+        e2_before=np.sum(R_before ** 2, axis=1), e2_after=np.sum(R_after ** 2, axis=1), chosen=found)
     res.extra["per_group"] = {stops.group_names[g]: {"before": _scores(R_before[stops.group == g]),
                                                      "after": _scores(R_after[stops.group == g])}
                               for g in np.unique(stops.group)}
@@ -877,6 +904,27 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         res.extra["fitted_joint_noise"] = fitted_jn
     res.summary = _summary(res)
     return res
+
+
+def _signed_rank_z(d: np.ndarray) -> float:
+    """Normal-approximation z of the one-sided Wilcoxon signed-rank test that ``d > 0``."""
+    from scipy.stats import rankdata
+
+    d = d[d != 0]
+    n = d.size
+    if n < 3:
+        return 0.0
+    w = float(np.sum(rankdata(np.abs(d))[d > 0]))
+    mu = n * (n + 1) / 4.0
+    sd = math.sqrt(n * (n + 1) * (2 * n + 1) / 24.0)
+    return (w - mu) / sd
+
+
+def _rms_m(R: np.ndarray) -> float:
+    """RMS 3D norm [m] of the finite rows of residuals (N, 3)."""
+    e2 = np.sum(R ** 2, axis=1)
+    e2 = e2[np.isfinite(e2)]
+    return float(np.sqrt(np.mean(e2))) if e2.size else float("nan")
 
 
 def _rms3(r: np.ndarray) -> float:
@@ -1149,7 +1197,7 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
              f"{result.n_sessions} sessions): before **{1e3 * result.residual_before:.3f} mm**, after "
              f"**{1e3 * result.residual_after:.3f} mm**",
              f"* in-sample: {1e3 * result.residual_before_insample:.3f} mm -> "
-             f"{1e3 * result.residual_after_insample:.3f} mm; sensor noise floor "
+             f"{1e3 * result.residual_after_insample:.3f} mm; noise floor (declared PPOE covariance + sensor noise) "
              f"{1e3 * result.noise_floor:.3f} mm; unexplained above it {1e3 * result.unexplained:.3f} mm",
              f"* NEES (held-out, expectation 3): {result.nees_before:.3g} with the model's sigmas, "
              f"{result.nees_after:.3g} after scaling them by {result.sigma_scale:.4g}",
