@@ -193,7 +193,8 @@ class _Chain:
       * ``(_S, M)``: multiply by the constant 4x4 ``M``;
       * ``(_RZ, i)`` / ``(_TZ, i)``: rotate about / translate along local z by motion ``i``;
       * ``(_D, k)``: multiply by ``Exp(dxi)`` of effect site ``k`` (effects only);
-      * ``(_SITE, k)``: perturbation site ``k`` (its prefix product is recorded).
+      * ``(_SITE, k)``: perturbation site ``k`` (covariance columns from the product of
+        everything after it).
     """
 
     frm: str
@@ -1013,7 +1014,7 @@ class PPOEModel:
                             cc[j, i] = cc[i, j]
                 cov[a:b] = cc.transpose(2, 0, 1)
             else:
-                cov[a:b] = _fourth_order(ch, np.moveaxis(G, 2, 1))
+                cov[a:b] = _fourth_order_batch_last(ch, G).transpose(2, 0, 1)
         return T.reshape(shape + (4, 4)), cov.reshape(shape + (6, 6))
 
     def fk_multi(self, joints: Joints, frm: Optional[str], tos: Sequence[str],
@@ -1155,5 +1156,66 @@ def _fourth_order(ch: _Chain, G: Array) -> Array:
         Gk = G[ch.col_site == k]  # (r, N, 6)
         Sk = np.einsum("rni,rnj->nij", Gk, Gk)
         cov = Sk if cov is None else compound_fourth_order(cov, Sk)
+    assert cov is not None
+    return cov
+
+
+def _mm3(A: Array, B: Array) -> Array:
+    """3x3 matrix products over trailing batch axes: ``(3, 3, ...) x (3, 3, ...)``."""
+    out = np.empty(np.broadcast_shapes(A.shape, B.shape))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+    return out
+
+
+def _op1(A: Array) -> Array:
+    """``<<A>> = -tr(A) I + A`` for ``(3, 3, ...)``."""
+    out = A.copy()
+    tr = A[0, 0] + A[1, 1] + A[2, 2]
+    for i in range(3):
+        out[i, i] -= tr
+    return out
+
+
+def _compound4_batch_last(c1: Array, c2: Array) -> Array:
+    """:func:`compound_fourth_order` for covariances ``(6, 6, N)`` (batch last, elementwise)."""
+    rr1, rt1, tt1 = c1[:3, :3], c1[:3, 3:], c1[3:, 3:]
+    rr2, rt2, tt2 = c2[:3, :3], c2[:3, 3:], c2[3:, 3:]
+    tr1, tr2 = rt1.swapaxes(0, 1), rt2.swapaxes(0, 1)
+    left = np.stack([tt1, tr1, rt1, rr1, tt1, tr1, tt1], axis=2)  # (3, 3, 7, N)
+    right = np.stack([rr2, rt2, tr2, tt2, tr2, tt2, tt2], axis=2)
+    oL, oR = _op1(left), _op1(right)
+    pair = _mm3(oL, oR) + _op1(_mm3(right, left))
+    out = c1 + c2
+    out[:3, :3] += (pair[:, :, 0] + pair[:, :, 1] + pair[:, :, 2] + pair[:, :, 3]) / 4.0
+    B12 = (pair[:, :, 4] + pair[:, :, 5]) / 4.0
+    out[:3, 3:] += B12
+    out[3:, :3] += B12.swapaxes(0, 1)
+    out[3:, 3:] += pair[:, :, 6] / 4.0
+    # X = A1 c2 + A2 c1 with A_i = [[a_i, b_i], [0, a_i]], a_i = <<tt_i>>, b_i = <<rt_i + tr_i>>
+    a1, a2 = oL[:, :, 0], oR[:, :, 3]
+    b1, b2 = _op1(rt1 + tr1), _op1(rt2 + tr2)
+    P = _mm3(
+        np.stack([a1, a1, a1, a1, b1, b1, a2, a2, a2, a2, b2, b2], axis=2),
+        np.stack([rr2, rt2, tr2, tt2, tr2, tt2, rr1, rt1, tr1, tt1, tr1, tt1], axis=2),
+    )
+    X = np.empty_like(c1)
+    X[:3, :3] = P[:, :, 0] + P[:, :, 4] + P[:, :, 6] + P[:, :, 10]
+    X[:3, 3:] = P[:, :, 1] + P[:, :, 5] + P[:, :, 7] + P[:, :, 11]
+    X[3:, :3] = P[:, :, 2] + P[:, :, 8]
+    X[3:, 3:] = P[:, :, 3] + P[:, :, 9]
+    out += (X + X.swapaxes(0, 1)) / 12.0
+    return out
+
+
+def _fourth_order_batch_last(ch: _Chain, G: Array) -> Array:
+    """Sequential fourth-order compounding, ``G`` (m, 6, N) -> ``(6, 6, N)``."""
+    cov = None
+    for k in range(len(ch.site_L)):
+        _, _, _, _, c0, c1 = ch.site_cols[k]
+        Gk = G[c0:c1]
+        Sk = np.einsum("rin,rjn->ijn", Gk, Gk)
+        cov = Sk if cov is None else _compound4_batch_last(cov, Sk)
     assert cov is not None
     return cov
