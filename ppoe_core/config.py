@@ -337,6 +337,8 @@ def _number(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, minimum: Opti
 
 
 def _vector(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, n: int, minimum: Optional[float] = None) -> np.ndarray:
+    if isinstance(val, np.ndarray):
+        val = val.tolist()
     if not isinstance(val, (list, tuple)) or len(val) != n:
         raise ctx.error(parent, key, path, f"must be a list of {n} numbers, got {val!r}")
     return np.array([_number(ctx, v, parent, key, path, minimum) for v in val], dtype=float)
