@@ -18,6 +18,7 @@ Defaults (a section that is absent):
 from __future__ import annotations
 
 import math
+import numbers
 import os
 import re
 from dataclasses import dataclass, field
@@ -324,7 +325,7 @@ def _check_keys(ctx: _Ctx, d: Mapping, allowed: tuple, path: str, required: tupl
 
 def _number(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, minimum: Optional[float] = None,
             positive: bool = False) -> float:
-    if isinstance(val, bool) or not isinstance(val, (int, float)):
+    if isinstance(val, (bool, np.bool_)) or not isinstance(val, numbers.Real):
         raise ctx.error(parent, key, path, f"must be a number, got {val!r}")
     f = float(val)
     if not math.isfinite(f):
