@@ -74,10 +74,12 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("robot_description_topic", "/robot_description", "latched std_msgs/String topic carrying the URDF",
               check=check_nonempty),
     ParamSpec("joint_states_topic", "/joint_states", "sensor_msgs/JointState input", check=check_nonempty),
-    ParamSpec("reference_frame", "", "frame the pose is expressed in; empty = model YAML frames.base, else the URDF root link"),
+    ParamSpec("reference_frame", "", "frame the pose is expressed in; empty = model YAML frames.base, "
+              "else the URDF root link"),
     ParamSpec("target_frame", "", "frame whose pose is published; empty = model YAML frames.tool, else tool0"),
     ParamSpec("pose_topic", "/ppoe/pose", "output topic of the target frame", check=check_nonempty),
-    ParamSpec("extra_target_frames", [], "more target frames, published on /ppoe/<frame>/pose", ptype=_STRING_ARRAY),
+    ParamSpec("extra_target_frames", [], "more target frames, published on /ppoe/<frame>/pose",
+              ptype=_STRING_ARRAY),
     ParamSpec("order", 2, "covariance propagation order (paper eq. 15/18: 2; 4 = fourth order)",
               check=lambda v: None if v in (2, 4) else f"must be 2 or 4, got {v}"),
     ParamSpec("max_batch", 100, "largest batch of queued joint states per FK call; 1 = compute in the "
@@ -162,10 +164,12 @@ class KinematicsNode(Node):
         self._worker: _BatchWorker | None = None
 
         out_qos = reliable_qos(100)
-        self.targets = [_Target(target, self.create_publisher(PoseWithCovarianceStamped, p["pose_topic"], out_qos))]
+        self.targets = [_Target(target, self.create_publisher(PoseWithCovarianceStamped, p["pose_topic"],
+                                                              out_qos))]
         for frame in p["extra_target_frames"]:
             if frame == target or frame in (t.frame for t in self.targets):
-                raise ModelConfigError(f"node {self.get_name()}: parameter 'extra_target_frames' repeats '{frame}'")
+                raise ModelConfigError(
+                    f"node {self.get_name()}: parameter 'extra_target_frames' repeats '{frame}'")
             self.targets.append(_Target(frame, self.create_publisher(
                 PoseWithCovarianceStamped, output_topic(frame), out_qos)))
 
@@ -280,7 +284,8 @@ class KinematicsNode(Node):
             if missing:
                 raise JointValueError(
                     f"missing value for joint(s) {', '.join(repr(m) for m in missing)} needed by "
-                    f"{self.reference} -> {', '.join(t.frame for t in self.targets)} (got {', '.join(names) or 'none'})")
+                    f"{self.reference} -> {', '.join(t.frame for t in self.targets)} "
+                    f"(got {', '.join(names) or 'none'})")
             self._src = np.array([where[n] for n in self._needed], dtype=np.intp)
             self._cached_names = list(names)
         values = np.asarray(pos, dtype=float)[self._src]

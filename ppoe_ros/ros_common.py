@@ -561,7 +561,8 @@ def joint_positions(msg: Any, topic: str = "/joint_states") -> dict[str, float]:
         raise ValueError(f"{topic}: {len(names)} names but {len(pos)} positions")
     out = dict(zip(names, (float(p) for p in pos)))
     if len(out) != len(names):
-        raise ValueError(f"{topic}: repeated joint names {sorted(n for n in set(names) if list(names).count(n) > 1)}")
+        repeated = sorted(n for n in set(names) if list(names).count(n) > 1)
+        raise ValueError(f"{topic}: repeated joint names {repeated}")
     return out
 
 
@@ -635,5 +636,6 @@ def message_class(type_name: str) -> type:
         module = importlib.import_module(f"{pkg}.{kind}")
         cls = getattr(module, name)
     except (ImportError, AttributeError):
-        raise PpoeError(f"message type '{type_name}' is not installed (no Python module {pkg}.{kind}.{name})") from None
+        raise PpoeError(
+            f"message type '{type_name}' is not installed (no Python module {pkg}.{kind}.{name})") from None
     return cls

@@ -230,3 +230,102 @@ def test_invalid_parameter_refused_at_startup(tmp_path: Path) -> None:
         proc.stop()
     assert code == 2
     assert "parameter 'order' must be 2 or 4, got 3" in proc.output()
+
+
+# ---------------------------------------------------------------- ros_common helpers the node is built on
+
+
+class _FakeLogger:
+    def __init__(self) -> None:
+        self.lines: list[tuple[str, str]] = []
+
+    def warning(self, text: str) -> None:
+        self.lines.append(("warn", text))
+
+    def error(self, text: str) -> None:
+        self.lines.append(("error", text))
+
+
+class _FakeNode:
+    def __init__(self) -> None:
+        self.logger = _FakeLogger()
+
+    def get_logger(self) -> _FakeLogger:
+        return self.logger
+
+
+def test_node_stats_throttles_and_counts(monkeypatch: pytest.MonkeyPatch) -> None:
+    from ppoe_ros import ros_common
+
+    now = [100.0]
+    monkeypatch.setattr(ros_common.time, "monotonic", lambda: now[0])
+    node = _FakeNode()
+    stats = ros_common.NodeStats(node, ("received", "bad"), throttle_sec=2.0)
+    for k in range(5):
+        stats.bad("/joint_states", f"reason {k}")
+        now[0] += 0.1
+    stats.bad("/wrench", "other topic")  # a different topic has its own throttle
+    assert stats.counts["bad"] == 6
+    assert [t for _, t in node.logger.lines] == ["bad message on /joint_states: reason 0",
+                                                 "bad message on /wrench: other topic"]
+    now[0] += 2.0
+    stats.bad("/joint_states", "reason 5")
+    assert node.logger.lines[-1][1] == ("bad message on /joint_states: reason 5 "
+                                        "(4 similar suppressed in the last 2 s)")
+
+
+def test_guarded_counts_bad_and_unexpected_errors() -> None:
+    from ppoe_core.errors import JointValueError
+    from ppoe_ros.ros_common import NodeStats, guarded
+
+    node = _FakeNode()
+    stats = NodeStats(node, throttle_sec=0.0)
+
+    @guarded(stats, "/joint_states")
+    def cb(kind: str) -> str:
+        if kind == "bad":
+            raise JointValueError("joint 'j1' is NaN")
+        if kind == "bug":
+            raise RuntimeError("boom")
+        return "ok"
+
+    assert cb("good") == "ok"
+    assert cb("bad") is None and cb("bug") is None
+    assert stats.counts["bad"] == 1 and stats.counts["errors"] == 1
+    assert node.logger.lines[0] == ("warn", "bad message on /joint_states: joint 'j1' is NaN")
+    assert node.logger.lines[1][0] == "error" and "RuntimeError: boom" in node.logger.lines[1][1]
+
+
+def test_pose_cov_message_round_trip() -> None:
+    from ppoe_ros.ros_common import pose_cov_stamped_msg
+
+    rng = np.random.default_rng(11)
+    for _ in range(50):
+        T = lie.exp(rng.normal(size=6) * np.array([1, 1, 1, 2, 2, 2]))
+        A = rng.normal(size=(6, 6))
+        cov_ros = A @ A.T
+        ns = int(rng.integers(0, 2**40))
+        msg = pose_cov_stamped_msg(T, cov_ros, ns, "base_link")
+        T2, cov2, ns2, frame = pose_cov_from_msg(msg)
+        np.testing.assert_allclose(T2, T, atol=1e-12)
+        np.testing.assert_array_equal(cov2, cov_ros)
+        assert ns2 == ns and frame == "base_link"
+
+
+def test_param_spec_validation_and_descriptor() -> None:
+    from rcl_interfaces.msg import ParameterType
+
+    from ppoe_ros.kinematics_node import PARAMS
+    from ppoe_ros.ros_common import ParamSpec, check_length
+
+    spec = ParamSpec("rate", 1.0, "a rate", unit="Hz", min_value=0.0, max_value=10.0)
+    assert spec.validate(5.0) is None
+    assert spec.validate(-1.0) == "must be >= 0.0, got -1.0"
+    assert spec.validate(11.0) == "must be <= 10.0, got 11.0"
+    assert spec.validate(float("nan")) == "must be finite, got nan"
+    desc = spec.descriptor()
+    assert desc.type == ParameterType.PARAMETER_DOUBLE and desc.description == "a rate [Hz]"
+    assert (desc.floating_point_range[0].from_value, desc.floating_point_range[0].to_value) == (0.0, 10.0)
+    xyz = ParamSpec("xyz", [], "p", ptype=ParameterType.PARAMETER_DOUBLE_ARRAY, check=check_length(0, 3))
+    assert xyz.validate([1.0, 2.0]) == "must have 0 or 3 elements, got 2"
+    assert all(s.descriptor().description for s in PARAMS)
