@@ -47,6 +47,7 @@ from ppoe_ros.ros_common import (
     check_nonempty,
     declare_parameters,
     guarded,
+    mapping_get,
     reliable_qos,
     sensor_qos,
 )
@@ -73,9 +74,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("compressed", True, "true: image_topic is sensor_msgs/CompressedImage (png/jpeg); "
               "false: sensor_msgs/Image"),
     ParamSpec("camera_info_topic", "/camera/camera_info", "sensor_msgs/CameraInfo of the camera", check=check_nonempty),
-    ParamSpec("dictionary", "tag36h11", "tag family: tag36h11, tag36h10, tag25h9, tag16h5, aruco_original, "
-              "4x4_50 ... 7x7_1000", check=check_nonempty),
-    ParamSpec("tag_ids", [], "tag ids to publish; empty = every detected tag",
+    ParamSpec("model_file", "", "model YAML whose 'tags' section gives the family and ids; empty = none"),
+    ParamSpec("dictionary", "", "tag family: tag36h11, tag36h10, tag25h9, tag16h5, aruco_original, "
+              "4x4_50 ... 7x7_1000; empty = model YAML tags.family, else tag36h11"),
+    ParamSpec("tag_ids", [], "tag ids to publish; empty = the model YAML's tag ids, else every detected tag",
               ptype=ParameterType.PARAMETER_INTEGER_ARRAY),
     ParamSpec("corner_refinement", "subpix", "corner refinement: subpix, contour, apriltag or none",
               check=lambda v: None if v in _REFINE else f"must be one of {_REFINE}, got {v!r}"),
@@ -289,11 +291,21 @@ class TagBearingNode(Node):
         self.params = p
         self.stats = NodeStats(self, ("received", "published", "bad", "dropped", "detections", "camera_info"),
                                p["log_throttle"])
+        from ppoe_ros.kinematics_node import load_model_yaml
+
+        tags_cfg = mapping_get(load_model_yaml(p["model_file"]), "tags", default={}) or {}
+        self.dictionary = p["dictionary"] or str(tags_cfg.get("family") or "tag36h11")
         try:
-            tagmod.aruco_dictionary(p["dictionary"])
+            tagmod.aruco_dictionary(self.dictionary)
         except MeasurementError as exc:
             raise ModelConfigError(f"node {self.get_name()}: parameter 'dictionary': {exc}") from None
         self.tag_ids = [int(i) for i in p["tag_ids"]]
+        if not self.tag_ids:
+            try:
+                self.tag_ids = [int(item["id"]) for item in tags_cfg.get("items") or []]
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ModelConfigError(f"model file {p['model_file']}: tags.items: every item needs an integer "
+                                       f"'id' ({exc})") from None
         self.K: np.ndarray | None = None
         self.D: np.ndarray | None = None
         self.info_frame = ""
@@ -307,7 +319,7 @@ class TagBearingNode(Node):
         self.create_subscription(CompressedImage if p["compressed"] else Image, it,
                                  guarded(self.stats, it)(self._image), qos)
         self.get_logger().info(
-            f"detecting {p['dictionary']} tags {self.tag_ids or 'all'} in {it} "
+            f"detecting {self.dictionary} tags {self.tag_ids or 'all'} in {it} "
             f"({'compressed' if p['compressed'] else 'raw'}), publishing {p['observations_topic']}")
 
     def _camera_info(self, msg: CameraInfo) -> None:
@@ -322,7 +334,7 @@ class TagBearingNode(Node):
             st.bad(self.params["image_topic"], "no valid camera_info yet: image dropped", kind="dropped")
             return
         image = decode_image(msg, self.params["compressed"])
-        rows, dets = observe_tags(image, self.K, self.D, self.params["dictionary"], self.tag_ids,
+        rows, dets = observe_tags(image, self.K, self.D, self.dictionary, self.tag_ids,
                                   self.params["corner_refinement"])
         header = msg.header
         if not header.frame_id:

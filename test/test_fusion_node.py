@@ -248,7 +248,7 @@ def test_end_to_end_bag_with_tags(tmp_path):
     model = str(CONFIG / "rover_model.yaml")
     nodes = [
         ("kinematics_node", {"model_file": model, "qos_depth": 5000}),
-        ("tag_bearing_node", {"tag_ids": [0, 1, 2, 3], "qos_depth": 50}),
+        ("tag_bearing_node", {"model_file": model, "qos_depth": 50}),  # tag family and ids from the model
         ("fusion_node", {"model_file": model, "diagnostics_period": 0.5, "buffer_duration": 5.0, "qos_depth": 5000}),
     ]
     recorded, logs = _run_chain(tmp_path, bag, nodes,
@@ -295,7 +295,7 @@ def test_config_file_documents_every_parameter(node):
     path = CONFIG / f"{node}.yaml"
     values = yaml.safe_load(path.read_text())[node]["ros__parameters"]
     assert set(values) == {p.name for p in params}
-    examples = {"fusion_node": {"model_file"}, "tag_bearing_node": {"tag_ids"}}[node]
+    examples = {"fusion_node": {"model_file"}, "tag_bearing_node": set()}[node]
     for p in params:
         if p.name not in examples:
             assert values[p.name] == p.default, p.name

@@ -183,3 +183,17 @@ def test_node_live_good_bad_good(tmp_path):
     last = {kv.key: kv.value for kv in diags[-1].status[0].values}
     assert int(last["dropped"]) >= 1 and last["published"] == "2" and last["detections"] == "4"
     assert "K is not a camera matrix" in log and "empty image" in log and "cannot decode" in log
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(60)
+def test_node_refuses_unknown_dictionary(tmp_path):
+    from ros_helpers import NodeProcess, ros_env
+
+    env = ros_env(tmp_path)
+    proc = NodeProcess.node("tag_bearing_node", env, tmp_path, params={"dictionary": "tag99h1"})
+    code = proc.wait(timeout=40)
+    out = proc.output()
+    proc.stop()
+    assert code == 2
+    assert "parameter 'dictionary'" in out and "tag99h1" in out
