@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -329,3 +330,41 @@ def test_param_spec_validation_and_descriptor() -> None:
     xyz = ParamSpec("xyz", [], "p", ptype=ParameterType.PARAMETER_DOUBLE_ARRAY, check=check_length(0, 3))
     assert xyz.validate([1.0, 2.0]) == "must have 0 or 3 elements, got 2"
     assert all(s.descriptor().description for s in PARAMS)
+
+
+def test_bag_play_node_record_equals_fk(tmp_path: Path, model) -> None:
+    """ppoe play (with /clock) -> kinematics_node (use_sim_time) -> ppoe record; the recorded poses equal fk."""
+    from ppoe_core.bagio import BagWriter, read_bag
+
+    rng = np.random.default_rng(5)
+    q_all = rng.uniform(-1.5, 1.5, (60, 7))
+    src, rec = tmp_path / "src", tmp_path / "rec"
+    with BagWriter(src) as bag:
+        bag.write_robot_description(URDF.read_text(), 0.0)
+        for k, q in enumerate(q_all):  # extra, unused joint in every message
+            bag.write_joint_state(1.0 + 0.01 * k, ARM + ["finger_left_joint"], list(q) + [0.01])
+    env = ros_env(tmp_path)
+    node = NodeProcess.node("kinematics_node", env, tmp_path, params={"model_file": str(MODEL),
+                                                                       "use_sim_time": True})
+    recorder = NodeProcess.ppoe(["record", "--out", str(rec), "/ppoe/pose"], env, tmp_path, "record")
+    player = None
+    try:
+        time.sleep(1.5)  # node and recorder up; the recorder subscribes /ppoe/pose once it sees it
+        player = NodeProcess.ppoe(["play", str(src), "--clock", "--wait-for-subscribers", "15"], env, tmp_path,
+                                  "play")
+        assert player.wait(40) == 0, player.output()
+        time.sleep(1.0)
+        assert node.alive(), node.output()
+    finally:
+        if player is not None:
+            player.stop()
+        recorder.stop()
+        node.stop()
+    poses = read_bag(rec).poses_with_covariance["/ppoe/pose"]
+    assert len(poses) == len(q_all), f"{len(poses)} poses recorded\n{node.output()[-2000:]}"
+    np.testing.assert_allclose(poses.stamps, 1.0 + 0.01 * np.arange(len(q_all)), atol=1e-9)
+    for k, q in enumerate(q_all):
+        T_ref, cov_ref = model.fk(dict(zip(ARM, q)), "base_link", "tool0")
+        np.testing.assert_allclose(poses.T[k], T_ref, atol=1e-12)
+        np.testing.assert_allclose(poses.cov_ros[k], lie.cov_local_to_ros(T_ref, cov_ref), rtol=1e-10, atol=1e-18)
+    assert set(poses.frame_ids) == {"base_link"}
