@@ -154,3 +154,25 @@ def test_play_unknown_topic_is_an_error(tmp_path: Path) -> None:
     finally:
         proc.stop()
     assert "no topic /nope" in proc.output()
+
+
+def test_play_loop_repeats_until_interrupted(tmp_path: Path) -> None:
+    from ros_helpers import Probe
+    from sensor_msgs.msg import JointState
+
+    src = tmp_path / "src"
+    _make_source(src)
+    want = [_plain(m)["header"]["stamp"] for _, m in _read_strict(src)["/joint_states"]]
+    env = ros_env(tmp_path)
+    with Probe(env) as probe:
+        got = probe.collect("/joint_states", JointState, 1000)
+        player = NodeProcess.ppoe(["play", str(src), "--loop", "--rate", "4", "--topics", "/joint_states",
+                                   "--wait-for-subscribers", "15"], env, tmp_path, "play_loop")
+        try:
+            probe.spin_until(lambda: len(got) >= 2 * len(want) + 5, 30, player, "two and a bit loops")
+            code = player.stop()
+        finally:
+            player.stop()
+    assert code == 0, player.output()
+    stamps = [{"sec": m.header.stamp.sec, "nanosec": m.header.stamp.nanosec} for m in got]
+    assert stamps[:len(want)] == want and stamps[len(want):2 * len(want)] == want
