@@ -4,8 +4,9 @@ The replay runs the same core code as the live nodes:
 
 * kinematics node -> :meth:`ppoe_core.model.PPOEModel.fk` for every ``/joint_states`` message
   (prior ``T_base_tool`` and its PPOE covariance ``cov_tool``; batched over the bag);
-* tag bearing node -> :func:`ppoe_core.tags.detect_tags` on every camera image (only when the bag
-  has images but no ``/tag_bearing/observations``: recorded observations are used as they are);
+* tag bearing node -> :func:`observe_tags` (:func:`ppoe_core.tags.detect_tags`, undistortion,
+  centre from the diagonals, as the node) on every camera image (only when the bag has images but
+  no ``/tag_bearing/observations``: recorded observations are used as they are);
 * fusion node -> :class:`ppoe_core.fusion_pipeline.FusionPipeline` (prior buffer, iterated
   LG-EKF update with gating, carried correction) with its
   :class:`~ppoe_core.fusion_pipeline.ModelUpdater`, built with the fusion node's parameters
@@ -92,6 +93,7 @@ __all__ = [
     "write_report",
     "FUSION_DEFAULTS",
     "load_fusion_params",
+    "observe_tags",
 ]
 
 #: scored methods, in report order
@@ -293,7 +295,8 @@ class ProgressBar:
 
 
 #: fusion settings and their defaults: the fusion node's parameters of the same names
-#: (``ppoe_ros/fusion_node.py``), so that the replay runs the pipeline the node runs
+#: (``ppoe_ros/fusion_node.py``), so that the replay runs the pipeline the node runs, plus the
+#: tag bearing node's ``corner_refinement``
 FUSION_DEFAULTS: dict[str, Any] = {
     "buffer_duration": 1.0,  # s
     "max_gap": 0.2,  # s
@@ -312,6 +315,8 @@ FUSION_DEFAULTS: dict[str, Any] = {
     "use_tag_corners": True,
     "camera_covariance": True,
     "contact_distance_sigma": 0.0,  # m
+    # the tag bearing node's parameter (ppoe_ros/tag_bearing_node.py), used when the bag has images
+    "corner_refinement": "subpix",
 }
 
 
@@ -499,11 +504,50 @@ def _camera_lookup(data: Any) -> Callable[[str, float], tuple[np.ndarray, np.nda
     return lookup
 
 
-def _tag_measurements(data: Any, model: Any, bag: str) -> tuple[list[Any], dict[str, int]]:
+def observe_tags(
+    image: np.ndarray, K: np.ndarray, D: np.ndarray, dictionary: str = "tag36h11", refine: str = "subpix"
+) -> np.ndarray:
+    """Tag observation rows of one image, as the tag bearing node publishes them.
+
+    The same computation as ``ppoe_ros.tag_bearing_node.observe_tags`` (which cannot be
+    imported here: that module imports rclpy); ``test_evaluate.py`` checks that both agree.
+    Corners from :func:`ppoe_core.tags.detect_tags`, undistorted with
+    :func:`ppoe_core.tags.undistort_pixels`; the centre is the intersection of the diagonals in
+    undistorted normalised coordinates, projected back to pixels.
+
+    Returns
+    -------
+    ndarray, shape (5 n, 6)
+        ``[id, corner, u, v, x, y]``: centre (corner 0) then corners 1..4 of each tag.
+    """
+    from ppoe_core import tags as tagmod
+
+    dets = tagmod.detect_tags(image, dictionary, refine)
+    if not dets:
+        return np.zeros((0, 6))
+    corners_uv = np.stack([d.corners for d in dets])  # (n, 4, 2)
+    xy_c = tagmod.undistort_pixels(corners_uv, K, D)  # (n, 4, 2)
+    h = np.concatenate([xy_c, np.ones(xy_c.shape[:2] + (1,))], axis=-1)
+    c = np.cross(np.cross(h[:, 0], h[:, 2]), np.cross(h[:, 1], h[:, 3]))
+    ok = np.abs(c[:, 2]) > 1e-12
+    centre_xy = np.where(ok[:, None], c[:, :2] / np.where(ok, c[:, 2], 1.0)[:, None], xy_c.mean(axis=1))
+    centre_uv = tagmod.project_points(np.concatenate([centre_xy, np.ones((len(dets), 1))], axis=1), K, D)
+    rows = np.zeros((len(dets), 5, 6))
+    rows[:, :, 0] = np.array([d.id for d in dets], dtype=float)[:, None]
+    rows[:, :, 1] = np.arange(5)[None, :]
+    rows[:, 0, 2:4] = centre_uv
+    rows[:, 0, 4:6] = centre_xy
+    rows[:, 1:, 2:4] = corners_uv
+    rows[:, 1:, 4:6] = xy_c
+    return rows.reshape(-1, 6)
+
+
+def _tag_measurements(
+    data: Any, model: Any, bag: str, refine: str = "subpix"
+) -> tuple[list[Any], dict[str, int]]:
     """Measurements of tag observations: recorded ``/tag_bearing/observations`` if present,
     else detections on the camera images (``ppoe_core.tags.detect_tags``, as the tag node)."""
     from ppoe_core.fusion_pipeline import Measurement, TagPoints
-    from ppoe_core.tags import detect_tags, undistort_pixels
 
     counts = {"tag_messages": 0, "tag_points": 0, "images": 0, "images_without_tags": 0}
     cams = _camera_lookup(data)
@@ -535,17 +579,15 @@ def _tag_measurements(data: Any, model: Any, bag: str) -> tuple[list[Any], dict[
         if KD is None:
             raise BagError(f"bag {bag}: topic {topic} message {i}: no /camera/camera_info with frame_id {frame!r}")
         K, D = KD
-        dets = detect_tags(imgs.decode(i, grey=True), dictionary=family)
-        if not dets:
+        rows = observe_tags(imgs.decode(i), K, D, family, refine)
+        counts["tag_messages"] += 1
+        if rows.shape[0] == 0:
             counts["images_without_tags"] += 1
             continue
-        ids = np.repeat([d.id for d in dets], 5)
-        corners = np.tile(np.arange(5), len(dets))
-        uv = np.concatenate([np.vstack([d.centre[None, :], d.corners]) for d in dets])
-        xy = undistort_pixels(uv, K, D)
-        counts["tag_points"] += int(ids.size)
-        counts["tag_messages"] += 1
-        out.append(Measurement(stamp, topic, TagPoints(frame, ids, corners, xy, uv, float(K[0, 0]), float(K[1, 1]))))
+        counts["tag_points"] += int(rows.shape[0])
+        ids, corners = np.rint(rows[:, 0]).astype(int), np.rint(rows[:, 1]).astype(int)
+        payload = TagPoints(frame, ids, corners, rows[:, 4:6], rows[:, 2:4], float(K[0, 0]), float(K[1, 1]))
+        out.append(Measurement(stamp, "/tag_bearing/observations", payload))
     return out, counts
 
 
@@ -667,10 +709,10 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         raise BagError(f"bag {bag}: topic /joint_states: {exc}") from None
     cov_naive = cfg.naive.covariance if cfg.naive is not None else None
 
-    tag_meas, tag_counts = _tag_measurements(data, model, bag)
+    fs = opt.fusion_settings()
+    tag_meas, tag_counts = _tag_measurements(data, model, bag, refine=str(fs["corner_refinement"]))
     meas = sorted(tag_meas + _contact_measurements(data), key=lambda m: m.stamp)
 
-    fs = opt.fusion_settings()
     pipes: dict[str, Any] = {}
     updaters: dict[str, Any] = {}
     for name in ("ppoe", "naive"):

@@ -294,3 +294,23 @@ def test_fusion_settings_from_node_params_file(tmp_path, small_table1_bag):
     pf.write_text("just: text\n")
     with pytest.raises(ModelConfigError, match="ros__parameters"):
         load_fusion_params(pf)
+
+
+def test_observe_tags_same_as_tag_bearing_node():
+    """evaluate's tag observations are the tag bearing node's (same function body, checked here)."""
+    pytest.importorskip("rclpy")
+    from ppoe_core.bagio import read_bag
+    from ppoe_core.evaluate import observe_tags
+    from ppoe_ros.tag_bearing_node import observe_tags as node_observe_tags
+
+    data = read_bag(REPO / "bags" / "table1_exp1")
+    K, D = data.camera_info.K[0], data.camera_info.D[0]
+    n = 0
+    for i in range(0, len(data.images), 3):
+        img = data.images.decode(i)
+        for refine in ("subpix", "edges"):
+            ours = observe_tags(img, K, D, "tag36h11", refine)
+            theirs, _ = node_observe_tags(img, K, D, "tag36h11", (), refine)
+            np.testing.assert_array_equal(ours, theirs)
+            n += ours.shape[0]
+    assert n > 0
