@@ -77,6 +77,10 @@ class MeasurementModelLike(Protocol):
     noise_cov : ndarray, shape (k, k)
         Noise covariance ``R`` (``Sigma_v`` of eq. 19), in the noise's own coordinates
         documented by each model.
+
+    A model may also have ``linearize(T_state) -> (h(T), H, M)`` (H or M None = numerical) to
+    share work between the prediction and its Jacobians; :func:`iterated_update` uses it when
+    present.
     """
 
     name: str
