@@ -44,7 +44,7 @@ import scipy.linalg
 import scipy.stats
 
 from . import lie
-from .errors import CovarianceError, MeasurementError
+from .errors import CovarianceError, MeasurementError, PpoeError
 
 __all__ = [
     "MeasurementModelLike",
@@ -354,9 +354,9 @@ def iterated_update(
         positive definite.
     """
     if jacobians not in ("auto", "analytic", "numerical"):
-        raise ValueError(f"jacobians must be auto, analytic or numerical, not {jacobians!r}")
+        raise PpoeError(f"iterated_update: jacobians must be auto, analytic or numerical, not {jacobians!r}")
     if max_iterations < 1:
-        raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
+        raise PpoeError(f"iterated_update: max_iterations must be >= 1, got {max_iterations}")
     X0 = check_pose(T_prior, f"{model.name}: prior pose")
     P0 = check_noise_covariance(cov_prior, 6, f"{model.name}: prior covariance")
     R = check_noise_covariance(model.noise_cov, model.noise_dim, f"{model.name}: noise covariance")

@@ -55,7 +55,7 @@ calls them once per iteration.
 
 from __future__ import annotations
 
-from typing import Any, Optional, Sequence
+from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -146,7 +146,9 @@ class MeasurementModel:
     def jacobian_noise(self, T_state: np.ndarray) -> Optional[np.ndarray]:
         return None
 
-    def linearize(self, T_state: np.ndarray):
+    def linearize(
+        self, T_state: np.ndarray
+    ) -> Tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
         """``(h(T), H, M)`` in one call (models override it to share work); H or M may be
         None (numerical)."""
         return self.h(T_state), self.jacobian_state(T_state), self.jacobian_noise(T_state)
@@ -203,7 +205,7 @@ def _distortion(D: Optional[Sequence[float]], name: str) -> np.ndarray:
     return out
 
 
-def _distort(xy: np.ndarray, D: np.ndarray):
+def _distort(xy: np.ndarray, D: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """plumb_bob distortion of normalised points ``xy`` (n, 2) -> (xd (n,2), J (n,2,2))."""
     k1, k2, p1, p2, k3 = D
     x, y = xy[:, 0], xy[:, 1]
@@ -225,7 +227,7 @@ def project_points(
     K: Optional[np.ndarray],
     D: Optional[np.ndarray],
     mode: str = "pixel",
-):
+) -> Tuple[np.ndarray, np.ndarray]:
     """Project camera-frame points and return the Jacobian w.r.t. the 3D point.
 
     Parameters
@@ -376,7 +378,7 @@ class TagObservation(MeasurementModel):
         uv, _ = project_points(self.points_camera(T_state, w), self.K, self.D, self.mode)
         return uv.ravel() + v[: self.dim]
 
-    def linearize(self, T_state: np.ndarray):
+    def linearize(self, T_state: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(h(T), H, M)`` sharing one projection (see :meth:`jacobian_state`,
         :meth:`jacobian_noise`)."""
         p_c = self.points_camera(T_state)
@@ -750,7 +752,7 @@ class StackedObservation(MeasurementModel):
         self.noise_dim = self.noise_cov.shape[0]
         self._zsizes = [16 if isinstance(p, PoseObservation) else p.dim for p in self.parts]
 
-    def _split(self, z: np.ndarray, sizes):
+    def _split(self, z: np.ndarray, sizes: Sequence[int]) -> list:
         out, i = [], 0
         for s in sizes:
             out.append(z[i : i + s])
