@@ -13,19 +13,26 @@ Data flow (see ``docs/fusion_node.md`` for the design discussion)::
         -> returns the fused estimate at t: prior (+) carried correction
 
     add_measurement(Measurement(t, source, payload))
+        same source within `min_interval` -> skipped ("throttled"), counted
         t < oldest prior            -> dropped ("stale"), counted
         t > newest prior            -> pending until a prior covers it (or `flush`)
-        otherwise                   -> prior at t (interpolated), carried correction applied,
-                                       iterated LG-EKF update by the injected `updater`
-                                       (gating inside), new carried correction
+        otherwise                   -> prior at t (interpolated), the other sources' carried
+                                       corrections applied, iterated LG-EKF update by the
+                                       injected `updater` (gating inside), new carried
+                                       correction of this source (replacing its old one)
 
-The carried correction is an *equivalent measurement of the tool-frame error* of the prior:
+A carried correction is an *equivalent measurement of the tool-frame error* of the prior:
 information matrix ``I_c = P_post^-1 - P_prior^-1`` and information vector
 ``y_c = P_post^-1 delta`` with ``delta = Log(T_prior^-1 T_post)``.  For a later prior
-``(T, P)`` and a weight ``w`` in [0, 1] (1 = fresh, decays with time and arm motion) the fused
-estimate is the Kalman update of ``(T, P)`` with that equivalent measurement, its noise scaled
-by ``1 / w``.  At the measurement's own stamp (``w = 1``) it reproduces the posterior exactly;
-as ``w -> 0`` it falls back to the prior; at ``w = 0`` the correction is dropped.
+``(T, P)`` and a weight ``w`` in [0, 1] (1 = fresh, decays with time and arm motion,
+:class:`CorrectionPolicy`) the fused estimate is the Kalman update of ``(T, P)`` with the
+equivalent measurements of all sources, noise scaled by ``1 / w``.  At the measurement's own
+stamp (``w = 1``) it reproduces the posterior exactly; as ``w -> 0`` it falls back to the
+prior; at ``w = 0`` the correction is dropped.
+
+:data:`FUSION_SETTINGS` holds the settings with their defaults (the fusion node's parameters of
+the same names) and :func:`make_pipeline` builds the pipeline from them, so the node and an
+offline replay configured alike behave alike.
 """
 
 from __future__ import annotations
