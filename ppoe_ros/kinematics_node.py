@@ -49,6 +49,7 @@ from std_msgs.msg import String
 
 from ppoe_core import lie
 from ppoe_core.errors import JointValueError, ModelConfigError, PpoeError
+from ppoe_core.model import PPOEModel
 from ppoe_ros.ros_common import (
     LATCHED_QOS,
     DiagnosticsPublisher,
@@ -176,8 +177,6 @@ class KinematicsNode(Node):
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         js_topic = p["joint_states_topic"]
         self._on_joint_state = guarded(self.stats, js_topic)(self._joint_state)
-        if p["max_batch"] > 1:
-            self._worker = _BatchWorker(self._process, self.stats, p["max_batch"], p["max_queue"], js_topic)
         self._drain_max = int(p["drain_max"])
         self._js_sub = self.create_subscription(JointState, js_topic, self._on_joint_state_burst,
                                                 sensor_qos(p["qos_depth"]))
@@ -191,11 +190,11 @@ class KinematicsNode(Node):
                                      LATCHED_QOS)
             self.get_logger().info(f"waiting for the URDF on {topic}")
         self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
+        if p["max_batch"] > 1:  # last: nothing after it can fail and leave the thread behind
+            self._worker = _BatchWorker(self._process, self.stats, p["max_batch"], p["max_queue"], js_topic)
 
     # ------------------------------------------------------------------ model
     def _set_model(self, urdf_xml: str, where: str) -> None:
-        from ppoe_core.model import PPOEModel
-
         try:
             model = PPOEModel.from_strings(urdf_xml, self.model_yaml)
             reference = self.params["reference_frame"] or self._frames.get("base") or model.robot.root

@@ -368,3 +368,29 @@ def test_bag_play_node_record_equals_fk(tmp_path: Path, model) -> None:
         np.testing.assert_allclose(poses.T[k], T_ref, atol=1e-12)
         np.testing.assert_allclose(poses.cov_ros[k], lie.cov_local_to_ros(T_ref, cov_ref), rtol=1e-10, atol=1e-18)
     assert set(poses.frame_ids) == {"base_link"}
+
+
+def test_unknown_frame_or_model_file_refused_at_startup(tmp_path: Path) -> None:
+    from rclpy.parameter import Parameter
+
+    from ppoe_core.errors import ModelConfigError, UnknownFrameError
+    from ppoe_ros.kinematics_node import KinematicsNode
+
+    env = ros_env(tmp_path)
+    urdf = Parameter("robot_description", value=URDF.read_text())
+    with Probe(env) as probe:
+        with pytest.raises(UnknownFrameError, match="parameter robot_description: unknown frame/link 'nope'"):
+            KinematicsNode(context=probe.context, parameter_overrides=[urdf, Parameter("target_frame", value="nope")])
+        with pytest.raises(ModelConfigError, match="model file /no/such.yaml: cannot read"):
+            KinematicsNode(context=probe.context, parameter_overrides=[urdf,
+                                                                       Parameter("model_file", value="/no/such.yaml")])
+        with pytest.raises(ModelConfigError, match="'extra_target_frames' repeats 'tool0'"):
+            KinematicsNode(context=probe.context, parameter_overrides=[
+                urdf, Parameter("extra_target_frames", value=["arm_link_3", "tool0"])])
+        node = KinematicsNode(context=probe.context, parameter_overrides=[urdf, Parameter("model_file",
+                                                                                          value=str(MODEL))])
+        try:  # defaults from the model YAML frames section; needed joints = the arm's 7
+            assert node.reference == "base_link" and node.targets[0].frame == "tool0"
+            assert node._needed == ARM
+        finally:
+            node.destroy_node()
