@@ -38,14 +38,21 @@ setup(
             "ros-jazzy-common-interfaces",
             "ros-jazzy-rmw-fastrtps-cpp",
         ],
-        "test": ["pytest>=7", "hypothesis>=6", "pytest-timeout>=2", "pytransform3d>=3.6"],
+        "test": [
+            "pytest>=7",
+            "hypothesis>=6",
+            "pytest-timeout>=2",
+            "pytransform3d>=3.6",
+            "colcon-core",
+            "colcon-ros",
+            "colcon-python-setup-py",
+        ],
     },
     zip_safe=True,
     maintainer="ppoe_ros developers",
     maintainer_email="ppoe@example.com",
     description="Probabilistic Product-of-Exponentials kinematics and Lie-group EKF fusion for ROS 2 Jazzy",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "ppoe = ppoe_ros.cli:main",
