@@ -61,6 +61,8 @@ __all__ = [
     "diagnose",
     "stops_from_bag",
     "stops_from_hilti",
+    "protocol_scores",
+    "stops_from_motoman",
     "make_folds",
     "load_model",
     "write_model_yaml",
@@ -531,7 +533,11 @@ class LinearProblem:
                     reg_rows = test[np.isin(s.session[test], missing) & s.reg_mask[test]]
                     regs.update(self.kabsch_regs(G, fit.theta, reg_rows))
                     own = np.isin(s.session[test], missing)
-                    scored = test[~own | (s.score_mask[test] & ~s.reg_mask[test])]
+                    split = s.score_mask[test] & ~s.reg_mask[test]
+                    # a session without separate scored stops is scored on the stops that
+                    # registered it (rigid fit per session, as in the Motoman README)
+                    whole = own & ~np.isin(s.session[test], s.session[test][own & split])
+                    scored = test[~own | split | whole]
             r = self.residuals(G, fit.theta, regs, scored)[:, :3]
             R[scored] = r
             if self.register:
@@ -1037,6 +1043,41 @@ def _refit_sigma(tree: KinematicTree, stops: Stops, poses: Mapping, dq: Mapping,
 # =============================================================================
 # Bags, model YAML, report
 # =============================================================================
+
+
+def stops_from_motoman(path: str | Path, robot: Robot, tracker_link: str = "LR1",
+                       sigma: float = 2e-4) -> Stops:
+    """The Leica tracker points of a Motoman ``.mat`` file (``../shared/datasets/motoman_leica``)
+    as :class:`Stops` (one pose per row, poses without a Leica point dropped; one registration
+    session per file; ``sigma`` is an assumed tracker noise, the files give none)."""
+    from .importers.motoman import JOINT_NAMES, load_motoman
+
+    ds = load_motoman(path)
+    ok = ds.has_tracker
+    J = ds.joints[ok]
+    n = int(ok.sum())
+    name = Path(path).stem
+    return Stops(q={j: J[:, i] for i, j in enumerate(JOINT_NAMES)}, p_meas=ds.leica[ok], kind="point",
+                 link=tracker_link, point=np.zeros(3), sigma=sigma, base=robot.root,
+                 session=np.zeros(n, dtype=int), session_names=[name], group=np.zeros(n, dtype=int),
+                 group_names=[name], reg_mask=np.ones(n, dtype=bool), score_mask=np.ones(n, dtype=bool),
+                 context={"motion_sign": {j: s for j, s in zip(JOINT_NAMES, motion_signs(
+                     np.arange(n, dtype=float), J, np.arange(n, dtype=float)).T)}})
+
+
+def protocol_scores(robot: Robot, stops: Stops, effects: Sequence[Effect] = ()) -> dict[str, float]:
+    """Score a model with ``effects`` by the stationing protocol, with nothing fitted but the
+    registrations: per session Kabsch on the ``reg_mask`` stops, error of the ``score_mask``
+    stops (measured minus predicted, measurement frame).  Returns RMS / max 3D, r95 xy and z [m]
+    and ``n`` (see the Hilti README "Baseline").
+    """
+    tree = KinematicTree(robot)
+    x = _predict_nominal(tree, stops, list(effects))[0]
+    problem = LinearProblem(stops, x, None)
+    G0 = np.zeros((len(stops), 3, 0))
+    regs = problem.kabsch_regs(G0, np.zeros(0), np.flatnonzero(stops.reg_mask))
+    rows = np.flatnonzero(stops.score_mask & ~stops.reg_mask & np.isin(stops.session, list(regs)))
+    return _scores(problem.residuals(G0, np.zeros(0), regs, rows))
 
 
 def _stop_info(path: str | Path) -> list[tuple[float, dict]]:

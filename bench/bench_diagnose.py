@@ -1,0 +1,139 @@
+"""Benchmark and real-data result of ``ppoe diagnose``.
+
+1. Hilti stationing data (``$PPOE_DATASETS/hilti_stationing``, README protocol: per-station
+   Kabsch on the cross stationing points, score on the evaluation points):
+   * ``diagnose`` on all five files with leave-one-file-out cross-validation (the effect
+     parameters scored on a file are fitted on the four others), timed;
+   * nested leave-one-file-out: effects *selected and fitted* on four files only, the fifth
+     scored by the protocol; per-file RMS 3D and r95 xy / z before -> after.
+2. A 10-minute simulated bag of the arm7 robot (100 Hz joint states, a static tracker stop every
+   5 s, gravity compliance injected), written to a temporary directory: ``ppoe diagnose`` time.
+
+Prints ``name: value unit`` lines; ratios are against the nominal baseline measured in the same
+run.  Usage: ``python bench/bench_diagnose.py [--quick] [--skip-hilti] [--skip-bag]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from ppoe_core import lie  # noqa: E402
+from ppoe_core.diagnose import (DiagnoseOptions, Stops, diagnose, protocol_scores,  # noqa: E402
+                                stops_from_hilti)
+from ppoe_core.urdf import parse_urdf  # noqa: E402
+
+FILES = ["flat", "pallet", "orthogonal_wood", "wood_left_track", "diagonal_wood"]
+
+
+def hilti(quick: bool) -> None:
+    d = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets")) / "hilti_stationing"
+    robot = parse_urdf(d / "trailblazer.urdf")
+    t0 = time.perf_counter()
+    parts = {f: stops_from_hilti(d / f"{f}.yaml", robot) for f in FILES}
+    print(f"hilti_load_time: {time.perf_counter() - t0:.2f} s")
+    opts = DiagnoseOptions(cv="groups", max_effects=4 if quick else 8)
+    t0 = time.perf_counter()
+    res = diagnose(robot, Stops.concat([parts[f] for f in FILES]), options=opts)
+    print(f"hilti_diagnose_time_5files: {time.perf_counter() - t0:.1f} s")
+    print("hilti_effects_found: " + "; ".join(
+        f"{e['name']}@{e['location']}" + "(" + ", ".join(f"{k}={v:.4g}" for k, v in e["parameters"].items()) + ")"
+        for e in res.effects))
+    print(f"hilti_lofo_rms_before: {1e3 * res.residual_before:.3f} mm")
+    print(f"hilti_lofo_rms_after: {1e3 * res.residual_after:.3f} mm")
+    print("| file | eval pts | RMS 3D before -> after [mm] | max 3D [mm] | r95 xy [mm] | r95 z [mm] |")
+    print("|---|---|---|---|---|---|")
+    for f in FILES:
+        b, a = res.extra["per_group"][f]["before"], res.extra["per_group"][f]["after"]
+        print(f"| {f} | {b['n']} | {1e3 * b['rms']:.2f} -> {1e3 * a['rms']:.2f} | {1e3 * b['max']:.1f} -> "
+              f"{1e3 * a['max']:.1f} | {1e3 * b['r95_xy']:.1f} -> {1e3 * a['r95_xy']:.1f} | "
+              f"{1e3 * b['r95_z']:.1f} -> {1e3 * a['r95_z']:.1f} |")
+    if quick:
+        return
+    # nested: selection and fit on the other four files only
+    print("nested leave-one-file-out (selection + fit on the 4 other files):")
+    print("| file | effects (selected on the others) | RMS 3D before -> after [mm] | r95 xy [mm] | r95 z [mm] |")
+    print("|---|---|---|---|---|")
+    ratios = []
+    t0 = time.perf_counter()
+    for f in FILES:
+        train = Stops.concat([parts[g] for g in FILES if g != f])
+        r = diagnose(robot, train, options=opts)
+        b = protocol_scores(robot, parts[f])
+        a = protocol_scores(robot, parts[f], r.chosen)
+        ratios.append(a["r95_xy"] / b["r95_xy"])
+        print(f"| {f} | {', '.join(e.describe() for e in r.chosen)} | {1e3 * b['rms']:.2f} -> {1e3 * a['rms']:.2f} | "
+              f"{1e3 * b['r95_xy']:.1f} -> {1e3 * a['r95_xy']:.1f} | {1e3 * b['r95_z']:.1f} -> {1e3 * a['r95_z']:.1f} |",
+              flush=True)
+    print(f"hilti_nested_time: {time.perf_counter() - t0:.1f} s")
+    print(f"hilti_nested_r95xy_ratio_mean: {np.mean(ratios):.3f} (after/before)")
+
+
+def ten_minute_bag() -> None:
+    from ppoe_core.bagio import BagWriter
+    from ppoe_core.effects import KinematicTree, apply_corrections, make_effect
+    from ppoe_ros.cli import main
+
+    urdf = (REPO / "config" / "arm7.urdf").read_text()
+    robot = parse_urdf(urdf)
+    tree = KinematicTree(robot)
+    rng = np.random.default_rng(0)
+    names = tree.joint_names
+    n_stops, period, rate = 120, 5.0, 100.0
+    targets = rng.uniform(-1.2, 1.2, (n_stops, len(names)))
+    eff = make_effect("gravity_compliance", "joint_2", robot, [2e-4])
+    T_tracker_base = lie.from_xyz_rpy([3.0, -1.0, 0.4], [0.0, 0.0, 2.0])
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = Path(tmp) / "ten_minutes"
+        t0 = time.perf_counter()
+        with BagWriter(bag) as w:
+            w.write_robot_description(urdf, 0.0)
+            prev = targets[0]
+            for k in range(n_stops):
+                ts = np.arange(0.0, period, 1.0 / rate)
+                s = np.clip(ts / (0.6 * period), 0.0, 1.0)[:, None]
+                qs = prev + (targets[k] - prev) * (3 * s ** 2 - 2 * s ** 3)  # move, then rest
+                for t, qv in zip(k * period + ts, qs):
+                    w.write_joint_state(float(t), names, qv)
+                q = {j: np.array(targets[k][i]) for i, j in enumerate(names)}
+                dq, dxi = apply_corrections([eff], q, {})
+                x = (tree.link_poses(q, dq, dxi)["tool0"] @ np.array([0.0, 0.0, 0.02, 1.0]))[:3]
+                p = T_tracker_base[:3, :3] @ x + T_tracker_base[:3, 3] + rng.normal(0, 2e-4, 3)
+                w.write_ground_truth_point(k * period + period - 0.5, "tracker", p)
+                prev = targets[k]
+        print(f"bag10min_write_time: {time.perf_counter() - t0:.1f} s")
+        print(f"bag10min_joint_states: {n_stops * int(period * rate)} messages")
+        buf = io.StringIO()
+        t0 = time.perf_counter()
+        with contextlib.redirect_stdout(buf):
+            main(["diagnose", str(bag), "--model", str(REPO / "config" / "arm7_model.yaml"), "--json"])
+        dt = time.perf_counter() - t0
+        doc = json.loads(buf.getvalue())
+        print(f"bag10min_diagnose_time: {dt:.1f} s")
+        print("bag10min_effects_found: " + "; ".join(f"{e['name']}@{e['location']} {e['parameters']}"
+                                                     for e in doc["effects"]) + " (injected: gravity_compliance@joint_2 2e-4)")
+        print(f"bag10min_realtime_ratio: {600.0 / dt:.1f} bag s per wall s")
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="at most 4 effects, no nested leave-one-file-out")
+    ap.add_argument("--skip-hilti", action="store_true")
+    ap.add_argument("--skip-bag", action="store_true")
+    args = ap.parse_args()
+    if not args.skip_bag:
+        ten_minute_bag()
+    if not args.skip_hilti:
+        hilti(args.quick)
