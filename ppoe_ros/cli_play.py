@@ -9,17 +9,21 @@ published with transient-local QoS (latched, as robot_state_publisher does), all
 other topics reliable with a deep history.  ``--loop`` starts over at the end
 (the clock then jumps back; nodes count that as a stamp reset).
 
-Exit codes: 0 done (or interrupted), 2 unreadable bag / unknown topic / type not installed.
+A topic whose message type is not installed here is skipped with a message on
+stderr (an error if it was asked for with ``--topics``).
+
+Exit codes: 0 done (or interrupted), 2 unreadable bag / unknown topic / nothing to play.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from typing import Any
 
 from ppoe_core import bagio
-from ppoe_core.errors import BagError
+from ppoe_core.errors import BagError, PpoeError
 
 __all__ = ["add_arguments", "run", "ROBOT_DESCRIPTION_TOPIC"]
 
@@ -64,7 +68,17 @@ def run(args: argparse.Namespace) -> int:
         selected = list(dict.fromkeys(args.topics))
     else:
         selected = sorted(info)
-    classes = {t: message_class(info[t][0]) for t in selected}
+    classes: dict[str, Any] = {}
+    for topic in list(selected):
+        try:
+            classes[topic] = message_class(info[topic][0])
+        except PpoeError as exc:
+            if args.topics:  # asked for by name: an error
+                raise BagError(f"bag {args.bag}: topic {topic}: {exc}") from None
+            print(f"ppoe play: skipping {topic}: {exc}", file=sys.stderr)
+            selected.remove(topic)
+    if not selected:
+        raise BagError(f"bag {args.bag}: no topic to play")
 
     rclpy.init(args=["ppoe_play"])
     node = rclpy.create_node("ppoe_play")

@@ -176,3 +176,29 @@ def test_play_loop_repeats_until_interrupted(tmp_path: Path) -> None:
     assert code == 0, player.output()
     stamps = [{"sec": m.header.stamp.sec, "nanosec": m.header.stamp.nanosec} for m in got]
     assert stamps[:len(want)] == want and stamps[len(want):2 * len(want)] == want
+
+
+def test_play_skips_types_not_installed(tmp_path: Path) -> None:
+    """A bag topic whose message package is not installed (tf2_msgs here) is skipped with a message."""
+    try:
+        import tf2_msgs  # noqa: F401
+        pytest.skip("tf2_msgs is installed here: nothing to skip")
+    except ImportError:
+        pass
+    src = tmp_path / "src"
+    with BagWriter(src) as bag:
+        bag.write_joint_state(1.0, ["j"], [0.5])
+        bag.write_message("/tf", TS.types["tf2_msgs/msg/TFMessage"](transforms=[]), 1.0)
+    env = ros_env(tmp_path)
+    proc = NodeProcess.ppoe(["play", str(src), "--delay", "0"], env, tmp_path, "play_skip")
+    try:
+        assert proc.wait(30) == 0, proc.output()
+    finally:
+        proc.stop()
+    assert "skipping /tf: message type 'tf2_msgs/msg/TFMessage' is not installed" in proc.output()
+    proc = NodeProcess.ppoe(["play", str(src), "--topics", "/tf"], env, tmp_path, "play_skip_named")
+    try:
+        assert proc.wait(30) == 2
+    finally:
+        proc.stop()
+    assert "topic /tf: message type 'tf2_msgs/msg/TFMessage' is not installed" in proc.output()
