@@ -346,3 +346,41 @@ def test_tracker_point_and_chained_accelerometer_fused_consistently():
     lo, hi = nees_bounds(6, 300)
     assert lo < np.mean(vals) < hi, (lo, np.mean(vals), hi)
     assert np.sqrt(np.mean(np.square(tilt_after))) < 0.5 * np.sqrt(np.mean(np.square(tilt_before)))
+
+
+# --------------------------------------------------------------------------- study scripts
+def _load_script(name):
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"_h3_{name}", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_table1_study_configurations_meet_their_criteria_and_fusion_helps():
+    S = _load_script("study_table1")
+    model = S.PPOEModel.from_files(S.URDF, S.MODEL)
+    rng = np.random.default_rng(0)
+    c1 = S.find_configurations(model, 1, 2, rng)
+    c2 = S.find_configurations(model, 2, 2, rng)
+    for joints, (lo, hi) in [(j, (0.5, 0.9)) for j in c1] + [(j, (1.1, np.inf)) for j in c2]:
+        d = np.linalg.norm(model.fk_mean(joints, S.CAMERA, S.TOOL)[:3, 3])
+        assert lo < d < hi
+        assert S._observation(model, joints, "centre") is not None  # some tag faces the camera
+    res = S.run_study(model, c1 + c2, 2, "centre", 1)
+    assert np.nanmean(res["ppoe"]) < 0.5 * np.nanmean(res["fk"])
+
+
+def test_contact_study_run_puts_the_fingertip_on_the_table():
+    C = _load_script("study_contact")
+    model = C.PPOEModel.from_files(C.URDF, C.MODEL)
+    rng = np.random.default_rng(1)
+    run = C.run_contact(model, C.draw_errors(rng), rng, 3, naive=False)
+    assert abs(run.pos_err_plane[0, 2]) > 0.005  # kinematics: > 5 mm off the table
+    assert abs(run.pos_err_plane[-1, 2]) < 0.003  # after contact: within the plane's 1 mm / 1 deg
+    assert run.eig[-1].min() < run.eig[0].min() and run.rejected == 0
