@@ -45,7 +45,6 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from ppoe_core import lie  # noqa: E402
 from ppoe_core.fusion import iterated_update  # noqa: E402
 from ppoe_core.measurements import TagObservation, tag_points  # noqa: E402
 from ppoe_core.model import PPOEModel  # noqa: E402
@@ -155,7 +154,7 @@ def find_configurations(model: PPOEModel, experiment: int, n: int, rng: np.rando
             if all(np.linalg.norm(qi - p) > 0.5 for p in picked):  # spread the configurations
                 picked.append(qi)
             if len(picked) == n:
-                return [_joints(p[:6], p[6:]) | {} for p in picked]
+                return [_joints(p[:6], p[6:]) for p in picked]
     raise RuntimeError(f"experiment {experiment}: found only {len(picked)} of {n} configurations")
 
 
