@@ -110,7 +110,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("min_interval", _D["min_interval"], "per source: a measurement less than this after the last one "
               "processed is skipped (counted as throttled); 0 = process all", unit="s", min_value=0.0,
               max_value=3600.0),
-    ParamSpec("pending_timeout", 0.5, "when no prior arrived for this long (steady clock), pending measurements "
+    ParamSpec("pending_timeout", 1.0, "when no prior arrived for this long (steady clock), pending measurements "
               "are processed with the newest prior (hold) or dropped", unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("correction_timeout", _D["correction_timeout"], "a carried correction fades over / is dropped "
               "after this; <= 0 = off", unit="s", max_value=1e6),
