@@ -185,11 +185,12 @@ class _JointBuffer:
             del self.values[:cut]
 
     def at(self, stamp_ns: int) -> np.ndarray | None:
-        """The latest joint positions at or before ``stamp_ns`` (None if none)."""
-        i = bisect.bisect_right(self.stamps, stamp_ns)
-        if i == 0:
+        """The latest joint positions at or before ``stamp_ns``; the oldest kept ones if all are
+        newer (the prior overtook its joint state); None if there are none."""
+        if not self.stamps:
             return None
-        return self.values[i - 1]
+        i = bisect.bisect_right(self.stamps, stamp_ns)
+        return self.values[max(i - 1, 0)]
 
 
 class FusionNode(Node):
