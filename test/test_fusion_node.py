@@ -322,3 +322,21 @@ def test_config_file_documents_every_parameter(node):
         if line.startswith("    ") and not line.strip().startswith("#") and key in values:
             assert lines[i - 1].strip().startswith("#"), f"{path.name}: '{key}' has no comment"
             assert "Default" in " ".join(lines[max(0, i - 4):i]), f"{path.name}: '{key}' comment names no default"
+
+
+def test_joint_buffer_merges_partial_messages_and_looks_up_by_stamp():
+    from ppoe_ros.fusion_node import _JointBuffer
+
+    jb = _JointBuffer(duration_ns=1_000_000_000)
+    jb.set_names(["a", "b", "c"])
+    assert jb.at(5) is None
+    jb.add(100, {"a": 1.0, "x": 9.0})  # unknown names ignored, unknown joints stay NaN
+    jb.add(200, {"b": 2.0})  # a partial message keeps the last known values of the others
+    np.testing.assert_array_equal(jb.at(150), [1.0, np.nan, np.nan])
+    np.testing.assert_array_equal(jb.at(250), [1.0, 2.0, np.nan])
+    np.testing.assert_array_equal(jb.at(50), [1.0, np.nan, np.nan])  # prior older than all: oldest
+    jb.add(2_000_000_000, {"c": float("nan")})  # NaN stays unknown; old snapshots evicted
+    assert len(jb.stamps) == 1
+    jb.add(10, {"c": 3.0})  # time went backwards: new timeline
+    assert jb.stamps == [10]
+    np.testing.assert_array_equal(jb.at(10), [1.0, 2.0, 3.0])
