@@ -153,7 +153,7 @@ class Stops:
         go = np.cumsum([0] + [len(p.group_names) for p in parts])
         joints = set.intersection(*[set(p.q) for p in parts])
         ctx: dict[str, Any] = {}
-        for key in ("time", "temperature"):
+        for key in ("time", "temperature", "gravity"):
             if all(key in p.context for p in parts):
                 ctx[key] = np.concatenate([p.context[key] for p in parts])
         for key in ("motion_sign", "joint_velocity"):
@@ -1180,7 +1180,10 @@ def stops_from_hilti(path: str | Path, robot: Robot, stationing_set: Optional[st
 
     One registration session per station (column height, solution space); the stationing points
     of ``stationing_set`` define it when scored, evaluation points are scored (README protocol);
-    context ``time`` and ``motion_sign`` from the time-ordered waypoints.
+    context ``time`` and ``motion_sign`` from the time-ordered waypoints, and ``gravity`` (the
+    direction of gravity in ``base_link``) from the base accelerometer ``tilt_sensor_base``
+    (mounted with rpy 0 on ``column_base``, which has rpy 0 in ``base_link``), so gravity
+    torques and moments follow the tilt of the robot on uneven ground.
     """
     from .importers.hilti import load_hilti
 
@@ -1188,6 +1191,7 @@ def stops_from_hilti(path: str | Path, robot: Robot, stationing_set: Optional[st
     stops = ds.stops
     J = np.array([s.joints for s in stops])
     t = np.array([s.time for s in stops])
+    a_base = np.array([s.accel_base for s in stops])  # specific force: points up
     q = {name: J[:, i] for i, name in enumerate(ds.joint_names)}
     signs = motion_signs(t, J, t)
     name = Path(path).stem
@@ -1201,7 +1205,8 @@ def stops_from_hilti(path: str | Path, robot: Robot, stationing_set: Optional[st
         reg_mask=np.array([s.role == "stationing" and (stationing_set is None or stationing_set in s.point_sets)
                            for s in stops]),
         score_mask=np.array([s.role == "evaluation" and s.solution_space != 4 for s in stops]),
-        context={"time": t - t[0], "motion_sign": {n: signs[:, i] for i, n in enumerate(ds.joint_names)}},
+        context={"time": t - t[0], "motion_sign": {n: signs[:, i] for i, n in enumerate(ds.joint_names)},
+                 "gravity": -a_base / np.linalg.norm(a_base, axis=1)[:, None]},
     )
 
 
