@@ -1094,6 +1094,22 @@ def _stop_info(path: str | Path) -> list[tuple[float, dict]]:
     return out
 
 
+def _sample_joint(t: np.ndarray, v: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Joint values at times ``at``: linear interpolation between samples, but the last sample
+    is held across a gap longer than 5 median sample periods (a static stop's burst followed
+    by its measurements, CONTRACT sec. 3)."""
+    if t.size == 0:
+        return np.full(at.shape, np.nan)
+    if t.size == 1:
+        return np.full(at.shape, v[0])
+    dt = np.diff(t)
+    gap = 5.0 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 0.0
+    i = np.clip(np.searchsorted(t, at, side="right") - 1, 0, t.size - 1)
+    j = np.minimum(i + 1, t.size - 1)
+    hold = (t[j] - t[i]) > gap
+    return np.where(hold | (at <= t[0]), v[i], np.interp(at, t, v))
+
+
 def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str] = None,
                    tracker_xyz: Sequence[float] = (0.0, 0.0, 0.0), tracker_sigma: float = 5e-4,
                    base: Optional[str] = None, tool: Optional[str] = None, pose_sigma: float = 5e-4,
@@ -1103,7 +1119,8 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str
 
     ``/ground_truth/point`` (preferred) or ``/ground_truth/pose``; joint values are interpolated
     at each measurement stamp; context ``time``, ``motion_sign`` and ``joint_velocity`` come
-    from ``/joint_states``.  One registration session per bag unless the bag carries importer
+    from ``/joint_states``, ``gravity`` (direction in the root frame) from the first ``/imu/<name>``
+    on a link rigidly fixed to the root, if any.  One registration session per bag unless the bag carries importer
     metadata ``/dataset/stop`` (``station``, ``role``, ``point_sets``): then one session per
     station, stationing stops (of ``stationing_set`` if given) define the registration and
     evaluation stops are scored.
@@ -1140,16 +1157,31 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str
     vel: dict[str, np.ndarray] = {}
     pos_cols = []
     jnames = [j for j in robot.independent_joints if j in js.names]
+    missing = [j for j in robot.path_from_root(link) if robot.joints[j].independent and j not in js.names]
+    if missing:
+        raise BagError(f"bag {path}: /joint_states never carries {missing} (needed for link {link})")
     for jn in jnames:
         col = js.positions[order, js.names.index(jn)]
         good = np.isfinite(col)
-        q[jn] = np.interp(stamps, t_js[good], col[good])
-        pos_cols.append(np.interp(t_js, t_js[good], col[good]))
-        v = np.gradient(col[good], t_js[good]) if good.sum() > 1 else np.zeros(good.sum())
-        vel[jn] = np.interp(stamps, t_js[good], v)
+        tg, cg = t_js[good], col[good]
+        q[jn] = _sample_joint(tg, cg, stamps)
+        pos_cols.append(np.interp(t_js, tg, cg))
+        v = np.gradient(cg, tg) if good.sum() > 1 else np.zeros(good.sum())
+        vel[jn] = _sample_joint(tg, v, stamps)
     signs = motion_signs(t_js, np.column_stack(pos_cols), stamps) if pos_cols else np.zeros((len(stamps), 0))
     ctx = {"time": stamps - t_js[0], "motion_sign": {j: signs[:, i] for i, j in enumerate(jnames)},
            "joint_velocity": vel}
+    # gravity direction in the root frame from an accelerometer on a link rigidly fixed to the root
+    tree = KinematicTree(robot)
+    for imu_name, imu in sorted(data.imus.items()):
+        frame = imu.frame_ids[0] if imu.frame_ids else ""
+        if (len(imu) and frame in robot.links
+                and not any(robot.joints[j].movable for j in robot.path_from_root(frame))):
+            R = tree.link_poses({}, links=[frame])[frame][:3, :3]
+            a = imu.linear_acceleration / np.linalg.norm(imu.linear_acceleration, axis=1)[:, None]
+            g = -np.column_stack([_sample_joint(imu.stamps, a[:, k], stamps) for k in range(3)]) @ R.T
+            ctx["gravity"] = g / np.linalg.norm(g, axis=1)[:, None]
+            break
     n = len(stamps)
     session = np.zeros(n, dtype=int)
     session_names = [name]
