@@ -178,3 +178,28 @@ def test_context_effects_require_their_context(tree):
     q = _random_q(tree, np.random.default_rng(3), 2)
     with pytest.raises(ModelConfigError, match="motion_sign"):
         make_effect("backlash", "joint_1", tree, [0.001]).corrections(q, {})
+
+
+def test_ppoe_model_applies_effects_like_the_tree():
+    """PPOEModel (model.py) builds the model YAML's effects with effect_from_config and must
+    place them exactly as KinematicTree does (eq. 16 hooks), mimic joints included."""
+    from ppoe_core.model import PPOEModel
+
+    urdf = (CONFIG / "arm7.urdf").read_text()
+    entries = [
+        {"name": "gravity_compliance", "location": "joint_2", "parameters": {"compliance": 3e-4}},
+        {"name": "mount_bending", "location": "mount_joint",
+         "parameters": {"compliance_x": 2e-4, "compliance_y": 1e-4}},
+        {"name": "link_error", "location": "joint_5", "parameters": {"x": 0.002, "rz": 0.01}},
+        {"name": "joint_offset", "location": "joint_6", "parameters": {"offset": 0.02}},
+    ]
+    model = PPOEModel.from_strings(urdf, {"effects": entries})
+    tree = KinematicTree(parse_urdf(urdf))
+    rng = np.random.default_rng(10)
+    q = _random_q(tree, rng, 5)
+    effects = [effect_from_config(e, tree.robot) for e in entries]
+    dq, dxi = apply_corrections(effects, q, {})
+    T_tree = tree.link_poses(q, dq, dxi)["tool0"]
+    T_model = model.fk_mean(q, "base_link", "tool0")
+    np.testing.assert_allclose(T_model, T_tree, atol=1e-12)
+    assert np.abs(T_tree - tree.link_poses(q)["tool0"]).max() > 1e-3  # the effects do act
