@@ -40,6 +40,7 @@ from typing import Any, Iterable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
+from ppoe_core import lie
 from ppoe_core.errors import BagError
 
 __all__ = [
@@ -161,58 +162,12 @@ def _stamp_s(header: Any) -> float:
     return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
 
 
-# ----------------------------------------------------------------- quaternions
-def _quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3,3) -> unit quaternion (x, y, z, w) with w >= 0."""
-    R = np.asarray(R, dtype=float)
-    tr = np.trace(R)
-    # Shepperd's method: pick the largest diagonal term for stability.
-    cands = np.array([tr, R[0, 0], R[1, 1], R[2, 2]])
-    k = int(np.argmax(cands))
-    if k == 0:
-        w = 0.5 * np.sqrt(max(1.0 + tr, 0.0))
-        q = np.array([(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w),
-                      (R[1, 0] - R[0, 1]) / (4 * w), w])
-    elif k == 1:
-        x = 0.5 * np.sqrt(max(1.0 + 2 * R[0, 0] - tr, 0.0))
-        q = np.array([x, (R[0, 1] + R[1, 0]) / (4 * x), (R[0, 2] + R[2, 0]) / (4 * x),
-                      (R[2, 1] - R[1, 2]) / (4 * x)])
-    elif k == 2:
-        y = 0.5 * np.sqrt(max(1.0 + 2 * R[1, 1] - tr, 0.0))
-        q = np.array([(R[0, 1] + R[1, 0]) / (4 * y), y, (R[1, 2] + R[2, 1]) / (4 * y),
-                      (R[0, 2] - R[2, 0]) / (4 * y)])
-    else:
-        z = 0.5 * np.sqrt(max(1.0 + 2 * R[2, 2] - tr, 0.0))
-        q = np.array([(R[0, 2] + R[2, 0]) / (4 * z), (R[1, 2] + R[2, 1]) / (4 * z), z,
-                      (R[1, 0] - R[0, 1]) / (4 * z)])
-    q = q / np.linalg.norm(q)
-    return q if q[3] >= 0 else -q
-
-
-def _matrix_from_quat(q: np.ndarray) -> np.ndarray:
-    """Quaternions (..., 4) (x, y, z, w), normalised here -> rotations (..., 3, 3)."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    R = np.empty(q.shape[:-1] + (3, 3))
-    R[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    R[..., 0, 1] = 2 * (x * y - z * w)
-    R[..., 0, 2] = 2 * (x * z + y * w)
-    R[..., 1, 0] = 2 * (x * y + z * w)
-    R[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    R[..., 1, 2] = 2 * (y * z - x * w)
-    R[..., 2, 0] = 2 * (x * z - y * w)
-    R[..., 2, 1] = 2 * (y * z + x * w)
-    R[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return R
-
-
 def _pose_msg(T: np.ndarray) -> Any:
     types = typestore().types
     T = np.asarray(T, dtype=float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise BagError(f"pose must be a finite 4x4 matrix, got shape {T.shape}")
-    q = _quat_from_matrix(T[:3, :3])
+    q = lie.quat_from_matrix(T[:3, :3])
     return types["geometry_msgs/msg/Pose"](
         position=types["geometry_msgs/msg/Point"](x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
         orientation=types["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]),
@@ -893,7 +848,7 @@ def _pose_to_T(pose: Any) -> np.ndarray:
     q = np.array([o.x, o.y, o.z, o.w], dtype=float)
     if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
         raise ValueError(f"invalid quaternion {q}")
-    T[:3, :3] = _matrix_from_quat(q)
+    T[:3, :3] = lie.matrix_from_quat(q)
     T[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
     return T
 

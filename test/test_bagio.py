@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ppoe_core import bagio
+from ppoe_core import bagio, lie
 from ppoe_core.errors import BagError
 
 
@@ -15,7 +15,7 @@ def _rand_pose(rng: np.random.Generator) -> np.ndarray:
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
     T = np.eye(4)
-    T[:3, :3] = bagio._matrix_from_quat(q)
+    T[:3, :3] = lie.matrix_from_quat(q)
     T[:3, 3] = rng.normal(size=3)
     return T
 
