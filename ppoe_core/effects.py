@@ -44,7 +44,6 @@ Context keys (``context`` of :meth:`Effect.corrections`), each broadcast like th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
