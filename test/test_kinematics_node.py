@@ -170,7 +170,7 @@ def test_bad_messages_logged_counted_and_node_survives(live) -> None:
     assert proc.alive()
 
 
-def test_broken_urdf_on_topic_is_refused_and_old_model_kept(live) -> None:
+def test_broken_urdf_on_topic_is_refused_and_old_model_kept(live, model) -> None:
     probe, proc = live["probe"], live["proc"]
     pub = probe.publisher("/robot_description", String, LATCHED_QOS)
     pub.publish(String(data="<robot name='x'><link name='a'/><joint name='j' type='revolute'></robot>"))
@@ -180,6 +180,11 @@ def test_broken_urdf_on_topic_is_refused_and_old_model_kept(live) -> None:
     _send(live, ARM, [0.2] * 7)
     _wait_count(live, live["poses"], n0 + 1, "a pose after the broken URDF")
     probe.node.destroy_publisher(pub)
+    T, cov_ros, _, _ = pose_cov_from_msg(live["poses"][n0])
+    T_ref, cov_ref = model.fk(dict(zip(ARM, [0.2] * 7)), "base_link", "tool0")  # the old (arm7) model
+    np.testing.assert_allclose(T, T_ref, atol=1e-12)
+    np.testing.assert_allclose(cov_ros, lie.cov_local_to_ros(T_ref, cov_ref), rtol=1e-10, atol=1e-18)
+    assert proc.alive()
 
 
 def test_stamp_reset_starts_new_timeline(live) -> None:
