@@ -306,9 +306,26 @@ class _Ctx:
         return ModelConfigError(f"{self.at(obj, key)}: {path}: {msg}")
 
 
+def _kind(val: Any) -> str:
+    """What a YAML value is, in the user's words (no internal class names such as ``_LList``)."""
+    if val is None:
+        return "nothing (null)"
+    if isinstance(val, Mapping):
+        return "a mapping"
+    if isinstance(val, str):
+        return f"the string {val!r}"
+    if isinstance(val, (list, tuple)):
+        return f"a list of {len(val)} item{'' if len(val) == 1 else 's'}"
+    if isinstance(val, bool):
+        return f"the boolean {val}"
+    if isinstance(val, (int, float)):
+        return f"the number {val}"
+    return type(val).__name__
+
+
 def _mapping(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str) -> Mapping:
     if not isinstance(val, Mapping):
-        raise ctx.error(parent, key, path, f"must be a mapping, got {type(val).__name__}")
+        raise ctx.error(parent, key, path, f"must be a mapping, got {_kind(val)}")
     return val
 
 
@@ -705,7 +722,7 @@ def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Rob
             data = {}
     ctx = _Ctx(where)
     if not isinstance(data, Mapping):
-        raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {type(data).__name__}")
+        raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {_kind(data)}")
     _check_keys(ctx, data, tuple(_SECTIONS), "model")
     kwargs = {name: fn(ctx, robot, data.get(name), data) for name, fn in _SECTIONS.items()}
     return ModelConfig(source=where, effect_wheres=list(ctx.effect_wheres), **kwargs)

@@ -138,7 +138,7 @@ def test_unknown_key_in_entry(robot, tmp_path):
         ("perturbations:\n  j1: {sigma: [0, 0, 0, 0, 0, .nan]}\n", ModelConfigError, "finite"),
         ("perturbations:\n  j1: {sigma: [0, 0, 0, 0, 0, x]}\n", ModelConfigError, "must be a number"),
         ("perturbations:\n  j1: {}\n", ModelConfigError, "exactly one of 'sigma'"),
-        ("perturbations:\n  j1: [1, 2]\n", ModelConfigError, "must be a mapping"),
+        ("perturbations:\n  j1: [1, 2]\n", ModelConfigError, "must be a mapping, got a list of 2 items"),
         ("perturbations:\n  j1: {covariance: [[1, 0], [0, 1]]}\n", ModelConfigError, "6x6"),
         ("contact:\n  plane: {frame: base_link}\n  tool_point: {link: tool0}\n", ModelConfigError, "'sigma'"),
         ("contact:\n  plane: {frame: base_link}\n  sigma: [1, 1, 1, 1, 1, 1]\n  tool_point: {link: tool0}\n"
@@ -148,13 +148,14 @@ def test_unknown_key_in_entry(robot, tmp_path):
          ModelConfigError, "unknown key 'note'"),
         ("perturbations: {j1: {sigma: [0, 0, 0, 0, 0, 1]}}\nperturbations: {}\n", ModelConfigError, "duplicate key"),
         ("perturbations:\n  j1: {sigma: [0, 0\n", ModelConfigError, "does not parse"),
-        ("- just\n- a list\n", ModelConfigError, "mapping at the top level"),
+        ("- just\n- a list\n", ModelConfigError, "mapping at the top level, got a list of 2 items"),
     ],
 )
 def test_bad_inputs(robot, text, exc, pattern):
     msg = _err(robot, text, exc)
     assert re.search(re.escape(pattern), msg), msg
     assert msg.startswith("<string>")
+    assert "_LList" not in msg and "_LDict" not in msg, msg  # no internal class names
 
 
 def _cov_yaml(C):
