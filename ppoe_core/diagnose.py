@@ -920,6 +920,12 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
                               for g in np.unique(stops.group)}
     if fitted_jn:
         res.extra["fitted_joint_noise"] = fitted_jn
+    # a systematic residual remains if the held-out mean squared Mahalanobis distance under the
+    # declared covariance exceeds its expectation 3 by more than 3 standard errors (chi^2_3 mean)
+    m2 = float(np.nanmean(e2))
+    n_ok = int(np.isfinite(e2).sum())
+    res.extra["heldout_mahalanobis2"] = m2
+    res.extra["unexplained_significant"] = bool(m2 > 3.0 + 3.0 * math.sqrt(6.0 / max(n_ok, 1)))
     res.summary = _summary(res)
     return res
 
@@ -967,9 +973,10 @@ def _summary(res: DiagnoseResult) -> str:
         head = "no catalogue effect explains the residual significantly"
     tail = (f"held-out RMS {1e3 * res.residual_before:.3f} mm -> {1e3 * res.residual_after:.3f} mm "
             f"(noise floor {1e3 * res.noise_floor:.3f} mm)")
-    if res.residual_after > 1.5 * res.noise_floor:
+    if res.extra.get("unexplained_significant"):
         tail += (f"; UNEXPLAINED: {1e3 * res.unexplained:.3f} mm RMS above the noise floor is not "
-                 f"explained by any catalogue effect")
+                 f"explained by any catalogue effect (held-out mean Mahalanobis^2 "
+                 f"{res.extra['heldout_mahalanobis2']:.2f}, expected 3)")
     return head + "; " + tail
 
 
