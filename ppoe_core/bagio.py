@@ -254,10 +254,17 @@ class BagWriter:
     # -- lifecycle
     def open(self) -> "BagWriter":
         """Create the bag directory and open it for writing."""
-        from rosbags.rosbag2 import Writer
+        from rosbags.rosbag2 import Writer, WriterError
 
-        self._writer = Writer(self.path, version=9, storage_plugin=self._storage)
-        self._writer.open()
+        writer = Writer(self.path, version=9, storage_plugin=self._storage)
+        try:
+            writer.open()
+        except OSError as exc:
+            raise BagError(f"bag {self.path}: cannot create the bag directory: "
+                           f"{exc.strerror or exc} ({exc.filename or self.path})") from None
+        except WriterError as exc:
+            raise BagError(f"bag {self.path}: cannot open for writing: {exc}") from None
+        self._writer = writer
         return self
 
     def close(self) -> None:

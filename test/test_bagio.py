@@ -230,3 +230,12 @@ def test_both_image_topics_and_empty_tag_observations(tmp_path: Path) -> None:
     with pytest.raises(BagError, match="/tag_bearing/observations: ids, corners, uv and xy"):
         with bagio.BagWriter(tmp_path / "b2") as bag:
             bag.write_tag_observations(1.0, "cam", [1, 2], [0], [[1.0, 2.0]], [[0.1, 0.2]])
+
+
+def test_writer_in_a_path_that_cannot_be_created(tmp_path: Path) -> None:
+    """A bag directory under a regular file: BagError naming the bag, not an OSError traceback."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("x")
+    with pytest.raises(BagError, match=r"bag .*a_file/bag: cannot create the bag directory"):
+        with bagio.BagWriter(blocker / "bag"):
+            pass
