@@ -211,6 +211,8 @@ def _joints_map(d: Any, path: str, key: str, robot: Robot) -> dict[str, float]:
             out[str(name)] = float(v)
         except (TypeError, ValueError):
             raise ScenarioError(f"{_where(path, key + '.' + str(name))} must be a number, got {v!r}") from None
+        if not math.isfinite(out[str(name)]):
+            raise ScenarioError(f"{_where(path, key + '.' + str(name))} must be finite, got {v!r}")
     return out
 
 

@@ -255,6 +255,7 @@ def test_contact_wrench_reaches_the_commanded_force(tmp_path: Path) -> None:
      "needs a movable joint"),
     ({"trajectory": {"joint_rate": 20.0, "stops": [{"joints": {}}]}}, r"joint_rate = 20.0 out of range"),
     ({"trajectory": {"stops": [{"joints": {"nojoint": 1.0}}]}}, "'nojoint' is not a movable joint"),
+    ({"trajectory": {"stops": [{"joints": {"joint_2": float("nan")}}]}}, r"joints.joint_2 must be finite"),
     ({"camera": {"rate": 60.0}}, r"camera.rate = 60.0 out of range"),
 ])
 def test_scenario_errors_name_file_and_key(tmp_path: Path, patch: dict, match: str) -> None:
