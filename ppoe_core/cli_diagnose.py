@@ -39,6 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-t", type=float, default=4.0,
                         help="minimum paired t statistic of that reduction (default 4)")
     parser.add_argument("--max-effects", type=int, default=8, help="at most this many effects (default 8)")
+    parser.add_argument("--measurement", default="auto", choices=("auto", "point", "pose"),
+                        help="residuals of /ground_truth/point (auto: preferred) or /ground_truth/pose")
     parser.add_argument("--stationing-set", default="cross", choices=("cross", "square", "all"),
                         help="stationing set defining the registration in bags with /dataset/stop roles")
 
@@ -69,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
             base=args.base or (frames.base if frames else None),
             tool=args.tool or (frames.tool if frames else None),
             stationing_set=None if args.stationing_set == "all" else args.stationing_set,
-            group_name=f"{i}:{Path(bag).name}"))
+            group_name=f"{i}:{Path(bag).name}", measurement=args.measurement))
     stops = Stops.concat(parts)
     opts = DiagnoseOptions(folds=args.folds, cv=args.cv, min_gain=args.min_gain, min_t=args.min_t,
                            max_effects=args.max_effects)

@@ -360,16 +360,21 @@ class LinearProblem:
         Whitening of the position residual in base-frame axes, ``L_i^-1`` with
         ``L_i L_i^T = C_i`` the expected residual covariance of stop ``i`` (the model's PPOE
         covariance of the point plus the sensor noise); None: ``I / sigma``.
+    W_rot : (N, 3, 3) or None
+        ``pose`` only: whitening of the rotation residual (tangent at the tool), from the
+        rotation block of the model's covariance plus ``sigma_rot^2 I``; None: ``I / sigma_rot``.
     """
 
     def __init__(self, stops: Stops, x0: np.ndarray, R0: Optional[np.ndarray],
-                 W_base: Optional[np.ndarray] = None) -> None:
+                 W_base: Optional[np.ndarray] = None, W_rot: Optional[np.ndarray] = None) -> None:
         self.stops = stops
         self.x0 = x0
         self.R0 = R0
         self.register = stops.kind == "point"
         self.W = (np.broadcast_to(np.eye(3) / stops.sigma, (len(stops), 3, 3)) if W_base is None
                   else W_base)
+        self.W_rot = (np.broadcast_to(np.eye(3) / stops.sigma_rot, (len(stops), 3, 3)) if W_rot is None
+                      else W_rot)
         if stops.kind == "pose":
             self.r0_rot = lie.so3_log(np.swapaxes(R0, -1, -2) @ stops.R_meas)
 
@@ -410,7 +415,7 @@ class LinearProblem:
             rb = np.einsum("nji,nj->ni", Tn[:, :3, :3], r[:, :3])
         else:
             rb = r[:, :3]
-            out[:, 3:] = r[:, 3:] / self.stops.sigma_rot
+            out[:, 3:] = np.einsum("nij,nj->ni", self.W_rot[rows], r[:, 3:])
         out[:, :3] = np.einsum("nij,nj->ni", self.W[rows], rb)
         return out
 
@@ -493,8 +498,8 @@ class LinearProblem:
                     break
             else:
                 r = self.whitened(self.residuals(G, theta, regs, rows), regs, rows)
-                Jw = -np.concatenate([Wr @ Gr[:, :3], Gr[:, 3:] / s.sigma_rot], axis=1)
-                Jf = Jw.reshape(-1, P)
+                Jw = -np.concatenate([Wr @ Gr[:, :3], self.W_rot[rows] @ Gr[:, 3:]], axis=1)
+                Jf = Jw.reshape(Jw.shape[0] * Jw.shape[1], P)
                 H_tt = H_red = Jf.T @ Jf
                 dtheta = -_solve(H_red, Jf.T @ r.reshape(-1)) if P else np.zeros(0)
                 theta = theta + dtheta
@@ -797,7 +802,11 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     C_exp = _point_covariance(tree, stops, poses, dq0, dxi0, perturbation_cov or {}, joint_noise or {})
     C_exp = C_exp + stops.sigma ** 2 * np.eye(3)
     W_base = np.linalg.inv(np.linalg.cholesky(C_exp))
-    problem = LinearProblem(stops, x0, R0, W_base)
+    W_rot = None
+    if stops.kind == "pose":
+        C_rot = _rotation_covariance(stops, Fq, Fx, perturbation_cov or {}, joint_noise or {})
+        W_rot = np.linalg.inv(np.linalg.cholesky(C_rot + stops.sigma_rot ** 2 * np.eye(3)))
+    problem = LinearProblem(stops, x0, R0, W_base, W_rot)
     cands = []
     for eff in candidate_effects(tree, stops):
         c = Candidate(eff, _measurement_jacobian(tree, stops, eff, nominal, (Jq, Jx, Fq, Fx), base_R))
@@ -870,7 +879,7 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
                  *tree.frame_jacobian(stops.q, stops.link, pk, dqk, dxik))
         Gk = np.concatenate([_measurement_jacobian(tree, stops, c.effect, nominal, chain, base_R)
                              for c in chosen], axis=-1)
-        pk_problem = LinearProblem(stops, xk, Rk, W_base)
+        pk_problem = LinearProblem(stops, xk, Rk, W_base, W_rot)
         step = pk_problem.fit(Gk, all_rows, iterations=6)
         theta = theta + step.theta
         ins_after = _rms3(pk_problem.residuals(Gk, step.theta, step.regs, step.rows))
@@ -978,6 +987,20 @@ def _summary(res: DiagnoseResult) -> str:
                  f"explained by any catalogue effect (held-out mean Mahalanobis^2 "
                  f"{res.extra['heldout_mahalanobis2']:.2f}, expected 3)")
     return head + "; " + tail
+
+
+def _rotation_covariance(stops: Stops, Fq: Mapping, Fx: Mapping, pert: Mapping[str, np.ndarray],
+                         jnoise: Mapping[str, float]) -> np.ndarray:
+    """First-order PPOE covariance (N, 3, 3) of the measured frame's rotation (right tangent at
+    the frame) from the perturbation covariances and joint noise (rotation rows of eq. 18)."""
+    C = np.zeros((len(stops), 3, 3))
+    for jn, F in Fx.items():
+        if jn in pert:
+            C += F[:, 3:] @ pert[jn] @ np.swapaxes(F[:, 3:], -1, -2)
+    for jn, sd in jnoise.items():
+        if jn in Fq:
+            C += sd ** 2 * Fq[jn][:, 3:, None] * Fq[jn][:, None, 3:]
+    return C
 
 
 def _point_covariance(tree: KinematicTree, stops: Stops, poses: Mapping, dq: Mapping, dxi: Mapping,
@@ -1121,10 +1144,11 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str
                    tracker_xyz: Sequence[float] = (0.0, 0.0, 0.0), tracker_sigma: float = 5e-4,
                    base: Optional[str] = None, tool: Optional[str] = None, pose_sigma: float = 5e-4,
                    pose_sigma_rot: float = 1e-3, stationing_set: Optional[str] = "cross",
-                   group_name: Optional[str] = None) -> Stops:
+                   group_name: Optional[str] = None, measurement: str = "auto") -> Stops:
     """Measurements of a contract bag as :class:`Stops`.
 
-    ``/ground_truth/point`` (preferred) or ``/ground_truth/pose``; joint values are interpolated
+    ``/ground_truth/point`` (preferred by ``measurement="auto"``) or ``/ground_truth/pose``
+    (``measurement="point"`` / ``"pose"`` forces one); joint values are interpolated
     at each measurement stamp; context ``time``, ``motion_sign`` and ``joint_velocity`` come
     from ``/joint_states``, ``gravity`` (direction in the root frame) from the first ``/imu/<name>``
     on a link rigidly fixed to the root, if any.  One registration session per bag unless the bag carries importer
@@ -1139,7 +1163,11 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str
     if len(js) == 0:
         raise BagError(f"bag {path}: no /joint_states")
     name = group_name or Path(path).name
-    if len(data.ground_truth_point):
+    if measurement not in ("auto", "point", "pose"):
+        raise PpoeError(f"diagnose: measurement must be auto, point or pose, not {measurement!r}")
+    use_point = len(data.ground_truth_point) > 0 and measurement in ("auto", "point")
+    use_pose = len(data.ground_truth_pose) > 0 and measurement in ("auto", "pose")
+    if use_point:
         kind, meas, stamps = "point", data.ground_truth_point.p, data.ground_truth_point.stamps
         link = tracker_link
         if link is None:
@@ -1147,16 +1175,21 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str
                                    f"model's tracker.link names the link carrying the reflector")
         point = np.asarray(tracker_xyz, dtype=float)
         sigma, R_meas = tracker_sigma, None
-    elif len(data.ground_truth_pose):
+    elif use_pose:
         kind, stamps = "pose", data.ground_truth_pose.stamps
+        frame_ids = set(data.ground_truth_pose.frame_ids)
+        if base is not None and frame_ids - {base}:
+            raise BagError(f"bag {path}: /ground_truth/pose is in frame(s) {sorted(frame_ids)}, "
+                           f"not the base frame {base!r} given by --base/frames.base")
+        base = base or next(iter(frame_ids))
         meas, R_meas = data.ground_truth_pose.T[:, :3, 3], data.ground_truth_pose.T[:, :3, :3]
         link = tool
         if link is None:
             raise ModelConfigError(f"bag {path} has /ground_truth/pose but no --tool/frames.tool")
         point, sigma = np.zeros(3), pose_sigma
     else:
-        raise BagError(f"bag {path}: neither /ground_truth/point nor /ground_truth/pose: nothing to "
-                       f"diagnose against")
+        raise BagError(f"bag {path}: no /ground_truth/point or /ground_truth/pose "
+                       f"(measurement={measurement}): nothing to diagnose against")
     robot.check_link(link)
     order = np.argsort(js.stamps, kind="stable")
     t_js = js.stamps[order]

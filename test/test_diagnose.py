@@ -207,14 +207,16 @@ def test_hilti_leave_one_file_out_lowers_heldout_rms():
 
 
 BAGS = REPO / "bags"
-SHIPPED = [("no_effect", None), ("effect_joint_offset", "joint_offset"),
-           ("effect_gravity_compliance", "gravity_compliance"), ("effect_mount_bending", "mount_bending"),
-           ("effect_unexplained", None)]
+SHIPPED = [("no_effect", None, "point"), ("effect_joint_offset", "joint_offset", "point"),
+           ("effect_gravity_compliance", "gravity_compliance", "point"),
+           ("effect_mount_bending", "mount_bending", "point"), ("effect_unexplained", None, "point"),
+           ("effect_mount_bending", "mount_bending", "pose"), ("effect_unexplained", None, "pose")]
 
 
-@pytest.mark.parametrize("bag,expected", SHIPPED)
-def test_shipped_bags(bag, expected):
-    """The CLI on H5's simulated bags (model config/arm7_model.yaml does not declare the effect):
+@pytest.mark.parametrize("bag,expected,measurement", SHIPPED)
+def test_shipped_bags(bag, expected, measurement):
+    """The CLI on the shipped simulated bags (config/arm7_model.yaml does not declare the effect),
+    against the tracker points (registration estimated) and the ground-truth poses:
     the right effect at the right location with the truth inside the CI, nothing on no_effect,
     and the out-of-catalogue transmission error left unexplained."""
     if not (BAGS / bag).exists():
@@ -226,7 +228,8 @@ def test_shipped_bags(bag, expected):
 
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        assert main(["diagnose", str(BAGS / bag), "--model", str(CONFIG / "arm7_model.yaml"), "--json"]) == 0
+        assert main(["diagnose", str(BAGS / bag), "--model", str(CONFIG / "arm7_model.yaml"), "--json",
+                     "--measurement", measurement]) == 0
     doc = json.loads(out.getvalue())
     truth = yaml.safe_load((BAGS / f"{bag}.truth.yaml").read_text())["effects"]
     if expected is None:
