@@ -242,3 +242,18 @@ def test_shipped_bags(bag, expected, measurement):
         assert (e["name"], e["location"]) == (t["name"], t["location"])
         assert _inside(e, t["parameters"]), (e["ci"], t["parameters"])
         assert doc["residual_after"] < doc["residual_before"]
+
+
+@pytest.mark.datasets
+def test_motoman_tracker_heldout_rms_goes_down():
+    d = DATASETS / "motoman_leica"
+    if not (d / "leica_right_hand_6x6x6_dataset.mat").exists():
+        pytest.fail(f"Motoman dataset not found in {d} (set PPOE_DATASETS)")
+    from ppoe_core.diagnose import stops_from_motoman
+
+    robot = parse_urdf(d / "motoman_right.urdf")
+    stops = stops_from_motoman(d / "leica_right_hand_6x6x6_dataset.mat", robot)
+    res = diagnose(robot, stops, options=DiagnoseOptions(max_effects=2))
+    # README: rigid fit of the nominal LR1 to the Leica points, 0.34 mm RMS (in-sample)
+    assert res.residual_before_insample == pytest.approx(0.34e-3, abs=0.01e-3)
+    assert res.residual_after < 0.5 * res.residual_before
