@@ -551,3 +551,26 @@ def test_fourth_order_batch_last_matches_reference_form():
     c1, c2 = A @ A.transpose(0, 2, 1), B @ B.transpose(0, 2, 1)
     out = _compound4_batch_last(np.moveaxis(c1, 0, -1), np.moveaxis(c2, 0, -1))
     np.testing.assert_allclose(np.moveaxis(out, -1, 0), compound_fourth_order(c1, c2), rtol=1e-12, atol=1e-16)
+
+
+def test_core_never_imports_ros() -> None:
+    """Every ppoe_core module (and the ``ppoe`` dispatcher) imports without rclpy or ROS message packages.
+
+    Run in a fresh interpreter: other tests of the session import rclpy themselves."""
+    import subprocess
+    import sys
+
+    code = (
+        "import importlib, pkgutil, sys, ppoe_core, ppoe_ros.cli\n"
+        "names = [m.name for m in pkgutil.walk_packages(ppoe_core.__path__, 'ppoe_core.')]\n"
+        "assert len(names) > 15, names\n"
+        "for n in names: importlib.import_module(n)\n"
+        "ros = ('rclpy', 'rcl_interfaces', 'geometry_msgs', 'sensor_msgs', 'std_msgs', 'diagnostic_msgs',\n"
+        "       'rosgraph_msgs', 'builtin_interfaces')\n"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in ros)\n"
+        "print(len(names), bad)\n"
+        "sys.exit(1 if bad else 0)\n"
+    )
+    repo = Path(__file__).resolve().parents[1]
+    res = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
