@@ -277,8 +277,8 @@ class ProgressBar:
         width = 30
         bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
         el = now - self._t0
-        eta = el / frac - el if frac > 0 else float("nan")
-        self.stream.write(f"\r{self.label} [{bar}] {100 * frac:5.1f}% {el:6.1f}s eta {eta:6.1f}s")
+        eta = f"{el / frac - el:6.1f}s" if frac > 0 else "     ?"
+        self.stream.write(f"\r{self.label} [{bar}] {100 * frac:5.1f}% {el:6.1f}s eta {eta}")
         self.stream.flush()
 
     def close(self) -> None:
@@ -1012,7 +1012,12 @@ def write_report(ev: Evaluation, out_dir: str | Path) -> list[Path]:
     for name in METHODS:
         if f"{name}_nees" in ev.samples:
             ax.semilogy(x, ev.samples[f"{name}_nees"], ".", ms=3, label=_LABELS[name])
-    ax.set_ylabel("NEES")
+    dof = ev.summary["methods"]["fk"]["nees"]["dof"]
+    import scipy.stats
+
+    for q in (0.025, 0.975):
+        ax.axhline(float(scipy.stats.chi2.ppf(q, dof)), color="grey", lw=0.8, ls="--")
+    ax.set_ylabel(f"NEES ({dof} dof; 95 % band)")
     ax.set_xlabel("scored ground-truth sample")
     ax.grid(alpha=0.3)
     fig.tight_layout()

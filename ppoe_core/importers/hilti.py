@@ -370,12 +370,12 @@ def import_hilti(
         ``counts`` (messages per topic) and ``model`` (path of the written model YAML).
     """
     path, out = Path(path), Path(out)
+    dataset = load_hilti(path)
     urdf_path = Path(urdf) if urdf is not None else path.with_name("trailblazer.urdf")
     try:
         urdf_xml = urdf_path.read_text()
     except OSError as exc:
         raise DatasetError(f"{urdf_path}: cannot read the URDF for {path} (use --urdf): {exc}") from None
-    dataset = load_hilti(path)
     if not dataset.stops:
         raise DatasetError(f"{path}: no waypoints")
     counts = write_hilti_bag(dataset, urdf_xml, out, overwrite=overwrite)

@@ -384,13 +384,13 @@ def import_motoman(
         ``counts`` (messages per topic) and ``model`` (path of the written model YAML).
     """
     path, model_yaml, out = Path(path), Path(model_yaml), Path(out)
+    dataset = load_motoman(path)
+    cameras = load_motoman_cameras(model_yaml)
     urdf_path = Path(urdf) if urdf is not None else model_yaml.with_name("motoman_right.urdf")
     try:
         urdf_xml = urdf_path.read_text()
     except OSError as exc:
         raise DatasetError(f"{urdf_path}: cannot read the URDF (use --urdf): {exc}") from None
-    dataset = load_motoman(path)
-    cameras = load_motoman_cameras(model_yaml)
     counts = write_motoman_bag(dataset, cameras, urdf_xml, out, overwrite=overwrite)
     model_out = Path(ppoe_model_out) if ppoe_model_out is not None else out.with_name(out.name + ".model.yaml")
     header = (
