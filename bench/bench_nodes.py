@@ -49,6 +49,8 @@ URDF = REPO / "config" / "arm7.urdf"
 MODEL = REPO / "config" / "arm7_model.yaml"
 ARM = [f"joint_{i}" for i in range(1, 8)] + ["finger_left_joint"]
 
+__all__ = ["feed", "run_mode", "fk_call_us", "main"]
+
 
 def _env(domain: int) -> dict[str, str]:
     env = dict(os.environ)

@@ -25,6 +25,8 @@ from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
 
+__all__ = ["generate_launch_description"]
+
 PACKAGE = "ppoe_ros"
 
 

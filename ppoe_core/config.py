@@ -393,10 +393,24 @@ def _sigma_or_cov(ctx: _Ctx, d: Mapping, path: str, what: str) -> np.ndarray:
 
 
 def low_rank_factor(cov: np.ndarray, rel_tol: float = 1e-12) -> np.ndarray:
-    """Factor ``L`` (6, r) with ``cov = L L^T``, keeping only the non-zero directions.
+    """Factor ``L`` with ``cov = L L^T``, keeping only the non-zero directions.
 
     A diagonal covariance gives the scaled unit columns of its non-zero sigmas; a full one
     its eigenvectors scaled by sqrt(eigenvalue) above ``rel_tol * max eigenvalue``.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (n, n)
+        Symmetric positive semi-definite covariance (already validated), e.g. a joint's
+        perturbation covariance in the tangent space at the joint origin (eq. 16).
+    rel_tol : float
+        Eigenvalues at or below ``rel_tol`` times the largest one are dropped.
+
+    Returns
+    -------
+    ndarray, shape (n, r)
+        ``r`` = number of kept directions (0 for a zero covariance); columns live in the same
+        tangent space as ``cov``.
     """
     cov = np.asarray(cov, dtype=float)
     n = cov.shape[0]
