@@ -43,6 +43,7 @@ import numpy as np
 import yaml
 
 from ppoe_core.errors import DatasetError
+from ppoe_core.importers import STOP_TOPIC  # re-exported
 
 __all__ = [
     "HiltiStop",
@@ -63,7 +64,6 @@ __all__ = [
 ]
 
 #: topic of the per-stop JSON description (station, role); std_msgs/String
-from ppoe_core.importers import STOP_TOPIC  # noqa: E402  (re-exported)
 #: frame_id of ``/ground_truth/point`` (the total station's own frame, not in the URDF)
 TRACKER_FRAME = "total_station"
 #: IMU topic -> URDF frame of the accelerometer

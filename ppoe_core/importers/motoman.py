@@ -50,6 +50,7 @@ import yaml
 
 from ppoe_core import lie
 from ppoe_core.errors import DatasetError
+from ppoe_core.importers import STOP_TOPIC  # re-exported
 
 __all__ = [
     "MotomanCamera",
@@ -79,7 +80,6 @@ CAMERA_INFO_TOPIC = "/camera/camera_info"
 #: frame_id of /ground_truth/point (the Leica tracker frame; not in the URDF)
 TRACKER_FRAME = "leica"
 OBSERVATION_TOPIC = "/tag_bearing/observations"
-from ppoe_core.importers import STOP_TOPIC  # noqa: E402  (re-exported)
 #: stamp of the first pose [s] and spacing of poses [s] (the data carry no time)
 T0_S = 1_600_000_000.0
 STOP_PERIOD_S = 1.0
