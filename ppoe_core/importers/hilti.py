@@ -63,7 +63,6 @@ __all__ = [
     "ACCEL_SIGMA",
 ]
 
-#: topic of the per-stop JSON description (station, role); std_msgs/String
 #: frame_id of ``/ground_truth/point`` (the total station's own frame, not in the URDF)
 TRACKER_FRAME = "total_station"
 #: IMU topic -> URDF frame of the accelerometer
