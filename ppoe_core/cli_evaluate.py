@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.json:
             print("wrote " + ", ".join(str(p) for p in paths), file=sys.stderr)
     if args.json:
-        json.dump(ev.to_dict(), sys.stdout)
+        json.dump(ev.to_dict(), sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
     else:
         print(markdown_report(ev))

@@ -423,12 +423,27 @@ class Evaluation:
     samples: dict[str, np.ndarray] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        """The JSON document printed by ``ppoe evaluate --json``."""
-        return self.summary
+        """The JSON document printed by ``ppoe evaluate --json`` (NaN / inf as ``null``: strict JSON)."""
+        return _json_safe(self.summary)
 
     def table_rows(self) -> list[tuple[str, dict[str, Any]]]:
         """``[(method, metrics), ...]`` for the methods present, in :data:`METHODS` order."""
         return [(m, self.summary["methods"][m]) for m in METHODS if m in self.summary["methods"]]
+
+
+def _json_safe(obj: Any) -> Any:
+    """Copy of ``obj`` with non-finite floats replaced by None and numpy scalars as Python numbers."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, (np.floating, float)):
+        return float(obj) if math.isfinite(float(obj)) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
 
 
 # ----------------------------------------------------------------------------
@@ -991,7 +1006,7 @@ def write_report(ev: Evaluation, out_dir: str | Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / "evaluation.md", out / "evaluation.json", out / "errors.png"]
     paths[0].write_text(markdown_report(ev))
-    paths[1].write_text(json.dumps(ev.summary, indent=2, allow_nan=True) + "\n")
+    paths[1].write_text(json.dumps(ev.to_dict(), indent=2, allow_nan=False) + "\n")
     import matplotlib
 
     matplotlib.use("Agg")

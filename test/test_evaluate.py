@@ -114,6 +114,13 @@ def test_nees_stats_consistent_chi2():
     assert nees_stats(np.array([np.nan]), 6)["n"] == 0
 
 
+def test_json_document_is_strict():
+    from ppoe_core.evaluate import Evaluation
+
+    ev = Evaluation({"a": float("nan"), "b": [np.float64(1.5), np.inf], "c": {"n": np.int64(3)}})
+    assert json.dumps(ev.to_dict(), allow_nan=False) == '{"a": null, "b": [1.5, null], "c": {"n": 3}}'
+
+
 def test_progress_bar_only_when_enabled():
     s = io.StringIO()
     bar = ProgressBar(10, enabled=True, stream=s)
@@ -227,6 +234,9 @@ def test_tiny_bag_fk_error_is_exact(tmp_path):
     assert "only forward kinematics" in markdown_report(ev)
     paths = write_report(ev, tmp_path / "r")
     assert all(p.is_file() for p in paths)
+    # strict JSON: the NaN of an empty statistic is written as null
+    doc = json.loads(paths[1].read_text(), parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
+    assert doc["methods"]["fk"]["position_3d"]["n"] == 1
 
 
 # ----------------------------------------------------------------------------- measured data
