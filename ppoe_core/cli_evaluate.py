@@ -30,6 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
     parser.add_argument("--order", type=int, choices=(2, 4), default=2, help="covariance order of the PPOE model")
     parser.add_argument(
+        "--ground-truth", default="auto", choices=("auto", "pose", "point"),
+        help="score against /ground_truth/pose or /ground_truth/point (default: pose if present)",
+    )
+    parser.add_argument(
         "--fit-set", default="cross", choices=("cross", "square", "all"),
         help="stationing set for per-station tracker registration (bags with /dataset/stop roles)",
     )
@@ -66,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
             raise ModelConfigError(f"--set {item!r}: expected KEY=VALUE")
         fusion[key.strip()] = yaml.safe_load(text)
     opts = EvaluateOptions(
-        base=args.base, tool=args.tool, order=args.order, fit_set=args.fit_set, fusion=fusion, progress=progress,
+        base=args.base, tool=args.tool, order=args.order, fit_set=args.fit_set, fusion=fusion,
+        ground_truth=args.ground_truth, progress=progress,
     )
     ev = evaluate_bag(args.bag, args.model, opts)
     if args.out:

@@ -371,6 +371,9 @@ class EvaluateOptions:
     fusion : dict
         Fusion settings, keys and defaults of :data:`FUSION_DEFAULTS` (the fusion node's
         parameters); missing keys take the defaults.
+    ground_truth : str
+        ``"pose"`` (``/ground_truth/pose``), ``"point"`` (``/ground_truth/point``) or ``"auto"``
+        (default: the pose if the bag has one, else the point).
     progress : bool
         Draw a progress bar on stderr.
     """
@@ -380,6 +383,7 @@ class EvaluateOptions:
     order: int = 2
     fit_set: str = "cross"
     fusion: dict[str, Any] = field(default_factory=dict)
+    ground_truth: str = "auto"
     progress: bool = False
 
     def fusion_settings(self) -> dict[str, Any]:
@@ -705,7 +709,11 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     gt_pose, gt_point = data.ground_truth_pose, data.ground_truth_point
     if len(gt_pose) == 0 and len(gt_point) == 0:
         raise BagError(f"bag {bag}: neither /ground_truth/pose nor /ground_truth/point: nothing to score against")
-    kind = "pose" if len(gt_pose) else "point"
+    if opt.ground_truth not in ("auto", "pose", "point"):
+        raise PpoeError(f"ground_truth must be auto, pose or point, not {opt.ground_truth!r}")
+    kind = opt.ground_truth if opt.ground_truth != "auto" else ("pose" if len(gt_pose) else "point")
+    if len(gt_pose if kind == "pose" else gt_point) == 0:
+        raise BagError(f"bag {bag}: no /ground_truth/{kind} messages to score against")
     if kind == "pose":
         bad = [f for f in set(gt_pose.frame_ids) if f != base]
         if bad:

@@ -217,6 +217,9 @@ def test_bad_bags_name_the_topic(tmp_path):
         evaluate_bag(tmp_path / "frame", model)
     with pytest.raises(BagError, match="does not exist"):
         evaluate_bag(tmp_path / "missing", model)
+    _tiny_bag(tmp_path / "posegt")
+    with pytest.raises(BagError, match="no /ground_truth/point"):
+        evaluate_bag(tmp_path / "posegt", model, EvaluateOptions(ground_truth="point"))
     _tiny_bag(tmp_path / "ok")
     with pytest.raises(ModelConfigError, match="cannot read"):
         evaluate_bag(tmp_path / "ok", tmp_path / "nomodel.yaml")
