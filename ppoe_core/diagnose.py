@@ -261,7 +261,8 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
 
     * ``joint_offset``: every movable joint on the path to the measured link;
     * ``gravity_compliance``: movable joints carrying mass (URDF inertials);
-    * ``mount_bending``: fixed joints carrying mass;
+    * ``mount_bending``: fixed and prismatic joints carrying mass (a telescopic segment bends
+      at its overlap);
     * ``link_error`` (6 components; unidentifiable ones are pruned during selection): every
       joint on the path;
     * ``backlash``: independent movable joints whose last-motion sign changes (context);
@@ -289,7 +290,7 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
         mass = _carried_mass(tree, jn)
         if j.movable and mass > 0.0:
             out.append(make_effect("gravity_compliance", jn, tree))
-        if not j.movable and mass > 0.0:
+        if (not j.movable or j.type == "prismatic") and mass > 0.0:
             out.append(make_effect("mount_bending", jn, tree))
         if j.independent and jn in signs and np.ptp(signs[jn]) > 0:
             out.append(make_effect("backlash", jn, tree))
