@@ -45,6 +45,7 @@ __all__ = [
     "ModelConfig",
     "EFFECT_NAMES",
     "load_model_config",
+    "load_contact_config",
     "low_rank_factor",
 ]
 
@@ -425,10 +426,11 @@ def low_rank_factor(cov: np.ndarray, rel_tol: float = 1e-12) -> np.ndarray:
     return V[:, keep] * np.sqrt(w[keep])
 
 
-def _link(ctx: _Ctx, robot: Robot, val: Any, parent: Any, key: Any, path: str) -> str:
+def _link(ctx: _Ctx, robot: Optional[Robot], val: Any, parent: Any, key: Any, path: str) -> str:
+    """A link name; checked against ``robot`` unless it is None (no URDF at hand)."""
     if not isinstance(val, str):
         raise ctx.error(parent, key, path, f"must be a link name, got {val!r}")
-    if val not in robot.links:
+    if robot is not None and val not in robot.links:
         raise UnknownFrameError(
             f"{ctx.at(parent, key)}: {path}: unknown link '{val}' (not in URDF {robot.source})"
         )
@@ -533,7 +535,7 @@ def _tags(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[TagsConfi
     return TagsConfig(family=family, items=tuple(items))
 
 
-def _contact(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[ContactConfig]:
+def _contact(ctx: _Ctx, robot: Optional[Robot], sec: Any, top: Mapping) -> Optional[ContactConfig]:
     if sec is None:
         return None
     sec = _mapping(ctx, sec, top, "contact", "contact")
@@ -694,6 +696,17 @@ def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Rob
     CovarianceError
         A non-symmetric or non-PSD covariance; names the joint (or section).
     """
+    data, where = _read_yaml(source, is_text, "load_model_config")
+    ctx = _Ctx(where)
+    if not isinstance(data, Mapping):
+        raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {_kind(data)}")
+    _check_keys(ctx, data, tuple(_SECTIONS), "model")
+    kwargs = {name: fn(ctx, robot, data.get(name), data) for name, fn in _SECTIONS.items()}
+    return ModelConfig(source=where, effect_wheres=list(ctx.effect_wheres), **kwargs)
+
+
+def _read_yaml(source: Union[str, os.PathLike, Mapping, None], is_text: bool, caller: str) -> tuple[Any, str]:
+    """Model YAML source -> (parsed data with line numbers, where) (see :func:`load_model_config`)."""
     if source is None:
         data: Any = {}
         where = "<none>"
@@ -716,7 +729,7 @@ def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Rob
             text = source
             where = "<string>"
         else:
-            raise ModelConfigError(f"load_model_config: expected a path, YAML text or mapping, got {type(source).__name__}")
+            raise ModelConfigError(f"{caller}: expected a path, YAML text or mapping, got {type(source).__name__}")
         try:
             loader = _Loader(text)
             loader.name = where
@@ -734,9 +747,44 @@ def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Rob
             raise ModelConfigError(msg if msg.startswith(where) else f"{where}: {msg}") from None
         if data is None:
             data = {}
+    return data, where
+
+
+def load_contact_config(source: Union[str, os.PathLike, Mapping, None], robot: Optional[Robot] = None, *,
+                        is_text: bool = False) -> Optional[ContactConfig]:
+    """Only the ``contact`` section of a model YAML, validated as :func:`load_model_config` does.
+
+    For users that have no URDF at hand (the contact node): with ``robot=None`` the link names
+    (``contact.plane.frame``, ``contact.tool_point.link``) are checked for type only; the other
+    sections are not read.
+
+    Parameters
+    ----------
+    source : path-like, str, mapping or None
+        As for :func:`load_model_config`.
+    robot : Robot, optional
+        Check the link names against this URDF.
+    is_text : bool
+        Treat a string ``source`` as YAML text, never as a path.
+
+    Returns
+    -------
+    ContactConfig or None
+        None when the YAML has no ``contact`` section.  ``covariance`` is the plane's Sigma_v
+        (6, 6) in the tangent space at ``T_frame_plane`` (plane frame).
+
+    Raises
+    ------
+    ModelConfigError
+        Unreadable file, YAML syntax error, unknown key or bad value in ``contact`` (message
+        names file, line and key).
+    CovarianceError
+        Non-symmetric or non-PSD contact covariance.
+    UnknownFrameError
+        A link name not in ``robot`` (only when ``robot`` is given).
+    """
+    data, where = _read_yaml(source, is_text, "load_contact_config")
     ctx = _Ctx(where)
     if not isinstance(data, Mapping):
         raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {_kind(data)}")
-    _check_keys(ctx, data, tuple(_SECTIONS), "model")
-    kwargs = {name: fn(ctx, robot, data.get(name), data) for name, fn in _SECTIONS.items()}
-    return ModelConfig(source=where, effect_wheres=list(ctx.effect_wheres), **kwargs)
+    return _contact(ctx, robot, data.get("contact"), data)

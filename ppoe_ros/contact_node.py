@@ -35,6 +35,7 @@ from rclpy.node import Node
 from std_msgs.msg import Bool
 
 from ppoe_core import lie
+from ppoe_core.config import ContactConfig, load_contact_config
 from ppoe_core.errors import CovarianceError, ModelConfigError
 from ppoe_ros.kinematics_node import load_model_yaml
 from ppoe_ros.ros_common import (
@@ -97,38 +98,51 @@ class PlaneConfig:
         self.cov_ros = lie.cov_local_to_ros(T_frame_plane, cov_plane)
 
 
-def plane_from_config(model_yaml: dict[str, Any], params: dict[str, Any], where: str) -> PlaneConfig:
+def plane_from_config(contact: ContactConfig | None, frames_base: str | None, params: dict[str, Any],
+                      where: str) -> PlaneConfig:
     """Plane pose and Sigma_v from parameters, falling back on the model YAML ``contact`` section.
+
+    Parameters
+    ----------
+    contact : ContactConfig or None
+        The model YAML's ``contact`` section, validated by
+        :func:`ppoe_core.config.load_contact_config` (None: the YAML has none).
+    frames_base : str or None
+        The model YAML's ``frames.base``: plane frame when neither the parameter nor a
+        ``contact`` section gives one.
+    params : dict
+        Node parameters ``plane_frame``, ``plane_xyz``, ``plane_rpy`` and ``plane_sigma``
+        (empty = take the model YAML's value).
+    where : str
+        Node and file, for error messages.
+
+    Returns
+    -------
+    PlaneConfig
+        ``cov_plane`` in the tangent space at ``T_frame_plane`` (plane frame).
 
     Raises
     ------
     ModelConfigError
-        No frame/pose/sigma in either place, or malformed values (message names ``where`` and the key).
+        No frame or no Sigma_v in either place, or malformed values (message names ``where`` and the key).
     """
-    contact = mapping_get(model_yaml, "contact", default={}) or {}
-    plane = contact.get("plane", {}) or {}
-    frame = params["plane_frame"] or plane.get("frame") or mapping_get(model_yaml, "frames", "base")
+    frame = params["plane_frame"] or (contact.plane_frame if contact is not None else frames_base)
     if not frame:
         raise ModelConfigError(f"{where}: no contact plane frame (parameter plane_frame, contact.plane.frame "
                                "or frames.base)")
-
-    def vec(param: str, key: str, n: int, default: Any) -> np.ndarray:
-        v = params[param] if len(params[param]) else plane.get(key, default)
-        a = np.asarray(v, dtype=float)
-        if a.shape != (n,) or not np.all(np.isfinite(a)):
-            raise ModelConfigError(f"{where}: contact.plane.{key} must be {n} finite numbers, got {v!r}")
-        return a
-
-    T = lie.from_xyz_rpy(vec("plane_xyz", "xyz", 3, [0.0, 0.0, 0.0]), vec("plane_rpy", "rpy", 3, [0.0, 0.0, 0.0]))
+    T = contact.T_frame_plane.copy() if contact is not None else np.eye(4)
+    for name in ("plane_xyz", "plane_rpy", "plane_sigma"):
+        v = np.asarray(params[name], dtype=float)
+        if not np.all(np.isfinite(v)):
+            raise ModelConfigError(f"{where}: parameter {name} must be finite numbers, got {params[name]!r}")
+    if len(params["plane_xyz"]):
+        T[:3, 3] = params["plane_xyz"]
+    if len(params["plane_rpy"]):
+        T[:3, :3] = lie.from_xyz_rpy(np.zeros(3), np.asarray(params["plane_rpy"], dtype=float))[:3, :3]
     if len(params["plane_sigma"]):
         cov = np.diag(np.square(np.asarray(params["plane_sigma"], dtype=float)))
-    elif "covariance" in contact:
-        cov = np.asarray(contact["covariance"], dtype=float)
-    elif "sigma" in contact:
-        s = np.asarray(contact["sigma"], dtype=float)
-        if s.shape != (6,):
-            raise ModelConfigError(f"{where}: contact.sigma must have 6 entries [rho; theta], got {s.shape}")
-        cov = np.diag(np.square(s))
+    elif contact is not None:
+        cov = contact.covariance
     else:
         raise ModelConfigError(f"{where}: no plane Sigma_v (parameter plane_sigma, contact.sigma or "
                                "contact.covariance)")
@@ -168,11 +182,12 @@ class ContactNode(Node):
         self.params = p
         self.stats = NodeStats(self, ("received", "published", "bad", "contacts", "in_contact"), p["log_throttle"])
         where = f"node {self.get_name()}" + (f", model file {p['model_file']}" if p["model_file"] else "")
-        model_yaml = load_model_yaml(p["model_file"])
-        self.plane = plane_from_config(model_yaml, p, where)
-        contact = mapping_get(model_yaml, "contact", default={}) or {}
-        enter = p["force_threshold"] or float(contact.get("force_threshold", 5.0))
-        release = p["release_threshold"] or float(contact.get("release_threshold", 2.0))
+        # the contact section validated as everywhere else (file:line errors); no URDF needed here
+        contact = load_contact_config(p["model_file"]) if p["model_file"] else None
+        frames_base = mapping_get(load_model_yaml(p["model_file"]), "frames", "base")
+        self.plane = plane_from_config(contact, frames_base, p, where)
+        enter = p["force_threshold"] or (contact.force_threshold if contact is not None else 5.0)
+        release = p["release_threshold"] or (contact.release_threshold if contact is not None else 2.0)
         try:
             self.detector = ContactDetector(enter, release)
         except ModelConfigError as exc:

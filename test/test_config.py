@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from ppoe_core import lie
-from ppoe_core.config import low_rank_factor, load_model_config
+from ppoe_core.config import load_contact_config, load_model_config, low_rank_factor
 from ppoe_core.errors import CovarianceError, ModelConfigError, UnknownFrameError, UnknownJointError
 from ppoe_core.urdf import parse_urdf
 
@@ -180,3 +180,24 @@ def test_non_psd_covariance_names_joint(robot):
 def test_unreadable_file(robot, tmp_path):
     with pytest.raises(ModelConfigError, match="cannot read model YAML"):
         load_model_config(tmp_path / "absent.yaml", robot)
+
+
+def test_contact_section_alone_without_urdf(robot, tmp_path):
+    """load_contact_config (the contact node has no URDF) gives what load_model_config gives."""
+    humanoid = Path(__file__).resolve().parents[1] / "config" / "humanoid_model.yaml"
+    full = load_model_config(humanoid, parse_urdf(humanoid.parent / "humanoid.urdf")).contact
+    alone = load_contact_config(humanoid)
+    np.testing.assert_array_equal(alone.T_frame_plane, full.T_frame_plane)
+    np.testing.assert_array_equal(alone.covariance, full.covariance)
+    assert (alone.plane_frame, alone.force_threshold, alone.release_threshold) == \
+        (full.plane_frame, full.force_threshold, full.release_threshold)
+    assert load_contact_config("perturbations: {}\n", is_text=True) is None
+    text = "contact:\n  plane: {frame: table}\n  sigma: [1, 1, 1, 1, 1, 1]\n  tool_point: {link: tip}\n"
+    assert load_contact_config(text, is_text=True).plane_frame == "table"  # no URDF: names not checked
+    with pytest.raises(UnknownFrameError, match="unknown link 'table'"):
+        load_contact_config(text, robot, is_text=True)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("frames: {base: x}\ncontact:\n  plane: {frame: table}\n  sigma: [1, 1, 1]\n"
+                   "  tool_point: {link: tip}\n")
+    with pytest.raises(ModelConfigError, match=r"bad.yaml:4: contact.sigma: must be a list of 6 numbers"):
+        load_contact_config(bad)

@@ -134,3 +134,9 @@ def test_parameters_validated_in_process(tmp_path: Path) -> None:
         with pytest.raises(ModelConfigError, match="release_threshold .* must be below"):
             ContactNode(context=probe.context, parameter_overrides=overrides + [
                 Parameter("release_threshold", value=6.0)])
+        # a malformed contact section is refused naming file, line and key (validated by ppoe_core.config)
+        bad = tmp_path / "bad_model.yaml"
+        bad.write_text("contact:\n  plane: {frame: table}\n  sigma: [0.1, x, 0.1, 0.1, 0.1, 0.1]\n"
+                       "  tool_point: {link: tip}\n")
+        with pytest.raises(ModelConfigError, match=r"bad_model.yaml:3: contact.sigma"):
+            ContactNode(context=probe.context, parameter_overrides=[Parameter("model_file", value=str(bad))])
