@@ -45,7 +45,7 @@ import yaml
 
 from . import lie
 from .effects import Effect, KinematicTree, apply_corrections, effect_from_config, make_effect
-from .errors import BagError, ModelConfigError, PpoeError
+from .errors import BagError, MeasurementError, ModelConfigError, PpoeError
 from .urdf import Robot
 
 __all__ = [
@@ -380,13 +380,6 @@ class LinearProblem:
             self.r0_rot = lie.so3_log(np.swapaxes(R0, -1, -2) @ stops.R_meas)
 
     # -- residuals ---------------------------------------------------------------
-    def _weights(self) -> np.ndarray:
-        s = self.stops
-        w = np.full(s.dim, 1.0 / s.sigma)
-        if s.dim == 6:
-            w[3:] = 1.0 / s.sigma_rot
-        return w
-
     def _per_row(self, regs: Mapping[int, np.ndarray], sess: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Registration of each row (n, 4, 4) and whether its session has one (n,)."""
         table = np.full((len(self.stops.session_names) + 1, 4, 4), np.nan)
@@ -459,7 +452,6 @@ class LinearProblem:
         if self.register:
             rows = rows[np.isin(s.session[rows], list(regs))]
             rows = rows[np.argsort(s.session[rows], kind="stable")]
-        w = self._weights()
         Gr = G[rows]
         Wr = self.W[rows]
         if self.register:
@@ -793,6 +785,15 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     n = len(stops)
     if n < 6:
         raise PpoeError(f"diagnose: only {n} stops with measurements; need at least 6")
+    bad = ~np.all(np.isfinite(stops.p_meas), axis=1)
+    for jn, v in stops.q.items():
+        if jn in robot.path_from_root(stops.link):
+            bad |= ~np.isfinite(v)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise MeasurementError(f"diagnose: {int(bad.sum())} stops have non-finite measurements or joint "
+                               f"values (first: stop {i} of {stops.group_names[stops.group[i]]}, session "
+                               f"{stops.session_names[stops.session[i]]})")
     x0, R0, poses, dq0, dxi0 = _predict_nominal(tree, stops, declared)
     base_R = None
     Jq, Jx = tree.point_jacobian(stops.q, stops.link, stops.point, poses, dq0, dxi0)

@@ -257,3 +257,14 @@ def test_motoman_tracker_heldout_rms_goes_down():
     # README: rigid fit of the nominal LR1 to the Leica points, 0.34 mm RMS (in-sample)
     assert res.residual_before_insample == pytest.approx(0.34e-3, abs=0.01e-3)
     assert res.residual_after < 0.5 * res.residual_before
+
+
+def test_bad_input_errors_name_the_stop(robot):
+    from ppoe_core.errors import MeasurementError, PpoeError
+
+    stops = _synthetic(robot, seed=12, n=20)
+    stops.p_meas[7] = np.nan
+    with pytest.raises(MeasurementError, match="stop 7 of synthetic"):
+        diagnose(robot, stops)
+    with pytest.raises(PpoeError, match="only 3 stops"):
+        diagnose(robot, _synthetic(robot, seed=12, n=3))
