@@ -378,7 +378,7 @@ def test_bag_play_node_record_equals_fk(tmp_path: Path, model) -> None:
 def test_unknown_frame_or_model_file_refused_at_startup(tmp_path: Path) -> None:
     from rclpy.parameter import Parameter
 
-    from ppoe_core.errors import ModelConfigError, UnknownFrameError
+    from ppoe_core.errors import ModelConfigError, UnknownFrameError, UnknownJointError
     from ppoe_ros.kinematics_node import KinematicsNode
 
     env = ros_env(tmp_path)
@@ -389,6 +389,11 @@ def test_unknown_frame_or_model_file_refused_at_startup(tmp_path: Path) -> None:
         with pytest.raises(ModelConfigError, match="model file /no/such.yaml: cannot read"):
             KinematicsNode(context=probe.context, parameter_overrides=[urdf,
                                                                        Parameter("model_file", value="/no/such.yaml")])
+        bad = tmp_path / "bad_model.yaml"
+        bad.write_text("frames: {base: base_link, tool: tool0}\nperturbations:\n  joint_9: {sigma: [0, 0, 0, 0, 0, 1]}\n")
+        with pytest.raises(UnknownJointError, match=r"parameter robot_description: .*bad_model.yaml:3: "
+                                                    r"perturbations.joint_9: unknown joint 'joint_9'"):
+            KinematicsNode(context=probe.context, parameter_overrides=[urdf, Parameter("model_file", value=str(bad))])
         with pytest.raises(ModelConfigError, match="'extra_target_frames' repeats 'tool0'"):
             KinematicsNode(context=probe.context, parameter_overrides=[
                 urdf, Parameter("extra_target_frames", value=["arm_link_3", "tool0"])])
