@@ -354,7 +354,14 @@ def test_bag_play_node_record_equals_fk(tmp_path: Path, model) -> None:
     recorder = NodeProcess.ppoe(["record", "--out", str(rec), "/ppoe/pose"], env, tmp_path, "record")
     player = None
     try:
-        time.sleep(1.5)  # node and recorder up; the recorder subscribes /ppoe/pose once it sees it
+        # node and recorder up: the recorder subscribes /ppoe/pose once it sees the node's publisher
+        # (polled, not a fixed sleep: on a loaded machine start-up takes longer)
+        deadline = time.monotonic() + 30
+        while "recording /ppoe/pose" not in recorder.output():
+            assert node.alive() and recorder.alive() and time.monotonic() < deadline, \
+                f"recorder never subscribed /ppoe/pose\n{recorder.output()[-2000:]}\n{node.output()[-2000:]}"
+            time.sleep(0.05)
+        time.sleep(0.5)  # let the new subscription match the node's publisher (discovery is asymmetric)
         player = NodeProcess.ppoe(["play", str(src), "--clock", "--wait-for-subscribers", "15"], env, tmp_path,
                                   "play")
         assert player.wait(40) == 0, player.output()
