@@ -498,7 +498,22 @@ def cov_local_to_ros(T: ArrayLike, cov: ArrayLike) -> Array:
 
 
 def cov_ros_to_local(T: ArrayLike, cov_ros: ArrayLike) -> Array:
-    """Inverse of :func:`cov_local_to_ros`: ROS covariance (parent axes) -> tangent space at ``T``."""
+    """Inverse of :func:`cov_local_to_ros`: ROS covariance (parent axes) -> tangent space at ``T``.
+
+    Parameters
+    ----------
+    T : array_like, shape (..., 4, 4)
+        Mean pose ``T_parent_child``.
+    cov_ros : array_like, shape (..., 6, 6)
+        ``PoseWithCovariance.covariance`` as 6x6: order ``(x, y, z, rx, ry, rz)``, all in the
+        axes of the parent frame (``header.frame_id``), CONTRACT section 2.
+
+    Returns
+    -------
+    ndarray, shape (..., 6, 6)
+        ``B^T cov_ros B`` with ``B = blockdiag(R, R)``: the covariance in the tangent space at
+        ``T`` (child frame, right perturbation, ``[rho; theta]``).
+    """
     B = _ros_block(_f(T))
     Bt = np.swapaxes(B, -1, -2)
     return Bt @ _f(cov_ros) @ B
