@@ -63,6 +63,7 @@ __all__ = [
     "stops_from_hilti",
     "protocol_scores",
     "stops_from_motoman",
+    "imu_tilt_residuals",
     "make_folds",
     "load_model",
     "write_model_yaml",
@@ -111,7 +112,9 @@ class Stops:
         Stops that are scored in such a session (Hilti: the evaluation points).
     context : dict
         Effect context per stop (``time`` (N,), ``motion_sign`` {joint: (N,)},
-        ``joint_velocity`` {joint: (N,)}).
+        ``joint_velocity`` {joint: (N,)}, ``gravity`` (N, 3)).
+    imus : dict name -> (link, specific force (N, 3) [m/s^2] in that link's axes)
+        Accelerometers at each stop; their tilt residuals are reported (not fitted).
     """
 
     q: dict[str, np.ndarray]
@@ -130,6 +133,7 @@ class Stops:
     R_meas: Optional[np.ndarray] = None
     sigma_rot: float = 1e-3
     base: str = ""
+    imus: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.p_meas.shape[0])
@@ -173,6 +177,8 @@ class Stops:
             reg_mask=np.concatenate([p.reg_mask for p in parts]),
             score_mask=np.concatenate([p.score_mask for p in parts]),
             context=ctx,
+            imus={k: (first.imus[k][0], np.concatenate([p.imus[k][1] for p in parts]))
+                  for k in first.imus if all(k in p.imus for p in parts)},
         )
 
     def subset(self, rows: np.ndarray) -> "Stops":
@@ -185,7 +191,8 @@ class Stops:
                      base=self.base, session=self.session[rows], session_names=self.session_names,
                      group=self.group[rows], group_names=self.group_names,
                      reg_mask=self.reg_mask[rows], score_mask=self.score_mask[rows],
-                     context={k: sub_ctx(v) for k, v in self.context.items()})
+                     context={k: sub_ctx(v) for k, v in self.context.items()},
+                     imus={k: (ln, a[rows]) for k, (ln, a) in self.imus.items()})
 
 
 def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
@@ -931,6 +938,12 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
                               for g in np.unique(stops.group)}
     if fitted_jn:
         res.extra["fitted_joint_noise"] = fitted_jn
+    if stops.imus:  # accelerometer tilt residuals, before / after (in-sample, not used by the fit)
+        before = imu_tilt_residuals(tree, stops, list(declared))
+        after = imu_tilt_residuals(tree, stops, list(declared) + found)
+        res.extra["imu_tilt"] = {k: {"link": before[k]["link"], "n": before[k]["n"],
+                                     "rms_before": before[k]["rms"], "rms_after": after[k]["rms"]}
+                                 for k in before}
     # a systematic residual remains if the held-out mean squared Mahalanobis distance under the
     # declared covariance exceeds its expectation 3 by more than 3 standard errors (chi^2_3 mean)
     m2 = float(np.nanmean(e2))
@@ -953,6 +966,32 @@ def _signed_rank_z(d: np.ndarray) -> float:
     mu = n * (n + 1) / 4.0
     sd = math.sqrt(n * (n + 1) * (2 * n + 1) / 24.0)
     return (w - mu) / sd
+
+
+def imu_tilt_residuals(tree: KinematicTree, stops: Stops, effects: Sequence[Effect]) -> dict[str, dict]:
+    """Tilt residuals of the accelerometers (measured minus predicted, small angles about the
+    sensor's x and y axes [rad]) with each session's mean removed (the session's base tilt and
+    the sensor's mounting are nuisances), for a model with ``effects``.
+
+    The predicted up direction in the sensor frame is ``R_root_link^T z_root``; the measured one
+    the normalised specific force.  Returns ``{imu: {"link", "rms": [rx, ry], "n"}}``.
+    """
+    out: dict[str, dict] = {}
+    if not stops.imus:
+        return out
+    dq, dxi = apply_corrections(list(effects), stops.q, stops.context)
+    poses = tree.link_poses(stops.q, dq, dxi, links=[ln for ln, _ in stops.imus.values()])
+    for name, (link, acc) in stops.imus.items():
+        u_m = acc / np.linalg.norm(acc, axis=1)[:, None]
+        u_p = poses[link][..., 2, :3]  # third row of R_root_link = R^T z
+        d = np.column_stack([u_m[:, 1] - u_p[:, 1], -(u_m[:, 0] - u_p[:, 0])])
+        ok = np.all(np.isfinite(d), axis=1)
+        for sid in np.unique(stops.session):
+            m = ok & (stops.session == sid)
+            d[m] -= d[m].mean(axis=0)
+        out[name] = {"link": link, "rms": [float(v) for v in np.sqrt(np.mean(d[ok] ** 2, axis=0))],
+                     "n": int(ok.sum())}
+    return out
 
 
 def _with_thetas(chosen: Sequence[Candidate], theta: np.ndarray) -> list[Effect]:
@@ -1224,6 +1263,12 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str
             g = -np.column_stack([_sample_joint(imu.stamps, a[:, k], stamps) for k in range(3)]) @ R.T
             ctx["gravity"] = g / np.linalg.norm(g, axis=1)[:, None]
             break
+    imus: dict[str, tuple[str, np.ndarray]] = {}
+    for imu_name, imu in sorted(data.imus.items()):
+        frame = imu.frame_ids[0] if imu.frame_ids else ""
+        if len(imu) and frame in robot.links:
+            imus[imu_name] = (frame, np.column_stack([_sample_joint(imu.stamps, imu.linear_acceleration[:, k], stamps)
+                                                      for k in range(3)]))
     n = len(stamps)
     session = np.zeros(n, dtype=int)
     session_names = [name]
@@ -1244,7 +1289,7 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str
     return Stops(q=q, p_meas=np.asarray(meas, dtype=float), R_meas=R_meas, kind=kind, link=link, point=point,
                  sigma=float(sigma), sigma_rot=pose_sigma_rot, base=base or robot.root, session=session,
                  session_names=session_names, group=np.zeros(n, dtype=int), group_names=[name],
-                 reg_mask=reg, score_mask=score, context=ctx)
+                 reg_mask=reg, score_mask=score, context=ctx, imus=imus)
 
 
 def stops_from_hilti(path: str | Path, robot: Robot, stationing_set: Optional[str] = "cross",
@@ -1281,6 +1326,8 @@ def stops_from_hilti(path: str | Path, robot: Robot, stationing_set: Optional[st
         score_mask=np.array([s.role == "evaluation" and s.solution_space != 4 for s in stops]),
         context={"time": t - t[0], "motion_sign": {n: signs[:, i] for i, n in enumerate(ds.joint_names)},
                  "gravity": -a_base / np.linalg.norm(a_base, axis=1)[:, None]},
+        imus={"base": ("tilt_sensor_base", a_base),
+              "column_tip": ("tilt_sensor_column_tip", np.array([s.accel_column_tip for s in stops]))},
     )
 
 
@@ -1354,6 +1401,13 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
                          f"{v:.6g} | [{lo:.6g}, {hi:.6g}] | {share} |")
     if not result.effects:
         lines.append("| (none) | | | | | |")
+    if result.extra.get("imu_tilt"):
+        lines += ["", "## Accelerometer tilt residuals (not used by the fit; per-session mean removed)", "",
+                  "| IMU | link | stops | RMS rx, ry before [mrad] | after [mrad] |", "|---|---|---|---|---|"]
+        for k, v in result.extra["imu_tilt"].items():
+            lines.append(f"| {k} | {v['link']} | {v['n']} | {1e3 * v['rms_before'][0]:.3f}, "
+                         f"{1e3 * v['rms_before'][1]:.3f} | {1e3 * v['rms_after'][0]:.3f}, "
+                         f"{1e3 * v['rms_after'][1]:.3f} |")
     lines += ["", "## Selection steps", "", "| candidate | accepted | held-out RMS [mm] | gain | t |",
               "|---|---|---|---|---|"]
     for s in result.steps:
