@@ -724,6 +724,8 @@ def _read_yaml(source: Union[str, os.PathLike, Mapping, None], is_text: bool, ca
                 text = path.read_text()
             except OSError as exc:
                 raise ModelConfigError(f"{path}: cannot read model YAML ({exc.strerror or exc})") from None
+            except UnicodeDecodeError as exc:
+                raise ModelConfigError(f"{path}: model YAML is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
             where = str(path)
         elif isinstance(source, str):
             text = source

@@ -252,6 +252,8 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         raw = yaml.safe_load(p.read_text())
     except OSError as exc:
         raise ScenarioError(f"scenario {p}: cannot read: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise ScenarioError(f"scenario {p}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     except yaml.YAMLError as exc:
         raise ScenarioError(f"scenario {p}: YAML error: {exc}") from None
     raw = _check_keys(raw, _TOP_KEYS, str(p), "top level")
@@ -262,7 +264,7 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
     model_path = (p.parent / str(rob["model"])).resolve()
     try:
         urdf_text = urdf_path.read_text()
-    except OSError as exc:
+    except (OSError, UnicodeDecodeError) as exc:
         raise ScenarioError(f"{_where(str(p), 'robot.urdf')}: cannot read {urdf_path}: {exc}") from None
     try:
         robot = parse_urdf(str(urdf_path))

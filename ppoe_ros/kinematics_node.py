@@ -121,6 +121,8 @@ def load_model_yaml(path: str) -> dict[str, Any]:
         data = yaml.safe_load(p.read_text())
     except OSError as exc:
         raise ModelConfigError(f"model file {p}: cannot read: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ModelConfigError(f"model file {p}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     except yaml.YAMLError as exc:
         raise ModelConfigError(f"model file {p}: not valid YAML: {exc}") from None
     if data is None:

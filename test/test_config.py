@@ -180,6 +180,10 @@ def test_non_psd_covariance_names_joint(robot):
 def test_unreadable_file(robot, tmp_path):
     with pytest.raises(ModelConfigError, match="cannot read model YAML"):
         load_model_config(tmp_path / "absent.yaml", robot)
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe\x00perturbations")
+    with pytest.raises(ModelConfigError, match=r"binary.yaml: model YAML is not UTF-8 text"):
+        load_model_config(binary, robot)
 
 
 def test_contact_section_alone_without_urdf(robot, tmp_path):

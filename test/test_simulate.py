@@ -248,6 +248,13 @@ def test_contact_wrench_reaches_the_commanded_force(tmp_path: Path) -> None:
     assert d.rate("/wrench") == pytest.approx(100.0)
 
 
+def test_scenario_file_that_is_not_text(tmp_path: Path) -> None:
+    sc = tmp_path / "binary.yaml"
+    sc.write_bytes(b"\xff\xfe\x00robot")
+    with pytest.raises(ScenarioError, match=r"binary.yaml: not UTF-8 text"):
+        simulate(sc, tmp_path / "bag")
+
+
 @pytest.mark.parametrize("patch,match", [
     ({"bogus": 1}, r"unknown keys \['bogus'\]"),
     ({"truth": {"effects": [{"name": "wobble", "location": "joint_2"}]}}, "unknown effect 'wobble'"),
