@@ -423,8 +423,9 @@ class ContactPlane(MeasurementModel):
     ----------
     T_ref_plane : array_like, shape (4, 4)
     cov_plane : array_like, shape (6, 6)
-        Plane pose covariance in the plane frame (e.g. diag(0.5, 0.5, 0.001, 0.017, 0.017,
-        0.17) as in the paper, read as variances there; the config gives sigmas).
+        Plane pose covariance in the plane frame, [m^2, rad^2] (e.g. the paper's Sigma_v
+        ``diag(0.5, 0.5, 0.001, 0.017, 0.017, 0.17)`` read as 1-sigma values, i.e. the square
+        of those numbers on the diagonal, as ``config/humanoid_model.yaml`` and docs/studies.md do).
     point_tool : array_like, shape (3,)
         Contact point in the state's child frame [m].
     distance_sigma : float
