@@ -873,6 +873,9 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         e2 = e2c
         R_after, Rb_after = Rc, Rbc
 
+    # locations the tracker cannot tell apart: let the accelerometers decide (not fitted to them)
+    relocated = _relocate_by_imu(tree, problem, stops, declared, chosen, cands, all_rows) if stops.imus else []
+
     # final fit on all stops, relinearised at the estimate (Gauss-Newton on the full chain)
     G = _stack(chosen, n, stops.dim)
     fit = problem.fit(G, all_rows, iterations=6)
@@ -938,6 +941,8 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
                               for g in np.unique(stops.group)}
     if fitted_jn:
         res.extra["fitted_joint_noise"] = fitted_jn
+    if relocated:
+        res.extra["relocated_by_imu"] = relocated
     if stops.imus:  # accelerometer tilt residuals, before / after (in-sample, not used by the fit)
         before = imu_tilt_residuals(tree, stops, list(declared))
         after = imu_tilt_residuals(tree, stops, list(declared) + found)
@@ -966,6 +971,50 @@ def _signed_rank_z(d: np.ndarray) -> float:
     mu = n * (n + 1) / 4.0
     sd = math.sqrt(n * (n + 1) * (2 * n + 1) / 24.0)
     return (w - mu) / sd
+
+
+def _imu_cost(tree: KinematicTree, stops: Stops, effects: Sequence[Effect]) -> float:
+    """Sum over accelerometers of the mean squared tilt residual [rad^2]."""
+    return float(sum(sum(v ** 2 for v in r["rms"]) for r in imu_tilt_residuals(tree, stops, effects).values()))
+
+
+def _relocate_by_imu(tree: KinematicTree, problem: LinearProblem, stops: Stops, declared: Sequence[Effect],
+                     chosen: list[Candidate], cands: Sequence[Candidate], rows: np.ndarray) -> list[dict]:
+    """Swap a chosen effect for the same effect at another location when the tracker data fit
+    both equally well (in-sample weighted SSR within 0.5 %) and the accelerometer tilt residuals
+    prefer the other location; ``chosen`` is modified in place.  Returns the swaps made."""
+    swaps: list[dict] = []
+    for k, c in enumerate(list(chosen)):
+        others = [x for i, x in enumerate(chosen) if i != k]
+
+        def fitted(cand: Candidate) -> tuple[float, list[Effect]]:
+            G = _stack(others + [cand], len(stops), stops.dim)
+            fit = problem.fit(G, rows, iterations=2)
+            ssr = float(np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows),
+                                                   fit.regs, fit.rows) ** 2))
+            return ssr, _with_thetas(others + [cand], fit.theta)
+
+        ssr0, effs0 = fitted(c)
+        best = (_imu_cost(tree, stops, list(declared) + effs0), c)
+        for alt in cands:
+            if alt.effect.name != c.effect.name or alt.effect.location == c.effect.location \
+                    or alt.G.shape[-1] != c.G.shape[-1] or any(alt.effect.location == o.effect.location
+                                                               and alt.effect.name == o.effect.name for o in others):
+                continue
+            ssr1, effs1 = fitted(alt)
+            if ssr1 > 1.005 * ssr0:
+                continue
+            th = effs1[-1].params
+            if any(v < 0 for name, v in zip(alt.effect.param_names, th) if name in alt.effect.nonnegative):
+                continue
+            cost = _imu_cost(tree, stops, list(declared) + effs1)
+            if cost < 0.8 * best[0]:
+                best = (cost, alt)
+        if best[1] is not c:
+            swaps.append({"from": c.key, "to": best[1].key, "imu_cost_from": _imu_cost(tree, stops, list(declared) + effs0),
+                          "imu_cost_to": best[0]})
+            chosen[k] = best[1]
+    return swaps
 
 
 def imu_tilt_residuals(tree: KinematicTree, stops: Stops, effects: Sequence[Effect]) -> dict[str, dict]:

@@ -175,8 +175,9 @@ class KinematicTree:
         else:
             joints = self.order
         vals = self.joint_values(q, dq, joints)
-        batch = np.broadcast_shapes(*[np.shape(v) for v in vals.values()],
-                                    *[np.shape(v)[:-1] for v in dxi.values()]) if (vals or dxi) else ()
+        # batch shape of all given joint values (also when the links asked for hang on fixed joints)
+        batch = np.broadcast_shapes(*[np.shape(v) for v in q.values()], *[np.shape(v) for v in vals.values()],
+                                    *[np.shape(v)[:-1] for v in dxi.values()])
         eye = np.broadcast_to(np.eye(4), batch + (4, 4))
         poses: dict[str, np.ndarray] = {self.root: eye}
         for jn in joints:

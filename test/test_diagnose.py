@@ -278,3 +278,31 @@ def test_bad_input_errors_name_the_stop(robot):
         diagnose(robot, stops)
     with pytest.raises(PpoeError, match="only 3 stops"):
         diagnose(robot, _synthetic(robot, seed=12, n=3))
+
+
+def test_accelerometer_picks_the_location_the_tracker_cannot(tmp_path):
+    """Two co-located mounts (mount_joint, then riser_joint on top of it) bend the same way for
+    the tracker; an accelerometer on the plate between them sees only a bending of mount_joint.
+    The true bending is at riser_joint: the accelerometer must move the effect there."""
+    urdf = (CONFIG / "arm7.urdf").read_text()
+    urdf = urdf.replace('''  <joint name="joint_1" type="revolute">
+    <parent link="mount_plate"/>''', '''  <joint name="riser_joint" type="fixed">
+    <parent link="mount_plate"/>
+    <child link="riser"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/>
+  </joint>
+  <link name="riser"/>
+  <joint name="joint_1" type="revolute">
+    <parent link="riser"/>''')
+    robot = parse_urdf(urdf)
+    truth = {"compliance_x": 3e-5, "compliance_y": 2e-5}
+    eff = make_effect("mount_bending", "riser_joint", robot, list(truth.values()))
+    stops = _synthetic(robot, [eff], seed=14)
+    tree = KinematicTree(robot)
+    dq, dxi = apply_corrections([eff], stops.q, stops.context)
+    R_plate = tree.link_poses(stops.q, dq, dxi)["mount_plate"][:, :3, :3]
+    stops.imus = {"plate": ("mount_plate", 9.81 * R_plate[:, 2, :]
+                            + np.random.default_rng(15).normal(0, 4e-4, (len(stops), 3)))}
+    res = diagnose(robot, stops, options=DiagnoseOptions(max_effects=2))
+    assert [(e["name"], e["location"]) for e in res.effects] == [("mount_bending", "riser_joint")], res.summary
+    assert _inside(res.effects[0], truth)
