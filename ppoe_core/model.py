@@ -724,13 +724,32 @@ class PPOEModel:
         return cls(robot, load_model_config(model_yaml_path, robot))
 
     @classmethod
-    def from_strings(cls, urdf_xml: str, yaml_text_or_dict: Union[str, Mapping, None] = None) -> "PPOEModel":
-        """Model from URDF XML text and optional model YAML text or mapping."""
+    def from_strings(cls, urdf_xml: str, yaml_text_or_dict: Union[str, Mapping, os.PathLike, None] = None, *,
+                     urdf_source: Optional[str] = None) -> "PPOEModel":
+        """Model from URDF XML text (e.g. a ``robot_description``) and an optional model YAML.
+
+        Parameters
+        ----------
+        urdf_xml : str
+            URDF XML text (never a path: use :meth:`from_files`).
+        yaml_text_or_dict : str, mapping, path-like or None
+            Model YAML text, an already-parsed mapping, or a ``pathlib.Path`` (any
+            ``os.PathLike``) of a model YAML file; give the path where there is one, so that
+            errors name the file and line (text reads as ``<string>``, a mapping as ``<dict>``).
+        urdf_source : str, optional
+            Where the URDF text came from (e.g. ``"bag run1 /robot_description"``), named in
+            errors instead of ``<string>``.
+
+        Raises
+        ------
+        UrdfError, ModelConfigError, UnknownJointError, UnknownFrameError, CovarianceError
+            As :func:`~ppoe_core.urdf.parse_urdf` and :func:`~ppoe_core.config.load_model_config`.
+        """
         if not urdf_xml.lstrip().startswith("<"):
             from .errors import UrdfError
 
             raise UrdfError("from_strings: URDF text must start with '<' (use from_files for paths)")
-        robot = parse_urdf(urdf_xml)
+        robot = parse_urdf(urdf_xml, text_source=urdf_source)
         return cls(robot, load_model_config(yaml_text_or_dict, robot, is_text=True))
 
     def with_effects(self, effects: Sequence[Any]) -> "PPOEModel":

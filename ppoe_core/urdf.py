@@ -470,13 +470,16 @@ def _looks_like_xml(source: str) -> bool:
 # ----------------------------------------------------------------------------
 
 
-def parse_urdf(source: Union[str, bytes, os.PathLike]) -> Robot:
+def parse_urdf(source: Union[str, bytes, os.PathLike], *, text_source: Optional[str] = None) -> Robot:
     """Parse a URDF into a :class:`Robot`.
 
     Parameters
     ----------
     source : str, bytes or path-like
         A file path, or the URDF XML text itself (a string starting with ``<``).
+    text_source : str, optional
+        Where XML text came from (e.g. ``"bag run1 /robot_description"``), named in error
+        messages and :attr:`Robot.source` instead of ``"<string>"``; ignored for a path.
 
     Returns
     -------
@@ -492,7 +495,7 @@ def parse_urdf(source: Union[str, bytes, os.PathLike]) -> Robot:
     """
     if isinstance(source, bytes):
         text: Union[str, bytes] = source
-        where = "<string>"
+        where = text_source or "<string>"
     elif isinstance(source, os.PathLike) or (isinstance(source, str) and not _looks_like_xml(source)):
         path = Path(source)
         try:
@@ -502,7 +505,7 @@ def parse_urdf(source: Union[str, bytes, os.PathLike]) -> Robot:
         where = str(path)
     elif isinstance(source, str):
         text = source
-        where = "<string>"
+        where = text_source or "<string>"
     else:
         raise UrdfError(f"parse_urdf: expected a path or XML text, got {type(source).__name__}")
 

@@ -48,7 +48,6 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from ppoe_core import lie
-from ppoe_core.config import load_model_config
 from ppoe_core.errors import JointValueError, ModelConfigError, PpoeError
 from ppoe_core.model import PPOEModel
 from ppoe_ros.ros_common import (
@@ -199,10 +198,9 @@ class KinematicsNode(Node):
     # ------------------------------------------------------------------ model
     def _set_model(self, urdf_xml: str, where: str) -> None:
         try:
-            bare = PPOEModel.from_strings(urdf_xml)  # the URDF (text only, never a path)
-            # the model YAML from its file, so that errors name file and line (a dict would not)
+            # the model YAML from its file (a Path), so that errors name file and line (a dict would not)
             model_file = self.params["model_file"]
-            model = PPOEModel(bare.robot, load_model_config(Path(model_file) if model_file else None, bare.robot))
+            model = PPOEModel.from_strings(urdf_xml, Path(model_file) if model_file else None)
             reference = self.params["reference_frame"] or self._frames.get("base") or model.robot.root
             model.robot.check_link(reference)  # check the frames now, not at the first joint state
             for t in self.targets:

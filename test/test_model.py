@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ppoe_core import PPOEModel, lie, load_model_config, parse_urdf
-from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError
+from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
 from ppoe_core.model import compound_fourth_order
 
 DATA = Path(__file__).parent / "data"
@@ -574,3 +574,19 @@ def test_core_never_imports_ros() -> None:
     repo = Path(__file__).resolve().parents[1]
     res = subprocess.run([sys.executable, "-c", code], cwd=repo, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_from_strings_names_the_yaml_file_and_the_urdf_source(tmp_path) -> None:
+    """A model YAML given as a Path to from_strings is read from the file: errors name file and line."""
+    urdf_xml = EDGE.read_text()
+    bad = tmp_path / "bad_model.yaml"
+    bad.write_text("perturbations:\n  j1: {sigma: [0, 0, 0, 0, 0, 1]}\n  nope: {sigma: [0, 0, 0, 0, 0, 1]}\n")
+    with pytest.raises(UnknownJointError, match=r"bad_model.yaml:3: perturbations.nope: unknown joint 'nope' "
+                                                r"\(not in URDF bag b1 /robot_description\)"):
+        PPOEModel.from_strings(urdf_xml, bad, urdf_source="bag b1 /robot_description")
+    m = PPOEModel.from_strings(urdf_xml, EDGE_YAML, urdf_source="bag b1 /robot_description")
+    ref = PPOEModel.from_files(EDGE, EDGE_YAML)
+    q = np.linspace(-0.5, 0.5, len(ref.joint_names))
+    frm, to = ref.robot.root, list(ref.robot.links)[-1]
+    np.testing.assert_array_equal(m.fk(q, frm, to)[1], ref.fk(q, frm, to)[1])
+    assert m.robot.source == "bag b1 /robot_description"
