@@ -38,6 +38,7 @@ import bisect
 import math
 import sys
 import time
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -249,7 +250,7 @@ class FusionNode(Node):
         from ppoe_core.model import PPOEModel
 
         try:
-            model = PPOEModel.from_strings(urdf_xml, self.model_yaml)
+            model = PPOEModel.from_strings(urdf_xml, Path(self.params["model_file"]), urdf_source=where)
             model.robot.check_link(self.base_frame)
             model.robot.check_link(self.tool_frame)
             updater = make_updater(model, self.base_frame, self.tool_frame, self.settings)
