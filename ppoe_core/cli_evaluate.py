@@ -1,6 +1,7 @@
 """``ppoe evaluate BAG --model MODEL.yaml [--base FRAME] [--tool FRAME] [--out DIR] [--json]``.
 
-Replays a contract bag offline through the core code of the nodes and scores forward
+Replays a contract bag offline through the core code of the nodes (tag observations from images,
+contact planes from ``/wrench``, the fusion node's pipeline) and scores forward
 kinematics, PPOE-fused and naive-fused poses against the bag's ground truth
 (:mod:`ppoe_core.evaluate` documents the metrics and the tracker registration).
 Prints the markdown table (or, with ``--json``, one JSON document on stdout); ``--out``
@@ -39,11 +40,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--fusion-params", default=None, metavar="PARAMS.yaml",
-        help="the fusion node's ROS 2 parameter file (buffer, gating, correction policy); default: the node's defaults",
+        help="a ROS 2 parameter file of the fusion node (buffer, gating, correction policy; a /** file shared by the "
+             "nodes also sets corner_refinement and the contact node's force_threshold, release_threshold, "
+             "force_component); default: the nodes' defaults",
     )
     parser.add_argument(
         "--set", dest="fusion_set", action="append", default=[], metavar="KEY=VALUE",
-        help="override one fusion setting (a fusion node parameter, e.g. use_tag_corners=false); repeatable",
+        help="override one setting (a fusion node parameter, e.g. use_tag_corners=false, or corner_refinement, "
+             "force_threshold, release_threshold, force_component of the tag bearing / contact node); unknown keys "
+             "are an error; repeatable",
     )
     parser.add_argument("--iterations", type=int, default=None, help="override max_iterations of the LG-EKF update")
     parser.add_argument("--gate", type=float, default=None, help="override gate_probability (>= 1 = no gate)")

@@ -4,13 +4,18 @@ The replay runs the same core code as the live nodes:
 
 * kinematics node -> :meth:`ppoe_core.model.PPOEModel.fk` for every ``/joint_states`` message
   (prior ``T_base_tool`` and its PPOE covariance ``cov_tool``; batched over the bag);
-* tag bearing node -> :func:`observe_tags` (:func:`ppoe_core.tags.detect_tags`, undistortion,
-  centre from the diagonals, as the node) on every camera image (only when the bag has images but
-  no ``/tag_bearing/observations``: recorded observations are used as they are);
-* fusion node -> :class:`ppoe_core.fusion_pipeline.FusionPipeline` (prior buffer, iterated
-  LG-EKF update with gating, carried correction) with its
-  :class:`~ppoe_core.fusion_pipeline.ModelUpdater`, built with the fusion node's parameters
-  (:data:`FUSION_DEFAULTS`, or a node parameter file via :func:`load_fusion_params`).
+* tag bearing node -> :func:`ppoe_core.tag_observations.observe_tags` (the node's function) on
+  every camera image (only when the bag has images but no ``/tag_bearing/observations``:
+  recorded observations are used as they are);
+* contact node -> :class:`ppoe_core.contact.ContactDetector` (the node's force threshold with
+  hysteresis) on every ``/wrench`` message, giving the model YAML's contact plane and
+  ``Sigma_v`` at each wrench stamp in contact (only when the bag has no ``/contact/plane``:
+  recorded planes are used as they are);
+* fusion node -> :func:`ppoe_core.fusion_pipeline.make_pipeline` /
+  :func:`~ppoe_core.fusion_pipeline.make_updater` (prior buffer, iterated LG-EKF update with
+  gating, carried correction) with the fusion node's settings
+  (:data:`ppoe_core.fusion_pipeline.FUSION_SETTINGS` defaults, or a node parameter file via
+  :func:`load_fusion_params`; :data:`EVALUATE_SETTINGS` lists every key).
 
 Three estimates are scored at every ground-truth sample:
 
@@ -75,7 +80,10 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ppoe_core import lie
+from ppoe_core.contact import FORCE_COMPONENTS
 from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
+from ppoe_core.fusion_pipeline import FUSION_SETTINGS
+from ppoe_core.tag_observations import DEFAULT_CORNER_REFINEMENT
 
 __all__ = [
     "EvaluateOptions",
@@ -91,9 +99,9 @@ __all__ = [
     "METHODS",
     "markdown_report",
     "write_report",
-    "FUSION_DEFAULTS",
+    "EVALUATE_SETTINGS",
+    "REPLAY_SETTINGS",
     "load_fusion_params",
-    "observe_tags",
 ]
 
 #: scored methods, in report order
@@ -294,38 +302,28 @@ class ProgressBar:
 # ----------------------------------------------------------------------------
 
 
-#: fusion settings and their defaults: the fusion node's parameters of the same names
-#: (``ppoe_ros/fusion_node.py``), so that the replay runs the pipeline the node runs, plus the
-#: tag bearing node's ``corner_refinement``
-FUSION_DEFAULTS: dict[str, Any] = {
-    "buffer_duration": 1.0,  # s
-    "max_gap": 0.2,  # s
-    "max_hold": 0.5,  # s
-    "max_pending": 20,
-    "correction_timeout": 10.0,  # s
-    "correction_joint_motion": 0.05,  # rad or m
-    "correction_tool_translation": 0.05,  # m
-    "correction_tool_rotation": 0.1,  # rad
-    "correction_decay": "linear",
-    "max_iterations": 5,
-    "gate_probability": 0.9999,  # >= 1.0: no gating
-    "gating": "posterior",
-    "pixel_sigma": 0.0,  # <= 0: model YAML camera.pixel_sigma
-    "use_tag_centre": True,
-    "use_tag_corners": True,
-    "camera_covariance": True,
-    "contact_distance_sigma": 0.0,  # m
-    # the tag bearing node's parameter (ppoe_ros/tag_bearing_node.py), used when the bag has images
-    "corner_refinement": "subpix",
+#: settings of the replay beyond the fusion node's (:data:`ppoe_core.fusion_pipeline.FUSION_SETTINGS`):
+#: the tag bearing node's and the contact node's parameters of the same names and meanings
+REPLAY_SETTINGS: dict[str, Any] = {
+    # tag bearing node (bags with images): subpix, contour, apriltag, none, or edges (ppoe_core.tags)
+    "corner_refinement": DEFAULT_CORNER_REFINEMENT,
+    # contact node (bags with /wrench): N; 0 = model YAML contact.force_threshold / release_threshold
+    "force_threshold": 0.0,
+    "release_threshold": 0.0,
+    "force_component": "norm",  # norm, or a signed axis x, y, z, -x, -y, -z of the wrench frame
 }
+#: every setting of :attr:`EvaluateOptions.fusion` with its default: the fusion node's
+#: (``FUSION_SETTINGS``, shared with ``ppoe_ros/fusion_node.py``) and :data:`REPLAY_SETTINGS`
+EVALUATE_SETTINGS: dict[str, Any] = {**FUSION_SETTINGS, **REPLAY_SETTINGS}
 
 
 def load_fusion_params(path: str | Path) -> dict[str, Any]:
     """The fusion settings of a ROS 2 parameter file of the fusion node.
 
     Reads the first ``ros__parameters`` mapping of the file (``/**`` or the node's name) and
-    returns the keys of :data:`FUSION_DEFAULTS` it sets (for :attr:`EvaluateOptions.fusion`);
-    node-only keys (topics, QoS, diagnostics) are ignored.
+    returns the keys of :data:`EVALUATE_SETTINGS` it sets (for :attr:`EvaluateOptions.fusion`);
+    node-only keys (topics, QoS, diagnostics) are ignored.  A ``/**`` file shared by all nodes
+    thus also sets the tag bearing and contact node settings of :data:`REPLAY_SETTINGS`.
 
     Raises
     ------
@@ -347,7 +345,7 @@ def load_fusion_params(path: str | Path) -> dict[str, Any]:
                 break
     if params is None:
         raise ModelConfigError(f"{path}: no '<node>: ros__parameters:' mapping (ROS 2 parameter file)")
-    out = {k: params[k] for k in FUSION_DEFAULTS if k in params}
+    out = {k: params[k] for k in EVALUATE_SETTINGS if k in params}
     try:
         EvaluateOptions(fusion=out).fusion_settings()
     except ModelConfigError as exc:
@@ -369,8 +367,8 @@ class EvaluateOptions:
         Stationing point set fitted by the per-station registration of bags with
         ``/dataset/stop`` roles: ``"cross"`` (default), ``"square"`` or ``"all"``.
     fusion : dict
-        Fusion settings, keys and defaults of :data:`FUSION_DEFAULTS` (the fusion node's
-        parameters); missing keys take the defaults.
+        Settings, keys and defaults of :data:`EVALUATE_SETTINGS` (the fusion node's parameters
+        and those of :data:`REPLAY_SETTINGS`); missing keys take the defaults.
     ground_truth : str
         ``"pose"`` (``/ground_truth/pose``), ``"point"`` (``/ground_truth/point``) or ``"auto"``
         (default: the pose if the bag has one, else the point).
@@ -387,18 +385,18 @@ class EvaluateOptions:
     progress: bool = False
 
     def fusion_settings(self) -> dict[str, Any]:
-        """:data:`FUSION_DEFAULTS` updated with :attr:`fusion`.
+        """:data:`EVALUATE_SETTINGS` updated with :attr:`fusion`.
 
         Raises
         ------
         ModelConfigError
             An unknown key or a value of the wrong type (names the key).
         """
-        bad = sorted(set(self.fusion) - set(FUSION_DEFAULTS))
+        bad = sorted(set(self.fusion) - set(EVALUATE_SETTINGS))
         if bad:
-            raise ModelConfigError(f"unknown fusion setting(s) {bad}; known: {sorted(FUSION_DEFAULTS)}")
+            raise ModelConfigError(f"unknown fusion setting(s) {bad}; known: {sorted(EVALUATE_SETTINGS)}")
         for k, v in self.fusion.items():
-            default = FUSION_DEFAULTS[k]
+            default = EVALUATE_SETTINGS[k]
             if isinstance(default, bool):
                 ok = isinstance(v, bool)
             elif isinstance(default, str):
@@ -407,7 +405,10 @@ class EvaluateOptions:
                 ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
             if not ok:
                 raise ModelConfigError(f"fusion setting {k} = {v!r} has the wrong type (default {default!r})")
-        return {**FUSION_DEFAULTS, **self.fusion}
+        if self.fusion.get("force_component", "norm") not in FORCE_COMPONENTS:
+            raise ModelConfigError(f"fusion setting force_component = {self.fusion['force_component']!r}: "
+                                   f"must be one of {FORCE_COMPONENTS}")
+        return {**EVALUATE_SETTINGS, **self.fusion}
 
 
 @dataclass
@@ -420,7 +421,8 @@ class Evaluation:
         JSON-ready summary (see :meth:`to_dict`), lengths in m and angles in rad.
     samples : dict
         Per scored ground-truth sample arrays: ``stamp`` (n,), and per method
-        ``<method>_position_3d``, ``<method>_lateral``, ``<method>_rotation``, ``<method>_nees``.
+        ``<method>_position_3d``, ``<method>_lateral``, ``<method>_rotation``, ``<method>_nees`` (n,)
+        and ``<method>_position_error`` (n, 3): estimate minus ground truth in base-frame axes [m].
     """
 
     summary: dict[str, Any]
@@ -523,50 +525,13 @@ def _camera_lookup(data: Any) -> Callable[[str, float], tuple[np.ndarray, np.nda
     return lookup
 
 
-def observe_tags(
-    image: np.ndarray, K: np.ndarray, D: np.ndarray, dictionary: str = "tag36h11", refine: str = "subpix"
-) -> np.ndarray:
-    """Tag observation rows of one image, as the tag bearing node publishes them.
-
-    The same computation as ``ppoe_ros.tag_bearing_node.observe_tags`` (which cannot be
-    imported here: that module imports rclpy); ``test_evaluate.py`` checks that both agree.
-    Corners from :func:`ppoe_core.tags.detect_tags`, undistorted with
-    :func:`ppoe_core.tags.undistort_pixels`; the centre is the intersection of the diagonals in
-    undistorted normalised coordinates, projected back to pixels.
-
-    Returns
-    -------
-    ndarray, shape (5 n, 6)
-        ``[id, corner, u, v, x, y]``: centre (corner 0) then corners 1..4 of each tag.
-    """
-    from ppoe_core import tags as tagmod
-
-    dets = tagmod.detect_tags(image, dictionary, refine)
-    if not dets:
-        return np.zeros((0, 6))
-    corners_uv = np.stack([d.corners for d in dets])  # (n, 4, 2)
-    xy_c = tagmod.undistort_pixels(corners_uv, K, D)  # (n, 4, 2)
-    h = np.concatenate([xy_c, np.ones(xy_c.shape[:2] + (1,))], axis=-1)
-    c = np.cross(np.cross(h[:, 0], h[:, 2]), np.cross(h[:, 1], h[:, 3]))
-    ok = np.abs(c[:, 2]) > 1e-12
-    centre_xy = np.where(ok[:, None], c[:, :2] / np.where(ok, c[:, 2], 1.0)[:, None], xy_c.mean(axis=1))
-    centre_uv = tagmod.project_points(np.concatenate([centre_xy, np.ones((len(dets), 1))], axis=1), K, D)
-    rows = np.zeros((len(dets), 5, 6))
-    rows[:, :, 0] = np.array([d.id for d in dets], dtype=float)[:, None]
-    rows[:, :, 1] = np.arange(5)[None, :]
-    rows[:, 0, 2:4] = centre_uv
-    rows[:, 0, 4:6] = centre_xy
-    rows[:, 1:, 2:4] = corners_uv
-    rows[:, 1:, 4:6] = xy_c
-    return rows.reshape(-1, 6)
-
-
 def _tag_measurements(
     data: Any, model: Any, bag: str, refine: str = "subpix"
 ) -> tuple[list[Any], dict[str, int]]:
     """Measurements of tag observations: recorded ``/tag_bearing/observations`` if present,
     else detections on the camera images (``ppoe_core.tags.detect_tags``, as the tag node)."""
     from ppoe_core.fusion_pipeline import Measurement, TagPoints
+    from ppoe_core.tag_observations import observe_tags
 
     counts = {"tag_messages": 0, "tag_points": 0, "images": 0, "images_without_tags": 0}
     cams = _camera_lookup(data)
@@ -598,7 +563,7 @@ def _tag_measurements(
         if KD is None:
             raise BagError(f"bag {bag}: topic {topic} message {i}: no /camera/camera_info with frame_id {frame!r}")
         K, D = KD
-        rows = observe_tags(imgs.decode(i), K, D, family, refine)
+        rows, _ = observe_tags(imgs.decode(i), K, D, family, (), refine)
         counts["tag_messages"] += 1
         if rows.shape[0] == 0:
             counts["images_without_tags"] += 1
@@ -610,19 +575,69 @@ def _tag_measurements(
     return out, counts
 
 
-def _contact_measurements(data: Any) -> list[Any]:
-    """Recorded ``/contact/plane`` messages (contact node output) as PlaneContact measurements."""
+def _contact_measurements(
+    data: Any, model: Any, model_yaml: str | Path, settings: dict[str, Any]
+) -> tuple[list[Any], dict[str, Any]]:
+    """Contact plane measurements, as the contact node would publish them and the fusion node
+    would receive them.
+
+    * Recorded ``/contact/plane`` (contact node output) is used as it is.
+    * Otherwise a ``/wrench`` stream is replayed through :class:`ppoe_core.contact.ContactDetector`
+      (:func:`ppoe_core.contact.contact_stamps`: thresholds and force measure from ``settings``, 0
+      = the model YAML's ``contact`` section, as the node's parameters) and every wrench in contact
+      gives the model YAML's plane (:func:`ppoe_core.contact.plane_from_config`) at the wrench's
+      stamp.  Its ``Sigma_v`` goes the node's way: plane tangent space -> ROS convention (contact
+      node) -> plane tangent space (fusion node).
+    * A ``/wrench`` without a model YAML ``contact`` section fuses nothing: counted
+      (``wrench_without_contact_config``), not an error (a bag may carry wrenches for other uses).
+
+    Returns
+    -------
+    (measurements, counts)
+        ``counts``: ``contact_source`` (``"/contact/plane"``, ``"/wrench"`` or None),
+        ``contact_planes``, and for a replayed wrench its ``wrench`` counts (received, bad,
+        contacts, published).
+    """
+    from ppoe_core.contact import ContactDetector, contact_stamps, plane_from_config
     from ppoe_core.fusion_pipeline import Measurement, PlaneContact
 
-    series = data.poses_with_covariance.get("/contact/plane")
-    if series is None:
-        return []
+    topic = "/contact/plane"
+    counts: dict[str, Any] = {"contact_source": None, "contact_planes": 0}
+    series = data.poses_with_covariance.get(topic)
     out = []
-    for i in range(len(series)):
-        T = series.T[i]
-        cov = lie.cov_ros_to_local(T, series.cov_ros[i])
-        out.append(Measurement(float(series.stamps[i]), "/contact/plane", PlaneContact(series.frame_ids[i], T, cov)))
-    return out
+    if series is not None and len(series):
+        counts["contact_source"] = topic
+        for i in range(len(series)):
+            T = series.T[i]
+            cov = lie.cov_ros_to_local(T, series.cov_ros[i])
+            out.append(Measurement(float(series.stamps[i]), topic, PlaneContact(series.frame_ids[i], T, cov)))
+        counts["contact_planes"] = len(out)
+        return out, counts
+    wr = data.wrench
+    if len(wr) == 0:
+        return out, counts
+    contact = model.config.contact
+    if contact is None:
+        counts["wrench_without_contact_config"] = int(len(wr))
+        return out, counts
+    cfg = model.config
+    where = f"{model_yaml}: contact"
+    plane = plane_from_config(contact, cfg.frames.base if cfg.frames is not None else None, where=where)
+    enter = float(settings["force_threshold"]) or contact.force_threshold
+    release = float(settings["release_threshold"]) or contact.release_threshold
+    try:
+        detector = ContactDetector(enter, release)
+    except ModelConfigError as exc:
+        raise ModelConfigError(f"{where}: {exc}") from None
+    stamps, wcounts = contact_stamps(wr.stamps, wr.force, detector, str(settings["force_component"]), "/wrench")
+    # the fusion node's view of the message: ROS-convention covariance back to the plane tangent space
+    cov_plane = lie.check_covariance(lie.cov_ros_to_local(plane.T_frame_plane, plane.cov_ros),
+                                     name=f"{topic} covariance", size=6)
+    payload = PlaneContact(plane.frame, plane.T_frame_plane, cov_plane)
+    out = [Measurement(float(t), topic, payload) for t in stamps]
+    counts.update({"contact_source": "/wrench", "contact_planes": len(out), "wrench": wcounts,
+                   "force_threshold": enter, "release_threshold": release})
+    return out, counts
 
 
 def _stop_roles(bag: str, gt_stamps: np.ndarray) -> list[dict[str, Any] | None]:
@@ -690,7 +705,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         Bad model YAML or frame names.
     """
     from ppoe_core.bagio import read_bag
-    from ppoe_core.fusion_pipeline import CorrectionPolicy, FusionPipeline, ModelUpdater
+    from ppoe_core.fusion_pipeline import make_pipeline, make_updater
 
     opt = options or EvaluateOptions()
     bag = str(bag)
@@ -734,34 +749,23 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
 
     fs = opt.fusion_settings()
     tag_meas, tag_counts = _tag_measurements(data, model, bag, refine=str(fs["corner_refinement"]))
-    meas = sorted(tag_meas + _contact_measurements(data), key=lambda m: m.stamp)
+    contact_meas, contact_counts = _contact_measurements(data, model, model_yaml, fs)
+    meas = sorted(tag_meas + contact_meas, key=lambda m: m.stamp)
 
+    # the fusion node's pipeline and updater (ppoe_core.fusion_pipeline.make_pipeline / make_updater
+    # with the node's settings); the naive model knows nothing of the camera chain's covariance
+    node_settings = {k: fs[k] for k in FUSION_SETTINGS}
     pipes: dict[str, Any] = {}
     updaters: dict[str, Any] = {}
     for name in ("ppoe", "naive"):
         if name == "naive" and cov_naive is None:
             continue
-        # as the fusion node builds them (ppoe_ros/fusion_node.py); the naive model knows
-        # nothing of the camera chain's covariance
-        updaters[name] = ModelUpdater(
-            model, base, tool,
-            pixel_sigma=fs["pixel_sigma"] if fs["pixel_sigma"] > 0 else None,
-            max_iterations=int(fs["max_iterations"]),
-            gate_probability=None if fs["gate_probability"] >= 1.0 else float(fs["gate_probability"]),
-            gating=fs["gating"],
-            camera_covariance=bool(fs["camera_covariance"]) and name == "ppoe",
-            use_centre=bool(fs["use_tag_centre"]), use_corners=bool(fs["use_tag_corners"]),
-            contact_distance_sigma=float(fs["contact_distance_sigma"]),
-        )
-        policy = CorrectionPolicy(
-            timeout=fs["correction_timeout"], joint_motion=fs["correction_joint_motion"],
-            tool_translation=fs["correction_tool_translation"], tool_rotation=fs["correction_tool_rotation"],
-            decay=fs["correction_decay"],
-        )
-        pipes[name] = FusionPipeline(
-            updaters[name], buffer_duration=fs["buffer_duration"], max_gap=fs["max_gap"],
-            max_hold=fs["max_hold"], policy=policy, max_pending=int(fs["max_pending"]),
-        )
+        s_name = {**node_settings, "camera_covariance": bool(fs["camera_covariance"]) and name == "ppoe"}
+        try:
+            updaters[name] = make_updater(model, base, tool, s_name)
+            pipes[name] = make_pipeline(model, base, tool, s_name, updater=updaters[name])
+        except (TypeError, ValueError) as exc:
+            raise ModelConfigError(f"fusion settings: {exc}") from None
 
     gt_stamps = gt_pose.stamps if kind == "pose" else gt_point.stamps
     # events: (stamp, kind rank, index); priors first, then measurements, then ground truth
@@ -839,7 +843,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             "samples": int(n_gt),
             "without_prior": int(np.sum(~have)),
         },
-        "measurements": {"total": len(meas), **tag_counts},
+        "measurements": {"total": len(meas), **tag_counts, **contact_counts},
         "fusion_settings": fs,
         "methods": {},
     }
@@ -847,7 +851,8 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     # without any measurement the fused estimates are the priors: only FK is scored
     methods = ["fk"] + (list(pipes) if meas else [])
     if not meas:
-        summary["fusion"] = "no tag observations, images or contact planes in the bag: only forward kinematics scored"
+        summary["fusion"] = ("no tag observations, images, contact planes or wrenches in contact in the bag: only "
+                             "forward kinematics scored")
 
     if kind == "pose":
         sel = np.flatnonzero(have)
@@ -861,7 +866,8 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             rot = rotation_errors(Te, T_gt)
             e6 = lie.log(lie.inverse(Te) @ T_gt)
             ne = _mahalanobis(e6, Ce)
-            samples.update({f"{m}_position_3d": e3, f"{m}_lateral": el, f"{m}_rotation": rot, f"{m}_nees": ne})
+            samples.update({f"{m}_position_3d": e3, f"{m}_lateral": el, f"{m}_rotation": rot, f"{m}_nees": ne,
+                            f"{m}_position_error": Te[:, :3, 3] - p_gt})
             summary["methods"][m] = {
                 "position_3d": error_stats(e3),
                 "lateral": error_stats(el),
@@ -910,7 +916,8 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             e3, el = position_errors(p_e, p_gt_base[sel], z_axis)
             Cp = point_covariance(Te, Ce, r_tool[sel]) + cov_gt
             ne = _mahalanobis(p_e - p_gt_base[sel], Cp)
-            samples.update({f"{m}_position_3d": e3, f"{m}_lateral": el, f"{m}_nees": ne})
+            samples.update({f"{m}_position_3d": e3, f"{m}_lateral": el, f"{m}_nees": ne,
+                            f"{m}_position_error": p_e - p_gt_base[sel]})
             summary["methods"][m] = {
                 "position_3d": error_stats(e3),
                 "lateral": error_stats(el),
@@ -975,8 +982,19 @@ def markdown_report(ev: Evaluation) -> str:
         )
     m = s["measurements"]
     lines.append(
-        f"- measurements: {m['total']} ({m.get('tag_messages', 0)} tag messages, {m.get('tag_points', 0)} tag points)"
+        f"- measurements: {m['total']} ({m.get('tag_messages', 0)} tag messages, {m.get('tag_points', 0)} tag points, "
+        f"{m.get('contact_planes', 0)} contact planes)"
     )
+    if m.get("contact_source") == "/wrench":
+        w = m["wrench"]
+        lines.append(
+            f"- contact planes from `/wrench` through the contact detector (enter {m['force_threshold']:g} N, "
+            f"release {m['release_threshold']:g} N): {w['received']} wrenches, {w['contacts']} contacts, "
+            f"{w['bad']} bad"
+        )
+    if m.get("wrench_without_contact_config"):
+        lines.append(f"- {m['wrench_without_contact_config']} `/wrench` messages not used: the model YAML has no "
+                     "`contact` section")
     if "fusion" in s:
         lines.append(f"- {s['fusion']}")
     lines += [

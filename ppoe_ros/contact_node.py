@@ -13,14 +13,16 @@ Publications
     ``/diagnostics``: ``received``, ``published``, ``bad``, ``contacts`` (number of
     contact onsets), ``in_contact`` (0/1).
 
-Contact detection with hysteresis: contact begins when the force measure
+Contact detection (:class:`ppoe_core.contact.ContactDetector`, the same code ``ppoe evaluate``
+replays a bag's ``/wrench`` through) with hysteresis: contact begins when the force measure
 (``force_component``: the force norm, or one signed axis of the sensor frame)
 reaches ``force_threshold`` and ends when it falls below ``release_threshold``
 (< ``force_threshold``).  A wrench with NaN/inf values or a stamp older than the
 previous one is logged (throttled), counted as ``bad`` and ignored.
 
 The plane, its Sigma_v and the thresholds come from the model YAML ``contact``
-section; parameters override them (see ``config/contact_node.yaml``).
+section (:func:`ppoe_core.contact.plane_from_config`); parameters override them (see
+``config/contact_node.yaml``).
 """
 
 from __future__ import annotations
@@ -34,9 +36,16 @@ from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
 from std_msgs.msg import Bool
 
-from ppoe_core import lie
-from ppoe_core.config import ContactConfig, load_contact_config
-from ppoe_core.errors import CovarianceError, ModelConfigError
+from ppoe_core.config import load_contact_config
+from ppoe_core.contact import (
+    DEFAULT_FORCE_THRESHOLD,
+    DEFAULT_RELEASE_THRESHOLD,
+    FORCE_COMPONENTS,
+    ContactDetector,
+    force_measure,
+    plane_from_config,
+)
+from ppoe_core.errors import ModelConfigError
 from ppoe_ros.kinematics_node import load_model_yaml
 from ppoe_ros.ros_common import (
     DiagnosticsPublisher,
@@ -54,10 +63,10 @@ from ppoe_ros.ros_common import (
     wrench_to_numpy,
 )
 
-__all__ = ["ContactNode", "ContactDetector", "PlaneConfig", "PARAMS", "plane_from_config", "main"]
+__all__ = ["ContactNode", "PARAMS", "main"]
 
 _DOUBLE_ARRAY = ParameterType.PARAMETER_DOUBLE_ARRAY
-_COMPONENTS = ("norm", "x", "y", "z", "-x", "-y", "-z")
+_COMPONENTS = FORCE_COMPONENTS
 
 #: Parameters of the node (defaults; documented in config/contact_node.yaml).
 PARAMS: tuple[ParamSpec, ...] = (
@@ -87,92 +96,6 @@ PARAMS: tuple[ParamSpec, ...] = (
 )
 
 
-class PlaneConfig:
-    """The contact plane: ``T_frame_plane`` (4, 4), ``frame`` and ``cov_plane`` (6, 6, local, plane frame)."""
-
-    def __init__(self, frame: str, T_frame_plane: np.ndarray, cov_plane: np.ndarray) -> None:
-        self.frame = frame
-        self.T_frame_plane = T_frame_plane
-        self.cov_plane = cov_plane
-        #: Sigma_v in the ROS convention (axes of ``frame``), CONTRACT.md sec. 2
-        self.cov_ros = lie.cov_local_to_ros(T_frame_plane, cov_plane)
-
-
-def plane_from_config(contact: ContactConfig | None, frames_base: str | None, params: dict[str, Any],
-                      where: str) -> PlaneConfig:
-    """Plane pose and Sigma_v from parameters, falling back on the model YAML ``contact`` section.
-
-    Parameters
-    ----------
-    contact : ContactConfig or None
-        The model YAML's ``contact`` section, validated by
-        :func:`ppoe_core.config.load_contact_config` (None: the YAML has none).
-    frames_base : str or None
-        The model YAML's ``frames.base``: plane frame when neither the parameter nor a
-        ``contact`` section gives one.
-    params : dict
-        Node parameters ``plane_frame``, ``plane_xyz``, ``plane_rpy`` and ``plane_sigma``
-        (empty = take the model YAML's value).
-    where : str
-        Node and file, for error messages.
-
-    Returns
-    -------
-    PlaneConfig
-        ``cov_plane`` in the tangent space at ``T_frame_plane`` (plane frame).
-
-    Raises
-    ------
-    ModelConfigError
-        No frame or no Sigma_v in either place, or malformed values (message names ``where`` and the key).
-    """
-    frame = params["plane_frame"] or (contact.plane_frame if contact is not None else frames_base)
-    if not frame:
-        raise ModelConfigError(f"{where}: no contact plane frame (parameter plane_frame, contact.plane.frame "
-                               "or frames.base)")
-    T = contact.T_frame_plane.copy() if contact is not None else np.eye(4)
-    for name in ("plane_xyz", "plane_rpy", "plane_sigma"):
-        v = np.asarray(params[name], dtype=float)
-        if not np.all(np.isfinite(v)):
-            raise ModelConfigError(f"{where}: parameter {name} must be finite numbers, got {params[name]!r}")
-    if len(params["plane_xyz"]):
-        T[:3, 3] = params["plane_xyz"]
-    if len(params["plane_rpy"]):
-        T[:3, :3] = lie.from_xyz_rpy(np.zeros(3), np.asarray(params["plane_rpy"], dtype=float))[:3, :3]
-    if len(params["plane_sigma"]):
-        cov = np.diag(np.square(np.asarray(params["plane_sigma"], dtype=float)))
-    elif contact is not None:
-        cov = contact.covariance
-    else:
-        raise ModelConfigError(f"{where}: no plane Sigma_v (parameter plane_sigma, contact.sigma or "
-                               "contact.covariance)")
-    try:
-        cov = lie.check_covariance(cov, f"{where}: contact plane Sigma_v", size=6)
-    except CovarianceError as exc:
-        raise ModelConfigError(str(exc)) from None
-    return PlaneConfig(str(frame), T, cov)
-
-
-class ContactDetector:
-    """Force threshold with hysteresis: on at ``>= enter``, off at ``< release``."""
-
-    def __init__(self, enter: float, release: float) -> None:
-        if not release < enter:
-            raise ModelConfigError(f"release_threshold ({release} N) must be below force_threshold ({enter} N)")
-        self.enter = float(enter)
-        self.release = float(release)
-        self.in_contact = False
-
-    def update(self, force: float) -> bool:
-        """Feed one force measure [N]; returns the contact state after it."""
-        if self.in_contact:
-            if force < self.release:
-                self.in_contact = False
-        elif force >= self.enter:
-            self.in_contact = True
-        return self.in_contact
-
-
 class ContactNode(Node):
     """Publishes the configured contact plane while the wrench (or flag) says "in contact"."""
 
@@ -186,15 +109,14 @@ class ContactNode(Node):
         contact = load_contact_config(p["model_file"]) if p["model_file"] else None
         frames_base = mapping_get(load_model_yaml(p["model_file"]), "frames", "base")
         self.plane = plane_from_config(contact, frames_base, p, where)
-        enter = p["force_threshold"] or (contact.force_threshold if contact is not None else 5.0)
-        release = p["release_threshold"] or (contact.release_threshold if contact is not None else 2.0)
+        enter = p["force_threshold"] or (contact.force_threshold if contact is not None else DEFAULT_FORCE_THRESHOLD)
+        release = p["release_threshold"] or (contact.release_threshold if contact is not None
+                                             else DEFAULT_RELEASE_THRESHOLD)
         try:
             self.detector = ContactDetector(enter, release)
         except ModelConfigError as exc:
             raise ModelConfigError(f"{where}: {exc}") from None
-        comp = p["force_component"]
-        self._axis = None if comp == "norm" else "xyz".index(comp[-1])
-        self._sign = -1.0 if comp.startswith("-") else 1.0
+        self._component = p["force_component"]
         self._last_ns: int | None = None
         self._out = pose_cov_stamped_msg(self.plane.T_frame_plane, self.plane.cov_ros, 0, self.plane.frame)
         self._pub = self.create_publisher(PoseWithCovarianceStamped, p["plane_topic"], reliable_qos(100))
@@ -213,8 +135,7 @@ class ContactNode(Node):
     def _on_change(self, changed: dict[str, Any]) -> None:
         enter = changed.get("force_threshold", self.detector.enter) or self.detector.enter
         release = changed.get("release_threshold", self.detector.release) or self.detector.release
-        if not release < enter:
-            raise ModelConfigError(f"release_threshold ({release} N) must be below force_threshold ({enter} N)")
+        ContactDetector.check_thresholds(enter, release)
         self.detector.enter, self.detector.release = float(enter), float(release)
 
     def _set_state(self, in_contact: bool, was: bool, stamp_s: float) -> None:
@@ -239,7 +160,7 @@ class ContactNode(Node):
         if self._last_ns is not None and stamp_ns < self._last_ns:
             raise ValueError(f"stamp jumped back by {(self._last_ns - stamp_ns) * 1e-9:.6f} s: message ignored")
         self._last_ns = stamp_ns
-        force = float(np.linalg.norm(w[:3])) if self._axis is None else self._sign * float(w[self._axis])
+        force = float(force_measure(w[:3], self._component))
         was = self.detector.in_contact
         now = self.detector.update(force)
         if now != was:

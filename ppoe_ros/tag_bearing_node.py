@@ -17,8 +17,10 @@ Publications
     ``/diagnostics``: counters ``received``, ``published``, ``bad``, ``dropped``,
     ``detections``, ``camera_info``.
 
-The centre is the intersection of the diagonals of the four *undistorted* corners (the
-exact image of the tag centre for the pinhole model), distorted back for ``u``, ``v``.
+The rows come from :func:`ppoe_core.tag_observations.observe_tags` (ROS-free, the same
+function ``ppoe evaluate`` runs on a bag's images): the centre is the intersection of the
+diagonals of the four *undistorted* corners (the exact image of the tag centre for the pinhole
+model), distorted back for ``u``, ``v``.
 
 Bad input never stops the node: an empty or undecodable image, an unsupported encoding, a
 ``camera_info`` with a zero / non-finite ``K`` or an unsupported distortion model is logged
@@ -40,6 +42,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, Poi
 
 from ppoe_core import tags as tagmod
 from ppoe_core.errors import MeasurementError, ModelConfigError
+from ppoe_core.tag_observations import DEFAULT_CORNER_REFINEMENT, OBSERVATION_FIELDS, observe_tags
 from ppoe_ros.ros_common import (
     DiagnosticsPublisher,
     NodeStats,
@@ -59,13 +62,10 @@ __all__ = [
     "main",
     "decode_image",
     "camera_from_info",
-    "observe_tags",
     "cloud_from_observations",
     "observations_from_cloud",
 ]
 
-#: FLOAT64 fields of one point of ``/tag_bearing/observations``, in this order, 8 bytes each
-OBSERVATION_FIELDS: tuple[str, ...] = ("id", "corner", "u", "v", "x", "y")
 
 _REFINE = ("subpix", "contour", "apriltag", "none")
 
@@ -79,7 +79,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               "4x4_50 ... 7x7_1000; empty = model YAML tags.family, else tag36h11"),
     ParamSpec("tag_ids", [], "tag ids to publish; empty = the model YAML's tag ids, else every detected tag",
               ptype=ParameterType.PARAMETER_INTEGER_ARRAY),
-    ParamSpec("corner_refinement", "subpix", "corner refinement: subpix, contour, apriltag or none",
+    ParamSpec("corner_refinement", DEFAULT_CORNER_REFINEMENT, "corner refinement: subpix, contour, apriltag or none",
               check=lambda v: None if v in _REFINE else f"must be one of {_REFINE}, got {v!r}"),
     ParamSpec("observations_topic", "/tag_bearing/observations", "output PointCloud2 topic", check=check_nonempty),
     ParamSpec("publish_debug_image", False, "publish an image with the detections drawn"),
@@ -167,51 +167,6 @@ def camera_from_info(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     if D.size not in (0, 4, 5, 8, 12, 14):
         raise MeasurementError(f"camera_info D has {D.size} coefficients")
     return K, (D if D.size else np.zeros(5))
-
-
-def observe_tags(image: np.ndarray, K: np.ndarray, D: np.ndarray, dictionary: str = "tag36h11",
-                 tag_ids: Sequence[int] = (), refine: str = "subpix") -> tuple[np.ndarray, list[Any]]:
-    """Detect tags and return the observation rows.
-
-    Parameters
-    ----------
-    image : (H, W) or (H, W, 3) uint8
-    K : (3, 3), D : (k,)
-        Camera intrinsics and distortion (OpenCV order).
-    dictionary, refine
-        See :func:`ppoe_core.tags.detect_tags`.
-    tag_ids
-        Ids to keep; empty = all.
-
-    Returns
-    -------
-    rows : (5 n, 6) float64
-        ``[id, corner, u, v, x, y]`` per point: centre (corner 0) then corners 1..4 of each tag.
-    detections : list of ppoe_core.tags.TagDetection
-        The kept detections (for drawing).
-    """
-    dets = tagmod.detect_tags(image, dictionary, refine)
-    keep = set(int(i) for i in tag_ids)
-    if keep:
-        dets = [d for d in dets if d.id in keep]
-    if not dets:
-        return np.zeros((0, 6)), []
-    corners_uv = np.stack([d.corners for d in dets])  # (n, 4, 2)
-    xy_c = tagmod.undistort_pixels(corners_uv, K, D)  # (n, 4, 2)
-    # centre: diagonals 1-3 and 2-4 intersected in undistorted normalised coordinates
-    h = np.concatenate([xy_c, np.ones(xy_c.shape[:2] + (1,))], axis=-1)
-    c = np.cross(np.cross(h[:, 0], h[:, 2]), np.cross(h[:, 1], h[:, 3]))
-    ok = np.abs(c[:, 2]) > 1e-12
-    centre_xy = np.where(ok[:, None], c[:, :2] / np.where(ok, c[:, 2], 1.0)[:, None], xy_c.mean(axis=1))
-    centre_uv = tagmod.project_points(np.concatenate([centre_xy, np.ones((len(dets), 1))], axis=1), K, D)
-    rows = np.zeros((len(dets), 5, 6))
-    rows[:, :, 0] = np.array([d.id for d in dets], dtype=float)[:, None]
-    rows[:, :, 1] = np.arange(5)[None, :]
-    rows[:, 0, 2:4] = centre_uv
-    rows[:, 0, 4:6] = centre_xy
-    rows[:, 1:, 2:4] = corners_uv
-    rows[:, 1:, 4:6] = xy_c
-    return rows.reshape(-1, 6), dets
 
 
 def cloud_from_observations(rows: np.ndarray, header: Any) -> PointCloud2:

@@ -1,4 +1,4 @@
-"""contact_node: hysteresis, plane + Sigma_v output through live topics, bad input, parameters.
+"""contact_node: hysteresis (detector unit tests: test_contact_detector.py), plane + Sigma_v output through live topics, bad input, parameters.
 
 The node runs as a separate process in an isolated DDS domain with the contact
 section of config/humanoid_model.yaml; parameter validation is checked on a node
@@ -22,7 +22,7 @@ from std_msgs.msg import Bool  # noqa: E402
 
 from ppoe_core import lie  # noqa: E402
 from ppoe_core.errors import ModelConfigError  # noqa: E402
-from ppoe_ros.contact_node import ContactDetector, ContactNode  # noqa: E402
+from ppoe_ros.contact_node import ContactNode  # noqa: E402
 from ppoe_ros.ros_common import ns_to_stamp, pose_cov_from_msg, stamp_to_ns  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -37,14 +37,6 @@ def _wrench(ns: int, force: tuple[float, float, float]) -> WrenchStamped:
     # floats: rclpy accepts an int in a float64 field but serialises garbage for it
     msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = (float(f) for f in force)
     return msg
-
-
-def test_detector_hysteresis() -> None:
-    det = ContactDetector(5.0, 2.0)
-    states = [det.update(f) for f in [0.0, 4.99, 5.0, 3.0, 2.0, 1.99, 4.0, 7.0, 0.0]]
-    assert states == [False, False, True, True, True, False, False, True, False]
-    with pytest.raises(ModelConfigError, match="must be below force_threshold"):
-        ContactDetector(2.0, 2.0)
 
 
 def test_wrench_hysteresis_plane_and_bad_input_live(tmp_path: Path) -> None:

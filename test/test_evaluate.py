@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import argparse
 import io
 import json
 import os
@@ -21,16 +22,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from ppoe_core import lie
+from ppoe_core import lie, tags
 from ppoe_core.bagio import BagWriter
 from ppoe_core.errors import BagError, ModelConfigError, PpoeError
 from ppoe_core.evaluate import (
+    REPLAY_SETTINGS,
     EvaluateOptions,
     ProgressBar,
     error_stats,
     evaluate_bag,
     kabsch,
+    load_fusion_params,
     markdown_report,
     nees_stats,
     point_covariance,
@@ -38,6 +43,7 @@ from ppoe_core.evaluate import (
     rotation_errors,
     write_report,
 )
+from ppoe_core.tag_observations import centre_from_corners, observe_tags
 
 REPO = Path(__file__).resolve().parents[1]
 DATASETS = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets"))
@@ -285,7 +291,7 @@ def test_evaluate_motoman_marker_fusion(tmp_path):
 
 def test_fusion_settings_from_node_params_file(tmp_path, small_table1_bag):
     """A fusion-node parameter file sets the replay's pipeline; bad keys/values are refused."""
-    from ppoe_core.evaluate import FUSION_DEFAULTS, load_fusion_params
+    from ppoe_core.fusion_pipeline import FUSION_SETTINGS
 
     pf = tmp_path / "fusion.yaml"
     pf.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": {
@@ -293,7 +299,7 @@ def test_fusion_settings_from_node_params_file(tmp_path, small_table1_bag):
     fusion = load_fusion_params(pf)
     assert fusion == {"use_tag_corners": False, "max_iterations": 2}  # node-only keys ignored
     opts = EvaluateOptions(fusion=fusion)
-    assert opts.fusion_settings()["gate_probability"] == FUSION_DEFAULTS["gate_probability"]
+    assert opts.fusion_settings()["gate_probability"] == FUSION_SETTINGS["gate_probability"]
     ev_c = evaluate_bag(small_table1_bag, REPO / "config" / "rover_model.yaml", opts)
     ev_d = evaluate_bag(small_table1_bag, REPO / "config" / "rover_model.yaml")
     assert ev_c.summary["fusion_settings"]["use_tag_corners"] is False
@@ -301,6 +307,8 @@ def test_fusion_settings_from_node_params_file(tmp_path, small_table1_bag):
     assert ev_c.summary["methods"]["ppoe"]["lateral"]["mean"] != ev_d.summary["methods"]["ppoe"]["lateral"]["mean"]
     with pytest.raises(ModelConfigError, match="unknown fusion setting"):
         EvaluateOptions(fusion={"gate": 0.9}).fusion_settings()
+    with pytest.raises(ModelConfigError, match="force_component"):
+        EvaluateOptions(fusion={"force_component": "sideways"}).fusion_settings()
     pf.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": {"max_iterations": "many"}}}))
     with pytest.raises(ModelConfigError, match="max_iterations"):
         load_fusion_params(pf)
@@ -309,24 +317,127 @@ def test_fusion_settings_from_node_params_file(tmp_path, small_table1_bag):
         load_fusion_params(pf)
 
 
-def test_observe_tags_same_as_tag_bearing_node():
-    """evaluate's tag observations are the tag bearing node's (same function body, checked here)."""
-    pytest.importorskip("rclpy")
-    from ppoe_core.bagio import read_bag
-    from ppoe_core.evaluate import observe_tags
-    from ppoe_ros.tag_bearing_node import observe_tags as node_observe_tags
+def test_default_settings_are_the_fusion_nodes(small_table1_bag):
+    """Without overrides the replay runs the fusion node's defaults (ppoe_core.fusion_pipeline
+    FUSION_SETTINGS, which the node declares), e.g. max_pending 200 and the per-source
+    min_interval; a bad value is refused by make_pipeline naming the setting."""
+    from ppoe_core.fusion_pipeline import FUSION_SETTINGS
 
-    data = read_bag(REPO / "bags" / "table1_exp1")
-    K, D = data.camera_info.K[0], data.camera_info.D[0]
-    n = 0
-    for i in range(0, len(data.images), 3):
-        img = data.images.decode(i)
-        for refine in ("subpix", "edges"):
-            ours = observe_tags(img, K, D, "tag36h11", refine)
-            theirs, _ = node_observe_tags(img, K, D, "tag36h11", (), refine)
-            np.testing.assert_array_equal(ours, theirs)
-            n += ours.shape[0]
-    assert n > 0
+    fs = EvaluateOptions().fusion_settings()
+    assert {k: fs[k] for k in FUSION_SETTINGS} == FUSION_SETTINGS
+    assert set(fs) - set(FUSION_SETTINGS) == set(REPLAY_SETTINGS)
+    with pytest.raises(PpoeError, match="min_interval"):
+        evaluate_bag(small_table1_bag, REPO / "config" / "rover_model.yaml",
+                     EvaluateOptions(fusion={"min_interval": -1.0}))
+
+
+# ----------------------------------------------------------------------------- tag observations
+# ppoe_core.tag_observations.observe_tags is what the tag bearing node publishes and what
+# evaluate fuses from a bag's images (one function, imported by both).
+
+_K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
+_D = np.array([-0.08, 0.02, 0.001, -0.0005, 0.0])
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(-1.0, 1.0), min_size=6, max_size=6), st.floats(0.02, 0.2))
+def test_tag_centre_from_corners_is_the_projected_centre(xi, size):
+    """The diagonals' intersection of exactly projected (pinhole) corners is the projection of
+    the tag centre, for any tag pose in front of the camera; the corners' mean is not."""
+    T_cam_tag = lie.from_xyz_rpy([0.3 * xi[0], 0.3 * xi[1], 0.6 + 0.3 * xi[2]], [np.pi + 0.6 * xi[3], 0.6 * xi[4],
+                                                                             3.0 * xi[5]])
+    P = tags.tag_points_local(size) @ T_cam_tag[:3, :3].T + T_cam_tag[:3, 3]  # centre, 4 corners
+    xy = P[:, :2] / P[:, 2:]
+    np.testing.assert_allclose(centre_from_corners(xy[1:]), xy[0], atol=1e-12)
+    # broadcasting over leading axes
+    np.testing.assert_allclose(centre_from_corners(np.stack([xy[1:], xy[1:]])), [xy[0], xy[0]], atol=1e-12)
+
+
+def test_observe_tags_against_known_projection():
+    """Rendered tags (distorted camera, strongly tilted tag) against their true projection."""
+    size = 0.06
+    T_list = [lie.from_xyz_rpy([-0.07, 0.02, 0.35], [np.pi + 0.7, -0.2, 0.1]),
+              lie.from_xyz_rpy([0.09, -0.03, 0.45], [np.pi - 0.15, 0.6, -0.4])]
+    img, drawn = tags.render_tags((640, 480), _K, _D, T_list, [3, 7], size, supersample=4)
+    assert sorted(drawn) == [3, 7]
+    rows, dets = observe_tags(img, _K, _D, "tag36h11")
+    truth = {}
+    for tid, T in zip([3, 7], T_list):
+        P = tags.tag_points_local(size) @ T[:3, :3].T + T[:3, 3]
+        truth[tid] = (tags.project_points(P, _K, _D), P[:, :2] / P[:, 2:])
+    assert rows.shape == (10, 6)
+    for r in rows:
+        uv, xy = truth[int(r[0])]
+        c = int(r[1])
+        assert np.linalg.norm(r[2:4] - uv[c]) < 0.3  # px
+        assert np.linalg.norm(r[4:6] - xy[c]) < 0.3 / 600
+    # x, y are the undistorted u, v (the centre is distorted back from its x, y)
+    np.testing.assert_allclose(tags.undistort_pixels(rows[:, 2:4], _K, _D), rows[:, 4:6], atol=1e-9)
+    # the perspective is strong enough that the corners' mean would be wrong by > 1 px
+    centres = rows[rows[:, 1] == 0]
+    for r in centres:
+        uv, _ = truth[int(r[0])]
+        assert np.linalg.norm(uv[1:].mean(axis=0) - uv[0]) > 1.0
+    # id filter and an image without tags
+    assert set(observe_tags(img, _K, _D, tag_ids=[7])[0][:, 0]) == {7.0}
+    assert observe_tags(np.full((480, 640), 128, np.uint8), _K, _D)[0].shape == (0, 6)
+
+
+# ----------------------------------------------------------------------------- contact
+
+
+def test_evaluate_contact_bag_replays_wrench_through_the_contact_detector():
+    """``ppoe evaluate bags/contact``: /wrench -> ContactDetector -> the model YAML's table plane
+    -> fusion: the fused fingertip is closer to ground truth than FK, and along the table normal
+    (what a contact observes) the error almost vanishes on the contact stops."""
+    from ppoe_core.bagio import read_bag
+    from ppoe_core.config import load_contact_config
+    from ppoe_core.contact import ContactDetector, contact_stamps
+
+    bag, model = REPO / "bags" / "contact", REPO / "config" / "humanoid_model.yaml"
+    ev = evaluate_bag(bag, model)
+    meas = ev.summary["measurements"]
+    contact = load_contact_config(model)
+    wr = read_bag(bag, topics=["/wrench"]).wrench
+    on, _ = contact_stamps(wr.stamps, wr.force, ContactDetector(contact.force_threshold, contact.release_threshold))
+    assert meas["contact_source"] == "/wrench" and meas["contact_planes"] == len(on) == meas["total"] > 0
+    assert meas["wrench"]["contacts"] == 8 and meas["wrench"]["bad"] == 0  # 8 touches in bags/contact.yaml
+    m = ev.summary["methods"]
+    c = m["ppoe"]["measurements"]["counts"]
+    assert c["accepted"] >= 8 and c["rejected"] == 0 and c["bad"] == 0
+    # throttled by the fusion node's min_interval (0.05 s per source) as live: 100 Hz -> <= 20 Hz
+    assert c["throttled"] > 0 and c["accepted"] + c["throttled"] == len(on)
+    assert m["ppoe"]["position_3d"]["mean"] < 0.9 * m["fk"]["position_3d"]["mean"]
+    e_fk, e_fused = ev.samples["fk_position_error"], ev.samples["ppoe_position_error"]
+    normal = contact.T_frame_plane[:3, 2]  # plane frame = the state's base (camera_optical_frame)
+    touched = np.linalg.norm(e_fused - e_fk, axis=1) > 1e-9
+    assert touched.sum() == 8
+    n_fk, n_fused = np.abs(e_fk[touched] @ normal), np.abs(e_fused[touched] @ normal)
+    assert n_fused.mean() < 0.1 * n_fk.mean(), (n_fused, n_fk)
+
+
+def test_cli_contact_thresholds_and_settings(capsys):
+    """``--set force_threshold=...`` reaches the replayed contact detector: above the 8-15 N
+    presses nothing is in contact and only FK is scored."""
+    from ppoe_core import cli_evaluate
+
+    parser = argparse.ArgumentParser()
+    cli_evaluate.add_arguments(parser)
+    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "humanoid_model.yaml"),
+                              "--set", "force_threshold=100.0", "--set", "release_threshold=50", "--json",
+                              "--no-progress"])
+    assert cli_evaluate.run(args) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["measurements"]["contact_planes"] == 0 and doc["measurements"]["wrench"]["contacts"] == 0
+    assert list(doc["methods"]) == ["fk"]
+    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "humanoid_model.yaml"),
+                              "--set", "release_threshold=6.0", "--no-progress"])
+    with pytest.raises(ModelConfigError, match="humanoid_model.yaml: contact: release_threshold .* must be below"):
+        cli_evaluate.run(args)
+    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "humanoid_model.yaml"),
+                              "--set", "no_such_key=1", "--no-progress"])
+    with pytest.raises(ModelConfigError, match="unknown fusion setting"):
+        cli_evaluate.run(args)
 
 
 @pytest.mark.ros
@@ -346,7 +457,6 @@ def test_evaluate_matches_live_node_pipeline(tmp_path):
     from ros_helpers import NodeProcess, Probe, ros_env, write_params_file
 
     from ppoe_core.bagio import read_bag
-    from ppoe_core.evaluate import load_fusion_params
     from ppoe_ros.ros_common import matrix_from_pose_msg
 
     bag = REPO / "bags" / "table1_exp1"

@@ -19,8 +19,8 @@ from ppoe_ros.tag_bearing_node import (  # noqa: E402
     cloud_from_observations,
     decode_image,
     observations_from_cloud,
-    observe_tags,
 )
+from ppoe_core.tag_observations import observe_tags  # noqa: E402  (what the node publishes)
 
 W, H = 640, 480
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
