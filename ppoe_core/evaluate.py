@@ -630,10 +630,14 @@ def _contact_measurements(
     except ModelConfigError as exc:
         raise ModelConfigError(f"{where}: {exc}") from None
     stamps, wcounts = contact_stamps(wr.stamps, wr.force, detector, str(settings["force_component"]), "/wrench")
-    # the fusion node's view of the message: ROS-convention covariance back to the plane tangent space
-    cov_plane = lie.check_covariance(lie.cov_ros_to_local(plane.T_frame_plane, plane.cov_ros),
-                                     name=f"{topic} covariance", size=6)
-    payload = PlaneContact(plane.frame, plane.T_frame_plane, cov_plane)
+    # the fusion node's view of the message: the pose through the message's quaternion (as
+    # ppoe_ros.ros_common writes and reads it), the ROS-convention covariance back to the plane
+    # tangent space at that pose
+    q = lie.quat_from_matrix(plane.T_frame_plane[:3, :3])
+    T_wire = plane.T_frame_plane.copy()
+    T_wire[:3, :3] = lie.matrix_from_quat(q / np.linalg.norm(q))
+    cov_plane = lie.check_covariance(lie.cov_ros_to_local(T_wire, plane.cov_ros), name=f"{topic} covariance", size=6)
+    payload = PlaneContact(plane.frame, T_wire, cov_plane)
     out = [Measurement(float(t), topic, payload) for t in stamps]
     counts.update({"contact_source": "/wrench", "contact_planes": len(out), "wrench": wcounts,
                    "force_threshold": enter, "release_threshold": release})

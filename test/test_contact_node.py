@@ -132,3 +132,37 @@ def test_parameters_validated_in_process(tmp_path: Path) -> None:
                        "  tool_point: {link: tip}\n")
         with pytest.raises(ModelConfigError, match=r"bad_model.yaml:3: contact.sigma"):
             ContactNode(context=probe.context, parameter_overrides=[Parameter("model_file", value=str(bad))])
+
+
+def test_node_callback_gives_the_planes_evaluate_replays(tmp_path: Path) -> None:
+    """The shipped contact bag's /wrench through the node's own callback (in process, publisher
+    captured) gives, as the fusion node reads them, exactly the contact measurements that
+    ``ppoe evaluate`` replays: same stamps, frame, and bit-identical plane pose and Sigma_v."""
+    from ppoe_core.bagio import read_bag
+    from ppoe_core.evaluate import EVALUATE_SETTINGS, _contact_measurements
+    from ppoe_core.model import PPOEModel
+
+    bag = REPO / "bags" / "contact"
+    data = read_bag(bag, topics=["/robot_description", "/wrench"])
+    wr = data.wrench
+    model = PPOEModel.from_strings(data.robot_description, MODEL.read_text())
+    replayed, counts = _contact_measurements(data, model, MODEL, dict(EVALUATE_SETTINGS))
+    env = ros_env(tmp_path)
+    with Probe(env) as probe:
+        node = ContactNode(context=probe.context, parameter_overrides=[Parameter("model_file", value=str(MODEL))])
+        try:
+            sent: list[tuple] = []
+            # capture instead of DDS: the fusion node's reading of the message at publish time
+            node._pub.publish = lambda msg: sent.append(pose_cov_from_msg(msg))
+            for t, f in zip(wr.stamps, wr.force):
+                node._wrench(_wrench(int(round(t * 1e9)), tuple(f)))
+        finally:
+            node.destroy_node()
+    assert len(sent) == len(replayed) == counts["contact_planes"] > 0
+    assert counts["wrench"]["contacts"] == 8
+    for (T, cov_ros, stamp_ns, frame), m in zip(sent, replayed):
+        # as the fusion node turns the message into a measurement (ppoe_ros/fusion_node.py _contact)
+        cov_plane = lie.cov_ros_to_local(T, cov_ros)
+        assert abs(stamp_ns * 1e-9 - m.stamp) < 1e-9 and frame == m.payload.frame
+        np.testing.assert_array_equal(T, m.payload.T_frame_plane)
+        np.testing.assert_array_equal(cov_plane, m.payload.cov_plane)
