@@ -68,6 +68,15 @@ __all__ = [
     "load_model",
     "write_model_yaml",
     "write_report",
+    "PixelObs",
+    "PixelDiagnosis",
+    "pixels_from_motoman",
+    "predict_pixels",
+    "pixel_jacobian",
+    "pixel_rms",
+    "pixel_candidates",
+    "camera_mount_joint",
+    "diagnose_pixels",
 ]
 
 _CHI2_DIM = {3: 3.0, 6: 6.0}
@@ -1504,3 +1513,395 @@ def load_model(model_yaml: str | Path | None, robot: Robot) -> tuple[Any, list[E
                 zip(cfg.effects, cfg.effect_wheres or [f"{model_yaml} effects[{i}]" for i in range(len(cfg.effects))])]
     pert = {j: p.covariance for j, p in cfg.perturbations.items()}
     return cfg, declared, pert, dict(cfg.joint_noise)
+
+
+# =============================================================================
+# Marker pixels: reprojection residuals and camera_extrinsics
+# =============================================================================
+
+
+@dataclass
+class PixelObs:
+    """Marker-centre pixels: one row per (pose, marker, camera) observation.
+
+    Attributes
+    ----------
+    q : dict joint -> ndarray, shape (M,)
+        Joint values of each observation [rad, m].
+    link : str
+        Link that carries the markers (e.g. ``EE1`` or ``tool0``).
+    point : ndarray, shape (M, 3)
+        Marker origin (the point whose image is measured) in ``link`` coordinates [m].
+    camera : ndarray, shape (M,), int
+        Index into ``cameras``.
+    cameras : list[str]
+        Camera optical frames (URDF links; z forward, x right, y down).
+    K : list of ndarray (3, 3); D : list of ndarray (5,)
+        Intrinsics [px] and plumb_bob distortion of each camera.
+    uv : ndarray, shape (M, 2)
+        Measured raw (distorted) pixels.
+    pose : ndarray, shape (M,), int
+        Robot pose index of each observation (cross-validation folds keep a pose together).
+    sigma_px : float
+        Pixel noise, 1-sigma per axis [px]: residuals are whitened with it.
+    name : str
+        Source (file or bag), used in messages.
+    """
+
+    q: dict[str, np.ndarray]
+    link: str
+    point: np.ndarray
+    camera: np.ndarray
+    cameras: list[str]
+    K: list[np.ndarray]
+    D: list[np.ndarray]
+    uv: np.ndarray
+    pose: np.ndarray
+    sigma_px: float = 1.0
+    name: str = ""
+
+    def __len__(self) -> int:
+        return int(self.uv.shape[0])
+
+    def subset(self, rows: np.ndarray) -> "PixelObs":
+        """The observations ``rows`` (index or boolean array)."""
+        return PixelObs(q={k: v[rows] for k, v in self.q.items()}, link=self.link, point=self.point[rows],
+                        camera=self.camera[rows], cameras=self.cameras, K=self.K, D=self.D, uv=self.uv[rows],
+                        pose=self.pose[rows], sigma_px=self.sigma_px, name=self.name)
+
+
+def pixels_from_motoman(path: str | Path, robot: Robot, model_yaml: str | Path,
+                        sigma_px: float = 1.0) -> PixelObs:
+    """Marker pixels of a Motoman ``.mat`` file (``../shared/datasets/motoman_leica``).
+
+    Markers hang on ``EE1`` (poses from the dataset's ``model.yaml``); cameras 1 and 2 are
+    ``camera_1_optical_frame`` / ``camera_2_optical_frame`` of ``motoman_right.urdf``.
+    """
+    from .importers.motoman import (CAMERA_FRAMES, JOINT_NAMES, load_marker_poses, load_motoman,
+                                    load_motoman_cameras)
+
+    ds = load_motoman(path)
+    cams = load_motoman_cameras(model_yaml)
+    markers = load_marker_poses(model_yaml)
+    for f in CAMERA_FRAMES.values():
+        if f not in robot.links:
+            raise ModelConfigError(f"{path}: camera frame '{f}' is not a link of URDF {robot.source}")
+    missing = sorted(set(ds.obs_face.tolist()) - set(markers))
+    if missing:
+        raise ModelConfigError(f"{model_yaml}: markers/poses has no entry for faces {missing} used in {path}")
+    order = sorted(cams)
+    point = np.array([markers[int(f)][:3, 3] for f in ds.obs_face])
+    J = ds.joints[ds.obs_pose]
+    return PixelObs(q={j: J[:, i] for i, j in enumerate(JOINT_NAMES)}, link="EE1", point=point,
+                    camera=np.array([order.index(int(c)) for c in ds.obs_camera]),
+                    cameras=[cams[n].frame for n in order], K=[cams[n].K for n in order],
+                    D=[cams[n].D for n in order], uv=ds.obs_uv.copy(), pose=ds.obs_pose.copy(),
+                    sigma_px=float(sigma_px), name=Path(path).stem)
+
+
+def _camera_points(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
+                   ) -> tuple[np.ndarray, dict, dict, dict]:
+    """Marker points in their camera's optical frame, shape (M, 3) [m], with the chain used."""
+    dq, dxi = apply_corrections(list(effects), obs.q)
+    poses = tree.link_poses(obs.q, dq, dxi, links=[obs.link, *obs.cameras])
+    p_root = np.einsum("mij,mj->mi", poses[obs.link][:, :3, :3], obs.point) + poses[obs.link][:, :3, 3]
+    P = np.empty_like(p_root)
+    for c, frame in enumerate(obs.cameras):
+        m = obs.camera == c
+        T = poses[frame][m]
+        P[m] = np.einsum("mji,mj->mi", T[:, :3, :3], p_root[m] - T[:, :3, 3])
+    return P, poses, dq, dxi
+
+
+def predict_pixels(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> np.ndarray:
+    """Predicted raw pixels (M, 2): marker origin on ``obs.link`` -> root -> camera optical frame,
+    projected with the intrinsics and plumb_bob distortion (:func:`ppoe_core.tags.project_points`).
+
+    Raises
+    ------
+    MeasurementError
+        A marker is behind its camera (names the source and the observation row).
+    """
+    from .tags import project_points
+
+    P = _camera_points(tree, obs, effects)[0]
+    bad = P[:, 2] <= 1e-6
+    if np.any(bad):
+        raise MeasurementError(f"{obs.name}: observation {int(np.flatnonzero(bad)[0])}: marker is behind "
+                               f"camera '{obs.cameras[int(obs.camera[bad][0])]}' (z = {P[bad][0, 2]:.3g} m)")
+    uv = np.empty((len(obs), 2))
+    for c in range(len(obs.cameras)):
+        m = obs.camera == c
+        uv[m] = project_points(P[m], obs.K[c], obs.D[c])
+    return uv
+
+
+def _projection_jacobian(P: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """``d uv / d P`` (M, 2, 3) of the plumb_bob projection at camera-frame points ``P`` (M, 3)."""
+    import cv2
+
+    if len(P) == 0:
+        return np.zeros((0, 2, 3))
+    _, jac = cv2.projectPoints(P.reshape(-1, 3), np.zeros(3), np.zeros(3), np.asarray(K, float),
+                               np.asarray(D, float).reshape(-1))
+    # columns: d/d rvec (3), d/d tvec (3), ...; with rvec = tvec = 0, d/d tvec = d/d P
+    return jac[:, 3:6].reshape(len(P), 2, 3)
+
+
+def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect,
+                   effects: Sequence[Effect] = ()) -> np.ndarray:
+    """Analytic derivative (M, 2, P) of the predicted pixels w.r.t. ``effect``'s parameters,
+    evaluated on the chain corrected by ``effects`` (``effect`` itself enters with zero-order
+    term only through ``effects``).
+
+    With the right perturbations ``xi_cam`` of ``T_root_cam`` and ``xi_l`` of ``T_root_link``
+    (:meth:`KinematicTree.frame_jacobian`, paper eq. 16 hooks),
+    ``dP_cam = R_cam^T R_l [I, -[p]x] xi_l + [-I, [P_cam]x] xi_cam``, then the plumb_bob
+    projection Jacobian.
+    """
+    P, poses, dq, dxi = _camera_points(tree, obs, effects)
+    nominal = tree.link_poses(obs.q)
+    Bq, Bx = effect.basis(obs.q, {}, nominal)
+    n, npar = len(obs), effect.n_params
+
+    def dxi_dparam(link: str) -> np.ndarray:
+        Jq, Jx = tree.frame_jacobian(obs.q, link, poses, dq, dxi)
+        out = np.zeros((n, 6, npar))
+        for k, b in Bq.items():
+            if k in Jq:
+                out = out + Jq[k][:, :, None] * b[:, None, :]
+        for k, b in Bx.items():
+            if k in Jx:
+                out = out + Jx[k] @ b
+        return out
+
+    xl = dxi_dparam(obs.link)
+    R_l = poses[obs.link][:, :3, :3]
+    B_l = np.concatenate([R_l, -R_l @ lie.hat3(obs.point)], axis=-1)  # (M, 3, 6): d p_root / d xi_l
+    dp_root = B_l @ xl
+    dP = np.zeros((n, 3, npar))
+    for c, frame in enumerate(obs.cameras):
+        m = obs.camera == c
+        if not np.any(m):
+            continue
+        R_c = poses[frame][m][:, :3, :3]
+        xc = dxi_dparam(frame)[m]
+        B_c = np.concatenate([-np.broadcast_to(np.eye(3), (int(m.sum()), 3, 3)), lie.hat3(P[m])], axis=-1)
+        dP[m] = np.swapaxes(R_c, -1, -2) @ dp_root[m] + B_c @ xc
+    out = np.zeros((n, 2, npar))
+    for c in range(len(obs.cameras)):
+        m = obs.camera == c
+        out[m] = _projection_jacobian(P[m], obs.K[c], obs.D[c]) @ dP[m]
+    return out
+
+
+def camera_mount_joint(robot: Robot, frame: str) -> str:
+    """The fixed joint a ``camera_extrinsics`` correction of camera ``frame`` sits at: the first
+    fixed joint after the last movable joint on the path from the root to ``frame``."""
+    if frame not in robot.links:
+        raise ModelConfigError(f"camera frame '{frame}' is not a link of URDF {robot.source}")
+    path = robot.path_from_root(frame)
+    if not path:
+        raise ModelConfigError(f"camera frame '{frame}' is the root link of URDF {robot.source}")
+    k = len(path)
+    while k > 0 and not robot.joints[path[k - 1]].movable:
+        k -= 1
+    if k == len(path):
+        raise ModelConfigError(f"camera frame '{frame}' hangs on movable joint '{path[-1]}' (URDF {robot.source})")
+    return path[k]
+
+
+def pixel_candidates(robot: Robot, obs: PixelObs) -> list[Effect]:
+    """Candidate effects of the pixel residual: ``camera_extrinsics`` (6-DoF) at the mount joint
+    of every camera that has observations (:func:`camera_mount_joint`)."""
+    tree = KinematicTree(robot)
+    out: list[Effect] = []
+    for c, frame in enumerate(obs.cameras):
+        if np.any(obs.camera == c):
+            out.append(make_effect("camera_extrinsics", camera_mount_joint(robot, frame), tree))
+    return out
+
+
+@dataclass
+class PixelDiagnosis:
+    """Result of :func:`diagnose_pixels`.
+
+    ``effects``: list of ``{name, location, frame, parameters, ci, sigma, share}`` (``ci``: 95 %
+    interval per parameter; ``location`` the camera's mount joint, ``frame`` its optical frame);
+    ``rms_before`` / ``rms_after``: held-out (cross-validated over poses) pixel RMS per camera
+    frame [px], the norm of the 2D error; ``*_insample``: the same on all data with the final fit;
+    ``steps`` and ``rejected``: the selection; ``fitted``: the effect objects (parameters set).
+    """
+
+    effects: list[dict[str, Any]]
+    fitted: list[Effect]
+    rms_before: dict[str, float]
+    rms_after: dict[str, float]
+    rms_before_insample: dict[str, float]
+    rms_after_insample: dict[str, float]
+    steps: list[dict[str, Any]]
+    rejected: list[dict[str, Any]]
+    sigma_scale: float
+    n: int
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-ready dict (pixel RMS in px)."""
+        return {"effects": self.effects, "pixel_rms_before": self.rms_before, "pixel_rms_after": self.rms_after,
+                "pixel_rms_before_insample": self.rms_before_insample,
+                "pixel_rms_after_insample": self.rms_after_insample, "steps": self.steps,
+                "rejected": self.rejected, "sigma_scale": self.sigma_scale, "n": self.n}
+
+
+def pixel_rms(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> dict[str, float]:
+    """RMS of the 2D reprojection error [px] per camera frame (cameras without rows omitted)."""
+    e = obs.uv - predict_pixels(tree, obs, effects)
+    return {f: float(np.sqrt(np.mean(np.sum(e[obs.camera == c] ** 2, axis=1))))
+            for c, f in enumerate(obs.cameras) if np.any(obs.camera == c)}
+
+
+def _pose_folds(pose: np.ndarray, folds: int, seed: int = 0) -> list[np.ndarray]:
+    """Test masks of ``folds`` folds over poses (all observations of a pose in one fold)."""
+    ids = np.unique(pose)
+    perm = np.random.default_rng(seed).permutation(ids)
+    return [np.isin(pose, perm[k::folds]) for k in range(folds)]
+
+
+def _lstsq(G: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    H = G.T @ G
+    s = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    Hs = H / np.outer(s, s)
+    th = np.linalg.solve(Hs + 1e-12 * np.eye(len(s)), (G.T @ r) / s) / s
+    return th, Hs
+
+
+def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = (),
+                    candidates: Optional[Sequence[Effect]] = None, folds: int = 5, min_gain: float = 0.03,
+                    min_t: float = 4.0, max_condition: float = 1e6, max_effects: int = 4,
+                    iterations: int = 3, seed: int = 0) -> PixelDiagnosis:
+    """Trace the marker-pixel residual to ``camera_extrinsics`` (or given candidate) effects.
+
+    The pixel residual (measured minus predicted with ``declared``), whitened by
+    ``obs.sigma_px``, is linearised at the declared chain, ``e = e0 - G theta``
+    (:func:`pixel_jacobian`).  Greedy forward selection as in :func:`diagnose`: a candidate is
+    accepted when the column-scaled normal matrix of the chosen set has condition number below
+    ``max_condition`` and the held-out mean squared error (``folds``-fold cross-validation over
+    poses) drops by at least ``min_gain`` with a paired t statistic >= ``min_t`` over the held-out
+    poses.  The final fit is Gauss-Newton on the nonlinear chain (``iterations``); CIs are
+    ``theta +- 1.96 sigma`` from ``s^2 H^-1`` (``s^2`` the whitened residual variance, so a pixel
+    sigma that is too small widens nothing: the scale is reported as ``sigma_scale``).
+    Pixel noise is taken independent per observation; observations of one pose share the arm's
+    error, which makes the CIs optimistic on real data.
+
+    Raises
+    ------
+    MeasurementError
+        Fewer than ``folds`` poses, or a marker behind its camera.
+    """
+    tree = KinematicTree(robot)
+    declared = list(declared)
+    cands = list(candidates) if candidates is not None else pixel_candidates(robot, obs)
+    if len(np.unique(obs.pose)) < folds:
+        raise MeasurementError(f"{obs.name}: {len(np.unique(obs.pose))} poses with pixels, need >= {folds} folds")
+    w = 1.0 / float(obs.sigma_px)
+    e0 = ((obs.uv - predict_pixels(tree, obs, declared)) * w)  # (M, 2)
+    Gs = [pixel_jacobian(tree, obs, c, declared) * w for c in cands]  # (M, 2, P)
+    test_masks = _pose_folds(obs.pose, folds, seed)
+    poses_u, pose_idx = np.unique(obs.pose, return_inverse=True)
+
+    def heldout(idx: Sequence[int]) -> np.ndarray:
+        """Per-pose held-out sum of squared whitened errors with candidates ``idx``."""
+        err = np.zeros(len(obs))
+        for test in test_masks:
+            G = np.concatenate([Gs[i] for i in idx], axis=2) if idx else np.zeros((len(obs), 2, 0))
+            r = e0.copy()
+            if idx:
+                th, _ = _lstsq(G[~test].reshape(-1, G.shape[2]), e0[~test].reshape(-1))
+                r = e0 - G @ th
+            err[test] = np.sum(r[test] ** 2, axis=1)
+        return np.bincount(pose_idx, err, minlength=len(poses_u))
+
+    chosen: list[int] = []
+    steps: list[dict[str, Any]] = []
+    rejected: list[dict[str, Any]] = []
+    base = heldout(chosen)
+    hist = [float(base.sum())]
+    while len(chosen) < max_effects:
+        best = None
+        for i in range(len(cands)):
+            if i in chosen:
+                continue
+            idx = chosen + [i]
+            G = np.concatenate([Gs[k] for k in idx], axis=2).reshape(-1, sum(Gs[k].shape[2] for k in idx))
+            _, Hs = _lstsq(G, e0.reshape(-1))
+            cond = float(np.linalg.cond(Hs))
+            key = cands[i].describe()
+            if not np.isfinite(cond) or cond > max_condition:
+                rejected.append({"effect": key, "reason": f"not identifiable (condition {cond:.3g})"})
+                continue
+            new = heldout(idx)
+            d = base - new
+            gain = float(d.sum() / max(base.sum(), 1e-300))
+            t = float(d.mean() / (d.std(ddof=1) / math.sqrt(len(d)))) if d.std(ddof=1) > 0 else 0.0
+            if best is None or gain > best[1]:
+                best = (i, gain, t, new, cond)
+        if best is None:
+            break
+        i, gain, t, new, cond = best
+        step = {"effect": cands[i].describe(), "heldout_gain": gain, "t": t, "condition": cond}
+        if gain < min_gain or t < min_t:
+            rejected.append({**step, "reason": f"held-out gain {gain:.3f} (min {min_gain}), t {t:.2f} (min {min_t})"})
+            break
+        steps.append(step)
+        chosen.append(i)
+        base = new
+        hist.append(float(new.sum()))
+
+    # final nonlinear Gauss-Newton fit on all data
+    fitted = [cands[i].with_params(np.zeros(cands[i].n_params)) for i in chosen]
+    sizes = [f.n_params for f in fitted]
+    theta = np.zeros(sum(sizes))
+    Hs = np.zeros((0, 0))
+    G = np.zeros((len(obs) * 2, 0))
+    r = e0.reshape(-1)
+    for _ in range(iterations if fitted else 0):
+        cur = declared + fitted
+        r = ((obs.uv - predict_pixels(tree, obs, cur)) * w).reshape(-1)
+        G = np.concatenate([pixel_jacobian(tree, obs, f, cur) * w for f in fitted], axis=2).reshape(len(r), -1)
+        dth, Hs = _lstsq(G, r)
+        theta = theta + dth
+        fitted = [f.with_params(p) for f, p in zip(fitted, np.split(theta, np.cumsum(sizes)[:-1]))]
+    cur = declared + fitted
+    r = ((obs.uv - predict_pixels(tree, obs, cur)) * w).reshape(-1)
+    dof = max(len(r) - len(theta), 1)
+    s2 = float(r @ r / dof)
+    effects_out: list[dict[str, Any]] = []
+    if fitted:
+        H = G.T @ G
+        sig = np.sqrt(np.diag(np.linalg.pinv(H)) * s2)
+        for k, (f, sg) in enumerate(zip(fitted, np.split(sig, np.cumsum(sizes)[:-1]))):
+            frame = next((cf for cf in obs.cameras if camera_mount_joint(robot, cf) == f.location), None)
+            effects_out.append({
+                "name": f.name, "location": f.location, "frame": frame,
+                "parameters": {p: float(v) for p, v in zip(f.param_names, f.params)},
+                "ci": {p: [float(v - 1.96 * s), float(v + 1.96 * s)] for p, v, s in zip(f.param_names, f.params, sg)},
+                "sigma": {p: float(s) for p, s in zip(f.param_names, sg)},
+                "share": float((hist[k] - hist[k + 1]) / hist[0]) if hist[0] > 0 else 0.0,
+            })
+
+    def cv_rms(idx: Sequence[int]) -> dict[str, float]:
+        err = np.zeros(len(obs))
+        for test in test_masks:
+            if idx:
+                Gi = np.concatenate([Gs[k] for k in idx], axis=2)
+                th, _ = _lstsq(Gi[~test].reshape(-1, Gi.shape[2]), e0[~test].reshape(-1))
+                rr = e0 - Gi @ th
+            else:
+                rr = e0
+            err[test] = np.sum(rr[test] ** 2, axis=1)
+        return {f: float(np.sqrt(np.mean(err[obs.camera == c])) / w) for c, f in enumerate(obs.cameras)
+                if np.any(obs.camera == c)}
+
+    return PixelDiagnosis(effects=effects_out, fitted=fitted, rms_before=cv_rms([]), rms_after=cv_rms(chosen),
+                          rms_before_insample=pixel_rms(tree, obs, declared),
+                          rms_after_insample=pixel_rms(tree, obs, cur), steps=steps, rejected=rejected,
+                          sigma_scale=math.sqrt(s2), n=len(obs))
