@@ -71,6 +71,7 @@ __all__ = [
     "PixelObs",
     "PixelDiagnosis",
     "pixels_from_motoman",
+    "pixels_from_bag",
     "predict_pixels",
     "pixel_jacobian",
     "pixel_rms",
@@ -1777,7 +1778,7 @@ def _lstsq(G: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = (),
                     candidates: Optional[Sequence[Effect]] = None, folds: int = 5, min_gain: float = 0.03,
                     min_t: float = 4.0, max_condition: float = 1e6, max_effects: int = 4,
-                    iterations: int = 3, seed: int = 0) -> PixelDiagnosis:
+                    iterations: int = 3, seed: int = 0, robust: bool = True) -> PixelDiagnosis:
     """Trace the marker-pixel residual to ``camera_extrinsics`` (or given candidate) effects.
 
     The pixel residual (measured minus predicted with ``declared``), whitened by
@@ -1787,10 +1788,11 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
     ``max_condition`` and the held-out mean squared error (``folds``-fold cross-validation over
     poses) drops by at least ``min_gain`` with a paired t statistic >= ``min_t`` over the held-out
     poses.  The final fit is Gauss-Newton on the nonlinear chain (``iterations``); CIs are
-    ``theta +- 1.96 sigma`` from ``s^2 H^-1`` (``s^2`` the whitened residual variance, so a pixel
-    sigma that is too small widens nothing: the scale is reported as ``sigma_scale``).
-    Pixel noise is taken independent per observation; observations of one pose share the arm's
-    error, which makes the CIs optimistic on real data.
+    ``theta +- 1.96 sigma``.  With ``robust`` (default) the parameter covariance is the
+    cluster-robust sandwich ``H^-1 (sum_pose g g^T) H^-1 * P/(P-1)`` (``g = G_pose^T r_pose``):
+    the points seen at one pose share that pose's arm and camera error, so they are not
+    independent; otherwise ``s^2 H^-1`` (``s^2`` the whitened residual variance, reported as
+    ``sigma_scale``: the factor by which ``obs.sigma_px`` underestimates the residual).
 
     Raises
     ------
@@ -1876,8 +1878,22 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
     s2 = float(r @ r / dof)
     effects_out: list[dict[str, Any]] = []
     if fitted:
-        H = G.T @ G
-        sig = np.sqrt(np.diag(np.linalg.pinv(H)) * s2)
+        H_inv = np.linalg.pinv(G.T @ G)
+        if robust:
+            # cluster-robust (sandwich) covariance, clusters = poses: errors of the points seen at
+            # one pose share that pose's arm and camera error
+            rp = r.reshape(len(obs), 2)
+            Gp = G.reshape(len(obs), 2, -1)
+            S = np.zeros((G.shape[1], G.shape[1]))
+            for g in range(len(poses_u)):
+                m = pose_idx == g
+                sg = np.einsum("mki,mk->i", Gp[m], rp[m])
+                S += np.outer(sg, sg)
+            n_g = len(poses_u)
+            cov_theta = H_inv @ S @ H_inv * (n_g / max(n_g - 1, 1))
+        else:
+            cov_theta = H_inv * s2
+        sig = np.sqrt(np.maximum(np.diag(cov_theta), 0.0))
         for k, (f, sg) in enumerate(zip(fitted, np.split(sig, np.cumsum(sizes)[:-1]))):
             frame = next((cf for cf in obs.cameras if camera_mount_joint(robot, cf) == f.location), None)
             effects_out.append({
@@ -1905,3 +1921,82 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
                           rms_before_insample=pixel_rms(tree, obs, declared),
                           rms_after_insample=pixel_rms(tree, obs, cur), steps=steps, rejected=rejected,
                           sigma_scale=math.sqrt(s2), n=len(obs))
+
+
+def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigma_px: float = 1.0,
+                    refine: str = "subpix") -> PixelObs:
+    """Tag pixels of a contract bag as :class:`PixelObs` (centre and corner points).
+
+    ``/tag_bearing/observations`` if the bag has it (e.g. the Motoman importer: marker centres),
+    else tags detected on the camera images with the tag bearing node's function
+    (:func:`ppoe_core.tag_observations.observe_tags`).  Tags (id -> link, size, pose) come from the
+    model YAML's ``tags`` section; intrinsics from ``/camera/camera_info`` (per ``frame_id``);
+    joint values from ``/joint_states`` at each observation stamp.  Each message is one pose.
+
+    Raises
+    ------
+    BagError
+        No tag observations or images, a camera frame without CameraInfo, an observed id the
+        model does not list, tags on more than one link.
+    """
+    from . import bagio
+    from .measurements import tag_points
+    from .tag_observations import observe_tags
+
+    cfg = load_model(model_yaml, robot)[0]
+    if cfg.tags is None or not cfg.tags.items:
+        raise BagError(f"{model_yaml}: no 'tags' section: pixels of bag {path} cannot be attributed to links")
+    by_id = cfg.tags.by_id()
+    links = sorted({t.link for t in cfg.tags.items})
+    if len(links) != 1:
+        raise BagError(f"{model_yaml}: tags on several links {links}; pixel diagnosis supports one tag link")
+    data = bagio.read_bag(path, load_images=True)
+    ci = data.camera_info
+    intr: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for i, f in enumerate(ci.frame_ids):
+        intr.setdefault(f, (ci.K[i], ci.D[i]))
+    rows_all: list[np.ndarray] = []  # [msg, id, corner, u, v]
+    frames: list[str] = []
+    stamps: list[float] = []
+    obs = data.tag_observations
+    if len(obs):
+        for i in range(len(obs)):
+            m = obs.message(i)
+            frames.append(obs.frame_ids[i])
+            stamps.append(float(obs.stamps[i]))
+            rows_all.append(np.column_stack([np.full(m["ids"].shape, i), m["ids"], m["corners"], m["uv"]]))
+    elif len(data.images):
+        imgs = data.images
+        for i in range(len(imgs)):
+            f = imgs.frame_ids[i]
+            if f not in intr:
+                raise BagError(f"bag {path}: topic {imgs.topic} message {i}: no /camera/camera_info with frame_id {f!r}")
+            r, _ = observe_tags(imgs.decode(i), *intr[f], cfg.tags.family, tuple(by_id), refine)
+            frames.append(f)
+            stamps.append(float(imgs.stamps[i]))
+            rows_all.append(np.column_stack([np.full(len(r), i), r[:, :4]]))
+    else:
+        raise BagError(f"bag {path}: neither /tag_bearing/observations nor camera images")
+    rows = np.concatenate(rows_all) if rows_all else np.zeros((0, 5))
+    if len(rows) == 0:
+        raise BagError(f"bag {path}: no tag observed in {len(frames)} messages")
+    msg = rows[:, 0].astype(int)
+    ids = np.rint(rows[:, 1]).astype(int)
+    unknown = sorted(set(ids.tolist()) - set(by_id))
+    if unknown:
+        raise BagError(f"bag {path}: observed tag ids {unknown} are not in {model_yaml} tags")
+    corner = np.rint(rows[:, 2]).astype(int)
+    point = np.array([tag_points(by_id[t].size, by_id[t].T_link_tag)[c] for t, c in zip(ids, corner)])
+    cams = sorted(set(frames[k] for k in np.unique(msg)))
+    missing = [f for f in cams if f not in intr]
+    if missing:
+        raise BagError(f"bag {path}: no /camera/camera_info for camera frames {missing}")
+    for f in cams:
+        if f not in robot.links:
+            raise BagError(f"bag {path}: camera frame {f!r} is not a link of URDF {robot.source}")
+    js = data.joint_states
+    at = np.asarray(stamps)[msg]
+    q = {j: _sample_joint(js.stamps, js.column(j), at) for j in KinematicTree(robot).joint_names}
+    return PixelObs(q=q, link=links[0], point=point, camera=np.array([cams.index(frames[k]) for k in msg]),
+                    cameras=cams, K=[intr[f][0] for f in cams], D=[intr[f][1] for f in cams], uv=rows[:, 3:5].copy(),
+                    pose=msg, sigma_px=float(sigma_px), name=Path(path).name)
