@@ -7,6 +7,11 @@ bags' ``/ground_truth/point`` (tracker, registration estimated per session) or
 ``residual_after``); ``--out DIR`` also writes ``diagnose.md``, ``diagnose.json``,
 ``diagnose.png`` and the updated model ``model_diagnosed.yaml`` there.
 
+Tag pixels (``--pixels``, default ``auto``: when the model has ``tags`` and a bag has
+``/tag_bearing/observations`` or camera images) are diagnosed too, on top of the tracker/pose
+effects: ``camera_extrinsics`` candidates per camera, JSON key ``pixels`` (held-out pixel RMS
+per camera before -> after), found effects appended to ``effects``.
+
 ``--tool`` names the link that carries the tracker's reflector (default: the model's
 ``tracker.link``) or, for pose bags, the tool frame (default ``frames.tool``).
 """
@@ -43,13 +48,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="residuals of /ground_truth/point (auto: preferred) or /ground_truth/pose")
     parser.add_argument("--stationing-set", default="cross", choices=("cross", "square", "all"),
                         help="stationing set defining the registration in bags with /dataset/stop roles")
+    parser.add_argument("--pixels", default="auto", choices=("auto", "on", "off"),
+                        help="also diagnose tag pixels (auto: if the model has tags and a bag has tag "
+                             "observations or images)")
+    parser.add_argument("--pixel-sigma", type=float, default=None,
+                        help="pixel noise 1-sigma per axis used to whiten tag residuals [px] "
+                             "(default: the model's camera.pixel_sigma, else 1)")
 
 
 def run(args: argparse.Namespace) -> int:
     """Diagnose, print and optionally write the report and the updated model; returns 0."""
-    from ppoe_core.bagio import read_bag
-    from ppoe_core.diagnose import (DiagnoseOptions, Stops, diagnose, load_model, stops_from_bag,
-                                    write_model_yaml, write_report)
+    from ppoe_core.bagio import bag_topics, read_bag
+    from ppoe_core.diagnose import (DiagnoseOptions, Stops, add_pixel_diagnosis, concat_pixel_obs, diagnose,
+                                    load_model, pixels_from_bag, stops_from_bag, write_model_yaml, write_report)
     from ppoe_core.errors import BagError
     from ppoe_core.urdf import parse_urdf
 
@@ -76,6 +87,20 @@ def run(args: argparse.Namespace) -> int:
     opts = DiagnoseOptions(folds=args.folds, cv=args.cv, min_gain=args.min_gain, min_t=args.min_t,
                            max_effects=args.max_effects)
     res = diagnose(robot, stops, declared, pert, jnoise, opts)
+    if args.pixels != "off":
+        pix = []
+        for bag in args.bags:
+            topics = bag_topics(bag)
+            if cfg.tags is not None and any(t == "/tag_bearing/observations" or t.startswith("/camera/image")
+                                             for t in topics):
+                cam = getattr(cfg, "camera", None)
+                sigma_px = args.pixel_sigma or (cam.pixel_sigma if cam is not None else 1.0)
+                pix.append(pixels_from_bag(bag, robot, args.model, sigma_px=sigma_px))
+            elif args.pixels == "on":
+                raise BagError(f"bag {bag}: --pixels on, but no tag observations/images or no 'tags' in {args.model}")
+        if pix:
+            add_pixel_diagnosis(res, robot, concat_pixel_obs(pix), declared, folds=args.folds,
+                                min_gain=args.min_gain, min_t=args.min_t)
     paths = {}
     if args.out:
         paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))

@@ -78,6 +78,8 @@ __all__ = [
     "pixel_candidates",
     "camera_mount_joint",
     "diagnose_pixels",
+    "concat_pixel_obs",
+    "add_pixel_diagnosis",
 ]
 
 _CHI2_DIM = {3: 3.0, 6: 6.0}
@@ -1467,6 +1469,15 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
             lines.append(f"| {k} | {v['link']} | {v['n']} | {1e3 * v['rms_before'][0]:.3f}, "
                          f"{1e3 * v['rms_before'][1]:.3f} | {1e3 * v['rms_after'][0]:.3f}, "
                          f"{1e3 * v['rms_after'][1]:.3f} |")
+    if result.extra.get("pixels"):
+        px = result.extra["pixels"]
+        lines += ["", f"## Tag pixels ({px['n']} points; effects marked `measurement: pixels` above, share = of "
+                  "the pixel residual)", "",
+                  "| camera frame | held-out RMS before [px] | after [px] | in-sample before | after |",
+                  "|---|---|---|---|---|"]
+        for f in px["pixel_rms_before"]:
+            lines.append(f"| {f} | {px['pixel_rms_before'][f]:.2f} | {px['pixel_rms_after'][f]:.2f} | "
+                         f"{px['pixel_rms_before_insample'][f]:.2f} | {px['pixel_rms_after_insample'][f]:.2f} |")
     lines += ["", "## Selection steps", "", "| candidate | accepted | held-out RMS [mm] | gain | t |",
               "|---|---|---|---|---|"]
     for s in result.steps:
@@ -1492,7 +1503,8 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
         rms = [1e3 * result.residual_before] + [1e3 * s["heldout_rms"] for s in result.steps if s["accepted"]]
         ax[1].plot(range(len(rms)), rms, "o-")
         ax[1].axhline(1e3 * result.noise_floor, ls="--", color="k", label="noise floor")
-        ax[1].set_xticks(range(len(rms)), ["nominal"] + [f"+{e['name']}\n{e['location']}" for e in result.effects],
+        ax[1].set_xticks(range(len(rms)), ["nominal"] + [f"+{e['name']}\n{e['location']}" for e in result.effects
+                                                         if e.get("measurement") != "pixels"],
                          fontsize=6, rotation=30)
         ax[1].set_ylabel("held-out RMS [mm]")
         ax[1].legend()
@@ -1897,7 +1909,7 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
         for k, (f, sg) in enumerate(zip(fitted, np.split(sig, np.cumsum(sizes)[:-1]))):
             frame = next((cf for cf in obs.cameras if camera_mount_joint(robot, cf) == f.location), None)
             effects_out.append({
-                "name": f.name, "location": f.location, "frame": frame,
+                "name": f.name, "location": f.location, "frame": frame, "measurement": "pixels",
                 "parameters": {p: float(v) for p, v in zip(f.param_names, f.params)},
                 "ci": {p: [float(v - 1.96 * s), float(v + 1.96 * s)] for p, v, s in zip(f.param_names, f.params, sg)},
                 "sigma": {p: float(s) for p, s in zip(f.param_names, sg)},
@@ -2000,3 +2012,56 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
     return PixelObs(q=q, link=links[0], point=point, camera=np.array([cams.index(frames[k]) for k in msg]),
                     cameras=cams, K=[intr[f][0] for f in cams], D=[intr[f][1] for f in cams], uv=rows[:, 3:5].copy(),
                     pose=msg, sigma_px=float(sigma_px), name=Path(path).name)
+
+
+def concat_pixel_obs(parts: Sequence[PixelObs]) -> PixelObs:
+    """Join :class:`PixelObs` of several sources (same marker link); poses and cameras renumbered."""
+    if not parts:
+        raise MeasurementError("concat_pixel_obs: no pixel observations given")
+    links = {p.link for p in parts}
+    if len(links) != 1:
+        raise MeasurementError(f"concat_pixel_obs: markers on different links {sorted(links)} "
+                               f"({', '.join(p.name for p in parts)})")
+    cams: list[str] = []
+    K: list[np.ndarray] = []
+    D: list[np.ndarray] = []
+    for p in parts:
+        for c, f in enumerate(p.cameras):
+            if f not in cams:
+                cams.append(f)
+                K.append(p.K[c])
+                D.append(p.D[c])
+            elif not (np.allclose(K[cams.index(f)], p.K[c]) and np.allclose(D[cams.index(f)], p.D[c])):
+                raise MeasurementError(f"{p.name}: camera '{f}' has other intrinsics than in {parts[0].name}")
+    off = 0
+    pose = []
+    for p in parts:
+        pose.append(p.pose + off)
+        off += int(p.pose.max()) + 1 if len(p) else 0
+    names = set().union(*[p.q for p in parts])
+    return PixelObs(q={j: np.concatenate([p.q[j] for p in parts]) for j in names}, link=parts[0].link,
+                    point=np.concatenate([p.point for p in parts]),
+                    camera=np.concatenate([[cams.index(p.cameras[c]) for c in p.camera] for p in parts]).astype(int),
+                    cameras=cams, K=K, D=D, uv=np.concatenate([p.uv for p in parts]), pose=np.concatenate(pose),
+                    sigma_px=parts[0].sigma_px, name="+".join(p.name for p in parts))
+
+
+def add_pixel_diagnosis(result: DiagnoseResult, robot: Robot, obs: PixelObs, declared: Sequence[Effect] = (),
+                        **options: Any) -> PixelDiagnosis:
+    """Run :func:`diagnose_pixels` on top of a tracker/pose ``result`` and merge it.
+
+    The pixels are predicted with the declared effects plus the effects ``result`` found (the
+    arm's errors move the markers too).  The pixel effects found are appended to
+    ``result.effects`` (so the contract JSON and :func:`write_model_yaml` carry them),
+    ``result.extra["pixels"]`` holds :meth:`PixelDiagnosis.to_json` and the summary says the
+    pixel RMS before -> after.
+    """
+    tree = KinematicTree(robot)
+    found = [effect_from_config(e, tree, where=f"diagnose effect {e['name']}@{e['location']}") for e in result.effects]
+    pres = diagnose_pixels(robot, obs, list(declared) + found, **options)
+    result.effects.extend(pres.effects)
+    result.extra["pixels"] = pres.to_json()
+    per = ", ".join(f"{f} {pres.rms_before[f]:.2f} -> {pres.rms_after[f]:.2f} px" for f in pres.rms_before)
+    names = ", ".join(f"{e['name']}@{e['location']}" for e in pres.effects) or "none"
+    result.summary += f"\nTag pixels ({pres.n} points): effects {names}; held-out RMS {per}."
+    return pres
