@@ -530,7 +530,7 @@ def _tag_measurements(
 ) -> tuple[list[Any], dict[str, int]]:
     """Measurements of tag observations: recorded ``/tag_bearing/observations`` if present,
     else detections on the camera images (``ppoe_core.tags.detect_tags``, as the tag node)."""
-    from ppoe_core.fusion_pipeline import Measurement, TagPoints
+    from ppoe_core.fusion_pipeline import Measurement, TagPoints, source_key
     from ppoe_core.tag_observations import observe_tags
 
     counts = {"tag_messages": 0, "tag_points": 0, "images": 0, "images_without_tags": 0}
@@ -549,7 +549,7 @@ def _tag_measurements(
             KD = cams(frame, stamp)
             fx, fy = (float(KD[0][0, 0]), float(KD[0][1, 1])) if KD is not None else (None, None)
             payload = TagPoints(frame, m["ids"], m["corners"], m["xy"], m["uv"], fx, fy)
-            out.append(Measurement(stamp, topic, payload))
+            out.append(Measurement(stamp, source_key(topic, frame), payload))
         return out, counts
     imgs = data.images
     if len(imgs) == 0 or model.config.tags is None:
@@ -571,7 +571,7 @@ def _tag_measurements(
         counts["tag_points"] += int(rows.shape[0])
         ids, corners = np.rint(rows[:, 0]).astype(int), np.rint(rows[:, 1]).astype(int)
         payload = TagPoints(frame, ids, corners, rows[:, 4:6], rows[:, 2:4], float(K[0, 0]), float(K[1, 1]))
-        out.append(Measurement(stamp, "/tag_bearing/observations", payload))
+        out.append(Measurement(stamp, source_key("/tag_bearing/observations", frame), payload))
     return out, counts
 
 
@@ -599,7 +599,7 @@ def _contact_measurements(
         contacts, published).
     """
     from ppoe_core.contact import ContactDetector, contact_stamps, plane_from_config
-    from ppoe_core.fusion_pipeline import Measurement, PlaneContact
+    from ppoe_core.fusion_pipeline import Measurement, PlaneContact, source_key
 
     topic = "/contact/plane"
     counts: dict[str, Any] = {"contact_source": None, "contact_planes": 0}
@@ -610,7 +610,8 @@ def _contact_measurements(
         for i in range(len(series)):
             T = series.T[i]
             cov = lie.cov_ros_to_local(T, series.cov_ros[i])
-            out.append(Measurement(float(series.stamps[i]), topic, PlaneContact(series.frame_ids[i], T, cov)))
+            frame = series.frame_ids[i]
+            out.append(Measurement(float(series.stamps[i]), source_key(topic, frame), PlaneContact(frame, T, cov)))
         counts["contact_planes"] = len(out)
         return out, counts
     wr = data.wrench
@@ -638,7 +639,8 @@ def _contact_measurements(
     T_wire[:3, :3] = lie.matrix_from_quat(q / np.linalg.norm(q))
     cov_plane = lie.check_covariance(lie.cov_ros_to_local(T_wire, plane.cov_ros), name=f"{topic} covariance", size=6)
     payload = PlaneContact(plane.frame, T_wire, cov_plane)
-    out = [Measurement(float(t), topic, payload) for t in stamps]
+    source = source_key(topic, plane.frame)
+    out = [Measurement(float(t), source, payload) for t in stamps]
     counts.update({"contact_source": "/wrench", "contact_planes": len(out), "wrench": wcounts,
                    "force_threshold": enter, "release_threshold": release})
     return out, counts

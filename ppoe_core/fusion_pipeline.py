@@ -68,6 +68,7 @@ __all__ = [
     "FUSION_SETTINGS",
     "make_pipeline",
     "make_updater",
+    "source_key",
 ]
 
 Array = np.ndarray
@@ -258,7 +259,9 @@ class Measurement:
     stamp : float
         Measurement time [s].
     source : str
-        Where it came from (topic name): used in counts and error messages.
+        Where it came from, :func:`source_key` of topic and ``header.frame_id``: throttling
+        (``min_interval``) and correction replacement are per source; also used in counts and
+        error messages.
     payload : Any
         Whatever the injected updater needs (e.g. a measurement model and ``z``).
     """
@@ -584,7 +587,8 @@ class FusionPipeline:
     of arrival; a measurement older than a correction's anchor is still processed (the
     carried corrections are applied to its prior with weights from ``|dt|`` and the motion).
 
-    Corrections are kept **per source** (``Measurement.source``, the topic): a new accepted
+    Corrections are kept **per source** (``Measurement.source``: topic and frame, see
+    :func:`source_key`; e.g. each camera of a topic shared by two cameras): a new accepted
     measurement of a source replaces that source's previous correction (the update starts
     from the prior with only the *other* sources' corrections applied), while different
     sources combine.  So a 100 Hz contact stream, or a camera re-observing the same tags with
@@ -1068,6 +1072,30 @@ def posterior_cost(obs: Any, T_post: Array, residual: Array, correction: Array, 
 # One set of settings for the node and the offline replay
 # ----------------------------------------------------------------------------
 
+
+def source_key(topic: str, frame_id: str) -> str:
+    """The :attr:`Measurement.source` of a message: its topic and its ``header.frame_id``.
+
+    Throttling (``min_interval``) and correction replacement work per source.  Two cameras
+    publishing on one topic (e.g. ``/tag_bearing/observations`` of ``ppoe import motoman``,
+    same stamp, different optical frames) are two sources: neither throttles nor replaces the
+    other's correction.  The fusion node and ``ppoe evaluate`` both build sources here.
+
+    Parameters
+    ----------
+    topic : str
+        Topic name, e.g. ``"/tag_bearing/observations"``.
+    frame_id : str
+        The message's ``header.frame_id`` (camera optical frame, contact plane frame); empty
+        gives the topic alone.
+
+    Returns
+    -------
+    str
+        ``"<topic> [<frame_id>]"`` (or ``topic``).
+    """
+    return f"{topic} [{frame_id}]" if frame_id else topic
+
 #: Fusion settings with their defaults: the fusion node's parameters of the same names
 #: (``config/fusion_node.yaml`` documents meaning and unit) and ``ppoe evaluate``'s replay.
 FUSION_SETTINGS: dict[str, Any] = {
@@ -1075,7 +1103,7 @@ FUSION_SETTINGS: dict[str, Any] = {
     "max_gap": 0.2,  # s
     "max_hold": 0.5,  # s
     "max_pending": 200,
-    "min_interval": 0.05,  # s, per source
+    "min_interval": 0.05,  # s, per source (topic + frame_id, source_key)
     "correction_timeout": 10.0,  # s
     "correction_joint_motion": 0.05,  # rad or m
     "correction_tool_translation": 0.05,  # m

@@ -61,6 +61,7 @@ from ppoe_core.fusion_pipeline import (
     UpdateResult,
     make_pipeline,
     make_updater,
+    source_key,
 )
 from ppoe_ros.kinematics_node import load_model_yaml
 from ppoe_ros.ros_common import (
@@ -108,7 +109,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("max_pending", _D["max_pending"], "measurements newer than the newest prior kept waiting",
               min_value=0, max_value=100000),
-    ParamSpec("min_interval", _D["min_interval"], "per source: a measurement less than this after the last one "
+    ParamSpec("min_interval", _D["min_interval"], "per source (topic + frame_id): a measurement less than this after the last one "
               "processed is skipped (counted as throttled); 0 = process all", unit="s", min_value=0.0,
               max_value=3600.0),
     ParamSpec("pending_timeout", 1.0, "when no prior arrived for this long (steady clock), pending measurements "
@@ -313,14 +314,16 @@ class FusionNode(Node):
         fx, fy = self.focal.get(frame, (None, None))
         payload = TagPoints(frame, d["id"].astype(int), d["corner"].astype(int),
                             np.column_stack([d["x"], d["y"]]), np.column_stack([d["u"], d["v"]]), fx, fy)
-        self._measure(Measurement(stamp_to_ns(msg.header.stamp) * 1e-9, self.params["observations_topic"], payload))
+        source = source_key(self.params["observations_topic"], frame)
+        self._measure(Measurement(stamp_to_ns(msg.header.stamp) * 1e-9, source, payload))
 
     def _contact(self, msg: PoseWithCovarianceStamped) -> None:
         self.stats.counts["received"] += 1
         T, cov_ros, stamp_ns, frame = pose_cov_from_msg(msg)
         cov_plane = lie.check_covariance(lie.cov_ros_to_local(T, cov_ros),
                                          name=f"{self.params['contact_topic']} covariance", size=6)
-        self._measure(Measurement(stamp_ns * 1e-9, self.params["contact_topic"], PlaneContact(frame, T, cov_plane)))
+        source = source_key(self.params["contact_topic"], frame)
+        self._measure(Measurement(stamp_ns * 1e-9, source, PlaneContact(frame, T, cov_plane)))
 
     def _measure(self, m: Measurement) -> None:
         if self.updater is None:

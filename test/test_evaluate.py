@@ -277,10 +277,14 @@ def test_evaluate_motoman_marker_fusion(tmp_path):
     d = DATASETS / "motoman_leica"
     # the wall set (25 poses, 311 marker points) keeps the test short; docs/results.md has all four
     res = import_motoman(d / "leica_wall_table1_5x5_dataset.mat", d / "model.yaml", tmp_path / "wall")
-    # both cameras' observations of a pose share topic and stamp: the fusion node's per-topic
-    # min_interval would throttle the second one (docs/results.md), so fuse both as documented
-    ev = evaluate_bag(tmp_path / "wall", res["model"], EvaluateOptions(fusion={"min_interval": 0.0}))
+    # both cameras' observations of a pose share topic and stamp; the source is topic + frame_id,
+    # so the default min_interval (0.05 s) throttles neither: one update per camera and pose
+    ev = evaluate_bag(tmp_path / "wall", res["model"], EvaluateOptions())
     m = ev.summary["methods"]
+    for method in ("ppoe", "naive"):
+        c = m[method]["measurements"]["counts"]
+        assert c["throttled"] == 0, (method, c)
+        assert c["accepted"] + c["rejected"] == c["measurements"] == 50, (method, c)
     reg = ev.summary["ground_truth"]["registration"]
     assert reg["groups"][0]["fit"] == 13 and reg["groups"][0]["scored"] == 12
     assert m["fk"]["position_3d"]["rms"] < 0.6e-3  # README: 0.47 mm with all 25 poses in the fit

@@ -544,6 +544,36 @@ def test_pipeline_min_interval_throttles_per_source():
     assert pipe.counts["throttled"] == 8 and upd.calls == 4
 
 
+def test_two_cameras_on_one_topic_at_the_same_stamp_are_both_used():
+    """Motoman bags: both cameras publish on /tag_bearing/observations with the same stamp and
+    their own frame_id.  The source is topic + frame_id, so with the default min_interval
+    neither throttles nor replaces the other: each corrects its own error component."""
+    from ppoe_core.fusion_pipeline import FUSION_SETTINGS, source_key
+
+    rng, T_true, T_prior, P, upd, pipe = _setup(min_interval=FUSION_SETTINGS["min_interval"])
+    for k in range(3):
+        pipe.add_prior(0.1 * k, T_prior, P)
+    topic = "/tag_bearing/observations"
+    cam1, cam2 = source_key(topic, "camera_1_optical_frame"), source_key(topic, "camera_2_optical_frame")
+    assert cam1 != cam2 and topic in cam1
+    assert source_key(topic, "") == topic
+    R = np.array([[1e-10]])
+    # camera 1 sees the x error, camera 2 the y error of the tool position, same stamp
+    o1 = pipe.add_measurement(Measurement(0.1, cam1, (T_true, np.eye(6)[:1], R)))
+    o2 = pipe.add_measurement(Measurement(0.1, cam2, (T_true, np.eye(6)[1:2], R)))
+    assert (o1.status, o2.status) == ("accepted", "accepted")
+    assert upd.calls == 2 and pipe.counts["throttled"] == 0
+    assert set(pipe.corrections) == {cam1, cam2}
+    est = pipe.fused_at(0.1)
+    err_prior = lie.ominus(T_true, T_prior)
+    err_fused = lie.ominus(T_true, est.T_base_tool)
+    # both components corrected (to the 1e-5 m measurement noise), so both measurements were used
+    assert abs(err_prior[0]) > 1e-3 or abs(err_prior[1]) > 1e-3
+    assert abs(err_fused[0]) < 1e-4 and abs(err_fused[1]) < 1e-4
+    # the same camera again at the same stamp is still throttled
+    assert pipe.add_measurement(Measurement(0.1, cam1, (T_true, np.eye(6)[:1], R))).status == "throttled"
+
+
 def test_make_pipeline_settings_and_node_defaults_agree(rover):
     """The node's parameter defaults and ppoe evaluate's replay use FUSION_SETTINGS."""
     from ppoe_core.fusion_pipeline import FUSION_SETTINGS, make_pipeline
