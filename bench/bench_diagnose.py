@@ -6,11 +6,15 @@
      parameters scored on a file are fitted on the four others), timed;
    * nested leave-one-file-out: effects *selected and fitted* on four files only, the fifth
      scored by the protocol; per-file RMS 3D and r95 xy / z before -> after.
-2. A 10-minute simulated bag of the arm7 robot (100 Hz joint states, a static tracker stop every
+2. Motoman marker pixels (``$PPOE_DATASETS/motoman_leica``): pixel RMS per camera with the
+   published chains, ``camera_extrinsics`` found on the 6x6x6 set (5-fold CV over poses), fit on
+   even poses -> score odd poses, fit on 6x6x6 -> score the table/wall files, the same with arm
+   candidates added, and ``ppoe diagnose`` on an imported 6x6x6 bag (temporary directory).
+3. A 10-minute simulated bag of the arm7 robot (100 Hz joint states, a static tracker stop every
    5 s, gravity compliance injected), written to a temporary directory: ``ppoe diagnose`` time.
 
 Prints ``name: value unit`` lines; ratios are against the nominal baseline measured in the same
-run.  Usage: ``python bench/bench_diagnose.py [--quick] [--skip-hilti] [--skip-bag]``.
+run.  Usage: ``python bench/bench_diagnose.py [--quick] [--skip-hilti] [--skip-bag] [--skip-motoman]``.
 """
 
 from __future__ import annotations
@@ -127,12 +131,80 @@ def ten_minute_bag() -> None:
         print(f"bag10min_realtime_ratio: {600.0 / dt:.1f} bag s per wall s")
 
 
+def motoman() -> None:
+    from ppoe_core.diagnose import (diagnose_pixels, pixel_candidates, pixel_rms, pixels_from_motoman)
+    from ppoe_core.effects import KinematicTree, make_effect
+    from ppoe_ros.cli import main
+
+    d = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets")) / "motoman_leica"
+    robot = parse_urdf(d / "motoman_right.urdf")
+    tree = KinematicTree(robot)
+    files = ["right_hand_6x6x6", "higher_table1_5x5", "lower_table1_5x5", "wall_table1_5x5", "rep_table1"]
+    obs = {f: pixels_from_motoman(d / f"leica_{f}_dataset.mat", robot, d / "model.yaml") for f in files}
+    short = {"camera_1_optical_frame": "cam1", "camera_2_optical_frame": "cam2"}
+
+    def fmt(r: dict) -> str:
+        return " / ".join(f"{r[k]:.2f}" for k in short if k in r)
+
+    for f in files:
+        print(f"motoman_pixel_rms_nominal_{f}: {fmt(pixel_rms(tree, obs[f]))} px (cam1 / cam2)")
+    o = obs[files[0]]
+    t0 = time.perf_counter()
+    res = diagnose_pixels(robot, o)
+    print(f"motoman_pixel_diagnose_time_6x6x6: {time.perf_counter() - t0:.2f} s ({res.n} observations)")
+    for e in res.effects:
+        print(f"motoman_pixel_effect: {e['name']}@{e['location']} ({e['frame']}) " + ", ".join(
+            f"{k}={v:.4g} [{e['ci'][k][0]:.4g}, {e['ci'][k][1]:.4g}]" for k, v in e["parameters"].items()))
+    print(f"motoman_pixel_cv_rms_6x6x6: {fmt(res.rms_before)} -> {fmt(res.rms_after)} px (5-fold over poses)")
+    print(f"motoman_pixel_insample_rms_6x6x6: {fmt(res.rms_before_insample)} -> {fmt(res.rms_after_insample)} px")
+    even, odd = o.subset(o.pose % 2 == 0), o.subset(o.pose % 2 == 1)
+    r2 = diagnose_pixels(robot, even)
+    print(f"motoman_pixel_even_to_odd: {fmt(pixel_rms(tree, odd))} -> {fmt(pixel_rms(tree, odd, r2.fitted))} px")
+    for f in files[1:]:
+        print(f"motoman_pixel_6x6x6_to_{f}: {fmt(pixel_rms(tree, obs[f]))} -> "
+              f"{fmt(pixel_rms(tree, obs[f], res.fitted))} px")
+        rf = diagnose_pixels(robot, obs[f])
+        print(f"motoman_pixel_infile_cv_{f}: effects {[e['location'] for e in rf.effects]}, "
+              f"{fmt(rf.rms_before)} -> {fmt(rf.rms_after)} px")
+    arm = [make_effect("joint_offset", j, robot) for j in
+           ["joint_S1", "joint_L1", "joint_U1", "joint_R1", "joint_B1", "joint_T1"]]
+    arm.append(make_effect("link_error", "T1_to_EE1", robot))
+    r3 = diagnose_pixels(robot, o, candidates=pixel_candidates(robot, o) + arm, max_effects=8)
+    print("motoman_pixel_arm_candidates_effects: " + ", ".join(s["effect"] for s in r3.steps))
+    print(f"motoman_pixel_arm_candidates_cv_rms_6x6x6: {fmt(r3.rms_before)} -> {fmt(r3.rms_after)} px")
+    for f in files[1:]:
+        print(f"motoman_pixel_arm_candidates_6x6x6_to_{f}: {fmt(pixel_rms(tree, obs[f]))} -> "
+              f"{fmt(pixel_rms(tree, obs[f], r3.fitted))} px")
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = Path(tmp) / "m666"
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            main(["import", "motoman", str(d / "leica_right_hand_6x6x6_dataset.mat"), "--model-yaml",
+                  str(d / "model.yaml"), "--out", str(bag)])
+        model = next(Path(tmp).glob("*.yaml"), None) or next(bag.glob("*.yaml"))
+        buf = io.StringIO()
+        t0 = time.perf_counter()
+        with contextlib.redirect_stdout(buf):
+            main(["diagnose", str(bag), "--model", str(model), "--json", "--max-effects", "3"])
+        doc = json.loads(buf.getvalue())
+        print(f"motoman_bag_diagnose_time: {time.perf_counter() - t0:.1f} s (model {model.name})")
+        print("motoman_bag_effects: " + "; ".join(f"{e['name']}@{e['location']}" for e in doc["effects"]))
+        print(f"motoman_bag_tracker_rms: {1e3 * doc['residual_before']:.3f} -> {1e3 * doc['residual_after']:.3f} mm")
+        if "pixels" in doc:
+            px = doc["pixels"]
+            print(f"motoman_bag_pixel_rms_declared_only: {fmt(px['pixel_rms_declared_only'])} px")
+            print(f"motoman_bag_pixel_rms: {fmt(px['pixel_rms_before'])} -> {fmt(px['pixel_rms_after'])} px "
+                  "(held-out, with the tracker effects)")
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="at most 4 effects, no nested leave-one-file-out")
     ap.add_argument("--skip-hilti", action="store_true")
     ap.add_argument("--skip-bag", action="store_true")
+    ap.add_argument("--skip-motoman", action="store_true")
     args = ap.parse_args()
+    if not args.skip_motoman:
+        motoman()
     if not args.skip_bag:
         ten_minute_bag()
     if not args.skip_hilti:

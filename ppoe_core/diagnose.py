@@ -1472,8 +1472,11 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
     if result.extra.get("pixels"):
         px = result.extra["pixels"]
         lines += ["", f"## Tag pixels ({px['n']} points; effects marked `measurement: pixels` above, share = of "
-                  "the pixel residual)", "",
-                  "| camera frame | held-out RMS before [px] | after [px] | in-sample before | after |",
+                  "the pixel residual)", ""]
+        if "pixel_rms_declared_only" in px:
+            lines += ["In-sample RMS with only the declared effects (without the tracker/pose effects above): "
+                      + ", ".join(f"{f} {v:.2f} px" for f, v in px["pixel_rms_declared_only"].items()), ""]
+        lines += ["| camera frame | held-out RMS before [px] | after [px] | in-sample before | after |",
                   "|---|---|---|---|---|"]
         for f in px["pixel_rms_before"]:
             lines.append(f"| {f} | {px['pixel_rms_before'][f]:.2f} | {px['pixel_rms_after'][f]:.2f} | "
@@ -1559,6 +1562,9 @@ class PixelObs:
         Pixel noise, 1-sigma per axis [px]: residuals are whitened with it.
     name : str
         Source (file or bag), used in messages.
+    context : dict
+        Effect context per observation (``motion_sign``: joint -> (M,), ``time`` (M,),
+        ``joint_velocity``: joint -> (M,)), as in :class:`Stops`.
     """
 
     q: dict[str, np.ndarray]
@@ -1572,6 +1578,7 @@ class PixelObs:
     pose: np.ndarray
     sigma_px: float = 1.0
     name: str = ""
+    context: dict[str, Any] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
@@ -1580,7 +1587,20 @@ class PixelObs:
         """The observations ``rows`` (index or boolean array)."""
         return PixelObs(q={k: v[rows] for k, v in self.q.items()}, link=self.link, point=self.point[rows],
                         camera=self.camera[rows], cameras=self.cameras, K=self.K, D=self.D, uv=self.uv[rows],
-                        pose=self.pose[rows], sigma_px=self.sigma_px, name=self.name)
+                        pose=self.pose[rows], sigma_px=self.sigma_px, name=self.name,
+                        context=_map_ctx(lambda v: v[rows], [self.context]))
+
+
+def _map_ctx(fn: Any, ctxs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Apply ``fn`` to the per-observation arrays of one or several contexts (keys of the first;
+    nested joint dictionaries kept)."""
+    out: dict[str, Any] = {}
+    for k, v in ctxs[0].items():
+        if isinstance(v, Mapping):
+            out[k] = {j: fn(*[c[k][j] for c in ctxs]) for j in v if all(j in c.get(k, {}) for c in ctxs)}
+        elif all(k in c for c in ctxs):
+            out[k] = fn(*[c[k] for c in ctxs])
+    return out
 
 
 def pixels_from_motoman(path: str | Path, robot: Robot, model_yaml: str | Path,
@@ -1605,7 +1625,12 @@ def pixels_from_motoman(path: str | Path, robot: Robot, model_yaml: str | Path,
     order = sorted(cams)
     point = np.array([markers[int(f)][:3, 3] for f in ds.obs_face])
     J = ds.joints[ds.obs_pose]
-    return PixelObs(q={j: J[:, i] for i, j in enumerate(JOINT_NAMES)}, link="EE1", point=point,
+    P = len(ds.pose_ids)
+    # motion sign: the poses are taken as visited in file order (as stops_from_motoman)
+    signs = motion_signs(np.arange(P, dtype=float), ds.joints, np.arange(P, dtype=float))[ds.obs_pose]
+    ctx = {"motion_sign": {j: signs[:, i] for i, j in enumerate(JOINT_NAMES)},
+           "time": ds.obs_pose.astype(float)}
+    return PixelObs(q={j: J[:, i] for i, j in enumerate(JOINT_NAMES)}, link="EE1", point=point, context=ctx,
                     camera=np.array([order.index(int(c)) for c in ds.obs_camera]),
                     cameras=[cams[n].frame for n in order], K=[cams[n].K for n in order],
                     D=[cams[n].D for n in order], uv=ds.obs_uv.copy(), pose=ds.obs_pose.copy(),
@@ -1615,10 +1640,10 @@ def pixels_from_motoman(path: str | Path, robot: Robot, model_yaml: str | Path,
 def _camera_points(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
                    ) -> tuple[np.ndarray, dict, dict, dict]:
     """Marker points in their camera's optical frame, shape (M, 3) [m], with the chain used."""
-    dq, dxi = apply_corrections(list(effects), obs.q)
+    dq, dxi = apply_corrections(list(effects), obs.q, obs.context)
     poses = tree.link_poses(obs.q, dq, dxi, links=[obs.link, *obs.cameras])
     p_root = np.einsum("mij,mj->mi", poses[obs.link][:, :3, :3], obs.point) + poses[obs.link][:, :3, 3]
-    P = np.empty_like(p_root)
+    P = np.empty_like(p_root)  # filled per camera
     for c, frame in enumerate(obs.cameras):
         m = obs.camera == c
         T = poses[frame][m]
@@ -1674,7 +1699,7 @@ def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect,
     """
     P, poses, dq, dxi = _camera_points(tree, obs, effects)
     nominal = tree.link_poses(obs.q)
-    Bq, Bx = effect.basis(obs.q, {}, nominal)
+    Bq, Bx = effect.basis(obs.q, obs.context, nominal)
     n, npar = len(obs), effect.n_params
 
     def dxi_dparam(link: str) -> np.ndarray:
@@ -2008,8 +2033,24 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
             raise BagError(f"bag {path}: camera frame {f!r} is not a link of URDF {robot.source}")
     js = data.joint_states
     at = np.asarray(stamps)[msg]
-    q = {j: _sample_joint(js.stamps, js.column(j), at) for j in KinematicTree(robot).joint_names}
-    return PixelObs(q=q, link=links[0], point=point, camera=np.array([cams.index(frames[k]) for k in msg]),
+    order = np.argsort(js.stamps, kind="stable")
+    t_js = js.stamps[order]
+    q: dict[str, np.ndarray] = {}
+    vel: dict[str, np.ndarray] = {}
+    cols = []
+    for j in KinematicTree(robot).joint_names:
+        col = js.column(j)[order]
+        good = np.isfinite(col)
+        if not np.any(good):
+            raise BagError(f"bag {path}: /joint_states carries no value of joint {j!r}")
+        q[j] = _sample_joint(t_js[good], col[good], at)
+        cols.append(np.interp(t_js, t_js[good], col[good]))
+        v = np.gradient(col[good], t_js[good]) if good.sum() > 1 else np.zeros(good.sum())
+        vel[j] = _sample_joint(t_js[good], v, at)
+    signs = motion_signs(t_js, np.column_stack(cols), at)
+    ctx = {"time": at - t_js[0], "joint_velocity": vel,
+           "motion_sign": {j: signs[:, i] for i, j in enumerate(q)}}
+    return PixelObs(q=q, context=ctx, link=links[0], point=point, camera=np.array([cams.index(frames[k]) for k in msg]),
                     cameras=cams, K=[intr[f][0] for f in cams], D=[intr[f][1] for f in cams], uv=rows[:, 3:5].copy(),
                     pose=msg, sigma_px=float(sigma_px), name=Path(path).name)
 
@@ -2043,7 +2084,8 @@ def concat_pixel_obs(parts: Sequence[PixelObs]) -> PixelObs:
                     point=np.concatenate([p.point for p in parts]),
                     camera=np.concatenate([[cams.index(p.cameras[c]) for c in p.camera] for p in parts]).astype(int),
                     cameras=cams, K=K, D=D, uv=np.concatenate([p.uv for p in parts]), pose=np.concatenate(pose),
-                    sigma_px=parts[0].sigma_px, name="+".join(p.name for p in parts))
+                    sigma_px=parts[0].sigma_px, name="+".join(p.name for p in parts),
+                    context=_map_ctx(lambda *v: np.concatenate(v), [p.context for p in parts]))
 
 
 def add_pixel_diagnosis(result: DiagnoseResult, robot: Robot, obs: PixelObs, declared: Sequence[Effect] = (),
@@ -2057,10 +2099,15 @@ def add_pixel_diagnosis(result: DiagnoseResult, robot: Robot, obs: PixelObs, dec
     pixel RMS before -> after.
     """
     tree = KinematicTree(robot)
-    found = [effect_from_config(e, tree, where=f"diagnose effect {e['name']}@{e['location']}") for e in result.effects]
+    keys = ("name", "location", "parameters", "variable", "reference")
+    found = [effect_from_config({k: e[k] for k in keys if k in e}, tree,
+                                where=f"diagnose effect {e['name']}@{e['location']}") for e in result.effects]
     pres = diagnose_pixels(robot, obs, list(declared) + found, **options)
     result.effects.extend(pres.effects)
     result.extra["pixels"] = pres.to_json()
+    # the tracker/pose effects can move the markers away from the pixels (components a tracker
+    # registration absorbs are seen by a camera fixed to the base): report the pixels without them
+    result.extra["pixels"]["pixel_rms_declared_only"] = pixel_rms(tree, obs, declared)
     per = ", ".join(f"{f} {pres.rms_before[f]:.2f} -> {pres.rms_after[f]:.2f} px" for f in pres.rms_before)
     names = ", ".join(f"{e['name']}@{e['location']}" for e in pres.effects) or "none"
     result.summary += f"\nTag pixels ({pres.n} points): effects {names}; held-out RMS {per}."
