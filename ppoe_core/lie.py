@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import CovarianceError
+from .errors import CovarianceError, MeasurementError
 
 __all__ = [
     "hat3",
@@ -45,6 +45,7 @@ __all__ = [
     "oplus",
     "ominus",
     "from_rt",
+    "fit_rigid",
     "from_xyz_rpy",
     "matrix_from_rpy",
     "rpy_from_matrix",
@@ -260,6 +261,52 @@ def from_rt(R: ArrayLike, t: ArrayLike) -> Array:
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0
     return T
+
+
+def fit_rigid(P_src: ArrayLike, P_dst: ArrayLike) -> Array:
+    """Rigid transform (rotation + translation, no scale) fitting ``P_dst ~ R P_src + t``.
+
+    Least squares over corresponding points (Kabsch / Umeyama without scale): with the
+    centroids ``c``, the SVD ``U S V^T`` of ``sum_i (p_src,i - c_src)(p_dst,i - c_dst)^T``
+    gives ``R = V diag(1, 1, d) U^T``, ``d = sign det(V U^T)`` (a reflection is turned into
+    the best proper rotation), and ``t = c_dst - R c_src``.  Broadcasts over leading axes.
+
+    Parameters
+    ----------
+    P_src, P_dst : array_like, shape (..., n, 3)
+        Corresponding points in the source and destination frames, ``n >= 3`` and not all
+        on one line (same shape).
+
+    Returns
+    -------
+    ndarray, shape (..., 4, 4)
+        ``T_dst_src``: maps source coordinates to destination coordinates.
+
+    Raises
+    ------
+    MeasurementError
+        Shapes differ or are not ``(..., n, 3)``, fewer than 3 point pairs, non-finite
+        points, or a collinear point set (rotation about the line undetermined).
+    """
+    P_src, P_dst = _f(P_src), _f(P_dst)
+    if P_src.shape != P_dst.shape or P_src.ndim < 2 or P_src.shape[-1] != 3:
+        raise MeasurementError(f"fit_rigid: point sets must both be (..., n, 3), got {P_src.shape} and {P_dst.shape}")
+    if P_src.shape[-2] < 3:
+        raise MeasurementError(f"fit_rigid: need at least 3 point pairs, got {P_src.shape[-2]}")
+    if not (np.all(np.isfinite(P_src)) and np.all(np.isfinite(P_dst))):
+        raise MeasurementError("fit_rigid: the points contain NaN or infinite values")
+    c_src, c_dst = P_src.mean(axis=-2), P_dst.mean(axis=-2)
+    A, B = P_src - c_src[..., None, :], P_dst - c_dst[..., None, :]
+    U, s, Vt = np.linalg.svd(np.swapaxes(A, -1, -2) @ B)
+    if np.any(s[..., 1] <= 1e-9 * np.maximum(s[..., 0], 1e-300)):
+        raise MeasurementError("fit_rigid: the points are collinear (or coincide); the rotation is not determined")
+    V, Ut = np.swapaxes(Vt, -1, -2), np.swapaxes(U, -1, -2)
+    d = np.sign(np.linalg.det(V @ Ut))
+    D = np.zeros(d.shape + (3, 3))
+    D[..., 0, 0] = D[..., 1, 1] = 1.0
+    D[..., 2, 2] = d
+    R = V @ D @ Ut
+    return from_rt(R, c_dst - np.einsum("...ij,...j->...i", R, c_src))
 
 
 def exp(xi: ArrayLike) -> Array:
