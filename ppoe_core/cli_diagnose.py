@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
                 raise BagError(f"bag {bag}: --pixels on, but no tag observations/images or no 'tags' in {args.model}")
         if pix:
             add_pixel_diagnosis(res, robot, concat_pixel_obs(pix), declared, folds=args.folds,
-                                min_gain=args.min_gain, min_t=args.min_t)
+                                min_gain=args.min_gain, min_t=args.min_t, pert=pert, jnoise=jnoise)
     paths = {}
     if args.out:
         paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))

@@ -74,6 +74,8 @@ __all__ = [
     "pixels_from_bag",
     "predict_pixels",
     "pixel_jacobian",
+    "pixel_chain_jacobians",
+    "pixel_covariance",
     "pixel_rms",
     "pixel_candidates",
     "camera_mount_joint",
@@ -1686,51 +1688,88 @@ def _projection_jacobian(P: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndar
     return jac[:, 3:6].reshape(len(P), 2, 3)
 
 
-def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect,
-                   effects: Sequence[Effect] = ()) -> np.ndarray:
-    """Analytic derivative (M, 2, P) of the predicted pixels w.r.t. ``effect``'s parameters,
-    evaluated on the chain corrected by ``effects`` (``effect`` itself enters with zero-order
-    term only through ``effects``).
+def pixel_chain_jacobians(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()
+                          ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Analytic derivatives of the predicted pixels w.r.t. the eq. 16 insertions, on the chain
+    corrected by ``effects``.
 
     With the right perturbations ``xi_cam`` of ``T_root_cam`` and ``xi_l`` of ``T_root_link``
-    (:meth:`KinematicTree.frame_jacobian`, paper eq. 16 hooks),
+    (:meth:`KinematicTree.frame_jacobian`),
     ``dP_cam = R_cam^T R_l [I, -[p]x] xi_l + [-I, [P_cam]x] xi_cam``, then the plumb_bob
-    projection Jacobian.
+    projection Jacobian ``d uv / d P_cam``.
+
+    Returns
+    -------
+    J_dq : dict joint -> ndarray (M, 2)
+        ``d uv / d dq_j`` [px/rad or px/m].
+    J_dxi : dict joint -> ndarray (M, 2, 6)
+        ``d uv / d dxi_j`` (tangent right after joint ``j``'s origin, ``[rho; theta]``).
     """
     P, poses, dq, dxi = _camera_points(tree, obs, effects)
-    nominal = tree.link_poses(obs.q)
-    Bq, Bx = effect.basis(obs.q, obs.context, nominal)
-    n, npar = len(obs), effect.n_params
-
-    def dxi_dparam(link: str) -> np.ndarray:
-        Jq, Jx = tree.frame_jacobian(obs.q, link, poses, dq, dxi)
-        out = np.zeros((n, 6, npar))
-        for k, b in Bq.items():
-            if k in Jq:
-                out = out + Jq[k][:, :, None] * b[:, None, :]
-        for k, b in Bx.items():
-            if k in Jx:
-                out = out + Jx[k] @ b
-        return out
-
-    xl = dxi_dparam(obs.link)
+    n = len(obs)
+    Jq_l, Jx_l = tree.frame_jacobian(obs.q, obs.link, poses, dq, dxi)
     R_l = poses[obs.link][:, :3, :3]
     B_l = np.concatenate([R_l, -R_l @ lie.hat3(obs.point)], axis=-1)  # (M, 3, 6): d p_root / d xi_l
-    dp_root = B_l @ xl
-    dP = np.zeros((n, 3, npar))
+    A = np.zeros((n, 3, 3))   # d P_cam / d p_root = R_cam^T
+    B_c = np.zeros((n, 3, 6))  # d P_cam / d xi_cam
+    Jproj = np.zeros((n, 2, 3))
+    cam_jac = []
     for c, frame in enumerate(obs.cameras):
         m = obs.camera == c
         if not np.any(m):
             continue
-        R_c = poses[frame][m][:, :3, :3]
-        xc = dxi_dparam(frame)[m]
-        B_c = np.concatenate([-np.broadcast_to(np.eye(3), (int(m.sum()), 3, 3)), lie.hat3(P[m])], axis=-1)
-        dP[m] = np.swapaxes(R_c, -1, -2) @ dp_root[m] + B_c @ xc
-    out = np.zeros((n, 2, npar))
-    for c in range(len(obs.cameras)):
-        m = obs.camera == c
-        out[m] = _projection_jacobian(P[m], obs.K[c], obs.D[c]) @ dP[m]
+        A[m] = np.swapaxes(poses[frame][m][:, :3, :3], -1, -2)
+        B_c[m] = np.concatenate([-np.broadcast_to(np.eye(3), (int(m.sum()), 3, 3)), lie.hat3(P[m])], axis=-1)
+        Jproj[m] = _projection_jacobian(P[m], obs.K[c], obs.D[c])
+        cam_jac.append((m, tree.frame_jacobian(obs.q, frame, poses, dq, dxi)))
+    G_l = Jproj @ A @ B_l  # (M, 2, 6): d uv / d xi_l
+    J_dq: dict[str, np.ndarray] = {k: np.einsum("mij,mj->mi", G_l, v) for k, v in Jq_l.items()}
+    J_dxi: dict[str, np.ndarray] = {k: G_l @ v for k, v in Jx_l.items()}
+    G_c = Jproj @ B_c
+    for m, (Jq_c, Jx_c) in cam_jac:
+        for k, v in Jq_c.items():  # rows of this camera only
+            J_dq[k] = J_dq[k].copy() if k in J_dq else np.zeros((n, 2))
+            J_dq[k][m] += np.einsum("mij,mj->mi", G_c[m], v[m])
+        for k, v in Jx_c.items():
+            J_dxi[k] = J_dxi[k].copy() if k in J_dxi else np.zeros((n, 2, 6))
+            J_dxi[k][m] += G_c[m] @ v[m]
+    return J_dq, J_dxi
+
+
+def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect,
+                   effects: Sequence[Effect] = ()) -> np.ndarray:
+    """Analytic derivative (M, 2, P) of the predicted pixels w.r.t. ``effect``'s parameters,
+    evaluated on the chain corrected by ``effects``: :func:`pixel_chain_jacobians` times
+    :meth:`Effect.basis` (evaluated on the nominal chain)."""
+    Jq, Jx = pixel_chain_jacobians(tree, obs, effects)
+    Bq, Bx = effect.basis(obs.q, obs.context, tree.link_poses(obs.q))
+    out = np.zeros((len(obs), 2, effect.n_params))
+    for k, b in Bq.items():
+        if k in Jq:
+            out = out + Jq[k][:, :, None] * b[:, None, :]
+    for k, b in Bx.items():
+        if k in Jx:
+            out = out + Jx[k] @ b
     return out
+
+
+def pixel_covariance(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = (),
+                     pert: Optional[Mapping[str, np.ndarray]] = None,
+                     jnoise: Optional[Mapping[str, float]] = None) -> np.ndarray:
+    """Expected covariance (M, 2, 2) of each pixel residual [px^2], image axes: the first-order
+    PPOE covariance (paper eq. 18 to first order: ``pert`` = 6x6 covariances of the insertions,
+    tangent right after each joint's origin; ``jnoise`` = joint 1-sigma [rad, m]) propagated
+    through :func:`pixel_chain_jacobians`, plus ``obs.sigma_px^2 I``."""
+    C = np.broadcast_to(float(obs.sigma_px) ** 2 * np.eye(2), (len(obs), 2, 2)).copy()
+    if pert or jnoise:
+        Jq, Jx = pixel_chain_jacobians(tree, obs, effects)
+        for jn, S in (pert or {}).items():
+            if jn in Jx:
+                C += Jx[jn] @ np.asarray(S, float) @ np.swapaxes(Jx[jn], -1, -2)
+        for jn, sg in (jnoise or {}).items():
+            if jn in Jq:
+                C += float(sg) ** 2 * Jq[jn][:, :, None] * Jq[jn][:, None, :]
+    return C
 
 
 def camera_mount_joint(robot: Robot, frame: str) -> str:
@@ -1769,6 +1808,10 @@ class PixelDiagnosis:
     ``rms_before`` / ``rms_after``: held-out (cross-validated over poses) pixel RMS per camera
     frame [px], the norm of the 2D error; ``*_insample``: the same on all data with the final fit;
     ``steps`` and ``rejected``: the selection; ``fitted``: the effect objects (parameters set).
+    ``noise_floor``: per camera, the RMS [px] the expected covariance (:func:`pixel_covariance`)
+    predicts; ``unexplained``: held-out RMS above it [px]; ``nees_before`` / ``nees_after``:
+    held-out mean squared Mahalanobis distance per point (expectation 2); ``unexplained_flag``:
+    ``nees_after`` exceeds 2 by more than 3 standard errors (per-pose means).
     """
 
     effects: list[dict[str, Any]]
@@ -1781,10 +1824,18 @@ class PixelDiagnosis:
     rejected: list[dict[str, Any]]
     sigma_scale: float
     n: int
+    noise_floor: dict[str, float] = field(default_factory=dict)
+    unexplained: dict[str, float] = field(default_factory=dict)
+    nees_before: float = float("nan")
+    nees_after: float = float("nan")
+    unexplained_flag: bool = False
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready dict (pixel RMS in px)."""
         return {"effects": self.effects, "pixel_rms_before": self.rms_before, "pixel_rms_after": self.rms_after,
+                "pixel_noise_floor": self.noise_floor, "pixel_unexplained": self.unexplained,
+                "pixel_nees_before": self.nees_before, "pixel_nees_after": self.nees_after,
+                "pixel_unexplained_flag": self.unexplained_flag,
                 "pixel_rms_before_insample": self.rms_before_insample,
                 "pixel_rms_after_insample": self.rms_after_insample, "steps": self.steps,
                 "rejected": self.rejected, "sigma_scale": self.sigma_scale, "n": self.n}
@@ -1815,11 +1866,14 @@ def _lstsq(G: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = (),
                     candidates: Optional[Sequence[Effect]] = None, folds: int = 5, min_gain: float = 0.03,
                     min_t: float = 4.0, max_condition: float = 1e6, max_effects: int = 4,
-                    iterations: int = 3, seed: int = 0, robust: bool = True) -> PixelDiagnosis:
+                    iterations: int = 3, seed: int = 0, robust: bool = True,
+                    pert: Optional[Mapping[str, np.ndarray]] = None,
+                    jnoise: Optional[Mapping[str, float]] = None) -> PixelDiagnosis:
     """Trace the marker-pixel residual to ``camera_extrinsics`` (or given candidate) effects.
 
-    The pixel residual (measured minus predicted with ``declared``), whitened by
-    ``obs.sigma_px``, is linearised at the declared chain, ``e = e0 - G theta``
+    The pixel residual (measured minus predicted with ``declared``), whitened by its expected
+    covariance (:func:`pixel_covariance`: ``obs.sigma_px`` plus, if given, the declared
+    perturbations ``pert`` and joint noise ``jnoise`` propagated to the pixels), is linearised at the declared chain, ``e = e0 - G theta``
     (:func:`pixel_jacobian`).  Greedy forward selection as in :func:`diagnose`: a candidate is
     accepted when the column-scaled normal matrix of the chosen set has condition number below
     ``max_condition`` and the held-out mean squared error (``folds``-fold cross-validation over
@@ -1841,9 +1895,12 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
     cands = list(candidates) if candidates is not None else pixel_candidates(robot, obs)
     if len(np.unique(obs.pose)) < folds:
         raise MeasurementError(f"{obs.name}: {len(np.unique(obs.pose))} poses with pixels, need >= {folds} folds")
-    w = 1.0 / float(obs.sigma_px)
-    e0 = ((obs.uv - predict_pixels(tree, obs, declared)) * w)  # (M, 2)
-    Gs = [pixel_jacobian(tree, obs, c, declared) * w for c in cands]  # (M, 2, P)
+    C = pixel_covariance(tree, obs, declared, pert, jnoise)  # (M, 2, 2) [px^2]
+    W = np.linalg.inv(np.linalg.cholesky(C))  # whitening: W C W^T = I
+    e_raw = obs.uv - predict_pixels(tree, obs, declared)  # (M, 2) [px]
+    e0 = np.einsum("mij,mj->mi", W, e_raw)
+    J_raw = [pixel_jacobian(tree, obs, c, declared) for c in cands]  # (M, 2, P) [px / unit]
+    Gs = [W @ J for J in J_raw]
     test_masks = _pose_folds(obs.pose, folds, seed)
     poses_u, pose_idx = np.unique(obs.pose, return_inverse=True)
 
@@ -1904,13 +1961,13 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
     r = e0.reshape(-1)
     for _ in range(iterations if fitted else 0):
         cur = declared + fitted
-        r = ((obs.uv - predict_pixels(tree, obs, cur)) * w).reshape(-1)
-        G = np.concatenate([pixel_jacobian(tree, obs, f, cur) * w for f in fitted], axis=2).reshape(len(r), -1)
+        r = np.einsum("mij,mj->mi", W, obs.uv - predict_pixels(tree, obs, cur)).reshape(-1)
+        G = np.concatenate([W @ pixel_jacobian(tree, obs, f, cur) for f in fitted], axis=2).reshape(len(r), -1)
         dth, Hs = _lstsq(G, r)
         theta = theta + dth
         fitted = [f.with_params(p) for f, p in zip(fitted, np.split(theta, np.cumsum(sizes)[:-1]))]
     cur = declared + fitted
-    r = ((obs.uv - predict_pixels(tree, obs, cur)) * w).reshape(-1)
+    r = np.einsum("mij,mj->mi", W, obs.uv - predict_pixels(tree, obs, cur)).reshape(-1)
     dof = max(len(r) - len(theta), 1)
     s2 = float(r @ r / dof)
     effects_out: list[dict[str, Any]] = []
@@ -1941,23 +1998,40 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
                 "share": float((hist[k] - hist[k + 1]) / hist[0]) if hist[0] > 0 else 0.0,
             })
 
-    def cv_rms(idx: Sequence[int]) -> dict[str, float]:
-        err = np.zeros(len(obs))
+    def cv_errors(idx: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Held-out squared raw error [px^2] and Mahalanobis^2 per observation."""
+        sq = np.zeros(len(obs))
+        maha = np.zeros(len(obs))
         for test in test_masks:
+            rr, ww = e_raw, e0
             if idx:
                 Gi = np.concatenate([Gs[k] for k in idx], axis=2)
                 th, _ = _lstsq(Gi[~test].reshape(-1, Gi.shape[2]), e0[~test].reshape(-1))
-                rr = e0 - Gi @ th
-            else:
-                rr = e0
-            err[test] = np.sum(rr[test] ** 2, axis=1)
-        return {f: float(np.sqrt(np.mean(err[obs.camera == c])) / w) for c, f in enumerate(obs.cameras)
-                if np.any(obs.camera == c)}
+                rr = e_raw - np.concatenate([J_raw[k] for k in idx], axis=2) @ th
+                ww = e0 - Gi @ th
+            sq[test] = np.sum(rr[test] ** 2, axis=1)
+            maha[test] = np.sum(ww[test] ** 2, axis=1)
+        return sq, maha
 
-    return PixelDiagnosis(effects=effects_out, fitted=fitted, rms_before=cv_rms([]), rms_after=cv_rms(chosen),
+    def per_cam(v: np.ndarray, root: bool = True) -> dict[str, float]:
+        return {f: float(np.sqrt(np.mean(v[obs.camera == c])) if root else np.mean(v[obs.camera == c]))
+                for c, f in enumerate(obs.cameras) if np.any(obs.camera == c)}
+
+    sq0, m0 = cv_errors([])
+    sq1, m1 = cv_errors(chosen)
+    floor = per_cam(np.trace(C, axis1=1, axis2=2))
+    unexplained = {f: float(np.sqrt(max(per_cam(sq1)[f] ** 2 - floor[f] ** 2, 0.0))) for f in floor}
+    # held-out mean Mahalanobis^2 per point (expectation 2 if the declared covariance is right);
+    # standard error from the per-pose sums (points of a pose are correlated)
+    pm = np.bincount(pose_idx, m1, minlength=len(poses_u)) / np.maximum(np.bincount(pose_idx, minlength=len(poses_u)), 1)
+    se = float(np.std(pm, ddof=1) / math.sqrt(len(pm))) if len(pm) > 1 else float("inf")
+    nees_after = float(np.mean(m1))
+    flagged = nees_after > 2.0 + 3.0 * se
+    return PixelDiagnosis(effects=effects_out, fitted=fitted, rms_before=per_cam(sq0), rms_after=per_cam(sq1),
                           rms_before_insample=pixel_rms(tree, obs, declared),
                           rms_after_insample=pixel_rms(tree, obs, cur), steps=steps, rejected=rejected,
-                          sigma_scale=math.sqrt(s2), n=len(obs))
+                          sigma_scale=math.sqrt(s2), n=len(obs), noise_floor=floor, unexplained=unexplained,
+                          nees_before=float(np.mean(m0)), nees_after=nees_after, unexplained_flag=bool(flagged))
 
 
 def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigma_px: float = 1.0,
@@ -2096,13 +2170,19 @@ def add_pixel_diagnosis(result: DiagnoseResult, robot: Robot, obs: PixelObs, dec
     arm's errors move the markers too).  The pixel effects found are appended to
     ``result.effects`` (so the contract JSON and :func:`write_model_yaml` carry them),
     ``result.extra["pixels"]`` holds :meth:`PixelDiagnosis.to_json` and the summary says the
-    pixel RMS before -> after.
+    pixel RMS before -> after (and UNEXPLAINED when the held-out pixel NEES is too large).
+    ``options`` go to :func:`diagnose_pixels` (e.g. ``pert``, ``jnoise``: the declared
+    covariance, ``folds``).
     """
     tree = KinematicTree(robot)
     keys = ("name", "location", "parameters", "variable", "reference")
     found = [effect_from_config({k: e[k] for k in keys if k in e}, tree,
                                 where=f"diagnose effect {e['name']}@{e['location']}") for e in result.effects]
     pres = diagnose_pixels(robot, obs, list(declared) + found, **options)
+    if pres.unexplained_flag:
+        result.summary += (f"\nTag pixels UNEXPLAINED: held-out mean Mahalanobis^2 {pres.nees_after:.3g} per point "
+                           f"(expected 2); RMS above the noise floor: "
+                           + ", ".join(f"{f} {v:.2f} px" for f, v in pres.unexplained.items()))
     result.effects.extend(pres.effects)
     result.extra["pixels"] = pres.to_json()
     # the tracker/pose effects can move the markers away from the pixels (components a tracker
