@@ -79,9 +79,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ppoe_core import lie
+from ppoe_core import fusion, lie
 from ppoe_core.contact import FORCE_COMPONENTS
-from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
+from ppoe_core.errors import BagError, CovarianceError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
 from ppoe_core.fusion_pipeline import FUSION_SETTINGS
 from ppoe_core.tag_observations import DEFAULT_CORNER_REFINEMENT
 
@@ -106,7 +106,8 @@ __all__ = [
 
 #: scored methods, in report order
 METHODS = ("fk", "ppoe", "naive")
-#: diagonal regularisation [m^2 / rad^2] of covariances before NEES
+#: diagonal regularisation [m^2 / rad^2] of covariances before NEES: a model with exact joints
+#: gives a singular FK covariance (a direction it is certain of), still scored
 _NEES_JITTER = 1e-12
 
 
@@ -115,38 +116,9 @@ _NEES_JITTER = 1e-12
 # ----------------------------------------------------------------------------
 
 
-def kabsch(P_src: np.ndarray, P_dst: np.ndarray) -> np.ndarray:
-    """Rigid transform (no scale) fitting ``P_dst ~ R P_src + t`` in least squares.
-
-    Parameters
-    ----------
-    P_src, P_dst : ndarray, shape (n, 3)
-        Corresponding points, ``n >= 3`` and not collinear.
-
-    Returns
-    -------
-    ndarray, shape (4, 4)
-        ``T_dst_src``.
-
-    Raises
-    ------
-    PpoeError
-        Fewer than 3 points, or a degenerate (collinear) configuration.
-    """
-    P_src = np.asarray(P_src, dtype=float)
-    P_dst = np.asarray(P_dst, dtype=float)
-    if P_src.shape != P_dst.shape or P_src.ndim != 2 or P_src.shape[1] != 3:
-        raise PpoeError(f"kabsch: point sets must both be (n, 3), got {P_src.shape} and {P_dst.shape}")
-    if P_src.shape[0] < 3:
-        raise PpoeError(f"kabsch: need at least 3 point pairs, got {P_src.shape[0]}")
-    c_src, c_dst = P_src.mean(axis=0), P_dst.mean(axis=0)
-    A, B = P_src - c_src, P_dst - c_dst
-    U, s, Vt = np.linalg.svd(A.T @ B)
-    if s[1] < 1e-9 * max(s[0], 1e-300):
-        raise PpoeError("kabsch: the fit points are collinear; the rotation is not determined")
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return lie.from_rt(R, c_dst - R @ c_src)
+#: the rigid point-set fit of the tracker registration; an alias of :func:`ppoe_core.lie.fit_rigid`
+#: (``T_dst_src`` from ``(n, 3)`` point pairs) kept for callers of the old name
+kabsch = lie.fit_rigid
 
 
 def error_stats(values: np.ndarray) -> dict[str, float]:
@@ -215,10 +187,18 @@ def point_covariance(T_base_tool: np.ndarray, cov_tool: np.ndarray, p_tool: np.n
     return J @ np.asarray(cov_tool) @ np.swapaxes(J, -1, -2)
 
 
-def _mahalanobis(e: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    n = cov.shape[-1]
-    c = 0.5 * (cov + np.swapaxes(cov, -1, -2)) + _NEES_JITTER * np.eye(n)
-    return np.einsum("...i,...i->...", e, np.linalg.solve(c, e[..., None])[..., 0])
+def _regularised(cov: np.ndarray) -> np.ndarray:
+    """``cov`` (..., n, n) symmetrised, plus ``_NEES_JITTER`` on the diagonal (same frame)."""
+    return 0.5 * (cov + np.swapaxes(cov, -1, -2)) + _NEES_JITTER * np.eye(cov.shape[-1])
+
+
+def _nees(compute: Callable[[], np.ndarray], bag: str | Path, method: str) -> np.ndarray:
+    """NEES samples from ``ppoe_core.fusion``; a covariance that is not positive definite is an
+    error naming the bag and the method (not a numpy traceback)."""
+    try:
+        return compute()
+    except CovarianceError as exc:
+        raise CovarianceError(f"bag {bag}: method {method}: {exc}") from None
 
 
 def nees_stats(nees: np.ndarray, dof: int) -> dict[str, Any]:
@@ -870,8 +850,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             Te, Ce = est_T[m][sel], est_cov[m][sel]
             e3, el = position_errors(Te[:, :3, 3], p_gt, z_axis)
             rot = rotation_errors(Te, T_gt)
-            e6 = lie.log(lie.inverse(Te) @ T_gt)
-            ne = _mahalanobis(e6, Ce)
+            ne = _nees(lambda: fusion.nees(Te, _regularised(Ce), T_gt), bag, m)
             samples.update({f"{m}_position_3d": e3, f"{m}_lateral": el, f"{m}_rotation": rot, f"{m}_nees": ne,
                             f"{m}_position_error": Te[:, :3, 3] - p_gt})
             summary["methods"][m] = {
@@ -902,7 +881,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             if len(fit) < 3:
                 unscored += len(ev_idx)
                 continue
-            T_tracker_base = kabsch(p_fk[fit], gt_point.p[fit])
+            T_tracker_base = lie.fit_rigid(p_fk[fit], gt_point.p[fit])
             T_base_tracker = lie.inverse(T_tracker_base)
             p_gt_base[ev_idx] = gt_point.p[ev_idx] @ T_base_tracker[:3, :3].T + T_base_tracker[:3, 3]
             res_fit = np.linalg.norm(
@@ -921,7 +900,8 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             p_e = np.einsum("nij,nj->ni", Te[:, :3, :3], r_tool[sel]) + Te[:, :3, 3]
             e3, el = position_errors(p_e, p_gt_base[sel], z_axis)
             Cp = point_covariance(Te, Ce, r_tool[sel]) + cov_gt
-            ne = _mahalanobis(p_e - p_gt_base[sel], Cp)
+            # e^T C^-1 e of the reflector position error (fusion.nis: the same quadratic form)
+            ne = _nees(lambda: fusion.nis(p_e - p_gt_base[sel], _regularised(Cp)), bag, m)
             samples.update({f"{m}_position_3d": e3, f"{m}_lateral": el, f"{m}_nees": ne,
                             f"{m}_position_error": p_e - p_gt_base[sel]})
             summary["methods"][m] = {
