@@ -194,6 +194,10 @@ def motoman() -> None:
             print(f"motoman_bag_pixel_rms_declared_only: {fmt(px['pixel_rms_declared_only'])} px")
             print(f"motoman_bag_pixel_rms: {fmt(px['pixel_rms_before'])} -> {fmt(px['pixel_rms_after'])} px "
                   "(held-out, with the tracker effects)")
+            print(f"motoman_bag_pixel_noise_floor: {fmt(px['pixel_noise_floor'])} px (declared covariance)")
+            print(f"motoman_bag_pixel_unexplained: {fmt(px['pixel_unexplained'])} px; held-out NEES "
+                  f"{px['pixel_nees_before']:.3g} -> {px['pixel_nees_after']:.3g} (expectation 2), "
+                  f"flag {px['pixel_unexplained_flag']}")
 
 
 if __name__ == "__main__":
