@@ -518,3 +518,33 @@ def test_pixel_covariance_matches_monte_carlo(robot):
         S = np.cov(samples[:, m, :].T)
         # sample covariance of n = 1500 draws: relative standard error about sqrt(2/n) = 3.7 %
         np.testing.assert_allclose(S, C[m], rtol=0.15, atol=0.15 * np.abs(C[m]).max())
+
+
+@pytest.mark.datasets
+def test_motoman_imported_bag_cli_pixels(tmp_path):
+    """ppoe import motoman -> ppoe diagnose: /tag_bearing/observations (marker centres) are
+    diagnosed after the tracker; both cameras get camera_extrinsics."""
+    d = DATASETS / "motoman_leica"
+    if not (d / "leica_right_hand_6x6x6_dataset.mat").exists():
+        pytest.fail(f"Motoman dataset not found in {d} (set PPOE_DATASETS)")
+    import contextlib
+    import io
+
+    from ppoe_ros.cli import main
+
+    bag = tmp_path / "m666"
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["import", "motoman", str(d / "leica_right_hand_6x6x6_dataset.mat"), "--model-yaml",
+                     str(d / "model.yaml"), "--out", str(bag)]) == 0
+    model = next(iter(sorted(tmp_path.glob("*.yaml")) or sorted(bag.glob("*.yaml"))))
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["diagnose", str(bag), "--model", str(model), "--json", "--max-effects", "1"]) == 0
+    doc = json.loads(out.getvalue())
+    px = doc["pixels"]
+    assert px["n"] == 1314
+    assert px["pixel_rms_declared_only"]["camera_1_optical_frame"] == pytest.approx(23.5, abs=0.1)
+    pix = sorted(e["frame"] for e in doc["effects"] if e.get("measurement") == "pixels")
+    assert pix == ["camera_1_optical_frame", "camera_2_optical_frame"]
+    for cam in pix:
+        assert px["pixel_rms_after"][cam] < 0.6 * px["pixel_rms_before"][cam]
