@@ -132,7 +132,7 @@ def ten_minute_bag() -> None:
 
 
 def motoman() -> None:
-    from ppoe_core.diagnose import (diagnose_pixels, pixel_candidates, pixel_rms, pixels_from_motoman)
+    from ppoe_core.diagnose import diagnose_pixels, pixel_candidates, pixel_rms, pixels_from_motoman
     from ppoe_core.effects import KinematicTree, make_effect
     from ppoe_ros.cli import main
 

@@ -30,6 +30,11 @@ Pipeline (issue 6, CONTRACT sec. 6):
    mean held-out NEES equals its expectation (the measurement dimension).
 7. **Report**: JSON (contract keys ``effects``, ``residual_before``, ``residual_after``),
    markdown, a PNG plot and the updated model YAML.
+8. **Tag pixels** (second stage, :func:`diagnose_pixels`): reprojection residuals of tag points
+   through link -> root -> camera (plumb_bob), whitened by the pixel sigma plus the declared
+   covariance propagated to the pixels; ``camera_extrinsics`` candidates at each camera's mount
+   joint, selected by cross-validation over poses, CIs from a pose-clustered sandwich
+   covariance; held-out pixel RMS, noise floor and NEES per camera.
 """
 
 from __future__ import annotations
@@ -1873,7 +1878,8 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
 
     The pixel residual (measured minus predicted with ``declared``), whitened by its expected
     covariance (:func:`pixel_covariance`: ``obs.sigma_px`` plus, if given, the declared
-    perturbations ``pert`` and joint noise ``jnoise`` propagated to the pixels), is linearised at the declared chain, ``e = e0 - G theta``
+    perturbations ``pert`` and joint noise ``jnoise`` propagated to the pixels), is linearised
+    at the declared chain, ``e = e0 - G theta``
     (:func:`pixel_jacobian`).  Greedy forward selection as in :func:`diagnose`: a candidate is
     accepted when the column-scaled normal matrix of the chosen set has condition number below
     ``max_condition`` and the held-out mean squared error (``folds``-fold cross-validation over
@@ -2023,7 +2029,8 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
     unexplained = {f: float(np.sqrt(max(per_cam(sq1)[f] ** 2 - floor[f] ** 2, 0.0))) for f in floor}
     # held-out mean Mahalanobis^2 per point (expectation 2 if the declared covariance is right);
     # standard error from the per-pose sums (points of a pose are correlated)
-    pm = np.bincount(pose_idx, m1, minlength=len(poses_u)) / np.maximum(np.bincount(pose_idx, minlength=len(poses_u)), 1)
+    counts = np.maximum(np.bincount(pose_idx, minlength=len(poses_u)), 1)
+    pm = np.bincount(pose_idx, m1, minlength=len(poses_u)) / counts
     se = float(np.std(pm, ddof=1) / math.sqrt(len(pm))) if len(pm) > 1 else float("inf")
     nees_after = float(np.mean(m1))
     flagged = nees_after > 2.0 + 3.0 * se
@@ -2081,7 +2088,8 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
         for i in range(len(imgs)):
             f = imgs.frame_ids[i]
             if f not in intr:
-                raise BagError(f"bag {path}: topic {imgs.topic} message {i}: no /camera/camera_info with frame_id {f!r}")
+                raise BagError(f"bag {path}: topic {imgs.topic} message {i}: "
+                               f"no /camera/camera_info with frame_id {f!r}")
             r, _ = observe_tags(imgs.decode(i), *intr[f], cfg.tags.family, tuple(by_id), refine)
             frames.append(f)
             stamps.append(float(imgs.stamps[i]))
