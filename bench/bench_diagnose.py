@@ -132,7 +132,7 @@ def ten_minute_bag() -> None:
 
 
 def motoman() -> None:
-    from ppoe_core.diagnose import diagnose_pixels, pixel_candidates, pixel_rms, pixels_from_motoman
+    from ppoe_core.diagnose import diagnose_pixels, pixel_candidates, pixel_rms, pixel_stats, pixels_from_motoman
     from ppoe_core.effects import KinematicTree, make_effect
     from ppoe_ros.cli import main
 
@@ -147,7 +147,10 @@ def motoman() -> None:
         return " / ".join(f"{r[k]:.2f}" for k in short if k in r)
 
     for f in files:
-        print(f"motoman_pixel_rms_nominal_{f}: {fmt(pixel_rms(tree, obs[f]))} px (cam1 / cam2)")
+        st = pixel_stats(tree, obs[f])
+        print(f"motoman_pixel_nominal_{f}: " + " / ".join(
+            f"{short[k]} RMS {v['rms']:.2f} median {v['median']:.2f} max {v['max']:.2f} (n {v['n']})"
+            for k, v in st.items()) + " px")
     o = obs[files[0]]
     t0 = time.perf_counter()
     res = diagnose_pixels(robot, o)

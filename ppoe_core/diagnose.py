@@ -82,6 +82,7 @@ __all__ = [
     "pixel_chain_jacobians",
     "pixel_covariance",
     "pixel_rms",
+    "pixel_stats",
     "pixel_candidates",
     "camera_mount_joint",
     "diagnose_pixels",
@@ -1817,6 +1818,7 @@ class PixelDiagnosis:
     predicts; ``unexplained``: held-out RMS above it [px]; ``nees_before`` / ``nees_after``:
     held-out mean squared Mahalanobis distance per point (expectation 2); ``unexplained_flag``:
     ``nees_after`` exceeds 2 by more than 3 standard errors (per-pose means).
+    ``stats_before`` / ``stats_after``: in-sample :func:`pixel_stats` (n, RMS, median, max).
     """
 
     effects: list[dict[str, Any]]
@@ -1834,6 +1836,8 @@ class PixelDiagnosis:
     nees_before: float = float("nan")
     nees_after: float = float("nan")
     unexplained_flag: bool = False
+    stats_before: dict[str, dict[str, float]] = field(default_factory=dict)
+    stats_after: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """JSON-ready dict (pixel RMS in px)."""
@@ -1841,9 +1845,19 @@ class PixelDiagnosis:
                 "pixel_noise_floor": self.noise_floor, "pixel_unexplained": self.unexplained,
                 "pixel_nees_before": self.nees_before, "pixel_nees_after": self.nees_after,
                 "pixel_unexplained_flag": self.unexplained_flag,
+                "pixel_stats_before_insample": self.stats_before, "pixel_stats_after_insample": self.stats_after,
                 "pixel_rms_before_insample": self.rms_before_insample,
                 "pixel_rms_after_insample": self.rms_after_insample, "steps": self.steps,
                 "rejected": self.rejected, "sigma_scale": self.sigma_scale, "n": self.n}
+
+
+def pixel_stats(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> dict[str, dict[str, float]]:
+    """Per camera frame: ``n``, ``rms``, ``median`` and ``max`` of the 2D reprojection error [px]
+    (norm of measured minus predicted pixel, every observation counted)."""
+    e = np.linalg.norm(obs.uv - predict_pixels(tree, obs, effects), axis=1)
+    return {f: {"n": int(np.sum(obs.camera == c)), "rms": float(np.sqrt(np.mean(e[obs.camera == c] ** 2))),
+                "median": float(np.median(e[obs.camera == c])), "max": float(np.max(e[obs.camera == c]))}
+            for c, f in enumerate(obs.cameras) if np.any(obs.camera == c)}
 
 
 def pixel_rms(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> dict[str, float]:
@@ -2036,7 +2050,8 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
     flagged = nees_after > 2.0 + 3.0 * se
     return PixelDiagnosis(effects=effects_out, fitted=fitted, rms_before=per_cam(sq0), rms_after=per_cam(sq1),
                           rms_before_insample=pixel_rms(tree, obs, declared),
-                          rms_after_insample=pixel_rms(tree, obs, cur), steps=steps, rejected=rejected,
+                          rms_after_insample=pixel_rms(tree, obs, cur), stats_before=pixel_stats(tree, obs, declared),
+                          stats_after=pixel_stats(tree, obs, cur), steps=steps, rejected=rejected,
                           sigma_scale=math.sqrt(s2), n=len(obs), noise_floor=floor, unexplained=unexplained,
                           nees_before=float(np.mean(m0)), nees_after=nees_after, unexplained_flag=bool(flagged))
 

@@ -429,6 +429,12 @@ def test_motoman_pixel_heldout_rms_goes_down():
     # README: 23.5 / 25.0 px RMS with the published (calibrated) camera chains
     assert res.rms_before_insample["camera_1_optical_frame"] == pytest.approx(23.5, abs=0.1)
     assert res.rms_before_insample["camera_2_optical_frame"] == pytest.approx(25.0, abs=0.1)
+    # README median / max: 21.0 / 50.8 px (camera 1), 21.2 / 63.9 px (camera 2)
+    st = res.stats_before
+    assert (st["camera_1_optical_frame"]["median"], st["camera_1_optical_frame"]["max"]) == (
+        pytest.approx(21.0, abs=0.05), pytest.approx(50.8, abs=0.05))
+    assert (st["camera_2_optical_frame"]["median"], st["camera_2_optical_frame"]["max"]) == (
+        pytest.approx(21.2, abs=0.05), pytest.approx(63.9, abs=0.05))
     assert sorted(e["frame"] for e in res.effects) == ["camera_1_optical_frame", "camera_2_optical_frame"]
     assert all(e["name"] == "camera_extrinsics" for e in res.effects)
     for cam in ("camera_1_optical_frame", "camera_2_optical_frame"):
