@@ -554,3 +554,30 @@ def test_motoman_imported_bag_cli_pixels(tmp_path):
     assert pix == ["camera_1_optical_frame", "camera_2_optical_frame"]
     for cam in pix:
         assert px["pixel_rms_after"][cam] < 0.6 * px["pixel_rms_before"][cam]
+
+
+def test_cli_pixels_off_and_on_without_tags(tmp_path):
+    """--pixels off skips the tag stage; --pixels on with a model without tags is an error that
+    names the bag and the model."""
+    import argparse
+    import contextlib
+    import io
+
+    from ppoe_core.cli_diagnose import add_arguments, run
+    from ppoe_core.errors import BagError
+    from ppoe_ros.cli import main
+
+    bag = BAGS / "effect_camera_extrinsics"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["diagnose", str(bag), "--model", str(CONFIG / "arm7_model.yaml"), "--json",
+                     "--pixels", "off"]) == 0
+    doc = json.loads(out.getvalue())
+    assert doc["effects"] == [] and "pixels" not in doc
+    model = yaml.safe_load((CONFIG / "arm7_model.yaml").read_text())
+    model.pop("tags")
+    (tmp_path / "notags.yaml").write_text(yaml.safe_dump(model))
+    ap = argparse.ArgumentParser()
+    add_arguments(ap)
+    with pytest.raises(BagError, match="--pixels on.*notags.yaml"):
+        run(ap.parse_args([str(bag), "--model", str(tmp_path / "notags.yaml"), "--pixels", "on", "--json"]))
