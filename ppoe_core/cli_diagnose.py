@@ -91,8 +91,11 @@ def run(args: argparse.Namespace) -> int:
         pix = []
         for bag in args.bags:
             topics = bag_topics(bag)
-            if cfg.tags is not None and any(t == "/tag_bearing/observations" or t.startswith("/camera/image")
-                                             for t in topics):
+            has_tags = any(t == "/tag_bearing/observations" or t.startswith("/camera/image") for t in topics)
+            if has_tags and cfg.tags is None and args.pixels == "auto":
+                res.summary += (f"\nTag pixels of bag {bag} not diagnosed: model {args.model} has no 'tags' "
+                                "section.")
+            if cfg.tags is not None and has_tags:
                 cam = getattr(cfg, "camera", None)
                 sigma_px = args.pixel_sigma or (cam.pixel_sigma if cam is not None else 1.0)
                 pix.append(pixels_from_bag(bag, robot, args.model, sigma_px=sigma_px))
