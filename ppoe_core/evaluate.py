@@ -732,6 +732,11 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     except (UnknownJointError, JointValueError) as exc:
         raise BagError(f"bag {bag}: topic /joint_states: {exc}") from None
     cov_naive = cfg.naive.covariance if cfg.naive is not None else None
+    # validated once for the whole batch here (and the naive one by the model YAML loader), so
+    # the pipelines skip the per-prior check
+    lie.check_covariance(cov_all, name=f"bag {bag}: forward-kinematics covariance of {tool} in {base}", size=6)
+    if cov_naive is not None:
+        lie.check_covariance(cov_naive, name=f"{model_yaml}: naive covariance", size=6)
 
     fs = opt.fusion_settings()
     tag_meas, tag_counts = _tag_measurements(data, model, bag, refine=str(fs["corner_refinement"]))
@@ -784,7 +789,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         if k == 0:
             for name, pipe in pipes.items():
                 cov = cov_all[i] if name == "ppoe" else cov_naive
-                _, outs = pipe.add_prior(float(stamps[i]), T_all[i], cov, Q[i])
+                _, outs = pipe.add_prior(float(stamps[i]), T_all[i], cov, Q[i], validated=True)
                 record(name, outs)
         elif k == 1:
             for name, pipe in pipes.items():

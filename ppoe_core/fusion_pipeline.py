@@ -630,6 +630,7 @@ class FusionPipeline:
         T_base_tool: Array,
         cov_tool: Array,
         joints: Array | None = None,
+        validated: bool = False,
     ) -> tuple[FusedEstimate | None, list[MeasurementOutcome]]:
         """Add a kinematics prior; process pending measurements it covers.
 
@@ -642,6 +643,11 @@ class FusionPipeline:
             Covariance in the tangent space at ``T_base_tool`` (tool frame).
         joints : ndarray, shape (n,), optional
             Joint positions at ``stamp`` for the arm-motion limit.
+        validated : bool
+            The caller has already checked ``cov_tool`` with :func:`ppoe_core.lie.check_covariance`
+            (e.g. a whole batch of forward-kinematics covariances at once, as ``ppoe evaluate``
+            does): only its shape is checked here.  Default False: checked here (a message's
+            covariance).
 
         Returns
         -------
@@ -652,7 +658,12 @@ class FusionPipeline:
         T = np.asarray(T_base_tool, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise MeasurementError(f"prior at stamp {stamp}: T_base_tool must be a finite 4x4, got shape {T.shape}")
-        cov = lie.check_covariance(cov_tool, name=f"prior at stamp {stamp}", size=6)
+        if validated:
+            cov = np.asarray(cov_tool, dtype=np.float64)
+            if cov.shape != (6, 6):
+                raise MeasurementError(f"prior at stamp {stamp}: cov_tool must be 6x6, got shape {cov.shape}")
+        else:
+            cov = lie.check_covariance(cov_tool, name=f"prior at stamp {stamp}", size=6)
         q = None if joints is None else np.asarray(joints, dtype=np.float64).reshape(-1)
         sample = PriorSample(float(stamp), T, cov, q)
         newest = self.buffer.newest

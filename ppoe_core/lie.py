@@ -16,6 +16,8 @@ accurate at and near ``pi``.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -158,6 +160,8 @@ def quat_from_matrix(R: ArrayLike) -> Array:
     ndarray, shape (..., 4)
     """
     R = _f(R)
+    if R.shape == (3, 3):
+        return _quat_from_matrix_single(R)
     r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
     tr = r00 + r11 + r22
     # Four candidate formulas, each well conditioned when its pivot is largest.
@@ -174,6 +178,29 @@ def quat_from_matrix(R: ArrayLike) -> Array:
     q = np.take_along_axis(cand, pivot[..., None, None], axis=-2)[..., 0, :]
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., 3:4] < 0.0, -q, q)
+
+
+def _quat_from_matrix_single(R: Array) -> Array:
+    """:func:`quat_from_matrix` of one ``(3, 3)`` matrix with Python floats (the fusion node
+    converts one pose per message).  The same operations in the same order as the batched
+    code, so the result is bit-identical (tested); non-finite input takes the batched code."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    tr = r00 + r11 + r22
+    if not math.isfinite(tr + r01 + r02 + r10 + r12 + r20 + r21):
+        return quat_from_matrix(R[None])[0]
+    pivots = [tr, r00, r11, r22]
+    k = pivots.index(max(pivots))  # first maximum, as np.argmax
+    if k == 0:
+        q = (r21 - r12, r02 - r20, r10 - r01, 1.0 + tr)
+    elif k == 1:
+        q = (1.0 + r00 - r11 - r22, r01 + r10, r02 + r20, r21 - r12)
+    elif k == 2:
+        q = (r01 + r10, 1.0 - r00 + r11 - r22, r12 + r21, r02 - r20)
+    else:
+        q = (r02 + r20, r12 + r21, 1.0 - r00 - r11 + r22, r10 - r01)
+    qa = np.array(q)
+    out = qa / np.linalg.norm(qa, axis=-1, keepdims=True)  # the batched code's reduction order
+    return -out if out[3] < 0.0 else out
 
 
 def matrix_from_quat(q: ArrayLike) -> Array:
@@ -323,6 +350,8 @@ def exp(xi: ArrayLike) -> Array:
         ``[[Exp(theta), J_l(theta) rho], [0, 1]]``.
     """
     xi = _f(xi)
+    if xi.shape == (6,):
+        return _exp_single(xi)
     rho, w = xi[..., :3], xi[..., 3:]
     A, B, C = _coeffs_abc(_theta2(w))
     W = hat3(w)
@@ -331,6 +360,33 @@ def exp(xi: ArrayLike) -> Array:
     R = eye + A[..., None, None] * W + B[..., None, None] * WW
     V = eye + B[..., None, None] * W + C[..., None, None] * WW
     return from_rt(R, np.einsum("...ij,...j->...i", V, rho))
+
+
+def _exp_single(xi: Array) -> Array:
+    """:func:`exp` of one ``(6,)`` twist without the batch machinery (``np.where`` over both
+    series branches, broadcasting); bit-identical to the batched code (tested)."""
+    rho, w = xi[:3], xi[3:]
+    w0, w1, w2 = w.tolist()
+    t2 = float(_theta2(w))  # the batched code's reduction order
+    if not math.isfinite(t2):
+        return exp(xi[None])[0]
+    if t2 < _SMALL**2 * 100:
+        A = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
+        B = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+        C = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
+    else:
+        t = math.sqrt(t2)
+        s, c = float(np.sin(t)), float(np.cos(t))  # numpy's sin/cos, as the batched code
+        A, B, C = s / t, (1.0 - c) / t2, (t - s) / (t2 * t)
+    W = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
+    WW = W @ W
+    eye = np.eye(3)
+    T = np.zeros((4, 4))
+    T[:3, :3] = eye + A * W + B * WW
+    V = eye + B * W + C * WW
+    T[:3, 3] = np.einsum("...ij,...j->...i", V, rho)
+    T[3, 3] = 1.0
+    return T
 
 
 def log(T: ArrayLike) -> Array:
@@ -594,15 +650,16 @@ def check_covariance(
         raise CovarianceError(f"{name}: must be a square matrix, got shape {C.shape}")
     if size is not None and C.shape[-1] != size:
         raise CovarianceError(f"{name}: must be {size}x{size}, got {C.shape[-2]}x{C.shape[-1]}")
-    if not np.all(np.isfinite(C)):
+    # array methods instead of np.all / np.max: the same reductions without the dispatch
+    # overhead (this runs once per message in the nodes)
+    if not np.isfinite(C).all():
         raise CovarianceError(f"{name}: contains NaN or infinite entries")
-    scale = max(float(np.max(np.abs(C))), 1e-300)
-    asym = float(np.max(np.abs(C - np.swapaxes(C, -1, -2))))
+    scale = max(float(np.abs(C).max()), 1e-300)
+    Ct = np.swapaxes(C, -1, -2)
+    asym = float(np.abs(C - Ct).max())
     if asym > tol * scale:
         raise CovarianceError(f"{name}: not symmetric (max |C - C^T| = {asym:.3g})")
-    eig = np.linalg.eigvalsh(0.5 * (C + np.swapaxes(C, -1, -2)))
-    if float(np.min(eig)) < -tol * scale:
-        raise CovarianceError(
-            f"{name}: not positive semi-definite (smallest eigenvalue {float(np.min(eig)):.3g})"
-        )
+    eig_min = float(np.linalg.eigvalsh(0.5 * (C + Ct)).min())
+    if eig_min < -tol * scale:
+        raise CovarianceError(f"{name}: not positive semi-definite (smallest eigenvalue {eig_min:.3g})")
     return C

@@ -592,3 +592,24 @@ def test_make_pipeline_settings_and_node_defaults_agree(rover):
     defaults = {p.name: p.default for p in PARAMS}
     for k, v in FUSION_SETTINGS.items():
         assert defaults[k] == v, k
+
+
+def test_add_prior_validated_skips_only_the_covariance_check():
+    """validated=True (ppoe evaluate: the FK covariances are checked once as a batch) gives the same
+    estimates; the shape is still checked, the PSD check is the caller's."""
+    rng, T_true, T_prior, P, upd, pipe = _setup()
+    _, _, _, _, _, pipe_v = _setup()
+    m = Measurement(0.05, "/tag", (T_true, np.eye(6)[:3], 1e-6 * np.eye(3)))
+    for k in range(4):
+        T_k = T_prior @ lie.exp(np.r_[0.001 * k, 0, 0, 0, 0, 0])
+        a, _ = pipe.add_prior(0.05 * k, T_k, P)
+        b, _ = pipe_v.add_prior(0.05 * k, T_k, P, validated=True)
+        assert np.array_equal(a.T_base_tool, b.T_base_tool) and np.array_equal(a.cov_tool, b.cov_tool)
+        if k == 1:
+            assert pipe.add_measurement(m).status == pipe_v.add_measurement(m).status == "accepted"
+    with pytest.raises(MeasurementError, match="6x6"):
+        pipe_v.add_prior(1.0, T_prior, np.eye(5), validated=True)
+    from ppoe_core.errors import CovarianceError
+
+    with pytest.raises(CovarianceError, match="prior at stamp"):
+        pipe.add_prior(1.0, T_prior, -np.eye(6))

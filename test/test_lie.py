@@ -341,3 +341,25 @@ def test_fit_rigid_bad_input():
     P = np.eye(3)
     with pytest.raises(MeasurementError, match="NaN"):
         lie.fit_rigid(P, np.where(P > 0, np.nan, 0.0))
+
+
+# ----------------------------------------------------------------------------
+# single-input fast paths (one pose per message in the nodes) = batched code, bit for bit
+# ----------------------------------------------------------------------------
+
+
+def test_single_exp_quat_log_are_bit_identical_to_the_batched_code():
+    rng = np.random.default_rng(31)
+    xis = [rng.normal(size=6) * s for s in (0.0, 1e-7, 1e-5, 1e-3, 0.1, 1.0, 3.0) for _ in range(300)]
+    xis += [np.r_[rng.normal(size=3), np.pi * unit(v)] for v in rng.normal(size=(100, 3))]  # angle pi
+    for xi in xis:
+        T = lie.exp(xi)
+        assert np.array_equal(T, lie.exp(xi[None])[0]), xi
+        assert np.array_equal(lie.quat_from_matrix(T[:3, :3]), lie.quat_from_matrix(T[None, :3, :3])[0]), xi
+        assert np.array_equal(lie.log(T), lie.log(T[None])[0]), xi
+    # every Shepperd pivot, including exact ties on diagonal matrices
+    for R in (np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])):
+        assert np.array_equal(lie.quat_from_matrix(R), lie.quat_from_matrix(R[None])[0])
+    # non-finite input behaves as the batched code (NaN out, no exception)
+    assert np.all(np.isnan(lie.exp(np.full(6, np.nan))[:3]))
+    assert np.all(np.isnan(lie.quat_from_matrix(np.full((3, 3), np.nan))))
