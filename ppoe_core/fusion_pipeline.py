@@ -75,6 +75,9 @@ Array = np.ndarray
 
 #: jitter [m^2 or rad^2] added to a covariance's diagonal before it is inverted
 _INV_JITTER = 1e-14
+#: 6x6 identity (read-only; built once instead of per prior)
+_EYE6 = np.eye(6)
+_EYE6.setflags(write=False)
 
 
 # ----------------------------------------------------------------------------
@@ -372,7 +375,7 @@ class CorrectionPolicy:
             if self.tool_translation > 0.0:
                 r = max(r, float(np.linalg.norm(T_rel[:3, 3])) / self.tool_translation)
             if self.tool_rotation > 0.0:
-                c = np.clip((np.trace(T_rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+                c = min(max((float(np.trace(T_rel[:3, :3])) - 1.0) / 2.0, -1.0), 1.0)  # np.clip, scalar
                 r = max(r, float(np.arccos(c)) / self.tool_rotation)
         return r
 
@@ -476,13 +479,17 @@ def apply_corrections(
     active = [(c, w) for c, w in corrections if w > 0.0]
     if not active:
         return prior.T_base_tool, P
-    H = np.concatenate([c.H for c, _ in active])
-    Rw = np.diag(np.concatenate([c.R / w for c, w in active]))
-    z = np.concatenate([c.z for c, _ in active])
+    if len(active) == 1:  # the common case: no stacking copies (same values)
+        c, w = active[0]
+        H, Rw, z = c.H, np.diag(c.R / w), c.z
+    else:
+        H = np.concatenate([c.H for c, _ in active])
+        Rw = np.diag(np.concatenate([c.R / w for c, w in active]))
+        z = np.concatenate([c.z for c, _ in active])
     S = H @ P @ H.T + Rw
     K = np.linalg.solve(S, H @ P).T  # P H^T S^-1
     m = K @ z
-    IKH = np.eye(6) - K @ H
+    IKH = _EYE6 - K @ H
     cov = _sym(IKH @ P @ IKH.T + K @ Rw @ K.T)
     return prior.T_base_tool @ lie.exp(m), cov
 

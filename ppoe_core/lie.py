@@ -401,7 +401,14 @@ def inverse(T: ArrayLike) -> Array:
     """Inverse pose ``[[R^T, -R^T t], [0, 1]]``: ``(..., 4, 4) -> (..., 4, 4)``."""
     T = _f(T)
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    return from_rt(Rt, -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3]))
+    t = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    if T.shape == (4, 4):  # one pose: skip from_rt's broadcasting (same values)
+        out = np.zeros((4, 4))
+        out[:3, :3] = Rt
+        out[:3, 3] = t
+        out[3, 3] = 1.0
+        return out
+    return from_rt(Rt, t)
 
 
 def compose(*Ts: ArrayLike) -> Array:
