@@ -348,7 +348,7 @@ def test_fit_rigid_bad_input():
 # ----------------------------------------------------------------------------
 
 
-def test_single_exp_quat_log_inverse_are_bit_identical_to_the_batched_code():
+def test_single_input_fast_paths_are_bit_identical_to_the_batched_code():
     rng = np.random.default_rng(31)
     xis = [rng.normal(size=6) * s for s in (0.0, 1e-7, 1e-5, 1e-3, 0.1, 1.0, 3.0) for _ in range(300)]
     xis += [np.r_[rng.normal(size=3), np.pi * unit(v)] for v in rng.normal(size=(100, 3))]  # angle pi
@@ -358,6 +358,8 @@ def test_single_exp_quat_log_inverse_are_bit_identical_to_the_batched_code():
         assert np.array_equal(lie.quat_from_matrix(T[:3, :3]), lie.quat_from_matrix(T[None, :3, :3])[0]), xi
         assert np.array_equal(lie.log(T), lie.log(T[None])[0]), xi
         assert np.array_equal(lie.inverse(T), lie.inverse(T[None])[0]), xi
+        q = lie.quat_from_matrix(T[:3, :3]) * rng.uniform(0.5, 2.0)  # not normalised
+        assert np.array_equal(lie.matrix_from_quat(q), lie.matrix_from_quat(q[None])[0]), xi
     # every Shepperd pivot, including exact ties on diagonal matrices
     for R in (np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])):
         assert np.array_equal(lie.quat_from_matrix(R), lie.quat_from_matrix(R[None])[0])
