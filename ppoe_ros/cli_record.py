@@ -63,7 +63,10 @@ class Recorder:
         self.pending = list(dict.fromkeys(topics))
         self.subs: dict[str, Any] = {}
         self.stats = NodeStats(node, ("received", "written", "bad"))
-        node.create_timer(0.1, self.discover)
+        from rclpy.clock import Clock, ClockType
+
+        # steady clock: with use_sim_time a ROS-clock timer would not fire before /clock starts
+        node.create_timer(0.1, self.discover, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.discover()
 
     def discover(self) -> None:

@@ -72,11 +72,14 @@ def test_fastcdr_padding_trap_exists() -> None:
         TS.deserialize_cdr(raw, "sensor_msgs/msg/JointState")
 
 
-def test_play_record_round_trip(tmp_path: Path) -> None:
+@pytest.mark.parametrize("sim_time", [False, True], ids=["wall_time", "use_sim_time"])
+def test_play_record_round_trip(tmp_path: Path, sim_time: bool) -> None:
+    """The round trip also holds when the recorder runs on sim time (``--use-sim-time``)."""
     src, rec = tmp_path / "src", tmp_path / "rec"
     _make_source(src)
     env = ros_env(tmp_path)
-    recorder = NodeProcess.ppoe(["record", "--out", str(rec), *TOPICS, "/clock"], env, tmp_path, "record")
+    extra = ["--use-sim-time"] if sim_time else []
+    recorder = NodeProcess.ppoe(["record", "--out", str(rec), *extra, *TOPICS, "/clock"], env, tmp_path, "record")
     player = None
     try:
         time.sleep(1.0)  # the recorder's node is up before the player's topics appear
