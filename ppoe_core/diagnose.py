@@ -88,6 +88,8 @@ __all__ = [
     "diagnose_pixels",
     "concat_pixel_obs",
     "add_pixel_diagnosis",
+    "diagnose_imu",
+    "imu_candidates",
 ]
 
 _CHI2_DIM = {3: 3.0, 6: 6.0}
@@ -969,6 +971,9 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         res.extra["imu_tilt"] = {k: {"link": before[k]["link"], "n": before[k]["n"],
                                      "rms_before": before[k]["rms"], "rms_after": after[k]["rms"]}
                                  for k in before}
+        # accelerometer stage: per-file base tilt and IMU-visible effects on top of declared + found
+        imu_fit = diagnose_imu(robot, stops, list(declared) + found, seed=options.seed)
+        res.extra["imu_fit"] = {k: v for k, v in imu_fit.items() if k not in ("found", "tilt")}
     # a systematic residual remains if the held-out mean squared Mahalanobis distance under the
     # declared covariance exceeds its expectation 3 by more than 3 standard errors (chi^2_3 mean)
     m2 = float(np.nanmean(e2))
@@ -2215,3 +2220,268 @@ def add_pixel_diagnosis(result: DiagnoseResult, robot: Robot, obs: PixelObs, dec
     names = ", ".join(f"{e['name']}@{e['location']}" for e in pres.effects) or "none"
     result.summary += f"\nTag pixels ({pres.n} points): effects {names}; held-out RMS {per}."
     return pres
+
+
+# =============================================================================
+# Accelerometer stage (base tilt and the effects upstream of the IMU links)
+# =============================================================================
+
+
+def _imu_tilt_raw(tree: KinematicTree, stops: Stops, effects: Sequence[Effect],
+                  tilt_group: Optional[np.ndarray] = None) -> np.ndarray:
+    """Tilt residuals (measured minus predicted) of every accelerometer, shape (N, K, 2) [rad].
+
+    Predicted up direction in the IMU link: ``u = R_root_link^T Exp(-w_g) z_root`` with
+    ``w_g = [tilt_x, tilt_y, 0]`` the base tilt of the stop's group (``tilt_group`` (G, 2), root
+    axes: the root is rotated by ``Exp(w_g)`` w.r.t. gravity, the ``base_tilt`` effect); measured:
+    the normalised specific force.  Components: small rotations about the link's x and y axes.
+    """
+    dq, dxi = apply_corrections(list(effects), stops.q, stops.context)
+    links = [ln for ln, _ in stops.imus.values()]
+    poses = tree.link_poses(stops.q, dq, dxi, links=links)
+    up = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (len(stops), 3))
+    if tilt_group is not None:
+        w = np.zeros((len(stops), 3))
+        w[:, :2] = np.asarray(tilt_group)[stops.group]
+        up = np.einsum("nji,nj->ni", lie.exp(np.concatenate([np.zeros_like(w), w], axis=1))[:, :3, :3], up)
+    out = np.empty((len(stops), len(stops.imus), 2))
+    for k, (link, acc) in enumerate(stops.imus.values()):
+        u_m = acc / np.linalg.norm(acc, axis=1)[:, None]
+        u_p = np.einsum("nji,nj->ni", poses[link][:, :3, :3], up)
+        out[:, k, 0] = u_m[:, 1] - u_p[:, 1]
+        out[:, k, 1] = -(u_m[:, 0] - u_p[:, 0])
+    return out
+
+
+def imu_candidates(tree: KinematicTree, stops: Stops) -> list[Effect]:
+    """Effects that rotate an accelerometer's link w.r.t. gravity (zero parameters):
+    ``joint_offset``, ``gravity_compliance`` and ``mount_bending`` on the paths from the root to
+    the IMU links (rotations only; ``link_error`` is left out: a constant rotation is the sensor's
+    mounting).  ``base_tilt`` is handled separately, per group (bag / file = robot placement)."""
+    robot = tree.robot
+    out: list[Effect] = []
+    seen: set[str] = set()
+    for link, _ in stops.imus.values():
+        for jn in robot.path_from_root(link):
+            if jn in seen:
+                continue
+            seen.add(jn)
+            j = robot.joints[jn]
+            mass = _carried_mass(tree, jn)
+            if j.movable and j.type != "prismatic":
+                out.append(make_effect("joint_offset", jn, tree))
+                if mass > 0.0:
+                    out.append(make_effect("gravity_compliance", jn, tree))
+            if (not j.movable or j.type == "prismatic") and mass > 0.0:
+                out.append(make_effect("mount_bending", jn, tree))
+    return out
+
+
+def _imu_jacobian(tree: KinematicTree, stops: Stops, effect: Optional[Effect], current: Sequence[Effect],
+                  tilt_group: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """Central finite-difference Jacobian (N, K, 2, P) of the tilt *prediction* w.r.t. the
+    parameters of ``effect`` (``None``: the per-group base tilt, P = 2 G), at ``current``."""
+    cols = []
+    if effect is None:
+        for i in range(tilt_group.size):
+            d = np.zeros(tilt_group.size)
+            d[i] = h
+            rp = _imu_tilt_raw(tree, stops, current, tilt_group + d.reshape(tilt_group.shape))
+            rm = _imu_tilt_raw(tree, stops, current, tilt_group - d.reshape(tilt_group.shape))
+            cols.append(-(rp - rm) / (2 * h))
+    else:
+        others = [e for e in current if not (e.name == effect.name and e.location == effect.location)]
+        for i in range(effect.n_params):
+            d = np.zeros(effect.n_params)
+            d[i] = h
+            rp = _imu_tilt_raw(tree, stops, others + [effect.with_params(effect.params + d)], tilt_group)
+            rm = _imu_tilt_raw(tree, stops, others + [effect.with_params(effect.params - d)], tilt_group)
+            cols.append(-(rp - rm) / (2 * h))
+    return np.stack(cols, axis=-1)
+
+
+def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
+                 sigma: float | Mapping[str, float] = 4e-4, candidates: Optional[Sequence[Effect]] = None,
+                 folds: int = 5, min_gain: float = 0.03, min_t: float = 4.0, max_condition: float = 1e6,
+                 max_effects: int = 3, iterations: int = 3, seed: int = 0) -> dict[str, Any]:
+    """Fit the accelerometers: per-group ``base_tilt`` and the effects that rotate the IMU links.
+
+    Residual per stop and accelerometer: the two tilt angles (measured minus predicted up
+    direction in the IMU link, :func:`_imu_tilt_raw`), whitened by ``sigma / |a|`` [rad]
+    (``sigma`` [m/s^2] per axis, one value or per IMU name; model ``imus`` section, default
+    4e-4).  The declared PPOE covariance is *not* propagated (the sensors are assumed to be
+    mounted as the URDF says: a mounting error shows up as a base tilt common to all groups).
+    Candidates: ``base_tilt`` (2 parameters per group = bag / file, one robot placement each) and
+    :func:`imu_candidates`.  Selection as in :func:`diagnose_pixels` (same helpers): linearised at
+    the declared chain (central finite-difference Jacobian), greedy forward selection, ``folds``-fold
+    CV over stops (all IMUs of a stop in one fold), accepted when the column-scaled normal matrix
+    has condition < ``max_condition``, the held-out mean squared whitened error drops by
+    >= ``min_gain`` with a paired t >= ``min_t`` over stops, and compliances are not negative.
+    Final fit: Gauss-Newton on the nonlinear chain; 95 % CIs ``theta +- 1.96 sigma`` from
+    ``max(s^2, 1) H^-1``.
+
+    Returns
+    -------
+    dict with ``effects`` (as in :func:`diagnose`, ``"measurement": "imu"``; ``base_tilt`` has
+    ``per_group`` {group: {tilt_x, tilt_y, ci}}), ``steps``, ``rejected``, ``tilt_rms_before`` /
+    ``tilt_rms_after`` (held-out, per IMU [rad], x / y), ``sigma_scale``, ``n``.
+    """
+    if not stops.imus:
+        raise MeasurementError("diagnose_imu: the stops carry no accelerometer (/imu/<name>) data")
+    tree = KinematicTree(robot)
+    declared = list(declared)
+    n, K = len(stops), len(stops.imus)
+    if n < folds:
+        raise MeasurementError(f"diagnose_imu: {n} stops with accelerometer data, need >= {folds}")
+    acc_norm = np.stack([np.linalg.norm(a, axis=1) for _, a in stops.imus.values()], axis=1)  # (N, K)
+    sig = np.array([sigma.get(k, 4e-4) if isinstance(sigma, Mapping) else float(sigma) for k in stops.imus])
+    w_inv = (acc_norm / sig[None, :])[:, :, None]  # 1 / tilt sigma [1/rad]
+    n_grp = len(stops.group_names)
+    zero_tilt = np.zeros((n_grp, 2))
+    e_raw = _imu_tilt_raw(tree, stops, declared, zero_tilt)
+    if not np.all(np.isfinite(e_raw)):
+        i = int(np.flatnonzero(~np.all(np.isfinite(e_raw), axis=(1, 2)))[0])
+        raise MeasurementError(f"diagnose_imu: non-finite accelerometer or joint values (first: stop {i} "
+                               f"of {stops.group_names[stops.group[i]]})")
+    e0 = (e_raw * w_inv).reshape(n, -1)  # (N, 2K) whitened
+    cands = list(candidates) if candidates is not None else imu_candidates(tree, stops)
+    names = ["base_tilt@" + tree.root] + [c.describe() for c in cands]
+    effs: list[Optional[Effect]] = [None] + cands
+    Gs = [(_imu_jacobian(tree, stops, e, declared, zero_tilt) * w_inv[..., None]).reshape(n, 2 * K, -1)
+          for e in effs]
+    test_masks = _pose_folds(np.arange(n), folds, seed)
+
+    def stacked(idx: Sequence[int]) -> np.ndarray:
+        return np.concatenate([Gs[i] for i in idx], axis=2) if idx else np.zeros((n, 2 * K, 0))
+
+    def heldout(idx: Sequence[int]) -> np.ndarray:
+        err = np.zeros(n)
+        G = stacked(idx)
+        for test in test_masks:
+            r = e0
+            if idx:
+                Gt = G[~test].reshape(-1, G.shape[2])
+                live = np.any(Gt != 0.0, axis=0)  # groups without training stops stay at 0
+                th = np.zeros(G.shape[2])
+                th[live], _ = _lstsq(Gt[:, live], e0[~test].reshape(-1))
+                r = e0 - G @ th
+            err[test] = np.sum(r[test] ** 2, axis=1)
+        return err
+
+    chosen: list[int] = []
+    steps: list[dict[str, Any]] = []
+    rejected: list[dict[str, Any]] = []
+    base = heldout(chosen)
+    base0 = base.copy()
+    while len(chosen) < max_effects:
+        best = None
+        for i in range(len(effs)):
+            if i in chosen or any(r.get("effect") == names[i] for r in rejected):
+                continue
+            idx = chosen + [i]
+            G = stacked(idx).reshape(-1, stacked(idx).shape[2])
+            th, Hs = _lstsq(G, e0.reshape(-1))
+            cond = float(np.linalg.cond(Hs))
+            if not np.isfinite(cond) or cond > max_condition:
+                rejected.append({"effect": names[i], "reason": f"not identifiable (condition {cond:.3g})"})
+                continue
+            P = Gs[i].shape[2]
+            eff = effs[i]
+            if eff is not None and any(th[-P + k] < 0 for k, p in enumerate(eff.param_names) if p in eff.nonnegative):
+                rejected.append({"effect": names[i], "reason": "negative compliance"})
+                continue
+            new = heldout(idx)
+            d = base - new
+            gain = float(d.sum() / max(base.sum(), 1e-300))
+            t = float(d.mean() / (d.std(ddof=1) / math.sqrt(len(d)))) if d.std(ddof=1) > 0 else 0.0
+            if best is None or gain > best[1]:
+                best = (i, gain, t, new, cond)
+        if best is None:
+            break
+        i, gain, t, new, cond = best
+        step = {"effect": names[i], "heldout_gain": gain, "t": t, "condition": cond}
+        if gain < min_gain or t < min_t:
+            rejected.append({**step, "reason": f"held-out gain {gain:.3f} (min {min_gain}), t {t:.2f} (min {min_t})"})
+            break
+        steps.append(step)
+        chosen.append(i)
+        base = new
+
+    # final Gauss-Newton on the nonlinear chain
+    tilt = zero_tilt.copy()
+    fitted = {i: effs[i].with_params(np.zeros(effs[i].n_params)) for i in chosen if effs[i] is not None}
+    sizes = [Gs[i].shape[2] for i in chosen]
+    theta = np.zeros(sum(sizes))
+    G = np.zeros((n * 2 * K, 0))
+    live = np.zeros(0, dtype=bool)
+
+    def unpack(th: np.ndarray) -> None:
+        nonlocal tilt
+        for i, p in zip(chosen, np.split(th, np.cumsum(sizes)[:-1])):
+            if effs[i] is None:
+                tilt = p.reshape(n_grp, 2).copy()
+            else:
+                fitted[i] = fitted[i].with_params(p)
+
+    for _ in range(iterations if chosen else 0):
+        cur = declared + list(fitted.values())
+        r = (_imu_tilt_raw(tree, stops, cur, tilt) * w_inv).reshape(-1)
+        G = np.concatenate([(_imu_jacobian(tree, stops, fitted.get(i), cur, tilt) * w_inv[..., None])
+                            .reshape(n * 2 * K, -1) for i in chosen], axis=1)
+        live = np.any(G != 0.0, axis=0)
+        dth = np.zeros(G.shape[1])
+        dth[live], _ = _lstsq(G[:, live], r)
+        theta = theta + dth
+        unpack(theta)
+    cur = declared + list(fitted.values())
+    r = (_imu_tilt_raw(tree, stops, cur, tilt) * w_inv).reshape(-1)
+    s2 = float(r @ r / max(r.size - int(live.sum()), 1))
+    cov = np.zeros((theta.size, theta.size))
+    if chosen:
+        cov[np.ix_(live, live)] = np.linalg.pinv(G[:, live].T @ G[:, live]) * max(s2, 1.0)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    effects_out: list[dict[str, Any]] = []
+    tot0 = float(base0.sum())
+    prev = tot0
+    for k, (i, th, s) in enumerate(zip(chosen, np.split(theta, np.cumsum(sizes)[:-1]),
+                                       np.split(sd, np.cumsum(sizes)[:-1]))):
+        share = float(steps[k]["heldout_gain"] * prev / tot0) if tot0 > 0 else 0.0
+        prev = prev * (1.0 - steps[k]["heldout_gain"])
+        if effs[i] is None:
+            tv, ts = th.reshape(n_grp, 2), s.reshape(n_grp, 2)
+            per = {g: {"tilt_x": float(tv[j, 0]), "tilt_y": float(tv[j, 1]),
+                       "ci": {"tilt_x": [float(tv[j, 0] - 1.96 * ts[j, 0]), float(tv[j, 0] + 1.96 * ts[j, 0])],
+                              "tilt_y": [float(tv[j, 1] - 1.96 * ts[j, 1]), float(tv[j, 1] + 1.96 * ts[j, 1])]},
+                       "sigma": {"tilt_x": float(ts[j, 0]), "tilt_y": float(ts[j, 1])}}
+                   for j, g in enumerate(stops.group_names) if np.any(stops.group == j)}
+            effects_out.append({"name": "base_tilt", "location": tree.root, "measurement": "imu",
+                                "per_group": per, "share": share})
+        else:
+            f = fitted[i]
+            effects_out.append({"name": f.name, "location": f.location, "measurement": "imu",
+                                "parameters": {p: float(v) for p, v in zip(f.param_names, th)},
+                                "ci": {p: [float(v - 1.96 * q), float(v + 1.96 * q)]
+                                       for p, v, q in zip(f.param_names, th, s)},
+                                "sigma": {p: float(q) for p, q in zip(f.param_names, s)}, "share": share})
+
+    def rms_per_imu(err_idx: Sequence[int]) -> dict[str, list[float]]:
+        G = stacked(err_idx)
+        rr = np.zeros_like(e0)
+        for test in test_masks:
+            r_ = e0
+            if err_idx:
+                Gt = G[~test].reshape(-1, G.shape[2])
+                lv = np.any(Gt != 0.0, axis=0)
+                th = np.zeros(G.shape[2])
+                th[lv], _ = _lstsq(Gt[:, lv], e0[~test].reshape(-1))
+                r_ = e0 - G @ th
+            rr[test] = r_[test]
+        raw = rr.reshape(n, K, 2) / w_inv
+        return {k: [float(v) for v in np.sqrt(np.mean(raw[:, j] ** 2, axis=0))] for j, k in enumerate(stops.imus)}
+
+    return {"effects": effects_out, "steps": steps, "rejected": rejected,
+            "tilt_rms_before": rms_per_imu([]), "tilt_rms_after": rms_per_imu(chosen),
+            "heldout_mahalanobis2_before": float(np.mean(base0)) / (2 * K),
+            "heldout_mahalanobis2_after": float(np.mean(base)) / (2 * K),
+            "sigma_scale": math.sqrt(s2), "n": n, "imus": {k: ln for k, (ln, _) in stops.imus.items()},
+            "found": list(fitted.values()), "tilt": tilt}
