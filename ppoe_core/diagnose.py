@@ -90,6 +90,7 @@ __all__ = [
     "add_pixel_diagnosis",
     "diagnose_imu",
     "imu_candidates",
+    "imu_tilt_covariance",
 ]
 
 _CHI2_DIM = {3: 3.0, 6: 6.0}
@@ -136,7 +137,8 @@ class Stops:
         Effect context per stop (``time`` (N,), ``motion_sign`` {joint: (N,)},
         ``joint_velocity`` {joint: (N,)}, ``gravity`` (N, 3)).
     imus : dict name -> (link, specific force (N, 3) [m/s^2] in that link's axes)
-        Accelerometers at each stop; their tilt residuals are reported (not fitted).
+        Accelerometers at each stop; fitted by :func:`diagnose_imu` (base tilt per group and
+        IMU-visible effects), and they break location ties of the point / pose stage.
     """
 
     q: dict[str, np.ndarray]
@@ -299,8 +301,9 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
       more than 10 minutes;
     * ``time_offset``: if the joints move at the measurement times (context ``joint_velocity``).
 
-    ``base_tilt`` and ``camera_extrinsics`` need accelerometer / camera residuals, which this
-    version does not use; ``tracker_registration`` is always estimated per session.
+    ``base_tilt`` is fitted by the accelerometer stage (:func:`diagnose_imu`) and
+    ``camera_extrinsics`` by the pixel stage (:func:`diagnose_pixels`); ``tracker_registration``
+    is always estimated per session.
     """
     robot = tree.robot
     path = robot.path_from_root(stops.link)
@@ -972,7 +975,8 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
                                      "rms_before": before[k]["rms"], "rms_after": after[k]["rms"]}
                                  for k in before}
         # accelerometer stage: per-file base tilt and IMU-visible effects on top of declared + found
-        imu_fit = diagnose_imu(robot, stops, list(declared) + found, seed=options.seed)
+        imu_fit = diagnose_imu(robot, stops, list(declared) + found, seed=options.seed,
+                               perturbation_cov=perturbation_cov, joint_noise=joint_noise)
         res.extra["imu_fit"] = {k: v for k, v in imu_fit.items() if k not in ("found", "tilt")}
     # a systematic residual remains if the held-out mean squared Mahalanobis distance under the
     # declared covariance exceeds its expectation 3 by more than 3 standard errors (chi^2_3 mean)
@@ -2300,17 +2304,50 @@ def _imu_jacobian(tree: KinematicTree, stops: Stops, effect: Optional[Effect], c
     return np.stack(cols, axis=-1)
 
 
+def imu_tilt_covariance(tree: KinematicTree, stops: Stops, declared: Sequence[Effect], sigma: np.ndarray,
+                        perturbation_cov: Optional[Mapping[str, np.ndarray]] = None,
+                        joint_noise: Optional[Mapping[str, float]] = None) -> np.ndarray:
+    """Expected covariance (N, K, 2, 2) [rad^2] of the tilt residuals of :func:`_imu_tilt_raw`.
+
+    ``(sigma_k / |a|)^2 I`` (``sigma`` (K,) accelerometer 1-sigma per axis [m/s^2]) plus the
+    first-order PPOE covariance of the IMU link's rotation (right tangent at the link, rotation
+    rows of eq. 18, :func:`_rotation_covariance`; ``perturbation_cov``: joint -> 6x6 in the
+    tangent space right after the joint's origin) mapped to the tilt angles: for
+    ``R' = R Exp(phi)`` the up direction ``u = R^T z`` becomes ``u + u x phi``.
+    """
+    n, K = len(stops), len(stops.imus)
+    dq_d, dxi_d = apply_corrections(list(declared), stops.q, stops.context)
+    poses_d = tree.link_poses(stops.q, dq_d, dxi_d)
+    C_tilt = np.zeros((n, K, 2, 2))
+    for k, (link, acc) in enumerate(stops.imus.values()):
+        C_tilt[:, k] = (sigma[k] / np.linalg.norm(acc, axis=1))[:, None, None] ** 2 * np.eye(2)
+        if perturbation_cov or joint_noise:
+            Fq, Fx = tree.frame_jacobian(stops.q, link, poses_d, dq_d, dxi_d)
+            C_rot = _rotation_covariance(stops, Fq, Fx, perturbation_cov or {}, joint_noise or {})
+            u = poses_d[link][:, 2, :3]  # up in the link
+            A = np.zeros((n, 2, 3))
+            A[:, 0, 0], A[:, 0, 2] = u[:, 2], -u[:, 0]
+            A[:, 1, 1], A[:, 1, 2] = u[:, 2], -u[:, 1]
+            C_tilt[:, k] += A @ C_rot @ np.swapaxes(A, -1, -2)
+    return C_tilt
+
+
 def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
                  sigma: float | Mapping[str, float] = 4e-4, candidates: Optional[Sequence[Effect]] = None,
                  folds: int = 5, min_gain: float = 0.03, min_t: float = 4.0, max_condition: float = 1e6,
-                 max_effects: int = 3, iterations: int = 3, seed: int = 0) -> dict[str, Any]:
+                 max_effects: int = 3, iterations: int = 3, seed: int = 0,
+                 perturbation_cov: Optional[Mapping[str, np.ndarray]] = None,
+                 joint_noise: Optional[Mapping[str, float]] = None) -> dict[str, Any]:
     """Fit the accelerometers: per-group ``base_tilt`` and the effects that rotate the IMU links.
 
     Residual per stop and accelerometer: the two tilt angles (measured minus predicted up
     direction in the IMU link, :func:`_imu_tilt_raw`), whitened by ``sigma / |a|`` [rad]
     (``sigma`` [m/s^2] per axis, one value or per IMU name; model ``imus`` section, default
-    4e-4).  The declared PPOE covariance is *not* propagated (the sensors are assumed to be
-    mounted as the URDF says: a mounting error shows up as a base tilt common to all groups).
+    4e-4) plus the declared PPOE covariance of the IMU link's rotation (``perturbation_cov``:
+    joint -> 6x6 in the tangent space right after the joint's origin, ``joint_noise``: joint ->
+    1-sigma; first order, rotation rows of eq. 18, right tangent at the IMU link) mapped to the
+    two tilt angles.  The IMU nearest the root is the reference: its mounting is part of the base
+    tilt; every other IMU gets a constant mounting rotation (2 nuisance parameters, always fitted).
     Candidates: ``base_tilt`` (2 parameters per group = bag / file, one robot placement each) and
     :func:`imu_candidates`.  Selection as in :func:`diagnose_pixels` (same helpers): linearised at
     the declared chain (central finite-difference Jacobian), greedy forward selection, ``folds``-fold
@@ -2333,9 +2370,14 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     n, K = len(stops), len(stops.imus)
     if n < folds:
         raise MeasurementError(f"diagnose_imu: {n} stops with accelerometer data, need >= {folds}")
-    acc_norm = np.stack([np.linalg.norm(a, axis=1) for _, a in stops.imus.values()], axis=1)  # (N, K)
     sig = np.array([sigma.get(k, 4e-4) if isinstance(sigma, Mapping) else float(sigma) for k in stops.imus])
-    w_inv = (acc_norm / sig[None, :])[:, :, None]  # 1 / tilt sigma [1/rad]
+    C_tilt = imu_tilt_covariance(tree, stops, declared, sig, perturbation_cov, joint_noise)
+    W = np.linalg.inv(np.linalg.cholesky(C_tilt))  # (N, K, 2, 2) whitening
+
+    def wh(x: np.ndarray) -> np.ndarray:
+        """Whiten (N, K, 2) residuals or (N, K, 2, P) Jacobians."""
+        return np.einsum("nkij,nkj...->nki...", W, x)
+
     n_grp = len(stops.group_names)
     zero_tilt = np.zeros((n_grp, 2))
     e_raw = _imu_tilt_raw(tree, stops, declared, zero_tilt)
@@ -2343,23 +2385,34 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         i = int(np.flatnonzero(~np.all(np.isfinite(e_raw), axis=(1, 2)))[0])
         raise MeasurementError(f"diagnose_imu: non-finite accelerometer or joint values (first: stop {i} "
                                f"of {stops.group_names[stops.group[i]]})")
-    e0 = (e_raw * w_inv).reshape(n, -1)  # (N, 2K) whitened
+    e0 = wh(e_raw).reshape(n, -1)  # (N, 2K) whitened
     cands = list(candidates) if candidates is not None else imu_candidates(tree, stops)
     names = ["base_tilt@" + tree.root] + [c.describe() for c in cands]
     effs: list[Optional[Effect]] = [None] + cands
-    Gs = [(_imu_jacobian(tree, stops, e, declared, zero_tilt) * w_inv[..., None]).reshape(n, 2 * K, -1)
+    Gs = [wh(_imu_jacobian(tree, stops, e, declared, zero_tilt)).reshape(n, 2 * K, -1)
           for e in effs]
     test_masks = _pose_folds(np.arange(n), folds, seed)
+    # mounting of every IMU but the reference (the one nearest the root, whose mounting is part of
+    # the base tilt): a constant small rotation, additive on its two tilt components (nuisance)
+    depth = [len(robot.path_from_root(ln)) for ln, _ in stops.imus.values()]
+    ref = int(np.argmin(depth))
+    mount_imus = [k for k in range(K) if k != ref]
+    Gm = np.zeros((n, K, 2, 2 * len(mount_imus)))
+    for c, k in enumerate(mount_imus):
+        Gm[:, k, 0, 2 * c] = 1.0
+        Gm[:, k, 1, 2 * c + 1] = 1.0
+    Gm = wh(Gm).reshape(n, 2 * K, -1)
+    nm = Gm.shape[2]
 
     def stacked(idx: Sequence[int]) -> np.ndarray:
-        return np.concatenate([Gs[i] for i in idx], axis=2) if idx else np.zeros((n, 2 * K, 0))
+        return np.concatenate([Gm] + [Gs[i] for i in idx], axis=2)
 
     def heldout(idx: Sequence[int]) -> np.ndarray:
         err = np.zeros(n)
         G = stacked(idx)
         for test in test_masks:
             r = e0
-            if idx:
+            if G.shape[2]:
                 Gt = G[~test].reshape(-1, G.shape[2])
                 live = np.any(Gt != 0.0, axis=0)  # groups without training stops stay at 0
                 th = np.zeros(G.shape[2])
@@ -2411,22 +2464,24 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     tilt = zero_tilt.copy()
     fitted = {i: effs[i].with_params(np.zeros(effs[i].n_params)) for i in chosen if effs[i] is not None}
     sizes = [Gs[i].shape[2] for i in chosen]
-    theta = np.zeros(sum(sizes))
+    theta = np.zeros(nm + sum(sizes))
     G = np.zeros((n * 2 * K, 0))
     live = np.zeros(0, dtype=bool)
+    mount = np.zeros((K, 2))
 
     def unpack(th: np.ndarray) -> None:
         nonlocal tilt
-        for i, p in zip(chosen, np.split(th, np.cumsum(sizes)[:-1])):
+        mount[mount_imus] = th[:nm].reshape(-1, 2)
+        for i, p in zip(chosen, np.split(th[nm:], np.cumsum(sizes)[:-1])):
             if effs[i] is None:
                 tilt = p.reshape(n_grp, 2).copy()
             else:
                 fitted[i] = fitted[i].with_params(p)
 
-    for _ in range(iterations if chosen else 0):
+    for _ in range(iterations):
         cur = declared + list(fitted.values())
-        r = (_imu_tilt_raw(tree, stops, cur, tilt) * w_inv).reshape(-1)
-        G = np.concatenate([(_imu_jacobian(tree, stops, fitted.get(i), cur, tilt) * w_inv[..., None])
+        r = wh(_imu_tilt_raw(tree, stops, cur, tilt) - mount).reshape(-1)
+        G = np.concatenate([Gm.reshape(n * 2 * K, -1)] + [wh(_imu_jacobian(tree, stops, fitted.get(i), cur, tilt))
                             .reshape(n * 2 * K, -1) for i in chosen], axis=1)
         live = np.any(G != 0.0, axis=0)
         dth = np.zeros(G.shape[1])
@@ -2434,12 +2489,17 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         theta = theta + dth
         unpack(theta)
     cur = declared + list(fitted.values())
-    r = (_imu_tilt_raw(tree, stops, cur, tilt) * w_inv).reshape(-1)
+    r = wh(_imu_tilt_raw(tree, stops, cur, tilt) - mount).reshape(-1)
     s2 = float(r @ r / max(r.size - int(live.sum()), 1))
     cov = np.zeros((theta.size, theta.size))
-    if chosen:
+    if theta.size:
         cov[np.ix_(live, live)] = np.linalg.pinv(G[:, live].T @ G[:, live]) * max(s2, 1.0)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    mount_sd = sd[:nm].reshape(-1, 2)
+    mounting = {list(stops.imus)[k]: {"rx": float(mount[k, 0]), "ry": float(mount[k, 1]),
+                                      "sigma": [float(v) for v in mount_sd[c]]}
+                for c, k in enumerate(mount_imus)}
+    theta, sd = theta[nm:], sd[nm:]
     effects_out: list[dict[str, Any]] = []
     tot0 = float(base0.sum())
     prev = tot0
@@ -2469,19 +2529,19 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         rr = np.zeros_like(e0)
         for test in test_masks:
             r_ = e0
-            if err_idx:
+            if G.shape[2]:
                 Gt = G[~test].reshape(-1, G.shape[2])
                 lv = np.any(Gt != 0.0, axis=0)
                 th = np.zeros(G.shape[2])
                 th[lv], _ = _lstsq(Gt[:, lv], e0[~test].reshape(-1))
                 r_ = e0 - G @ th
             rr[test] = r_[test]
-        raw = rr.reshape(n, K, 2) / w_inv
+        raw = np.einsum("nkij,nkj->nki", np.linalg.inv(W), rr.reshape(n, K, 2))
         return {k: [float(v) for v in np.sqrt(np.mean(raw[:, j] ** 2, axis=0))] for j, k in enumerate(stops.imus)}
 
     return {"effects": effects_out, "steps": steps, "rejected": rejected,
             "tilt_rms_before": rms_per_imu([]), "tilt_rms_after": rms_per_imu(chosen),
             "heldout_mahalanobis2_before": float(np.mean(base0)) / (2 * K),
             "heldout_mahalanobis2_after": float(np.mean(base)) / (2 * K),
-            "sigma_scale": math.sqrt(s2), "n": n, "imus": {k: ln for k, (ln, _) in stops.imus.items()},
+            "sigma_scale": math.sqrt(s2), "n": n, "reference_imu": list(stops.imus)[ref], "mounting": mounting, "imus": {k: ln for k, (ln, _) in stops.imus.items()},
             "found": list(fitted.values()), "tilt": tilt}

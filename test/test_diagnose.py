@@ -640,3 +640,29 @@ def test_imu_base_tilt_jacobian_matches_small_angle_formula(robot):
     # tilt components of the prediction: [u_y, -u_x]
     expect = np.stack([np.stack([du_dwx[:, 1], du_dwy[:, 1]], -1), np.stack([-du_dwx[:, 0], -du_dwy[:, 0]], -1)], 1)
     assert np.allclose(J, expect, atol=1e-8)
+
+
+def test_imu_tilt_covariance_matches_monte_carlo(robot):
+    """Seeded Monte Carlo: tilt residuals of an accelerometer on arm_link_4 under a declared
+    perturbation of joint_2 and joint noise, against imu_tilt_covariance (first order)."""
+    from ppoe_core.diagnose import _imu_tilt_raw, imu_tilt_covariance
+
+    tree = KinematicTree(robot)
+    stops = _tilted(robot, [None], n=3, seed=40)
+    acc = stops.imus["forearm"][1]
+    g = np.linalg.norm(acc, axis=1, keepdims=True)
+    pert = {"joint_2": np.diag([1e-6, 1e-6, 1e-6, 4e-6, 1e-6, 9e-6])}
+    jn = {"joint_3": 2e-3}
+    C = imu_tilt_covariance(tree, stops, [], np.array([0.0]), pert, jn)[:, 0]
+    rng = np.random.default_rng(41)
+    M = 4000
+    big = Stops.concat([stops] * M)  # M copies of the 3 stops, one perturbation draw each
+    n = len(big)
+    dxi = {"joint_2": rng.normal(size=(n, 6)) @ np.linalg.cholesky(pert["joint_2"]).T}
+    dq = {"joint_3": rng.normal(0.0, jn["joint_3"], n)}
+    R = tree.link_poses(big.q, dq, dxi)["arm_link_4"][:, :3, :3]
+    big.imus = {"forearm": ("arm_link_4", R[:, 2, :] * np.tile(g, (M, 1)))}  # exact accelerometer
+    samples = _imu_tilt_raw(tree, big, [], None)[:, 0].reshape(M, len(stops), 2)
+    # measured minus nominal prediction: its covariance is the predicted one (3 stops, 2x2 each)
+    emp = np.einsum("mni,mnj->nij", samples, samples) / M
+    assert np.allclose(emp, C, rtol=0.1, atol=0.05 * np.abs(C).max())
