@@ -85,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
             group_name=f"{i}:{Path(bag).name}", measurement=args.measurement))
     stops = Stops.concat(parts)
     opts = DiagnoseOptions(folds=args.folds, cv=args.cv, min_gain=args.min_gain, min_t=args.min_t,
-                           max_effects=args.max_effects)
+                           max_effects=args.max_effects,
+                           imu_sigma={k: v.sigma for k, v in (getattr(cfg, "imus", None) or {}).items()} or None)
     res = diagnose(robot, stops, declared, pert, jnoise, opts)
     if args.pixels != "off":
         pix = []

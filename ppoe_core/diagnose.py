@@ -650,6 +650,8 @@ class DiagnoseOptions:
         Per round, only the candidates with the largest in-sample gain are cross-validated.
     seed : int
         Fold assignment.
+    imu_sigma : dict or None
+        Accelerometer 1-sigma per axis [m/s^2] by IMU name (model ``imus`` section); default 4e-4.
     candidates : list of str or None
         Only candidate keys that start with one of these (e.g. ``"mount_bending"``).
     """
@@ -664,6 +666,7 @@ class DiagnoseOptions:
     screen: int = 6
     seed: int = 0
     candidates: Optional[list[str]] = None
+    imu_sigma: Optional[dict[str, float]] = None
 
 
 @dataclass
@@ -976,6 +979,7 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
                                  for k in before}
         # accelerometer stage: per-file base tilt and IMU-visible effects on top of declared + found
         imu_fit = diagnose_imu(robot, stops, list(declared) + found, seed=options.seed,
+                               sigma=options.imu_sigma if options.imu_sigma else 4e-4,
                                perturbation_cov=perturbation_cov, joint_noise=joint_noise)
         res.extra["imu_fit"] = {k: v for k, v in imu_fit.items() if k not in ("found", "tilt")}
     # a systematic residual remains if the held-out mean squared Mahalanobis distance under the
@@ -1486,6 +1490,26 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
             lines.append(f"| {k} | {v['link']} | {v['n']} | {1e3 * v['rms_before'][0]:.3f}, "
                          f"{1e3 * v['rms_before'][1]:.3f} | {1e3 * v['rms_after'][0]:.3f}, "
                          f"{1e3 * v['rms_after'][1]:.3f} |")
+    fit = result.extra.get("imu_fit")
+    if fit:
+        lines += ["", "## Accelerometer stage (base tilt per bag/file, effects seen by the IMUs)", "",
+                  f"Reference IMU (its mounting is part of the base tilt): {fit['reference_imu']}. "
+                  "Held-out tilt RMS per IMU, rx / ry [mrad]: "
+                  + ", ".join(f"{k} {1e3 * b[0]:.3f} / {1e3 * b[1]:.3f} -> {1e3 * fit['tilt_rms_after'][k][0]:.3f}"
+                              f" / {1e3 * fit['tilt_rms_after'][k][1]:.3f}" for k, b in fit["tilt_rms_before"].items())
+                  + ".", ""]
+        for e in fit["effects"]:
+            if e["name"] == "base_tilt":
+                for g, v in e["per_group"].items():
+                    lines.append(f"* base_tilt {g}: tilt_x {1e3 * v['tilt_x']:.3f} mrad "
+                                 f"[{1e3 * v['ci']['tilt_x'][0]:.3f}, {1e3 * v['ci']['tilt_x'][1]:.3f}], "
+                                 f"tilt_y {1e3 * v['tilt_y']:.3f} mrad "
+                                 f"[{1e3 * v['ci']['tilt_y'][0]:.3f}, {1e3 * v['ci']['tilt_y'][1]:.3f}]")
+            else:
+                lines.append(f"* {e['name']}@{e['location']}: " + ", ".join(
+                    f"{k} {v:.4g} [{e['ci'][k][0]:.4g}, {e['ci'][k][1]:.4g}]" for k, v in e["parameters"].items()))
+        if not fit["effects"]:
+            lines.append("* nothing found (no base tilt, no IMU-visible effect)")
     if result.extra.get("pixels"):
         px = result.extra["pixels"]
         lines += ["", f"## Tag pixels ({px['n']} points; effects marked `measurement: pixels` above, share = of "
