@@ -246,14 +246,8 @@ def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
     return last[idx]
 
 
-def kabsch(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    """Rigid ``T`` (4, 4) minimising ``sum |Q_i - T P_i|^2`` (rotation + translation, no scale)."""
-    pc, qc = P.mean(0), Q.mean(0)
-    H = (P - pc).T @ (Q - qc)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return lie.from_rt(R, qc - R @ pc)
+#: rigid fit of corresponding points (Kabsch, no scale): :func:`ppoe_core.lie.fit_rigid`
+kabsch = lie.fit_rigid
 
 
 # =============================================================================

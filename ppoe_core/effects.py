@@ -49,6 +49,7 @@ from typing import Any, Mapping, Optional, Sequence
 import numpy as np
 
 from . import lie
+from .config import EFFECT_NAMES as _CONFIG_EFFECT_NAMES
 from .errors import ModelConfigError, UnknownFrameError, UnknownJointError
 from .urdf import Robot
 
@@ -75,19 +76,8 @@ __all__ = [
 #: standard gravity [m/s^2]
 GRAVITY = 9.80665
 
-#: the contract vocabulary (CONTRACT.md sec. 6), in catalogue order
-EFFECT_NAMES = (
-    "joint_offset",
-    "link_error",
-    "gravity_compliance",
-    "mount_bending",
-    "base_tilt",
-    "backlash",
-    "thermal_growth",
-    "time_offset",
-    "camera_extrinsics",
-    "tracker_registration",
-)
+#: the contract vocabulary (CONTRACT.md sec. 6), in catalogue order (defined in config)
+EFFECT_NAMES = _CONFIG_EFFECT_NAMES
 
 _TWIST_KEYS = ("x", "y", "z", "rx", "ry", "rz")
 

@@ -256,7 +256,7 @@ def test_motoman_model_yaml_validates(moto_bag):
 @needs_data
 def test_motoman_tracker_and_reprojection_baselines():
     """README (i) 0.34 mm Leica RMS and (ii) 23.5 / 25.0 px marker RMS, with our model."""
-    from ppoe_core.evaluate import kabsch
+    from ppoe_core.lie import fit_rigid as kabsch
     from ppoe_core.model import PPOEModel
     from ppoe_core.tags import project_points
 
@@ -290,7 +290,7 @@ def test_motoman_tracker_and_reprojection_baselines():
 @needs_data
 def test_hilti_nominal_baseline_cross_set():
     """README: flat.yaml, cross set, per-station Kabsch: RMS 3D 8.64 mm, max 24.66 mm (mimic-aware FK)."""
-    from ppoe_core.evaluate import kabsch
+    from ppoe_core.lie import fit_rigid as kabsch
     from ppoe_core.model import PPOEModel
 
     ds = hi.load_hilti(HILTI / "flat.yaml")
