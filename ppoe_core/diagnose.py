@@ -246,6 +246,13 @@ def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
     return last[idx]
 
 
+def _paired_t(d: np.ndarray) -> float:
+    """Paired one-sample t statistic of the held-out error reductions ``d`` (N,); 0 if constant."""
+    d = np.asarray(d, dtype=float)
+    sd = float(d.std(ddof=1)) if d.size > 1 else 0.0
+    return float(d.mean() / (sd / math.sqrt(d.size))) if sd > 0 else 0.0
+
+
 #: rigid fit of corresponding points (Kabsch, no scale): :func:`ppoe_core.lie.fit_rigid`
 kabsch = lie.fit_rigid
 
@@ -850,7 +857,6 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
 
     chosen: list[Candidate] = []
     R_before, Rb_before, e2 = problem.heldout(_stack(chosen, n, stops.dim), folds)
-    e2_before = e2.copy()
     R_after, Rb_after = R_before, Rb_before
     steps: list[dict[str, Any]] = []
     rejected: dict[str, str] = {}
@@ -877,7 +883,7 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
                 continue
             mse0, mse1 = float(np.mean(e2[ok])), float(np.mean(e2c[ok]))
             d = e2[ok] - e2c[ok]
-            t = float(d.mean() / (d.std(ddof=1) / math.sqrt(d.size))) if d.std() > 0 else 0.0
+            t = _paired_t(d)
             z = _signed_rank_z(d)
             gain = 1.0 - mse1 / mse0
             if best is None or mse1 < best[1]:
@@ -1984,7 +1990,7 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
             new = heldout(idx)
             d = base - new
             gain = float(d.sum() / max(base.sum(), 1e-300))
-            t = float(d.mean() / (d.std(ddof=1) / math.sqrt(len(d)))) if d.std(ddof=1) > 0 else 0.0
+            t = _paired_t(d)
             if best is None or gain > best[1]:
                 best = (i, gain, t, new, cond)
         if best is None:
@@ -2464,7 +2470,7 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
             new = heldout(idx)
             d = base - new
             gain = float(d.sum() / max(base.sum(), 1e-300))
-            t = float(d.mean() / (d.std(ddof=1) / math.sqrt(len(d)))) if d.std(ddof=1) > 0 else 0.0
+            t = _paired_t(d)
             if best is None or gain > best[1]:
                 best = (i, gain, t, new, cond)
         if best is None:

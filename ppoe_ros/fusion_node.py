@@ -65,13 +65,13 @@ from ppoe_core.fusion_pipeline import (
 )
 from ppoe_ros.kinematics_node import load_model_yaml
 from ppoe_ros.ros_common import (
-    LATCHED_QOS,
     DiagnosticsPublisher,
     NodeStats,
     ParamSpec,
     check_nonempty,
     declare_parameters,
     guarded,
+    take_robot_description,
     joint_positions,
     mapping_get,
     ns_to_stamp,
@@ -237,13 +237,7 @@ class FusionNode(Node):
         self.create_timer(0.1, guarded(self.stats, "pending measurements")(self._expire_pending),
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
-        if p["robot_description"]:
-            self._set_model(p["robot_description"], "parameter robot_description")
-        else:
-            topic = p["robot_description_topic"]
-            self.create_subscription(String, topic, guarded(self.stats, topic)(self._robot_description),
-                                     LATCHED_QOS)
-            self.get_logger().info(f"waiting for the URDF on {topic}")
+        take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
         self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
 
     # ------------------------------------------------------------------ model

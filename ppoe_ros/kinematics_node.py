@@ -51,13 +51,13 @@ from ppoe_core import lie
 from ppoe_core.errors import JointValueError, ModelConfigError, PpoeError
 from ppoe_core.model import PPOEModel
 from ppoe_ros.ros_common import (
-    LATCHED_QOS,
     DiagnosticsPublisher,
     NodeStats,
     ParamSpec,
     check_nonempty,
     declare_parameters,
     guarded,
+    take_robot_description,
     mapping_get,
     reliable_qos,
     sensor_qos,
@@ -183,14 +183,7 @@ class KinematicsNode(Node):
         self._js_sub = self.create_subscription(JointState, js_topic, self._on_joint_state_burst,
                                                 sensor_qos(p["qos_depth"]))
 
-        if p["robot_description"]:
-            # a bad URDF in the parameter is a start-up error (PpoeError -> exit code 2)
-            self._set_model(p["robot_description"], "parameter robot_description")
-        else:
-            topic = p["robot_description_topic"]
-            self.create_subscription(String, topic, guarded(self.stats, topic)(self._robot_description),
-                                     LATCHED_QOS)
-            self.get_logger().info(f"waiting for the URDF on {topic}")
+        take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
         self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
         if p["max_batch"] > 1:  # last: nothing after it can fail and leave the thread behind
             self._worker = _BatchWorker(self._process, self.stats, p["max_batch"], p["max_queue"], js_topic)

@@ -66,6 +66,7 @@ __all__ = [
     "NodeStats",
     "DiagnosticsPublisher",
     "guarded",
+    "take_robot_description",
     "sensor_qos",
     "reliable_qos",
     "LATCHED_QOS",
@@ -405,6 +406,26 @@ def guarded(stats: NodeStats, topic: str,
         return wrapper
 
     return deco
+
+
+def take_robot_description(node: Node, params: Mapping[str, Any], stats: NodeStats,
+                           set_model: Callable[[str, str], None],
+                           on_message: Callable[[Any], None]) -> None:
+    """Get the URDF as robot_state_publisher's consumers do.
+
+    From the ``robot_description`` parameter when it is set (a bad URDF there is a start-up
+    error: ``set_model`` raises), else by subscribing ``robot_description_topic`` with
+    :data:`LATCHED_QOS`; a bad URDF on the topic is counted by :func:`guarded` and the node
+    keeps its previous model.
+    """
+    if params["robot_description"]:
+        set_model(params["robot_description"], "parameter robot_description")
+        return
+    from std_msgs.msg import String
+
+    topic = params["robot_description_topic"]
+    node.create_subscription(String, topic, guarded(stats, topic)(on_message), LATCHED_QOS)
+    node.get_logger().info(f"waiting for the URDF on {topic}")
 
 
 class DiagnosticsPublisher:
