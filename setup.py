@@ -21,6 +21,8 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         ("share/" + PACKAGE, ["package.xml"]),
         ("share/" + PACKAGE + "/config", sorted(glob("config/*.*"))),
+        ("share/" + PACKAGE + "/config/robots", sorted(glob("config/robots/*.*"))),
+        ("share/" + PACKAGE + "/config/nodes", sorted(glob("config/nodes/*.*"))),
         ("share/" + PACKAGE + "/launch", sorted(glob("launch/*.py"))),
     ],
     python_requires=">=3.10",
@@ -56,10 +58,10 @@ setup(
     entry_points={
         "console_scripts": [
             "ppoe = ppoe_ros.cli:main",
-            "kinematics_node = ppoe_ros.kinematics_node:main",
-            "tag_bearing_node = ppoe_ros.tag_bearing_node:main",
-            "contact_node = ppoe_ros.contact_node:main",
-            "fusion_node = ppoe_ros.fusion_node:main",
+            "kinematics_node = ppoe_ros.nodes.kinematics_node:main",
+            "tag_bearing_node = ppoe_ros.nodes.tag_bearing_node:main",
+            "contact_node = ppoe_ros.nodes.contact_node:main",
+            "fusion_node = ppoe_ros.nodes.fusion_node:main",
         ],
     },
 )

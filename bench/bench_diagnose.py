@@ -35,9 +35,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from ppoe_core import lie  # noqa: E402
-from ppoe_core.diagnose import (DiagnoseOptions, Stops, diagnose, protocol_scores,  # noqa: E402
+from ppoe_core.analysis.diagnose import (DiagnoseOptions, Stops, diagnose, protocol_scores,  # noqa: E402
                                 stops_from_hilti)
-from ppoe_core.urdf import parse_urdf  # noqa: E402
+from ppoe_core.robot.urdf import parse_urdf  # noqa: E402
 
 FILES = ["flat", "pallet", "orthogonal_wood", "wood_left_track", "diagonal_wood"]
 
@@ -86,11 +86,11 @@ def hilti(quick: bool) -> None:
 
 
 def ten_minute_bag() -> None:
-    from ppoe_core.bagio import BagWriter
-    from ppoe_core.effects import KinematicTree, apply_corrections, make_effect
+    from ppoe_core.io.bagio import BagWriter
+    from ppoe_core.model.effects import KinematicTree, apply_corrections, make_effect
     from ppoe_ros.cli import main
 
-    urdf = (REPO / "config" / "arm7.urdf").read_text()
+    urdf = (REPO / "config" / "robots" / "arm7.urdf").read_text()
     robot = parse_urdf(urdf)
     tree = KinematicTree(robot)
     rng = np.random.default_rng(0)
@@ -122,7 +122,7 @@ def ten_minute_bag() -> None:
         buf = io.StringIO()
         t0 = time.perf_counter()
         with contextlib.redirect_stdout(buf):
-            main(["diagnose", str(bag), "--model", str(REPO / "config" / "arm7_model.yaml"), "--json"])
+            main(["diagnose", str(bag), "--model", str(REPO / "config" / "robots" / "arm7_model.yaml"), "--json"])
         dt = time.perf_counter() - t0
         doc = json.loads(buf.getvalue())
         print(f"bag10min_diagnose_time: {dt:.1f} s")
@@ -132,8 +132,8 @@ def ten_minute_bag() -> None:
 
 
 def motoman() -> None:
-    from ppoe_core.diagnose import diagnose_pixels, pixel_candidates, pixel_rms, pixel_stats, pixels_from_motoman
-    from ppoe_core.effects import KinematicTree, make_effect
+    from ppoe_core.analysis.diagnose import diagnose_pixels, pixel_candidates, pixel_rms, pixel_stats, pixels_from_motoman
+    from ppoe_core.model.effects import KinematicTree, make_effect
     from ppoe_ros.cli import main
 
     d = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets")) / "motoman_leica"

@@ -1,12 +1,12 @@
 """Speed of ``ppoe evaluate`` on a long simulated bag.
 
-Generates (in a temp dir, with ``ppoe_core.simulate``) a 10-minute bag of the rover of the
+Generates (in a temp dir, with ``ppoe_core.sim.simulate``) a 10-minute bag of the rover of the
 Table I study: ``/joint_states`` at 100 Hz on a smooth trajectory near the "close and rotated"
 configuration of experiment I, camera images (PNG, 640x480) at ``--camera-rate`` with the tags
 rendered, ``/ground_truth/pose`` at ``--gt-rate``.  Then runs the full offline replay
-(:func:`ppoe_core.evaluate.evaluate_bag`: batched PPOE FK of every joint state, tag detection
+(:func:`ppoe_core.analysis.evaluate.evaluate_bag`: batched PPOE FK of every joint state, tag detection
 on every image, the PPOE and the naive fusion pipelines, scoring) and, as the baseline measured
-in the same run, only reading the bag (:func:`ppoe_core.bagio.read_bag`).
+in the same run, only reading the bag (:func:`ppoe_core.io.bagio.read_bag`).
 
 Prints ``name: value unit`` lines, among them ``joint_states_per_s`` and
 ``bag_seconds_per_wall_second`` (wall clock), and the same per second of process CPU time
@@ -34,9 +34,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from ppoe_core.bagio import read_bag  # noqa: E402
-from ppoe_core.evaluate import EvaluateOptions, evaluate_bag  # noqa: E402
-from ppoe_core.simulate import simulate  # noqa: E402
+from ppoe_core.io.bagio import read_bag  # noqa: E402
+from ppoe_core.analysis.evaluate import EvaluateOptions, evaluate_bag  # noqa: E402
+from ppoe_core.sim.simulate import simulate  # noqa: E402
 
 __all__ = ["main", "scenario"]
 
@@ -48,7 +48,7 @@ _CENTRE = {"pan_joint": -2.97, "tilt_joint": 0.65, "arm_joint_1": 0.37, "arm_joi
 def scenario(duration: float, rate: float, camera_rate: float, gt_rate: float) -> dict:
     """The benchmark scenario (``ppoe simulate`` format, see ``--help-scenario``)."""
     return {
-        "robot": {"urdf": str(REPO / "config" / "rover.urdf"), "model": str(REPO / "config" / "rover_model.yaml")},
+        "robot": {"urdf": str(REPO / "config" / "robots" / "rover.urdf"), "model": str(REPO / "config" / "robots" / "rover_model.yaml")},
         "seed": 5,
         "start_time": 100.0,
         "truth": {"perturbations": "once", "joint_noise": True, "effects": []},
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         span = float(data.joint_states.stamps[-1] - data.joint_states.stamps[0])
 
         t0, c0 = time.perf_counter(), time.process_time()
-        ev = evaluate_bag(bag, REPO / "config" / "rover_model.yaml", EvaluateOptions(progress=False))
+        ev = evaluate_bag(bag, REPO / "config" / "robots" / "rover_model.yaml", EvaluateOptions(progress=False))
         t_eval, c_eval = time.perf_counter() - t0, time.process_time() - c0
         s = ev.summary
         counts = s["methods"]["ppoe"]["measurements"]["counts"]

@@ -37,12 +37,12 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from ppoe_core import lie  # noqa: E402
-from ppoe_core.model import PPOEModel  # noqa: E402
+from ppoe_core.model.ppoe import PPOEModel  # noqa: E402
 
 __all__ = ["pytransform3d_chain", "main"]
 
-URDF = REPO / "config" / "arm7.urdf"
-MODEL = REPO / "config" / "arm7_model.yaml"
+URDF = REPO / "config" / "robots" / "arm7.urdf"
+MODEL = REPO / "config" / "robots" / "arm7_model.yaml"
 FRM, TO = "base_link", "tool0"
 #: config/README.md example configuration of arm7 [rad]
 Q_EXAMPLE = {"joint_1": 0.3, "joint_2": 0.6, "joint_3": 0.0, "joint_4": -1.2, "joint_5": 0.0, "joint_6": 0.9, "joint_7": 0.0}

@@ -1,4 +1,4 @@
-"""Speed of the iterated LG-EKF update (ppoe_core.fusion.iterated_update).
+"""Speed of the iterated LG-EKF update (ppoe_core.estimation.fusion.iterated_update).
 
 Prints ``name: value unit`` lines: median and minimum microseconds per single update for
 * a two-tag bearing update (2 tags x 5 points = 20 pixel coordinates, camera pose
@@ -28,8 +28,8 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from ppoe_core import lie  # noqa: E402
-from ppoe_core.fusion import iterated_update  # noqa: E402
-from ppoe_core.measurements import ContactPlane, TagObservation, tag_points  # noqa: E402
+from ppoe_core.estimation.fusion import iterated_update  # noqa: E402
+from ppoe_core.estimation.measurements import ContactPlane, TagObservation, tag_points  # noqa: E402
 
 __all__ = ["main"]
 

@@ -33,16 +33,18 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from ppoe_core import evaluate, lie  # noqa: E402
-from ppoe_core.bagio import read_bag  # noqa: E402
-from ppoe_core.fusion_pipeline import make_pipeline  # noqa: E402
-from ppoe_core.model import PPOEModel  # noqa: E402
-from ppoe_ros.ros_common import pose_cov_from_msg, pose_cov_stamped_msg  # noqa: E402
+from ppoe_core import lie  # noqa: E402
+
+from ppoe_core.analysis import evaluate
+from ppoe_core.io.bagio import read_bag  # noqa: E402
+from ppoe_core.estimation.pipeline import make_pipeline  # noqa: E402
+from ppoe_core.model.ppoe import PPOEModel  # noqa: E402
+from ppoe_ros.common import pose_cov_from_msg, pose_cov_stamped_msg  # noqa: E402
 
 __all__ = ["main"]
 
 BAG = REPO / "bags" / "table1_exp1"
-MODEL_YAML = REPO / "config" / "rover_model.yaml"
+MODEL_YAML = REPO / "config" / "robots" / "rover_model.yaml"
 _FAST = {"quat_from_matrix": lie.quat_from_matrix, "matrix_from_quat": lie.matrix_from_quat, "exp": lie.exp,
          "inverse": lie.inverse}
 

@@ -2,7 +2,7 @@
 """Benchmark: kinematics_node fed 1 kHz joint states of the 7-DOF arm (config/arm7*).
 
 The node runs as a separate process (isolated DDS domain, URDF by parameter,
-config/arm7_model.yaml) and publishes ``base_link -> tool0``.  A feeder process
+config/robots/arm7_model.yaml) and publishes ``base_link -> tool0``.  A feeder process
 publishes ``/joint_states`` at ``--rate`` Hz for ``--warmup + --seconds`` seconds,
 stamped with the wall clock at publication; this process receives ``/ppoe/pose``.
 
@@ -45,8 +45,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-URDF = REPO / "config" / "arm7.urdf"
-MODEL = REPO / "config" / "arm7_model.yaml"
+URDF = REPO / "config" / "robots" / "arm7.urdf"
+MODEL = REPO / "config" / "robots" / "arm7_model.yaml"
 ARM = [f"joint_{i}" for i in range(1, 8)] + ["finger_left_joint"]
 
 __all__ = ["feed", "run_mode", "fk_call_us", "main"]
@@ -65,7 +65,7 @@ def feed(rate: float, seconds: float) -> int:
     import rclpy
     from sensor_msgs.msg import JointState
 
-    from ppoe_ros.ros_common import ns_to_stamp
+    from ppoe_ros.common import ns_to_stamp
 
     rclpy.init()
     node = rclpy.create_node("bench_feeder")
@@ -121,7 +121,7 @@ def run_mode(mode: str, rate: float, seconds: float, warmup: float) -> dict[str,
         "robot_description": URDF.read_text(), "model_file": str(MODEL),
         "max_batch": 1 if mode == "sync" else 100, "drain_max": 0 if mode == "sync" else 200,
         "qos_depth": 1000}}}))
-    node_proc = subprocess.Popen([sys.executable, "-m", "ppoe_ros.kinematics_node", "--ros-args", "--params-file",
+    node_proc = subprocess.Popen([sys.executable, "-m", "ppoe_ros.nodes.kinematics_node", "--ros-args", "--params-file",
                                   str(params_file)], env=env, cwd=REPO, start_new_session=True,
                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     feeder = None
@@ -225,7 +225,7 @@ def run_mode(mode: str, rate: float, seconds: float, warmup: float) -> dict[str,
 def fk_call_us(n: int = 500) -> float:
     """Median time of one PPOEModel.fk + cov_local_to_ros in this process [us]."""
     from ppoe_core import lie
-    from ppoe_core.model import PPOEModel
+    from ppoe_core.model.ppoe import PPOEModel
 
     model = PPOEModel.from_files(URDF, MODEL)
     q = np.full((1, len(model.joint_names)), 0.3)

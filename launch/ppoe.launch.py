@@ -52,7 +52,7 @@ def generate_launch_description() -> LaunchDescription:
             executable="kinematics_node",
             name="kinematics_node",
             output="screen",
-            parameters=[PathJoinSubstitution([share, "config", "kinematics_node.yaml"]), common],
+            parameters=[PathJoinSubstitution([share, "config", "nodes", "kinematics_node.yaml"]), common],
             condition=IfCondition(LaunchConfiguration("kinematics")),
         ),
         Node(
@@ -60,7 +60,7 @@ def generate_launch_description() -> LaunchDescription:
             executable="tag_bearing_node",
             name="tag_bearing_node",
             output="screen",
-            parameters=[PathJoinSubstitution([share, "config", "tag_bearing_node.yaml"]), common],
+            parameters=[PathJoinSubstitution([share, "config", "nodes", "tag_bearing_node.yaml"]), common],
             condition=IfCondition(LaunchConfiguration("tag_bearing")),
         ),
         Node(
@@ -68,7 +68,7 @@ def generate_launch_description() -> LaunchDescription:
             executable="contact_node",
             name="contact_node",
             output="screen",
-            parameters=[PathJoinSubstitution([share, "config", "contact_node.yaml"]), common],
+            parameters=[PathJoinSubstitution([share, "config", "nodes", "contact_node.yaml"]), common],
             condition=IfCondition(LaunchConfiguration("contact")),
         ),
         Node(
@@ -76,7 +76,7 @@ def generate_launch_description() -> LaunchDescription:
             executable="fusion_node",
             name="fusion_node",
             output="screen",
-            parameters=[PathJoinSubstitution([share, "config", "fusion_node.yaml"]), common],
+            parameters=[PathJoinSubstitution([share, "config", "nodes", "fusion_node.yaml"]), common],
             condition=IfCondition(LaunchConfiguration("fusion")),
         ),
     ]

@@ -3,7 +3,7 @@
 Public API::
 
     from ppoe_core import PPOEModel, parse_urdf, load_model_config
-    model = PPOEModel.from_files("config/arm7.urdf", "config/arm7_model.yaml")
+    model = PPOEModel.from_files("config/robots/arm7.urdf", "config/robots/arm7_model.yaml")
     T_base_tool, cov_tool = model.fk({"joint_1": 0.1, ...}, "base_link", "tool0")
 
 No ROS import anywhere in this package.
@@ -11,8 +11,8 @@ No ROS import anywhere in this package.
 
 from __future__ import annotations
 
-from .config import ModelConfig, load_model_config
-from .errors import (
+from ppoe_core.robot.config import ModelConfig, load_model_config
+from ppoe_core.errors import (
     BagError,
     CovarianceError,
     DatasetError,
@@ -25,8 +25,8 @@ from .errors import (
     UnknownJointError,
     UrdfError,
 )
-from .model import PPOEModel
-from .urdf import Joint, Link, Robot, parse_urdf
+from ppoe_core.model.ppoe import PPOEModel
+from ppoe_core.robot.urdf import Joint, Link, Robot, parse_urdf
 
 __all__ = [
     "PPOEModel",

@@ -1,8 +1,8 @@
 """Redraw the PPOE paper's Fig. 3: the 3-link planar arm with 10 deg perturbations at the joints.
 
-Four configurations of ``config/planar3.urdf``:
+Four configurations of ``config/robots/planar3.urdf``:
 
-(a) perturbation on joint 1 only (``config/planar3_joint1_model.yaml``): a 1D arc;
+(a) perturbation on joint 1 only (``config/robots/planar3_joint1_model.yaml``): a 1D arc;
 (b) the stretched, singular configuration: the banana;
 (c), (d) bent configurations: the banana widens and becomes more elliptical.
 
@@ -39,7 +39,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from scipy.stats import chi2  # noqa: E402
 
 from ppoe_core import lie  # noqa: E402
-from ppoe_core.model import PPOEModel  # noqa: E402
+from ppoe_core.model.ppoe import PPOEModel  # noqa: E402
 
 __all__ = ["PANELS", "enclosure_curves", "fraction_inside", "main"]
 
@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dpi", type=int, default=90)
     args = ap.parse_args(argv)
     rng = np.random.default_rng(args.seed)
-    urdf = REPO / "config" / "planar3.urdf"
+    urdf = REPO / "config" / "robots" / "planar3.urdf"
 
     fig, axs = plt.subplots(1, 4, figsize=(14, 4.0))
     for ax, (label, yaml_name, q, caption) in zip(axs, PANELS):

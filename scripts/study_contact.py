@@ -1,4 +1,4 @@
-"""The paper's contact study (Sec. V-B, Fig. 5) in simulation, with ``config/humanoid.*``.
+"""The paper's contact study (Sec. V-B, Fig. 5) in simulation, with ``config/robots/humanoid.*``.
 
 Setup
 -----
@@ -15,7 +15,7 @@ Setup
   the config); the lateral shifts and the yaw of an infinite plane change nothing physically and
   are not drawn (with ``Exp`` they would only add a second-order coupling, see docs/studies.md).
 * During contact the same 1D measurement ``z = 0`` is fused ``--steps`` times with the iterated
-  LG-EKF update (``ppoe_core.fusion.iterated_update``), as the paper does ("the update is applied
+  LG-EKF update (``ppoe_core.estimation.fusion.iterated_update``), as the paper does ("the update is applied
   iteratively"); once with the PPOE covariance and once with its diagonal ("naive").
 
 Outputs ``docs/img/study_contact.png`` (position error per table axis, rotation error,
@@ -43,14 +43,14 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from ppoe_core import lie  # noqa: E402
-from ppoe_core.fusion import iterated_update  # noqa: E402
-from ppoe_core.measurements import ContactPlane  # noqa: E402
-from ppoe_core.model import PPOEModel  # noqa: E402
+from ppoe_core.estimation.fusion import iterated_update  # noqa: E402
+from ppoe_core.estimation.measurements import ContactPlane  # noqa: E402
+from ppoe_core.model.ppoe import PPOEModel  # noqa: E402
 
 __all__ = ["StaticErrors", "ContactRun", "draw_errors", "run_contact", "main"]
 
-URDF = REPO / "config" / "humanoid.urdf"
-MODEL = REPO / "config" / "humanoid_model.yaml"
+URDF = REPO / "config" / "robots" / "humanoid.urdf"
+MODEL = REPO / "config" / "robots" / "humanoid_model.yaml"
 #: the README's touching configuration [rad]
 Q_TOUCH = {
     "shoulder_pitch_joint": -0.5, "shoulder_roll_joint": 0.0, "shoulder_yaw_joint": 0.0,

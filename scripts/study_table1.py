@@ -1,4 +1,4 @@
-"""The paper's Table I study (Sec. V-C) in simulation, with ``config/rover.*``.
+"""The paper's Table I study (Sec. V-C) in simulation, with ``config/robots/rover.*``.
 
 Setup
 -----
@@ -45,14 +45,14 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from ppoe_core.fusion import iterated_update  # noqa: E402
-from ppoe_core.measurements import TagObservation, tag_points  # noqa: E402
-from ppoe_core.model import PPOEModel  # noqa: E402
+from ppoe_core.estimation.fusion import iterated_update  # noqa: E402
+from ppoe_core.estimation.measurements import TagObservation, tag_points  # noqa: E402
+from ppoe_core.model.ppoe import PPOEModel  # noqa: E402
 
 __all__ = ["StaticErrors", "find_configurations", "run_study", "main"]
 
-URDF = REPO / "config" / "rover.urdf"
-MODEL = REPO / "config" / "rover_model.yaml"
+URDF = REPO / "config" / "robots" / "rover.urdf"
+MODEL = REPO / "config" / "robots" / "rover_model.yaml"
 CAMERA = "camera_optical_frame"
 TOOL = "tool_link"
 ARM = [f"arm_joint_{i}" for i in range(1, 7)]

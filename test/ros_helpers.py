@@ -3,7 +3,7 @@
 * :func:`ros_env` / :func:`random_domain_id`: an environment with an isolated DDS
   domain (random ``ROS_DOMAIN_ID`` in 1..200, ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``),
   the repo on ``PYTHONPATH`` and ROS logs under a temporary directory.
-* :class:`NodeProcess`: start a node (``python -m ppoe_ros.<module> --ros-args ...``)
+* :class:`NodeProcess`: start a node (``python -m ppoe_ros.nodes.<module> --ros-args ...``)
   or ``ppoe`` subcommand in its own process group; :meth:`NodeProcess.stop` sends
   SIGINT then SIGKILL to the whole group.  Use it as a context manager (or call
   ``stop`` in ``finally``) so no child outlives the test.
@@ -91,7 +91,7 @@ class NodeProcess:
              params: Mapping[str, Any] | None = None, params_file: Path | str | None = None,
              name: str | None = None) -> "NodeProcess":
         """Start ``ppoe_ros.<module>`` with ``--ros-args`` parameters (``-p k:=v``) and/or a params file."""
-        cmd = [sys.executable, "-m", f"ppoe_ros.{module}", "--ros-args"]
+        cmd = [sys.executable, "-m", f"ppoe_ros.nodes.{module}", "--ros-args"]
         if params_file is not None:
             cmd += ["--params-file", str(params_file)]
         for k, v in (params or {}).items():

@@ -1,4 +1,4 @@
-"""Round trips of ppoe_core.bagio: every contract topic written, read back, compared."""
+"""Round trips of ppoe_core.io.bagio: every contract topic written, read back, compared."""
 
 from __future__ import annotations
 
@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ppoe_core import bagio, lie
+from ppoe_core import lie
+
+from ppoe_core.io import bagio
 from ppoe_core.errors import BagError
 
 

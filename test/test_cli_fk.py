@@ -14,16 +14,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ppoe_core.cli_fk import parse_joint_assignments
+from ppoe_core.cli.fk import parse_joint_assignments
 from ppoe_core.errors import JointValueError, UnknownJointError
-from ppoe_core.model import PPOEModel
+from ppoe_core.model.ppoe import PPOEModel
 from ppoe_ros.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
-URDF = str(REPO / "config" / "planar3.urdf")
-MODEL = str(REPO / "config" / "planar3_model.yaml")
-ARM7_URDF = str(REPO / "config" / "arm7.urdf")
-ARM7_MODEL = str(REPO / "config" / "arm7_model.yaml")
+URDF = str(REPO / "config" / "robots" / "planar3.urdf")
+MODEL = str(REPO / "config" / "robots" / "planar3_model.yaml")
+ARM7_URDF = str(REPO / "config" / "robots" / "arm7.urdf")
+ARM7_MODEL = str(REPO / "config" / "robots" / "arm7_model.yaml")
 BASE = ["fk", "--urdf", URDF, "--model", MODEL, "--from", "base_link", "--to", "tool0"]
 
 

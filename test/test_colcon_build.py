@@ -60,10 +60,10 @@ def test_config_and_launch_installed_under_share(install_dir: Path) -> None:
     share = install_dir / "share" / "ppoe_ros"
     assert (share / "package.xml").is_file()
     assert (install_dir / "share" / "ament_index" / "resource_index" / "packages" / "ppoe_ros").is_file()
-    expected = sorted(p.name for p in (REPO / "config").glob("*.*"))
-    installed = sorted(p.name for p in (share / "config").iterdir())
+    expected = sorted(str(p.relative_to(REPO / "config")) for p in (REPO / "config").rglob("*.*"))
+    installed = sorted(str(p.relative_to(share / "config")) for p in (share / "config").rglob("*.*"))
     assert installed == expected
-    assert {"kinematics_node.yaml", "contact_node.yaml"} <= set(installed)
+    assert {"nodes/kinematics_node.yaml", "nodes/contact_node.yaml", "robots/arm7.urdf"} <= set(installed)
     assert (share / "launch" / "ppoe.launch.py").is_file()
 
 

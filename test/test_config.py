@@ -10,9 +10,9 @@ import pytest
 import yaml
 
 from ppoe_core import lie
-from ppoe_core.config import load_contact_config, load_model_config, low_rank_factor
+from ppoe_core.robot.config import load_contact_config, load_model_config, low_rank_factor
 from ppoe_core.errors import CovarianceError, ModelConfigError, UnknownFrameError, UnknownJointError
-from ppoe_core.urdf import parse_urdf
+from ppoe_core.robot.urdf import parse_urdf
 
 DATA = Path(__file__).parent / "data"
 EDGE = DATA / "ppoe_edge.urdf"
@@ -188,7 +188,7 @@ def test_unreadable_file(robot, tmp_path):
 
 def test_contact_section_alone_without_urdf(robot, tmp_path):
     """load_contact_config (the contact node has no URDF) gives what load_model_config gives."""
-    humanoid = Path(__file__).resolve().parents[1] / "config" / "humanoid_model.yaml"
+    humanoid = Path(__file__).resolve().parents[1] / "config" / "robots" / "humanoid_model.yaml"
     full = load_model_config(humanoid, parse_urdf(humanoid.parent / "humanoid.urdf")).contact
     alone = load_contact_config(humanoid)
     np.testing.assert_array_equal(alone.T_frame_plane, full.T_frame_plane)

@@ -1,4 +1,4 @@
-"""ppoe_core.contact: the contact node's detector, force measure, wrench replay and plane (no ROS)."""
+"""ppoe_core.sensing.contact: the contact node's detector, force measure, wrench replay and plane (no ROS)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ppoe_core import lie
-from ppoe_core.config import load_contact_config
-from ppoe_core.contact import (
+from ppoe_core.robot.config import load_contact_config
+from ppoe_core.sensing.contact import (
     FORCE_COMPONENTS,
     ContactDetector,
     contact_stamps,
@@ -21,7 +21,7 @@ from ppoe_core.contact import (
 from ppoe_core.errors import MeasurementError, ModelConfigError
 
 REPO = Path(__file__).resolve().parents[1]
-MODEL = REPO / "config" / "humanoid_model.yaml"
+MODEL = REPO / "config" / "robots" / "humanoid_model.yaml"
 
 
 def test_threshold_and_hysteresis_edges() -> None:

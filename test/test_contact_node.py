@@ -1,7 +1,7 @@
 """contact_node: hysteresis (detector unit tests: test_contact_detector.py), plane + Sigma_v output through live topics, bad input, parameters.
 
 The node runs as a separate process in an isolated DDS domain with the contact
-section of config/humanoid_model.yaml; parameter validation is checked on a node
+section of config/robots/humanoid_model.yaml; parameter validation is checked on a node
 built inside the test process.
 """
 
@@ -22,12 +22,12 @@ from std_msgs.msg import Bool  # noqa: E402
 
 from ppoe_core import lie  # noqa: E402
 from ppoe_core.errors import ModelConfigError  # noqa: E402
-from ppoe_ros.contact_node import ContactNode  # noqa: E402
-from ppoe_ros.ros_common import ns_to_stamp, pose_cov_from_msg, stamp_to_ns  # noqa: E402
+from ppoe_ros.nodes.contact_node import ContactNode  # noqa: E402
+from ppoe_ros.common import ns_to_stamp, pose_cov_from_msg, stamp_to_ns  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-MODEL = REPO / "config" / "humanoid_model.yaml"
+MODEL = REPO / "config" / "robots" / "humanoid_model.yaml"
 
 
 def _wrench(ns: int, force: tuple[float, float, float]) -> WrenchStamped:
@@ -126,7 +126,7 @@ def test_parameters_validated_in_process(tmp_path: Path) -> None:
         with pytest.raises(ModelConfigError, match="release_threshold .* must be below"):
             ContactNode(context=probe.context, parameter_overrides=overrides + [
                 Parameter("release_threshold", value=6.0)])
-        # a malformed contact section is refused naming file, line and key (validated by ppoe_core.config)
+        # a malformed contact section is refused naming file, line and key (validated by ppoe_core.robot.config)
         bad = tmp_path / "bad_model.yaml"
         bad.write_text("contact:\n  plane: {frame: table}\n  sigma: [0.1, x, 0.1, 0.1, 0.1, 0.1]\n"
                        "  tool_point: {link: tip}\n")
@@ -138,9 +138,9 @@ def test_node_callback_gives_the_planes_evaluate_replays(tmp_path: Path) -> None
     """The shipped contact bag's /wrench through the node's own callback (in process, publisher
     captured) gives, as the fusion node reads them, exactly the contact measurements that
     ``ppoe evaluate`` replays: same stamps, frame, and bit-identical plane pose and Sigma_v."""
-    from ppoe_core.bagio import read_bag
-    from ppoe_core.evaluate import EVALUATE_SETTINGS, _contact_measurements
-    from ppoe_core.model import PPOEModel
+    from ppoe_core.io.bagio import read_bag
+    from ppoe_core.analysis.evaluate import EVALUATE_SETTINGS, _contact_measurements
+    from ppoe_core.model.ppoe import PPOEModel
 
     bag = REPO / "bags" / "contact"
     data = read_bag(bag, topics=["/robot_description", "/wrench"])

@@ -12,10 +12,10 @@ import pytest
 import yaml
 
 from ppoe_core import lie
-from ppoe_core.diagnose import (DiagnoseOptions, Stops, diagnose, kabsch, load_model, motion_signs,
+from ppoe_core.analysis.diagnose import (DiagnoseOptions, Stops, diagnose, kabsch, load_model, motion_signs,
                                 stops_from_hilti, write_model_yaml, write_report)
-from ppoe_core.effects import KinematicTree, apply_corrections, make_effect
-from ppoe_core.urdf import parse_urdf
+from ppoe_core.model.effects import KinematicTree, apply_corrections, make_effect
+from ppoe_core.robot.urdf import parse_urdf
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config"
@@ -26,7 +26,7 @@ POINT = np.array([0.0, 0.0, 0.02])
 
 @pytest.fixture(scope="module")
 def robot():
-    return parse_urdf(CONFIG / "arm7.urdf")
+    return parse_urdf(CONFIG / "robots" / "arm7.urdf")
 
 
 def _synthetic(robot, true_effects=(), n=160, sessions=2, seed=0, extra_dq=None):
@@ -91,7 +91,7 @@ def test_confidence_intervals_cover_monte_carlo(robot):
     """Seeded Monte-Carlo of the Gauss-Newton covariance s^2 H_red^-1 (with the registration
     eliminated): the 95 % intervals of a fixed effect cover the truth about 95 % of the time and
     the spread of the estimates matches the reported sigma."""
-    from ppoe_core.diagnose import LinearProblem, _measurement_jacobian, _predict_nominal
+    from ppoe_core.analysis.diagnose import LinearProblem, _measurement_jacobian, _predict_nominal
 
     tree = KinematicTree(robot)
     truth = np.array([3e-5, 2e-5])
@@ -164,13 +164,13 @@ def test_kabsch_recovers_transform():
 def test_updated_model_yaml_loads_and_reports_are_written(robot, tmp_path):
     eff = make_effect("gravity_compliance", "joint_2", robot, [2e-5])
     res = diagnose(robot, _synthetic(robot, [eff], seed=8), options=DiagnoseOptions(max_effects=2))
-    out = write_model_yaml(CONFIG / "arm7_model.yaml", res, tmp_path / "model.yaml")
+    out = write_model_yaml(CONFIG / "robots" / "arm7_model.yaml", res, tmp_path / "model.yaml")
     cfg, declared, pert, _ = load_model(out, robot)
     assert [(e.name, e.location) for e in declared] == [("gravity_compliance", "joint_2")]
     np.testing.assert_allclose(declared[0].params, [res.effects[0]["parameters"]["compliance"]])
     # sigmas are rescaled for held-out NEES = 3
     assert res.nees_after == pytest.approx(3.0, rel=1e-3)
-    src = yaml.safe_load((CONFIG / "arm7_model.yaml").read_text())
+    src = yaml.safe_load((CONFIG / "robots" / "arm7_model.yaml").read_text())
     assert cfg.perturbations["joint_1"].covariance[0, 0] == pytest.approx(
         (src["perturbations"]["joint_1"]["sigma"][0] * res.sigma_scale) ** 2)
     # a second diagnosis with the effect declared finds nothing new
@@ -225,7 +225,7 @@ SHIPPED = [("no_effect", None, "point"), ("effect_joint_offset", "joint_offset",
 
 @pytest.mark.parametrize("bag,expected,measurement", SHIPPED)
 def test_shipped_bags(bag, expected, measurement):
-    """The CLI on the shipped simulated bags (config/arm7_model.yaml does not declare the effect),
+    """The CLI on the shipped simulated bags (config/robots/arm7_model.yaml does not declare the effect),
     against the tracker points (registration estimated) and the ground-truth poses:
     the right effect at the right location with the truth inside the CI, nothing on no_effect,
     and the out-of-catalogue transmission error left unexplained."""
@@ -238,7 +238,7 @@ def test_shipped_bags(bag, expected, measurement):
 
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        assert main(["diagnose", str(BAGS / bag), "--model", str(CONFIG / "arm7_model.yaml"), "--json",
+        assert main(["diagnose", str(BAGS / bag), "--model", str(CONFIG / "robots" / "arm7_model.yaml"), "--json",
                      "--measurement", measurement]) == 0
     doc = json.loads(out.getvalue())
     truth = yaml.safe_load((BAGS / f"{bag}.truth.yaml").read_text())["effects"]
@@ -259,7 +259,7 @@ def test_motoman_tracker_heldout_rms_goes_down():
     d = DATASETS / "motoman_leica"
     if not (d / "leica_right_hand_6x6x6_dataset.mat").exists():
         pytest.fail(f"Motoman dataset not found in {d} (set PPOE_DATASETS)")
-    from ppoe_core.diagnose import stops_from_motoman
+    from ppoe_core.analysis.diagnose import stops_from_motoman
 
     robot = parse_urdf(d / "motoman_right.urdf")
     stops = stops_from_motoman(d / "leica_right_hand_6x6x6_dataset.mat", robot)
@@ -284,7 +284,7 @@ def test_accelerometer_picks_the_location_the_tracker_cannot(tmp_path):
     """Two co-located mounts (mount_joint, then riser_joint on top of it) bend the same way for
     the tracker; an accelerometer on the plate between them sees only a bending of mount_joint.
     The true bending is at riser_joint: the accelerometer must move the effect there."""
-    urdf = (CONFIG / "arm7.urdf").read_text()
+    urdf = (CONFIG / "robots" / "arm7.urdf").read_text()
     urdf = urdf.replace('''  <joint name="joint_1" type="revolute">
     <parent link="mount_plate"/>''', '''  <joint name="riser_joint" type="fixed">
     <parent link="mount_plate"/>
@@ -319,7 +319,7 @@ _MARKERS = np.array([[0.03, 0.0, 0.05], [-0.03, 0.0, 0.05], [0.0, 0.04, 0.08], [
 
 def _pixel_obs(robot, true_effects=(), n_poses=60, sigma_px=0.5, seed=0):
     """arm7 markers on tool0 seen by camera_optical_frame, true effects, pixel noise sigma_px."""
-    from ppoe_core.diagnose import PixelObs, predict_pixels
+    from ppoe_core.analysis.diagnose import PixelObs, predict_pixels
 
     rng = np.random.default_rng(seed)
     tree = KinematicTree(robot)
@@ -337,7 +337,7 @@ def _pixel_obs(robot, true_effects=(), n_poses=60, sigma_px=0.5, seed=0):
 
 
 def test_pixel_jacobian_matches_finite_differences(robot):
-    from ppoe_core.diagnose import pixel_jacobian, predict_pixels
+    from ppoe_core.analysis.diagnose import pixel_jacobian, predict_pixels
 
     tree = KinematicTree(robot)
     obs = _pixel_obs(robot, n_poses=6, seed=3)
@@ -356,14 +356,14 @@ def test_pixel_jacobian_matches_finite_differences(robot):
 
 
 def _arm_candidates(robot):
-    from ppoe_core.diagnose import pixel_candidates
+    from ppoe_core.analysis.diagnose import pixel_candidates
 
     return [make_effect("joint_offset", "joint_2", robot), make_effect("joint_offset", "joint_4", robot),
             make_effect("link_error", "joint_7", robot)]
 
 
 def test_pixels_find_camera_extrinsics_with_truth_in_ci(robot):
-    from ppoe_core.diagnose import diagnose_pixels, pixel_candidates
+    from ppoe_core.analysis.diagnose import diagnose_pixels, pixel_candidates
 
     truth = {"x": 0.02, "y": 0.0, "z": 0.0, "rx": 0.0, "ry": 0.0, "rz": 0.02}
     eff = make_effect("camera_extrinsics", "camera_joint", robot, list(truth.values()))
@@ -384,7 +384,7 @@ def test_pixels_find_camera_extrinsics_with_truth_in_ci(robot):
 
 def test_pixel_confidence_intervals_cover_monte_carlo(robot):
     """95 % CIs (pose-clustered sandwich) of camera_extrinsics over 40 seeded data sets."""
-    from ppoe_core.diagnose import diagnose_pixels, pixel_candidates
+    from ppoe_core.analysis.diagnose import diagnose_pixels, pixel_candidates
 
     truth = {"x": 0.02, "y": 0.0, "z": 0.0, "rx": 0.0, "ry": 0.0, "rz": 0.02}
     eff = make_effect("camera_extrinsics", "camera_joint", robot, list(truth.values()))
@@ -398,7 +398,7 @@ def test_pixel_confidence_intervals_cover_monte_carlo(robot):
 
 
 def test_pixels_without_error_find_nothing(robot):
-    from ppoe_core.diagnose import diagnose_pixels, pixel_candidates
+    from ppoe_core.analysis.diagnose import diagnose_pixels, pixel_candidates
 
     obs = _pixel_obs(robot, seed=6)
     res = diagnose_pixels(robot, obs, candidates=pixel_candidates(robot, obs) + _arm_candidates(robot))
@@ -407,7 +407,7 @@ def test_pixels_without_error_find_nothing(robot):
 
 
 def test_pixel_marker_behind_camera_is_named(robot):
-    from ppoe_core.diagnose import predict_pixels
+    from ppoe_core.analysis.diagnose import predict_pixels
     from ppoe_core.errors import MeasurementError
 
     obs = _pixel_obs(robot, n_poses=4, seed=7)
@@ -421,7 +421,7 @@ def test_motoman_pixel_heldout_rms_goes_down():
     d = DATASETS / "motoman_leica"
     if not (d / "leica_right_hand_6x6x6_dataset.mat").exists():
         pytest.fail(f"Motoman dataset not found in {d} (set PPOE_DATASETS)")
-    from ppoe_core.diagnose import diagnose_pixels, pixels_from_motoman
+    from ppoe_core.analysis.diagnose import diagnose_pixels, pixels_from_motoman
 
     robot = parse_urdf(d / "motoman_right.urdf")
     obs = pixels_from_motoman(d / "leica_right_hand_6x6x6_dataset.mat", robot, d / "model.yaml")
@@ -457,7 +457,7 @@ def test_shipped_bag_camera_extrinsics_from_tag_images(robot, tmp_path):
     truth = yaml.safe_load((BAGS / "effect_camera_extrinsics.truth.yaml").read_text())["effects"][0]
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        assert main(["diagnose", str(bag), "--model", str(CONFIG / "arm7_model.yaml"), "--json",
+        assert main(["diagnose", str(bag), "--model", str(CONFIG / "robots" / "arm7_model.yaml"), "--json",
                      "--out", str(tmp_path)]) == 0
     doc = json.loads(out.getvalue())
     assert [(e["name"], e["location"], e.get("measurement")) for e in doc["effects"]] == [
@@ -475,7 +475,7 @@ def test_pixel_noise_beyond_the_declared_covariance_is_unexplained(robot):
     """Pixels scattered by 2 px while 0.5 px is declared: nothing is found and the residual is
     reported unexplained; with the declared camera-mount covariance matching a per-pose camera
     jitter, the same kind of scatter is explained."""
-    from ppoe_core.diagnose import diagnose_pixels, pixel_candidates, predict_pixels
+    from ppoe_core.analysis.diagnose import diagnose_pixels, pixel_candidates, predict_pixels
 
     obs = _pixel_obs(robot, seed=8, sigma_px=0.5)
     rng = np.random.default_rng(9)
@@ -504,7 +504,7 @@ def test_pixel_noise_beyond_the_declared_covariance_is_unexplained(robot):
 def test_pixel_covariance_matches_monte_carlo(robot):
     """First-order pixel covariance of declared perturbations (camera mount, joint_2) and joint
     noise vs the sample covariance of pixels predicted with drawn perturbations (seeded)."""
-    from ppoe_core.diagnose import pixel_covariance, predict_pixels
+    from ppoe_core.analysis.diagnose import pixel_covariance, predict_pixels
 
     tree = KinematicTree(robot)
     obs = _pixel_obs(robot, n_poses=1, seed=10)
@@ -563,18 +563,18 @@ def test_cli_pixels_off_and_on_without_tags(tmp_path):
     import contextlib
     import io
 
-    from ppoe_core.cli_diagnose import add_arguments, run
+    from ppoe_core.cli.diagnose import add_arguments, run
     from ppoe_core.errors import BagError
     from ppoe_ros.cli import main
 
     bag = BAGS / "effect_camera_extrinsics"
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        assert main(["diagnose", str(bag), "--model", str(CONFIG / "arm7_model.yaml"), "--json",
+        assert main(["diagnose", str(bag), "--model", str(CONFIG / "robots" / "arm7_model.yaml"), "--json",
                      "--pixels", "off"]) == 0
     doc = json.loads(out.getvalue())
     assert doc["effects"] == [] and "pixels" not in doc
-    model = yaml.safe_load((CONFIG / "arm7_model.yaml").read_text())
+    model = yaml.safe_load((CONFIG / "robots" / "arm7_model.yaml").read_text())
     model.pop("tags")
     (tmp_path / "notags.yaml").write_text(yaml.safe_dump(model))
     ap = argparse.ArgumentParser()
@@ -602,7 +602,7 @@ def _tilted(robot, tilts, bending=None, n=80, seed=30):
 
 
 def test_imu_base_tilt_per_group_found_with_truth_in_ci(robot):
-    from ppoe_core.diagnose import diagnose_imu
+    from ppoe_core.analysis.diagnose import diagnose_imu
 
     tilts = [(1.5e-3, -0.8e-3), (-0.5e-3, 1.0e-3)]
     bending = (3e-5, 2e-5)
@@ -621,7 +621,7 @@ def test_imu_base_tilt_per_group_found_with_truth_in_ci(robot):
 
 
 def test_imu_without_tilt_finds_nothing(robot):
-    from ppoe_core.diagnose import diagnose_imu
+    from ppoe_core.analysis.diagnose import diagnose_imu
 
     res = diagnose_imu(robot, _tilted(robot, [None, None]))
     assert res["effects"] == [], res["steps"]
@@ -630,7 +630,7 @@ def test_imu_without_tilt_finds_nothing(robot):
 def test_imu_base_tilt_jacobian_matches_small_angle_formula(robot):
     """The finite-difference Jacobian of the predicted tilt w.r.t. the base tilt against the
     analytic small-angle derivative: u = R^T Exp(-w) z, du/dw_x = R^T e_y, du/dw_y = -R^T e_x."""
-    from ppoe_core.diagnose import _imu_jacobian
+    from ppoe_core.analysis.diagnose import _imu_jacobian
 
     stops = _tilted(robot, [None], n=10)
     tree = KinematicTree(robot)
@@ -645,7 +645,7 @@ def test_imu_base_tilt_jacobian_matches_small_angle_formula(robot):
 def test_imu_tilt_covariance_matches_monte_carlo(robot):
     """Seeded Monte Carlo: tilt residuals of an accelerometer on arm_link_4 under a declared
     perturbation of joint_2 and joint noise, against imu_tilt_covariance (first order)."""
-    from ppoe_core.diagnose import _imu_tilt_raw, imu_tilt_covariance
+    from ppoe_core.analysis.diagnose import _imu_tilt_raw, imu_tilt_covariance
 
     tree = KinematicTree(robot)
     stops = _tilted(robot, [None], n=3, seed=40)

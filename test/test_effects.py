@@ -1,4 +1,4 @@
-"""Tests of ppoe_core.effects: analytic Jacobians vs central finite differences, config round trip."""
+"""Tests of ppoe_core.model.effects: analytic Jacobians vs central finite differences, config round trip."""
 
 from __future__ import annotations
 
@@ -8,17 +8,17 @@ import numpy as np
 import pytest
 
 from ppoe_core import lie
-from ppoe_core.effects import (EFFECT_NAMES, KinematicTree, apply_corrections, effect_from_config,
+from ppoe_core.model.effects import (EFFECT_NAMES, KinematicTree, apply_corrections, effect_from_config,
                                make_effect)
 from ppoe_core.errors import ModelConfigError, UnknownJointError
-from ppoe_core.urdf import parse_urdf
+from ppoe_core.robot.urdf import parse_urdf
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 
 
 @pytest.fixture(scope="module")
 def tree() -> KinematicTree:
-    return KinematicTree(parse_urdf(CONFIG / "arm7.urdf"))
+    return KinematicTree(parse_urdf(CONFIG / "robots" / "arm7.urdf"))
 
 
 def _random_q(tree: KinematicTree, rng: np.random.Generator, n: int = 4) -> dict[str, np.ndarray]:
@@ -183,9 +183,9 @@ def test_context_effects_require_their_context(tree):
 def test_ppoe_model_applies_effects_like_the_tree():
     """PPOEModel (model.py) builds the model YAML's effects with effect_from_config and must
     place them exactly as KinematicTree does (eq. 16 hooks), mimic joints included."""
-    from ppoe_core.model import PPOEModel
+    from ppoe_core.model.ppoe import PPOEModel
 
-    urdf = (CONFIG / "arm7.urdf").read_text()
+    urdf = (CONFIG / "robots" / "arm7.urdf").read_text()
     entries = [
         {"name": "gravity_compliance", "location": "joint_2", "parameters": {"compliance": 3e-4}},
         {"name": "mount_bending", "location": "mount_joint",

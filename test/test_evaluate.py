@@ -1,4 +1,4 @@
-"""Tests of ``ppoe evaluate`` (ppoe_core.evaluate, ppoe_core.cli_evaluate).
+"""Tests of ``ppoe evaluate`` (ppoe_core.analysis.evaluate, ppoe_core.cli.evaluate).
 
 * metric helpers: Kabsch, lateral / rotation errors, the reflector covariance against
   Monte-Carlo (seeded), NEES statistics;
@@ -25,10 +25,12 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ppoe_core import lie, tags
-from ppoe_core.bagio import BagWriter
+from ppoe_core import lie
+
+from ppoe_core.sensing import tags
+from ppoe_core.io.bagio import BagWriter
 from ppoe_core.errors import BagError, ModelConfigError, PpoeError
-from ppoe_core.evaluate import (
+from ppoe_core.analysis.evaluate import (
     REPLAY_SETTINGS,
     EvaluateOptions,
     ProgressBar,
@@ -43,7 +45,7 @@ from ppoe_core.evaluate import (
     rotation_errors,
     write_report,
 )
-from ppoe_core.tag_observations import centre_from_corners, observe_tags
+from ppoe_core.sensing.tag_rows import centre_from_corners, observe_tags
 
 REPO = Path(__file__).resolve().parents[1]
 DATASETS = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets"))
@@ -104,7 +106,7 @@ def test_nees_stats_consistent_chi2():
 
 
 def test_json_document_is_strict():
-    from ppoe_core.evaluate import Evaluation
+    from ppoe_core.analysis.evaluate import Evaluation
 
     ev = Evaluation({"a": float("nan"), "b": [np.float64(1.5), np.inf], "c": {"n": np.int64(3)}})
     assert json.dumps(ev.to_dict(), allow_nan=False) == '{"a": null, "b": [1.5, null], "c": {"n": 3}}'
@@ -129,11 +131,11 @@ def test_progress_bar_only_when_enabled():
 @pytest.fixture(scope="module")
 def small_table1_bag(tmp_path_factory):
     """Experiment I of Table I with 5 stops (the shipped scenario, shortened), in a tmp dir."""
-    from ppoe_core.simulate import simulate
+    from ppoe_core.sim.simulate import simulate
 
     sc = yaml.safe_load((REPO / "bags" / "table1_exp1.yaml").read_text())
-    sc["robot"]["urdf"] = str(REPO / "config" / "rover.urdf")
-    sc["robot"]["model"] = str(REPO / "config" / "rover_model.yaml")
+    sc["robot"]["urdf"] = str(REPO / "config" / "robots" / "rover.urdf")
+    sc["robot"]["model"] = str(REPO / "config" / "robots" / "rover_model.yaml")
     sc["trajectory"]["random_stops"]["count"] = 5
     d = tmp_path_factory.mktemp("sim")
     (d / "scenario.yaml").write_text(yaml.safe_dump(sc))
@@ -142,7 +144,7 @@ def small_table1_bag(tmp_path_factory):
 
 
 def test_evaluate_simulated_tags_improve_on_fk(small_table1_bag):
-    ev = evaluate_bag(small_table1_bag, REPO / "config" / "rover_model.yaml")
+    ev = evaluate_bag(small_table1_bag, REPO / "config" / "robots" / "rover_model.yaml")
     s = ev.summary
     assert s["ground_truth"]["kind"] == "pose" and s["ground_truth"]["samples"] == 5
     fk, ppoe = s["methods"]["fk"], s["methods"]["ppoe"]
@@ -160,7 +162,7 @@ def test_cli_evaluate_json_and_out(small_table1_bag, tmp_path, capsys):
     from ppoe_ros.cli import main
 
     out = tmp_path / "report"
-    rc = main(["evaluate", str(small_table1_bag), "--model", str(REPO / "config" / "rover_model.yaml"),
+    rc = main(["evaluate", str(small_table1_bag), "--model", str(REPO / "config" / "robots" / "rover_model.yaml"),
                "--out", str(out), "--json", "--no-progress"])
     assert rc == 0
     captured = capsys.readouterr()
@@ -238,7 +240,7 @@ def test_tiny_bag_fk_error_is_exact(tmp_path):
 @needs_data
 def test_evaluate_hilti_reproduces_readme_baseline(tmp_path):
     """flat.yaml through import + evaluate: cross-set per-station registration, RMS 3D 8.64 mm."""
-    from ppoe_core.importers.hilti import import_hilti
+    from ppoe_core.io.importers.hilti import import_hilti
 
     res = import_hilti(DATASETS / "hilti_stationing" / "flat.yaml", tmp_path / "flat")
     ev = evaluate_bag(tmp_path / "flat", res["model"], EvaluateOptions(fit_set="cross"))
@@ -255,7 +257,7 @@ def test_evaluate_hilti_reproduces_readme_baseline(tmp_path):
 @needs_data
 def test_evaluate_motoman_marker_fusion(tmp_path):
     """Right-arm marker pixels vs Leica: registration on even poses, scored on odd ones."""
-    from ppoe_core.importers.motoman import import_motoman
+    from ppoe_core.io.importers.motoman import import_motoman
 
     d = DATASETS / "motoman_leica"
     # the wall set (25 poses, 311 marker points) keeps the test short; docs/results.md has all four
@@ -280,7 +282,7 @@ def test_evaluate_motoman_marker_fusion(tmp_path):
 
 def test_fusion_settings_from_node_params_file(tmp_path, small_table1_bag):
     """A fusion-node parameter file sets the replay's pipeline; bad keys/values are refused."""
-    from ppoe_core.fusion_pipeline import FUSION_SETTINGS
+    from ppoe_core.estimation.pipeline import FUSION_SETTINGS
 
     pf = tmp_path / "fusion.yaml"
     pf.write_text(yaml.safe_dump({"fusion_node": {"ros__parameters": {
@@ -289,8 +291,8 @@ def test_fusion_settings_from_node_params_file(tmp_path, small_table1_bag):
     assert fusion == {"use_tag_corners": False, "max_iterations": 2}  # node-only keys ignored
     opts = EvaluateOptions(fusion=fusion)
     assert opts.fusion_settings()["gate_probability"] == FUSION_SETTINGS["gate_probability"]
-    ev_c = evaluate_bag(small_table1_bag, REPO / "config" / "rover_model.yaml", opts)
-    ev_d = evaluate_bag(small_table1_bag, REPO / "config" / "rover_model.yaml")
+    ev_c = evaluate_bag(small_table1_bag, REPO / "config" / "robots" / "rover_model.yaml", opts)
+    ev_d = evaluate_bag(small_table1_bag, REPO / "config" / "robots" / "rover_model.yaml")
     assert ev_c.summary["fusion_settings"]["use_tag_corners"] is False
     # centres only: fewer measured coordinates, so a different (here: not identical) estimate
     assert ev_c.summary["methods"]["ppoe"]["lateral"]["mean"] != ev_d.summary["methods"]["ppoe"]["lateral"]["mean"]
@@ -307,21 +309,21 @@ def test_fusion_settings_from_node_params_file(tmp_path, small_table1_bag):
 
 
 def test_default_settings_are_the_fusion_nodes(small_table1_bag):
-    """Without overrides the replay runs the fusion node's defaults (ppoe_core.fusion_pipeline
+    """Without overrides the replay runs the fusion node's defaults (ppoe_core.estimation.pipeline
     FUSION_SETTINGS, which the node declares), e.g. max_pending 200 and the per-source
     min_interval; a bad value is refused by make_pipeline naming the setting."""
-    from ppoe_core.fusion_pipeline import FUSION_SETTINGS
+    from ppoe_core.estimation.pipeline import FUSION_SETTINGS
 
     fs = EvaluateOptions().fusion_settings()
     assert {k: fs[k] for k in FUSION_SETTINGS} == FUSION_SETTINGS
     assert set(fs) - set(FUSION_SETTINGS) == set(REPLAY_SETTINGS)
     with pytest.raises(PpoeError, match="min_interval"):
-        evaluate_bag(small_table1_bag, REPO / "config" / "rover_model.yaml",
+        evaluate_bag(small_table1_bag, REPO / "config" / "robots" / "rover_model.yaml",
                      EvaluateOptions(fusion={"min_interval": -1.0}))
 
 
 # ----------------------------------------------------------------------------- tag observations
-# ppoe_core.tag_observations.observe_tags is what the tag bearing node publishes and what
+# ppoe_core.sensing.tag_rows.observe_tags is what the tag bearing node publishes and what
 # evaluate fuses from a bag's images (one function, imported by both).
 
 _K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
@@ -379,11 +381,11 @@ def test_evaluate_contact_bag_replays_wrench_through_the_contact_detector():
     """``ppoe evaluate bags/contact``: /wrench -> ContactDetector -> the model YAML's table plane
     -> fusion: the fused fingertip is closer to ground truth than FK, and along the table normal
     (what a contact observes) the error almost vanishes on the contact stops."""
-    from ppoe_core.bagio import read_bag
-    from ppoe_core.config import load_contact_config
-    from ppoe_core.contact import ContactDetector, contact_stamps
+    from ppoe_core.io.bagio import read_bag
+    from ppoe_core.robot.config import load_contact_config
+    from ppoe_core.sensing.contact import ContactDetector, contact_stamps
 
-    bag, model = REPO / "bags" / "contact", REPO / "config" / "humanoid_model.yaml"
+    bag, model = REPO / "bags" / "contact", REPO / "config" / "robots" / "humanoid_model.yaml"
     ev = evaluate_bag(bag, model)
     meas = ev.summary["measurements"]
     contact = load_contact_config(model)
@@ -408,22 +410,22 @@ def test_evaluate_contact_bag_replays_wrench_through_the_contact_detector():
 def test_cli_contact_thresholds_and_settings(capsys):
     """``--set force_threshold=...`` reaches the replayed contact detector: above the 8-15 N
     presses nothing is in contact and only FK is scored."""
-    from ppoe_core import cli_evaluate
+    from ppoe_core.cli import evaluate as cli_evaluate
 
     parser = argparse.ArgumentParser()
     cli_evaluate.add_arguments(parser)
-    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "humanoid_model.yaml"),
+    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "robots" / "humanoid_model.yaml"),
                               "--set", "force_threshold=100.0", "--set", "release_threshold=50", "--json",
                               "--no-progress"])
     assert cli_evaluate.run(args) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["measurements"]["contact_planes"] == 0 and doc["measurements"]["wrench"]["contacts"] == 0
     assert list(doc["methods"]) == ["fk"]
-    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "humanoid_model.yaml"),
+    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "robots" / "humanoid_model.yaml"),
                               "--set", "release_threshold=6.0", "--no-progress"])
     with pytest.raises(ModelConfigError, match="humanoid_model.yaml: contact: release_threshold .* must be below"):
         cli_evaluate.run(args)
-    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "humanoid_model.yaml"),
+    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "robots" / "humanoid_model.yaml"),
                               "--set", "no_such_key=1", "--no-progress"])
     with pytest.raises(ModelConfigError, match="unknown fusion setting"):
         cli_evaluate.run(args)
@@ -445,11 +447,11 @@ def test_evaluate_matches_live_node_pipeline(tmp_path):
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from ros_helpers import NodeProcess, Probe, ros_env, write_params_file
 
-    from ppoe_core.bagio import read_bag
-    from ppoe_ros.ros_common import matrix_from_pose_msg
+    from ppoe_core.io.bagio import read_bag
+    from ppoe_ros.common import matrix_from_pose_msg
 
     bag = REPO / "bags" / "table1_exp1"
-    model = REPO / "config" / "rover_model.yaml"
+    model = REPO / "config" / "robots" / "rover_model.yaml"
     env = ros_env(tmp_path)
     common = {"model_file": str(model), "diagnostics_period": 1.0}
     pf_fusion = write_params_file(tmp_path / "fusion.yaml", {**common, "correction_timeout": 0.0})

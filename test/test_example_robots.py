@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import yaml
 
-from ppoe_core.config import load_model_config
-from ppoe_core.model import PPOEModel
-from ppoe_core.urdf import parse_urdf
+from ppoe_core.robot.config import load_model_config
+from ppoe_core.model.ppoe import PPOEModel
+from ppoe_core.robot.urdf import parse_urdf
 
-CONFIG = Path(__file__).resolve().parents[1] / "config"
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "robots"
 MODEL_YAMLS = sorted(CONFIG.glob("*_model.yaml"))
 URDFS = sorted(CONFIG.glob("*.urdf"))
 DEG = math.pi / 180.0

@@ -11,14 +11,14 @@ from hypothesis import strategies as st
 
 from ppoe_core import lie
 from ppoe_core.errors import CovarianceError, MeasurementError
-from ppoe_core.fusion import (
+from ppoe_core.estimation.fusion import (
     iterated_update,
     nees,
     nees_bounds,
     nis,
     nis_bounds,
 )
-from ppoe_core.measurements import (
+from ppoe_core.estimation.measurements import (
     ContactPlane,
     MeasurementModel,
     PointObservation,
@@ -320,7 +320,7 @@ def test_tracker_point_and_chained_accelerometer_fused_consistently():
     tool is uncertain (ChainedObservation), fused in one StackedObservation update.  When the
     link error is independent of the state (the case the design is exact for), the mean NEES
     over 300 seeded trials lies inside its 95 % bounds and the tilt is corrected."""
-    from ppoe_core.measurements import ChainedObservation, GravityObservation, StackedObservation
+    from ppoe_core.estimation.measurements import ChainedObservation, GravityObservation, StackedObservation
 
     rng = np.random.default_rng(11)
     X0 = _pose([0.5, 0.2, 0.8], [0.3, -0.2, 1.0])

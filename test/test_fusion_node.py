@@ -15,9 +15,9 @@ from sensor_msgs.msg import CameraInfo, JointState, PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
 from ppoe_core import PPOEModel, lie  # noqa: E402
-from ppoe_core import measurements as mm  # noqa: E402
-from ppoe_ros.ros_common import matrix_from_pose_msg, ns_to_stamp, pose_cov_stamped_msg  # noqa: E402
-from ppoe_ros.tag_bearing_node import cloud_from_observations  # noqa: E402
+from ppoe_core.estimation import measurements as mm  # noqa: E402
+from ppoe_ros.common import matrix_from_pose_msg, ns_to_stamp, pose_cov_stamped_msg  # noqa: E402
+from ppoe_ros.nodes.tag_bearing_node import cloud_from_observations  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config"
@@ -47,7 +47,7 @@ def _observation_rows(model, T_base_tool_true, rng, pixel_sigma=0.5):
 def test_fusion_node_live_corrects_prior_drops_stale_and_survives_bad_input(tmp_path):
     from ros_helpers import NodeProcess, Probe, ros_env, write_params_file
 
-    model = PPOEModel.from_files(CONFIG / "rover.urdf", CONFIG / "rover_model.yaml")
+    model = PPOEModel.from_files(CONFIG / "robots" / "rover.urdf", CONFIG / "robots" / "rover_model.yaml")
     T_prior, P_prior = model.fk(ROVER_Q, "base_link", "tool_link")
     cov_ros = lie.cov_local_to_ros(T_prior, P_prior)
     rng = np.random.default_rng(2024)
@@ -58,8 +58,8 @@ def test_fusion_node_live_corrects_prior_drops_stale_and_survives_bad_input(tmp_
 
     env = ros_env(tmp_path)
     pf = write_params_file(tmp_path / "fusion.yaml", {
-        "model_file": str(CONFIG / "rover_model.yaml"),
-        "robot_description": (CONFIG / "rover.urdf").read_text(),
+        "model_file": str(CONFIG / "robots" / "rover_model.yaml"),
+        "robot_description": (CONFIG / "robots" / "rover.urdf").read_text(),
         "diagnostics_period": 0.2, "log_throttle": 0.0, "buffer_duration": 1.0,
     })
     names = list(ROVER_Q)
@@ -212,7 +212,7 @@ def _errors_at_ground_truth(bag: Path, recorded: Path, window: float = 0.8):
     """Per ground-truth pose: position error vector [m] of the prior and of the fused pose, both at
     the newest fused stamp within ``window`` s after the ground-truth stamp (same stop: the
     joints are checked to be unchanged)."""
-    from ppoe_core.bagio import read_bag
+    from ppoe_core.io.bagio import read_bag
 
     src, rec = read_bag(bag), read_bag(recorded)
     prior = rec.poses_with_covariance["/ppoe/pose"]
@@ -236,7 +236,7 @@ def _errors_at_ground_truth(bag: Path, recorded: Path, window: float = 0.8):
 
 
 def _diag(logs_bag: Path, node: str) -> dict[str, str]:
-    from ppoe_core.bagio import iter_raw, deserialize
+    from ppoe_core.io.bagio import iter_raw, deserialize
 
     last = {}
     for raw in iter_raw(logs_bag, ["/diagnostics"]):
@@ -251,7 +251,7 @@ def _diag(logs_bag: Path, node: str) -> dict[str, str]:
 @pytest.mark.timeout(150)
 def test_end_to_end_bag_with_tags(tmp_path):
     bag = REPO / "bags" / "table1_exp1"
-    model = str(CONFIG / "rover_model.yaml")
+    model = str(CONFIG / "robots" / "rover_model.yaml")
     nodes = [
         ("kinematics_node", {"model_file": model, "qos_depth": 5000}),
         ("tag_bearing_node", {"model_file": model, "qos_depth": 50}),  # tag family and ids from the model
@@ -274,7 +274,7 @@ def test_end_to_end_bag_with_tags(tmp_path):
 @pytest.mark.timeout(150)
 def test_end_to_end_bag_with_contact(tmp_path):
     bag = REPO / "bags" / "contact"
-    model = str(CONFIG / "humanoid_model.yaml")
+    model = str(CONFIG / "robots" / "humanoid_model.yaml")
     nodes = [
         ("kinematics_node", {"model_file": model, "qos_depth": 5000}),
         ("contact_node", {"model_file": model}),
@@ -285,7 +285,7 @@ def test_end_to_end_bag_with_contact(tmp_path):
     e_prior, e_fused = np.linalg.norm(v_prior, axis=1), np.linalg.norm(v_fused, axis=1)
     # error along the table normal (the direction a contact observes), on the stops where the
     # fusion changed the pose (the contact stops; free stops pass the prior unchanged)
-    plane = PPOEModel.from_files(CONFIG / "humanoid.urdf", CONFIG / "humanoid_model.yaml").config.contact
+    plane = PPOEModel.from_files(CONFIG / "robots" / "humanoid.urdf", CONFIG / "robots" / "humanoid_model.yaml").config.contact
     normal = plane.T_frame_plane[:3, 2]
     touched = np.linalg.norm(v_fused - v_prior, axis=1) > 1e-9
     n_prior, n_fused = np.abs(v_prior[touched] @ normal), np.abs(v_fused[touched] @ normal)
@@ -308,8 +308,8 @@ def test_config_file_documents_every_parameter(node):
 
     import yaml
 
-    params = importlib.import_module(f"ppoe_ros.{node}").PARAMS
-    path = CONFIG / f"{node}.yaml"
+    params = importlib.import_module(f"ppoe_ros.nodes.{node}").PARAMS
+    path = CONFIG / "nodes" / f"{node}.yaml"
     values = yaml.safe_load(path.read_text())[node]["ros__parameters"]
     assert set(values) == {p.name for p in params}
     examples = {"fusion_node": {"model_file"}, "tag_bearing_node": set()}[node]
@@ -325,7 +325,7 @@ def test_config_file_documents_every_parameter(node):
 
 
 def test_joint_buffer_merges_partial_messages_and_looks_up_by_stamp():
-    from ppoe_ros.fusion_node import _JointBuffer
+    from ppoe_ros.nodes.fusion_node import _JointBuffer
 
     jb = _JointBuffer(duration_ns=1_000_000_000)
     jb.set_names(["a", "b", "c"])

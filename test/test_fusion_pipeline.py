@@ -1,4 +1,4 @@
-"""Unit tests of ppoe_core.fusion_pipeline without ROS: buffer, interpolation, carry/drop."""
+"""Unit tests of ppoe_core.estimation.pipeline without ROS: buffer, interpolation, carry/drop."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, PpoeError
-from ppoe_core.fusion_pipeline import (
+from ppoe_core.estimation.pipeline import (
     CarriedCorrection,
     CorrectionPolicy,
     FusionPipeline,
@@ -374,8 +374,8 @@ def test_pipeline_fused_error_monte_carlo_consistency():
 
 from pathlib import Path  # noqa: E402
 
-from ppoe_core import measurements as mm  # noqa: E402
-from ppoe_core.fusion_pipeline import ModelUpdater, PlaneContact, TagPoints  # noqa: E402
+from ppoe_core.estimation import measurements as mm  # noqa: E402
+from ppoe_core.estimation.pipeline import ModelUpdater, PlaneContact, TagPoints  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 
@@ -388,7 +388,7 @@ ROVER_Q = {"pan_joint": -0.378, "tilt_joint": 1.477, "arm_joint_1": -0.247, "arm
 def rover():
     from ppoe_core import PPOEModel
 
-    return PPOEModel.from_files(CONFIG / "rover.urdf", CONFIG / "rover_model.yaml")
+    return PPOEModel.from_files(CONFIG / "robots" / "rover.urdf", CONFIG / "robots" / "rover_model.yaml")
 
 
 def rover_tag_points(model, T_base_tool_true, q, rng, pixel_sigma=0.5, f=600.0):
@@ -474,7 +474,7 @@ def test_model_updater_contact_corrects_distance_to_plane():
     much closer to the plane (along its normal) than the prior."""
     from ppoe_core import PPOEModel
 
-    model = PPOEModel.from_files(CONFIG / "humanoid.urdf", CONFIG / "humanoid_model.yaml")
+    model = PPOEModel.from_files(CONFIG / "robots" / "humanoid.urdf", CONFIG / "robots" / "humanoid_model.yaml")
     base, tool = model.config.frames.base, model.config.frames.tool
     names = model.chain_joints(base, tool)
     q = {n: 0.2 for n in names}
@@ -524,8 +524,8 @@ def test_posterior_cost_equals_prior_nis_for_a_linear_model():
     T = _random_pose(rng)
     obs = mm.PoseObservation(np.diag(rng.uniform(1e-6, 1e-5, 6)))
     z = T @ lie.exp(rng.multivariate_normal(np.zeros(6), P) * 1e-2)
-    from ppoe_core.fusion import iterated_update
-    from ppoe_core.fusion_pipeline import posterior_cost
+    from ppoe_core.estimation.fusion import iterated_update
+    from ppoe_core.estimation.pipeline import posterior_cost
 
     res = iterated_update(T, P, z, obs, max_iterations=10, gate_probability=None)
     cost = posterior_cost(obs, res.T, res.residual, res.correction, P)
@@ -548,7 +548,7 @@ def test_two_cameras_on_one_topic_at_the_same_stamp_are_both_used():
     """Motoman bags: both cameras publish on /tag_bearing/observations with the same stamp and
     their own frame_id.  The source is topic + frame_id, so with the default min_interval
     neither throttles nor replaces the other: each corrects its own error component."""
-    from ppoe_core.fusion_pipeline import FUSION_SETTINGS, source_key
+    from ppoe_core.estimation.pipeline import FUSION_SETTINGS, source_key
 
     rng, T_true, T_prior, P, upd, pipe = _setup(min_interval=FUSION_SETTINGS["min_interval"])
     for k in range(3):
@@ -576,7 +576,7 @@ def test_two_cameras_on_one_topic_at_the_same_stamp_are_both_used():
 
 def test_make_pipeline_settings_and_node_defaults_agree(rover):
     """The node's parameter defaults and ppoe evaluate's replay use FUSION_SETTINGS."""
-    from ppoe_core.fusion_pipeline import FUSION_SETTINGS, make_pipeline
+    from ppoe_core.estimation.pipeline import FUSION_SETTINGS, make_pipeline
 
     pipe = make_pipeline(rover, "base_link", "tool_link", {"min_interval": 0.2, "correction_decay": "step"})
     assert pipe.min_interval == 0.2 and pipe.policy.decay == "step"
@@ -587,7 +587,7 @@ def test_make_pipeline_settings_and_node_defaults_agree(rover):
     with pytest.raises(PpoeError, match="decay"):
         make_pipeline(rover, "base_link", "tool_link", {"correction_decay": "exp"})
     rclpy = pytest.importorskip("rclpy")  # noqa: F841
-    from ppoe_ros.fusion_node import PARAMS
+    from ppoe_ros.nodes.fusion_node import PARAMS
 
     defaults = {p.name: p.default for p in PARAMS}
     for k, v in FUSION_SETTINGS.items():

@@ -1,4 +1,4 @@
-"""Tests of ``ppoe import hilti|motoman`` (ppoe_core.importers).
+"""Tests of ``ppoe import hilti|motoman`` (ppoe_core.io.importers).
 
 The dataset tests read ``$PPOE_DATASETS`` (default ``<repo>/../shared/datasets``) and are
 marked ``datasets``; they are skipped only when that folder is absent.  Nothing they write is
@@ -17,11 +17,11 @@ import pytest
 import scipy.io
 import yaml
 
-from ppoe_core.bagio import read_bag
+from ppoe_core.io.bagio import read_bag
 from ppoe_core.errors import DatasetError
-from ppoe_core.importers import read_stop_info
-from ppoe_core.importers import hilti as hi
-from ppoe_core.importers import motoman as mo
+from ppoe_core.io.importers import read_stop_info
+from ppoe_core.io.importers import hilti as hi
+from ppoe_core.io.importers import motoman as mo
 
 DATASETS = Path(os.environ.get("PPOE_DATASETS", Path(__file__).resolve().parents[2] / "shared" / "datasets"))
 HILTI = DATASETS / "hilti_stationing"
@@ -242,8 +242,8 @@ def test_motoman_counts_match_readme(moto_bag):
 @pytest.mark.datasets
 @needs_data
 def test_motoman_model_yaml_validates(moto_bag):
-    from ppoe_core.config import load_model_config
-    from ppoe_core.urdf import parse_urdf
+    from ppoe_core.robot.config import load_model_config
+    from ppoe_core.robot.urdf import parse_urdf
 
     out, res = moto_bag
     robot = parse_urdf(MOTOMAN / "motoman_right.urdf")
@@ -257,8 +257,8 @@ def test_motoman_model_yaml_validates(moto_bag):
 def test_motoman_tracker_and_reprojection_baselines():
     """README (i) 0.34 mm Leica RMS and (ii) 23.5 / 25.0 px marker RMS, with our model."""
     from ppoe_core.lie import fit_rigid as kabsch
-    from ppoe_core.model import PPOEModel
-    from ppoe_core.tags import project_points
+    from ppoe_core.model.ppoe import PPOEModel
+    from ppoe_core.sensing.tags import project_points
 
     ds = mo.load_motoman(MOTOMAN / "leica_right_hand_6x6x6_dataset.mat")
     model = PPOEModel.from_files(MOTOMAN / "motoman_right.urdf")
@@ -291,7 +291,7 @@ def test_motoman_tracker_and_reprojection_baselines():
 def test_hilti_nominal_baseline_cross_set():
     """README: flat.yaml, cross set, per-station Kabsch: RMS 3D 8.64 mm, max 24.66 mm (mimic-aware FK)."""
     from ppoe_core.lie import fit_rigid as kabsch
-    from ppoe_core.model import PPOEModel
+    from ppoe_core.model.ppoe import PPOEModel
 
     ds = hi.load_hilti(HILTI / "flat.yaml")
     model = PPOEModel.from_files(HILTI / "trailblazer.urdf")

@@ -1,7 +1,7 @@
 """kinematics_node through live topics: a separate process in an isolated DDS domain.
 
-The node gets the URDF of config/arm7.urdf on the latched /robot_description topic
-and config/arm7_model.yaml; its /ppoe/pose output must equal PPOEModel.fk (pose and
+The node gets the URDF of config/robots/arm7.urdf on the latched /robot_description topic
+and config/robots/arm7_model.yaml; its /ppoe/pose output must equal PPOEModel.fk (pose and
 cov_ros) and ``ppoe fk`` for the same joints; bad joint states are logged, counted
 on /diagnostics, and the node keeps publishing on good input.
 """
@@ -26,13 +26,13 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from ppoe_core import lie  # noqa: E402
-from ppoe_core.model import PPOEModel  # noqa: E402
-from ppoe_ros.ros_common import LATCHED_QOS, ns_to_stamp, pose_cov_from_msg, stamp_to_ns  # noqa: E402
+from ppoe_core.model.ppoe import PPOEModel  # noqa: E402
+from ppoe_ros.common import LATCHED_QOS, ns_to_stamp, pose_cov_from_msg, stamp_to_ns  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-URDF = REPO / "config" / "arm7.urdf"
-MODEL = REPO / "config" / "arm7_model.yaml"
+URDF = REPO / "config" / "robots" / "arm7.urdf"
+MODEL = REPO / "config" / "robots" / "arm7_model.yaml"
 ARM = [f"joint_{i}" for i in range(1, 8)]
 EXTRA = "camera_optical_frame"
 
@@ -261,7 +261,7 @@ class _FakeNode:
 
 
 def test_node_stats_throttles_and_counts(monkeypatch: pytest.MonkeyPatch) -> None:
-    from ppoe_ros import ros_common
+    from ppoe_ros import common as ros_common
 
     now = [100.0]
     monkeypatch.setattr(ros_common.time, "monotonic", lambda: now[0])
@@ -282,7 +282,7 @@ def test_node_stats_throttles_and_counts(monkeypatch: pytest.MonkeyPatch) -> Non
 
 def test_guarded_counts_bad_and_unexpected_errors() -> None:
     from ppoe_core.errors import JointValueError
-    from ppoe_ros.ros_common import NodeStats, guarded
+    from ppoe_ros.common import NodeStats, guarded
 
     node = _FakeNode()
     stats = NodeStats(node, throttle_sec=0.0)
@@ -303,7 +303,7 @@ def test_guarded_counts_bad_and_unexpected_errors() -> None:
 
 
 def test_pose_cov_message_round_trip() -> None:
-    from ppoe_ros.ros_common import pose_cov_stamped_msg
+    from ppoe_ros.common import pose_cov_stamped_msg
 
     rng = np.random.default_rng(11)
     for _ in range(50):
@@ -321,8 +321,8 @@ def test_pose_cov_message_round_trip() -> None:
 def test_param_spec_validation_and_descriptor() -> None:
     from rcl_interfaces.msg import ParameterType
 
-    from ppoe_ros.kinematics_node import PARAMS
-    from ppoe_ros.ros_common import ParamSpec, check_length
+    from ppoe_ros.nodes.kinematics_node import PARAMS
+    from ppoe_ros.common import ParamSpec, check_length
 
     spec = ParamSpec("rate", 1.0, "a rate", unit="Hz", min_value=0.0, max_value=10.0)
     assert spec.validate(5.0) is None
@@ -339,7 +339,7 @@ def test_param_spec_validation_and_descriptor() -> None:
 
 def test_bag_play_node_record_equals_fk(tmp_path: Path, model) -> None:
     """ppoe play (with /clock) -> kinematics_node (use_sim_time) -> ppoe record; the recorded poses equal fk."""
-    from ppoe_core.bagio import BagWriter, read_bag
+    from ppoe_core.io.bagio import BagWriter, read_bag
 
     rng = np.random.default_rng(5)
     q_all = rng.uniform(-1.5, 1.5, (60, 7))
@@ -386,7 +386,7 @@ def test_unknown_frame_or_model_file_refused_at_startup(tmp_path: Path) -> None:
     from rclpy.parameter import Parameter
 
     from ppoe_core.errors import ModelConfigError, UnknownFrameError, UnknownJointError
-    from ppoe_ros.kinematics_node import KinematicsNode
+    from ppoe_ros.nodes.kinematics_node import KinematicsNode
 
     env = ros_env(tmp_path)
     urdf = Parameter("robot_description", value=URDF.read_text())

@@ -52,7 +52,8 @@ def test_every_executable_exists_in_setup_py() -> None:
     # each entry point's module exists in the package
     for name in executables:
         module = scripts[name].split(":")[0]
-        assert (REPO / (module.replace(".", "/") + ".py")).is_file(), f"{name}: module {module} missing"
+        path = REPO / module.replace(".", "/")
+        assert path.with_suffix(".py").is_file() or (path / "__init__.py").is_file(), f"{name}: module {module} missing"
 
 
 def test_every_config_file_named_exists() -> None:
@@ -60,7 +61,7 @@ def test_every_config_file_named_exists() -> None:
     named = sorted({n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)
                     and isinstance(n.value, str) and n.value.endswith((".yaml", ".yml"))})
     assert len(named) == 4, named
-    missing = [f for f in named if not (REPO / "config" / f).is_file()]
+    missing = [f for f in named if not (REPO / "config" / "nodes" / f).is_file()]
     assert not missing, f"launch file names config files that do not exist in config/: {missing}"
 
 
@@ -111,7 +112,7 @@ def test_generate_launch_description_structure(monkeypatch: pytest.MonkeyPatch) 
         exe = kw["executable"]
         assert kw["package"] == "ppoe_ros" and kw["name"] == exe
         params_file, overrides = kw["parameters"]
-        assert params_file.args[0][1:] == ["config", f"{exe}.yaml"]
+        assert params_file.args[0][1:] == ["config", "nodes", f"{exe}.yaml"]
         assert params_file.args[0][0].args == ("ppoe_ros",)
         assert overrides["model_file"].args == ("model_file",)
         assert overrides["use_sim_time"].kwargs["value_type"] is bool
@@ -124,7 +125,7 @@ NODES = ["kinematics_node", "contact_node", "tag_bearing_node", "fusion_node"]
 
 def _params_of(node_name: str) -> dict:
     """``ros__parameters`` of config/<node>.yaml, under ``/**`` or the node's name (the launch file's name)."""
-    data = yaml.safe_load((REPO / "config" / f"{node_name}.yaml").read_text())
+    data = yaml.safe_load((REPO / "config" / "nodes" / f"{node_name}.yaml").read_text())
     assert len(data) == 1 and list(data)[0] in ("/**", node_name), \
         f"{node_name}.yaml: parameters must sit under '/**:' or '{node_name}:' then 'ros__parameters:'"
     return next(iter(data.values()))["ros__parameters"]
@@ -132,10 +133,10 @@ def _params_of(node_name: str) -> dict:
 
 @pytest.mark.parametrize("node_name", NODES)
 def test_config_matches_declared_parameters(node_name: str) -> None:
-    module = importlib.import_module(f"ppoe_ros.{node_name}")
+    module = importlib.import_module(f"ppoe_ros.nodes.{node_name}")
     specs = {s.name: s for s in module.PARAMS}
     params = _params_of(node_name)
-    assert set(params) == set(specs), f"config/{node_name}.yaml keys differ from ppoe_ros.{node_name}.PARAMS"
+    assert set(params) == set(specs), f"config/{node_name}.yaml keys differ from ppoe_ros.nodes.{node_name}.PARAMS"
     for name, value in params.items():
         assert specs[name].validate(value) is None, f"config/{node_name}.yaml: {name} = {value!r} is refused"
         if node_name in ("kinematics_node", "contact_node"):  # these files list the defaults
@@ -144,7 +145,7 @@ def test_config_matches_declared_parameters(node_name: str) -> None:
 
 @pytest.mark.parametrize("node_name", NODES)
 def test_every_config_key_has_a_comment(node_name: str) -> None:
-    lines = (REPO / "config" / f"{node_name}.yaml").read_text().splitlines()
+    lines = (REPO / "config" / "nodes" / f"{node_name}.yaml").read_text().splitlines()
     keys = set(_params_of(node_name))
     for i, line in enumerate(lines):
         key = line.strip().split(":", 1)[0]

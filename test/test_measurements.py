@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 
 from ppoe_core import lie
 from ppoe_core.errors import CovarianceError, MeasurementError
-from ppoe_core.fusion import numerical_jacobian_noise, numerical_jacobian_state
-from ppoe_core.measurements import (
+from ppoe_core.estimation.fusion import numerical_jacobian_noise, numerical_jacobian_state
+from ppoe_core.estimation.measurements import (
     ChainedObservation,
     ContactPlane,
     GravityObservation,

@@ -9,7 +9,7 @@ import pytest
 
 from ppoe_core import PPOEModel, lie, load_model_config, parse_urdf
 from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
-from ppoe_core.model import compound_fourth_order
+from ppoe_core.model.ppoe import compound_fourth_order
 
 DATA = Path(__file__).parent / "data"
 EDGE = DATA / "ppoe_edge.urdf"
@@ -346,7 +346,7 @@ def test_effect_hook_mean_and_covariance(edge):
 
 
 def test_effects_from_config_are_built_lazily(monkeypatch):
-    """config.effects -> ppoe_core.effects.effect_from_config(entry, robot, where=...)."""
+    """config.effects -> ppoe_core.model.effects.effect_from_config(entry, robot, where=...)."""
     import sys
     import types
 
@@ -356,10 +356,12 @@ def test_effects_from_config_are_built_lazily(monkeypatch):
         built.append((entry["name"], where))
         return _FakeEffect()
 
-    monkeypatch.setitem(sys.modules, "ppoe_core.effects", types.SimpleNamespace(effect_from_config=effect_from_config))
+    monkeypatch.setitem(sys.modules, "ppoe_core.model.effects", types.SimpleNamespace(effect_from_config=effect_from_config))
     import ppoe_core
 
-    monkeypatch.setattr(ppoe_core, "effects", sys.modules["ppoe_core.effects"], raising=False)
+    import ppoe_core.model
+
+    monkeypatch.setattr(ppoe_core.model, "effects", sys.modules["ppoe_core.model.effects"], raising=False)
     text = EDGE_YAML.read_text() + "effects:\n  - {name: joint_offset, location: j2, parameters: {offset: 0.01}}\n"
     model = PPOEModel.from_strings(EDGE.read_text(), text)
     assert built == []  # nothing imported or built before the first use
@@ -543,7 +545,7 @@ def test_random_trees_against_reference(tree, data):
 
 
 def test_fourth_order_batch_last_matches_reference_form():
-    from ppoe_core.model import _compound4_batch_last
+    from ppoe_core.model.ppoe import _compound4_batch_last
 
     rng = np.random.default_rng(7)
     A = rng.normal(size=(5, 6, 6)) * 0.1

@@ -20,7 +20,7 @@ from rosbags.rosbag2 import Reader  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from ros_helpers import REPO, NodeProcess, ros_env  # noqa: E402
 
-from ppoe_core.bagio import BagWriter  # noqa: E402
+from ppoe_core.io.bagio import BagWriter  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -31,7 +31,7 @@ TOPICS = ["/robot_description", "/joint_states", "/wrench", "/camera/camera_info
 def _make_source(path: Path) -> None:
     rng = np.random.default_rng(3)
     with BagWriter(path) as bag:
-        bag.write_robot_description((REPO / "config" / "planar3.urdf").read_text(), 0.5)
+        bag.write_robot_description((REPO / "config" / "robots" / "planar3.urdf").read_text(), 0.5)
         for k in range(40):
             t = 1.0 + 0.01 * k
             n = 1 + k % 3  # 1, 2, 3 joints: different CDR lengths and paddings
@@ -115,7 +115,7 @@ def test_play_rate_paces_messages(tmp_path: Path, monkeypatch: pytest.MonkeyPatc
     from ros_helpers import Probe
     from sensor_msgs.msg import JointState
 
-    from ppoe_ros import cli_play
+    from ppoe_ros.cli import play as cli_play
 
     src = tmp_path / "src"
     _make_source(src)
@@ -189,7 +189,7 @@ def test_play_skips_types_not_installed(tmp_path: Path) -> None:
     installed on a full ROS 2 install)."""
     from rosbags.typesys import get_types_from_msg
 
-    from ppoe_core.bagio import typestore
+    from ppoe_core.io.bagio import typestore
 
     msgtype = "ppoe_test_not_installed_msgs/msg/Probe"
     store = typestore()

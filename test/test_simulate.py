@@ -9,10 +9,16 @@ import numpy as np
 import pytest
 import yaml
 
-from ppoe_core import bagio, effects, lie, tags
+from ppoe_core import lie
+
+from ppoe_core.io import bagio
+
+from ppoe_core.model import effects
+
+from ppoe_core.sensing import tags
 from ppoe_core.errors import ScenarioError
-from ppoe_core.simulate import TrueRobot, load_scenario, simulate
-from ppoe_core.urdf import parse_urdf
+from ppoe_core.sim.simulate import TrueRobot, load_scenario, simulate
+from ppoe_core.robot.urdf import parse_urdf
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "config"
@@ -24,7 +30,7 @@ ARM7_START = {"joint_1": 0.3, "joint_2": 0.6, "joint_3": 0.0, "joint_4": -1.2, "
 
 def _scenario(tmp_path: Path, name: str = "s.yaml", **over: object) -> Path:
     sc: dict = {
-        "robot": {"urdf": str(CONFIG / "arm7.urdf"), "model": str(CONFIG / "arm7_model.yaml")},
+        "robot": {"urdf": str(CONFIG / "robots" / "arm7.urdf"), "model": str(CONFIG / "robots" / "arm7_model.yaml")},
         "seed": 5,
         "truth": {"perturbations": "once", "joint_noise": True, "effects": []},
         "trajectory": {"joint_rate": 100.0, "dwell": 0.3, "move_time": 0.3, "start": dict(ARM7_START),
@@ -67,7 +73,7 @@ def test_ground_truth_equals_nominal_fk_without_errors(tmp_path: Path) -> None:
     res = simulate(sc, tmp_path / "bag")
     d = bagio.read_bag(tmp_path / "bag")
     assert res.n_stops == 3 and len(d.ground_truth_pose) == 3
-    assert d.robot_description == (CONFIG / "arm7.urdf").read_text()
+    assert d.robot_description == (CONFIG / "robots" / "arm7.urdf").read_text()
     tree = effects.KinematicTree(parse_urdf(d.robot_description))
     js = d.joint_states
     idx = np.searchsorted(js.stamps, d.ground_truth_pose.stamps, side="right") - 1
@@ -88,7 +94,7 @@ def test_ground_truth_equals_nominal_fk_without_errors(tmp_path: Path) -> None:
     assert d.joint_states.names[:7] == [f"joint_{i}" for i in range(1, 8)]
 
 
-ARM7 = parse_urdf(str(CONFIG / "arm7.urdf"))
+ARM7 = parse_urdf(str(CONFIG / "robots" / "arm7.urdf"))
 
 
 def test_recorded_draws_reproduce_the_ground_truth(tmp_path: Path) -> None:
@@ -125,7 +131,7 @@ def test_recorded_draws_reproduce_the_ground_truth(tmp_path: Path) -> None:
     {"name": "base_tilt", "location": "base_link", "parameters": {"tilt_x": 0.01, "tilt_y": -0.02}},
 ])
 def test_true_effects_match_the_catalogue(entry: dict) -> None:
-    """The simulator's physics (own code) agrees with ppoe_core.effects' parametrisation."""
+    """The simulator's physics (own code) agrees with ppoe_core.model.effects' parametrisation."""
     rng = np.random.default_rng(2)
     n = 7
     q = {j: rng.uniform(-1.2, 1.2, n) for j in ARM7.independent_joints}
@@ -230,7 +236,7 @@ def test_time_offset_and_smooth_motion(tmp_path: Path) -> None:
 
 
 def test_contact_wrench_reaches_the_commanded_force(tmp_path: Path) -> None:
-    sc = {"robot": {"urdf": str(CONFIG / "humanoid.urdf"), "model": str(CONFIG / "humanoid_model.yaml")},
+    sc = {"robot": {"urdf": str(CONFIG / "robots" / "humanoid.urdf"), "model": str(CONFIG / "robots" / "humanoid_model.yaml")},
           "seed": 3, "truth": {"perturbations": "once"},
           "trajectory": {"start": {"shoulder_pitch_joint": -0.5, "elbow_joint": -1.2, "wrist_flex_joint": 0.6,
                                    "index_mcp_joint": 0.3, "index_pip_joint": -0.2, "index_dip_joint": -0.1},
@@ -337,10 +343,10 @@ _CANDIDATES = [("joint_offset", "joint_2"), ("gravity_compliance", "joint_2"), (
 
 def _gls_fits(name: str) -> tuple[float, dict]:
     """Single-effect GLS fits of tool positions (ground truth vs nominal FK, weighted by the PPOE covariance)."""
-    from ppoe_core.model import PPOEModel
+    from ppoe_core.model.ppoe import PPOEModel
 
     d = bagio.read_bag(BAGS / name, load_images=False)
-    m = PPOEModel.from_files(str(CONFIG / "arm7.urdf"), str(CONFIG / "arm7_model.yaml"))
+    m = PPOEModel.from_files(str(CONFIG / "robots" / "arm7.urdf"), str(CONFIG / "robots" / "arm7_model.yaml"))
     js, gt = d.joint_states, d.ground_truth_pose
     idx = np.searchsorted(js.stamps, gt.stamps, side="right") - 1
     q = {n: js.positions[idx, i] for i, n in enumerate(js.names)}

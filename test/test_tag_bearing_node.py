@@ -12,15 +12,17 @@ import cv2  # noqa: E402
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2  # noqa: E402
 from std_msgs.msg import Header  # noqa: E402
 
-from ppoe_core import lie, tags  # noqa: E402
+from ppoe_core import lie  # noqa: E402
+
+from ppoe_core.sensing import tags
 from ppoe_core.errors import MeasurementError  # noqa: E402
-from ppoe_ros.tag_bearing_node import (  # noqa: E402
+from ppoe_ros.nodes.tag_bearing_node import (  # noqa: E402
     camera_from_info,
     cloud_from_observations,
     decode_image,
     observations_from_cloud,
 )
-from ppoe_core.tag_observations import observe_tags  # noqa: E402  (what the node publishes)
+from ppoe_core.sensing.tag_rows import observe_tags  # noqa: E402  (what the node publishes)
 
 W, H = 640, 480
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])

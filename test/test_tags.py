@@ -1,11 +1,11 @@
-"""Render tags at known poses with ppoe_core.tags and detect them again."""
+"""Render tags at known poses with ppoe_core.sensing.tags and detect them again."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ppoe_core import tags
+from ppoe_core.sensing import tags
 from ppoe_core.errors import MeasurementError
 
 K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])

@@ -10,7 +10,7 @@ import pytest
 
 from ppoe_core import lie
 from ppoe_core.errors import UnknownFrameError, UnknownJointError, UrdfError
-from ppoe_core.urdf import parse_urdf
+from ppoe_core.robot.urdf import parse_urdf
 
 DATA = Path(__file__).parent / "data"
 EDGE = DATA / "ppoe_edge.urdf"

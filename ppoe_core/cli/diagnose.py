@@ -1,0 +1,118 @@
+"""``ppoe diagnose BAG... --model MODEL.yaml [--base FRAME] [--tool FRAME] [--out DIR] [--json]``.
+
+Finds the systematic effects (CONTRACT.md sec. 6 vocabulary) that the model lacks, from the
+bags' ``/ground_truth/point`` (tracker, registration estimated per session) or
+``/ground_truth/pose`` measurements; see :mod:`ppoe_core.analysis.diagnose`.  Prints a markdown summary
+(or, with ``--json``, one JSON document on stdout with keys ``effects``, ``residual_before``,
+``residual_after``); ``--out DIR`` also writes ``diagnose.md``, ``diagnose.json``,
+``diagnose.png`` and the updated model ``model_diagnosed.yaml`` there.
+
+Tag pixels (``--pixels``, default ``auto``: when the model has ``tags`` and a bag has
+``/tag_bearing/observations`` or camera images) are diagnosed too, on top of the tracker/pose
+effects: ``camera_extrinsics`` candidates per camera, JSON key ``pixels`` (held-out pixel RMS
+per camera before -> after), found effects appended to ``effects``.
+
+``--tool`` names the link that carries the tracker's reflector (default: the model's
+``tracker.link``) or, for pose bags, the tool frame (default ``frames.tool``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+__all__ = ["add_arguments", "run"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the ``diagnose`` options (CONTRACT.md section 6 plus ours)."""
+    parser.add_argument("bags", nargs="+", metavar="BAG", help="contract bag directories (one robot)")
+    parser.add_argument("--model", required=True, metavar="MODEL.yaml", help="model YAML of the bags' robot")
+    parser.add_argument("--base", default=None, help="frame of /ground_truth/pose (default: frames.base)")
+    parser.add_argument("--tool", default=None,
+                        help="link carrying the tracker reflector, or tool frame of /ground_truth/pose")
+    parser.add_argument("--out", default=None, metavar="DIR",
+                        help="write diagnose.md/.json/.png and model_diagnosed.yaml here")
+    parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    parser.add_argument("--cv", default="auto", choices=("auto", "stops", "groups"),
+                        help="cross-validation: over stops, or leave-one-bag-out (auto: bags if >= 3)")
+    parser.add_argument("--folds", type=int, default=5, help="folds of the stop-wise cross-validation")
+    parser.add_argument("--min-gain", type=float, default=0.03,
+                        help="minimum relative held-out MSE reduction to accept an effect (default 0.03)")
+    parser.add_argument("--min-t", type=float, default=4.0,
+                        help="minimum paired t statistic of that reduction (default 4)")
+    parser.add_argument("--max-effects", type=int, default=8, help="at most this many effects (default 8)")
+    parser.add_argument("--measurement", default="auto", choices=("auto", "point", "pose"),
+                        help="residuals of /ground_truth/point (auto: preferred) or /ground_truth/pose")
+    parser.add_argument("--stationing-set", default="cross", choices=("cross", "square", "all"),
+                        help="stationing set defining the registration in bags with /dataset/stop roles")
+    parser.add_argument("--pixels", default="auto", choices=("auto", "on", "off"),
+                        help="also diagnose tag pixels (auto: if the model has tags and a bag has tag "
+                             "observations or images)")
+    parser.add_argument("--pixel-sigma", type=float, default=None,
+                        help="pixel noise 1-sigma per axis used to whiten tag residuals [px] "
+                             "(default: the model's camera.pixel_sigma, else 1)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Diagnose, print and optionally write the report and the updated model; returns 0."""
+    from ppoe_core.io.bagio import bag_topics, read_bag
+    from ppoe_core.analysis.diagnose import (DiagnoseOptions, Stops, add_pixel_diagnosis, concat_pixel_obs, diagnose,
+                                    load_model, pixels_from_bag, stops_from_bag, write_model_yaml, write_report)
+    from ppoe_core.errors import BagError
+    from ppoe_core.robot.urdf import parse_urdf
+
+    urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description
+    if not urdf:
+        raise BagError(f"bag {args.bags[0]}: no /robot_description")
+    robot = parse_urdf(urdf)
+    cfg, declared, pert, jnoise = load_model(args.model, robot)
+    tracker = cfg.tracker
+    frames = cfg.frames
+    parts = []
+    for i, bag in enumerate(args.bags):
+        parts.append(stops_from_bag(
+            bag, robot,
+            tracker_link=args.tool or (tracker.link if tracker else None),
+            tracker_xyz=tracker.xyz if (tracker and not args.tool) or (tracker and args.tool == tracker.link)
+            else (0.0, 0.0, 0.0),
+            tracker_sigma=tracker.sigma if tracker else 5e-4,
+            base=args.base or (frames.base if frames else None),
+            tool=args.tool or (frames.tool if frames else None),
+            stationing_set=None if args.stationing_set == "all" else args.stationing_set,
+            group_name=f"{i}:{Path(bag).name}", measurement=args.measurement))
+    stops = Stops.concat(parts)
+    opts = DiagnoseOptions(folds=args.folds, cv=args.cv, min_gain=args.min_gain, min_t=args.min_t,
+                           max_effects=args.max_effects,
+                           imu_sigma={k: v.sigma for k, v in (getattr(cfg, "imus", None) or {}).items()} or None)
+    res = diagnose(robot, stops, declared, pert, jnoise, opts)
+    if args.pixels != "off":
+        pix = []
+        for bag in args.bags:
+            topics = bag_topics(bag)
+            has_tags = any(t == "/tag_bearing/observations" or t.startswith("/camera/image") for t in topics)
+            if has_tags and cfg.tags is None and args.pixels == "auto":
+                res.summary += (f"\nTag pixels of bag {bag} not diagnosed: model {args.model} has no 'tags' "
+                                "section.")
+            if cfg.tags is not None and has_tags:
+                cam = getattr(cfg, "camera", None)
+                sigma_px = args.pixel_sigma or (cam.pixel_sigma if cam is not None else 1.0)
+                pix.append(pixels_from_bag(bag, robot, args.model, sigma_px=sigma_px))
+            elif args.pixels == "on":
+                raise BagError(f"bag {bag}: --pixels on, but no tag observations/images or no 'tags' in {args.model}")
+        if pix:
+            add_pixel_diagnosis(res, robot, concat_pixel_obs(pix), declared, folds=args.folds,
+                                min_gain=args.min_gain, min_t=args.min_t, pert=pert, jnoise=jnoise)
+    paths = {}
+    if args.out:
+        paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))
+        model_out = write_model_yaml(args.model, res, Path(args.out) / "model_diagnosed.yaml")
+        print("wrote " + ", ".join(str(p) for p in [*paths.values(), model_out]), file=sys.stderr)
+    if args.json:
+        json.dump(res.to_json(), sys.stdout)
+        sys.stdout.write("\n")
+    else:
+        print(paths["md"].read_text() if paths else res.summary)
+    return 0

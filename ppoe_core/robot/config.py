@@ -1,0 +1,792 @@
+"""Model YAML -> :class:`ModelConfig`, validated against a :class:`~ppoe_core.robot.urdf.Robot`.
+
+The ``perturbations`` section is fixed by CONTRACT.md section 5; the other
+sections are the project's (docs/ARCHITECTURE.md, "Model YAML").  Every key is
+checked: an unknown key, a wrong shape, an unknown joint or link, or a
+non-symmetric / non-PSD covariance raises one of the package's errors that names
+the entry, the file and the line.
+
+Defaults (a section that is absent):
+
+* ``perturbations``: none (every joint exact); ``joint_noise``: none.
+* ``frames``: ``base`` = the URDF root link, ``tool`` = the only leaf link if the
+  tree has exactly one leaf, else None (then callers must name it).
+* ``camera``, ``tags``, ``contact``, ``tracker``, ``naive``: None; ``imus``: empty;
+  ``effects``: empty.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Optional, Union
+
+import numpy as np
+import yaml
+
+from ppoe_core import lie
+from ppoe_core.errors import CovarianceError, ModelConfigError, UnknownFrameError, UnknownJointError
+from ppoe_core.robot.urdf import Robot
+
+__all__ = [
+    "Perturbation",
+    "Frames",
+    "CameraConfig",
+    "TagItem",
+    "TagsConfig",
+    "ContactConfig",
+    "TrackerConfig",
+    "ImuConfig",
+    "NaiveConfig",
+    "ModelConfig",
+    "EFFECT_NAMES",
+    "load_model_config",
+    "load_contact_config",
+    "low_rank_factor",
+]
+
+#: Effect names of CONTRACT.md section 6.
+EFFECT_NAMES = (
+    "joint_offset",
+    "link_error",
+    "gravity_compliance",
+    "mount_bending",
+    "base_tilt",
+    "backlash",
+    "thermal_growth",
+    "time_offset",
+    "camera_extrinsics",
+    "tracker_registration",
+)
+
+
+# ----------------------------------------------------------------------------
+# Data classes
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    """Perturbation ``xi`` of one joint (paper eq. 16), zero mean.
+
+    Attributes
+    ----------
+    joint : str
+    covariance : ndarray, shape (6, 6)
+        ``E[xi xi^T]`` of ``[rho; theta]`` [m^2, rad^2], in the tangent space right after
+        the joint's static origin ``Exp(p_i)`` (the frame ``F_{i,p}`` of paper Fig. 2).
+    factor : ndarray, shape (6, r)
+        ``covariance = factor @ factor.T`` with only the non-zero directions (r <= 6).
+    """
+
+    joint: str
+    covariance: np.ndarray
+    factor: np.ndarray
+
+
+@dataclass(frozen=True)
+class Frames:
+    """Default frames for fk / evaluate / nodes (URDF link names)."""
+
+    base: str
+    tool: Optional[str]
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """``camera``: optical frame (URDF link, z forward) and pixel noise 1-sigma [px]."""
+
+    frame: str
+    pixel_sigma: float = 0.5
+
+
+@dataclass(frozen=True)
+class TagItem:
+    """One tag fixed to a link.
+
+    Attributes
+    ----------
+    id : int
+    link : str
+    size : float
+        Edge of the black square [m].
+    T_link_tag : ndarray, shape (4, 4)
+        Tag centre pose in link coordinates (tag z = normal out of the tag).
+    """
+
+    id: int
+    link: str
+    size: float
+    T_link_tag: np.ndarray
+
+
+@dataclass(frozen=True)
+class TagsConfig:
+    """``tags``: tag family (default ``tag36h11``) and the tags."""
+
+    family: str
+    items: tuple[TagItem, ...]
+
+    def by_id(self) -> dict[int, TagItem]:
+        """Tags keyed by id."""
+        return {t.id: t for t in self.items}
+
+
+@dataclass(frozen=True)
+class ContactConfig:
+    """``contact``: a known plane the tool touches (paper section V).
+
+    Attributes
+    ----------
+    plane_frame : str
+        URDF link the plane pose is given in.
+    T_frame_plane : ndarray, shape (4, 4)
+        Plane pose; plane normal = plane z axis.
+    covariance : ndarray, shape (6, 6)
+        ``Sigma_v`` of the contact, in the tangent space at the plane pose (plane frame).
+    tool_link : str
+    tool_xyz : ndarray, shape (3,)
+        Contact point in ``tool_link`` coordinates [m].
+    force_threshold, release_threshold : float
+        Contact enters above / leaves below these force magnitudes [N]. Defaults 5.0 / 2.0.
+    """
+
+    plane_frame: str
+    T_frame_plane: np.ndarray
+    covariance: np.ndarray
+    tool_link: str
+    tool_xyz: np.ndarray
+    force_threshold: float = 5.0
+    release_threshold: float = 2.0
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """``tracker``: point reflector on a link, measured by an external tracker.
+
+    ``xyz`` [m] in ``link`` coordinates, ``sigma`` 1-sigma per axis [m] (default 0.0005).
+    """
+
+    link: str
+    xyz: np.ndarray
+    sigma: float = 0.0005
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    """One accelerometer on a link; ``sigma`` 1-sigma per axis [m/s^2] (default 0.0004)."""
+
+    name: str
+    link: str
+    sigma: float = 0.0004
+
+
+@dataclass(frozen=True)
+class NaiveConfig:
+    """``naive``: the naive diagonal covariance (tool frame tangent space) for comparisons."""
+
+    covariance: np.ndarray
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The validated model YAML.
+
+    Attributes
+    ----------
+    perturbations : dict[str, Perturbation]
+        Keyed by joint name (any URDF joint, fixed joints included).
+    joint_noise : dict[str, float]
+        1-sigma joint-value noise along the joint axis [rad or m] (paper IV-D, ``xi = zeta``);
+        movable joints only.
+    frames : Frames
+    camera, tags, contact, tracker, naive : optional sections (None if absent)
+    imus : dict[str, ImuConfig]
+    effects : list[dict]
+        ``{"name", "location", "parameters"[, "ci", "variable", "reference"]}``, names from
+        CONTRACT section 6.
+    effect_wheres : list[str]
+        ``file:line`` of each effect entry (for messages of ``effects.effect_from_config``).
+    source : str
+        File name, ``"<string>"`` or ``"<dict>"``.
+    """
+
+    perturbations: dict[str, Perturbation] = field(default_factory=dict)
+    joint_noise: dict[str, float] = field(default_factory=dict)
+    frames: Optional[Frames] = None
+    camera: Optional[CameraConfig] = None
+    tags: Optional[TagsConfig] = None
+    contact: Optional[ContactConfig] = None
+    tracker: Optional[TrackerConfig] = None
+    imus: dict[str, ImuConfig] = field(default_factory=dict)
+    naive: Optional[NaiveConfig] = None
+    effects: list[dict] = field(default_factory=list)
+    effect_wheres: list[str] = field(default_factory=list)
+    source: str = "<dict>"
+
+
+# ----------------------------------------------------------------------------
+# YAML with line numbers
+# ----------------------------------------------------------------------------
+
+
+class _LDict(dict):
+    """dict that remembers its own line and the line of each key (1-based)."""
+
+    line: Optional[int] = None
+    key_lines: dict
+
+
+class _LList(list):
+    line: Optional[int] = None
+
+
+class _Loader(yaml.SafeLoader):
+    pass
+
+
+def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> _LDict:
+    loader.flatten_mapping(node)
+    out = _LDict()
+    out.line = node.start_mark.line + 1
+    out.key_lines = {}
+    for knode, vnode in node.value:
+        key = loader.construct_object(knode, deep=True)
+        if not isinstance(key, (str, int, float, bool)) and key is not None:
+            raise ModelConfigError(f"line {knode.start_mark.line + 1}: mapping key must be a scalar")
+        if key in out:
+            raise ModelConfigError(
+                f"{loader.name}:{knode.start_mark.line + 1}: duplicate key '{key}'"
+            )
+        out[key] = loader.construct_object(vnode, deep=True)
+        out.key_lines[key] = knode.start_mark.line + 1
+    return out
+
+
+def _construct_sequence(loader: _Loader, node: yaml.SequenceNode) -> _LList:
+    out = _LList(loader.construct_object(c, deep=True) for c in node.value)
+    out.line = node.start_mark.line + 1
+    return out
+
+
+# YAML 1.2 floats: PyYAML (YAML 1.1) reads "1e-5" (no dot) as a string; model files use it a lot.
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_sequence)
+
+
+# ----------------------------------------------------------------------------
+# Validation helpers
+# ----------------------------------------------------------------------------
+
+
+class _Ctx:
+    """Where we are: file + path of keys, for messages."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+        self.effect_wheres: list[str] = []
+
+    def at(self, obj: Any = None, key: Any = None) -> str:
+        line = None
+        if key is not None and isinstance(obj, _LDict):
+            line = obj.key_lines.get(key)
+        if line is None and obj is not None:
+            line = getattr(obj, "line", None)
+        return f"{self.source}:{line}" if line else self.source
+
+    def error(self, obj: Any, key: Any, path: str, msg: str) -> ModelConfigError:
+        return ModelConfigError(f"{self.at(obj, key)}: {path}: {msg}")
+
+
+def _kind(val: Any) -> str:
+    """What a YAML value is, in the user's words (no internal class names such as ``_LList``)."""
+    if val is None:
+        return "nothing (null)"
+    if isinstance(val, Mapping):
+        return "a mapping"
+    if isinstance(val, str):
+        return f"the string {val!r}"
+    if isinstance(val, (list, tuple)):
+        return f"a list of {len(val)} item{'' if len(val) == 1 else 's'}"
+    if isinstance(val, bool):
+        return f"the boolean {val}"
+    if isinstance(val, (int, float)):
+        return f"the number {val}"
+    return type(val).__name__
+
+
+def _mapping(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str) -> Mapping:
+    if not isinstance(val, Mapping):
+        raise ctx.error(parent, key, path, f"must be a mapping, got {_kind(val)}")
+    return val
+
+
+def _check_keys(ctx: _Ctx, d: Mapping, allowed: tuple, path: str, required: tuple = ()) -> None:
+    for k in d:
+        if k not in allowed:
+            raise ctx.error(
+                d, k, path, f"unknown key '{k}' (allowed: {', '.join(allowed)})"
+            )
+    for k in required:
+        if k not in d:
+            raise ctx.error(d, None, path, f"missing required key '{k}'")
+
+
+def _number(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, minimum: Optional[float] = None,
+            positive: bool = False) -> float:
+    if isinstance(val, (bool, np.bool_)) or not isinstance(val, numbers.Real):
+        raise ctx.error(parent, key, path, f"must be a number, got {val!r}")
+    f = float(val)
+    if not math.isfinite(f):
+        raise ctx.error(parent, key, path, f"must be finite, got {val!r}")
+    if minimum is not None and f < minimum:
+        raise ctx.error(parent, key, path, f"must be >= {minimum}, got {f}")
+    if positive and f <= 0:
+        raise ctx.error(parent, key, path, f"must be > 0, got {f}")
+    return f
+
+
+def _vector(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, n: int, minimum: Optional[float] = None) -> np.ndarray:
+    if isinstance(val, np.ndarray):
+        val = val.tolist()
+    if not isinstance(val, (list, tuple)) or len(val) != n:
+        raise ctx.error(parent, key, path, f"must be a list of {n} numbers, got {val!r}")
+    return np.array([_number(ctx, v, parent, key, path, minimum) for v in val], dtype=float)
+
+
+def _matrix(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, n: int) -> np.ndarray:
+    if isinstance(val, np.ndarray):
+        val = val.tolist()
+    if not isinstance(val, (list, tuple)) or len(val) != n or not all(
+        isinstance(r, (list, tuple)) and len(r) == n for r in val
+    ):
+        raise ctx.error(parent, key, path, f"must be a {n}x{n} list of lists")
+    return np.array([[_number(ctx, v, parent, key, path) for v in r] for r in val], dtype=float)
+
+
+def _covariance(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, what: str) -> np.ndarray:
+    C = _matrix(ctx, val, parent, key, path, 6)
+    try:
+        return lie.check_covariance(C, f"{ctx.at(parent, key)}: {path} ({what})", size=6)
+    except CovarianceError:
+        raise
+    except Exception as exc:  # pragma: no cover - defensive
+        raise CovarianceError(f"{ctx.at(parent, key)}: {path} ({what}): {exc}") from None
+
+
+def _sigma_or_cov(ctx: _Ctx, d: Mapping, path: str, what: str) -> np.ndarray:
+    _check_keys(ctx, d, ("sigma", "covariance"), path)
+    if ("sigma" in d) == ("covariance" in d):
+        raise ctx.error(d, None, path, "give exactly one of 'sigma' (6 numbers) or 'covariance' (6x6)")
+    if "sigma" in d:
+        s = _vector(ctx, d["sigma"], d, "sigma", path + ".sigma", 6, minimum=0.0)
+        return np.diag(s**2)
+    return _covariance(ctx, d["covariance"], d, "covariance", path + ".covariance", what)
+
+
+def low_rank_factor(cov: np.ndarray, rel_tol: float = 1e-12) -> np.ndarray:
+    """Factor ``L`` with ``cov = L L^T``, keeping only the non-zero directions.
+
+    A diagonal covariance gives the scaled unit columns of its non-zero sigmas; a full one
+    its eigenvectors scaled by sqrt(eigenvalue) above ``rel_tol * max eigenvalue``.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (n, n)
+        Symmetric positive semi-definite covariance (already validated), e.g. a joint's
+        perturbation covariance in the tangent space at the joint origin (eq. 16).
+    rel_tol : float
+        Eigenvalues at or below ``rel_tol`` times the largest one are dropped.
+
+    Returns
+    -------
+    ndarray, shape (n, r)
+        ``r`` = number of kept directions (0 for a zero covariance); columns live in the same
+        tangent space as ``cov``.
+    """
+    cov = np.asarray(cov, dtype=float)
+    n = cov.shape[0]
+    if np.count_nonzero(cov - np.diag(np.diag(cov))) == 0:
+        d = np.diag(cov)
+        idx = np.flatnonzero(d > 0)
+        L = np.zeros((n, idx.size))
+        L[idx, np.arange(idx.size)] = np.sqrt(d[idx])
+        return L
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    keep = w > rel_tol * max(float(w.max()), 0.0)
+    return V[:, keep] * np.sqrt(w[keep])
+
+
+def _link(ctx: _Ctx, robot: Optional[Robot], val: Any, parent: Any, key: Any, path: str) -> str:
+    """A link name; checked against ``robot`` unless it is None (no URDF at hand)."""
+    if not isinstance(val, str):
+        raise ctx.error(parent, key, path, f"must be a link name, got {val!r}")
+    if robot is not None and val not in robot.links:
+        raise UnknownFrameError(
+            f"{ctx.at(parent, key)}: {path}: unknown link '{val}' (not in URDF {robot.source})"
+        )
+    return val
+
+
+def _pose(ctx: _Ctx, d: Mapping, path: str) -> np.ndarray:
+    xyz = _vector(ctx, d["xyz"], d, "xyz", path + ".xyz", 3) if "xyz" in d else np.zeros(3)
+    rpy = _vector(ctx, d["rpy"], d, "rpy", path + ".rpy", 3) if "rpy" in d else np.zeros(3)
+    return lie.from_xyz_rpy(xyz, rpy)
+
+
+# ----------------------------------------------------------------------------
+# Sections
+# ----------------------------------------------------------------------------
+
+
+def _perturbations(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, Perturbation]:
+    if sec is None:
+        return {}
+    sec = _mapping(ctx, sec, top, "perturbations", "perturbations")
+    out = {}
+    for jn, entry in sec.items():
+        path = f"perturbations.{jn}"
+        if jn not in robot.joints:
+            raise UnknownJointError(
+                f"{ctx.at(sec, jn)}: {path}: unknown joint '{jn}' (not in URDF {robot.source})"
+            )
+        entry = _mapping(ctx, entry, sec, jn, path)
+        cov = _sigma_or_cov(ctx, entry, path, f"joint '{jn}'")
+        out[str(jn)] = Perturbation(joint=str(jn), covariance=cov, factor=low_rank_factor(cov))
+    return out
+
+
+def _joint_noise(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, float]:
+    if sec is None:
+        return {}
+    sec = _mapping(ctx, sec, top, "joint_noise", "joint_noise")
+    out = {}
+    for jn, val in sec.items():
+        path = f"joint_noise.{jn}"
+        if jn not in robot.joints:
+            raise UnknownJointError(f"{ctx.at(sec, jn)}: {path}: unknown joint '{jn}' (not in URDF {robot.source})")
+        if not robot.joints[jn].movable:
+            raise ctx.error(sec, jn, path, f"joint '{jn}' is {robot.joints[jn].type}: it has no joint value")
+        out[str(jn)] = _number(ctx, val, sec, jn, path, minimum=0.0)
+    return out
+
+
+def _default_tool(robot: Robot) -> Optional[str]:
+    parents = {j.parent for j in robot.joints.values()}
+    leaves = [ln for ln in robot.links if ln not in parents]
+    return leaves[0] if len(leaves) == 1 else None
+
+
+def _frames(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Frames:
+    if sec is None:
+        return Frames(base=robot.root, tool=_default_tool(robot))
+    sec = _mapping(ctx, sec, top, "frames", "frames")
+    _check_keys(ctx, sec, ("base", "tool"), "frames")
+    base = _link(ctx, robot, sec["base"], sec, "base", "frames.base") if "base" in sec else robot.root
+    tool = _link(ctx, robot, sec["tool"], sec, "tool", "frames.tool") if "tool" in sec else _default_tool(robot)
+    return Frames(base=base, tool=tool)
+
+
+def _camera(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[CameraConfig]:
+    if sec is None:
+        return None
+    sec = _mapping(ctx, sec, top, "camera", "camera")
+    _check_keys(ctx, sec, ("frame", "pixel_sigma"), "camera", required=("frame",))
+    frame = _link(ctx, robot, sec["frame"], sec, "frame", "camera.frame")
+    ps = _number(ctx, sec["pixel_sigma"], sec, "pixel_sigma", "camera.pixel_sigma", positive=True) if "pixel_sigma" in sec else 0.5
+    return CameraConfig(frame=frame, pixel_sigma=ps)
+
+
+def _tags(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[TagsConfig]:
+    if sec is None:
+        return None
+    sec = _mapping(ctx, sec, top, "tags", "tags")
+    _check_keys(ctx, sec, ("family", "items"), "tags", required=("items",))
+    family = sec.get("family", "tag36h11")
+    if not isinstance(family, str):
+        raise ctx.error(sec, "family", "tags.family", f"must be a string, got {family!r}")
+    items_raw = sec["items"]
+    if not isinstance(items_raw, list):
+        raise ctx.error(sec, "items", "tags.items", "must be a list")
+    items = []
+    seen: dict[int, str] = {}
+    for i, it in enumerate(items_raw):
+        path = f"tags.items[{i}]"
+        it = _mapping(ctx, it, items_raw, None, path)
+        _check_keys(ctx, it, ("id", "link", "size", "xyz", "rpy"), path, required=("id", "link", "size"))
+        tid = it["id"]
+        if isinstance(tid, bool) or not isinstance(tid, int) or tid < 0:
+            raise ctx.error(it, "id", path + ".id", f"must be a non-negative integer, got {tid!r}")
+        if tid in seen:
+            raise ctx.error(it, "id", path + ".id", f"duplicate tag id {tid} (also {seen[tid]})")
+        seen[tid] = path
+        link = _link(ctx, robot, it["link"], it, "link", path + ".link")
+        size = _number(ctx, it["size"], it, "size", path + ".size", positive=True)
+        items.append(TagItem(id=tid, link=link, size=size, T_link_tag=_pose(ctx, it, path)))
+    return TagsConfig(family=family, items=tuple(items))
+
+
+def _contact(ctx: _Ctx, robot: Optional[Robot], sec: Any, top: Mapping) -> Optional[ContactConfig]:
+    if sec is None:
+        return None
+    sec = _mapping(ctx, sec, top, "contact", "contact")
+    _check_keys(
+        ctx, sec, ("plane", "sigma", "covariance", "tool_point", "force_threshold", "release_threshold"),
+        "contact", required=("plane", "tool_point"),
+    )
+    plane = _mapping(ctx, sec["plane"], sec, "plane", "contact.plane")
+    _check_keys(ctx, plane, ("frame", "xyz", "rpy"), "contact.plane", required=("frame",))
+    frame = _link(ctx, robot, plane["frame"], plane, "frame", "contact.plane.frame")
+    T = _pose(ctx, plane, "contact.plane")
+    cov_d = {k: sec[k] for k in ("sigma", "covariance") if k in sec}
+    if not cov_d:
+        raise ctx.error(sec, None, "contact", "give 'sigma' (6 numbers) or 'covariance' (6x6) of the contact")
+    cov_src = _LDict(cov_d)
+    cov_src.line = sec.line if isinstance(sec, _LDict) else None
+    cov_src.key_lines = {k: sec.key_lines.get(k) for k in cov_d} if isinstance(sec, _LDict) else {}
+    cov = _sigma_or_cov(ctx, cov_src, "contact", "contact plane")
+    tp = _mapping(ctx, sec["tool_point"], sec, "tool_point", "contact.tool_point")
+    _check_keys(ctx, tp, ("link", "xyz"), "contact.tool_point", required=("link",))
+    tlink = _link(ctx, robot, tp["link"], tp, "link", "contact.tool_point.link")
+    txyz = _vector(ctx, tp["xyz"], tp, "xyz", "contact.tool_point.xyz", 3) if "xyz" in tp else np.zeros(3)
+    fth = _number(ctx, sec["force_threshold"], sec, "force_threshold", "contact.force_threshold", positive=True) if "force_threshold" in sec else 5.0
+    rth = _number(ctx, sec["release_threshold"], sec, "release_threshold", "contact.release_threshold", minimum=0.0) if "release_threshold" in sec else min(2.0, fth)
+    if rth > fth:
+        raise ctx.error(sec, "release_threshold", "contact.release_threshold",
+                        f"release threshold {rth} N is above the force threshold {fth} N")
+    return ContactConfig(plane_frame=frame, T_frame_plane=T, covariance=cov, tool_link=tlink,
+                         tool_xyz=txyz, force_threshold=fth, release_threshold=rth)
+
+
+def _tracker(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[TrackerConfig]:
+    if sec is None:
+        return None
+    sec = _mapping(ctx, sec, top, "tracker", "tracker")
+    _check_keys(ctx, sec, ("link", "xyz", "sigma"), "tracker", required=("link",))
+    link = _link(ctx, robot, sec["link"], sec, "link", "tracker.link")
+    xyz = _vector(ctx, sec["xyz"], sec, "xyz", "tracker.xyz", 3) if "xyz" in sec else np.zeros(3)
+    sigma = _number(ctx, sec["sigma"], sec, "sigma", "tracker.sigma", positive=True) if "sigma" in sec else 0.0005
+    return TrackerConfig(link=link, xyz=xyz, sigma=sigma)
+
+
+def _imus(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, ImuConfig]:
+    if sec is None:
+        return {}
+    sec = _mapping(ctx, sec, top, "imus", "imus")
+    out = {}
+    for name, entry in sec.items():
+        path = f"imus.{name}"
+        entry = _mapping(ctx, entry, sec, name, path)
+        _check_keys(ctx, entry, ("link", "sigma"), path, required=("link",))
+        link = _link(ctx, robot, entry["link"], entry, "link", path + ".link")
+        sigma = _number(ctx, entry["sigma"], entry, "sigma", path + ".sigma", positive=True) if "sigma" in entry else 0.0004
+        out[str(name)] = ImuConfig(name=str(name), link=link, sigma=sigma)
+    return out
+
+
+def _naive(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[NaiveConfig]:
+    if sec is None:
+        return None
+    sec = _mapping(ctx, sec, top, "naive", "naive")
+    return NaiveConfig(covariance=_sigma_or_cov(ctx, sec, "naive", "naive tool covariance"))
+
+
+def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
+    wheres: list[str] = ctx.effect_wheres
+    if sec is None:
+        return []
+    if not isinstance(sec, list):
+        raise ctx.error(top, "effects", "effects", "must be a list of {name, location, parameters}")
+    out = []
+    for i, e in enumerate(sec):
+        path = f"effects[{i}]"
+        e = _mapping(ctx, e, sec, None, path)
+        _check_keys(ctx, e, ("name", "location", "parameters", "ci", "variable", "reference"), path,
+                    required=("name", "location"))
+        name = e["name"]
+        if name not in EFFECT_NAMES:
+            raise ctx.error(e, "name", path + ".name",
+                            f"unknown effect '{name}' (CONTRACT section 6: {', '.join(EFFECT_NAMES)})")
+        loc = e["location"]
+        if not isinstance(loc, str) or not loc:
+            raise ctx.error(e, "location", path + ".location", f"must be a joint, link, topic or frame name, got {loc!r}")
+        params = e.get("parameters", {}) or {}
+        params = _mapping(ctx, params, e, "parameters", path + ".parameters")
+        pclean: dict[str, Any] = {}
+        for k, v in params.items():
+            if isinstance(v, (list, tuple)):
+                pclean[str(k)] = [_number(ctx, x, params, k, f"{path}.parameters.{k}") for x in v]
+            else:
+                pclean[str(k)] = _number(ctx, v, params, k, f"{path}.parameters.{k}")
+        entry: dict[str, Any] = {"name": name, "location": loc, "parameters": pclean}
+        if "ci" in e:
+            entry["ci"] = _plain(e["ci"])
+        if "variable" in e:  # thermal_growth: name of the context variable (e.g. temperature)
+            if not isinstance(e["variable"], str):
+                raise ctx.error(e, "variable", path + ".variable", f"must be a string, got {e['variable']!r}")
+            entry["variable"] = e["variable"]
+        if "reference" in e:  # thermal_growth: reference value of that variable
+            entry["reference"] = _number(ctx, e["reference"], e, "reference", path + ".reference")
+        wheres.append(ctx.at(e))
+        out.append(entry)
+    return out
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, Mapping):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
+
+
+_SECTIONS = {
+    "perturbations": _perturbations,
+    "joint_noise": _joint_noise,
+    "frames": _frames,
+    "camera": _camera,
+    "tags": _tags,
+    "contact": _contact,
+    "tracker": _tracker,
+    "imus": _imus,
+    "naive": _naive,
+    "effects": _effects,
+}
+
+
+# ----------------------------------------------------------------------------
+# Public entry point
+# ----------------------------------------------------------------------------
+
+
+def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Robot, *,
+                      is_text: bool = False) -> ModelConfig:
+    """Load and validate a model YAML against ``robot``.
+
+    Parameters
+    ----------
+    source : path-like, str, mapping or None
+        A file path, YAML text, an already-parsed mapping, or None (empty model: every
+        joint exact).  A one-line string ending in ``.yaml``/``.yml`` or naming an existing
+        file is a path; any other string is YAML text.
+    robot : Robot
+    is_text : bool
+        Treat a string ``source`` as YAML text, never as a path.
+
+    Returns
+    -------
+    ModelConfig
+
+    Raises
+    ------
+    ModelConfigError
+        Unreadable file, YAML syntax error, unknown key (top level or in an entry),
+        wrong shapes or values; the message names the key, file and line.
+    UnknownJointError, UnknownFrameError
+        A joint / link name the URDF does not contain.
+    CovarianceError
+        A non-symmetric or non-PSD covariance; names the joint (or section).
+    """
+    data, where = _read_yaml(source, is_text, "load_model_config")
+    ctx = _Ctx(where)
+    if not isinstance(data, Mapping):
+        raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {_kind(data)}")
+    _check_keys(ctx, data, tuple(_SECTIONS), "model")
+    kwargs = {name: fn(ctx, robot, data.get(name), data) for name, fn in _SECTIONS.items()}
+    return ModelConfig(source=where, effect_wheres=list(ctx.effect_wheres), **kwargs)
+
+
+def _read_yaml(source: Union[str, os.PathLike, Mapping, None], is_text: bool, caller: str) -> tuple[Any, str]:
+    """Model YAML source -> (parsed data with line numbers, where) (see :func:`load_model_config`)."""
+    if source is None:
+        data: Any = {}
+        where = "<none>"
+    elif isinstance(source, Mapping):
+        data = source
+        where = "<dict>"
+    else:
+        text: Optional[str] = None
+        if isinstance(source, os.PathLike) or (
+            isinstance(source, str) and not is_text and source.strip() != "" and "\n" not in source
+            and (Path(source).suffix in (".yaml", ".yml") or Path(source).is_file())
+        ):
+            path = Path(source)
+            try:
+                text = path.read_text()
+            except OSError as exc:
+                raise ModelConfigError(f"{path}: cannot read model YAML ({exc.strerror or exc})") from None
+            except UnicodeDecodeError as exc:
+                raise ModelConfigError(f"{path}: model YAML is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+            where = str(path)
+        elif isinstance(source, str):
+            text = source
+            where = "<string>"
+        else:
+            raise ModelConfigError(f"{caller}: expected a path, YAML text or mapping, got {type(source).__name__}")
+        try:
+            loader = _Loader(text)
+            loader.name = where
+            try:
+                data = loader.get_single_data()
+            finally:
+                loader.dispose()
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            line = f":{mark.line + 1}" if mark is not None else ""
+            problem = getattr(exc, "problem", None) or str(exc)
+            raise ModelConfigError(f"{where}{line}: model YAML does not parse: {problem}") from None
+        except ModelConfigError as exc:
+            msg = str(exc)
+            raise ModelConfigError(msg if msg.startswith(where) else f"{where}: {msg}") from None
+        if data is None:
+            data = {}
+    return data, where
+
+
+def load_contact_config(source: Union[str, os.PathLike, Mapping, None], robot: Optional[Robot] = None, *,
+                        is_text: bool = False) -> Optional[ContactConfig]:
+    """Only the ``contact`` section of a model YAML, validated as :func:`load_model_config` does.
+
+    For users that have no URDF at hand (the contact node): with ``robot=None`` the link names
+    (``contact.plane.frame``, ``contact.tool_point.link``) are checked for type only; the other
+    sections are not read.
+
+    Parameters
+    ----------
+    source : path-like, str, mapping or None
+        As for :func:`load_model_config`.
+    robot : Robot, optional
+        Check the link names against this URDF.
+    is_text : bool
+        Treat a string ``source`` as YAML text, never as a path.
+
+    Returns
+    -------
+    ContactConfig or None
+        None when the YAML has no ``contact`` section.  ``covariance`` is the plane's Sigma_v
+        (6, 6) in the tangent space at ``T_frame_plane`` (plane frame).
+
+    Raises
+    ------
+    ModelConfigError
+        Unreadable file, YAML syntax error, unknown key or bad value in ``contact`` (message
+        names file, line and key).
+    CovarianceError
+        Non-symmetric or non-PSD contact covariance.
+    UnknownFrameError
+        A link name not in ``robot`` (only when ``robot`` is given).
+    """
+    data, where = _read_yaml(source, is_text, "load_contact_config")
+    ctx = _Ctx(where)
+    if not isinstance(data, Mapping):
+        raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {_kind(data)}")
+    return _contact(ctx, robot, data.get("contact"), data)

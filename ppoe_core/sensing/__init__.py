@@ -1,0 +1,1 @@
+"""ppoe_core.sensing."""

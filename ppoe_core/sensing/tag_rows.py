@@ -1,0 +1,118 @@
+"""Tag observations of one image: detections -> centre and corner rows (no ROS).
+
+The tag bearing node (``ppoe_ros/tag_bearing_node.py``) publishes these rows on
+``/tag_bearing/observations`` and ``ppoe evaluate`` (``ppoe_core/evaluate.py``) computes them
+from a bag's images: both call :func:`observe_tags`, so the replay sees exactly what the node
+would publish.
+
+One row per observed tag point, ``[id, corner, u, v, x, y]`` (the FLOAT64 fields of the topic,
+:data:`OBSERVATION_FIELDS`): ``corner`` 0 is the tag centre, 1..4 the corners in the order of
+:mod:`ppoe_core.sensing.tags` (top-left, top-right, bottom-right, bottom-left of an upright tag);
+``u, v`` raw (distorted) pixels; ``x, y`` undistorted normalised coordinates ``X/Z, Y/Z`` in the
+camera optical frame.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from ppoe_core.sensing import tags as tagmod
+
+__all__ = ["OBSERVATION_FIELDS", "DEFAULT_CORNER_REFINEMENT", "observe_tags", "centre_from_corners"]
+
+#: fields of one observation row (and FLOAT64 fields of one ``/tag_bearing/observations`` point)
+OBSERVATION_FIELDS: tuple[str, ...] = ("id", "corner", "u", "v", "x", "y")
+#: corner refinement of the tag bearing node and of ``ppoe evaluate`` by default
+DEFAULT_CORNER_REFINEMENT = "subpix"
+
+
+def centre_from_corners(xy_corners: np.ndarray) -> np.ndarray:
+    """Image of the tag centre: intersection of the diagonals 1-3 and 2-4.
+
+    For a pinhole camera the projection of a planar square's centre is exactly the
+    intersection of the projected diagonals (projective maps keep lines and incidence), so
+    this is computed on *undistorted* normalised coordinates.
+
+    Parameters
+    ----------
+    xy_corners : ndarray, shape (..., 4, 2)
+        Undistorted normalised corner coordinates ``X/Z, Y/Z`` in the order of
+        :mod:`ppoe_core.sensing.tags`.
+
+    Returns
+    -------
+    ndarray, shape (..., 2)
+        Normalised centre coordinates; the corners' mean where the diagonals are parallel
+        (degenerate quadrilateral).
+    """
+    xy = np.asarray(xy_corners, dtype=np.float64)
+    h = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)  # (..., 4, 3)
+    c = np.cross(np.cross(h[..., 0, :], h[..., 2, :]), np.cross(h[..., 1, :], h[..., 3, :]))
+    ok = np.abs(c[..., 2]) > 1e-12
+    w = np.where(ok, c[..., 2], 1.0)[..., None]
+    return np.where(ok[..., None], c[..., :2] / w, xy.mean(axis=-2))
+
+
+def observe_tags(
+    image: np.ndarray,
+    K: np.ndarray,
+    D: np.ndarray,
+    dictionary: str = "tag36h11",
+    tag_ids: Sequence[int] = (),
+    refine: str = DEFAULT_CORNER_REFINEMENT,
+) -> tuple[np.ndarray, list[Any]]:
+    """Detect tags in one image and return their observation rows.
+
+    Corners come from :func:`ppoe_core.sensing.tags.detect_tags`, ``x, y`` from
+    :func:`ppoe_core.sensing.tags.undistort_pixels` (``cv2.undistortPoints``); the centre is
+    :func:`centre_from_corners` of the undistorted corners, distorted back with
+    :func:`ppoe_core.sensing.tags.project_points` for its ``u, v``.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W) or (H, W, 3), uint8
+        Grey or BGR image.
+    K : ndarray, shape (3, 3)
+        Camera matrix [px].
+    D : ndarray, shape (k,)
+        Distortion coefficients, OpenCV order (``plumb_bob`` / ``rational_polynomial``).
+    dictionary : str
+        Tag family, see :func:`ppoe_core.sensing.tags.detect_tags`.
+    tag_ids : sequence of int
+        Ids to keep; empty = all detected tags.
+    refine : str
+        Corner refinement, see :func:`ppoe_core.sensing.tags.detect_tags`.
+
+    Returns
+    -------
+    rows : ndarray, shape (5 n, 6), float64
+        ``[id, corner, u, v, x, y]`` per point: centre (corner 0) then corners 1..4 of each of
+        the ``n`` kept tags, in detection order; shape (0, 6) when no tag is kept.
+    detections : list of ppoe_core.sensing.tags.TagDetection
+        The kept detections (e.g. for drawing).
+
+    Raises
+    ------
+    MeasurementError
+        Unknown dictionary or refinement (from :func:`ppoe_core.sensing.tags.detect_tags`).
+    """
+    dets = tagmod.detect_tags(image, dictionary, refine)
+    keep = {int(i) for i in tag_ids}
+    if keep:
+        dets = [d for d in dets if d.id in keep]
+    if not dets:
+        return np.zeros((0, len(OBSERVATION_FIELDS))), []
+    corners_uv = np.stack([d.corners for d in dets])  # (n, 4, 2)
+    xy_c = tagmod.undistort_pixels(corners_uv, K, D)  # (n, 4, 2)
+    centre_xy = centre_from_corners(xy_c)  # (n, 2)
+    centre_uv = tagmod.project_points(np.concatenate([centre_xy, np.ones((len(dets), 1))], axis=1), K, D)
+    rows = np.zeros((len(dets), 5, len(OBSERVATION_FIELDS)))
+    rows[:, :, 0] = np.array([d.id for d in dets], dtype=float)[:, None]
+    rows[:, :, 1] = np.arange(5)[None, :]
+    rows[:, 0, 2:4] = centre_uv
+    rows[:, 0, 4:6] = centre_xy
+    rows[:, 1:, 2:4] = corners_uv
+    rows[:, 1:, 4:6] = xy_c
+    return rows.reshape(-1, len(OBSERVATION_FIELDS)), dets

@@ -1,0 +1,66 @@
+"""The ``ppoe`` command line (CONTRACT.md section 6).
+
+Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
+``run(args) -> int``; it is imported only when used, so ``ppoe fk`` works on a
+machine without ROS 2 and this module never imports rclpy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Sequence
+
+__all__ = ["main", "SUBCOMMANDS"]
+
+#: subcommand -> (module, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "fk": ("ppoe_core.cli.fk", "mean pose and covariance of one frame relative to another"),
+    "simulate": ("ppoe_core.cli.simulate", "record a simulated contract bag from a scenario file"),
+    "evaluate": ("ppoe_core.cli.evaluate", "replay a bag offline: FK vs PPOE-fused vs naive-fused error"),
+    "diagnose": ("ppoe_core.cli.diagnose", "find systematic effects the model lacks and add them"),
+    "import": ("ppoe_core.cli.importer", "turn measured datasets (hilti, motoman) into contract bags"),
+    "play": ("ppoe_ros.cli.play", "publish a recorded bag onto live ROS 2 topics"),
+    "record": ("ppoe_ros.cli.record", "record live ROS 2 topics into a new bag"),
+}
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """Build the parser; only the module of ``command`` is imported."""
+    parser = argparse.ArgumentParser(
+        prog="ppoe",
+        description="Probabilistic Product-of-Exponentials kinematics tools.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name, (module_name, help_text) in SUBCOMMANDS.items():
+        sp = sub.add_parser(name, help=help_text, description=help_text)
+        if name == command:
+            module = importlib.import_module(module_name)
+            module.add_arguments(sp)
+            sp.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``ppoe``; returns the process exit code."""
+    args_list = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in args_list if not a.startswith("-")), None)
+    if command not in SUBCOMMANDS:
+        command = None
+    parser = build_parser(command)
+    args = parser.parse_args(args_list)
+    from ppoe_core.errors import PpoeError
+
+    try:
+        return int(args._run(args) or 0)
+    except PpoeError as exc:
+        print(f"ppoe {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,159 @@
+"""``ppoe play BAG``: publish a recorded bag onto live ROS 2 topics (no ``ros2 bag`` needed).
+
+The messages' stored CDR bytes are published unchanged (rclpy raw publish), in
+log-time order, paced by the bag's log times divided by ``--rate``.  With
+``--clock`` the bag time is published on ``/clock`` (``rosgraph_msgs/Clock``)
+before each message and every ``1/--clock-hz`` seconds in between, so nodes with
+``use_sim_time:=true`` run on the bag's clock.  ``/robot_description`` is
+published with transient-local QoS (latched, as robot_state_publisher does), all
+other topics reliable with a deep history.  ``--loop`` starts over at the end
+(the clock then jumps back; nodes count that as a stamp reset).
+
+A topic whose message type is not installed here is skipped with a message on
+stderr (an error if it was asked for with ``--topics``).
+
+Exit codes: 0 done (or interrupted), 2 unreadable bag / unknown topic / nothing to play.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+from ppoe_core.io import bagio
+from ppoe_core.errors import BagError, PpoeError
+
+__all__ = ["add_arguments", "run", "ROBOT_DESCRIPTION_TOPIC"]
+
+ROBOT_DESCRIPTION_TOPIC = "/robot_description"
+
+
+def _positive(text: str) -> float:
+    v = float(text)
+    if not v > 0.0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return v
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``ppoe play``."""
+    parser.add_argument("bag", metavar="BAG", help="rosbag2 directory (mcap or sqlite3)")
+    parser.add_argument("--rate", type=_positive, default=1.0, help="playback speed factor (default 1.0)")
+    parser.add_argument("--clock", action="store_true", help="publish the bag time on /clock")
+    parser.add_argument("--clock-hz", type=_positive, default=100.0,
+                        help="/clock rate between messages [Hz] (default 100)")
+    parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="play only these topics (default: all)")
+    parser.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
+    parser.add_argument("--delay", type=float, default=0.5,
+                        help="seconds to wait after creating the publishers, for discovery (default 0.5)")
+    parser.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SECONDS",
+                        help="before playing, wait up to SECONDS until every played topic has a subscriber")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Play the bag; returns the exit code."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rosgraph_msgs.msg import Clock
+
+    from ppoe_ros.common import LATCHED_QOS, message_class, ns_to_stamp, reliable_qos
+
+    info = bagio.bag_topics(args.bag)  # raises BagError naming the bag
+    if args.topics:
+        missing = [t for t in args.topics if t not in info]
+        if missing:
+            raise BagError(f"bag {args.bag}: no topic {', '.join(missing)} (topics: {', '.join(sorted(info))})")
+        selected = list(dict.fromkeys(args.topics))
+    else:
+        selected = sorted(info)
+    classes: dict[str, Any] = {}
+    for topic in list(selected):
+        try:
+            classes[topic] = message_class(info[topic][0])
+        except PpoeError as exc:
+            if args.topics:  # asked for by name: an error
+                raise BagError(f"bag {args.bag}: topic {topic}: {exc}") from None
+            print(f"ppoe play: skipping {topic}: {exc}", file=sys.stderr)
+            selected.remove(topic)
+    if not selected:
+        raise BagError(f"bag {args.bag}: no topic to play")
+
+    rclpy.init(args=["ppoe_play"])
+    node = rclpy.create_node("ppoe_play")
+    log = node.get_logger()
+    n_sent = 0
+    try:
+        pubs: dict[str, Any] = {}
+        for topic in selected:
+            qos = LATCHED_QOS if topic == ROBOT_DESCRIPTION_TOPIC else reliable_qos(1000)
+            pubs[topic] = node.create_publisher(classes[topic], topic, qos)
+        clock_pub = node.create_publisher(Clock, "/clock", reliable_qos(10)) if args.clock else None
+        _wait(node, pubs, args.delay, args.wait_for_subscribers)
+        log.info(f"playing {args.bag}: {', '.join(f'{t} ({info[t][1]})' for t in selected)} at rate {args.rate:g}")
+        clock_period = 1.0 / args.clock_hz
+        clock_msg = Clock()
+        while True:
+            t0_ns: int | None = None
+            start = time.monotonic()
+            last_clock = -1.0
+            for msg in bagio.iter_raw(args.bag, selected):
+                if t0_ns is None:
+                    t0_ns = msg.stamp_ns
+                target = start + (msg.stamp_ns - t0_ns) * 1e-9 / args.rate
+                while True:
+                    if not rclpy.ok():
+                        return 0
+                    now = time.monotonic()
+                    if now >= target:
+                        break
+                    if clock_pub is not None and now - last_clock >= clock_period:
+                        clock_msg.clock = ns_to_stamp(t0_ns + int((now - start) * args.rate * 1e9))
+                        clock_pub.publish(clock_msg)
+                        last_clock = now
+                    time.sleep(min(target - now, clock_period if clock_pub is not None else 0.05))
+                if clock_pub is not None:
+                    clock_msg.clock = ns_to_stamp(msg.stamp_ns)
+                    clock_pub.publish(clock_msg)
+                    last_clock = time.monotonic()
+                pubs[msg.topic].publish(msg.data)
+                n_sent += 1
+            if not args.loop:
+                break
+        _drain(node, pubs, 1.0)
+        log.info(f"played {n_sent} messages")
+        return 0
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def _wait(node: Any, pubs: dict[str, Any], delay: float, wait_subs: float) -> None:
+    """Discovery: sleep ``delay``; optionally wait until every publisher has a subscriber."""
+    import rclpy
+
+    end = time.monotonic() + max(0.0, delay)
+    while time.monotonic() < end and rclpy.ok():
+        time.sleep(0.02)
+    if wait_subs > 0:
+        end = time.monotonic() + wait_subs
+        while rclpy.ok() and time.monotonic() < end:
+            lonely = [t for t, p in pubs.items() if p.get_subscription_count() == 0]
+            if not lonely:
+                return
+            time.sleep(0.02)
+        node.get_logger().warning(f"no subscriber after {wait_subs:g} s on {', '.join(lonely)}; playing anyway")
+
+
+def _drain(node: Any, pubs: dict[str, Any], timeout: float) -> None:
+    """Give reliable subscribers time to fetch the last messages before the publishers go away."""
+    import rclpy
+    from rclpy.duration import Duration
+
+    end = time.monotonic() + timeout
+    while rclpy.ok() and time.monotonic() < end:
+        if all(p.wait_for_all_acked(Duration(seconds=0.05)) for p in pubs.values()):
+            return

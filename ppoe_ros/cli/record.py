@@ -1,0 +1,138 @@
+"""``ppoe record --out BAG TOPIC...``: write live ROS 2 topics into a new bag (no ``ros2 bag`` needed).
+
+Each requested topic is subscribed as soon as a publisher of it appears (its
+type taken from the ROS graph), with ``raw=True``, so the CDR bytes are written
+as received, after one normalisation step: the bytes FastCDR (rclpy) produces can
+end in alignment padding that ``rosbags``' ``deserialize_cdr`` rejects as a size
+mismatch, so :meth:`ppoe_core.io.bagio.BagWriter.write_raw` parses and re-serialises
+them with rosbags.  The recorded bag therefore reads back with plain ``rosbags``.
+
+The subscription QoS follows the publishers: transient local when all of them
+are (``/robot_description``), best effort if any publisher is best effort.
+The log time of a message is its receive time on the node clock
+(``--use-sim-time`` to take it from ``/clock``).  Stops on SIGINT/SIGTERM or
+after ``--duration``; the bag is closed properly either way.
+
+Exit codes: 0 done, 2 output exists (without ``--force``) / cannot write.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from typing import Any
+
+from ppoe_core.io.bagio import BagWriter
+from ppoe_core.errors import PpoeError
+
+__all__ = ["add_arguments", "run", "Recorder"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``ppoe record``."""
+    parser.add_argument("topics", nargs="+", metavar="TOPIC", help="topics to record")
+    parser.add_argument("--out", "-o", required=True, metavar="BAG", help="bag directory to create")
+    parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="storage plugin (default mcap)")
+    parser.add_argument("--duration", type=float, default=0.0, metavar="SECONDS",
+                        help="stop after this many seconds (default: until interrupted)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing bag directory")
+    parser.add_argument("--use-sim-time", action="store_true", help="log times from /clock")
+
+
+def _qos_for(publishers: list[Any]) -> Any:
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    rel = ReliabilityPolicy.RELIABLE
+    dur = DurabilityPolicy.VOLATILE
+    if publishers and all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers):
+        dur = DurabilityPolicy.TRANSIENT_LOCAL
+    if any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for p in publishers):
+        rel = ReliabilityPolicy.BEST_EFFORT
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=rel, durability=dur)
+
+
+class Recorder:
+    """Subscribes the requested topics (raw) as they appear and writes them to a :class:`BagWriter`."""
+
+    def __init__(self, node: Any, writer: BagWriter, topics: list[str]) -> None:
+        from ppoe_ros.common import NodeStats
+
+        self.node = node
+        self.writer = writer
+        self.pending = list(dict.fromkeys(topics))
+        self.subs: dict[str, Any] = {}
+        self.stats = NodeStats(node, ("received", "written", "bad"))
+        from rclpy.clock import Clock, ClockType
+
+        # steady clock: with use_sim_time a ROS-clock timer would not fire before /clock starts
+        node.create_timer(0.1, self.discover, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.discover()
+
+    def discover(self) -> None:
+        """Subscribe every pending topic that now has a publisher."""
+        from ppoe_ros.common import message_class
+
+        if not self.pending:
+            return
+        types = dict(self.node.get_topic_names_and_types())
+        for topic in list(self.pending):
+            if topic not in types:
+                continue
+            msgtype = types[topic][0]
+            if len(types[topic]) > 1:
+                self.node.get_logger().warning(f"{topic} has several types {types[topic]}; recording {msgtype}")
+            pubs = self.node.get_publishers_info_by_topic(topic)
+            if not pubs:
+                continue
+            cls = message_class(msgtype)
+            self.subs[topic] = self.node.create_subscription(
+                cls, topic, self._callback(topic, msgtype), _qos_for(pubs), raw=True)
+            self.pending.remove(topic)
+            self.node.get_logger().info(f"recording {topic} ({msgtype})")
+
+    def _callback(self, topic: str, msgtype: str) -> Any:
+        clock = self.node.get_clock()
+
+        def cb(data: bytes) -> None:
+            self.stats.inc("received")
+            try:
+                self.writer.write_raw(topic, msgtype, clock.now().nanoseconds, data)
+            except PpoeError as exc:
+                self.stats.bad(topic, str(exc))
+                return
+            self.stats.inc("written")
+
+        return cb
+
+
+def run(args: argparse.Namespace) -> int:
+    """Record until interrupted or ``--duration``; returns the exit code."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    writer = BagWriter(args.out, storage=args.storage, overwrite=args.force)  # BagError if it exists
+    rclpy.init(args=["ppoe_record"])
+    node = rclpy.create_node("ppoe_record", parameter_overrides=[
+        Parameter("use_sim_time", Parameter.Type.BOOL, bool(args.use_sim_time))])
+    writer.open()
+    recorder: Recorder | None = None
+    try:
+        recorder = Recorder(node, writer, args.topics)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        end = time.monotonic() + args.duration if args.duration > 0 else None
+        while rclpy.ok() and (end is None or time.monotonic() < end):
+            executor.spin_once(timeout_sec=0.05)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        writer.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    counts = ", ".join(f"{t}: {n}" for t, n in sorted(writer.counts.items())) or "nothing"
+    print(f"ppoe record: wrote {args.out} ({counts})", file=sys.stderr)
+    if recorder is not None and recorder.pending:
+        print(f"ppoe record: never saw a publisher of {', '.join(recorder.pending)}", file=sys.stderr)
+    return 0

@@ -1,0 +1,1 @@
+"""ppoe_ros.nodes: the ROS 2 nodes (parse, call ppoe_core, publish)."""

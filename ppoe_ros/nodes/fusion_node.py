@@ -1,0 +1,375 @@
+"""Fusion node: kinematics prior + tag / contact measurements -> corrected tool pose.
+
+Thin ROS wrapper around :class:`ppoe_core.estimation.pipeline.FusionPipeline` (the same code
+``ppoe evaluate`` replays offline); the design (prior buffer, how a correction is carried
+while the arm moves on and when it is dropped) is in ``docs/fusion_node.md``.
+
+Subscriptions
+    ``prior_topic`` (default ``/ppoe/pose``, ``PoseWithCovarianceStamped`` from the
+    kinematics node: ``T_base_tool``, ROS-convention covariance); ``header.frame_id`` must be
+    ``base_frame``.
+    ``observations_topic`` (default ``/tag_bearing/observations``, ``PointCloud2``, fields
+    ``id``, ``corner``, ``u``, ``v``, ``x``, ``y``; ``header.frame_id`` = camera optical frame).
+    ``contact_topic`` (default ``/contact/plane``, ``PoseWithCovarianceStamped``: plane pose
+    and ``Sigma_v`` in the ROS convention, while in contact).
+    ``camera_info_topic`` (default ``/camera/camera_info``): focal lengths that turn the pixel
+    noise into normalised units (without it they are fitted from ``u, v`` vs ``x, y``).
+    ``joint_states_topic`` (default ``/joint_states``): joint positions at the prior stamps
+    (camera on a pan-tilt mast, tag mounts behind joints, the joint-motion limit).
+    ``/robot_description`` (transient local) unless the ``robot_description`` parameter is set.
+Publications
+    ``fused_topic`` (default ``/ppoe/fused_pose``, ``PoseWithCovarianceStamped``): for every
+    prior, the prior with the carried correction applied (the prior itself when there is
+    none), same stamp and frame; after each accepted measurement once more for the newest
+    prior (``publish_on_update``).
+    ``/diagnostics``: counters ``priors``, ``measurements``, ``accepted``, ``rejected``,
+    ``dropped`` (= ``dropped_stale`` + ``dropped_no_prior``), ``corrections_dropped``,
+    ``bad``, ``published`` ...
+
+A bad message (NaN pose, non-PSD covariance, wrong frame, unknown tag ids or camera frame,
+corrupt point cloud) is logged (throttled), counted and dropped; the node keeps running.
+
+Parameters: :data:`PARAMS`, documented in ``config/nodes/fusion_node.yaml``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, JointState, PointCloud2
+from std_msgs.msg import String
+
+from ppoe_core import lie
+from ppoe_core.errors import MeasurementError, ModelConfigError, PpoeError
+from ppoe_core.estimation.pipeline import (
+    FUSION_SETTINGS,
+    Measurement,
+    MeasurementOutcome,
+    ModelUpdater,
+    PlaneContact,
+    PriorSample,
+    TagPoints,
+    UpdateResult,
+    make_pipeline,
+    make_updater,
+    source_key,
+)
+from ppoe_ros.nodes.kinematics_node import load_model_yaml
+from ppoe_ros.common import (
+    DiagnosticsPublisher,
+    NodeStats,
+    ParamSpec,
+    check_nonempty,
+    declare_parameters,
+    guarded,
+    take_robot_description,
+    joint_positions,
+    mapping_get,
+    ns_to_stamp,
+    pose_cov_from_msg,
+    pose_cov_stamped_msg,
+    reliable_qos,
+    sensor_qos,
+    stamp_to_ns,
+)
+from ppoe_ros.nodes.tag_bearing_node import observations_from_cloud
+
+__all__ = ["FusionNode", "PARAMS", "main"]
+
+#: defaults shared with ``ppoe evaluate`` (ppoe_core.estimation.pipeline.FUSION_SETTINGS)
+_D = FUSION_SETTINGS
+
+PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("model_file", "", "model YAML: tags, camera, contact, perturbations (required)", check=check_nonempty),
+    ParamSpec("robot_description", "", "URDF XML; empty = take it from robot_description_topic"),
+    ParamSpec("robot_description_topic", "/robot_description", "latched std_msgs/String topic carrying the URDF",
+              check=check_nonempty),
+    ParamSpec("base_frame", "", "frame of the prior (its header.frame_id); empty = model YAML frames.base"),
+    ParamSpec("tool_frame", "", "frame whose pose the prior is; empty = model YAML frames.tool"),
+    ParamSpec("prior_topic", "/ppoe/pose", "kinematics prior (PoseWithCovarianceStamped)", check=check_nonempty),
+    ParamSpec("observations_topic", "/tag_bearing/observations", "tag observations (PointCloud2); empty = off"),
+    ParamSpec("contact_topic", "/contact/plane", "contact plane (PoseWithCovarianceStamped); empty = off"),
+    ParamSpec("camera_info_topic", "/camera/camera_info", "CameraInfo for the focal lengths; empty = fit from u,v"),
+    ParamSpec("joint_states_topic", "/joint_states", "JointState for joint positions at the prior stamps; empty = off"),
+    ParamSpec("fused_topic", "/ppoe/fused_pose", "output topic (PoseWithCovarianceStamped)", check=check_nonempty),
+    ParamSpec("buffer_duration", _D["buffer_duration"], "history of priors kept; older measurements are dropped",
+              unit="s", min_value=1e-3, max_value=3600.0),
+    ParamSpec("max_gap", _D["max_gap"], "neighbouring priors further apart are not interpolated between",
+              unit="s", min_value=1e-6, max_value=3600.0),
+    ParamSpec("max_hold", _D["max_hold"], "max distance to the nearest prior when interpolation is impossible",
+              unit="s", min_value=0.0, max_value=3600.0),
+    ParamSpec("max_pending", _D["max_pending"], "measurements newer than the newest prior kept waiting",
+              min_value=0, max_value=100000),
+    ParamSpec("min_interval", _D["min_interval"], "per source (topic + frame_id): a measurement less than this after the last one "
+              "processed is skipped (counted as throttled); 0 = process all", unit="s", min_value=0.0,
+              max_value=3600.0),
+    ParamSpec("pending_timeout", 1.0, "when no prior arrived for this long (steady clock), pending measurements "
+              "are processed with the newest prior (hold) or dropped", unit="s", min_value=0.0, max_value=3600.0),
+    ParamSpec("correction_timeout", _D["correction_timeout"], "a carried correction fades over / is dropped "
+              "after this; <= 0 = off", unit="s", max_value=1e6),
+    ParamSpec("correction_joint_motion", _D["correction_joint_motion"], "... after this max-abs joint motion; "
+              "<= 0 = off", unit="rad or m", max_value=1e6),
+    ParamSpec("correction_tool_translation", _D["correction_tool_translation"], "... after this tool "
+              "translation; <= 0 = off", unit="m", max_value=1e6),
+    ParamSpec("correction_tool_rotation", _D["correction_tool_rotation"], "... after this tool rotation; "
+              "<= 0 = off", unit="rad", max_value=1e6),
+    ParamSpec("correction_decay", _D["correction_decay"], "linear: weight 1 - ratio; step: full weight until "
+              "dropped", check=lambda v: None if v in ("linear", "step") else f"must be 'linear' or 'step', got {v!r}"),
+    ParamSpec("max_iterations", _D["max_iterations"], "relinearisations of the iterated LG-EKF update "
+              "(1 = plain LG-EKF)", min_value=1, max_value=100),
+    ParamSpec("gate_probability", _D["gate_probability"], "chi-square gate probability; 1.0 = no gating",
+              min_value=0.5, max_value=1.0),
+    ParamSpec("gating", _D["gating"], "posterior: cost of the iterated solution; prior: NIS at the prior",
+              check=lambda v: None if v in ("posterior", "prior") else f"must be 'posterior' or 'prior', got {v!r}"),
+    ParamSpec("pixel_sigma", _D["pixel_sigma"], "1-sigma pixel noise; <= 0 = model YAML camera.pixel_sigma",
+              unit="px", max_value=1e6),
+    ParamSpec("use_tag_centre", _D["use_tag_centre"], "use the tag centres (corner 0)"),
+    ParamSpec("use_tag_corners", _D["use_tag_corners"], "use the tag corners 1..4"),
+    ParamSpec("camera_covariance", _D["camera_covariance"], "let the PPOE covariance of the camera chain "
+              "enter the tag model"),
+    ParamSpec("contact_distance_sigma", _D["contact_distance_sigma"], "extra 1-sigma noise of the contact "
+              "distance", unit="m", min_value=0.0, max_value=1e3),
+    ParamSpec("publish_on_update", True, "publish the newest fused pose right after an accepted measurement"),
+    ParamSpec("qos_depth", 1000, "history depth of the input subscriptions (a node that falls behind a "
+              "1 kHz prior stream catches up instead of losing priors)", min_value=1, max_value=100000),
+    ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
+    ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
+              min_value=0.0),
+)
+
+_STAT_KEYS = ("received", "published", "bad", "priors", "measurements", "accepted", "rejected", "dropped",
+              "dropped_stale", "dropped_no_prior", "dropped_no_model", "throttled", "corrections_dropped",
+              "pending", "empty_observations", "resets")
+
+
+class _JointBuffer:
+    """Joint positions (``model.joint_names`` order, NaN = unknown) by stamp, last ``duration`` s."""
+
+    def __init__(self, duration_ns: int) -> None:
+        self.duration_ns = duration_ns
+        self.names: list[str] = []
+        self.index: dict[str, int] = {}
+        self.current: np.ndarray = np.zeros(0)
+        self.stamps: list[int] = []
+        self.values: list[np.ndarray] = []
+
+    def set_names(self, names: Sequence[str]) -> None:
+        self.names = list(names)
+        self.index = {n: i for i, n in enumerate(self.names)}
+        self.current = np.full(len(self.names), np.nan)
+        self.stamps.clear()
+        self.values.clear()
+
+    def add(self, stamp_ns: int, joints: dict[str, float]) -> None:
+        cur = self.current.copy()
+        for n, v in joints.items():
+            i = self.index.get(n)
+            if i is not None:
+                cur[i] = v if math.isfinite(v) else np.nan
+        self.current = cur
+        if self.stamps and stamp_ns < self.stamps[-1]:
+            self.stamps.clear()  # time went backwards: new timeline
+            self.values.clear()
+        self.stamps.append(stamp_ns)
+        self.values.append(cur)
+        cut = bisect.bisect_left(self.stamps, stamp_ns - self.duration_ns)
+        if cut:
+            del self.stamps[:cut]
+            del self.values[:cut]
+
+    def at(self, stamp_ns: int) -> np.ndarray | None:
+        """The latest joint positions at or before ``stamp_ns``; the oldest kept ones if all are
+        newer (the prior overtook its joint state); None if there are none."""
+        if not self.stamps:
+            return None
+        i = bisect.bisect_right(self.stamps, stamp_ns)
+        return self.values[max(i - 1, 0)]
+
+
+class FusionNode(Node):
+    """Kinematics prior + measurements -> ``/ppoe/fused_pose`` through :class:`FusionPipeline`."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("fusion_node", **kwargs)
+        p = declare_parameters(self, PARAMS)
+        self.params = p
+        self.stats = NodeStats(self, _STAT_KEYS, p["log_throttle"])
+        self.model_yaml = load_model_yaml(p["model_file"])
+        frames = mapping_get(self.model_yaml, "frames", default={}) or {}
+        self.base_frame = p["base_frame"] or frames.get("base") or "base_link"
+        self.tool_frame = p["tool_frame"] or frames.get("tool") or "tool0"
+        self.settings = {k: p[k] for k in FUSION_SETTINGS}
+        try:
+            self.pipeline = make_pipeline(None, self.base_frame, self.tool_frame, self.settings,
+                                          updater=self._update)
+        except PpoeError as exc:
+            raise ModelConfigError(f"node {self.get_name()}: {exc}") from None
+        self.updater: ModelUpdater | None = None
+        self.model: Any = None
+        self._urdf: str | None = None
+        self.joints = _JointBuffer(int((p["buffer_duration"] + 1.0) * 1e9))
+        self.focal: dict[str, tuple[float, float]] = {}
+
+        self.pub = self.create_publisher(PoseWithCovarianceStamped, p["fused_topic"], reliable_qos(100))
+        self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
+        qos = sensor_qos(p["qos_depth"])
+        rel = reliable_qos(p["qos_depth"])
+
+        def sub(msg_type: Any, topic: str, cb: Any, q: Any) -> None:
+            if topic:
+                self.create_subscription(msg_type, topic, guarded(self.stats, topic)(cb), q)
+
+        sub(PoseWithCovarianceStamped, p["prior_topic"], self._prior, qos)
+        sub(PointCloud2, p["observations_topic"], self._observations, rel)
+        sub(PoseWithCovarianceStamped, p["contact_topic"], self._contact, rel)
+        sub(CameraInfo, p["camera_info_topic"], self._camera_info, qos)
+        sub(JointState, p["joint_states_topic"], self._joint_state, qos)
+        self._last_prior_wall = time.monotonic()
+        self.create_timer(0.1, guarded(self.stats, "pending measurements")(self._expire_pending),
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+        take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
+        self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
+
+    # ------------------------------------------------------------------ model
+    def _set_model(self, urdf_xml: str, where: str) -> None:
+        from ppoe_core.model.ppoe import PPOEModel
+
+        try:
+            model = PPOEModel.from_strings(urdf_xml, Path(self.params["model_file"]), urdf_source=where)
+            model.robot.check_link(self.base_frame)
+            model.robot.check_link(self.tool_frame)
+            updater = make_updater(model, self.base_frame, self.tool_frame, self.settings)
+        except PpoeError as exc:
+            raise type(exc)(f"{where}: {exc}") from None
+        # import the update code now (scipy.stats ...), not while the first measurement waits
+        import ppoe_core.estimation.fusion  # noqa: F401
+        import ppoe_core.estimation.measurements  # noqa: F401
+
+        self.model, self.updater, self._urdf = model, updater, urdf_xml
+        self.joints.set_names(model.joint_names)
+        self.get_logger().info(
+            f"model from {where}: fusing into {self.base_frame} -> {self.tool_frame}; tags "
+            f"{sorted(updater.tags)}; contact {'yes' if updater.contact is not None else 'no'}")
+
+    def _robot_description(self, msg: String) -> None:
+        if msg.data == self._urdf:
+            return
+        self._set_model(msg.data, f"topic {self.params['robot_description_topic']}")
+        self.diagnostics.set_status(None, "")
+
+    def _update(self, T: np.ndarray, cov: np.ndarray, m: Measurement, prior: PriorSample) -> UpdateResult:
+        if self.updater is None:
+            raise MeasurementError("no robot model yet (waiting for robot_description)")
+        return self.updater(T, cov, m, prior)
+
+    # -------------------------------------------------------------- callbacks
+    def _camera_info(self, msg: CameraInfo) -> None:
+        fx, fy = float(msg.k[0]), float(msg.k[4])
+        if not (math.isfinite(fx) and math.isfinite(fy) and fx > 0 and fy > 0):
+            raise MeasurementError(f"camera_info K has fx = {fx}, fy = {fy}")
+        self.focal[msg.header.frame_id] = (fx, fy)
+
+    def _joint_state(self, msg: JointState) -> None:
+        if self.model is None:
+            return
+        self.joints.add(stamp_to_ns(msg.header.stamp), joint_positions(msg, self.params["joint_states_topic"]))
+
+    def _prior(self, msg: PoseWithCovarianceStamped) -> None:
+        self.stats.counts["received"] += 1
+        T, cov_ros, stamp_ns, frame = pose_cov_from_msg(msg)
+        if frame != self.base_frame:
+            raise MeasurementError(f"prior frame '{frame}' is not base_frame '{self.base_frame}'")
+        cov_tool = lie.cov_ros_to_local(T, cov_ros)
+        est, outcomes = self.pipeline.add_prior(stamp_ns * 1e-9, T, cov_tool, self.joints.at(stamp_ns))
+        self._last_prior_wall = time.monotonic()
+        for o in outcomes:
+            self._report(o)
+        if est is not None:
+            self._publish(est.T_base_tool, est.cov_tool, msg.header.stamp)
+        self._sync_counts()
+
+    def _observations(self, msg: PointCloud2) -> None:
+        self.stats.counts["received"] += 1
+        d = observations_from_cloud(msg)
+        if d["id"].size == 0:
+            self.stats.counts["empty_observations"] += 1
+            return
+        frame = msg.header.frame_id
+        fx, fy = self.focal.get(frame, (None, None))
+        payload = TagPoints(frame, d["id"].astype(int), d["corner"].astype(int),
+                            np.column_stack([d["x"], d["y"]]), np.column_stack([d["u"], d["v"]]), fx, fy)
+        source = source_key(self.params["observations_topic"], frame)
+        self._measure(Measurement(stamp_to_ns(msg.header.stamp) * 1e-9, source, payload))
+
+    def _contact(self, msg: PoseWithCovarianceStamped) -> None:
+        self.stats.counts["received"] += 1
+        T, cov_ros, stamp_ns, frame = pose_cov_from_msg(msg)
+        cov_plane = lie.check_covariance(lie.cov_ros_to_local(T, cov_ros),
+                                         name=f"{self.params['contact_topic']} covariance", size=6)
+        source = source_key(self.params["contact_topic"], frame)
+        self._measure(Measurement(stamp_ns * 1e-9, source, PlaneContact(frame, T, cov_plane)))
+
+    def _measure(self, m: Measurement) -> None:
+        if self.updater is None:
+            self.stats.bad(m.source, "no robot model yet (waiting for robot_description)", kind="dropped_no_model")
+            return
+        self._report(self.pipeline.add_measurement(m))
+        self._sync_counts()
+
+    def _expire_pending(self) -> None:
+        # measurements newer than the newest prior wait for it; only when the prior stream
+        # has gone quiet are they taken with the newest prior (hold) or dropped
+        if not self.pipeline.pending or time.monotonic() - self._last_prior_wall < self.params["pending_timeout"]:
+            return
+        for o in self.pipeline.flush():
+            self._report(o)
+        self._sync_counts()
+
+    # ---------------------------------------------------------------- output
+    def _report(self, o: MeasurementOutcome) -> None:
+        src = o.measurement.source
+        if o.status == "bad":
+            self.stats.bad(src, o.error)
+        elif o.status in ("stale", "no_prior"):
+            self.stats.bad(src, f"measurement at {o.measurement.stamp:.6f} s: {o.status} (prior buffer "
+                                f"{self.pipeline.buffer.oldest} .. {self.pipeline.buffer.newest} s)",
+                           kind="dropped")
+        elif o.status == "rejected":
+            self.stats.bad(src, f"rejected by the gate (cost {o.nis:.3g})", kind="rejected")
+        elif o.status == "accepted" and self.params["publish_on_update"]:
+            est = self.pipeline.latest()
+            if est is not None:
+                self._publish(est.T_base_tool, est.cov_tool, ns_to_stamp(int(round(est.stamp * 1e9))))
+
+    def _publish(self, T: np.ndarray, cov_tool: np.ndarray, stamp: Any) -> None:
+        self.pub.publish(pose_cov_stamped_msg(T, lie.cov_local_to_ros(T, cov_tool), stamp, self.base_frame))
+        self.stats.counts["published"] += 1
+
+    def _sync_counts(self) -> None:
+        c, s = self.pipeline.counts, self.stats.counts
+        for k in ("priors", "measurements", "accepted", "rejected", "dropped_stale", "dropped_no_prior",
+                  "corrections_dropped", "resets", "throttled"):
+            s[k] = c[k]
+        s["dropped"] = c["dropped_stale"] + c["dropped_no_prior"]
+        s["pending"] = len(self.pipeline.pending)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point ``fusion_node`` (``--ros-args`` accepted)."""
+    from ppoe_ros.common import run_node
+
+    return run_node(FusionNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

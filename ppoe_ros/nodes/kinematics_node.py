@@ -1,0 +1,392 @@
+"""Kinematics node: joint states -> PPOE pose with covariance (``/ppoe/pose``).
+
+Subscriptions
+    ``/joint_states`` (``sensor_msgs/JointState``, sensor-data QoS): one output per message.
+    ``/robot_description`` (``std_msgs/String``, transient local) unless the
+    ``robot_description`` parameter holds the URDF.
+Publications
+    ``/ppoe/pose`` (``geometry_msgs/PoseWithCovarianceStamped``): ``T_reference_target``
+    with ``header.frame_id = reference_frame`` and ``header.stamp`` = the joint-state
+    stamp; the covariance is ``cov_target`` (local, right perturbation, paper
+    eq. 8-9/18) converted to the ROS convention of CONTRACT.md sec. 2.
+    ``/ppoe/<frame>/pose`` (same type) for each of ``extra_target_frames``.
+    ``/diagnostics``: counters ``received``, ``published``, ``bad``, ``dropped``.
+
+Bad input never stops the node: a message with a missing joint the chain needs,
+a NaN/inf position, mismatched ``name``/``position`` lengths, or a stamp older
+than the previous one is logged (throttled), counted as ``bad`` and dropped.
+A backward jump larger than ``stamp_reset_threshold`` (a replayed bag looping,
+a simulator reset) is logged and counted too, but taken as the start of a new
+timeline: that message is published.  Joint states that arrive before the URDF
+are counted as ``dropped``.  Joints the chain does not use are ignored.
+
+Throughput: the subscription callback only validates a message and queues its
+joint vector; a worker thread runs the FK on everything queued since its last
+call as one vectorised batch (``model.fk`` broadcasts over a batch axis) and
+publishes one output per message, in order.  At low rates batches hold one
+message; when the FK falls behind they grow, so the node keeps up with 1 kHz joint
+states (``bench/bench_nodes.py``).  ``max_batch: 1`` computes in the callback.
+
+Parameters: see ``config/nodes/kinematics_node.yaml`` (every key documented there) and
+:data:`PARAMS`.
+"""
+
+from __future__ import annotations
+
+import collections
+import sys
+import threading
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import yaml
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rcl_interfaces.msg import ParameterType
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+
+from ppoe_core import lie
+from ppoe_core.errors import JointValueError, ModelConfigError, PpoeError
+from ppoe_core.model.ppoe import PPOEModel
+from ppoe_ros.common import (
+    DiagnosticsPublisher,
+    NodeStats,
+    ParamSpec,
+    check_nonempty,
+    declare_parameters,
+    guarded,
+    take_robot_description,
+    mapping_get,
+    reliable_qos,
+    sensor_qos,
+    stamp_to_ns,
+)
+
+__all__ = ["KinematicsNode", "PARAMS", "main", "load_model_yaml", "output_topic"]
+
+_STRING_ARRAY = ParameterType.PARAMETER_STRING_ARRAY
+
+#: Parameters of the node (defaults; documented in config/nodes/kinematics_node.yaml).
+PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("model_file", "", "model YAML (perturbations, frames, ...); empty = exact URDF, zero covariance"),
+    ParamSpec("robot_description", "", "URDF XML; empty = take it from the robot_description topic"),
+    ParamSpec("robot_description_topic", "/robot_description", "latched std_msgs/String topic carrying the URDF",
+              check=check_nonempty),
+    ParamSpec("joint_states_topic", "/joint_states", "sensor_msgs/JointState input", check=check_nonempty),
+    ParamSpec("reference_frame", "", "frame the pose is expressed in; empty = model YAML frames.base, "
+              "else the URDF root link"),
+    ParamSpec("target_frame", "", "frame whose pose is published; empty = model YAML frames.tool, else tool0"),
+    ParamSpec("pose_topic", "/ppoe/pose", "output topic of the target frame", check=check_nonempty),
+    ParamSpec("extra_target_frames", [], "more target frames, published on /ppoe/<frame>/pose",
+              ptype=_STRING_ARRAY),
+    ParamSpec("order", 2, "covariance propagation order (paper eq. 15/18: 2; 4 = fourth order)",
+              check=lambda v: None if v in (2, 4) else f"must be 2 or 4, got {v}"),
+    ParamSpec("max_batch", 100, "largest batch of queued joint states per FK call; 1 = compute in the "
+              "subscription callback (no worker thread)", min_value=1, max_value=100000),
+    ParamSpec("max_queue", 2000, "joint states waiting for the FK worker beyond this are dropped (oldest first)",
+              min_value=1, max_value=1000000),
+    ParamSpec("drain_max", 200, "after each joint-state callback, take up to this many already waiting "
+              "joint states at once (one executor wake-up per burst); 0 = one per wake-up",
+              min_value=0, max_value=100000),
+    ParamSpec("qos_depth", 100, "history depth of the joint-state subscription (sensor-data QoS)",
+              min_value=1, max_value=100000),
+    ParamSpec("stamp_reset_threshold", 1.0, "a stamp this much older than the last one starts a new timeline",
+              unit="s", min_value=0.0),
+    ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
+    ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
+              min_value=0.0),
+)
+
+
+def output_topic(frame: str) -> str:
+    """Topic of an extra target frame: ``/ppoe/<frame>/pose``."""
+    return f"/ppoe/{frame.strip('/')}/pose"
+
+
+def load_model_yaml(path: str) -> dict[str, Any]:
+    """Read the model YAML (``{}`` for an empty path).
+
+    Raises
+    ------
+    ModelConfigError
+        The file is missing or not a YAML mapping (message names the file).
+    """
+    if not path:
+        return {}
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except OSError as exc:
+        raise ModelConfigError(f"model file {p}: cannot read: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ModelConfigError(f"model file {p}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except yaml.YAMLError as exc:
+        raise ModelConfigError(f"model file {p}: not valid YAML: {exc}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ModelConfigError(f"model file {p}: top level must be a mapping, got {type(data).__name__}")
+    return data
+
+
+class _Target:
+    """One output: a target frame, its publisher and a reused message object."""
+
+    __slots__ = ("frame", "pub", "msg")
+
+    def __init__(self, frame: str, pub: Any) -> None:
+        self.frame = frame
+        self.pub = pub
+        self.msg = PoseWithCovarianceStamped()
+
+
+class KinematicsNode(Node):
+    """Publishes ``T_reference_target`` and its ROS-convention covariance for every joint state."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("kinematics_node", **kwargs)
+        p = declare_parameters(self, PARAMS)
+        self.params = p
+        self.stats = NodeStats(self, ("received", "published", "bad", "dropped"), p["log_throttle"])
+        self.model_yaml = load_model_yaml(p["model_file"])
+        frames = self._frames = mapping_get(self.model_yaml, "frames", default={}) or {}
+        # "" = the URDF root link, resolved when the URDF arrives
+        self.reference = p["reference_frame"] or frames.get("base") or ""
+        target = p["target_frame"] or frames.get("tool") or "tool0"
+        self.order = int(p["order"])
+        self.reset_ns = int(round(p["stamp_reset_threshold"] * 1e9))
+        self.model: Any = None
+        self._urdf: str | None = None
+        self._last_ns: int | None = None
+        self._cached_names: list[str] | None = None
+        self._needed: list[str] = []
+        self._model_joints: list[str] = []
+        self._src = self._dst = np.zeros(0, dtype=np.intp)
+        self._worker: _BatchWorker | None = None
+
+        out_qos = reliable_qos(100)
+        self.targets = [_Target(target, self.create_publisher(PoseWithCovarianceStamped, p["pose_topic"],
+                                                              out_qos))]
+        for frame in p["extra_target_frames"]:
+            if frame == target or frame in (t.frame for t in self.targets):
+                raise ModelConfigError(
+                    f"node {self.get_name()}: parameter 'extra_target_frames' repeats '{frame}'")
+            self.targets.append(_Target(frame, self.create_publisher(
+                PoseWithCovarianceStamped, output_topic(frame), out_qos)))
+
+        self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
+        js_topic = p["joint_states_topic"]
+        self._on_joint_state = guarded(self.stats, js_topic)(self._joint_state)
+        self._drain_max = int(p["drain_max"])
+        self._js_sub = self.create_subscription(JointState, js_topic, self._on_joint_state_burst,
+                                                sensor_qos(p["qos_depth"]))
+
+        take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
+        self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
+        if p["max_batch"] > 1:  # last: nothing after it can fail and leave the thread behind
+            self._worker = _BatchWorker(self._process, self.stats, p["max_batch"], p["max_queue"], js_topic)
+
+    # ------------------------------------------------------------------ model
+    def _set_model(self, urdf_xml: str, where: str) -> None:
+        try:
+            # the model YAML from its file (a Path), so that errors name file and line (a dict would not)
+            model_file = self.params["model_file"]
+            model = PPOEModel.from_strings(urdf_xml, Path(model_file) if model_file else None)
+            reference = self.params["reference_frame"] or self._frames.get("base") or model.robot.root
+            model.robot.check_link(reference)  # check the frames now, not at the first joint state
+            for t in self.targets:
+                model.robot.check_link(t.frame)
+                t.msg.header.frame_id = reference
+        except PpoeError as exc:
+            raise type(exc)(f"{where}: {exc}") from None
+        needed: list[str] = []
+        for t in self.targets:
+            needed += [n for n in model.chain_joints(reference, t.frame) if n not in needed]
+        self._model_joints = list(model.joint_names)
+        self._needed = needed
+        self._dst = np.array([self._model_joints.index(n) for n in needed], dtype=np.intp)
+        self._cached_names = None
+        self.reference = reference
+        self.model = model
+        self._urdf = urdf_xml
+        self.get_logger().info(
+            f"model from {where}: {len(model.joint_names)} joints; publishing "
+            + ", ".join(f"{self.reference}->{t.frame} on {t.pub.topic_name}" for t in self.targets))
+
+    def _robot_description(self, msg: String) -> None:
+        if msg.data == self._urdf:
+            return
+        self._set_model(msg.data, f"topic {self.params['robot_description_topic']}")
+        self.diagnostics.set_status(None, "")
+
+    # --------------------------------------------------------------- callback
+    def _on_joint_state_burst(self, msg: JointState) -> None:
+        """Subscription callback: this message, then up to ``drain_max`` more that already wait.
+
+        rclpy's executor rebuilds its wait set for every message, which costs more than
+        the message itself at 1 kHz; taking the waiting messages here (the same
+        ``take_message`` call the executor makes) pays that once per burst.
+        """
+        self._on_joint_state(msg)
+        handle = self._js_sub.handle
+        for _ in range(self._drain_max):
+            try:
+                with handle:
+                    taken = handle.take_message(JointState, False)
+            except Exception as exc:  # noqa: BLE001 - rclpy internals changed: fall back to the executor
+                self._drain_max = 0
+                self.get_logger().warning(f"draining /joint_states disabled: {type(exc).__name__}: {exc}")
+                return
+            if taken is None:
+                return
+            self._on_joint_state(taken[0])
+
+    def _joint_state(self, msg: JointState) -> None:
+        """Validate one joint state (in arrival order) and process it, or queue it for the worker."""
+        stats = self.stats
+        stats.counts["received"] += 1
+        model = self.model
+        if model is None:
+            stats.bad(self.params["joint_states_topic"], "no URDF yet (waiting for robot_description)",
+                      kind="dropped")
+            return
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        last = self._last_ns
+        if last is not None and stamp_ns < last:
+            jump = (last - stamp_ns) * 1e-9
+            if last - stamp_ns <= self.reset_ns:
+                raise ValueError(f"stamp {stamp_ns * 1e-9:.9f} s jumped back by {jump:.6f} s: message dropped")
+            stats.bad(self.params["joint_states_topic"],
+                      f"stamp jumped back by {jump:.3f} s (> stamp_reset_threshold): new timeline")
+        q = self._joint_vector(msg)  # raises JointValueError / ValueError naming the joint
+        self._last_ns = stamp_ns
+        item = (msg.header.stamp, q, model)
+        if self._worker is None:
+            self._process([item])
+        else:
+            self._worker.put(item)
+
+    def _joint_vector(self, msg: JointState) -> np.ndarray:
+        """Joint values in ``model.joint_names`` order; the needed ones checked present and finite."""
+        names = msg.name
+        pos = msg.position
+        if len(names) != len(pos):
+            raise ValueError(f"{len(names)} names but {len(pos)} positions")
+        if names != self._cached_names:  # name layout changed: rebuild the index maps
+            where = {n: i for i, n in enumerate(names)}
+            missing = [n for n in self._needed if n not in where]
+            if missing:
+                raise JointValueError(
+                    f"missing value for joint(s) {', '.join(repr(m) for m in missing)} needed by "
+                    f"{self.reference} -> {', '.join(t.frame for t in self.targets)} "
+                    f"(got {', '.join(names) or 'none'})")
+            self._src = np.array([where[n] for n in self._needed], dtype=np.intp)
+            self._cached_names = list(names)
+        values = np.asarray(pos, dtype=float)[self._src]
+        if not np.all(np.isfinite(values)):
+            bad = [n for n, v in zip(self._needed, values) if not np.isfinite(v)]
+            raise JointValueError(f"NaN or infinite value for joint(s) {', '.join(repr(b) for b in bad)}")
+        q = np.zeros(len(self._model_joints))
+        q[self._dst] = values
+        return q
+
+    def _process(self, items: list[tuple[Any, np.ndarray, Any]]) -> None:
+        """FK of a batch of validated joint states (one model call per target) and publish each."""
+        model = items[0][2]
+        if any(it[2] is not model for it in items):  # URDF changed inside the batch: split it
+            cut = next(i for i, it in enumerate(items) if it[2] is not model)
+            self._process(items[:cut])
+            self._process(items[cut:])
+            return
+        q = np.stack([it[1] for it in items])
+        try:
+            results = []
+            for t in self.targets:
+                T, cov_local = model.fk(q, self.reference, t.frame, order=self.order)
+                cov_ros = lie.cov_local_to_ros(T, cov_local)
+                quat = lie.quat_from_matrix(T[:, :3, :3])
+                results.append((t, T[:, :3, 3].tolist(), quat.tolist(), cov_ros.reshape(len(items), 36)))
+        except PpoeError as exc:
+            for _ in items:
+                self.stats.bad(self.params["joint_states_topic"], str(exc))
+            return
+        for k, (stamp, _, _) in enumerate(items):
+            for t, xyz, quat, cov in results:
+                out = t.msg
+                out.header.stamp = stamp
+                pose = out.pose.pose
+                pose.position.x, pose.position.y, pose.position.z = xyz[k]
+                o = pose.orientation
+                o.x, o.y, o.z, o.w = quat[k]
+                out.pose.covariance = cov[k]
+                t.pub.publish(out)
+            self.stats.counts["published"] += 1
+
+    def destroy_node(self) -> None:
+        """Stop the worker thread, then destroy the node."""
+        if self._worker is not None:
+            self._worker.stop()
+        super().destroy_node()
+
+
+class _BatchWorker:
+    """Worker thread: processes whatever joint states queued up since its last batch.
+
+    At low rates every batch holds one message (no added latency); when the FK falls
+    behind, batches grow and the vectorised FK catches up.  A queue longer than
+    ``max_queue`` drops its oldest entries (counted as ``dropped``).
+    """
+
+    def __init__(self, process: Any, stats: NodeStats, max_batch: int, max_queue: int, topic: str) -> None:
+        self._process = process
+        self._stats = stats
+        self._max_batch = max_batch
+        self._max_queue = max_queue
+        self._topic = topic
+        self._queue: collections.deque = collections.deque()
+        self._cv = threading.Condition()
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="ppoe_fk_worker", daemon=True)
+        self._thread.start()
+
+    def put(self, item: Any) -> None:
+        with self._cv:
+            self._queue.append(item)
+            if len(self._queue) > self._max_queue:
+                self._queue.popleft()
+                self._stats.bad(self._topic, f"FK queue longer than {self._max_queue}: oldest dropped",
+                                kind="dropped")
+            self._cv.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                while not self._queue and not self._stop:
+                    self._cv.wait(0.2)
+                if self._stop:
+                    return
+                n = min(len(self._queue), self._max_batch)
+                batch = [self._queue.popleft() for _ in range(n)]
+            try:
+                self._process(batch)
+            except Exception as exc:  # noqa: BLE001 - the worker must survive anything
+                self._stats.error(self._topic, exc)
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+        self._thread.join(timeout=2.0)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point ``kinematics_node`` (``--ros-args`` accepted)."""
+    from ppoe_ros.common import run_node
+
+    return run_node(KinematicsNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

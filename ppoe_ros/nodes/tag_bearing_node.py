@@ -1,0 +1,320 @@
+"""Tag bearing node: camera images -> tag centre and corner observations.
+
+Subscriptions
+    ``image_topic`` (default ``/camera/image_raw/compressed``, ``sensor_msgs/CompressedImage``
+    when ``compressed`` is true, else ``sensor_msgs/Image``; sensor-data QoS).
+    ``camera_info_topic`` (default ``/camera/camera_info``, ``sensor_msgs/CameraInfo``): ``K``
+    and ``D`` (``plumb_bob`` or ``rational_polynomial``) of the latest valid message are used.
+Publications
+    ``/tag_bearing/observations`` (``sensor_msgs/PointCloud2``), one message per image, as in
+    the topic table of ``docs/ARCHITECTURE.md``: header = image header (stamp, camera optical
+    frame); one point per observed tag point with FLOAT64 fields ``id``, ``corner`` (0 =
+    centre, 1..4 = corners in the order of :mod:`ppoe_core.sensing.tags`), ``u``, ``v`` (raw distorted
+    pixels) and ``x``, ``y`` (undistorted normalised coordinates ``X/Z``, ``Y/Z`` from ``K``,
+    ``D``).  An image without configured tags gives a message with zero points.
+    ``/tag_bearing/debug_image`` (``sensor_msgs/Image``, bgr8) with the detections drawn,
+    when ``publish_debug_image`` is true.
+    ``/diagnostics``: counters ``received``, ``published``, ``bad``, ``dropped``,
+    ``detections``, ``camera_info``.
+
+The rows come from :func:`ppoe_core.sensing.tag_rows.observe_tags` (ROS-free, the same
+function ``ppoe evaluate`` runs on a bag's images): the centre is the intersection of the
+diagonals of the four *undistorted* corners (the exact image of the tag centre for the pinhole
+model), distorted back for ``u``, ``v``.
+
+Bad input never stops the node: an empty or undecodable image, an unsupported encoding, a
+``camera_info`` with a zero / non-finite ``K`` or an unsupported distortion model is logged
+(throttled), counted as ``bad`` and dropped; an image before any valid ``camera_info`` is
+counted as ``dropped``.  A bad ``camera_info`` does not replace the last good one.
+
+Parameters: :data:`PARAMS`, documented in ``config/nodes/tag_bearing_node.yaml``.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any, Sequence
+
+import numpy as np
+from rcl_interfaces.msg import ParameterType
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
+
+from ppoe_core.sensing import tags as tagmod
+from ppoe_core.errors import MeasurementError, ModelConfigError
+from ppoe_core.sensing.tag_rows import DEFAULT_CORNER_REFINEMENT, OBSERVATION_FIELDS, observe_tags
+from ppoe_ros.common import (
+    DiagnosticsPublisher,
+    NodeStats,
+    ParamSpec,
+    check_nonempty,
+    declare_parameters,
+    guarded,
+    mapping_get,
+    reliable_qos,
+    sensor_qos,
+)
+
+__all__ = [
+    "TagBearingNode",
+    "PARAMS",
+    "OBSERVATION_FIELDS",
+    "main",
+    "decode_image",
+    "camera_from_info",
+    "cloud_from_observations",
+    "observations_from_cloud",
+]
+
+
+_REFINE = ("subpix", "contour", "apriltag", "none")
+
+PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("image_topic", "/camera/image_raw/compressed", "image input topic", check=check_nonempty),
+    ParamSpec("compressed", True, "true: image_topic is sensor_msgs/CompressedImage (png/jpeg); "
+              "false: sensor_msgs/Image"),
+    ParamSpec("camera_info_topic", "/camera/camera_info", "sensor_msgs/CameraInfo of the camera", check=check_nonempty),
+    ParamSpec("model_file", "", "model YAML whose 'tags' section gives the family and ids; empty = none"),
+    ParamSpec("dictionary", "", "tag family: tag36h11, tag36h10, tag25h9, tag16h5, aruco_original, "
+              "4x4_50 ... 7x7_1000; empty = model YAML tags.family, else tag36h11"),
+    ParamSpec("tag_ids", [], "tag ids to publish; empty = the model YAML's tag ids, else every detected tag",
+              ptype=ParameterType.PARAMETER_INTEGER_ARRAY),
+    ParamSpec("corner_refinement", DEFAULT_CORNER_REFINEMENT, "corner refinement: subpix, contour, apriltag or none",
+              check=lambda v: None if v in _REFINE else f"must be one of {_REFINE}, got {v!r}"),
+    ParamSpec("observations_topic", "/tag_bearing/observations", "output PointCloud2 topic", check=check_nonempty),
+    ParamSpec("publish_debug_image", False, "publish an image with the detections drawn"),
+    ParamSpec("debug_image_topic", "/tag_bearing/debug_image", "debug image topic (sensor_msgs/Image bgr8)",
+              check=check_nonempty),
+    ParamSpec("qos_depth", 10, "history depth of the image and camera_info subscriptions", min_value=1,
+              max_value=1000),
+    ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
+    ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
+              min_value=0.0),
+)
+
+# -------------------------------------------------------------------- pure helpers
+
+_CHANNELS = {"mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3, "8UC3": 3, "bgra8": 4, "rgba8": 4, "8UC4": 4,
+             "mono16": 1, "16UC1": 1}
+
+
+def decode_image(msg: Any, compressed: bool) -> np.ndarray:
+    """Image message -> uint8 grey (H, W) or BGR (H, W, 3) array.
+
+    Raises
+    ------
+    MeasurementError
+        Empty data, undecodable compressed data, unknown encoding or inconsistent size.
+    """
+    import cv2
+
+    data = bytes(msg.data)
+    if not data:
+        raise MeasurementError("empty image (no data)")
+    if compressed:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None or img.size == 0:
+            raise MeasurementError(f"cannot decode compressed image (format '{msg.format}', {len(data)} bytes)")
+    else:
+        enc = msg.encoding
+        ch = _CHANNELS.get(enc)
+        if ch is None:
+            raise MeasurementError(f"unsupported encoding '{enc}' (known: {sorted(_CHANNELS)})")
+        h, w, step = int(msg.height), int(msg.width), int(msg.step)
+        depth = 2 if "16" in enc else 1
+        if h <= 0 or w <= 0 or step < w * ch * depth or len(data) < step * h:
+            raise MeasurementError(f"image {w}x{h} step {step} encoding {enc} does not fit {len(data)} bytes")
+        dtype = np.dtype(">u2" if msg.is_bigendian else "<u2") if depth == 2 else np.uint8
+        rows = np.frombuffer(data, np.uint8, count=step * h).reshape(h, step)[:, : w * ch * depth]
+        img = rows.copy().view(dtype).reshape(h, w, ch) if ch > 1 else rows.copy().view(dtype).reshape(h, w)
+        if enc in ("rgb8",):
+            img = img[..., ::-1]
+        elif enc in ("rgba8",):
+            img = img[..., [2, 1, 0]]
+        elif enc in ("bgra8", "8UC4"):
+            img = img[..., :3]
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    if img.dtype != np.uint8:
+        raise MeasurementError(f"unsupported pixel type {img.dtype}")
+    return np.ascontiguousarray(img)
+
+
+def camera_from_info(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``CameraInfo`` -> ``(K (3,3), D (k,))``.
+
+    Raises
+    ------
+    MeasurementError
+        K with zero / non-finite focal lengths, non-finite D, or a distortion model other
+        than ``plumb_bob`` / ``rational_polynomial`` (or empty with all-zero D).
+    """
+    K = np.asarray(msg.k, dtype=float).reshape(3, 3)
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] == 0:
+        raise MeasurementError(f"camera_info K is not a camera matrix (fx = {K[0, 0]}, fy = {K[1, 1]})")
+    K = K / K[2, 2]
+    D = np.asarray(msg.d, dtype=float).reshape(-1)
+    if not np.all(np.isfinite(D)):
+        raise MeasurementError("camera_info D contains NaN/inf")
+    model = msg.distortion_model
+    if model not in ("plumb_bob", "rational_polynomial") and not (model == "" and not np.any(D)):
+        raise MeasurementError(f"camera_info distortion_model '{model}' is not supported "
+                               "(plumb_bob, rational_polynomial)")
+    if D.size not in (0, 4, 5, 8, 12, 14):
+        raise MeasurementError(f"camera_info D has {D.size} coefficients")
+    return K, (D if D.size else np.zeros(5))
+
+
+def cloud_from_observations(rows: np.ndarray, header: Any) -> PointCloud2:
+    """Observation rows ``(n, 6)`` ``[id, corner, u, v, x, y]`` -> ``PointCloud2`` (FLOAT64 fields)."""
+    rows = np.ascontiguousarray(np.asarray(rows, dtype="<f8").reshape(-1, len(OBSERVATION_FIELDS)))
+    msg = PointCloud2()
+    msg.header = header
+    msg.height = 1
+    msg.width = int(rows.shape[0])
+    msg.fields = [PointField(name=n, offset=8 * i, datatype=PointField.FLOAT64, count=1)
+                  for i, n in enumerate(OBSERVATION_FIELDS)]
+    msg.is_bigendian = False
+    msg.point_step = 8 * len(OBSERVATION_FIELDS)
+    msg.row_step = msg.point_step * msg.width
+    msg.data = rows.tobytes()
+    msg.is_dense = True
+    return msg
+
+
+def observations_from_cloud(msg: Any) -> dict[str, np.ndarray]:
+    """``PointCloud2`` of ``/tag_bearing/observations`` -> ``{field: (n,) float64}``.
+
+    Fields are read by name and offset (FLOAT64 or FLOAT32), so a producer may order them
+    differently or add fields.
+
+    Raises
+    ------
+    MeasurementError
+        A required field is missing or not float, or the data size does not match.
+    """
+    by_name = {f.name: f for f in msg.fields}
+    n = int(msg.width) * int(msg.height)
+    step = int(msg.point_step)
+    data = bytes(msg.data)
+    if len(data) < n * step:
+        raise MeasurementError(f"PointCloud2 has {len(data)} bytes for {n} points of {step} bytes")
+    out: dict[str, np.ndarray] = {}
+    endian = ">" if msg.is_bigendian else "<"
+    for name in OBSERVATION_FIELDS:
+        f = by_name.get(name)
+        if f is None:
+            raise MeasurementError(f"PointCloud2 has no field '{name}' (fields: {sorted(by_name)})")
+        if f.datatype == PointField.FLOAT64:
+            dt, size = np.dtype(endian + "f8"), 8
+        elif f.datatype == PointField.FLOAT32:
+            dt, size = np.dtype(endian + "f4"), 4
+        else:
+            raise MeasurementError(f"PointCloud2 field '{name}' has datatype {f.datatype}, expected FLOAT64")
+        if f.offset + size > step:
+            raise MeasurementError(f"PointCloud2 field '{name}' offset {f.offset} outside point_step {step}")
+        buf = np.frombuffer(data, np.uint8, count=n * step).reshape(n, step)[:, f.offset:f.offset + size]
+        out[name] = np.ascontiguousarray(buf).view(dt).reshape(n).astype(np.float64)
+    return out
+
+
+def _draw(image: np.ndarray, rows: np.ndarray, dets: list[Any]) -> np.ndarray:
+    import cv2
+
+    img = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
+    if dets:
+        cv2.aruco.drawDetectedMarkers(img, [d.corners.reshape(1, 4, 2).astype(np.float32) for d in dets],
+                                      np.array([[d.id] for d in dets], dtype=np.int32))
+    for r in rows[rows[:, 1] == 0]:
+        cv2.circle(img, (int(round(r[2])), int(round(r[3]))), 3, (0, 0, 255), -1)
+    return img
+
+
+# ---------------------------------------------------------------------------- node
+
+
+class TagBearingNode(Node):
+    """Detects tags in each image and publishes their centre and corner observations."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("tag_bearing_node", **kwargs)
+        p = declare_parameters(self, PARAMS)
+        self.params = p
+        self.stats = NodeStats(self, ("received", "published", "bad", "dropped", "detections", "camera_info"),
+                               p["log_throttle"])
+        from ppoe_ros.nodes.kinematics_node import load_model_yaml
+
+        tags_cfg = mapping_get(load_model_yaml(p["model_file"]), "tags", default={}) or {}
+        self.dictionary = p["dictionary"] or str(tags_cfg.get("family") or "tag36h11")
+        try:
+            tagmod.aruco_dictionary(self.dictionary)
+        except MeasurementError as exc:
+            raise ModelConfigError(f"node {self.get_name()}: parameter 'dictionary': {exc}") from None
+        self.tag_ids = [int(i) for i in p["tag_ids"]]
+        if not self.tag_ids:
+            try:
+                self.tag_ids = [int(item["id"]) for item in tags_cfg.get("items") or []]
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ModelConfigError(f"model file {p['model_file']}: tags.items: every item needs an integer "
+                                       f"'id' ({exc})") from None
+        self.K: np.ndarray | None = None
+        self.D: np.ndarray | None = None
+        self.info_frame = ""
+        self.pub = self.create_publisher(PointCloud2, p["observations_topic"], reliable_qos(50))
+        self.debug_pub = (self.create_publisher(Image, p["debug_image_topic"], reliable_qos(5))
+                          if p["publish_debug_image"] else None)
+        self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
+        qos = sensor_qos(p["qos_depth"])
+        it, ct = p["image_topic"], p["camera_info_topic"]
+        self.create_subscription(CameraInfo, ct, guarded(self.stats, ct)(self._camera_info), qos)
+        self.create_subscription(CompressedImage if p["compressed"] else Image, it,
+                                 guarded(self.stats, it)(self._image), qos)
+        self.get_logger().info(
+            f"detecting {self.dictionary} tags {self.tag_ids or 'all'} in {it} "
+            f"({'compressed' if p['compressed'] else 'raw'}), publishing {p['observations_topic']}")
+
+    def _camera_info(self, msg: CameraInfo) -> None:
+        self.K, self.D = camera_from_info(msg)  # raises (counted as bad) before replacing
+        self.info_frame = msg.header.frame_id
+        self.stats.counts["camera_info"] += 1
+
+    def _image(self, msg: Any) -> None:
+        st = self.stats
+        st.counts["received"] += 1
+        if self.K is None or self.D is None:
+            st.bad(self.params["image_topic"], "no valid camera_info yet: image dropped", kind="dropped")
+            return
+        image = decode_image(msg, self.params["compressed"])
+        rows, dets = observe_tags(image, self.K, self.D, self.dictionary, self.tag_ids,
+                                  self.params["corner_refinement"])
+        header = msg.header
+        if not header.frame_id:
+            header.frame_id = self.info_frame
+        self.pub.publish(cloud_from_observations(rows, header))
+        st.counts["published"] += 1
+        st.counts["detections"] += len(dets)
+        if self.debug_pub is not None:
+            img = _draw(image, rows, dets)
+            out = Image()
+            out.header = header
+            out.height, out.width = img.shape[:2]
+            out.encoding = "bgr8"
+            out.is_bigendian = 0
+            out.step = 3 * img.shape[1]
+            out.data = img.tobytes()
+            self.debug_pub.publish(out)
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    """Console entry point ``tag_bearing_node`` (``--ros-args`` accepted)."""
+    from ppoe_ros.common import run_node
+
+    return run_node(TagBearingNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
