@@ -31,7 +31,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
+from collections.abc import Callable, Mapping, Sequence
 
 import yaml
 
@@ -89,7 +90,7 @@ class NodeProcess:
     @classmethod
     def node(cls, module: str, env: Mapping[str, str], tmp_dir: Path | str,
              params: Mapping[str, Any] | None = None, params_file: Path | str | None = None,
-             name: str | None = None) -> "NodeProcess":
+             name: str | None = None) -> NodeProcess:
         """Start ``ppoe_ros.<module>`` with ``--ros-args`` parameters (``-p k:=v``) and/or a params file."""
         cmd = [sys.executable, "-m", f"ppoe_ros.nodes.{module}", "--ros-args"]
         if params_file is not None:
@@ -100,7 +101,7 @@ class NodeProcess:
 
     @classmethod
     def ppoe(cls, args: Sequence[str], env: Mapping[str, str], tmp_dir: Path | str,
-             name: str) -> "NodeProcess":
+             name: str) -> NodeProcess:
         """Start ``python -m ppoe_ros.cli <args>`` (the ``ppoe`` entry point)."""
         return cls([sys.executable, "-m", "ppoe_ros.cli", *args], env, Path(tmp_dir) / f"{name}.log")
 
@@ -145,7 +146,7 @@ class NodeProcess:
         self._log.close()
         return self.proc.returncode
 
-    def __enter__(self) -> "NodeProcess":
+    def __enter__(self) -> NodeProcess:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -231,7 +232,7 @@ class Probe:
         finally:
             self.context.try_shutdown()
 
-    def __enter__(self) -> "Probe":
+    def __enter__(self) -> Probe:
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -356,7 +356,6 @@ def test_pixel_jacobian_matches_finite_differences(robot):
 
 
 def _arm_candidates(robot):
-    from ppoe_core.analysis.diagnose import pixel_candidates
 
     return [make_effect("joint_offset", "joint_2", robot), make_effect("joint_offset", "joint_4", robot),
             make_effect("link_error", "joint_7", robot)]

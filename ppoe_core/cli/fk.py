@@ -28,7 +28,8 @@ import json
 import math
 import os
 import sys
-from typing import Any, Mapping, Sequence, TextIO
+from typing import Any, TextIO
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 

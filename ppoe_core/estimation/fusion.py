@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
-from typing import Any, Optional, Protocol, Tuple, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import scipy.linalg
@@ -91,16 +91,16 @@ class MeasurementModelLike(Protocol):
     def validate(self, z: Any) -> np.ndarray:
         """Return ``z`` as an array of the model's shape or raise MeasurementError."""
 
-    def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
+    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         """Predicted measurement for state ``T_state`` (4, 4) and noise ``v`` (k,)."""
 
     def residual(self, z: np.ndarray, z_pred: np.ndarray) -> np.ndarray:
         """``z ominus z_pred`` as a vector (m,); ``z - z_pred`` for vector measurements."""
 
-    def jacobian_state(self, T_state: np.ndarray) -> Optional[np.ndarray]:
+    def jacobian_state(self, T_state: np.ndarray) -> np.ndarray | None:
         """``H`` (m, 6) w.r.t. the right perturbation of the state, or None (numerical)."""
 
-    def jacobian_noise(self, T_state: np.ndarray) -> Optional[np.ndarray]:
+    def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray | None:
         """``M`` (m, k) w.r.t. the noise at ``v = 0``, or None (numerical)."""
 
 
@@ -153,7 +153,7 @@ class UpdateResult:
     gain: np.ndarray
     H: np.ndarray
     correction: np.ndarray
-    steps: Tuple[float, ...] = field(default_factory=tuple)
+    steps: tuple[float, ...] = field(default_factory=tuple)
 
 
 # --------------------------------------------------------------------------- checks
@@ -269,7 +269,7 @@ def numerical_jacobian_noise(
 
 def _linearize(
     model: MeasurementModelLike, T: np.ndarray, jacobians: str
-) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(h(T), H, M)``; uses ``model.linearize`` when the model has it (shared work)."""
     H = M = None
     if jacobians != "numerical" and hasattr(model, "linearize"):
@@ -311,7 +311,7 @@ def iterated_update(
     *,
     max_iterations: int = 10,
     step_tolerance: float = 1e-10,
-    gate_probability: Optional[float] = 0.9973,
+    gate_probability: float | None = 0.9973,
     transport_covariance: bool = True,
     jacobians: str = "auto",
 ) -> UpdateResult:
@@ -484,7 +484,7 @@ def _mahalanobis(e: np.ndarray, cov: np.ndarray, name: str) -> np.ndarray:
     return np.sum(w * w, axis=-1)
 
 
-def nees_bounds(dim: int = 6, n_trials: int = 1, probability: float = 0.95) -> Tuple[float, float]:
+def nees_bounds(dim: int = 6, n_trials: int = 1, probability: float = 0.95) -> tuple[float, float]:
     """Two-sided chi-square bounds for the NEES averaged over ``n_trials`` runs.
 
     ``n_trials * mean(NEES)`` is chi-square with ``n_trials * dim`` degrees of freedom, so the
@@ -502,7 +502,7 @@ def nees_bounds(dim: int = 6, n_trials: int = 1, probability: float = 0.95) -> T
     )
 
 
-def nis_bounds(dim: int, n_trials: int = 1, probability: float = 0.95) -> Tuple[float, float]:
+def nis_bounds(dim: int, n_trials: int = 1, probability: float = 0.95) -> tuple[float, float]:
     """Two-sided chi-square bounds for the NIS (averaged over ``n_trials``) of an ``m = dim``
     dimensional measurement; same formula as :func:`nees_bounds`."""
     return nees_bounds(dim, n_trials, probability)

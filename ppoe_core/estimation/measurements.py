@@ -55,7 +55,8 @@ calls them once per iteration.
 
 from __future__ import annotations
 
-from typing import Any, Optional, Sequence, Tuple
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -137,23 +138,23 @@ class MeasurementModel:
         """``z - z_pred`` (m,)."""
         return np.asarray(z, dtype=float) - np.asarray(z_pred, dtype=float)
 
-    def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
+    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         raise NotImplementedError
 
-    def jacobian_state(self, T_state: np.ndarray) -> Optional[np.ndarray]:
+    def jacobian_state(self, T_state: np.ndarray) -> np.ndarray | None:
         return None
 
-    def jacobian_noise(self, T_state: np.ndarray) -> Optional[np.ndarray]:
+    def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray | None:
         return None
 
     def linearize(
         self, T_state: np.ndarray
-    ) -> Tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """``(h(T), H, M)`` in one call (models override it to share work); H or M may be
         None (numerical)."""
         return self.h(T_state), self.jacobian_state(T_state), self.jacobian_noise(T_state)
 
-    def _noise(self, v: Optional[np.ndarray]) -> np.ndarray:
+    def _noise(self, v: np.ndarray | None) -> np.ndarray:
         if v is None:
             return np.zeros(self.noise_dim)
         v = np.asarray(v, dtype=float)
@@ -165,7 +166,7 @@ class MeasurementModel:
 
 
 # --------------------------------------------------------------------------- camera
-def tag_points(size: float, T_link_tag: Optional[np.ndarray] = None) -> np.ndarray:
+def tag_points(size: float, T_link_tag: np.ndarray | None = None) -> np.ndarray:
     """Centre and four corners of a square tag in the link frame.
 
     Parameters
@@ -189,7 +190,7 @@ def tag_points(size: float, T_link_tag: Optional[np.ndarray] = None) -> np.ndarr
     return pts
 
 
-def _distortion(D: Optional[Sequence[float]], name: str) -> np.ndarray:
+def _distortion(D: Sequence[float] | None, name: str) -> np.ndarray:
     if D is None:
         return np.zeros(5)
     D = np.asarray(D, dtype=float).ravel()
@@ -205,7 +206,7 @@ def _distortion(D: Optional[Sequence[float]], name: str) -> np.ndarray:
     return out
 
 
-def _distort(xy: np.ndarray, D: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+def _distort(xy: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """plumb_bob distortion of normalised points ``xy`` (n, 2) -> (xd (n,2), J (n,2,2))."""
     k1, k2, p1, p2, k3 = D
     x, y = xy[:, 0], xy[:, 1]
@@ -224,10 +225,10 @@ def _distort(xy: np.ndarray, D: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 
 def project_points(
     p_camera: np.ndarray,
-    K: Optional[np.ndarray],
-    D: Optional[np.ndarray],
+    K: np.ndarray | None,
+    D: np.ndarray | None,
     mode: str = "pixel",
-) -> Tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray]:
     """Project camera-frame points and return the Jacobian w.r.t. the 3D point.
 
     Parameters
@@ -311,7 +312,7 @@ class TagObservation(MeasurementModel):
         T_ref_camera: Any = None,
         cov_camera: Any = None,
         min_depth: float = 1e-3,
-        labels: Optional[Sequence[str]] = None,
+        labels: Sequence[str] | None = None,
         name: str = "tag observation",
     ) -> None:
         self.name = name
@@ -353,7 +354,7 @@ class TagObservation(MeasurementModel):
         self.noise_cov = _block_diag(*blocks)
         self.noise_dim = self.noise_cov.shape[0]
 
-    def points_camera(self, T_state: np.ndarray, w: Optional[np.ndarray] = None) -> np.ndarray:
+    def points_camera(self, T_state: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Points in the camera frame (n, 3) for state ``T_ref_tool`` and camera noise ``w``."""
         T_cam_tool = self.T_camera_ref @ T_state
         if w is not None:
@@ -368,7 +369,7 @@ class TagObservation(MeasurementModel):
             )
         return p
 
-    def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
+    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         """Predicted ``[u_0, v_0, u_1, v_1, ...]`` (2n,) for ``T_state = T_ref_tool``."""
         if v is None:
             uv, _ = project_points(self.points_camera(T_state), self.K, self.D, self.mode)
@@ -378,7 +379,7 @@ class TagObservation(MeasurementModel):
         uv, _ = project_points(self.points_camera(T_state, w), self.K, self.D, self.mode)
         return uv.ravel() + v[: self.dim]
 
-    def linearize(self, T_state: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def linearize(self, T_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(h(T), H, M)`` sharing one projection (see :meth:`jacobian_state`,
         :meth:`jacobian_noise`)."""
         p_c = self.points_camera(T_state)
@@ -457,14 +458,14 @@ class ContactPlane(MeasurementModel):
         self.noise_dim = self.noise_cov.shape[0]
         self.dim = 1
 
-    def point_plane(self, T_state: np.ndarray, w: Optional[np.ndarray] = None) -> np.ndarray:
+    def point_plane(self, T_state: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Tool point in the (perturbed) plane frame, shape (3,)."""
         T = self.T_plane_ref @ T_state
         if w is not None:
             T = lie.exp(-np.asarray(w, dtype=float)) @ T
         return T[:3, :3] @ self.point_tool + T[:3, 3]
 
-    def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
+    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         """Signed distance (1,) [m], positive on the side the normal points to."""
         if v is None:
             return np.array([self.point_plane(T_state)[2]])
@@ -546,13 +547,13 @@ class PointObservation(MeasurementModel):
         self.noise_dim = self.noise_cov.shape[0]
         self.dim = 3
 
-    def point_sensor(self, T_state: np.ndarray, w: Optional[np.ndarray] = None) -> np.ndarray:
+    def point_sensor(self, T_state: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         T = self.T_sensor_ref @ T_state
         if w is not None:
             T = lie.exp(-np.asarray(w, dtype=float)) @ T
         return T[:3, :3] @ self.point_link + T[:3, 3]
 
-    def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
+    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         """Predicted point in the sensor frame (3,) [m]."""
         if v is None:
             return self.point_sensor(T_state)
@@ -600,7 +601,7 @@ class PoseObservation(MeasurementModel):
     def residual(self, z: np.ndarray, z_pred: np.ndarray) -> np.ndarray:
         return lie.log(lie.inverse(z_pred) @ z)
 
-    def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
+    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         v = self._noise(v)
         return np.asarray(T_state, dtype=float) @ lie.exp(v)
 
@@ -656,7 +657,7 @@ class GravityObservation(MeasurementModel):
         self.noise_dim = 3
         self.dim = 3
 
-    def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
+    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         """Predicted specific force in the sensor frame (3,) [m/s^2]."""
         v = self._noise(v)
         a_link = self.gravity * (T_state[:3, :3].T @ self.up_ref)
@@ -708,7 +709,7 @@ class ChainedObservation(MeasurementModel):
     def residual(self, z: np.ndarray, z_pred: np.ndarray) -> np.ndarray:
         return self.inner.residual(z, z_pred)
 
-    def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
+    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         v = self._noise(v)
         k = self.inner.noise_dim
         T_L = T_state @ self.T_tool_L
@@ -716,11 +717,11 @@ class ChainedObservation(MeasurementModel):
             T_L = T_L @ lie.exp(v[k:])
         return self.inner.h(T_L, v[:k])
 
-    def jacobian_state(self, T_state: np.ndarray) -> Optional[np.ndarray]:
+    def jacobian_state(self, T_state: np.ndarray) -> np.ndarray | None:
         H_in = self.inner.jacobian_state(T_state @ self.T_tool_L)
         return None if H_in is None else H_in @ self.Ad_L_tool
 
-    def jacobian_noise(self, T_state: np.ndarray) -> Optional[np.ndarray]:
+    def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray | None:
         T_L = T_state @ self.T_tool_L
         M_in = self.inner.jacobian_noise(T_L)
         if M_in is None:
@@ -772,7 +773,7 @@ class StackedObservation(MeasurementModel):
             parts.append(np.asarray(p.validate(zp), dtype=float).ravel())
         return np.concatenate(parts)
 
-    def h(self, T_state: np.ndarray, v: Optional[np.ndarray] = None) -> np.ndarray:
+    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         v = self._noise(v)
         vs = self._split(v, [p.noise_dim for p in self.parts])
         return np.concatenate([np.asarray(p.h(T_state, vp), float).ravel() for p, vp in zip(self.parts, vs)])
@@ -785,11 +786,11 @@ class StackedObservation(MeasurementModel):
             out.append(p.residual(a, b))
         return np.concatenate(out)
 
-    def jacobian_state(self, T_state: np.ndarray) -> Optional[np.ndarray]:
+    def jacobian_state(self, T_state: np.ndarray) -> np.ndarray | None:
         Hs = [p.jacobian_state(T_state) for p in self.parts]
         return None if any(H is None for H in Hs) else np.vstack(Hs)
 
-    def jacobian_noise(self, T_state: np.ndarray) -> Optional[np.ndarray]:
+    def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray | None:
         Ms = [p.jacobian_noise(T_state) for p in self.parts]
         if any(M is None for M in Ms):
             return None

@@ -40,7 +40,8 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
+from collections.abc import Callable
 
 import numpy as np
 
@@ -415,7 +416,7 @@ class CarriedCorrection:
         cov_post: Array,
         T_pre: Array | None = None,
         cov_pre: Array | None = None,
-    ) -> "CarriedCorrection | None":
+    ) -> CarriedCorrection | None:
         """Build the correction that turns ``(T_pre, cov_pre)`` into ``(T_post, cov_post)``.
 
         ``(T_pre, cov_pre)`` is the estimate the update started from (default: the raw
@@ -468,7 +469,7 @@ class CarriedCorrection:
 
 
 def apply_corrections(
-    prior: PriorSample, corrections: "list[tuple[CarriedCorrection, float]]"
+    prior: PriorSample, corrections: list[tuple[CarriedCorrection, float]]
 ) -> tuple[Array, Array]:
     """Apply several weighted corrections (independent equivalent measurements) at once.
 

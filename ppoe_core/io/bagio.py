@@ -36,7 +36,8 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator, NamedTuple, Sequence
+from typing import Any, NamedTuple
+from collections.abc import Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -252,7 +253,7 @@ class BagWriter:
         self.counts: dict[str, int] = {}
 
     # -- lifecycle
-    def open(self) -> "BagWriter":
+    def open(self) -> BagWriter:
         """Create the bag directory and open it for writing."""
         from rosbags.rosbag2 import Writer, WriterError
 
@@ -273,7 +274,7 @@ class BagWriter:
             self._writer.close()
             self._writer = None
 
-    def __enter__(self) -> "BagWriter":
+    def __enter__(self) -> BagWriter:
         return self.open()
 
     def __exit__(self, *exc: Any) -> None:

@@ -44,7 +44,8 @@ Context keys (``context`` of :meth:`Effect.corrections`), each broadcast like th
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -112,8 +113,8 @@ class KinematicTree:
         self.joint_names = robot.independent_joints
 
     # -- joint values ------------------------------------------------------------
-    def joint_values(self, q: Mapping[str, Any], dq: Optional[Mapping[str, Any]] = None,
-                     joints: Optional[Sequence[str]] = None) -> dict[str, np.ndarray]:
+    def joint_values(self, q: Mapping[str, Any], dq: Mapping[str, Any] | None = None,
+                     joints: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         """Values of movable joints (mimic resolved) with offsets ``dq`` added.
 
         ``dq`` on an independent joint propagates to its mimic joints with the multiplier;
@@ -148,9 +149,9 @@ class KinematicTree:
         return lie.exp(v[..., None] * joint.twist)
 
     # -- poses -------------------------------------------------------------------
-    def link_poses(self, q: Mapping[str, Any], dq: Optional[Mapping[str, Any]] = None,
-                   dxi: Optional[Mapping[str, Any]] = None,
-                   links: Optional[Sequence[str]] = None) -> dict[str, np.ndarray]:
+    def link_poses(self, q: Mapping[str, Any], dq: Mapping[str, Any] | None = None,
+                   dxi: Mapping[str, Any] | None = None,
+                   links: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         """``T_root_link`` for every link (or the ancestors of ``links``), shape ``(..., 4, 4)``.
 
         Implements the mean of paper eq. 17 with eq. 16 links
@@ -181,7 +182,7 @@ class KinematicTree:
         return poses
 
     def joint_frames(self, poses: Mapping[str, np.ndarray], joint: str,
-                     dxi: Optional[Mapping[str, Any]] = None) -> tuple[np.ndarray, np.ndarray]:
+                     dxi: Mapping[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(T_root_a, T_root_c)``: frame right after the joint's origin and its ``dxi``
         insertion (``Exp(p) Exp(dxi)``), and the child link frame after the motion."""
         j = self.robot.joints[joint]
@@ -192,9 +193,9 @@ class KinematicTree:
 
     # -- Jacobians ---------------------------------------------------------------
     def frame_jacobian(self, q: Mapping[str, Any], link: str,
-                       poses: Optional[Mapping[str, np.ndarray]] = None,
-                       dq: Optional[Mapping[str, Any]] = None,
-                       dxi: Optional[Mapping[str, Any]] = None
+                       poses: Mapping[str, np.ndarray] | None = None,
+                       dq: Mapping[str, Any] | None = None,
+                       dxi: Mapping[str, Any] | None = None
                        ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Right-tangent Jacobians of ``T_root_link`` w.r.t. the eq. 16 insertions.
 
@@ -235,9 +236,9 @@ class KinematicTree:
         return J_dq, J_dxi
 
     def point_jacobian(self, q: Mapping[str, Any], link: str, point: Any,
-                       poses: Optional[Mapping[str, np.ndarray]] = None,
-                       dq: Optional[Mapping[str, Any]] = None,
-                       dxi: Optional[Mapping[str, Any]] = None
+                       poses: Mapping[str, np.ndarray] | None = None,
+                       dq: Mapping[str, Any] | None = None,
+                       dxi: Mapping[str, Any] | None = None
                        ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Jacobians of the root-frame position of ``point`` (link coordinates, (3,)) on ``link``.
 
@@ -320,7 +321,7 @@ class Effect:
     nonnegative: tuple[str, ...] = ()
 
     def __init__(self, tree: KinematicTree, location: str, param_names: Sequence[str],
-                 params: Optional[Sequence[float]] = None) -> None:
+                 params: Sequence[float] | None = None) -> None:
         self.tree = tree
         self.location = location
         self.param_names = tuple(param_names)
@@ -334,15 +335,15 @@ class Effect:
     def n_params(self) -> int:
         return len(self.param_names)
 
-    def with_params(self, params: Sequence[float]) -> "Effect":
+    def with_params(self, params: Sequence[float]) -> Effect:
         """A copy with other parameter values."""
         new = object.__new__(type(self))
         new.__dict__.update(self.__dict__)
         new.params = np.asarray(params, dtype=float).copy()
         return new
 
-    def basis(self, q: Mapping[str, Any], context: Optional[Mapping[str, Any]] = None,
-              poses: Optional[Mapping[str, np.ndarray]] = None
+    def basis(self, q: Mapping[str, Any], context: Mapping[str, Any] | None = None,
+              poses: Mapping[str, np.ndarray] | None = None
               ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Exact derivative of the corrections w.r.t. the parameters.
 
@@ -353,15 +354,15 @@ class Effect:
         """
         raise NotImplementedError
 
-    def corrections(self, q: Mapping[str, Any], context: Optional[Mapping[str, Any]] = None,
-                    poses: Optional[Mapping[str, np.ndarray]] = None) -> Corrections:
+    def corrections(self, q: Mapping[str, Any], context: Mapping[str, Any] | None = None,
+                    poses: Mapping[str, np.ndarray] | None = None) -> Corrections:
         """``(dq: joint -> (...), dxi: joint -> (..., 6))`` at joint values ``q`` (eq. 16)."""
         Bq, Bx = self.basis(q, context or {}, poses)
         return ({k: v @ self.params for k, v in Bq.items()},
                 {k: v @ self.params for k, v in Bx.items()})
 
     def point_jacobian(self, q: Mapping[str, Any], link: str, point: Any,
-                       context: Optional[Mapping[str, Any]] = None) -> np.ndarray:
+                       context: Mapping[str, Any] | None = None) -> np.ndarray:
         """Derivative ``(..., 3, P)`` of the root-frame position of ``point`` on ``link``
         w.r.t. this effect's parameters (analytic: chain Jacobian at the corrected chain times
         :meth:`basis`, which is evaluated on the nominal chain)."""
@@ -379,7 +380,7 @@ class Effect:
                 out = out + Jx[k] @ b
         return out
 
-    def to_config(self, ci: Optional[Sequence[float]] = None) -> dict[str, Any]:
+    def to_config(self, ci: Sequence[float] | None = None) -> dict[str, Any]:
         """YAML entry ``{name, location, parameters[, ci]}`` (floats, for the model file)."""
         out: dict[str, Any] = {"name": self.name, "location": self.location,
                                "parameters": {k: float(v) for k, v in zip(self.param_names, self.params)}}
@@ -414,7 +415,7 @@ class JointOffset(Effect):
     name = "joint_offset"
     units = ("rad or m",)
 
-    def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None) -> None:
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
         _check_joint(tree, location, self.name, movable=True)
         super().__init__(tree, location, ("offset",), params)
 
@@ -427,7 +428,7 @@ class LinkError(Effect):
 
     name = "link_error"
 
-    def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None,
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None,
                  components: Sequence[str] = _TWIST_KEYS) -> None:
         _check_joint(tree, location, self.name)
         bad = [c for c in components if c not in _TWIST_KEYS]
@@ -450,7 +451,7 @@ class CameraExtrinsics(LinkError):
 
     name = "camera_extrinsics"
 
-    def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None,
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None,
                  components: Sequence[str] = _TWIST_KEYS) -> None:
         if location in tree.robot.links and location not in tree.robot.joints:
             pj = tree.robot.parent_joint(location)
@@ -472,7 +473,7 @@ class GravityCompliance(Effect):
     units = ("rad/(N m) or m/N",)
     nonnegative = ("compliance",)
 
-    def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None) -> None:
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
         _check_joint(tree, location, self.name, movable=True)
         super().__init__(tree, location, ("compliance",), params)
 
@@ -501,7 +502,7 @@ class MountBending(Effect):
     units = ("rad/(N m)", "rad/(N m)")
     nonnegative = ("compliance_x", "compliance_y")
 
-    def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None) -> None:
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
         _check_joint(tree, location, self.name)
         super().__init__(tree, location, ("compliance_x", "compliance_y"), params)
 
@@ -525,7 +526,7 @@ class BaseTilt(Effect):
     name = "base_tilt"
     units = ("rad", "rad")
 
-    def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None) -> None:
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
         if location != tree.root:
             raise ModelConfigError(f"effect {self.name}: location '{location}' must be the root link "
                                    f"'{tree.root}' of URDF {tree.robot.source}")
@@ -545,7 +546,7 @@ class Backlash(Effect):
     name = "backlash"
     units = ("rad or m",)
 
-    def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None) -> None:
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
         _check_joint(tree, location, self.name, movable=True)
         super().__init__(tree, location, ("play",), params)
 
@@ -567,7 +568,7 @@ class ThermalGrowth(Effect):
     name = "thermal_growth"
     units = ("1/unit of variable",)
 
-    def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None,
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None,
                  variable: str = "temperature", reference: float = 0.0) -> None:
         _check_joint(tree, location, self.name)
         if variable not in ("temperature", "time"):
@@ -602,7 +603,7 @@ class TimeOffset(Effect):
     name = "time_offset"
     units = ("s",)
 
-    def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None) -> None:
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
         super().__init__(tree, location, ("dt",), params)
 
     def basis(self, q, context=None, poses=None):
@@ -624,7 +625,7 @@ class TrackerRegistration(Effect):
     name = "tracker_registration"
     units = ("m", "m", "m", "rad", "rad", "rad")
 
-    def __init__(self, tree: KinematicTree, location: str, params: Optional[Sequence[float]] = None) -> None:
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
         super().__init__(tree, location, _TWIST_KEYS, params)
 
     def transform(self) -> np.ndarray:
@@ -650,7 +651,7 @@ _CLASSES: dict[str, type] = {
 
 
 def make_effect(name: str, location: str, robot_or_tree: Robot | KinematicTree,
-                params: Optional[Sequence[float]] = None, **options: Any) -> Effect:
+                params: Sequence[float] | None = None, **options: Any) -> Effect:
     """Build effect ``name`` at ``location`` with parameters in catalogue order (zeros if None)."""
     tree = robot_or_tree if isinstance(robot_or_tree, KinematicTree) else KinematicTree(robot_or_tree)
     if name not in _CLASSES:
@@ -711,8 +712,8 @@ def effect_from_config(entry: Mapping[str, Any], robot: Robot | KinematicTree,
 
 
 def apply_corrections(effects: Sequence[Effect], q: Mapping[str, Any],
-                      context: Optional[Mapping[str, Any]] = None,
-                      poses: Optional[Mapping[str, np.ndarray]] = None) -> Corrections:
+                      context: Mapping[str, Any] | None = None,
+                      poses: Mapping[str, np.ndarray] | None = None) -> Corrections:
     """Sum the corrections of several effects: ``(dq, dxi)`` dictionaries (eq. 16 hooks)."""
     dq: dict[str, np.ndarray] = {}
     dxi: dict[str, np.ndarray] = {}

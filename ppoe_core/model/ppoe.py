@@ -45,7 +45,8 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Any, Mapping, Optional, Sequence, Union
+from typing import Any, Union
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -80,7 +81,7 @@ def _rot_z_to(axis: Array) -> Array:
     return lie.so3_exp(v / s * np.arctan2(s, c))
 
 
-def _pose(R: Array, t: Optional[Array] = None) -> Array:
+def _pose(R: Array, t: Array | None = None) -> Array:
     T = np.eye(4)
     T[:3, :3] = R
     if t is not None:
@@ -425,7 +426,7 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
 # ----------------------------------------------------------------------------
 
 
-def _eval_single(ch: _Chain, theta: Array, D: Optional[Array]) -> tuple[Array, Array]:
+def _eval_single(ch: _Chain, theta: Array, D: Array | None) -> tuple[Array, Array]:
     """One configuration: ``theta`` (n_motion,), ``D`` (n_d, 4, 4) or None.
 
     Returns ``(T (4, 4), suffixes (n_f + 1, 4, 4))`` with ``suffixes[k]`` = product of the
@@ -516,8 +517,8 @@ def _sparse_column(B: Array, vnz: tuple, wnz: tuple, out: Array) -> None:
 
 
 def _eval_backward(
-    ch: _Chain, theta: Array, D: Optional[Array], want_cov: bool, want_jac: bool
-) -> tuple[Array, Optional[Array], Optional[Array]]:
+    ch: _Chain, theta: Array, D: Array | None, want_cov: bool, want_jac: bool
+) -> tuple[Array, Array | None, Array | None]:
     """Many configurations, walking the chain backwards with ``B`` = product of the rest.
 
     At a perturbation site, ``B`` is the paper's "everything after it", so the site's local
@@ -536,7 +537,7 @@ def _eval_backward(
         multiplier) or None
     """
     N = theta.shape[1]
-    B: Optional[Array] = None  # None = identity
+    B: Array | None = None  # None = identity
     G = np.empty((ch.L_all.shape[0], 6, N)) if want_cov else None
     J = np.empty((len(ch.motion_joint), 6, N)) if want_jac else None
     c = s = None
@@ -591,7 +592,7 @@ def _eval_backward(
     return B, G, J
 
 
-def _eval_forward(ch: _Chain, theta: Array, D: Optional[Array], pert: list) -> Array:
+def _eval_forward(ch: _Chain, theta: Array, D: Array | None, pert: list) -> Array:
     """Forward product of the chain for many configurations with sampled perturbations.
 
     Used by the Monte-Carlo sampler: every perturbation ``Exp(xi_k)`` is inserted at its
@@ -708,24 +709,24 @@ class PPOEModel:
         array ``joints`` argument.
     """
 
-    def __init__(self, robot: Robot, config: Optional[ModelConfig] = None, effects: Optional[Sequence[Any]] = None) -> None:
+    def __init__(self, robot: Robot, config: ModelConfig | None = None, effects: Sequence[Any] | None = None) -> None:
         self.robot = robot
         self.config = config if config is not None else load_model_config(None, robot)
         self.joint_names: list[str] = robot.independent_joints
         self._index = {n: i for i, n in enumerate(self.joint_names)}
         self._chains: dict[tuple[str, str, bool], _Chain] = {}
-        self._effects: Optional[list] = list(effects) if effects is not None else None
+        self._effects: list | None = list(effects) if effects is not None else None
 
     # -- construction -----------------------------------------------------------
     @classmethod
-    def from_files(cls, urdf_path: Union[str, os.PathLike], model_yaml_path: Union[str, os.PathLike, None] = None) -> "PPOEModel":
+    def from_files(cls, urdf_path: str | os.PathLike, model_yaml_path: str | os.PathLike | None = None) -> PPOEModel:
         """Model from a URDF file and an optional model YAML file."""
         robot = parse_urdf(os.fspath(urdf_path) if not isinstance(urdf_path, os.PathLike) else urdf_path)
         return cls(robot, load_model_config(model_yaml_path, robot))
 
     @classmethod
-    def from_strings(cls, urdf_xml: str, yaml_text_or_dict: Union[str, Mapping, os.PathLike, None] = None, *,
-                     urdf_source: Optional[str] = None) -> "PPOEModel":
+    def from_strings(cls, urdf_xml: str, yaml_text_or_dict: str | Mapping | os.PathLike | None = None, *,
+                     urdf_source: str | None = None) -> PPOEModel:
         """Model from URDF XML text (e.g. a ``robot_description``) and an optional model YAML.
 
         Parameters
@@ -752,7 +753,7 @@ class PPOEModel:
         robot = parse_urdf(urdf_xml, text_source=urdf_source)
         return cls(robot, load_model_config(yaml_text_or_dict, robot, is_text=True))
 
-    def with_effects(self, effects: Sequence[Any]) -> "PPOEModel":
+    def with_effects(self, effects: Sequence[Any]) -> PPOEModel:
         """A model sharing robot and config whose effects are ``effects`` (e.g. candidates)."""
         return PPOEModel(self.robot, self.config, effects=effects)
 
@@ -773,7 +774,7 @@ class PPOEModel:
         return self._effects
 
     # -- chains -----------------------------------------------------------------
-    def _frames(self, frm: Optional[str], to: Optional[str]) -> tuple[str, str]:
+    def _frames(self, frm: str | None, to: str | None) -> tuple[str, str]:
         frames = self.config.frames
         if frm is None:
             frm = frames.base if frames is not None else self.robot.root
@@ -795,7 +796,7 @@ class PPOEModel:
             self._chains[key] = ch
         return ch
 
-    def chain_joints(self, frm: Optional[str] = None, to: Optional[str] = None) -> list[str]:
+    def chain_joints(self, frm: str | None = None, to: str | None = None) -> list[str]:
         """Independent joints whose values the chain ``frm -> to`` needs."""
         frm, to = self._frames(frm, to)
         return list(self._chain(frm, to, False).masters)
@@ -865,7 +866,7 @@ class PPOEModel:
         return out
 
     # -- core evaluation ----------------------------------------------------------
-    def _lookup(self, frm: Optional[str], to: Optional[str]) -> _Chain:
+    def _lookup(self, frm: str | None, to: str | None) -> _Chain:
         with_effects = bool(self._effects) if self._effects is not None else bool(self.effects)
         ch = self._chains.get((frm, to, with_effects))  # type: ignore[arg-type]
         if ch is None:
@@ -874,7 +875,7 @@ class PPOEModel:
             self._chains[(frm, to, with_effects)] = ch
         return ch
 
-    def _single_theta(self, joints: Joints, ch: _Chain) -> Optional[Array]:
+    def _single_theta(self, joints: Joints, ch: _Chain) -> Array | None:
         """Lean path: motion values of ONE configuration without effects, or None (use the
         general path, which also produces the error messages)."""
         if self._effects:
@@ -896,7 +897,7 @@ class PPOEModel:
             return None
         return th * ch.motion_mult + ch.motion_off
 
-    def _prepare(self, joints: Joints, frm: Optional[str], to: Optional[str], context: Optional[Mapping]):
+    def _prepare(self, joints: Joints, frm: str | None, to: str | None, context: Mapping | None):
         """Chain, motion values ``theta`` (n_motion, N), effect factors, batch shape, N."""
         ch = self._lookup(frm, to)
         q, shape = self._joint_values(joints, ch.masters, ch.frm, ch.to)
@@ -934,8 +935,8 @@ class PPOEModel:
                         D[k] = np.eye(4)[:, :, None]
         return ch, theta, D, shape, N
 
-    def fk_mean(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None,
-                context: Optional[Mapping[str, Any]] = None) -> Array:
+    def fk_mean(self, joints: Joints, frm: str | None = None, to: str | None = None,
+                context: Mapping[str, Any] | None = None) -> Array:
         """Mean pose ``T_frm_to`` (eq. 17 with all perturbations zero, effects applied).
 
         Parameters
@@ -966,8 +967,8 @@ class PPOEModel:
             T[a:b, :3, :] = np.moveaxis(B, 2, 0)
         return T.reshape(shape + (4, 4))
 
-    def fk(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None, order: int = 2,
-           context: Optional[Mapping[str, Any]] = None) -> tuple[Array, Array]:
+    def fk(self, joints: Joints, frm: str | None = None, to: str | None = None, order: int = 2,
+           context: Mapping[str, Any] | None = None) -> tuple[Array, Array]:
         """Mean pose and covariance of ``T_frm_to`` (paper eq. 15-18).
 
         Parameters
@@ -1036,8 +1037,8 @@ class PPOEModel:
                 cov[a:b] = _fourth_order_batch_last(ch, G).transpose(2, 0, 1)
         return T.reshape(shape + (4, 4)), cov.reshape(shape + (6, 6))
 
-    def fk_multi(self, joints: Joints, frm: Optional[str], tos: Sequence[str],
-                 context: Optional[Mapping[str, Any]] = None) -> tuple[Array, Array]:
+    def fk_multi(self, joints: Joints, frm: str | None, tos: Sequence[str],
+                 context: Mapping[str, Any] | None = None) -> tuple[Array, Array]:
         """Mean poses of several frames and their JOINT second-order covariance.
 
         Chains that share perturbations (e.g. ``base -> tool`` and ``base -> camera``) are
@@ -1086,8 +1087,8 @@ class PPOEModel:
         T = np.stack(Ts, axis=1)
         return T.reshape(shape + (k, 4, 4)), cov.reshape(shape + (6 * k, 6 * k))
 
-    def sample(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None, n: int = 1000,
-               rng: Optional[np.random.Generator] = None, context: Optional[Mapping[str, Any]] = None) -> Array:
+    def sample(self, joints: Joints, frm: str | None = None, to: str | None = None, n: int = 1000,
+               rng: np.random.Generator | None = None, context: Mapping[str, Any] | None = None) -> Array:
         """Monte-Carlo samples of ``T_frm_to`` from the same model.
 
         Every perturbation ``xi_k ~ N(0, Sigma_k)`` (and joint noise) is drawn independently
@@ -1112,8 +1113,8 @@ class PPOEModel:
         P = _eval_forward(ch, theta_r, D_r, pert)
         return _rows_to_T(P).reshape((n,) + shape + (4, 4))
 
-    def jacobian_joints(self, joints: Joints, frm: Optional[str] = None, to: Optional[str] = None,
-                        context: Optional[Mapping[str, Any]] = None) -> Array:
+    def jacobian_joints(self, joints: Joints, frm: str | None = None, to: str | None = None,
+                        context: Mapping[str, Any] | None = None) -> Array:
         """Right-tangent derivative of ``T_frm_to`` w.r.t. the independent joint values.
 
         ``T(q + dq) ~= T(q) Exp(J dq)``; mimic joints contribute through their master
@@ -1133,7 +1134,7 @@ class PPOEModel:
                 J[:, self._index[ch.motion_master[i]]] += ch.motion_mult[i] * Jm[i]
         return np.moveaxis(J, 2, 0).reshape(shape + (6, len(self.joint_names)))
 
-    def perturbation_labels(self, frm: Optional[str] = None, to: Optional[str] = None) -> list[str]:
+    def perturbation_labels(self, frm: str | None = None, to: str | None = None) -> list[str]:
         """Perturbation sites on the chain (``"xi:<joint>"``, ``"noise:<joint>"``), chain order."""
         frm, to = self._frames(frm, to)
         return list(self._chain(frm, to, False).site_label)

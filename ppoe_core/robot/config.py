@@ -23,7 +23,8 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Optional, Union
+from typing import Any
+from collections.abc import Mapping
 
 import numpy as np
 import yaml
@@ -93,7 +94,7 @@ class Frames:
     """Default frames for fk / evaluate / nodes (URDF link names)."""
 
     base: str
-    tool: Optional[str]
+    tool: str | None
 
 
 @dataclass(frozen=True)
@@ -217,13 +218,13 @@ class ModelConfig:
 
     perturbations: dict[str, Perturbation] = field(default_factory=dict)
     joint_noise: dict[str, float] = field(default_factory=dict)
-    frames: Optional[Frames] = None
-    camera: Optional[CameraConfig] = None
-    tags: Optional[TagsConfig] = None
-    contact: Optional[ContactConfig] = None
-    tracker: Optional[TrackerConfig] = None
+    frames: Frames | None = None
+    camera: CameraConfig | None = None
+    tags: TagsConfig | None = None
+    contact: ContactConfig | None = None
+    tracker: TrackerConfig | None = None
     imus: dict[str, ImuConfig] = field(default_factory=dict)
-    naive: Optional[NaiveConfig] = None
+    naive: NaiveConfig | None = None
     effects: list[dict] = field(default_factory=list)
     effect_wheres: list[str] = field(default_factory=list)
     source: str = "<dict>"
@@ -237,12 +238,12 @@ class ModelConfig:
 class _LDict(dict):
     """dict that remembers its own line and the line of each key (1-based)."""
 
-    line: Optional[int] = None
+    line: int | None = None
     key_lines: dict
 
 
 class _LList(list):
-    line: Optional[int] = None
+    line: int | None = None
 
 
 class _Loader(yaml.SafeLoader):
@@ -341,7 +342,7 @@ def _check_keys(ctx: _Ctx, d: Mapping, allowed: tuple, path: str, required: tupl
             raise ctx.error(d, None, path, f"missing required key '{k}'")
 
 
-def _number(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, minimum: Optional[float] = None,
+def _number(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, minimum: float | None = None,
             positive: bool = False) -> float:
     if isinstance(val, (bool, np.bool_)) or not isinstance(val, numbers.Real):
         raise ctx.error(parent, key, path, f"must be a number, got {val!r}")
@@ -355,7 +356,7 @@ def _number(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, minimum: Opti
     return f
 
 
-def _vector(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, n: int, minimum: Optional[float] = None) -> np.ndarray:
+def _vector(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, n: int, minimum: float | None = None) -> np.ndarray:
     if isinstance(val, np.ndarray):
         val = val.tolist()
     if not isinstance(val, (list, tuple)) or len(val) != n:
@@ -426,7 +427,7 @@ def low_rank_factor(cov: np.ndarray, rel_tol: float = 1e-12) -> np.ndarray:
     return V[:, keep] * np.sqrt(w[keep])
 
 
-def _link(ctx: _Ctx, robot: Optional[Robot], val: Any, parent: Any, key: Any, path: str) -> str:
+def _link(ctx: _Ctx, robot: Robot | None, val: Any, parent: Any, key: Any, path: str) -> str:
     """A link name; checked against ``robot`` unless it is None (no URDF at hand)."""
     if not isinstance(val, str):
         raise ctx.error(parent, key, path, f"must be a link name, got {val!r}")
@@ -480,7 +481,7 @@ def _joint_noise(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, f
     return out
 
 
-def _default_tool(robot: Robot) -> Optional[str]:
+def _default_tool(robot: Robot) -> str | None:
     parents = {j.parent for j in robot.joints.values()}
     leaves = [ln for ln in robot.links if ln not in parents]
     return leaves[0] if len(leaves) == 1 else None
@@ -496,7 +497,7 @@ def _frames(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Frames:
     return Frames(base=base, tool=tool)
 
 
-def _camera(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[CameraConfig]:
+def _camera(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> CameraConfig | None:
     if sec is None:
         return None
     sec = _mapping(ctx, sec, top, "camera", "camera")
@@ -506,7 +507,7 @@ def _camera(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[CameraC
     return CameraConfig(frame=frame, pixel_sigma=ps)
 
 
-def _tags(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[TagsConfig]:
+def _tags(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> TagsConfig | None:
     if sec is None:
         return None
     sec = _mapping(ctx, sec, top, "tags", "tags")
@@ -535,7 +536,7 @@ def _tags(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[TagsConfi
     return TagsConfig(family=family, items=tuple(items))
 
 
-def _contact(ctx: _Ctx, robot: Optional[Robot], sec: Any, top: Mapping) -> Optional[ContactConfig]:
+def _contact(ctx: _Ctx, robot: Robot | None, sec: Any, top: Mapping) -> ContactConfig | None:
     if sec is None:
         return None
     sec = _mapping(ctx, sec, top, "contact", "contact")
@@ -567,7 +568,7 @@ def _contact(ctx: _Ctx, robot: Optional[Robot], sec: Any, top: Mapping) -> Optio
                          tool_xyz=txyz, force_threshold=fth, release_threshold=rth)
 
 
-def _tracker(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[TrackerConfig]:
+def _tracker(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> TrackerConfig | None:
     if sec is None:
         return None
     sec = _mapping(ctx, sec, top, "tracker", "tracker")
@@ -593,7 +594,7 @@ def _imus(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, ImuConfi
     return out
 
 
-def _naive(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Optional[NaiveConfig]:
+def _naive(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> NaiveConfig | None:
     if sec is None:
         return None
     sec = _mapping(ctx, sec, top, "naive", "naive")
@@ -668,7 +669,7 @@ _SECTIONS = {
 # ----------------------------------------------------------------------------
 
 
-def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Robot, *,
+def load_model_config(source: str | os.PathLike | Mapping | None, robot: Robot, *,
                       is_text: bool = False) -> ModelConfig:
     """Load and validate a model YAML against ``robot``.
 
@@ -705,7 +706,7 @@ def load_model_config(source: Union[str, os.PathLike, Mapping, None], robot: Rob
     return ModelConfig(source=where, effect_wheres=list(ctx.effect_wheres), **kwargs)
 
 
-def _read_yaml(source: Union[str, os.PathLike, Mapping, None], is_text: bool, caller: str) -> tuple[Any, str]:
+def _read_yaml(source: str | os.PathLike | Mapping | None, is_text: bool, caller: str) -> tuple[Any, str]:
     """Model YAML source -> (parsed data with line numbers, where) (see :func:`load_model_config`)."""
     if source is None:
         data: Any = {}
@@ -714,7 +715,7 @@ def _read_yaml(source: Union[str, os.PathLike, Mapping, None], is_text: bool, ca
         data = source
         where = "<dict>"
     else:
-        text: Optional[str] = None
+        text: str | None = None
         if isinstance(source, os.PathLike) or (
             isinstance(source, str) and not is_text and source.strip() != "" and "\n" not in source
             and (Path(source).suffix in (".yaml", ".yml") or Path(source).is_file())
@@ -752,8 +753,8 @@ def _read_yaml(source: Union[str, os.PathLike, Mapping, None], is_text: bool, ca
     return data, where
 
 
-def load_contact_config(source: Union[str, os.PathLike, Mapping, None], robot: Optional[Robot] = None, *,
-                        is_text: bool = False) -> Optional[ContactConfig]:
+def load_contact_config(source: str | os.PathLike | Mapping | None, robot: Robot | None = None, *,
+                        is_text: bool = False) -> ContactConfig | None:
     """Only the ``contact`` section of a model YAML, validated as :func:`load_model_config` does.
 
     For users that have no URDF at hand (the contact node): with ``robot=None`` the link names

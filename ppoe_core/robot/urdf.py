@@ -24,7 +24,6 @@ import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Optional, Union
 from xml.parsers import expat
 
 import numpy as np
@@ -80,7 +79,7 @@ class Link:
     """A URDF link (a frame of the tree)."""
 
     name: str
-    inertial: Optional[Inertial] = None
+    inertial: Inertial | None = None
     line: int = 0
 
 
@@ -88,10 +87,10 @@ class Link:
 class JointLimit:
     """``<limit>``: position limits [rad or m] (None if absent), effort [N or Nm], velocity."""
 
-    lower: Optional[float] = None
-    upper: Optional[float] = None
-    effort: Optional[float] = None
-    velocity: Optional[float] = None
+    lower: float | None = None
+    upper: float | None = None
+    effort: float | None = None
+    velocity: float | None = None
 
 
 @dataclass(frozen=True)
@@ -131,9 +130,9 @@ class Joint:
     child: str
     origin: np.ndarray
     axis: np.ndarray
-    limit: Optional[JointLimit] = None
-    mimic: Optional[Mimic] = None
-    mimic_root: Optional[tuple[str, float, float]] = None
+    limit: JointLimit | None = None
+    mimic: Mimic | None = None
+    mimic_root: tuple[str, float, float] | None = None
     line: int = 0
 
     @property
@@ -211,7 +210,7 @@ class Robot:
             )
         return name
 
-    def parent_joint(self, link: str) -> Optional[Joint]:
+    def parent_joint(self, link: str) -> Joint | None:
         """The joint whose child is ``link`` (None for the root)."""
         self.check_link(link)
         j = self._parent_joint.get(link)
@@ -267,17 +266,17 @@ class _Element:
         self.children: list[_Element] = []
         self.line = line
 
-    def findall(self, tag: str) -> list["_Element"]:
+    def findall(self, tag: str) -> list[_Element]:
         return [c for c in self.children if c.tag == tag]
 
-    def find(self, tag: str) -> Optional["_Element"]:
+    def find(self, tag: str) -> _Element | None:
         for c in self.children:
             if c.tag == tag:
                 return c
         return None
 
 
-def _parse_xml(text: Union[str, bytes], where: str) -> _Element:
+def _parse_xml(text: str | bytes, where: str) -> _Element:
     parser = expat.ParserCreate()
     stack: list[_Element] = []
     root: list[_Element] = []
@@ -318,7 +317,7 @@ def _err(where: str, el: _Element, msg: str) -> UrdfError:
     return UrdfError(f"{where}:{el.line}: {msg}")
 
 
-def _floats(where: str, el: _Element, attr: str, n: int, default: Optional[tuple] = None) -> np.ndarray:
+def _floats(where: str, el: _Element, attr: str, n: int, default: tuple | None = None) -> np.ndarray:
     raw = el.attrib.get(attr)
     if raw is None:
         if default is None:
@@ -336,7 +335,7 @@ def _floats(where: str, el: _Element, attr: str, n: int, default: Optional[tuple
     return vals
 
 
-def _float(where: str, el: _Element, attr: str, default: Optional[float] = None, required: bool = False) -> Optional[float]:
+def _float(where: str, el: _Element, attr: str, default: float | None = None, required: bool = False) -> float | None:
     raw = el.attrib.get(attr)
     if raw is None:
         if required:
@@ -470,7 +469,7 @@ def _looks_like_xml(source: str) -> bool:
 # ----------------------------------------------------------------------------
 
 
-def parse_urdf(source: Union[str, bytes, os.PathLike], *, text_source: Optional[str] = None) -> Robot:
+def parse_urdf(source: str | bytes | os.PathLike, *, text_source: str | None = None) -> Robot:
     """Parse a URDF into a :class:`Robot`.
 
     Parameters
@@ -494,7 +493,7 @@ def parse_urdf(source: Union[str, bytes, os.PathLike], *, text_source: Optional[
         the file and the line.
     """
     if isinstance(source, bytes):
-        text: Union[str, bytes] = source
+        text: str | bytes = source
         where = text_source or "<string>"
     elif isinstance(source, os.PathLike) or (isinstance(source, str) and not _looks_like_xml(source)):
         path = Path(source)

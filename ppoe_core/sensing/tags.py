@@ -21,8 +21,9 @@ Pixel coordinates follow OpenCV: the centre of pixel (row r, column c) is (u, v)
 
 from __future__ import annotations
 
-from functools import lru_cache
-from typing import Any, NamedTuple, Sequence
+from functools import lru_cache, cache
+from typing import Any, NamedTuple
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -60,7 +61,7 @@ class TagDetection(NamedTuple):
     centre: np.ndarray
 
 
-@lru_cache(maxsize=None)
+@cache
 def aruco_dictionary(name: str = "tag36h11") -> Any:
     """OpenCV dictionary by name: ``tag36h11`` (default), ``tag36h10``, ``tag25h9``,
     ``tag16h5``, ``aruco_original``, ``4x4_50`` ... ``7x7_1000``, or any ``DICT_*`` name.

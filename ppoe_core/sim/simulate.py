@@ -33,7 +33,8 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -184,8 +185,8 @@ def _check_keys(d: Any, allowed: Sequence[str], path: str, key: str) -> dict:
     return dict(d)
 
 
-def _num(d: Mapping, k: str, default: Any, path: str, key: str, minimum: Optional[float] = None,
-         maximum: Optional[float] = None) -> Any:
+def _num(d: Mapping, k: str, default: Any, path: str, key: str, minimum: float | None = None,
+         maximum: float | None = None) -> Any:
     v = d.get(k, default)
     if v is None:
         return None
@@ -499,7 +500,7 @@ def _min_jerk(s: np.ndarray) -> np.ndarray:
 class _Stop:
     q: dict[str, float]
     dwell: float
-    contact: Optional[dict] = None
+    contact: dict | None = None
     measure: bool = True
     draw: int = 0
 
@@ -1087,7 +1088,7 @@ class _Sim:
         return d
 
 
-def simulate(scenario: str | os.PathLike | Scenario, out: str | os.PathLike, seed: Optional[int] = None,
+def simulate(scenario: str | os.PathLike | Scenario, out: str | os.PathLike, seed: int | None = None,
              storage: str = "mcap", overwrite: bool = False) -> SimulationResult:
     """Run a scenario and write the bag.
 

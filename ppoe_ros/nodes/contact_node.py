@@ -28,7 +28,8 @@ section (:func:`ppoe_core.sensing.contact.plane_from_config`); parameters overri
 from __future__ import annotations
 
 import sys
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped, WrenchStamped

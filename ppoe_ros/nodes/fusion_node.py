@@ -39,7 +39,8 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped

@@ -37,7 +37,8 @@ import collections
 import sys
 import threading
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 import yaml

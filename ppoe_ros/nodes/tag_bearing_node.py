@@ -33,7 +33,8 @@ Parameters: :data:`PARAMS`, documented in ``config/nodes/tag_bearing_node.yaml``
 from __future__ import annotations
 
 import sys
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 from rcl_interfaces.msg import ParameterType

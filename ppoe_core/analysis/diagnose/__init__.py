@@ -43,7 +43,8 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Optional
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -154,7 +155,7 @@ class Stops:
     reg_mask: np.ndarray
     score_mask: np.ndarray
     context: dict[str, Any] = field(default_factory=dict)
-    R_meas: Optional[np.ndarray] = None
+    R_meas: np.ndarray | None = None
     sigma_rot: float = 1e-3
     base: str = ""
     imus: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
@@ -168,7 +169,7 @@ class Stops:
         return 3 if self.kind == "point" else 6
 
     @staticmethod
-    def concat(parts: Sequence["Stops"]) -> "Stops":
+    def concat(parts: Sequence[Stops]) -> Stops:
         """Stack stops of several bags/files (sessions and groups kept apart)."""
         if not parts:
             raise BagError("no stops to diagnose")
@@ -205,7 +206,7 @@ class Stops:
                   for k in first.imus if all(k in p.imus for p in parts)},
         )
 
-    def subset(self, rows: np.ndarray) -> "Stops":
+    def subset(self, rows: np.ndarray) -> Stops:
         """The stops ``rows`` (index or bool array); session/group numbering is kept."""
         def sub_ctx(v: Any) -> Any:
             return {k: a[rows] for k, a in v.items()} if isinstance(v, dict) else v[rows]
@@ -336,7 +337,7 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
 
 
 def _predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect]
-                     ) -> tuple[np.ndarray, Optional[np.ndarray], dict, dict, dict]:
+                     ) -> tuple[np.ndarray, np.ndarray | None, dict, dict, dict]:
     """Nominal prediction with the declared effects; returns x0 (N,3), R0, poses, dq, dxi."""
     dq, dxi = apply_corrections(declared, stops.q, stops.context)
     poses = tree.link_poses(stops.q, dq, dxi)
@@ -348,7 +349,7 @@ def _predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effec
 
 
 def _measurement_jacobian(tree: KinematicTree, stops: Stops, eff: Effect, nominal: Mapping,
-                          chain: tuple, base_R: Optional[np.ndarray]) -> np.ndarray:
+                          chain: tuple, base_R: np.ndarray | None) -> np.ndarray:
     """(N, dim, P): derivative of the predicted measurement w.r.t. the effect parameters."""
     Jq, Jx, Fq, Fx = chain
     Bq, Bx = eff.basis(stops.q, stops.context, nominal)
@@ -399,8 +400,8 @@ class LinearProblem:
         rotation block of the model's covariance plus ``sigma_rot^2 I``; None: ``I / sigma_rot``.
     """
 
-    def __init__(self, stops: Stops, x0: np.ndarray, R0: Optional[np.ndarray],
-                 W_base: Optional[np.ndarray] = None, W_rot: Optional[np.ndarray] = None) -> None:
+    def __init__(self, stops: Stops, x0: np.ndarray, R0: np.ndarray | None,
+                 W_base: np.ndarray | None = None, W_rot: np.ndarray | None = None) -> None:
         self.stops = stops
         self.x0 = x0
         self.R0 = R0
@@ -666,8 +667,8 @@ class DiagnoseOptions:
     max_effects: int = 8
     screen: int = 6
     seed: int = 0
-    candidates: Optional[list[str]] = None
-    imu_sigma: Optional[dict[str, float]] = None
+    candidates: list[str] | None = None
+    imu_sigma: dict[str, float] | None = None
 
 
 @dataclass
@@ -754,7 +755,7 @@ def _restrict(c: Candidate, keep: Sequence[int], tree: KinematicTree) -> Candida
 
 def _identifiable_subset(problem: LinearProblem, chosen: Sequence[Candidate], cand: Candidate,
                          options: DiagnoseOptions, tree: KinematicTree, rows: np.ndarray
-                         ) -> tuple[Optional[Candidate], str, float]:
+                         ) -> tuple[Candidate | None, str, float]:
     """Candidate (possibly with fewer link_error components) identifiable together with the
     registration and ``chosen``, with physically signed parameters; also its in-sample SSR.
 
@@ -797,9 +798,9 @@ def _identifiable_subset(problem: LinearProblem, chosen: Sequence[Candidate], ca
 
 
 def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
-             perturbation_cov: Optional[Mapping[str, np.ndarray]] = None,
-             joint_noise: Optional[Mapping[str, float]] = None,
-             options: Optional[DiagnoseOptions] = None) -> DiagnoseResult:
+             perturbation_cov: Mapping[str, np.ndarray] | None = None,
+             joint_noise: Mapping[str, float] | None = None,
+             options: DiagnoseOptions | None = None) -> DiagnoseResult:
     """Find the catalogue effects that explain the residual of ``stops`` (module docstring).
 
     Parameters
@@ -1154,7 +1155,7 @@ def _scores(R: np.ndarray) -> dict[str, float]:
 
 def _refit_sigma(tree: KinematicTree, stops: Stops, poses: Mapping, dq: Mapping, dxi: Mapping,
                  pert: Mapping[str, np.ndarray], jnoise: Mapping[str, float], Rb: np.ndarray
-                 ) -> tuple[float, float, float, Optional[dict[str, float]]]:
+                 ) -> tuple[float, float, float, dict[str, float] | None]:
     """Scale ``k`` of the model covariance so that the mean held-out NEES is 3.
 
     ``C_i = k^2 C_model,i + sigma^2 I`` with ``C_model`` the first-order PPOE covariance of the
@@ -1162,7 +1163,7 @@ def _refit_sigma(tree: KinematicTree, stops: Stops, poses: Mapping, dq: Mapping,
     A model without any uncertainty gets a common joint noise ``k`` [rad or m] on the movable
     joints of the chain instead.  Returns ``(NEES at k=1, NEES at k, k, fitted joint noise)``.
     """
-    fitted: Optional[dict[str, float]] = None
+    fitted: dict[str, float] | None = None
     if pert or jnoise:
         C_model = _point_covariance(tree, stops, poses, dq, dxi, pert, jnoise)
     else:
@@ -1263,11 +1264,11 @@ def _sample_joint(t: np.ndarray, v: np.ndarray, at: np.ndarray) -> np.ndarray:
     return np.where(hold | (at <= t[0]), v[i], np.interp(at, t, v))
 
 
-def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str] = None,
+def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None = None,
                    tracker_xyz: Sequence[float] = (0.0, 0.0, 0.0), tracker_sigma: float = 5e-4,
-                   base: Optional[str] = None, tool: Optional[str] = None, pose_sigma: float = 5e-4,
-                   pose_sigma_rot: float = 1e-3, stationing_set: Optional[str] = "cross",
-                   group_name: Optional[str] = None, measurement: str = "auto") -> Stops:
+                   base: str | None = None, tool: str | None = None, pose_sigma: float = 5e-4,
+                   pose_sigma_rot: float = 1e-3, stationing_set: str | None = "cross",
+                   group_name: str | None = None, measurement: str = "auto") -> Stops:
     """Measurements of a contract bag as :class:`Stops`.
 
     ``/ground_truth/point`` (preferred by ``measurement="auto"``) or ``/ground_truth/pose``
@@ -1374,7 +1375,7 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: Optional[str
                  reg_mask=reg, score_mask=score, context=ctx, imus=imus)
 
 
-def stops_from_hilti(path: str | Path, robot: Robot, stationing_set: Optional[str] = "cross",
+def stops_from_hilti(path: str | Path, robot: Robot, stationing_set: str | None = "cross",
                      tracker_link: str = "prism", sigma: float = 0.75e-3) -> Stops:
     """A Hilti stationing dataset file (``../shared/datasets/hilti_stationing/*.yaml``) as
     :class:`Stops`, read directly (same content as its ``ppoe import hilti`` bag).
@@ -1624,7 +1625,7 @@ class PixelObs:
     def __len__(self) -> int:
         return int(self.uv.shape[0])
 
-    def subset(self, rows: np.ndarray) -> "PixelObs":
+    def subset(self, rows: np.ndarray) -> PixelObs:
         """The observations ``rows`` (index or boolean array)."""
         return PixelObs(q={k: v[rows] for k, v in self.q.items()}, link=self.link, point=self.point[rows],
                         camera=self.camera[rows], cameras=self.cameras, K=self.K, D=self.D, uv=self.uv[rows],
@@ -1793,8 +1794,8 @@ def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect,
 
 
 def pixel_covariance(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = (),
-                     pert: Optional[Mapping[str, np.ndarray]] = None,
-                     jnoise: Optional[Mapping[str, float]] = None) -> np.ndarray:
+                     pert: Mapping[str, np.ndarray] | None = None,
+                     jnoise: Mapping[str, float] | None = None) -> np.ndarray:
     """Expected covariance (M, 2, 2) of each pixel residual [px^2], image axes: the first-order
     PPOE covariance (paper eq. 18 to first order: ``pert`` = 6x6 covariances of the insertions,
     tangent right after each joint's origin; ``jnoise`` = joint 1-sigma [rad, m]) propagated
@@ -1916,11 +1917,11 @@ def _lstsq(G: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = (),
-                    candidates: Optional[Sequence[Effect]] = None, folds: int = 5, min_gain: float = 0.03,
+                    candidates: Sequence[Effect] | None = None, folds: int = 5, min_gain: float = 0.03,
                     min_t: float = 4.0, max_condition: float = 1e6, max_effects: int = 4,
                     iterations: int = 3, seed: int = 0, robust: bool = True,
-                    pert: Optional[Mapping[str, np.ndarray]] = None,
-                    jnoise: Optional[Mapping[str, float]] = None) -> PixelDiagnosis:
+                    pert: Mapping[str, np.ndarray] | None = None,
+                    jnoise: Mapping[str, float] | None = None) -> PixelDiagnosis:
     """Trace the marker-pixel residual to ``camera_extrinsics`` (or given candidate) effects.
 
     The pixel residual (measured minus predicted with ``declared``), whitened by its expected
@@ -2256,7 +2257,7 @@ def add_pixel_diagnosis(result: DiagnoseResult, robot: Robot, obs: PixelObs, dec
 
 
 def _imu_tilt_raw(tree: KinematicTree, stops: Stops, effects: Sequence[Effect],
-                  tilt_group: Optional[np.ndarray] = None) -> np.ndarray:
+                  tilt_group: np.ndarray | None = None) -> np.ndarray:
     """Tilt residuals (measured minus predicted) of every accelerometer, shape (N, K, 2) [rad].
 
     Predicted up direction in the IMU link: ``u = R_root_link^T Exp(-w_g) z_root`` with
@@ -2305,7 +2306,7 @@ def imu_candidates(tree: KinematicTree, stops: Stops) -> list[Effect]:
     return out
 
 
-def _imu_jacobian(tree: KinematicTree, stops: Stops, effect: Optional[Effect], current: Sequence[Effect],
+def _imu_jacobian(tree: KinematicTree, stops: Stops, effect: Effect | None, current: Sequence[Effect],
                   tilt_group: np.ndarray, h: float = 1e-6) -> np.ndarray:
     """Central finite-difference Jacobian (N, K, 2, P) of the tilt *prediction* w.r.t. the
     parameters of ``effect`` (``None``: the per-group base tilt, P = 2 G), at ``current``."""
@@ -2329,8 +2330,8 @@ def _imu_jacobian(tree: KinematicTree, stops: Stops, effect: Optional[Effect], c
 
 
 def imu_tilt_covariance(tree: KinematicTree, stops: Stops, declared: Sequence[Effect], sigma: np.ndarray,
-                        perturbation_cov: Optional[Mapping[str, np.ndarray]] = None,
-                        joint_noise: Optional[Mapping[str, float]] = None) -> np.ndarray:
+                        perturbation_cov: Mapping[str, np.ndarray] | None = None,
+                        joint_noise: Mapping[str, float] | None = None) -> np.ndarray:
     """Expected covariance (N, K, 2, 2) [rad^2] of the tilt residuals of :func:`_imu_tilt_raw`.
 
     ``(sigma_k / |a|)^2 I`` (``sigma`` (K,) accelerometer 1-sigma per axis [m/s^2]) plus the
@@ -2357,11 +2358,11 @@ def imu_tilt_covariance(tree: KinematicTree, stops: Stops, declared: Sequence[Ef
 
 
 def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
-                 sigma: float | Mapping[str, float] = 4e-4, candidates: Optional[Sequence[Effect]] = None,
+                 sigma: float | Mapping[str, float] = 4e-4, candidates: Sequence[Effect] | None = None,
                  folds: int = 5, min_gain: float = 0.03, min_t: float = 4.0, max_condition: float = 1e6,
                  max_effects: int = 3, iterations: int = 3, seed: int = 0,
-                 perturbation_cov: Optional[Mapping[str, np.ndarray]] = None,
-                 joint_noise: Optional[Mapping[str, float]] = None) -> dict[str, Any]:
+                 perturbation_cov: Mapping[str, np.ndarray] | None = None,
+                 joint_noise: Mapping[str, float] | None = None) -> dict[str, Any]:
     """Fit the accelerometers: per-group ``base_tilt`` and the effects that rotate the IMU links.
 
     Residual per stop and accelerometer: the two tilt angles (measured minus predicted up
@@ -2412,7 +2413,7 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     e0 = wh(e_raw).reshape(n, -1)  # (N, 2K) whitened
     cands = list(candidates) if candidates is not None else imu_candidates(tree, stops)
     names = ["base_tilt@" + tree.root] + [c.describe() for c in cands]
-    effs: list[Optional[Effect]] = [None] + cands
+    effs: list[Effect | None] = [None] + cands
     Gs = [wh(_imu_jacobian(tree, stops, e, declared, zero_tilt)).reshape(n, 2 * K, -1)
           for e in effs]
     test_masks = _pose_folds(np.arange(n), folds, seed)
