@@ -1,0 +1,56 @@
+"""Shared test helpers: repository paths and pose helpers.
+
+pytest imports this file before the tests and puts ``test/`` on ``sys.path`` (rootdir
+conftest, no ``__init__.py``), so test modules use the plain names::
+
+    from conftest import REPO, CONFIG_ROBOTS, random_pose
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ppoe_core import lie
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIG = REPO / "config"
+CONFIG_ROBOTS = CONFIG / "robots"      # example robots: URDF + model YAML
+CONFIG_NODES = CONFIG / "nodes"        # node parameter files
+BAGS = REPO / "bags"                   # shipped simulated bags
+DATA = REPO / "test" / "data"          # small test-only robots
+DATASETS = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets"))   # measured data
+
+
+def pose_from(t, w) -> np.ndarray:
+    """Pose ``(4, 4)`` with translation ``t`` (3,) and rotation ``so3_exp(w)`` (not ``lie.exp`` of a twist)."""
+    T = np.eye(4)
+    T[:3, :3] = lie.so3_exp(np.asarray(w, dtype=float))
+    T[:3, 3] = t
+    return T
+
+
+def random_pose(rng: np.random.Generator, n: int | None = None, scale_t: float = 1.0,
+                scale_r: float = 1.0) -> np.ndarray:
+    """Random pose ``Exp(xi)``, ``xi = [rho; theta]`` standard normal scaled by ``scale_t`` / ``scale_r``.
+
+    Shape ``(4, 4)``, or ``(n, 4, 4)`` for ``n`` poses.  Draws ``6`` (or ``n * 6``) normals from
+    ``rng`` in one call, row by row.
+    """
+    shape = (6,) if n is None else (n, 6)
+    xi = rng.normal(size=shape)
+    if scale_t != 1.0 or scale_r != 1.0:
+        xi = np.concatenate([xi[..., :3] * scale_t, xi[..., 3:] * scale_r], axis=-1)
+    return lie.exp(xi)
+
+
+def random_pose_quat(rng: np.random.Generator) -> np.ndarray:
+    """Random pose ``(4, 4)``: rotation from a uniformly random unit quaternion, translation standard normal."""
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    T = np.eye(4)
+    T[:3, :3] = lie.matrix_from_quat(q)
+    T[:3, 3] = rng.normal(size=3)
+    return T

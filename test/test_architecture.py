@@ -1,0 +1,192 @@
+"""Architecture rules of the code base (issue 9), checked statically with ``ast``.
+
+- size: no module over 600 lines, no function body over 60 lines (docstring excluded) in
+  ``ppoe_core/`` and ``ppoe_ros/``;
+- ``ppoe_core`` never imports rclpy, a ROS package, or ``ppoe_ros``;
+- layers of ``ppoe_core`` (a lower layer may not import a higher one):
+  errors < lie < robot < model < estimation < sensing < io < sim < analysis < cli;
+  ``analysis`` does not import ``io.importers``;
+- a node module (``ppoe_ros/nodes/*``) does not import another node module;
+- ``ruff check .`` is clean (mypy runs in ``.ci/run``, not here).
+
+Each checker is a function of a source string, so the tests at the end feed it violations
+and show that it can fail.  The import analysis is ``scripts/gen_architecture.py``'s, the one
+that also writes the module table of ``docs/ARCHITECTURE.md``.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib.util
+import subprocess
+import sys
+from collections.abc import Callable
+
+import pytest
+from conftest import REPO
+
+_spec = importlib.util.spec_from_file_location("gen_architecture", REPO / "scripts" / "gen_architecture.py")
+assert _spec is not None and _spec.loader is not None
+gen = importlib.util.module_from_spec(_spec)
+sys.modules["gen_architecture"] = gen
+_spec.loader.exec_module(gen)
+
+MAX_MODULE_LINES = 600
+MAX_FUNCTION_LINES = 60
+LAYERS = ("errors", "lie", "robot", "model", "estimation", "sensing", "io", "sim", "analysis", "cli")
+FORBIDDEN = {"analysis": ("ppoe_core.io.importers",)}   # layer -> module prefixes it may not import
+ROS_TOP_LEVEL = {
+    "rclpy", "rcl", "rcl_interfaces", "rclpy_message_converter", "rosidl_runtime_py", "rosidl_parser",
+    "rosgraph_msgs", "builtin_interfaces", "launch", "launch_ros", "launch_testing", "ament_index_python",
+    "rosbag2_py", "tf2_ros", "tf2_py", "message_filters", "cv_bridge", "ros2cli", "rpyutils",
+}
+MODULES = list(gen.iter_modules())
+
+
+def is_ros_package(name: str) -> bool:
+    """True for rclpy and ROS packages (``*_msgs``, ``*_srvs``, ``*_interfaces``, ...); ``rosbags`` is not ROS."""
+    top = name.split(".")[0]
+    return top in ROS_TOP_LEVEL or top.endswith(("_msgs", "_srvs", "_interfaces", "_actions"))
+
+
+def layer_of(module: str) -> str | None:
+    """Layer of a ``ppoe_core`` module (``ppoe_core.estimation.fusion`` -> ``estimation``); the
+    top-level package ``ppoe_core`` (the user-API facade) has none."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[0] == "ppoe_core" else None
+
+
+def size_violations(source: str, where: str) -> list[str]:
+    """Module over MAX_MODULE_LINES lines, function bodies over MAX_FUNCTION_LINES (docstring excluded)."""
+    out = []
+    n = len(source.splitlines())
+    if n > MAX_MODULE_LINES:
+        out.append(f"{where}: module has {n} lines > {MAX_MODULE_LINES}")
+    for node in ast.walk(ast.parse(source)):
+        if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        body = node.body
+        if body and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant) \
+                and isinstance(body[0].value.value, str):
+            body = body[1:]
+        if not body:
+            continue
+        length = (body[-1].end_lineno or body[-1].lineno) - body[0].lineno + 1
+        if length > MAX_FUNCTION_LINES:
+            out.append(f"{where}:{node.lineno}: function {node.name} body has {length} lines > {MAX_FUNCTION_LINES}")
+    return out
+
+
+def import_violations(source: str, module: str, is_package: bool = False,
+                      exists: Callable[[str], bool] | None = None) -> list[str]:
+    """Layer, ROS and node-to-node import rules for the module ``module`` with text ``source``."""
+    out = []
+    imported = gen.imports_of(source, module, is_package, exists)
+    mine = layer_of(module)
+    for name in sorted(imported):
+        if name == module:
+            continue
+        if module.split(".")[0] == "ppoe_core":
+            if is_ros_package(name):
+                out.append(f"{module}: imports ROS package {name} (ppoe_core is ROS-free)")
+            if name.split(".")[0] == "ppoe_ros":
+                out.append(f"{module}: imports {name} (ppoe_core may not import ppoe_ros)")
+            theirs = layer_of(name)
+            if mine is not None and name == "ppoe_core":
+                out.append(f"{module}: imports the ppoe_core facade; import from the defining module")
+            if mine in LAYERS and theirs in LAYERS and LAYERS.index(theirs) > LAYERS.index(mine):
+                out.append(f"{module}: layer {mine} imports {name} of higher layer {theirs}")
+            for prefix in FORBIDDEN.get(mine or "", ()):
+                if name == prefix or name.startswith(prefix + "."):
+                    out.append(f"{module}: layer {mine} may not import {name}")
+        if _is_node(module) and _is_node(name) and name != module:
+            out.append(f"{module}: node module imports node module {name}")
+    return out
+
+
+def _is_node(module: str) -> bool:
+    parts = module.split(".")
+    return len(parts) == 3 and parts[:2] == ["ppoe_ros", "nodes"]
+
+
+# ----------------------------------------------------------------------------- the code base
+
+
+def test_modules_found():
+    names = {m.name for m in MODULES}
+    assert {"ppoe_core.lie", "ppoe_core.errors", "ppoe_ros.nodes.fusion_node"} <= names, sorted(names)
+    assert all(layer_of(n) in LAYERS for n in names if n.startswith("ppoe_core.")), sorted(names)
+
+
+def test_module_and_function_sizes():
+    bad = [v for m in MODULES for v in size_violations(m.source, m.path.relative_to(REPO).as_posix())]
+    print("\n".join(bad))
+    assert not bad, "over the size limits (split into named steps):\n" + "\n".join(bad)
+
+
+def test_imports_follow_the_layers():
+    bad = [v for m in MODULES for v in import_violations(m.source, m.name, m.is_package)]
+    print("\n".join(bad))
+    assert not bad, "import rule violations:\n" + "\n".join(bad)
+
+
+def test_ruff_clean():
+    if importlib.util.find_spec("ruff") is None:
+        pytest.skip("ruff is not installed (pip install -e '.[test]')")
+    res = subprocess.run([sys.executable, "-m", "ruff", "check", "."], cwd=REPO,
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+# ----------------------------------------------------------------------------- the checkers can fail
+
+
+def _exists(name: str) -> bool:
+    """Synthetic module set for the checker tests."""
+    return name in {"ppoe_core.lie", "ppoe_core.errors", "ppoe_core.model", "ppoe_core.model.ppoe",
+                    "ppoe_core.io", "ppoe_core.io.importers", "ppoe_ros.nodes.kinematics_node",
+                    "ppoe_ros.nodes.fusion_node", "ppoe_ros.common"}
+
+
+def _function(name: str, body_lines: int, docstring: bool = True) -> str:
+    doc = '    """Doc\n\n    more doc.\n    """\n' if docstring else ""
+    return f"def {name}():\n" + doc + "".join(f"    x{i} = {i}\n" for i in range(body_lines))
+
+
+def test_size_checker_detects_long_function_and_module():
+    assert size_violations(_function("ok", MAX_FUNCTION_LINES), "m.py") == []
+    bad = size_violations(_function("too_long", MAX_FUNCTION_LINES + 1), "m.py")
+    assert len(bad) == 1 and "too_long" in bad[0] and f"{MAX_FUNCTION_LINES + 1} lines" in bad[0]
+    nested = "class A:\n    " + _function("method", MAX_FUNCTION_LINES + 5, docstring=False).replace("\n", "\n    ")
+    assert any("method" in v for v in size_violations(nested, "m.py"))
+    big = "\n".join(f"x{i} = {i}" for i in range(MAX_MODULE_LINES + 1))
+    assert size_violations(big, "m.py") == [f"m.py: module has {MAX_MODULE_LINES + 1} lines > {MAX_MODULE_LINES}"]
+
+
+@pytest.mark.parametrize("module, source, what", [
+    ("ppoe_core.lie", "import rclpy\n", "ROS package rclpy"),
+    ("ppoe_core.estimation.fusion", "def f():\n    from geometry_msgs.msg import Pose\n",
+     "ROS package geometry_msgs.msg"),
+    ("ppoe_core.sim.simulate", "from ppoe_ros.common import x\n", "may not import ppoe_ros"),
+    ("ppoe_core.lie", "from ppoe_core.model.ppoe import PPOEModel\n", "layer lie imports ppoe_core.model.ppoe"),
+    ("ppoe_core.robot.urdf", "from ppoe_core import lie, model\n", "layer robot imports ppoe_core.model"),
+    ("ppoe_core.robot.urdf", "from ..model import ppoe\n", "layer robot imports ppoe_core.model.ppoe"),
+    ("ppoe_core.analysis.evaluate", "from ppoe_core.io.importers import hilti\n",
+     "may not import ppoe_core.io.importers"),
+    ("ppoe_core.lie", "from ppoe_core import PPOEModel\n", "facade"),
+    ("ppoe_ros.nodes.fusion_node", "from ppoe_ros.nodes.kinematics_node import x\n", "node module imports"),
+    ("ppoe_ros.nodes.fusion_node", "from . import kinematics_node\n", "node module imports"),
+])
+def test_import_checker_detects_violations(module, source, what):
+    bad = import_violations(source, module, exists=_exists)
+    assert any(what in v for v in bad), bad
+
+
+@pytest.mark.parametrize("module, source", [
+    ("ppoe_core.model.ppoe", "import numpy\nfrom ppoe_core import lie\nfrom ppoe_core.errors import PpoeError\n"),
+    ("ppoe_core.io.bagio", "from rosbags.rosbag2 import Reader\n"),
+    ("ppoe_core.cli.fk", "from ppoe_core.io.importers import hilti\nfrom ppoe_core.model.ppoe import PPOEModel\n"),
+    ("ppoe_ros.nodes.fusion_node", "import rclpy\nfrom ppoe_ros.common import x\nfrom ppoe_core.model import ppoe\n"),
+])
+def test_import_checker_accepts_allowed_imports(module, source):
+    assert import_violations(source, module, exists=_exists) == []
