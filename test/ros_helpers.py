@@ -36,7 +36,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
+from conftest import REPO
 
 __all__ = [
     "REPO",

@@ -7,19 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ppoe_core import lie
 
 from ppoe_core.io import bagio
 from ppoe_core.errors import BagError
 
 
-def _rand_pose(rng: np.random.Generator) -> np.ndarray:
-    q = rng.normal(size=4)
-    q /= np.linalg.norm(q)
-    T = np.eye(4)
-    T[:3, :3] = lie.matrix_from_quat(q)
-    T[:3, 3] = rng.normal(size=3)
-    return T
+from conftest import random_pose_quat as _rand_pose
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])

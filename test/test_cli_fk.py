@@ -19,7 +19,7 @@ from ppoe_core.errors import JointValueError, UnknownJointError
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_ros.cli import main
 
-REPO = Path(__file__).resolve().parents[1]
+from conftest import REPO
 URDF = str(REPO / "config" / "robots" / "planar3.urdf")
 MODEL = str(REPO / "config" / "robots" / "planar3_model.yaml")
 ARM7_URDF = str(REPO / "config" / "robots" / "arm7.urdf")

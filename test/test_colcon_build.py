@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from conftest import REPO
 PACKAGE_ITEMS = ["package.xml", "setup.py", "setup.cfg", "resource", "ppoe_core", "ppoe_ros", "config", "launch"]
 NODES = ["kinematics_node", "contact_node", "tag_bearing_node", "fusion_node"]
 

@@ -14,7 +14,7 @@ from ppoe_core.robot.config import load_contact_config, load_model_config, low_r
 from ppoe_core.errors import CovarianceError, ModelConfigError, UnknownFrameError, UnknownJointError
 from ppoe_core.robot.urdf import parse_urdf
 
-DATA = Path(__file__).parent / "data"
+from conftest import DATA
 EDGE = DATA / "ppoe_edge.urdf"
 EDGE_YAML = DATA / "ppoe_edge_model.yaml"
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,7 +19,7 @@ from ppoe_core.sensing.contact import (
 )
 from ppoe_core.errors import MeasurementError, ModelConfigError
 
-REPO = Path(__file__).resolve().parents[1]
+from conftest import REPO
 MODEL = REPO / "config" / "robots" / "humanoid_model.yaml"
 
 

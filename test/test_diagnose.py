@@ -4,8 +4,6 @@ contract JSON of the CLI on a bag, and one quick leave-one-file-out fit on the H
 from __future__ import annotations
 
 import json
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,9 +15,7 @@ from ppoe_core.analysis.diagnose import (DiagnoseOptions, Stops, diagnose, kabsc
 from ppoe_core.model.effects import KinematicTree, apply_corrections, make_effect
 from ppoe_core.robot.urdf import parse_urdf
 
-REPO = Path(__file__).resolve().parents[1]
-CONFIG = REPO / "config"
-DATASETS = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets"))
+from conftest import BAGS, CONFIG, DATASETS
 SIGMA = 1e-4  # tracker noise [m]
 POINT = np.array([0.0, 0.0, 0.02])
 
@@ -216,7 +212,6 @@ def test_hilti_leave_one_file_out_lowers_heldout_rms():
     assert all(a < 0.8 * b for a, b in zip(tip["rms_after"], tip["rms_before"]))
 
 
-BAGS = REPO / "bags"
 SHIPPED = [("no_effect", None, "point"), ("effect_joint_offset", "joint_offset", "point"),
            ("effect_gravity_compliance", "gravity_compliance", "point"),
            ("effect_mount_bending", "mount_bending", "point"), ("effect_unexplained", None, "point"),

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +12,7 @@ from ppoe_core.model.effects import (EFFECT_NAMES, KinematicTree, apply_correcti
 from ppoe_core.errors import ModelConfigError, UnknownJointError
 from ppoe_core.robot.urdf import parse_urdf
 
-CONFIG = Path(__file__).resolve().parents[1] / "config"
+from conftest import CONFIG
 
 
 @pytest.fixture(scope="module")

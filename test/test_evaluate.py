@@ -16,8 +16,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -47,15 +45,9 @@ from ppoe_core.analysis.evaluate import (
 )
 from ppoe_core.sensing.tag_rows import centre_from_corners, observe_tags
 
-REPO = Path(__file__).resolve().parents[1]
-DATASETS = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets"))
+from conftest import DATASETS, REPO
+from conftest import random_pose as _random_pose
 needs_data = pytest.mark.skipif(not DATASETS.is_dir(), reason=f"datasets folder {DATASETS} not present")
-
-
-def _random_pose(rng, n=None):
-    shape = (6,) if n is None else (n, 6)
-    xi = rng.normal(size=shape)
-    return lie.exp(xi)
 
 
 # ----------------------------------------------------------------------------- metrics

@@ -17,7 +17,7 @@ from ppoe_core.robot.config import load_model_config
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_core.robot.urdf import parse_urdf
 
-CONFIG = Path(__file__).resolve().parents[1] / "config" / "robots"
+from conftest import CONFIG_ROBOTS as CONFIG
 MODEL_YAMLS = sorted(CONFIG.glob("*_model.yaml"))
 URDFS = sorted(CONFIG.glob("*.urdf"))
 DEG = math.pi / 180.0

@@ -31,11 +31,7 @@ K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 D = np.array([-0.2, 0.08, 0.001, -0.001, -0.01])
 
 
-def _pose(t, w):
-    T = np.eye(4)
-    T[:3, :3] = lie.so3_exp(np.asarray(w, dtype=float))
-    T[:3, 3] = t
-    return T
+from conftest import pose_from as _pose
 
 
 def _spd(rng, n, scale):

@@ -19,8 +19,7 @@ from ppoe_core.estimation import measurements as mm  # noqa: E402
 from ppoe_ros.common import matrix_from_pose_msg, ns_to_stamp, pose_cov_stamped_msg  # noqa: E402
 from ppoe_ros.nodes.tag_bearing_node import cloud_from_observations  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-CONFIG = REPO / "config"
+from conftest import CONFIG, REPO  # noqa: E402
 ROVER_Q = {"pan_joint": -0.378, "tilt_joint": 1.477, "arm_joint_1": -0.247, "arm_joint_2": 1.532,
            "arm_joint_3": 0.302, "arm_joint_4": -0.302, "arm_joint_5": -0.991, "arm_joint_6": 1.294}
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])

@@ -21,8 +21,11 @@ from ppoe_core.estimation.pipeline import (
 )
 
 
+from conftest import random_pose
+
+
 def _random_pose(rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
-    return lie.exp(rng.normal(size=6) * scale)
+    return random_pose(rng, scale_t=scale, scale_r=scale)
 
 
 def _random_cov(rng: np.random.Generator, scale: float = 1e-3) -> np.ndarray:
@@ -372,12 +375,11 @@ def test_pipeline_fused_error_monte_carlo_consistency():
 # ModelUpdater with the project's PPOE models (rover tags, humanoid contact)
 # ----------------------------------------------------------------------------
 
-from pathlib import Path  # noqa: E402
 
 from ppoe_core.estimation import measurements as mm  # noqa: E402
 from ppoe_core.estimation.pipeline import ModelUpdater, PlaneContact, TagPoints  # noqa: E402
 
-CONFIG = Path(__file__).resolve().parents[1] / "config"
+from conftest import CONFIG  # noqa: E402
 
 #: a rover configuration in which tag 0 faces the mast camera
 ROVER_Q = {"pan_joint": -0.378, "tilt_joint": 1.477, "arm_joint_1": -0.247, "arm_joint_2": 1.532,

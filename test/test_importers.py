@@ -9,7 +9,6 @@ datasets' README files.
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +22,7 @@ from ppoe_core.io.importers import read_stop_info
 from ppoe_core.io.importers import hilti as hi
 from ppoe_core.io.importers import motoman as mo
 
-DATASETS = Path(os.environ.get("PPOE_DATASETS", Path(__file__).resolve().parents[2] / "shared" / "datasets"))
+from conftest import DATASETS
 HILTI = DATASETS / "hilti_stationing"
 MOTOMAN = DATASETS / "motoman_leica"
 needs_data = pytest.mark.skipif(not DATASETS.is_dir(), reason=f"datasets folder {DATASETS} not present")

@@ -13,12 +13,11 @@ import ast
 import importlib.util
 import sys
 import types
-from pathlib import Path
 
 import pytest
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
+from conftest import REPO
 LAUNCH = REPO / "launch" / "ppoe.launch.py"
 
 

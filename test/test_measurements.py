@@ -26,16 +26,12 @@ D = np.array([-0.21, 0.09, 0.0012, -0.0008, -0.015])
 SIGMA_PLANE = np.diag([0.5, 0.5, 0.001, 0.017, 0.017, 0.17]) ** 2
 
 
-def _pose(t, w):
-    """Pose with translation ``t`` and rotation ``Exp(w)`` (not ``lie.exp`` of a twist)."""
-    T = np.eye(4)
-    T[:3, :3] = lie.so3_exp(np.asarray(w, dtype=float))
-    T[:3, 3] = t
-    return T
+from conftest import pose_from as _pose
+from conftest import random_pose
 
 
 def _rand_pose(rng, scale_t=0.3, scale_r=0.5):
-    return lie.exp(np.r_[rng.normal(size=3) * scale_t, rng.normal(size=3) * scale_r])
+    return random_pose(rng, scale_t=scale_t, scale_r=scale_r)
 
 
 def _spd(rng, n, scale=1e-3):

@@ -11,7 +11,7 @@ from ppoe_core import PPOEModel, lie, load_model_config, parse_urdf
 from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
 from ppoe_core.model.ppoe import compound_fourth_order
 
-DATA = Path(__file__).parent / "data"
+from conftest import DATA
 EDGE = DATA / "ppoe_edge.urdf"
 EDGE_YAML = DATA / "ppoe_edge_model.yaml"
 PLANAR = DATA / "planar3.urdf"

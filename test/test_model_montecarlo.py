@@ -5,14 +5,13 @@ MC covariance = mean of ``Log(Tbar^-1 T) Log(Tbar^-1 T)^T`` over samples ``T`` o
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from ppoe_core import PPOEModel, lie, load_model_config, parse_urdf
 
-DATA = Path(__file__).parent / "data"
+from conftest import DATA
 EDGE = DATA / "ppoe_edge.urdf"
 PLANAR = DATA / "planar3.urdf"
 N_MC = 200_000

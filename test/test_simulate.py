@@ -20,9 +20,7 @@ from ppoe_core.errors import ScenarioError
 from ppoe_core.sim.simulate import TrueRobot, load_scenario, simulate
 from ppoe_core.robot.urdf import parse_urdf
 
-REPO = Path(__file__).resolve().parents[1]
-CONFIG = REPO / "config"
-BAGS = REPO / "bags"
+from conftest import BAGS, CONFIG
 
 ARM7_START = {"joint_1": 0.3, "joint_2": 0.6, "joint_3": 0.0, "joint_4": -1.2, "joint_5": 0.0, "joint_6": 0.9,
               "joint_7": 0.0, "finger_left_joint": 0.02}

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +11,7 @@ from ppoe_core import lie
 from ppoe_core.errors import UnknownFrameError, UnknownJointError, UrdfError
 from ppoe_core.robot.urdf import parse_urdf
 
-DATA = Path(__file__).parent / "data"
+from conftest import DATA
 EDGE = DATA / "ppoe_edge.urdf"
 
 
