@@ -48,6 +48,8 @@ setup(
             "colcon-core",
             "colcon-ros",
             "colcon-python-setup-py",
+            "ruff>=0.17,<0.18",   # lint, .ci/run (ruff.toml)
+            "mypy>=2.4,<2.5",     # types of ppoe_core, .ci/run (mypy.ini)
         ],
     },
     zip_safe=True,
