@@ -205,17 +205,17 @@ def _quat_from_matrix_single(R: Array) -> Array:
 
 def matrix_from_quat(q: ArrayLike) -> Array:
     """Rotation matrix of a quaternion ``(x, y, z, w)`` (normalised here): ``(..., 4) -> (..., 3, 3)``."""
-    q = _f(q)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    if q.shape == (4,):  # one quaternion (one message): Python floats, the same operations
-        x, y, z, w = q.tolist()
+    q_arr = _f(q)
+    q_arr = q_arr / np.linalg.norm(q_arr, axis=-1, keepdims=True)
+    if q_arr.shape == (4,):  # one quaternion (one message): Python floats, the same operations
+        x, y, z, w = q_arr.tolist()
         return np.array([
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
         ])
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    R = np.empty(q.shape[:-1] + (3, 3))
+    x, y, z, w = q_arr[..., 0], q_arr[..., 1], q_arr[..., 2], q_arr[..., 3]
+    R = np.empty(q_arr.shape[:-1] + (3, 3))
     R[..., 0, 0] = 1 - 2 * (y * y + z * z)
     R[..., 0, 1] = 2 * (x * y - z * w)
     R[..., 0, 2] = 2 * (x * z + y * w)
