@@ -363,7 +363,8 @@ def iterated_update(
     z = model.validate(z)
 
     Xi = X0
-    y0 = S0 = None
+    y0: Any = None  # innovation and its covariance at the prior (set by iteration 1)
+    S0: Any = None
     nis_value = float("nan")
     gate = float("inf")
     steps = []

@@ -193,16 +193,16 @@ def tag_points(size: float, T_link_tag: np.ndarray | None = None) -> np.ndarray:
 def _distortion(D: Sequence[float] | None, name: str) -> np.ndarray:
     if D is None:
         return np.zeros(5)
-    D = np.asarray(D, dtype=float).ravel()
-    if D.size > 5 and np.any(D[5:] != 0):
+    D_arr = np.asarray(D, dtype=float).ravel()
+    if D_arr.size > 5 and np.any(D_arr[5:] != 0):
         raise MeasurementError(
-            f"{name}: only the plumb_bob model (k1, k2, p1, p2, k3) is supported, got {D.size} "
+            f"{name}: only the plumb_bob model (k1, k2, p1, p2, k3) is supported, got {D_arr.size} "
             "non-zero-padded distortion coefficients"
         )
-    if not np.all(np.isfinite(D)):
+    if not np.all(np.isfinite(D_arr)):
         raise MeasurementError(f"{name}: distortion coefficients contain NaN/inf")
     out = np.zeros(5)
-    out[: min(5, D.size)] = D[:5]
+    out[: min(5, D_arr.size)] = D_arr[:5]
     return out
 
 
@@ -788,13 +788,15 @@ class StackedObservation(MeasurementModel):
 
     def jacobian_state(self, T_state: np.ndarray) -> np.ndarray | None:
         Hs = [p.jacobian_state(T_state) for p in self.parts]
-        return None if any(H is None for H in Hs) else np.vstack(Hs)
+        Hs_known = [H for H in Hs if H is not None]
+        return None if len(Hs_known) < len(Hs) else np.vstack(Hs_known)
 
     def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray | None:
         Ms = [p.jacobian_noise(T_state) for p in self.parts]
-        if any(M is None for M in Ms):
+        Ms_known = [M for M in Ms if M is not None]
+        if len(Ms_known) < len(Ms):
             return None
-        return _block_diag_rect(Ms)
+        return _block_diag_rect(Ms_known)
 
 
 def _block_diag_rect(blocks: Sequence[np.ndarray]) -> np.ndarray:

@@ -988,6 +988,7 @@ class ModelUpdater:
                 fx, fy = _focal_from_points(np.asarray(p.uv, float).reshape(-1, 2), xy, where)
             pts, keep, labels = [], [], []
             T_tool_link: dict[str, Array] = {}
+            obs: Any
             for i, (tid, c) in enumerate(zip(ids, corners)):
                 item = self.tags.get(int(tid))
                 if item is None:
@@ -1022,8 +1023,8 @@ class ModelUpdater:
             if self.contact is None:
                 raise MeasurementError(f"{where}: the model YAML has no 'contact' section (tool point)")
             T_base_frame = self.model.fk_mean(joints, self.base_frame, p.frame)
-            T_tool_link = self.model.fk_mean(joints, self.tool_frame, self.contact.tool_link)
-            point_tool = T_tool_link[:3, :3] @ self.contact.tool_xyz + T_tool_link[:3, 3]
+            T_tool_contact = self.model.fk_mean(joints, self.tool_frame, self.contact.tool_link)
+            point_tool = T_tool_contact[:3, :3] @ self.contact.tool_xyz + T_tool_contact[:3, 3]
             obs = mm.ContactPlane(
                 T_base_frame @ np.asarray(p.T_frame_plane, float), p.cov_plane, point_tool,
                 distance_sigma=self.contact_distance_sigma, name=where,

@@ -33,6 +33,7 @@ For replay (``ppoe play``) :func:`iter_raw` yields the raw CDR bytes.
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -234,7 +235,7 @@ class BagWriter:
     :meth:`open` / :meth:`close`.
     """
 
-    def __init__(self, path: str | Path, storage: str = "mcap", *, overwrite: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike[str], storage: str = "mcap", *, overwrite: bool = False) -> None:
         from rosbags.rosbag2 import StoragePlugin
 
         self.path = Path(path)
@@ -427,7 +428,7 @@ class BagWriter:
         msg = typestore().types[T_POSE](header=_header(stamp_to_ns(stamp), frame_id), pose=_pose_msg(T_frame_tool))
         self.write_message(topic, msg, stamp)
 
-    def write_ground_truth_point(self, stamp: float, frame_id: str, p_tracker: Sequence[float],
+    def write_ground_truth_point(self, stamp: float, frame_id: str, p_tracker: Sequence[float] | np.ndarray,
                                  topic: str = TOPIC_GT_POINT) -> None:
         """``/ground_truth/point`` (``PointStamped``): reflector position [m] in the tracker frame."""
         types = typestore().types
@@ -438,7 +439,7 @@ class BagWriter:
                              point=types["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2])))
         self.write_message(topic, msg, stamp)
 
-    def write_imu(self, name: str, stamp: float, frame_id: str, linear_acceleration: Sequence[float],
+    def write_imu(self, name: str, stamp: float, frame_id: str, linear_acceleration: Sequence[float] | np.ndarray,
                   angular_velocity: Sequence[float] = (0.0, 0.0, 0.0), accel_sigma: float | None = None) -> None:
         """``/imu/<name>`` (``sensor_msgs/Imu``): accelerometer [m/s^2] on URDF link ``frame_id``.
 

@@ -276,8 +276,8 @@ class KinematicTree:
         g = GRAVITY * np.asarray(gravity, dtype=float)
         T_root_a, T_root_c = self.joint_frames(poses, joint)
         T = T_root_a if about == "a" else T_root_c
-        F = 0.0
-        M = 0.0
+        F: Any = 0.0
+        M: Any = 0.0
         for ln in self.subtree_links(joint):
             inert = self.robot.links[ln].inertial
             if inert is None or inert.mass <= 0.0:
@@ -335,7 +335,7 @@ class Effect:
     def n_params(self) -> int:
         return len(self.param_names)
 
-    def with_params(self, params: Sequence[float]) -> Effect:
+    def with_params(self, params: Sequence[float] | np.ndarray) -> Effect:
         """A copy with other parameter values."""
         new = object.__new__(type(self))
         new.__dict__.update(self.__dict__)

@@ -255,6 +255,12 @@ def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects:
         pending = np.eye(4)
         has_pending = False
 
+    motion_joint: list[Any]
+    motion_master: list[Any]
+    motion_mult: list[Any]
+    motion_off: list[Any]
+    motion_sign: list[Any]
+    motion_kind: list[Any]
     motion_joint, motion_master, motion_mult, motion_off, motion_sign, motion_kind = [], [], [], [], [], []
     site_L: list = []
     site_label: list = []
@@ -540,7 +546,8 @@ def _eval_backward(
     B: Array | None = None  # None = identity
     G = np.empty((ch.L_all.shape[0], 6, N)) if want_cov else None
     J = np.empty((len(ch.motion_joint), 6, N)) if want_jac else None
-    c = s = None
+    c: Any = None
+    s: Any = None
     if theta.size:
         c, s = np.cos(theta), np.sin(theta)
 
@@ -575,6 +582,7 @@ def _eval_backward(
             else:
                 B[2, 3] += theta[arg]
         elif code == _D:
+            assert D is not None  # a _D step exists only when displacements were given
             Dk = D[arg]
             Bn = np.einsum("ijn,jkn->ikn", Dk[:3, :3], B)
             Bn[:, 3] += Dk[:3, 3]
@@ -833,16 +841,16 @@ class PPOEModel:
                 arr = np.asarray(joints, dtype=float)
             except (TypeError, ValueError):
                 raise JointValueError(f"joint values must be a mapping name -> value or a numeric array, got {type(joints).__name__}") from None
-            n = len(self.joint_names)
-            if arr.ndim == 0 or arr.shape[-1] != n:
+            n_joints = len(self.joint_names)
+            if arr.ndim == 0 or arr.shape[-1] != n_joints:
                 raise JointValueError(
-                    f"joint array must have shape (..., {n}) in model.joint_names order "
+                    f"joint array must have shape (..., {n_joints}) in model.joint_names order "
                     f"({', '.join(self.joint_names)}), got shape {arr.shape}"
                 )
             shape = arr.shape[:-1]
             N = int(np.prod(shape)) if shape else 1
             idx = [self._index[m] for m in names]
-            q = np.ascontiguousarray(arr.reshape(N, n)[:, idx].T)
+            q = np.ascontiguousarray(arr.reshape(N, n_joints)[:, idx].T)
         if not np.all(np.isfinite(q)):
             bad = [names[i] for i in range(len(names)) if not np.all(np.isfinite(q[i]))]
             raise JointValueError(f"NaN or infinite value for joint(s) {', '.join(repr(b) for b in bad)}")
@@ -1019,11 +1027,12 @@ class PPOEModel:
         for a in range(0, N, _CHUNK):
             b = min(N, a + _CHUNK)
             Dc = None if D is None else D[..., a:b]
-            B, G, _ = _eval_backward(ch, theta[:, a:b], Dc, m > 0, False)
+            B, G_chunk, _ = _eval_backward(ch, theta[:, a:b], Dc, m > 0, False)
             T[a:b, :3, :] = np.moveaxis(B, 2, 0)
             if m == 0:
                 continue
-            assert G is not None
+            assert G_chunk is not None
+            G = G_chunk
             if order == 2:
                 cc = np.empty((6, 6, b - a))
                 for i in range(6):

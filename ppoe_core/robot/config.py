@@ -702,7 +702,7 @@ def load_model_config(source: str | os.PathLike | Mapping | None, robot: Robot, 
     if not isinstance(data, Mapping):
         raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {_kind(data)}")
     _check_keys(ctx, data, tuple(_SECTIONS), "model")
-    kwargs = {name: fn(ctx, robot, data.get(name), data) for name, fn in _SECTIONS.items()}
+    kwargs: dict[str, Any] = {name: fn(ctx, robot, data.get(name), data) for name, fn in _SECTIONS.items()}
     return ModelConfig(source=where, effect_wheres=list(ctx.effect_wheres), **kwargs)
 
 

@@ -572,16 +572,16 @@ def parse_urdf(source: str | bytes | os.PathLike, *, text_source: str | None = N
             resolved[j.name] = j
             continue
         mult, off = 1.0, 0.0
-        cur = j
+        cur_j = j
         visited = [j.name]
-        while cur.mimic is not None:
-            m = cur.mimic
+        while cur_j.mimic is not None:
+            m = cur_j.mimic
             if m.joint not in joints:
-                raise UrdfError(f"{where}:{cur.line}: joint '{cur.name}' mimics unknown joint '{m.joint}'")
+                raise UrdfError(f"{where}:{cur_j.line}: joint '{cur_j.name}' mimics unknown joint '{m.joint}'")
             master = joints[m.joint]
             if not master.movable:
                 raise UrdfError(
-                    f"{where}:{cur.line}: joint '{cur.name}' mimics '{m.joint}', which is {master.type}"
+                    f"{where}:{cur_j.line}: joint '{cur_j.name}' mimics '{m.joint}', which is {master.type}"
                 )
             # q_cur = m.multiplier * q_master + m.offset; q_j = mult * q_cur + off
             off = mult * m.offset + off
@@ -589,8 +589,8 @@ def parse_urdf(source: str | bytes | os.PathLike, *, text_source: str | None = N
             if master.name in visited:
                 raise UrdfError(f"{where}:{j.line}: mimic cycle {' -> '.join(visited + [master.name])}")
             visited.append(master.name)
-            cur = master
-        resolved[j.name] = replace(j, mimic_root=(cur.name, mult, off))
+            cur_j = master
+        resolved[j.name] = replace(j, mimic_root=(cur_j.name, mult, off))
 
     return Robot(
         name=robot_name,

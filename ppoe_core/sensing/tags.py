@@ -307,7 +307,7 @@ def _rays(grid: np.ndarray, u0: int, v0: int, u1: int, v1: int, ss: int) -> np.n
 
 
 def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequence[float],
-                T_cam_tag_list: np.ndarray | Sequence[np.ndarray], ids: Sequence[int], size: float | Sequence[float],
+                T_cam_tag_list: np.ndarray | Sequence[np.ndarray], ids: Sequence[int], size: float | Sequence[float] | np.ndarray,
                 dictionary: str = "tag36h11", background: np.ndarray | int = 128, border_cells: float = 1.0,
                 black: int = 25, white: int = 235, supersample: int = 3, noise_sigma: float = 0.0,
                 rng: np.random.Generator | None = None, min_depth: float = 0.05,
@@ -413,7 +413,7 @@ def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequ
         canvas[v0:v1 + 1, u0:u1 + 1] = patch * (1.0 - cover) + col
         drawn.append(tag_id)
     if blur_sigma > 0:
-        canvas = cv2.GaussianBlur(canvas, (0, 0), float(blur_sigma))
+        canvas = np.asarray(cv2.GaussianBlur(canvas, (0, 0), float(blur_sigma)), dtype=np.float32)
     if noise_sigma > 0:
         if rng is None:
             raise MeasurementError("render_tags: noise_sigma > 0 needs an rng (np.random.default_rng(seed))")

@@ -561,7 +561,7 @@ class _Sim:
             raise ScenarioError(f"{_where(P, 'trajectory.extra_joints')}: {clash} are driven joints of the URDF")
         self.start = {j: 0.0 for j in self.joints}
         self.start.update(_joints_map(tr.get("start"), P, "trajectory.start", self.robot))
-        self.smooth = None
+        self.smooth: Any = None
         self.stops: list[_Stop] = []
         if tr.get("smooth") is not None:
             sm = _check_keys(tr["smooth"], ("duration", "centre", "amplitude", "period", "phase"), P, "trajectory.smooth")
@@ -589,7 +589,7 @@ class _Sim:
                 c = {"press_joint": pj, "force": _num(c, "force", 10.0, P, f"trajectory.stops[{i}].contact", minimum=0.0),
                      "approach": _num(c, "approach", 0.15, P, f"trajectory.stops[{i}].contact")}
             self.stops.append(_Stop(q, _num(s, "dwell", self.dwell, P, f"trajectory.stops[{i}]", minimum=0.0), c))
-        self.random_cfg = None
+        self.random_cfg: Any = None
         if tr.get("random_stops") is not None:
             rs = _check_keys(tr["random_stops"], ("count", "around", "spread", "min_visible_tags", "max_tries",
                                                   "min_link_z"), P, "trajectory.random_stops")
@@ -614,7 +614,7 @@ class _Sim:
 
     def _parse_sensors(self) -> None:
         P, raw, m = self.path, self.sc.raw, self.model
-        self.cam = None
+        self.cam: Any = None  # camera dict (frame, w, h, K, D, rate, ...) or None
         if raw.get("camera") is not None:
             c = _check_keys(raw["camera"], ("frame", "width", "height", "intrinsics", "D", "rate", "during", "format",
                                             "noise_sigma", "blur_sigma", "background", "time_offset"), P, "camera")
@@ -644,7 +644,7 @@ class _Sim:
                         "background": int(_num(c, "background", 128, P, "camera", minimum=0, maximum=255)),
                         "time_offset": _num(c, "time_offset", 0.0, P, "camera")}
         gt = _check_keys(raw.get("ground_truth"), ("pose", "point"), P, "ground_truth")
-        self.gt_pose = None
+        self.gt_pose: Any = None
         if gt.get("pose") is not None:
             g = _check_keys(gt["pose"], ("frame", "target", "sigma_xyz", "sigma_rot", "rate"), P, "ground_truth.pose")
             frame = g.get("frame") or (m.frames.base if m.frames else self.robot.root)
@@ -656,7 +656,7 @@ class _Sim:
                             "sx": _num(g, "sigma_xyz", 1e-4, P, "ground_truth.pose", minimum=0.0),
                             "sr": _num(g, "sigma_rot", 2e-4, P, "ground_truth.pose", minimum=0.0),
                             "rate": _num(g, "rate", 0.0, P, "ground_truth.pose", minimum=0.0)}
-        self.gt_point = None
+        self.gt_point: Any = None
         if gt.get("point") is not None:
             g = _check_keys(gt["point"], ("link", "xyz", "sigma", "frame", "T_tracker_base", "rate"), P,
                             "ground_truth.point")
@@ -671,14 +671,14 @@ class _Sim:
                              "T_tracker_base": _pose_cfg(g.get("T_tracker_base"), P, "ground_truth.point.T_tracker_base"),
                              "T_cfg": g.get("T_tracker_base") or {},
                              "rate": _num(g, "rate", 0.0, P, "ground_truth.point", minimum=0.0)}
-        self.imu = None
+        self.imu: Any = None
         if raw.get("imus") is not None:
             g = _check_keys(raw["imus"], ("rate", "sigma"), P, "imus")
             if not m.imus:
                 raise ScenarioError(f"{_where(P, 'imus')}: the model {m.source} declares no imus")
             self.imu = {"rate": _num(g, "rate", 0.0, P, "imus", minimum=0.0),
                         "sigma": _num(g, "sigma", None, P, "imus", minimum=0.0)}
-        self.contact = None
+        self.contact: Any = None
         if raw.get("contact") is not None:
             c = _check_keys(raw["contact"], ("plane", "tool_point", "stiffness", "force_sigma", "frame", "rate"), P,
                             "contact")
@@ -742,6 +742,7 @@ class _Sim:
     def _tag_poses_cam(self, poses: Mapping[str, np.ndarray]) -> tuple[np.ndarray, list[int], np.ndarray]:
         T_root_cam = poses[self.cam["frame"]]
         T_cam_root = lie.inverse(T_root_cam)
+        assert self.model.tags is not None  # a camera is simulated only with tags declared
         items = self.model.tags.items
         Ts = np.stack([T_cam_root @ poses[it.link] @ it.T_link_tag for it in items], axis=1)  # (n, k, 4, 4)
         return Ts, [it.id for it in items], np.array([it.size for it in items])
@@ -971,6 +972,7 @@ class _Sim:
             Q, S, G = self.state_at(ts)
             poses = self.truth_poses(Q, S, G, ts)
             Ts, ids, sizes = self._tag_poses_cam(poses)
+            assert self.model.tags is not None
             for i, t in enumerate(ts):
                 img, drawn = render_tags((self.cam["w"], self.cam["h"]), self.cam["K"], self.cam["D"], Ts[i], ids, sizes,
                                          dictionary=self.model.tags.family, background=self.cam["background"],

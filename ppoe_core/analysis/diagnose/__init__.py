@@ -411,6 +411,7 @@ class LinearProblem:
         self.W_rot = (np.broadcast_to(np.eye(3) / stops.sigma_rot, (len(stops), 3, 3)) if W_rot is None
                       else W_rot)
         if stops.kind == "pose":
+            assert stops.R_meas is not None and R0 is not None  # pose stops carry measured rotations
             self.r0_rot = lie.so3_log(np.swapaxes(R0, -1, -2) @ stops.R_meas)
 
     # -- residuals ---------------------------------------------------------------
@@ -921,11 +922,12 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         Gk = np.concatenate([_measurement_jacobian(tree, stops, c.effect, nominal, chain, base_R)
                              for c in chosen], axis=-1)
         pk_problem = LinearProblem(stops, xk, Rk, W_base, W_rot)
-        step = pk_problem.fit(Gk, all_rows, iterations=6)
-        theta = theta + step.theta
-        ins_after = _rms3(pk_problem.residuals(Gk, step.theta, step.regs, step.rows))
-        fit = FitResult(theta.copy(), step.regs, step.cov, step.s2, step.condition, step.absorbed, step.rows)
-        if np.all(np.abs(step.theta) <= 1e-8 * np.abs(theta) + 1e-15):
+        gn_step = pk_problem.fit(Gk, all_rows, iterations=6)
+        theta = theta + gn_step.theta
+        ins_after = _rms3(pk_problem.residuals(Gk, gn_step.theta, gn_step.regs, gn_step.rows))
+        fit = FitResult(theta.copy(), gn_step.regs, gn_step.cov, gn_step.s2, gn_step.condition, gn_step.absorbed,
+                        gn_step.rows)
+        if np.all(np.abs(gn_step.theta) <= 1e-8 * np.abs(theta) + 1e-15):
             break
     if chosen:  # accuracy of the linear model used during selection, at the final estimate
         x_nl = _predict_nominal(tree, stops, list(declared) + _with_thetas(chosen, theta))[0]
@@ -2422,11 +2424,11 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     depth = [len(robot.path_from_root(ln)) for ln, _ in stops.imus.values()]
     ref = int(np.argmin(depth))
     mount_imus = [k for k in range(K) if k != ref]
-    Gm = np.zeros((n, K, 2, 2 * len(mount_imus)))
+    Gm_axes = np.zeros((n, K, 2, 2 * len(mount_imus)))
     for c, k in enumerate(mount_imus):
-        Gm[:, k, 0, 2 * c] = 1.0
-        Gm[:, k, 1, 2 * c + 1] = 1.0
-    Gm = wh(Gm).reshape(n, 2 * K, -1)
+        Gm_axes[:, k, 0, 2 * c] = 1.0
+        Gm_axes[:, k, 1, 2 * c + 1] = 1.0
+    Gm = wh(Gm_axes).reshape(n, 2 * K, -1)
     nm = Gm.shape[2]
 
     def stacked(idx: Sequence[int]) -> np.ndarray:
@@ -2487,7 +2489,7 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
 
     # final Gauss-Newton on the nonlinear chain
     tilt = zero_tilt.copy()
-    fitted = {i: effs[i].with_params(np.zeros(effs[i].n_params)) for i in chosen if effs[i] is not None}
+    fitted = {i: e.with_params(np.zeros(e.n_params)) for i in chosen if (e := effs[i]) is not None}
     sizes = [Gs[i].shape[2] for i in chosen]
     theta = np.zeros(nm + sum(sizes))
     G = np.zeros((n * 2 * K, 0))
