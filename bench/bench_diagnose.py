@@ -35,8 +35,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from ppoe_core import lie  # noqa: E402
-from ppoe_core.analysis.diagnose import (DiagnoseOptions, Stops, diagnose, protocol_scores,  # noqa: E402
-                                stops_from_hilti)
+from ppoe_core.analysis.diagnose import DiagnoseOptions, Stops, diagnose, protocol_scores  # noqa: E402
+from ppoe_core.cli.datasets import stops_from_hilti  # noqa: E402
 from ppoe_core.robot.urdf import parse_urdf  # noqa: E402
 
 FILES = ["flat", "pallet", "orthogonal_wood", "wood_left_track", "diagonal_wood"]
@@ -132,7 +132,8 @@ def ten_minute_bag() -> None:
 
 
 def motoman() -> None:
-    from ppoe_core.analysis.diagnose import diagnose_pixels, pixel_candidates, pixel_rms, pixel_stats, pixels_from_motoman
+    from ppoe_core.analysis.diagnose import diagnose_pixels, pixel_candidates, pixel_rms, pixel_stats
+    from ppoe_core.cli.datasets import pixels_from_motoman
     from ppoe_core.model.effects import KinematicTree, make_effect
     from ppoe_ros.cli import main
 

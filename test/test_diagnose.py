@@ -10,8 +10,9 @@ import pytest
 import yaml
 
 from ppoe_core import lie
-from ppoe_core.analysis.diagnose import (DiagnoseOptions, Stops, diagnose, kabsch, load_model, motion_signs,
-                                stops_from_hilti, write_model_yaml, write_report)
+from ppoe_core.analysis.diagnose import (DiagnoseOptions, Stops, diagnose, load_model, motion_signs,
+                                         write_model_yaml, write_report)
+from ppoe_core.cli.datasets import stops_from_hilti
 from ppoe_core.model.effects import KinematicTree, apply_corrections, make_effect
 from ppoe_core.robot.urdf import parse_urdf
 
@@ -87,7 +88,7 @@ def test_confidence_intervals_cover_monte_carlo(robot):
     """Seeded Monte-Carlo of the Gauss-Newton covariance s^2 H_red^-1 (with the registration
     eliminated): the 95 % intervals of a fixed effect cover the truth about 95 % of the time and
     the spread of the estimates matches the reported sigma."""
-    from ppoe_core.analysis.diagnose import LinearProblem, _measurement_jacobian, _predict_nominal
+    from ppoe_core.analysis.diagnose import LinearProblem, measurement_jacobian, predict_nominal
 
     tree = KinematicTree(robot)
     truth = np.array([3e-5, 2e-5])
@@ -95,9 +96,9 @@ def test_confidence_intervals_cover_monte_carlo(robot):
     for seed in range(60):
         eff = make_effect("mount_bending", "mount_joint", robot, truth)
         stops = _synthetic(robot, [eff], n=60, seed=100 + seed)
-        x0, R0, poses, dq, dxi = _predict_nominal(tree, stops, [])
+        x0, R0, poses, dq, dxi = predict_nominal(tree, stops, [])
         chain = (*tree.point_jacobian(stops.q, "tool0", POINT, poses), *tree.frame_jacobian(stops.q, "tool0", poses))
-        G = _measurement_jacobian(tree, stops, eff, poses, chain, None)
+        G = measurement_jacobian(tree, stops, eff, poses, chain, None)
         fit = LinearProblem(stops, x0, R0).fit(G, np.arange(len(stops)), iterations=6)
         est.append(fit.theta)
         sds.append(np.sqrt(np.diag(fit.cov)))
@@ -154,7 +155,7 @@ def test_kabsch_recovers_transform():
     rng = np.random.default_rng(7)
     P = rng.normal(size=(10, 3))
     T = lie.from_xyz_rpy([1, 2, 3], [0.1, -0.2, 0.3])
-    np.testing.assert_allclose(kabsch(P, P @ T[:3, :3].T + T[:3, 3]), T, atol=1e-12)
+    np.testing.assert_allclose(lie.fit_rigid(P, P @ T[:3, :3].T + T[:3, 3]), T, atol=1e-12)
 
 
 def test_updated_model_yaml_loads_and_reports_are_written(robot, tmp_path):
@@ -254,7 +255,7 @@ def test_motoman_tracker_heldout_rms_goes_down():
     d = DATASETS / "motoman_leica"
     if not (d / "leica_right_hand_6x6x6_dataset.mat").exists():
         pytest.fail(f"Motoman dataset not found in {d} (set PPOE_DATASETS)")
-    from ppoe_core.analysis.diagnose import stops_from_motoman
+    from ppoe_core.cli.datasets import stops_from_motoman
 
     robot = parse_urdf(d / "motoman_right.urdf")
     stops = stops_from_motoman(d / "leica_right_hand_6x6x6_dataset.mat", robot)
@@ -415,7 +416,8 @@ def test_motoman_pixel_heldout_rms_goes_down():
     d = DATASETS / "motoman_leica"
     if not (d / "leica_right_hand_6x6x6_dataset.mat").exists():
         pytest.fail(f"Motoman dataset not found in {d} (set PPOE_DATASETS)")
-    from ppoe_core.analysis.diagnose import diagnose_pixels, pixels_from_motoman
+    from ppoe_core.analysis.diagnose import diagnose_pixels
+    from ppoe_core.cli.datasets import pixels_from_motoman
 
     robot = parse_urdf(d / "motoman_right.urdf")
     obs = pixels_from_motoman(d / "leica_right_hand_6x6x6_dataset.mat", robot, d / "model.yaml")
@@ -624,11 +626,11 @@ def test_imu_without_tilt_finds_nothing(robot):
 def test_imu_base_tilt_jacobian_matches_small_angle_formula(robot):
     """The finite-difference Jacobian of the predicted tilt w.r.t. the base tilt against the
     analytic small-angle derivative: u = R^T Exp(-w) z, du/dw_x = R^T e_y, du/dw_y = -R^T e_x."""
-    from ppoe_core.analysis.diagnose import _imu_jacobian
+    from ppoe_core.analysis.diagnose import imu_jacobian
 
     stops = _tilted(robot, [None], n=10)
     tree = KinematicTree(robot)
-    J = _imu_jacobian(tree, stops, None, [], np.zeros((1, 2)))[:, 0]  # (N, 2 comps, 2 params)
+    J = imu_jacobian(tree, stops, None, [], np.zeros((1, 2)))[:, 0]  # (N, 2 comps, 2 params)
     R = tree.link_poses(stops.q)["arm_link_4"][:, :3, :3]
     du_dwx, du_dwy = R[:, 1, :], -R[:, 0, :]  # R^T e_y, -R^T e_x
     # tilt components of the prediction: [u_y, -u_x]
@@ -639,7 +641,7 @@ def test_imu_base_tilt_jacobian_matches_small_angle_formula(robot):
 def test_imu_tilt_covariance_matches_monte_carlo(robot):
     """Seeded Monte Carlo: tilt residuals of an accelerometer on arm_link_4 under a declared
     perturbation of joint_2 and joint noise, against imu_tilt_covariance (first order)."""
-    from ppoe_core.analysis.diagnose import _imu_tilt_raw, imu_tilt_covariance
+    from ppoe_core.analysis.diagnose import imu_tilt_raw, imu_tilt_covariance
 
     tree = KinematicTree(robot)
     stops = _tilted(robot, [None], n=3, seed=40)
@@ -656,7 +658,7 @@ def test_imu_tilt_covariance_matches_monte_carlo(robot):
     dq = {"joint_3": rng.normal(0.0, jn["joint_3"], n)}
     R = tree.link_poses(big.q, dq, dxi)["arm_link_4"][:, :3, :3]
     big.imus = {"forearm": ("arm_link_4", R[:, 2, :] * np.tile(g, (M, 1)))}  # exact accelerometer
-    samples = _imu_tilt_raw(tree, big, [], None)[:, 0].reshape(M, len(stops), 2)
+    samples = imu_tilt_raw(tree, big, [], None)[:, 0].reshape(M, len(stops), 2)
     # measured minus nominal prediction: its covariance is the predicted one (3 stops, 2x2 each)
     emp = np.einsum("mni,mnj->nij", samples, samples) / M
     assert np.allclose(emp, C, rtol=0.1, atol=0.05 * np.abs(C).max())

@@ -1,0 +1,123 @@
+"""Candidate effects (catalogue x plausible locations) and their linearised measurement Jacobians."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ppoe_core import lie
+from ppoe_core.analysis.diagnose.stops import Stops
+from ppoe_core.model.effects import Effect, KinematicTree, apply_corrections, make_effect
+
+# =============================================================================
+# Candidates and the linearised problem
+# =============================================================================
+
+
+@dataclass
+class Candidate:
+    """A candidate effect with its linearised measurement Jacobian.
+
+    ``G``: (N, dim, P) derivative of the predicted measurement (position in the base frame,
+    then for poses the right-tangent rotation of the tool) w.r.t. the effect parameters.
+    """
+
+    effect: Effect
+    G: np.ndarray
+
+    @property
+    def key(self) -> str:
+        comps = "" if self.effect.name != "link_error" else "[" + ",".join(self.effect.param_names) + "]"
+        return f"{self.effect.name}@{self.effect.location}{comps}"
+
+
+def _carried_mass(tree: KinematicTree, joint: str) -> float:
+    m = 0.0
+    for ln in tree.subtree_links(joint):
+        inert = tree.robot.links[ln].inertial
+        if inert is not None:
+            m += inert.mass
+    return m
+
+
+def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
+    """Catalogue effects at every plausible location of the measured chain (zero parameters).
+
+    * ``joint_offset``: every movable joint on the path to the measured link;
+    * ``gravity_compliance``: movable joints carrying mass (URDF inertials);
+    * ``mount_bending``: fixed and prismatic joints carrying mass (a telescopic segment bends
+      at its overlap);
+    * ``link_error`` (6 components; unidentifiable ones are pruned during selection): every
+      joint on the path;
+    * ``backlash``: independent movable joints whose last-motion sign changes (context);
+    * ``thermal_growth`` over time: joints with an origin offset above 5 cm, if the data span
+      more than 10 minutes;
+    * ``time_offset``: if the joints move at the measurement times (context ``joint_velocity``).
+
+    ``base_tilt`` is fitted by the accelerometer stage (:func:`diagnose_imu`) and
+    ``camera_extrinsics`` by the pixel stage (:func:`diagnose_pixels`); ``tracker_registration``
+    is always estimated per session.
+    """
+    robot = tree.robot
+    path = robot.path_from_root(stops.link)
+    if stops.kind == "pose" and stops.base and stops.base != robot.root:
+        base_path = set(robot.path_from_root(stops.base))
+        path = [j for j in path if j not in base_path]
+    out: list[Effect] = []
+    signs = stops.context.get("motion_sign", {})
+    t = stops.context.get("time")
+    vel = stops.context.get("joint_velocity", {})
+    for jn in path:
+        j = robot.joints[jn]
+        if j.movable:
+            out.append(make_effect("joint_offset", jn, tree))
+        out.append(make_effect("link_error", jn, tree))
+        mass = _carried_mass(tree, jn)
+        if j.movable and mass > 0.0:
+            out.append(make_effect("gravity_compliance", jn, tree))
+        if (not j.movable or j.type == "prismatic") and mass > 0.0:
+            out.append(make_effect("mount_bending", jn, tree))
+        if j.independent and jn in signs and np.ptp(signs[jn]) > 0:
+            out.append(make_effect("backlash", jn, tree))
+        if t is not None and np.ptp(t) > 600.0 and np.linalg.norm(j.origin[:3, 3]) > 0.05:
+            out.append(make_effect("thermal_growth", jn, tree, variable="time",
+                                   reference=float(np.min(t))))
+    if vel and max(float(np.max(np.abs(v))) for v in vel.values()) > 1e-6:
+        out.append(make_effect("time_offset", "/joint_states", tree))
+    return out
+
+
+def predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect]
+                     ) -> tuple[np.ndarray, np.ndarray | None, dict, dict, dict]:
+    """Nominal prediction with the declared effects; returns x0 (N,3), R0, poses, dq, dxi."""
+    dq, dxi = apply_corrections(declared, stops.q, stops.context)
+    poses = tree.link_poses(stops.q, dq, dxi)
+    T = poses[stops.link]
+    if stops.kind == "pose" and stops.base and stops.base != tree.root:
+        T = lie.inverse(poses[stops.base]) @ T
+    x0 = (T @ np.append(stops.point, 1.0))[..., :3]
+    return x0, (T[..., :3, :3] if stops.kind == "pose" else None), poses, dq, dxi
+
+
+def measurement_jacobian(tree: KinematicTree, stops: Stops, eff: Effect, nominal: Mapping,
+                          chain: tuple, base_R: np.ndarray | None) -> np.ndarray:
+    """(N, dim, P): derivative of the predicted measurement w.r.t. the effect parameters."""
+    Jq, Jx, Fq, Fx = chain
+    Bq, Bx = eff.basis(stops.q, stops.context, nominal)
+    n = len(stops)
+    G = np.zeros((n, stops.dim, eff.n_params))
+    for k, b in Bq.items():
+        if k in Jq:
+            G[:, :3] += Jq[k][:, :, None] * b[:, None, :]
+            if stops.dim == 6:
+                G[:, 3:] += Fq[k][:, 3:, None] * b[:, None, :]
+    for k, b in Bx.items():
+        if k in Jx:
+            G[:, :3] += Jx[k] @ b
+            if stops.dim == 6:
+                G[:, 3:] += Fx[k][:, 3:] @ b
+    if base_R is not None:  # position derivative into the pose's base frame
+        G[:, :3] = np.einsum("nji,njp->nip", base_R, G[:, :3])
+    return G

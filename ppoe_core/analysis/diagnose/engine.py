@@ -1,0 +1,353 @@
+"""The diagnose engine: forward selection of effects on tracker points or poses, final fit, CIs, sigma refit."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from ppoe_core.analysis.diagnose.candidates import Candidate, measurement_jacobian, predict_nominal, candidate_effects
+from ppoe_core.analysis.diagnose.imu import _imu_cost, diagnose_imu, imu_tilt_residuals
+from ppoe_core.analysis.diagnose.linear import FitResult, LinearProblem, _identifiable_subset, _ssr, _stack, make_folds
+from ppoe_core.analysis.diagnose.results import DiagnoseOptions, DiagnoseResult
+from ppoe_core.analysis.diagnose.stats import (
+    _paired_t,
+    _point_covariance,
+    _rms3,
+    _rms_m,
+    _rotation_covariance,
+    _signed_rank_z,
+)
+from ppoe_core.analysis.diagnose.stops import Stops
+from ppoe_core.errors import MeasurementError, PpoeError
+from ppoe_core.model.effects import Effect, KinematicTree
+from ppoe_core.robot.urdf import Robot
+
+
+def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
+             perturbation_cov: Mapping[str, np.ndarray] | None = None,
+             joint_noise: Mapping[str, float] | None = None,
+             options: DiagnoseOptions | None = None) -> DiagnoseResult:
+    """Find the catalogue effects that explain the residual of ``stops`` (module docstring).
+
+    Parameters
+    ----------
+    robot : Robot
+    stops : Stops
+    declared : effects the model already declares (part of the nominal prediction)
+    perturbation_cov : joint -> 6x6 covariance of the model's perturbation xi_j, in the tangent
+        space right after the joint's origin (CONTRACT sec. 5)
+    joint_noise : joint -> 1-sigma along the joint axis [rad or m]
+    options : DiagnoseOptions
+
+    Returns
+    -------
+    DiagnoseResult
+    """
+    options = options or DiagnoseOptions()
+    tree = KinematicTree(robot)
+    n = len(stops)
+    if n < 6:
+        raise PpoeError(f"diagnose: only {n} stops with measurements; need at least 6")
+    bad = ~np.all(np.isfinite(stops.p_meas), axis=1)
+    for jn, v in stops.q.items():
+        if jn in robot.path_from_root(stops.link):
+            bad |= ~np.isfinite(v)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise MeasurementError(f"diagnose: {int(bad.sum())} stops have non-finite measurements or joint "
+                               f"values (first: stop {i} of {stops.group_names[stops.group[i]]}, session "
+                               f"{stops.session_names[stops.session[i]]})")
+    x0, R0, poses, dq0, dxi0 = predict_nominal(tree, stops, declared)
+    base_R = None
+    Jq, Jx = tree.point_jacobian(stops.q, stops.link, stops.point, poses, dq0, dxi0)
+    Fq, Fx = tree.frame_jacobian(stops.q, stops.link, poses, dq0, dxi0)
+    if stops.kind == "pose" and stops.base and stops.base != tree.root:
+        base_R = poses[stops.base][..., :3, :3]
+    nominal = tree.link_poses(stops.q)
+    C_exp = _point_covariance(tree, stops, poses, dq0, dxi0, perturbation_cov or {}, joint_noise or {})
+    C_exp = C_exp + stops.sigma ** 2 * np.eye(3)
+    W_base = np.linalg.inv(np.linalg.cholesky(C_exp))
+    W_rot = None
+    if stops.kind == "pose":
+        C_rot = _rotation_covariance(stops, Fq, Fx, perturbation_cov or {}, joint_noise or {})
+        W_rot = np.linalg.inv(np.linalg.cholesky(C_rot + stops.sigma_rot ** 2 * np.eye(3)))
+    problem = LinearProblem(stops, x0, R0, W_base, W_rot)
+    cands = []
+    for eff in candidate_effects(tree, stops):
+        c = Candidate(eff, measurement_jacobian(tree, stops, eff, nominal, (Jq, Jx, Fq, Fx), base_R))
+        if options.candidates and not any(c.key.startswith(p) for p in options.candidates):
+            continue
+        if np.abs(c.G).max() > 0.0:
+            cands.append(c)
+    mode, folds = make_folds(stops, options)
+    all_rows = np.arange(n)
+
+    chosen: list[Candidate] = []
+    R_before, Rb_before, e2 = problem.heldout(_stack(chosen, n, stops.dim), folds)
+    R_after, Rb_after = R_before, Rb_before
+    steps: list[dict[str, Any]] = []
+    rejected: dict[str, str] = {}
+    while len(chosen) < options.max_effects:
+        best = None
+        screened = []
+        G_now = _stack(chosen, n, stops.dim)
+        ssr_now = _ssr(problem, G_now, all_rows)
+        for c in cands:
+            if c.key in rejected or any(c.key == k.key for k in chosen):
+                continue
+            if any(ch.effect.name == c.effect.name and ch.effect.location == c.effect.location for ch in chosen):
+                continue
+            c2, why, ssr = _identifiable_subset(problem, chosen, c, options, tree, all_rows)
+            if c2 is None:
+                rejected[c.key] = why
+                continue
+            screened.append((1.0 - ssr / ssr_now, c, c2))
+        screened.sort(key=lambda z: -z[0])
+        for _, c, c2 in screened[:options.screen]:
+            Rc, Rbc, e2c = problem.heldout(_stack(chosen + [c2], n, stops.dim), folds)
+            ok = np.isfinite(e2) & np.isfinite(e2c)
+            if ok.sum() < 3:
+                continue
+            mse0, mse1 = float(np.mean(e2[ok])), float(np.mean(e2c[ok]))
+            d = e2[ok] - e2c[ok]
+            t = _paired_t(d)
+            z = _signed_rank_z(d)
+            gain = 1.0 - mse1 / mse0
+            if best is None or mse1 < best[1]:
+                best = (c2, mse1, gain, (t, z), e2c, c.key, Rc, Rbc)
+    # (mse: mean whitened squared held-out error; reported RMS values are in metres)
+        if best is None:
+            break
+        c2, mse1, gain, (t, z), e2c, key, Rc, Rbc = best
+        step = {"candidate": c2.key, "accepted": bool(gain >= options.min_gain and t >= options.min_t),
+                "heldout_rms": _rms_m(Rc), "heldout_mahalanobis2": mse1, "gain": gain, "t": t, "z": z}
+        steps.append(step)
+        if not step["accepted"]:
+            break
+        chosen.append(c2)
+        e2 = e2c
+        R_after, Rb_after = Rc, Rbc
+
+    # locations the tracker cannot tell apart: let the accelerometers decide (not fitted to them)
+    relocated = _relocate_by_imu(tree, problem, stops, declared, chosen, cands, all_rows) if stops.imus else []
+
+    # final fit on all stops, relinearised at the estimate (Gauss-Newton on the full chain)
+    G = _stack(chosen, n, stops.dim)
+    fit = problem.fit(G, all_rows, iterations=6)
+    fit0 = problem.fit(G[..., :0], all_rows)
+    ins_before = _rms3(problem.residuals(G[..., :0], np.zeros(0), fit0.regs, fit0.rows))
+    ins_after = _rms3(problem.residuals(G, fit.theta, fit.regs, fit.rows))
+    theta = fit.theta.copy()
+    lin_err = 0.0
+    for _ in range(3 if chosen else 0):
+        current = _with_thetas(chosen, theta)
+        xk, Rk, pk, dqk, dxik = predict_nominal(tree, stops, list(declared) + current)
+        chain = (*tree.point_jacobian(stops.q, stops.link, stops.point, pk, dqk, dxik),
+                 *tree.frame_jacobian(stops.q, stops.link, pk, dqk, dxik))
+        Gk = np.concatenate([measurement_jacobian(tree, stops, c.effect, nominal, chain, base_R)
+                             for c in chosen], axis=-1)
+        pk_problem = LinearProblem(stops, xk, Rk, W_base, W_rot)
+        gn_step = pk_problem.fit(Gk, all_rows, iterations=6)
+        theta = theta + gn_step.theta
+        ins_after = _rms3(pk_problem.residuals(Gk, gn_step.theta, gn_step.regs, gn_step.rows))
+        fit = FitResult(theta.copy(), gn_step.regs, gn_step.cov, gn_step.s2, gn_step.condition, gn_step.absorbed,
+                        gn_step.rows)
+        if np.all(np.abs(gn_step.theta) <= 1e-8 * np.abs(theta) + 1e-15):
+            break
+    if chosen:  # accuracy of the linear model used during selection, at the final estimate
+        x_nl = predict_nominal(tree, stops, list(declared) + _with_thetas(chosen, theta))[0]
+        lin_err = float(np.max(np.linalg.norm(x_nl - (x0 + G[:, :3] @ theta), axis=1)))
+    effects_out: list[dict[str, Any]] = []
+    found: list[Effect] = []
+    i = 0
+    mse_before = _rms_m(R_before) ** 2
+    for k, c in enumerate(chosen):
+        P = c.effect.n_params
+        th = fit.theta[i:i + P]
+        sd = np.sqrt(np.maximum(np.diag(fit.cov)[i:i + P], 0.0))
+        i += P
+        eff = c.effect.with_params(th)
+        found.append(eff)
+        entry = eff.to_config()
+        entry["ci"] = {name: [float(v - 1.96 * s), float(v + 1.96 * s)]
+                       for name, v, s in zip(eff.param_names, th, sd)}
+        entry["sigma"] = {name: float(s) for name, s in zip(eff.param_names, sd)}
+        prev = mse_before if k == 0 else steps[k - 1]["heldout_rms"] ** 2
+        entry["share"] = float((prev - steps[k]["heldout_rms"] ** 2) / mse_before)
+        effects_out.append(entry)
+
+    # sigma refit (NEES on held-out stops)
+    ok = np.isfinite(e2)
+    nees_before, nees_after, k_scale, fitted_jn = _refit_sigma(
+        tree, stops, poses, dq0, dxi0, perturbation_cov or {}, joint_noise or {}, Rb_after)
+    floor = math.sqrt(float(np.mean(np.trace(C_exp, axis1=-2, axis2=-1))))
+    rms_b = _rms_m(R_before)
+    rms_a = _rms_m(R_after)
+    unexplained = math.sqrt(max(rms_a ** 2 - floor ** 2, 0.0))
+    res = DiagnoseResult(
+        effects=effects_out, residual_before=rms_b, residual_after=rms_a,
+        residual_before_insample=ins_before, residual_after_insample=ins_after,
+        noise_floor=floor, unexplained=unexplained, steps=steps,
+        rejected=[{"candidate": k, "reason": v} for k, v in rejected.items()],
+        nees_before=nees_before, nees_after=nees_after, sigma_scale=k_scale,
+        linearisation_error=lin_err, cv=mode, n_stops=int(ok.sum()), n_sessions=len(np.unique(stops.session)),
+        e2_before=np.sum(R_before ** 2, axis=1), e2_after=np.sum(R_after ** 2, axis=1), chosen=found)
+    res.extra["per_group"] = {stops.group_names[g]: {"before": _scores(R_before[stops.group == g]),
+                                                     "after": _scores(R_after[stops.group == g])}
+                              for g in np.unique(stops.group)}
+    if fitted_jn:
+        res.extra["fitted_joint_noise"] = fitted_jn
+    if relocated:
+        res.extra["relocated_by_imu"] = relocated
+    if stops.imus:  # accelerometer tilt residuals, before / after (in-sample, not used by the fit)
+        before = imu_tilt_residuals(tree, stops, list(declared))
+        after = imu_tilt_residuals(tree, stops, list(declared) + found)
+        res.extra["imu_tilt"] = {k: {"link": before[k]["link"], "n": before[k]["n"],
+                                     "rms_before": before[k]["rms"], "rms_after": after[k]["rms"]}
+                                 for k in before}
+        # accelerometer stage: per-file base tilt and IMU-visible effects on top of declared + found
+        imu_fit = diagnose_imu(robot, stops, list(declared) + found, seed=options.seed,
+                               sigma=options.imu_sigma if options.imu_sigma else 4e-4,
+                               perturbation_cov=perturbation_cov, joint_noise=joint_noise)
+        res.extra["imu_fit"] = {k: v for k, v in imu_fit.items() if k not in ("found", "tilt")}
+    # a systematic residual remains if the held-out mean squared Mahalanobis distance under the
+    # declared covariance exceeds its expectation 3 by more than 3 standard errors (chi^2_3 mean)
+    m2 = float(np.nanmean(e2))
+    n_ok = int(np.isfinite(e2).sum())
+    res.extra["heldout_mahalanobis2"] = m2
+    res.extra["unexplained_significant"] = bool(m2 > 3.0 + 3.0 * math.sqrt(6.0 / max(n_ok, 1)))
+    res.summary = _summary(res)
+    return res
+
+
+def _relocate_by_imu(tree: KinematicTree, problem: LinearProblem, stops: Stops, declared: Sequence[Effect],
+                     chosen: list[Candidate], cands: Sequence[Candidate], rows: np.ndarray) -> list[dict]:
+    """Swap a chosen effect for the same effect at another location when the tracker data fit
+    both equally well (in-sample weighted SSR within 0.5 %) and the accelerometer tilt residuals
+    prefer the other location; ``chosen`` is modified in place.  Returns the swaps made."""
+    swaps: list[dict] = []
+    for k, c in enumerate(list(chosen)):
+        others = [x for i, x in enumerate(chosen) if i != k]
+
+        def fitted(cand: Candidate) -> tuple[float, list[Effect]]:
+            G = _stack(others + [cand], len(stops), stops.dim)
+            fit = problem.fit(G, rows, iterations=2)
+            ssr = float(np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows),
+                                                   fit.regs, fit.rows) ** 2))
+            return ssr, _with_thetas(others + [cand], fit.theta)
+
+        ssr0, effs0 = fitted(c)
+        best = (_imu_cost(tree, stops, list(declared) + effs0), c)
+        for alt in cands:
+            if alt.effect.name != c.effect.name or alt.effect.location == c.effect.location \
+                    or alt.G.shape[-1] != c.G.shape[-1] or any(alt.effect.location == o.effect.location
+                                                               and alt.effect.name == o.effect.name for o in others):
+                continue
+            ssr1, effs1 = fitted(alt)
+            if ssr1 > 1.005 * ssr0:
+                continue
+            th = effs1[-1].params
+            if any(v < 0 for name, v in zip(alt.effect.param_names, th) if name in alt.effect.nonnegative):
+                continue
+            cost = _imu_cost(tree, stops, list(declared) + effs1)
+            if cost < 0.8 * best[0]:
+                best = (cost, alt)
+        if best[1] is not c:
+            swaps.append({"from": c.key, "to": best[1].key, "imu_cost_from": _imu_cost(tree, stops, list(declared) + effs0),
+                          "imu_cost_to": best[0]})
+            chosen[k] = best[1]
+    return swaps
+
+
+def _with_thetas(chosen: Sequence[Candidate], theta: np.ndarray) -> list[Effect]:
+    """The chosen effects with their slices of the stacked parameter vector."""
+    out, i = [], 0
+    for c in chosen:
+        out.append(c.effect.with_params(theta[i:i + c.effect.n_params]))
+        i += c.effect.n_params
+    return out
+
+
+def _summary(res: DiagnoseResult) -> str:
+    if res.effects:
+        names = ", ".join(f"{e['name']} at {e['location']}" for e in res.effects)
+        head = f"found {len(res.effects)} effect(s): {names}"
+    else:
+        head = "no catalogue effect explains the residual significantly"
+    tail = (f"held-out RMS {1e3 * res.residual_before:.3f} mm -> {1e3 * res.residual_after:.3f} mm "
+            f"(noise floor {1e3 * res.noise_floor:.3f} mm)")
+    if res.extra.get("unexplained_significant"):
+        tail += (f"; UNEXPLAINED: {1e3 * res.unexplained:.3f} mm RMS above the noise floor is not "
+                 f"explained by any catalogue effect (held-out mean Mahalanobis^2 "
+                 f"{res.extra['heldout_mahalanobis2']:.2f}, expected 3)")
+    return head + "; " + tail
+
+
+def _scores(R: np.ndarray) -> dict[str, float]:
+    """Error statistics of residuals (n, 3) [m] in a z-up frame: RMS 3D, max 3D, r95 xy, r95 z."""
+    R = R[np.all(np.isfinite(R), axis=1)]
+    if not R.size:
+        return {"n": 0}
+    n3 = np.linalg.norm(R, axis=1)
+    return {"n": int(R.shape[0]), "rms": float(np.sqrt(np.mean(n3 ** 2))), "max": float(n3.max()),
+            "r95_xy": float(np.percentile(np.linalg.norm(R[:, :2], axis=1), 95)),
+            "r95_z": float(np.percentile(np.abs(R[:, 2]), 95))}
+
+
+def _refit_sigma(tree: KinematicTree, stops: Stops, poses: Mapping, dq: Mapping, dxi: Mapping,
+                 pert: Mapping[str, np.ndarray], jnoise: Mapping[str, float], Rb: np.ndarray
+                 ) -> tuple[float, float, float, dict[str, float] | None]:
+    """Scale ``k`` of the model covariance so that the mean held-out NEES is 3.
+
+    ``C_i = k^2 C_model,i + sigma^2 I`` with ``C_model`` the first-order PPOE covariance of the
+    measured point (base-frame axes) and ``Rb`` the held-out residuals in base-frame axes.
+    A model without any uncertainty gets a common joint noise ``k`` [rad or m] on the movable
+    joints of the chain instead.  Returns ``(NEES at k=1, NEES at k, k, fitted joint noise)``.
+    """
+    fitted: dict[str, float] | None = None
+    if pert or jnoise:
+        C_model = _point_covariance(tree, stops, poses, dq, dxi, pert, jnoise)
+    else:
+        unit = {j: 1.0 for j in tree.robot.path_from_root(stops.link) if tree.robot.joints[j].independent}
+        C_model = _point_covariance(tree, stops, poses, dq, dxi, {}, unit)
+    ok = np.all(np.isfinite(Rb), axis=1)
+    if not ok.any():
+        return float("nan"), float("nan"), 1.0, None
+    S0 = stops.sigma ** 2 * np.eye(3)
+
+    def nees(k: float) -> float:
+        C = k * k * C_model[ok] + S0
+        return float(np.mean(np.einsum("ni,nij,nj->n", Rb[ok], np.linalg.inv(C), Rb[ok])))
+
+    n1 = nees(1.0) if (pert or jnoise) else float("nan")
+    lo, hi = 1e-9, 1e4
+    if nees(lo) <= 3.0:
+        k = lo
+    elif nees(hi) >= 3.0:
+        k = hi
+    else:
+        for _ in range(100):
+            mid = math.sqrt(lo * hi)
+            lo, hi = (mid, hi) if nees(mid) > 3.0 else (lo, mid)
+        k = math.sqrt(lo * hi)
+    if not (pert or jnoise):
+        fitted = {j: float(k) for j in tree.robot.path_from_root(stops.link) if tree.robot.joints[j].independent}
+    return n1, nees(k), k, fitted
+
+
+def protocol_scores(robot: Robot, stops: Stops, effects: Sequence[Effect] = ()) -> dict[str, float]:
+    """Score a model with ``effects`` by the stationing protocol, with nothing fitted but the
+    registrations: per session Kabsch on the ``reg_mask`` stops, error of the ``score_mask``
+    stops (measured minus predicted, measurement frame).  Returns RMS / max 3D, r95 xy and z [m]
+    and ``n`` (see the Hilti README "Baseline").
+    """
+    tree = KinematicTree(robot)
+    x = predict_nominal(tree, stops, list(effects))[0]
+    problem = LinearProblem(stops, x, None)
+    G0 = np.zeros((len(stops), 3, 0))
+    regs = problem.kabsch_regs(G0, np.zeros(0), np.flatnonzero(stops.reg_mask))
+    rows = np.flatnonzero(stops.score_mask & ~stops.reg_mask & np.isin(stops.session, list(regs)))
+    return _scores(problem.residuals(G0, np.zeros(0), regs, rows))

@@ -1,0 +1,305 @@
+"""Static stops of a diagnose run (:class:`Stops`) and how they are read from a contract bag."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ppoe_core.errors import BagError, ModelConfigError, PpoeError
+from ppoe_core.model.effects import KinematicTree
+from ppoe_core.robot.urdf import Robot
+
+# =============================================================================
+# Data
+# =============================================================================
+
+
+@dataclass
+class Stops:
+    """Static measurements, one row per stop.
+
+    Attributes
+    ----------
+    q : dict[str, ndarray (N,)]
+        Independent joint values [rad or m].
+    p_meas : ndarray (N, 3)
+        ``kind="point"``: reflector position in the tracker frame [m]; ``kind="pose"``: tool
+        position in the base frame [m].
+    R_meas : ndarray (N, 3, 3) or None
+        ``kind="pose"``: measured tool orientation in the base frame.
+    kind : str
+        ``"point"`` (tracker point, registration per session) or ``"pose"``.
+    link : str
+        Link that carries the reflector (``point``) or the tool frame (``pose``).
+    point : ndarray (3,)
+        Reflector position in ``link`` [m] (zeros for ``pose``).
+    sigma : float
+        1-sigma per axis of the position measurement [m].
+    sigma_rot : float
+        1-sigma per axis of the orientation measurement [rad] (``pose`` only).
+    session : ndarray (N,) int
+        Registration session of each stop (index into ``session_names``).
+    group : ndarray (N,) int
+        Source bag/file of each stop (index into ``group_names``), for leave-one-group-out.
+    reg_mask : ndarray (N,) bool
+        Stops allowed to define their session's registration when it is fitted for scoring
+        (Hilti: the stationing points).
+    score_mask : ndarray (N,) bool
+        Stops that are scored in such a session (Hilti: the evaluation points).
+    context : dict
+        Effect context per stop (``time`` (N,), ``motion_sign`` {joint: (N,)},
+        ``joint_velocity`` {joint: (N,)}, ``gravity`` (N, 3)).
+    imus : dict name -> (link, specific force (N, 3) [m/s^2] in that link's axes)
+        Accelerometers at each stop; fitted by :func:`diagnose_imu` (base tilt per group and
+        IMU-visible effects), and they break location ties of the point / pose stage.
+    """
+
+    q: dict[str, np.ndarray]
+    p_meas: np.ndarray
+    kind: str
+    link: str
+    point: np.ndarray
+    sigma: float
+    session: np.ndarray
+    session_names: list[str]
+    group: np.ndarray
+    group_names: list[str]
+    reg_mask: np.ndarray
+    score_mask: np.ndarray
+    context: dict[str, Any] = field(default_factory=dict)
+    R_meas: np.ndarray | None = None
+    sigma_rot: float = 1e-3
+    base: str = ""
+    imus: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.p_meas.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """Residual dimension per stop (3 for points, 6 for poses)."""
+        return 3 if self.kind == "point" else 6
+
+    @staticmethod
+    def concat(parts: Sequence[Stops]) -> Stops:
+        """Stack stops of several bags/files (sessions and groups kept apart)."""
+        if not parts:
+            raise BagError("no stops to diagnose")
+        first = parts[0]
+        for p in parts[1:]:
+            if (p.kind, p.link) != (first.kind, first.link):
+                raise BagError(f"cannot mix measurements: {first.kind} on {first.link} and "
+                               f"{p.kind} on {p.link} ({p.group_names})")
+        so = np.cumsum([0] + [len(p.session_names) for p in parts])
+        go = np.cumsum([0] + [len(p.group_names) for p in parts])
+        joints = set.intersection(*[set(p.q) for p in parts])
+        ctx: dict[str, Any] = {}
+        for key in ("time", "temperature", "gravity"):
+            if all(key in p.context for p in parts):
+                ctx[key] = np.concatenate([p.context[key] for p in parts])
+        for key in ("motion_sign", "joint_velocity"):
+            if all(key in p.context for p in parts):
+                names = set.intersection(*[set(p.context[key]) for p in parts])
+                ctx[key] = {n: np.concatenate([p.context[key][n] for p in parts]) for n in names}
+        return Stops(
+            q={j: np.concatenate([p.q[j] for p in parts]) for j in joints},
+            p_meas=np.concatenate([p.p_meas for p in parts]),
+            R_meas=None if first.R_meas is None else np.concatenate([p.R_meas for p in parts]),
+            kind=first.kind, link=first.link, point=first.point, sigma=first.sigma,
+            sigma_rot=first.sigma_rot, base=first.base,
+            session=np.concatenate([p.session + o for p, o in zip(parts, so)]),
+            session_names=[n for p in parts for n in p.session_names],
+            group=np.concatenate([p.group + o for p, o in zip(parts, go)]),
+            group_names=[n for p in parts for n in p.group_names],
+            reg_mask=np.concatenate([p.reg_mask for p in parts]),
+            score_mask=np.concatenate([p.score_mask for p in parts]),
+            context=ctx,
+            imus={k: (first.imus[k][0], np.concatenate([p.imus[k][1] for p in parts]))
+                  for k in first.imus if all(k in p.imus for p in parts)},
+        )
+
+    def subset(self, rows: np.ndarray) -> Stops:
+        """The stops ``rows`` (index or bool array); session/group numbering is kept."""
+        def sub_ctx(v: Any) -> Any:
+            return {k: a[rows] for k, a in v.items()} if isinstance(v, dict) else v[rows]
+        return Stops(q={k: v[rows] for k, v in self.q.items()}, p_meas=self.p_meas[rows],
+                     R_meas=None if self.R_meas is None else self.R_meas[rows], kind=self.kind,
+                     link=self.link, point=self.point, sigma=self.sigma, sigma_rot=self.sigma_rot,
+                     base=self.base, session=self.session[rows], session_names=self.session_names,
+                     group=self.group[rows], group_names=self.group_names,
+                     reg_mask=self.reg_mask[rows], score_mask=self.score_mask[rows],
+                     context={k: sub_ctx(v) for k, v in self.context.items()},
+                     imus={k: (ln, a[rows]) for k, (ln, a) in self.imus.items()})
+
+
+def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
+                 threshold: float = 1e-5) -> np.ndarray:
+    """Sign of each joint's last motion before each time ``at`` (backlash context).
+
+    Parameters
+    ----------
+    stamps : (M,) joint-state times [s], increasing
+    positions : (M, J) joint values
+    at : (N,) query times [s]
+    threshold : float
+        Changes between consecutive samples below this [rad or m] are not motion.
+
+    Returns
+    -------
+    ndarray (N, J) of -1, 0, +1 (0: no motion seen yet).
+    """
+    d = np.diff(positions, axis=0)
+    s = np.where(np.abs(d) > threshold, np.sign(d), 0.0)
+    last = np.zeros_like(positions)
+    cur = np.zeros(positions.shape[1])
+    for k in range(1, positions.shape[0]):
+        cur = np.where(s[k - 1] != 0, s[k - 1], cur)
+        last[k] = cur
+    idx = np.clip(np.searchsorted(stamps, at, side="right") - 1, 0, len(stamps) - 1)
+    return last[idx]
+
+
+def _stop_info(path: str | Path) -> list[tuple[float, dict]]:
+    """``/dataset/stop`` JSON objects of a bag (importer metadata), with their stamps."""
+    from ppoe_core.io import bagio
+
+    out = []
+    for msg in bagio.iter_raw(path, ["/dataset/stop"]):
+        m = bagio.deserialize(msg.data, msg.msgtype, topic=msg.topic)
+        try:
+            out.append((msg.stamp_ns * 1e-9, json.loads(m.data)))
+        except (ValueError, AttributeError) as exc:
+            raise BagError(f"bag {path}: topic /dataset/stop: message is not JSON: {exc}") from None
+    return out
+
+
+def _sample_joint(t: np.ndarray, v: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Joint values at times ``at``: linear interpolation between samples, but the last sample
+    is held across a gap longer than 5 median sample periods (a static stop's burst followed
+    by its measurements, CONTRACT sec. 3)."""
+    if t.size == 0:
+        return np.full(at.shape, np.nan)
+    if t.size == 1:
+        return np.full(at.shape, v[0])
+    dt = np.diff(t)
+    gap = 5.0 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 0.0
+    i = np.clip(np.searchsorted(t, at, side="right") - 1, 0, t.size - 1)
+    j = np.minimum(i + 1, t.size - 1)
+    hold = (t[j] - t[i]) > gap
+    return np.where(hold | (at <= t[0]), v[i], np.interp(at, t, v))
+
+
+def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None = None,
+                   tracker_xyz: Sequence[float] = (0.0, 0.0, 0.0), tracker_sigma: float = 5e-4,
+                   base: str | None = None, tool: str | None = None, pose_sigma: float = 5e-4,
+                   pose_sigma_rot: float = 1e-3, stationing_set: str | None = "cross",
+                   group_name: str | None = None, measurement: str = "auto") -> Stops:
+    """Measurements of a contract bag as :class:`Stops`.
+
+    ``/ground_truth/point`` (preferred by ``measurement="auto"``) or ``/ground_truth/pose``
+    (``measurement="point"`` / ``"pose"`` forces one); joint values are interpolated
+    at each measurement stamp; context ``time``, ``motion_sign`` and ``joint_velocity`` come
+    from ``/joint_states``, ``gravity`` (direction in the root frame) from the first ``/imu/<name>``
+    on a link rigidly fixed to the root, if any.  One registration session per bag unless the bag carries importer
+    metadata ``/dataset/stop`` (``station``, ``role``, ``point_sets``): then one session per
+    station, stationing stops (of ``stationing_set`` if given) define the registration and
+    evaluation stops are scored.
+    """
+    from ppoe_core.io import bagio
+
+    data = bagio.read_bag(path, load_images=False)
+    js = data.joint_states
+    if len(js) == 0:
+        raise BagError(f"bag {path}: no /joint_states")
+    name = group_name or Path(path).name
+    if measurement not in ("auto", "point", "pose"):
+        raise PpoeError(f"diagnose: measurement must be auto, point or pose, not {measurement!r}")
+    use_point = len(data.ground_truth_point) > 0 and measurement in ("auto", "point")
+    use_pose = len(data.ground_truth_pose) > 0 and measurement in ("auto", "pose")
+    if use_point:
+        kind, meas, stamps = "point", data.ground_truth_point.p, data.ground_truth_point.stamps
+        link = tracker_link
+        if link is None:
+            raise ModelConfigError(f"bag {path} has /ground_truth/point but neither --tool nor the "
+                                   f"model's tracker.link names the link carrying the reflector")
+        point = np.asarray(tracker_xyz, dtype=float)
+        sigma, R_meas = tracker_sigma, None
+    elif use_pose:
+        kind, stamps = "pose", data.ground_truth_pose.stamps
+        frame_ids = set(data.ground_truth_pose.frame_ids)
+        if base is not None and frame_ids - {base}:
+            raise BagError(f"bag {path}: /ground_truth/pose is in frame(s) {sorted(frame_ids)}, "
+                           f"not the base frame {base!r} given by --base/frames.base")
+        base = base or next(iter(frame_ids))
+        meas, R_meas = data.ground_truth_pose.T[:, :3, 3], data.ground_truth_pose.T[:, :3, :3]
+        link = tool
+        if link is None:
+            raise ModelConfigError(f"bag {path} has /ground_truth/pose but no --tool/frames.tool")
+        point, sigma = np.zeros(3), pose_sigma
+    else:
+        raise BagError(f"bag {path}: no /ground_truth/point or /ground_truth/pose "
+                       f"(measurement={measurement}): nothing to diagnose against")
+    robot.check_link(link)
+    order = np.argsort(js.stamps, kind="stable")
+    t_js = js.stamps[order]
+    q: dict[str, np.ndarray] = {}
+    vel: dict[str, np.ndarray] = {}
+    pos_cols = []
+    jnames = [j for j in robot.independent_joints if j in js.names]
+    missing = [j for j in robot.path_from_root(link) if robot.joints[j].independent and j not in js.names]
+    if missing:
+        raise BagError(f"bag {path}: /joint_states never carries {missing} (needed for link {link})")
+    for jn in jnames:
+        col = js.positions[order, js.names.index(jn)]
+        good = np.isfinite(col)
+        tg, cg = t_js[good], col[good]
+        q[jn] = _sample_joint(tg, cg, stamps)
+        pos_cols.append(np.interp(t_js, tg, cg))
+        v = np.gradient(cg, tg) if good.sum() > 1 else np.zeros(good.sum())
+        vel[jn] = _sample_joint(tg, v, stamps)
+    signs = motion_signs(t_js, np.column_stack(pos_cols), stamps) if pos_cols else np.zeros((len(stamps), 0))
+    ctx = {"time": stamps - t_js[0], "motion_sign": {j: signs[:, i] for i, j in enumerate(jnames)},
+           "joint_velocity": vel}
+    # gravity direction in the root frame from an accelerometer on a link rigidly fixed to the root
+    tree = KinematicTree(robot)
+    for imu_name, imu in sorted(data.imus.items()):
+        frame = imu.frame_ids[0] if imu.frame_ids else ""
+        if (len(imu) and frame in robot.links
+                and not any(robot.joints[j].movable for j in robot.path_from_root(frame))):
+            R = tree.link_poses({}, links=[frame])[frame][:3, :3]
+            a = imu.linear_acceleration / np.linalg.norm(imu.linear_acceleration, axis=1)[:, None]
+            g = -np.column_stack([_sample_joint(imu.stamps, a[:, k], stamps) for k in range(3)]) @ R.T
+            ctx["gravity"] = g / np.linalg.norm(g, axis=1)[:, None]
+            break
+    imus: dict[str, tuple[str, np.ndarray]] = {}
+    for imu_name, imu in sorted(data.imus.items()):
+        frame = imu.frame_ids[0] if imu.frame_ids else ""
+        if len(imu) and frame in robot.links:
+            imus[imu_name] = (frame, np.column_stack([_sample_joint(imu.stamps, imu.linear_acceleration[:, k], stamps)
+                                                      for k in range(3)]))
+    n = len(stamps)
+    session = np.zeros(n, dtype=int)
+    session_names = [name]
+    reg = np.ones(n, dtype=bool)
+    score = np.ones(n, dtype=bool)
+    info = _stop_info(path) if "/dataset/stop" in data.topics else []
+    if info:
+        t_info = np.array([t for t, _ in info])
+        k = np.clip(np.searchsorted(t_info, stamps, side="right") - 1, 0, len(info) - 1)
+        stations = [info[i][1].get("station", "?") for i in k]
+        session_names = [f"{name}:{s}" for s in dict.fromkeys(stations)]
+        session = np.array([session_names.index(f"{name}:{s}") for s in stations])
+        roles = [info[i][1].get("role", "") for i in k]
+        sets = [info[i][1].get("point_sets", []) for i in k]
+        reg = np.array([r == "stationing" and (stationing_set is None or stationing_set in s)
+                        for r, s in zip(roles, sets)])
+        score = np.array([r == "evaluation" for r in roles])
+    return Stops(q=q, p_meas=np.asarray(meas, dtype=float), R_meas=R_meas, kind=kind, link=link, point=point,
+                 sigma=float(sigma), sigma_rot=pose_sigma_rot, base=base or robot.root, session=session,
+                 session_names=session_names, group=np.zeros(n, dtype=int), group_names=[name],
+                 reg_mask=reg, score_mask=score, context=ctx, imus=imus)
