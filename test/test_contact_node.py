@@ -139,14 +139,14 @@ def test_node_callback_gives_the_planes_evaluate_replays(tmp_path: Path) -> None
     captured) gives, as the fusion node reads them, exactly the contact measurements that
     ``ppoe evaluate`` replays: same stamps, frame, and bit-identical plane pose and Sigma_v."""
     from ppoe_core.io.bagio import read_bag
-    from ppoe_core.analysis.evaluate import EVALUATE_SETTINGS, _contact_measurements
+    from ppoe_core.analysis.evaluate import EVALUATE_SETTINGS, contact_measurements
     from ppoe_core.model.ppoe import PPOEModel
 
     bag = REPO / "bags" / "contact"
     data = read_bag(bag, topics=["/robot_description", "/wrench"])
     wr = data.wrench
     model = PPOEModel.from_strings(data.robot_description, MODEL.read_text())
-    replayed, counts = _contact_measurements(data, model, MODEL, dict(EVALUATE_SETTINGS))
+    replayed, counts = contact_measurements(data, model, MODEL, dict(EVALUATE_SETTINGS))
     env = ros_env(tmp_path)
     with Probe(env) as probe:
         node = ContactNode(context=probe.context, parameter_overrides=[Parameter("model_file", value=str(MODEL))])

@@ -34,7 +34,7 @@ from ppoe_core.analysis.evaluate import (
     ProgressBar,
     error_stats,
     evaluate_bag,
-    kabsch,
+    registration_split,
     load_fusion_params,
     markdown_report,
     nees_stats,
@@ -53,10 +53,28 @@ needs_data = pytest.mark.skipif(not DATASETS.is_dir(), reason=f"datasets folder 
 # ----------------------------------------------------------------------------- metrics
 
 
-def test_registration_fit_is_lie_fit_rigid():
-    """evaluate's tracker registration uses lie.fit_rigid (tested in test_lie.py); ``kabsch``
-    stays as its alias for callers of the old name."""
-    assert kabsch is lie.fit_rigid
+def test_registration_split_follows_the_stop_roles():
+    """A bag with stop roles is scored by its protocol: per station, fitted on its stationing stops
+    of the chosen point set, scored on its evaluation stops; a station with fewer than 3 fit points
+    is not scored (counted); without roles, one registration on even samples, scored on odd."""
+    roles = ([{"station": "A", "role": "stationing", "point_sets": ["cross"]}] * 3
+             + [{"station": "A", "role": "stationing", "point_sets": ["square"]}]
+             + [{"station": "A", "role": "evaluation"}] * 2
+             + [{"station": "B", "role": "stationing", "point_sets": ["cross"]}] * 2
+             + [{"station": "B", "role": "evaluation"}] * 3)
+    groups, desc, unscored = registration_split(roles, len(roles), "cross")
+    assert [g[0] for g in groups] == ["A"] and unscored == 3
+    np.testing.assert_array_equal(groups[0][1], [0, 1, 2])
+    np.testing.assert_array_equal(groups[0][2], [4, 5])
+    assert "per station" in desc
+    groups_all, _, _ = registration_split(roles, len(roles), "all")
+    np.testing.assert_array_equal(groups_all[0][1], [0, 1, 2, 3])
+    groups_none, desc_none, unscored_none = registration_split([None] * 5, 5, "cross")
+    np.testing.assert_array_equal(groups_none[0][1], [0, 2, 4])
+    np.testing.assert_array_equal(groups_none[0][2], [1, 3])
+    assert unscored_none == 0 and "even" in desc_none
+    with pytest.raises(PpoeError, match="--fit-set"):
+        registration_split(roles, len(roles), "diagonal")
 
 
 def test_position_and_rotation_errors():

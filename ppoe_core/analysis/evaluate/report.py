@@ -1,0 +1,137 @@
+"""Reports of ``ppoe evaluate``: markdown table, JSON and plots."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ppoe_core.analysis.evaluate.metrics import METHODS
+from ppoe_core.analysis.evaluate.options import Evaluation
+
+# ----------------------------------------------------------------------------
+# Report
+# ----------------------------------------------------------------------------
+
+_LABELS = {"fk": "forward kinematics", "ppoe": "fused, PPOE covariance", "naive": "fused, naive covariance"}
+
+
+def _fmt_mm(st: dict[str, Any]) -> str:
+    if not st or st.get("n", 0) == 0:
+        return "-"
+    return f"{1e3 * st['mean']:.2f} ± {1e3 * st['std']:.2f} (rms {1e3 * st['rms']:.2f}, max {1e3 * st['max']:.2f})"
+
+
+def _fmt_deg(st: dict[str, Any] | None) -> str:
+    if not st or st.get("n", 0) == 0:
+        return "-"
+    return f"{math.degrees(st['mean']):.3f} ± {math.degrees(st['std']):.3f} (max {math.degrees(st['max']):.3f})"
+
+
+def markdown_report(ev: Evaluation) -> str:
+    """The markdown report (errors in mm and degrees)."""
+    s = ev.summary
+    gt = s["ground_truth"]
+    lines = [
+        f"# ppoe evaluate: `{s['bag']}`",
+        "",
+        f"- model: `{s['model']}`, state `T_{s['base']}_{s['tool']}`",
+        f"- joint states: {s['joint_states']} over {s['bag_duration_s']:.1f} s; "
+        f"values held from the previous message: {s['joint_values_held']}",
+        f"- ground truth: `{gt['topic']}`, {gt['samples']} samples, {gt['without_prior']} without a prior",
+    ]
+    if "registration" in gt:
+        r = gt["registration"]
+        lines.append(
+            f"- tracker-to-base registration: {r['method']}; {len(r['groups'])} group(s), "
+            f"{sum(g['fit'] for g in r['groups'])} fit / {sum(g['scored'] for g in r['groups'])} scored samples, "
+            f"{r['unscored']} not scored"
+        )
+    m = s["measurements"]
+    lines.append(
+        f"- measurements: {m['total']} ({m.get('tag_messages', 0)} tag messages, {m.get('tag_points', 0)} tag points, "
+        f"{m.get('contact_planes', 0)} contact planes)"
+    )
+    if m.get("contact_source") == "/wrench":
+        w = m["wrench"]
+        lines.append(
+            f"- contact planes from `/wrench` through the contact detector (enter {m['force_threshold']:g} N, "
+            f"release {m['release_threshold']:g} N): {w['received']} wrenches, {w['contacts']} contacts, "
+            f"{w['bad']} bad"
+        )
+    if m.get("wrench_without_contact_config"):
+        lines.append(f"- {m['wrench_without_contact_config']} `/wrench` messages not used: the model YAML has no "
+                     "`contact` section")
+    if "fusion" in s:
+        lines.append(f"- {s['fusion']}")
+    lines += [
+        "",
+        "Errors in mm (mean ± std, rms, max) and degrees; lateral = perpendicular to the tool z axis.",
+        "",
+        "| method | n | 3D position [mm] | lateral [mm] | rotation [deg] | NEES mean (dof, 95% bounds) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, r in ev.table_rows():
+        ne = r["nees"]
+        lines.append(
+            f"| {_LABELS[name]} | {r['position_3d']['n']} | {_fmt_mm(r['position_3d'])} | {_fmt_mm(r['lateral'])} | "
+            f"{_fmt_deg(r.get('rotation'))} | {ne['mean']:.3g} ({ne['dof']}, {ne['bounds95'][0]:.2f}-{ne['bounds95'][1]:.2f}) |"
+        )
+    fused = [(n, r) for n, r in ev.table_rows() if "measurements" in r]
+    if fused:
+        lines += ["", "| method | accepted | rejected | stale | no prior | bad | NIS mean / dim |", "|---|---|---|---|---|---|---|"]
+        for name, r in fused:
+            c = r["measurements"]["counts"]
+            lines.append(
+                f"| {_LABELS[name]} | {c['accepted']} | {c['rejected']} | {c['dropped_stale']} | "
+                f"{c['dropped_no_prior']} | {c['bad']} | {r['nis']['mean_per_dim']:.3g} |"
+            )
+    lines.append("")
+    return "\n".join(lines)
+
+
+def write_report(ev: Evaluation, out_dir: str | Path) -> list[Path]:
+    """Write ``evaluation.md``, ``evaluation.json`` and ``errors.png`` into ``out_dir``.
+
+    Returns the written paths.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / "evaluation.md", out / "evaluation.json", out / "errors.png"]
+    paths[0].write_text(markdown_report(ev))
+    paths[1].write_text(json.dumps(ev.to_dict(), indent=2, allow_nan=False) + "\n")
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    metrics = [k for k in ("position_3d", "lateral", "rotation") if f"fk_{k}" in ev.samples]
+    fig, axes = plt.subplots(len(metrics) + 1, 1, figsize=(8, 2.4 * (len(metrics) + 1)), squeeze=False)
+    x = np.arange(len(ev.samples.get("stamp", [])))
+    for ax, k in zip(axes[:, 0], metrics):
+        scale, unit = (math.degrees(1), "deg") if k == "rotation" else (1e3, "mm")
+        for name in METHODS:
+            if f"{name}_{k}" in ev.samples:
+                ax.plot(x, scale * ev.samples[f"{name}_{k}"], ".-", ms=3, lw=0.6, label=_LABELS[name])
+        ax.set_ylabel(f"{k.replace('_', ' ')} [{unit}]")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    ax = axes[-1, 0]
+    for name in METHODS:
+        if f"{name}_nees" in ev.samples:
+            ax.semilogy(x, ev.samples[f"{name}_nees"], ".", ms=3, label=_LABELS[name])
+    dof = ev.summary["methods"]["fk"]["nees"]["dof"]
+    import scipy.stats
+
+    for q in (0.025, 0.975):
+        ax.axhline(float(scipy.stats.chi2.ppf(q, dof)), color="grey", lw=0.8, ls="--")
+    ax.set_ylabel(f"NEES ({dof} dof; 95 % band)")
+    ax.set_xlabel("scored ground-truth sample")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(paths[2], dpi=100)
+    plt.close(fig)
+    return paths
