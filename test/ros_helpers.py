@@ -30,12 +30,11 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
-from collections.abc import Callable, Mapping, Sequence
 
 import yaml
-
 from conftest import REPO
 
 __all__ = [

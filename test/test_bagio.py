@@ -6,13 +6,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-
-from ppoe_core.io import bagio
-from ppoe_core.errors import BagError
-
-
 from conftest import random_pose_quat as _rand_pose
+
+from ppoe_core.errors import BagError
+from ppoe_core.io import bagio
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
@@ -161,7 +158,8 @@ def test_raw_iteration_and_padding_tolerance(tmp_path: Path) -> None:
     assert bagio.bag_topics(path2) == {"/joint_states": ("sensor_msgs/msg/JointState", 1)}
 
 
-from hypothesis import given, settings, strategies as st  # noqa: E402
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st
 
 _NAMES = [f"j{i}" for i in range(6)]
 

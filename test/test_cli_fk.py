@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import REPO
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -19,7 +20,6 @@ from ppoe_core.errors import JointValueError, UnknownJointError
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_ros.cli import main
 
-from conftest import REPO
 URDF = str(REPO / "config" / "robots" / "planar3.urdf")
 MODEL = str(REPO / "config" / "robots" / "planar3_model.yaml")
 ARM7_URDF = str(REPO / "config" / "robots" / "arm7.urdf")

@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from conftest import REPO
+
 PACKAGE_ITEMS = ["package.xml", "setup.py", "setup.cfg", "resource", "ppoe_core", "ppoe_ros", "config", "launch"]
 NODES = ["kinematics_node", "contact_node", "tag_bearing_node", "fusion_node"]
 

@@ -8,13 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import DATA
 
 from ppoe_core import lie
-from ppoe_core.robot.config import load_contact_config, load_model_config, low_rank_factor
 from ppoe_core.errors import CovarianceError, ModelConfigError, UnknownFrameError, UnknownJointError
+from ppoe_core.robot.config import load_contact_config, load_model_config, low_rank_factor
 from ppoe_core.robot.urdf import parse_urdf
 
-from conftest import DATA
 EDGE = DATA / "ppoe_edge.urdf"
 EDGE_YAML = DATA / "ppoe_edge_model.yaml"
 

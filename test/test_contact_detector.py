@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
+from conftest import REPO
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ppoe_core import lie
+from ppoe_core.errors import MeasurementError, ModelConfigError
 from ppoe_core.robot.config import load_contact_config
 from ppoe_core.sensing.contact import (
     FORCE_COMPONENTS,
@@ -17,9 +18,7 @@ from ppoe_core.sensing.contact import (
     force_measure,
     plane_from_config,
 )
-from ppoe_core.errors import MeasurementError, ModelConfigError
 
-from conftest import REPO
 MODEL = REPO / "config" / "robots" / "humanoid_model.yaml"
 
 

@@ -22,8 +22,8 @@ from std_msgs.msg import Bool  # noqa: E402
 
 from ppoe_core import lie  # noqa: E402
 from ppoe_core.errors import ModelConfigError  # noqa: E402
-from ppoe_ros.nodes.contact_node import ContactNode  # noqa: E402
 from ppoe_ros.common import ns_to_stamp, pose_cov_from_msg, stamp_to_ns  # noqa: E402
+from ppoe_ros.nodes.contact_node import ContactNode  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -138,8 +138,8 @@ def test_node_callback_gives_the_planes_evaluate_replays(tmp_path: Path) -> None
     """The shipped contact bag's /wrench through the node's own callback (in process, publisher
     captured) gives, as the fusion node reads them, exactly the contact measurements that
     ``ppoe evaluate`` replays: same stamps, frame, and bit-identical plane pose and Sigma_v."""
-    from ppoe_core.io.bagio import read_bag
     from ppoe_core.analysis.evaluate import EVALUATE_SETTINGS, contact_measurements
+    from ppoe_core.io.bagio import read_bag
     from ppoe_core.model.ppoe import PPOEModel
 
     bag = REPO / "bags" / "contact"

@@ -8,15 +8,22 @@ import json
 import numpy as np
 import pytest
 import yaml
+from conftest import BAGS, CONFIG, DATASETS
 
 from ppoe_core import lie
-from ppoe_core.analysis.diagnose import (DiagnoseOptions, Stops, diagnose, load_model, motion_signs,
-                                         write_model_yaml, write_report)
+from ppoe_core.analysis.diagnose import (
+    DiagnoseOptions,
+    Stops,
+    diagnose,
+    load_model,
+    motion_signs,
+    write_model_yaml,
+    write_report,
+)
 from ppoe_core.cli.datasets import stops_from_hilti
 from ppoe_core.model.effects import KinematicTree, apply_corrections, make_effect
 from ppoe_core.robot.urdf import parse_urdf
 
-from conftest import BAGS, CONFIG, DATASETS
 SIGMA = 1e-4  # tracker noise [m]
 POINT = np.array([0.0, 0.0, 0.02])
 
@@ -641,7 +648,7 @@ def test_imu_base_tilt_jacobian_matches_small_angle_formula(robot):
 def test_imu_tilt_covariance_matches_monte_carlo(robot):
     """Seeded Monte Carlo: tilt residuals of an accelerometer on arm_link_4 under a declared
     perturbation of joint_2 and joint noise, against imu_tilt_covariance (first order)."""
-    from ppoe_core.analysis.diagnose import imu_tilt_raw, imu_tilt_covariance
+    from ppoe_core.analysis.diagnose import imu_tilt_covariance, imu_tilt_raw
 
     tree = KinematicTree(robot)
     stops = _tilted(robot, [None], n=3, seed=40)

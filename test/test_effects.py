@@ -2,17 +2,14 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
+from conftest import CONFIG
 
 from ppoe_core import lie
-from ppoe_core.model.effects import (EFFECT_NAMES, KinematicTree, apply_corrections, effect_from_config,
-                               make_effect)
 from ppoe_core.errors import ModelConfigError, UnknownJointError
+from ppoe_core.model.effects import EFFECT_NAMES, KinematicTree, apply_corrections, effect_from_config, make_effect
 from ppoe_core.robot.urdf import parse_urdf
-
-from conftest import CONFIG
 
 
 @pytest.fixture(scope="module")

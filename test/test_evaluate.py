@@ -20,33 +20,32 @@ import json
 import numpy as np
 import pytest
 import yaml
+from conftest import DATASETS, REPO
+from conftest import random_pose as _random_pose
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ppoe_core import lie
-
-from ppoe_core.sensing import tags
-from ppoe_core.io.bagio import BagWriter
-from ppoe_core.errors import BagError, ModelConfigError, PpoeError
 from ppoe_core.analysis.evaluate import (
     REPLAY_SETTINGS,
     EvaluateOptions,
     ProgressBar,
     error_stats,
     evaluate_bag,
-    registration_split,
     load_fusion_params,
     markdown_report,
     nees_stats,
     point_covariance,
     position_errors,
+    registration_split,
     rotation_errors,
     write_report,
 )
+from ppoe_core.errors import BagError, ModelConfigError, PpoeError
+from ppoe_core.io.bagio import BagWriter
+from ppoe_core.sensing import tags
 from ppoe_core.sensing.tag_rows import centre_from_corners, observe_tags
 
-from conftest import DATASETS, REPO
-from conftest import random_pose as _random_pose
 needs_data = pytest.mark.skipif(not DATASETS.is_dir(), reason=f"datasets folder {DATASETS} not present")
 
 

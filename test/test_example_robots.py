@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import CONFIG_ROBOTS as CONFIG
 
-from ppoe_core.robot.config import load_model_config
 from ppoe_core.model.ppoe import PPOEModel
+from ppoe_core.robot.config import load_model_config
 from ppoe_core.robot.urdf import parse_urdf
 
-from conftest import CONFIG_ROBOTS as CONFIG
 MODEL_YAMLS = sorted(CONFIG.glob("*_model.yaml"))
 URDFS = sorted(CONFIG.glob("*.urdf"))
 DEG = math.pi / 180.0

@@ -9,6 +9,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from conftest import CONFIG, REPO  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
 from sensor_msgs.msg import CameraInfo, JointState, PointCloud2  # noqa: E402
@@ -17,9 +18,8 @@ from std_msgs.msg import Header  # noqa: E402
 from ppoe_core import PPOEModel, lie  # noqa: E402
 from ppoe_core.estimation import measurements as mm  # noqa: E402
 from ppoe_ros.common import matrix_from_pose_msg, ns_to_stamp, pose_cov_stamped_msg  # noqa: E402
-from ppoe_ros.nodes.tag_bearing_node import cloud_from_observations  # noqa: E402
+from ppoe_ros.common.tag_cloud import cloud_from_observations  # noqa: E402
 
-from conftest import CONFIG, REPO  # noqa: E402
 ROVER_Q = {"pan_joint": -0.378, "tilt_joint": 1.477, "arm_joint_1": -0.247, "arm_joint_2": 1.532,
            "arm_joint_3": 0.302, "arm_joint_4": -0.302, "arm_joint_5": -0.991, "arm_joint_6": 1.294}
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
@@ -235,7 +235,7 @@ def _errors_at_ground_truth(bag: Path, recorded: Path, window: float = 0.8):
 
 
 def _diag(logs_bag: Path, node: str) -> dict[str, str]:
-    from ppoe_core.io.bagio import iter_raw, deserialize
+    from ppoe_core.io.bagio import deserialize, iter_raw
 
     last = {}
     for raw in iter_raw(logs_bag, ["/diagnostics"]):

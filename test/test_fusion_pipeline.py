@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import random_pose
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -19,9 +20,6 @@ from ppoe_core.estimation.pipeline import (
     PriorSample,
     UpdateResult,
 )
-
-
-from conftest import random_pose
 
 
 def _random_pose(rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
@@ -376,10 +374,10 @@ def test_pipeline_fused_error_monte_carlo_consistency():
 # ----------------------------------------------------------------------------
 
 
+from conftest import CONFIG  # noqa: E402
+
 from ppoe_core.estimation import measurements as mm  # noqa: E402
 from ppoe_core.estimation.pipeline import ModelUpdater, PlaneContact, TagPoints  # noqa: E402
-
-from conftest import CONFIG  # noqa: E402
 
 #: a rover configuration in which tag 0 faces the mast camera
 ROVER_Q = {"pan_joint": -0.378, "tilt_joint": 1.477, "arm_joint_1": -0.247, "arm_joint_2": 1.532,

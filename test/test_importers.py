@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 import scipy.io
 import yaml
+from conftest import DATASETS
 
-from ppoe_core.io.bagio import read_bag
 from ppoe_core.errors import DatasetError
-from ppoe_core.io.importers import read_stop_info
+from ppoe_core.io.bagio import read_bag
 from ppoe_core.io.importers import hilti as hi
 from ppoe_core.io.importers import motoman as mo
+from ppoe_core.io.importers import read_stop_info
 
-from conftest import DATASETS
 HILTI = DATASETS / "hilti_stationing"
 MOTOMAN = DATASETS / "motoman_leica"
 needs_data = pytest.mark.skipif(not DATASETS.is_dir(), reason=f"datasets folder {DATASETS} not present")

@@ -261,7 +261,7 @@ class _FakeNode:
 
 
 def test_node_stats_throttles_and_counts(monkeypatch: pytest.MonkeyPatch) -> None:
-    from ppoe_ros import common as ros_common
+    from ppoe_ros.common import diagnostics as ros_common
 
     now = [100.0]
     monkeypatch.setattr(ros_common.time, "monotonic", lambda: now[0])
@@ -321,8 +321,8 @@ def test_pose_cov_message_round_trip() -> None:
 def test_param_spec_validation_and_descriptor() -> None:
     from rcl_interfaces.msg import ParameterType
 
-    from ppoe_ros.nodes.kinematics_node import PARAMS
     from ppoe_ros.common import ParamSpec, check_length
+    from ppoe_ros.nodes.kinematics_node import PARAMS
 
     spec = ParamSpec("rate", 1.0, "a rate", unit="Hz", min_value=0.0, max_value=10.0)
     assert spec.validate(5.0) is None
@@ -393,7 +393,7 @@ def test_unknown_frame_or_model_file_refused_at_startup(tmp_path: Path) -> None:
     with Probe(env) as probe:
         with pytest.raises(UnknownFrameError, match="parameter robot_description: unknown frame/link 'nope'"):
             KinematicsNode(context=probe.context, parameter_overrides=[urdf, Parameter("target_frame", value="nope")])
-        with pytest.raises(ModelConfigError, match="model file /no/such.yaml: cannot read"):
+        with pytest.raises(ModelConfigError, match="/no/such.yaml: cannot read model file"):
             KinematicsNode(context=probe.context, parameter_overrides=[urdf,
                                                                        Parameter("model_file", value="/no/such.yaml")])
         bad = tmp_path / "bad_model.yaml"

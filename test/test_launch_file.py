@@ -16,8 +16,8 @@ import types
 
 import pytest
 import yaml
-
 from conftest import REPO
+
 LAUNCH = REPO / "launch" / "ppoe.launch.py"
 
 

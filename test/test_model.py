@@ -6,12 +6,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import DATA
 
 from ppoe_core import PPOEModel, lie, load_model_config, parse_urdf
 from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
 from ppoe_core.model.ppoe import compound_fourth_order
 
-from conftest import DATA
 EDGE = DATA / "ppoe_edge.urdf"
 EDGE_YAML = DATA / "ppoe_edge_model.yaml"
 PLANAR = DATA / "planar3.urdf"
@@ -358,7 +358,6 @@ def test_effects_from_config_are_built_lazily(monkeypatch):
 
     monkeypatch.setitem(sys.modules, "ppoe_core.model.effects", types.SimpleNamespace(effect_from_config=effect_from_config))
     import ppoe_core
-
     import ppoe_core.model
 
     monkeypatch.setattr(ppoe_core.model, "effects", sys.modules["ppoe_core.model.effects"], raising=False)

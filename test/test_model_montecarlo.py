@@ -5,13 +5,12 @@ MC covariance = mean of ``Log(Tbar^-1 T) Log(Tbar^-1 T)^T`` over samples ``T`` o
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
+from conftest import DATA
 
 from ppoe_core import PPOEModel, lie, load_model_config, parse_urdf
 
-from conftest import DATA
 EDGE = DATA / "ppoe_edge.urdf"
 PLANAR = DATA / "planar3.urdf"
 N_MC = 200_000

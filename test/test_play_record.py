@@ -16,9 +16,9 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from ros_helpers import REPO, NodeProcess, ros_env  # noqa: E402
 from rosbags.rosbag2 import Reader  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
-from ros_helpers import REPO, NodeProcess, ros_env  # noqa: E402
 
 from ppoe_core.io.bagio import BagWriter  # noqa: E402
 

@@ -8,19 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import BAGS, CONFIG
 
 from ppoe_core import lie
-
-from ppoe_core.io import bagio
-
-from ppoe_core.model import effects
-
-from ppoe_core.sensing import tags
 from ppoe_core.errors import ScenarioError
-from ppoe_core.sim.simulate import TrueRobot, load_scenario, simulate
+from ppoe_core.io import bagio
+from ppoe_core.model import effects
 from ppoe_core.robot.urdf import parse_urdf
-
-from conftest import BAGS, CONFIG
+from ppoe_core.sensing import tags
+from ppoe_core.sim.simulate import TrueRobot, load_scenario, simulate
 
 ARM7_START = {"joint_1": 0.3, "joint_2": 0.6, "joint_3": 0.0, "joint_4": -1.2, "joint_5": 0.0, "joint_6": 0.9,
               "joint_7": 0.0, "finger_left_joint": 0.02}
@@ -255,7 +251,7 @@ def test_contact_wrench_reaches_the_commanded_force(tmp_path: Path) -> None:
 def test_scenario_file_that_is_not_text(tmp_path: Path) -> None:
     sc = tmp_path / "binary.yaml"
     sc.write_bytes(b"\xff\xfe\x00robot")
-    with pytest.raises(ScenarioError, match=r"binary.yaml: not UTF-8 text"):
+    with pytest.raises(ScenarioError, match=r"binary.yaml: scenario is not UTF-8 text"):
         simulate(sc, tmp_path / "bag")
 
 

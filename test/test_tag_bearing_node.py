@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -13,16 +12,11 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2  # n
 from std_msgs.msg import Header  # noqa: E402
 
 from ppoe_core import lie  # noqa: E402
-
-from ppoe_core.sensing import tags
 from ppoe_core.errors import MeasurementError  # noqa: E402
-from ppoe_ros.nodes.tag_bearing_node import (  # noqa: E402
-    camera_from_info,
-    cloud_from_observations,
-    decode_image,
-    observations_from_cloud,
-)
+from ppoe_core.sensing import tags
 from ppoe_core.sensing.tag_rows import observe_tags  # noqa: E402  (what the node publishes)
+from ppoe_ros.common.tag_cloud import cloud_from_observations, observations_from_cloud  # noqa: E402
+from ppoe_ros.nodes.tag_bearing_node import camera_from_info, decode_image  # noqa: E402
 
 W, H = 640, 480
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
@@ -117,7 +111,6 @@ def test_decode_image_and_camera_info_errors():
 @pytest.mark.timeout(90)
 def test_node_live_good_bad_good(tmp_path):
     from diagnostic_msgs.msg import DiagnosticArray
-
     from ros_helpers import NodeProcess, Probe, ros_env
 
     img, T_list = _scene()

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ppoe_core.sensing import tags
 from ppoe_core.errors import MeasurementError
+from ppoe_core.sensing import tags
 
 K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
 D = np.array([-0.1, 0.05, 0.001, -0.001, 0.0])

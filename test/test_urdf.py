@@ -6,12 +6,12 @@ import re
 
 import numpy as np
 import pytest
+from conftest import DATA
 
 from ppoe_core import lie
 from ppoe_core.errors import UnknownFrameError, UnknownJointError, UrdfError
 from ppoe_core.robot.urdf import parse_urdf
 
-from conftest import DATA
 EDGE = DATA / "ppoe_edge.urdf"
 
 

@@ -20,18 +20,17 @@ from __future__ import annotations
 import math
 import numbers
 import os
-import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from collections.abc import Mapping
 
 import numpy as np
-import yaml
 
 from ppoe_core import lie
 from ppoe_core.errors import CovarianceError, ModelConfigError, UnknownFrameError, UnknownJointError
 from ppoe_core.robot.urdf import Robot
+from ppoe_core.robot.yaml_io import _LDict, read_yaml_file, read_yaml_text
 
 __all__ = [
     "Perturbation",
@@ -235,53 +234,7 @@ class ModelConfig:
 # ----------------------------------------------------------------------------
 
 
-class _LDict(dict):
-    """dict that remembers its own line and the line of each key (1-based)."""
-
-    line: int | None = None
-    key_lines: dict
-
-
-class _LList(list):
-    line: int | None = None
-
-
-class _Loader(yaml.SafeLoader):
-    pass
-
-
-def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> _LDict:
-    loader.flatten_mapping(node)
-    out = _LDict()
-    out.line = node.start_mark.line + 1
-    out.key_lines = {}
-    for knode, vnode in node.value:
-        key = loader.construct_object(knode, deep=True)
-        if not isinstance(key, (str, int, float, bool)) and key is not None:
-            raise ModelConfigError(f"line {knode.start_mark.line + 1}: mapping key must be a scalar")
-        if key in out:
-            raise ModelConfigError(
-                f"{loader.name}:{knode.start_mark.line + 1}: duplicate key '{key}'"
-            )
-        out[key] = loader.construct_object(vnode, deep=True)
-        out.key_lines[key] = knode.start_mark.line + 1
-    return out
-
-
-def _construct_sequence(loader: _Loader, node: yaml.SequenceNode) -> _LList:
-    out = _LList(loader.construct_object(c, deep=True) for c in node.value)
-    out.line = node.start_mark.line + 1
-    return out
-
-
-# YAML 1.2 floats: PyYAML (YAML 1.1) reads "1e-5" (no dot) as a string; model files use it a lot.
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-    list("-+0123456789"),
-)
-_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
-_Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _construct_sequence)
+# the line-aware loader lives in ppoe_core.robot.yaml_io (the one YAML reader)
 
 
 # ----------------------------------------------------------------------------
@@ -709,48 +662,17 @@ def load_model_config(source: str | os.PathLike | Mapping | None, robot: Robot, 
 def _read_yaml(source: str | os.PathLike | Mapping | None, is_text: bool, caller: str) -> tuple[Any, str]:
     """Model YAML source -> (parsed data with line numbers, where) (see :func:`load_model_config`)."""
     if source is None:
-        data: Any = {}
-        where = "<none>"
-    elif isinstance(source, Mapping):
-        data = source
-        where = "<dict>"
-    else:
-        text: str | None = None
-        if isinstance(source, os.PathLike) or (
-            isinstance(source, str) and not is_text and source.strip() != "" and "\n" not in source
-            and (Path(source).suffix in (".yaml", ".yml") or Path(source).is_file())
-        ):
-            path = Path(source)
-            try:
-                text = path.read_text()
-            except OSError as exc:
-                raise ModelConfigError(f"{path}: cannot read model YAML ({exc.strerror or exc})") from None
-            except UnicodeDecodeError as exc:
-                raise ModelConfigError(f"{path}: model YAML is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-            where = str(path)
-        elif isinstance(source, str):
-            text = source
-            where = "<string>"
-        else:
-            raise ModelConfigError(f"{caller}: expected a path, YAML text or mapping, got {type(source).__name__}")
-        try:
-            loader = _Loader(text)
-            loader.name = where
-            try:
-                data = loader.get_single_data()
-            finally:
-                loader.dispose()
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            line = f":{mark.line + 1}" if mark is not None else ""
-            problem = getattr(exc, "problem", None) or str(exc)
-            raise ModelConfigError(f"{where}{line}: model YAML does not parse: {problem}") from None
-        except ModelConfigError as exc:
-            msg = str(exc)
-            raise ModelConfigError(msg if msg.startswith(where) else f"{where}: {msg}") from None
-        if data is None:
-            data = {}
-    return data, where
+        return {}, "<none>"
+    if isinstance(source, Mapping):
+        return source, "<dict>"
+    if isinstance(source, os.PathLike) or (
+        isinstance(source, str) and not is_text and source.strip() != "" and "\n" not in source
+        and (Path(source).suffix in (".yaml", ".yml") or Path(source).is_file())
+    ):
+        return read_yaml_file(source, "model YAML")
+    if isinstance(source, str):
+        return read_yaml_text(source, "<string>", "model YAML"), "<string>"
+    raise ModelConfigError(f"{caller}: expected a path, YAML text or mapping, got {type(source).__name__}")
 
 
 def load_contact_config(source: str | os.PathLike | Mapping | None, robot: Robot | None = None, *,

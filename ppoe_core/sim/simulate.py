@@ -31,20 +31,20 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from collections.abc import Mapping, Sequence
 
 import numpy as np
-import yaml
 
 from ppoe_core import lie
+from ppoe_core.errors import ModelConfigError, PpoeError, ScenarioError, UnknownFrameError, UnknownJointError, UrdfError
 from ppoe_core.io.bagio import BagWriter
 from ppoe_core.robot.config import ModelConfig, load_model_config
-from ppoe_core.errors import ModelConfigError, PpoeError, ScenarioError, UnknownFrameError, UnknownJointError, UrdfError
-from ppoe_core.sensing.tags import project_points, render_tags, tag_points_local
 from ppoe_core.robot.urdf import Robot, parse_urdf
+from ppoe_core.robot.yaml_io import read_yaml_file
+from ppoe_core.sensing.tags import project_points, render_tags, tag_points_local
 
 __all__ = [
     "SCENARIO_DOC",
@@ -249,14 +249,7 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         Missing file, YAML error, unknown key, bad value; the message names the file and key.
     """
     p = Path(path)
-    try:
-        raw = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise ScenarioError(f"scenario {p}: cannot read: {exc}") from None
-    except UnicodeDecodeError as exc:
-        raise ScenarioError(f"scenario {p}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-    except yaml.YAMLError as exc:
-        raise ScenarioError(f"scenario {p}: YAML error: {exc}") from None
+    raw, _ = read_yaml_file(p, "scenario", ScenarioError)
     raw = _check_keys(raw, _TOP_KEYS, str(p), "top level")
     rob = _check_keys(raw.get("robot"), ("urdf", "model"), str(p), "robot")
     if "urdf" not in rob or "model" not in rob:

@@ -22,8 +22,8 @@ import sys
 import time
 from typing import Any
 
-from ppoe_core.io import bagio
 from ppoe_core.errors import BagError, PpoeError
+from ppoe_core.io import bagio
 
 __all__ = ["add_arguments", "run", "ROBOT_DESCRIPTION_TOPIC"]
 

@@ -23,8 +23,8 @@ import sys
 import time
 from typing import Any
 
-from ppoe_core.io.bagio import BagWriter
 from ppoe_core.errors import PpoeError
+from ppoe_core.io.bagio import BagWriter
 
 __all__ = ["add_arguments", "run", "Recorder"]
 

@@ -28,8 +28,8 @@ section (:func:`ppoe_core.sensing.contact.plane_from_config`); parameters overri
 from __future__ import annotations
 
 import sys
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped, WrenchStamped
@@ -37,7 +37,9 @@ from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
 from std_msgs.msg import Bool
 
+from ppoe_core.errors import ModelConfigError
 from ppoe_core.robot.config import load_contact_config
+from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_core.sensing.contact import (
     DEFAULT_FORCE_THRESHOLD,
     DEFAULT_RELEASE_THRESHOLD,
@@ -46,8 +48,6 @@ from ppoe_core.sensing.contact import (
     force_measure,
     plane_from_config,
 )
-from ppoe_core.errors import ModelConfigError
-from ppoe_ros.nodes.kinematics_node import load_model_yaml
 from ppoe_ros.common import (
     DiagnosticsPublisher,
     NodeStats,
@@ -108,7 +108,7 @@ class ContactNode(Node):
         where = f"node {self.get_name()}" + (f", model file {p['model_file']}" if p["model_file"] else "")
         # the contact section validated as everywhere else (file:line errors); no URDF needed here
         contact = load_contact_config(p["model_file"]) if p["model_file"] else None
-        frames_base = mapping_get(load_model_yaml(p["model_file"]), "frames", "base")
+        frames_base = mapping_get(read_yaml_mapping(p["model_file"], "model file"), "frames", "base")
         self.plane = plane_from_config(contact, frames_base, p, where)
         enter = p["force_threshold"] or (contact.force_threshold if contact is not None else DEFAULT_FORCE_THRESHOLD)
         release = p["release_threshold"] or (contact.release_threshold if contact is not None

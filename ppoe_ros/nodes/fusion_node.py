@@ -38,9 +38,9 @@ import bisect
 import math
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
-from collections.abc import Sequence
 
 import numpy as np
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -64,7 +64,7 @@ from ppoe_core.estimation.pipeline import (
     make_updater,
     source_key,
 )
-from ppoe_ros.nodes.kinematics_node import load_model_yaml
+from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_ros.common import (
     DiagnosticsPublisher,
     NodeStats,
@@ -72,7 +72,6 @@ from ppoe_ros.common import (
     check_nonempty,
     declare_parameters,
     guarded,
-    take_robot_description,
     joint_positions,
     mapping_get,
     ns_to_stamp,
@@ -81,8 +80,9 @@ from ppoe_ros.common import (
     reliable_qos,
     sensor_qos,
     stamp_to_ns,
+    take_robot_description,
 )
-from ppoe_ros.nodes.tag_bearing_node import observations_from_cloud
+from ppoe_ros.common.tag_cloud import observations_from_cloud
 
 __all__ = ["FusionNode", "PARAMS", "main"]
 
@@ -204,7 +204,7 @@ class FusionNode(Node):
         p = declare_parameters(self, PARAMS)
         self.params = p
         self.stats = NodeStats(self, _STAT_KEYS, p["log_throttle"])
-        self.model_yaml = load_model_yaml(p["model_file"])
+        self.model_yaml = read_yaml_mapping(p["model_file"], "model file")
         frames = mapping_get(self.model_yaml, "frames", default={}) or {}
         self.base_frame = p["base_frame"] or frames.get("base") or "base_link"
         self.tool_frame = p["tool_frame"] or frames.get("tool") or "tool0"

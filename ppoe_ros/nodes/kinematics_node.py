@@ -36,12 +36,11 @@ from __future__ import annotations
 import collections
 import sys
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
-from collections.abc import Sequence
 
 import numpy as np
-import yaml
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
@@ -51,6 +50,7 @@ from std_msgs.msg import String
 from ppoe_core import lie
 from ppoe_core.errors import JointValueError, ModelConfigError, PpoeError
 from ppoe_core.model.ppoe import PPOEModel
+from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_ros.common import (
     DiagnosticsPublisher,
     NodeStats,
@@ -58,14 +58,14 @@ from ppoe_ros.common import (
     check_nonempty,
     declare_parameters,
     guarded,
-    take_robot_description,
     mapping_get,
     reliable_qos,
     sensor_qos,
     stamp_to_ns,
+    take_robot_description,
 )
 
-__all__ = ["KinematicsNode", "PARAMS", "main", "load_model_yaml", "output_topic"]
+__all__ = ["KinematicsNode", "PARAMS", "main", "output_topic"]
 
 _STRING_ARRAY = ParameterType.PARAMETER_STRING_ARRAY
 
@@ -106,32 +106,6 @@ def output_topic(frame: str) -> str:
     return f"/ppoe/{frame.strip('/')}/pose"
 
 
-def load_model_yaml(path: str) -> dict[str, Any]:
-    """Read the model YAML (``{}`` for an empty path).
-
-    Raises
-    ------
-    ModelConfigError
-        The file is missing or not a YAML mapping (message names the file).
-    """
-    if not path:
-        return {}
-    p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise ModelConfigError(f"model file {p}: cannot read: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise ModelConfigError(f"model file {p}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-    except yaml.YAMLError as exc:
-        raise ModelConfigError(f"model file {p}: not valid YAML: {exc}") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ModelConfigError(f"model file {p}: top level must be a mapping, got {type(data).__name__}")
-    return data
-
-
 class _Target:
     """One output: a target frame, its publisher and a reused message object."""
 
@@ -151,7 +125,7 @@ class KinematicsNode(Node):
         p = declare_parameters(self, PARAMS)
         self.params = p
         self.stats = NodeStats(self, ("received", "published", "bad", "dropped"), p["log_throttle"])
-        self.model_yaml = load_model_yaml(p["model_file"])
+        self.model_yaml = read_yaml_mapping(p["model_file"], "model file")
         frames = self._frames = mapping_get(self.model_yaml, "frames", default={}) or {}
         # "" = the URDF root link, resolved when the URDF arrives
         self.reference = p["reference_frame"] or frames.get("base") or ""

@@ -33,16 +33,16 @@ Parameters: :data:`PARAMS`, documented in ``config/nodes/tag_bearing_node.yaml``
 from __future__ import annotations
 
 import sys
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
-from ppoe_core.sensing import tags as tagmod
 from ppoe_core.errors import MeasurementError, ModelConfigError
+from ppoe_core.sensing import tags as tagmod
 from ppoe_core.sensing.tag_rows import DEFAULT_CORNER_REFINEMENT, OBSERVATION_FIELDS, observe_tags
 from ppoe_ros.common import (
     DiagnosticsPublisher,
@@ -55,6 +55,7 @@ from ppoe_ros.common import (
     reliable_qos,
     sensor_qos,
 )
+from ppoe_ros.common.tag_cloud import cloud_from_observations
 
 __all__ = [
     "TagBearingNode",
@@ -63,8 +64,6 @@ __all__ = [
     "main",
     "decode_image",
     "camera_from_info",
-    "cloud_from_observations",
-    "observations_from_cloud",
 ]
 
 
@@ -170,59 +169,6 @@ def camera_from_info(msg: Any) -> tuple[np.ndarray, np.ndarray]:
     return K, (D if D.size else np.zeros(5))
 
 
-def cloud_from_observations(rows: np.ndarray, header: Any) -> PointCloud2:
-    """Observation rows ``(n, 6)`` ``[id, corner, u, v, x, y]`` -> ``PointCloud2`` (FLOAT64 fields)."""
-    rows = np.ascontiguousarray(np.asarray(rows, dtype="<f8").reshape(-1, len(OBSERVATION_FIELDS)))
-    msg = PointCloud2()
-    msg.header = header
-    msg.height = 1
-    msg.width = int(rows.shape[0])
-    msg.fields = [PointField(name=n, offset=8 * i, datatype=PointField.FLOAT64, count=1)
-                  for i, n in enumerate(OBSERVATION_FIELDS)]
-    msg.is_bigendian = False
-    msg.point_step = 8 * len(OBSERVATION_FIELDS)
-    msg.row_step = msg.point_step * msg.width
-    msg.data = rows.tobytes()
-    msg.is_dense = True
-    return msg
-
-
-def observations_from_cloud(msg: Any) -> dict[str, np.ndarray]:
-    """``PointCloud2`` of ``/tag_bearing/observations`` -> ``{field: (n,) float64}``.
-
-    Fields are read by name and offset (FLOAT64 or FLOAT32), so a producer may order them
-    differently or add fields.
-
-    Raises
-    ------
-    MeasurementError
-        A required field is missing or not float, or the data size does not match.
-    """
-    by_name = {f.name: f for f in msg.fields}
-    n = int(msg.width) * int(msg.height)
-    step = int(msg.point_step)
-    data = bytes(msg.data)
-    if len(data) < n * step:
-        raise MeasurementError(f"PointCloud2 has {len(data)} bytes for {n} points of {step} bytes")
-    out: dict[str, np.ndarray] = {}
-    endian = ">" if msg.is_bigendian else "<"
-    for name in OBSERVATION_FIELDS:
-        f = by_name.get(name)
-        if f is None:
-            raise MeasurementError(f"PointCloud2 has no field '{name}' (fields: {sorted(by_name)})")
-        if f.datatype == PointField.FLOAT64:
-            dt, size = np.dtype(endian + "f8"), 8
-        elif f.datatype == PointField.FLOAT32:
-            dt, size = np.dtype(endian + "f4"), 4
-        else:
-            raise MeasurementError(f"PointCloud2 field '{name}' has datatype {f.datatype}, expected FLOAT64")
-        if f.offset + size > step:
-            raise MeasurementError(f"PointCloud2 field '{name}' offset {f.offset} outside point_step {step}")
-        buf = np.frombuffer(data, np.uint8, count=n * step).reshape(n, step)[:, f.offset:f.offset + size]
-        out[name] = np.ascontiguousarray(buf).view(dt).reshape(n).astype(np.float64)
-    return out
-
-
 def _draw(image: np.ndarray, rows: np.ndarray, dets: list[Any]) -> np.ndarray:
     import cv2
 
@@ -247,9 +193,9 @@ class TagBearingNode(Node):
         self.params = p
         self.stats = NodeStats(self, ("received", "published", "bad", "dropped", "detections", "camera_info"),
                                p["log_throttle"])
-        from ppoe_ros.nodes.kinematics_node import load_model_yaml
+        from ppoe_core.robot.yaml_io import read_yaml_mapping
 
-        tags_cfg = mapping_get(load_model_yaml(p["model_file"]), "tags", default={}) or {}
+        tags_cfg = mapping_get(read_yaml_mapping(p["model_file"], "model file"), "tags", default={}) or {}
         self.dictionary = p["dictionary"] or str(tags_cfg.get("family") or "tag36h11")
         try:
             tagmod.aruco_dictionary(self.dictionary)

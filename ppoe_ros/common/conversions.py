@@ -1,0 +1,142 @@
+"""Message <-> numpy conversions: stamps, poses with ROS covariance (docs/conventions.md sec. 2),
+wrenches, joint states, message classes."""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+import numpy as np
+from builtin_interfaces.msg import Time as TimeMsg
+from geometry_msgs.msg import Pose, PoseWithCovarianceStamped
+
+from ppoe_core import lie
+from ppoe_core.errors import PpoeError
+
+# --------------------------------------------------------------------- conversions
+
+
+def stamp_to_ns(stamp: TimeMsg) -> int:
+    """``builtin_interfaces/Time`` -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int) -> TimeMsg:
+    """Integer nanoseconds -> ``builtin_interfaces/Time``."""
+    ns = int(ns)
+    return TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def pose_msg_from_matrix(T: np.ndarray, out: Pose | None = None) -> Pose:
+    """Homogeneous ``(4, 4)`` -> ``geometry_msgs/Pose`` (quaternion x, y, z, w)."""
+    pose = Pose() if out is None else out
+    q = lie.quat_from_matrix(np.asarray(T, dtype=float)[:3, :3])
+    p = pose.position
+    p.x, p.y, p.z = (float(v) for v in T[:3, 3])
+    o = pose.orientation
+    o.x, o.y, o.z, o.w = (float(v) for v in q)
+    return pose
+
+
+def matrix_from_pose_msg(pose: Pose) -> np.ndarray:
+    """``geometry_msgs/Pose`` -> homogeneous ``(4, 4)``; the quaternion is normalised."""
+    q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
+    nq = np.linalg.norm(q)
+    if not np.isfinite(nq) or nq < 1e-9:
+        raise ValueError(f"pose quaternion {q.tolist()} is not a rotation")
+    T = np.eye(4)
+    T[:3, :3] = lie.matrix_from_quat(q / nq)
+    T[:3, 3] = (pose.position.x, pose.position.y, pose.position.z)
+    return T
+
+
+def cov_ros_to_msg_array(cov_ros: np.ndarray) -> list[float]:
+    """A ``(6, 6)`` covariance (ROS convention, order x y z rx ry rz) -> 36 row-major floats."""
+    cov = np.asarray(cov_ros, dtype=float)
+    if cov.shape != (6, 6):
+        raise ValueError(f"covariance must be 6x6, got shape {cov.shape}")
+    return cov.reshape(36).tolist()
+
+
+def pose_cov_stamped_msg(T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp: TimeMsg | int,
+                         frame_id: str) -> PoseWithCovarianceStamped:
+    """Build a ``PoseWithCovarianceStamped``.
+
+    Parameters
+    ----------
+    T_parent_child : (4, 4)
+        Pose of the child frame in ``frame_id`` (the parent).
+    cov_ros : (6, 6)
+        Covariance in the ROS convention of CONTRACT.md sec. 2: order
+        ``(x, y, z, rot_x, rot_y, rot_z)``, translation and small rotation both in
+        the axes of ``frame_id``.  Convert a local (right-perturbation) covariance
+        ``cov_child`` with ``lie.cov_local_to_ros(T_parent_child, cov_child)`` first.
+    stamp : builtin_interfaces/Time or int
+        Header stamp (int = nanoseconds).
+    frame_id : str
+        Parent frame.
+    """
+    msg = PoseWithCovarianceStamped()
+    msg.header.stamp = ns_to_stamp(stamp) if isinstance(stamp, (int, np.integer)) else stamp
+    msg.header.frame_id = frame_id
+    pose_msg_from_matrix(T_parent_child, msg.pose.pose)
+    msg.pose.covariance = cov_ros_to_msg_array(cov_ros)
+    return msg
+
+
+def pose_cov_from_msg(msg: PoseWithCovarianceStamped) -> tuple[np.ndarray, np.ndarray, int, str]:
+    """``PoseWithCovarianceStamped`` -> ``(T (4,4), cov_ros (6,6), stamp_ns, frame_id)``.
+
+    ``cov_ros`` is in the ROS convention (CONTRACT.md sec. 2, axes of ``frame_id``).
+    """
+    T = matrix_from_pose_msg(msg.pose.pose)
+    cov_ros = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)
+    return T, cov_ros, stamp_to_ns(msg.header.stamp), msg.header.frame_id
+
+
+def wrench_to_numpy(msg: Any) -> np.ndarray:
+    """``geometry_msgs/WrenchStamped`` or ``Wrench`` -> ``(6,)`` ``[fx, fy, fz, tx, ty, tz]``."""
+    w = getattr(msg, "wrench", msg)
+    return np.array([w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z])
+
+
+def joint_positions(msg: Any, topic: str = "/joint_states") -> dict[str, float]:
+    """``sensor_msgs/JointState`` -> ``{name: position}``.
+
+    Raises
+    ------
+    ValueError
+        ``name`` and ``position`` differ in length, or a name repeats (message names the topic).
+    """
+    names = msg.name
+    pos = msg.position
+    if len(names) != len(pos):
+        raise ValueError(f"{topic}: {len(names)} names but {len(pos)} positions")
+    out = dict(zip(names, (float(p) for p in pos)))
+    if len(out) != len(names):
+        repeated = sorted(n for n in set(names) if list(names).count(n) > 1)
+        raise ValueError(f"{topic}: repeated joint names {repeated}")
+    return out
+
+
+def message_class(type_name: str) -> type:
+    """ROS message class from its type name (``"sensor_msgs/msg/JointState"`` or ``"sensor_msgs/JointState"``).
+
+    Raises
+    ------
+    PpoeError
+        Malformed name, or the message package is not installed (message names the type).
+    """
+    parts = type_name.split("/")
+    if len(parts) == 2:
+        parts = [parts[0], "msg", parts[1]]
+    if len(parts) != 3 or not all(parts):
+        raise PpoeError(f"message type '{type_name}' is not of the form package/msg/Name")
+    pkg, kind, name = parts
+    try:
+        module = importlib.import_module(f"{pkg}.{kind}")
+        cls = getattr(module, name)
+    except (ImportError, AttributeError):
+        raise PpoeError(
+            f"message type '{type_name}' is not installed (no Python module {pkg}.{kind}.{name})") from None
+    return cls

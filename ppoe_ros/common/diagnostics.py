@@ -1,0 +1,154 @@
+"""Node health: counters (:class:`NodeStats`), the guarded callback wrapper and ``/diagnostics``."""
+
+from __future__ import annotations
+
+import functools
+import time
+import traceback
+from collections.abc import Callable, Iterable
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+
+from ppoe_core.errors import PpoeError
+from ppoe_ros.common.qos import reliable_qos
+
+# ------------------------------------------------------------------ counters, logs
+
+
+class NodeStats:
+    """Counters of a node plus throttled logging of bad messages.
+
+    Parameters
+    ----------
+    node : rclpy.node.Node
+        Node whose logger is used.
+    keys : iterable of str
+        Counters reported even while zero (``received``, ``published``, ``bad`` ...).
+    throttle_sec : float
+        At most one log line per (topic, kind) per this many seconds (steady clock);
+        the next line says how many were suppressed.
+    """
+
+    def __init__(self, node: Node, keys: Iterable[str] = ("received", "published", "bad"),
+                 throttle_sec: float = 2.0) -> None:
+        self._logger = node.get_logger()
+        self.counts: dict[str, int] = {k: 0 for k in keys}
+        self.throttle_sec = float(throttle_sec)
+        self._last_log: dict[tuple[str, str], float] = {}
+        self._suppressed: dict[tuple[str, str], int] = {}
+        self.last_reason: str = ""
+
+    def inc(self, key: str, n: int = 1) -> None:
+        """Add ``n`` to counter ``key``."""
+        self.counts[key] = self.counts.get(key, 0) + n
+
+    def bad(self, topic: str, reason: str, kind: str = "bad") -> None:
+        """Count a bad message on ``topic`` (counter ``kind``) and log it, throttled."""
+        self.inc(kind)
+        self.last_reason = f"{topic}: {reason}"
+        self._log_throttled((topic, kind), f"{kind} message on {topic}: {reason}", error=False)
+
+    def error(self, topic: str, exc: BaseException) -> None:
+        """Count an unexpected exception in a callback (counter ``errors``) and log it, throttled."""
+        self.inc("errors")
+        self.last_reason = f"{topic}: {type(exc).__name__}: {exc}"
+        tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+        self._log_throttled((topic, "errors"), f"unexpected error handling {topic}: {tb}", error=True)
+
+    def _log_throttled(self, key: tuple[str, str], text: str, error: bool) -> None:
+        now = time.monotonic()
+        last = self._last_log.get(key)
+        if last is not None and now - last < self.throttle_sec:
+            self._suppressed[key] = self._suppressed.get(key, 0) + 1
+            return
+        n_sup = self._suppressed.pop(key, 0)
+        if n_sup:
+            text += f" ({n_sup} similar suppressed in the last {self.throttle_sec:g} s)"
+        self._last_log[key] = now
+        # two call sites: rclpy's logger refuses a severity change at one call site
+        if error:
+            self._logger.error(text)
+        else:
+            self._logger.warning(text)
+
+
+def guarded(stats: NodeStats, topic: str,
+            bad_types: tuple[type[BaseException], ...] = (PpoeError, ValueError, KeyError,
+                                                          IndexError, TypeError)):
+    """Decorator for a subscription callback: bad messages are counted, not fatal.
+
+    Exceptions of ``bad_types`` count as a bad message on ``topic`` (message of the
+    exception as the reason); any other ``Exception`` is counted as ``errors`` with
+    its traceback logged.  Either way the node keeps spinning.
+    """
+
+    def deco(func: Callable[..., Any]) -> Callable[..., Any]:
+        @functools.wraps(func)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return func(*args, **kwargs)
+            except bad_types as exc:
+                stats.bad(topic, str(exc) or type(exc).__name__)
+            except Exception as exc:  # noqa: BLE001 - a node must survive any message
+                stats.error(topic, exc)
+            return None
+
+        return wrapper
+
+    return deco
+
+
+class DiagnosticsPublisher:
+    """Publish a node's :class:`NodeStats` on ``/diagnostics`` every ``period`` seconds.
+
+    Level WARN while bad messages or errors arrived in the last period, else OK
+    (or the level set by :meth:`set_status`).  The timer runs on the steady clock.
+    """
+
+    def __init__(self, node: Node, stats: NodeStats, period: float = 1.0,
+                 topic: str = "/diagnostics", hardware_id: str = "") -> None:
+        self._node = node
+        self._stats = stats
+        self._pub = node.create_publisher(DiagnosticArray, topic, reliable_qos(10))
+        self._name = f"{node.get_name()}"
+        self._hardware_id = hardware_id
+        self._last_bad = 0
+        self._level: bytes | None = None
+        self._message = ""
+        self._extra: dict[str, str] = {}
+        self._timer = node.create_timer(
+            float(period), self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME)
+        )
+
+    def set_status(self, level: bytes | None, message: str, **extra: Any) -> None:
+        """Override level/message (``DiagnosticStatus.OK/WARN/ERROR``; None = automatic) and add values."""
+        self._level = level
+        self._message = message
+        self._extra.update({k: str(v) for k, v in extra.items()})
+
+    def publish(self) -> None:
+        """Publish one ``DiagnosticArray`` now."""
+        counts = self._stats.counts
+        n_bad = counts.get("bad", 0) + counts.get("errors", 0)
+        status = DiagnosticStatus()
+        status.name = self._name
+        status.hardware_id = self._hardware_id
+        if self._level is not None:
+            status.level = self._level
+            status.message = self._message
+        elif n_bad > self._last_bad:
+            status.level = DiagnosticStatus.WARN
+            status.message = f"{n_bad - self._last_bad} bad messages; last: {self._stats.last_reason}"
+        else:
+            status.level = DiagnosticStatus.OK
+            status.message = self._message or "ok"
+        self._last_bad = n_bad
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in counts.items()]
+        status.values += [KeyValue(key=k, value=v) for k, v in self._extra.items()]
+        msg = DiagnosticArray()
+        msg.header.stamp = self._node.get_clock().now().to_msg()
+        msg.status = [status]
+        self._pub.publish(msg)
