@@ -10,7 +10,7 @@ from conftest import DATA
 
 from ppoe_core import PPOEModel, lie, load_model_config, parse_urdf
 from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
-from ppoe_core.model.ppoe import compound_fourth_order
+from ppoe_core.model.fourth_order import compound_fourth_order
 
 EDGE = DATA / "ppoe_edge.urdf"
 EDGE_YAML = DATA / "ppoe_edge_model.yaml"
@@ -544,7 +544,7 @@ def test_random_trees_against_reference(tree, data):
 
 
 def test_fourth_order_batch_last_matches_reference_form():
-    from ppoe_core.model.ppoe import _compound4_batch_last
+    from ppoe_core.model.fourth_order import _compound4_batch_last
 
     rng = np.random.default_rng(7)
     A = rng.normal(size=(5, 6, 6)) * 0.1

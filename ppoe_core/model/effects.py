@@ -44,14 +44,14 @@ Context keys (``context`` of :meth:`Effect.corrections`), each broadcast like th
 
 from __future__ import annotations
 
-from typing import Any
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from ppoe_core import lie
-from ppoe_core.robot.config import EFFECT_NAMES as _CONFIG_EFFECT_NAMES
 from ppoe_core.errors import ModelConfigError, UnknownFrameError, UnknownJointError
+from ppoe_core.robot.config import EFFECT_NAMES as _CONFIG_EFFECT_NAMES
 from ppoe_core.robot.urdf import Robot
 
 __all__ = [
