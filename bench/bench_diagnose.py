@@ -87,7 +87,7 @@ def hilti(quick: bool) -> None:
 
 def ten_minute_bag() -> None:
     from ppoe_core.io.bagio import BagWriter
-    from ppoe_core.model.effects import KinematicTree, apply_corrections, make_effect
+    from ppoe_core.model.effects import KinematicTree, make_effect, sum_effect_corrections
     from ppoe_ros.cli import main
 
     urdf = (REPO / "config" / "robots" / "arm7.urdf").read_text()
@@ -112,7 +112,7 @@ def ten_minute_bag() -> None:
                 for t, qv in zip(k * period + ts, qs):
                     w.write_joint_state(float(t), names, qv)
                 q = {j: np.array(targets[k][i]) for i, j in enumerate(names)}
-                dq, dxi = apply_corrections([eff], q, {})
+                dq, dxi = sum_effect_corrections([eff], q, {})
                 x = (tree.link_poses(q, dq, dxi)["tool0"] @ np.array([0.0, 0.0, 0.02, 1.0]))[:3]
                 p = T_tracker_base[:3, :3] @ x + T_tracker_base[:3, 3] + rng.normal(0, 2e-4, 3)
                 w.write_ground_truth_point(k * period + period - 0.5, "tracker", p)

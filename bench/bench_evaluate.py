@@ -34,8 +34,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from ppoe_core.io.bagio import read_bag  # noqa: E402
 from ppoe_core.analysis.evaluate import EvaluateOptions, evaluate_bag  # noqa: E402
+from ppoe_core.io.bagio import read_bag  # noqa: E402
 from ppoe_core.sim.simulate import simulate  # noqa: E402
 
 __all__ = ["main", "scenario"]

@@ -29,7 +29,7 @@ if str(REPO) not in sys.path:
 
 from ppoe_core import lie  # noqa: E402
 from ppoe_core.estimation.fusion import iterated_update  # noqa: E402
-from ppoe_core.estimation.measurements import ContactPlane, TagObservation, tag_points  # noqa: E402
+from ppoe_core.estimation.measurements import ContactPlaneModel, TagBearingModel, tag_points  # noqa: E402
 
 __all__ = ["main"]
 
@@ -64,7 +64,7 @@ def main() -> int:
     pts = np.vstack([tag_points(0.04, _pose([0.03, 0, 0], [0, 0, 0])), tag_points(0.04, _pose([-0.03, 0, 0], [0, 0, 0]))])
     A = rng.normal(size=(6, 6))
     cov_cam = 1e-5 * (A @ A.T / 6 + 0.1 * np.eye(6))
-    tags = TagObservation(pts, K, D, 0.5, T_ref_camera=T_base_cam, cov_camera=cov_cam)
+    tags = TagBearingModel(pts, K, D, 0.5, T_ref_camera=T_base_cam, cov_camera=cov_cam)
     X0 = T_base_cam @ _pose([0.02, -0.01, 0.6], [np.pi, 0.2, 0.1])
     B = rng.normal(size=(6, 6))
     P = 1e-5 * (B @ B.T / 6 + 0.1 * np.eye(6))
@@ -76,7 +76,7 @@ def main() -> int:
     t_tag_num = _time(lambda: iterated_update(X0, P, z, tags, jacobians="numerical", **kw), args.repeat // 3 + 1)
 
     sigma_v = np.diag([0.5, 0.5, 0.001, 0.017, 0.017, 0.17]) ** 2
-    contact = ContactPlane(np.eye(4), sigma_v, [0.0, 0.0, 0.02])
+    contact = ContactPlaneModel(np.eye(4), sigma_v, [0.0, 0.0, 0.02])
     Xc = _pose([0.4, 0.1, -0.018], [0.0, 0.0, 0.3])  # tool point 2 mm above the table
     t_c = _time(lambda: iterated_update(Xc, P, [0.0], contact), args.repeat)
     t_c_num = _time(lambda: iterated_update(Xc, P, [0.0], contact, jacobians="numerical"), args.repeat // 3 + 1)

@@ -34,10 +34,9 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from ppoe_core import lie  # noqa: E402
-
 from ppoe_core.analysis import evaluate
-from ppoe_core.io.bagio import read_bag  # noqa: E402
 from ppoe_core.estimation.pipeline import make_pipeline  # noqa: E402
+from ppoe_core.io.bagio import read_bag  # noqa: E402
 from ppoe_core.model.ppoe import PPOEModel  # noqa: E402
 from ppoe_ros.common import pose_cov_from_msg, pose_cov_stamped_msg  # noqa: E402
 

@@ -11,7 +11,6 @@ No ROS import anywhere in this package.
 
 from __future__ import annotations
 
-from ppoe_core.robot.config import ModelConfig, load_model_config
 from ppoe_core.errors import (
     BagError,
     CovarianceError,
@@ -26,6 +25,7 @@ from ppoe_core.errors import (
     UrdfError,
 )
 from ppoe_core.model.ppoe import PPOEModel
+from ppoe_core.robot.config import ModelConfig, load_model_config
 from ppoe_core.robot.urdf import Joint, Link, Robot, parse_urdf
 
 __all__ = [

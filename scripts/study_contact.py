@@ -32,10 +32,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from collections.abc import Mapping
 
 import numpy as np
 
@@ -45,7 +45,7 @@ if str(REPO) not in sys.path:
 
 from ppoe_core import lie  # noqa: E402
 from ppoe_core.estimation.fusion import iterated_update  # noqa: E402
-from ppoe_core.estimation.measurements import ContactPlane  # noqa: E402
+from ppoe_core.estimation.measurements import ContactPlaneModel  # noqa: E402
 from ppoe_core.model.ppoe import PPOEModel  # noqa: E402
 
 __all__ = ["StaticErrors", "ContactRun", "draw_errors", "run_contact", "main"]
@@ -122,7 +122,7 @@ def run_contact(model: PPOEModel, errors: StaticErrors, rng: np.random.Generator
     w = np.linalg.cholesky(c.covariance + 1e-300 * np.eye(6)) @ rng.standard_normal(6)
     w[[0, 1, 5]] = 0.0  # lateral shifts and yaw of an infinite plane: no physical effect
     T_plane_believed = T_plane_true @ lie.exp(w)
-    meas = ContactPlane(T_plane_believed, c.covariance, point_tool, name="table contact")
+    meas = ContactPlaneModel(T_plane_believed, c.covariance, point_tool, name="table contact")
 
     X, P = model.fk(Q_TOUCH, cam, tip)
     if naive:

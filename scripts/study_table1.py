@@ -36,9 +36,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
-from collections.abc import Mapping
 
 import numpy as np
 
@@ -47,7 +47,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from ppoe_core.estimation.fusion import iterated_update  # noqa: E402
-from ppoe_core.estimation.measurements import TagObservation, tag_points  # noqa: E402
+from ppoe_core.estimation.measurements import TagBearingModel, tag_points  # noqa: E402
 from ppoe_core.model.ppoe import PPOEModel  # noqa: E402
 
 __all__ = ["StaticErrors", "find_configurations", "run_study", "main"]
@@ -159,7 +159,7 @@ def find_configurations(model: PPOEModel, experiment: int, n: int, rng: np.rando
     raise RuntimeError(f"experiment {experiment}: found only {len(picked)} of {n} configurations")
 
 
-def _observation(model: PPOEModel, joints: dict, points: str) -> TagObservation | None:
+def _observation(model: PPOEModel, joints: dict, points: str) -> TagBearingModel | None:
     """Tag model (state T_camera_tool) of the tags that face the camera in this configuration."""
     geo = _tag_geometry(model, joints)
     pts, labels = [], []
@@ -174,7 +174,7 @@ def _observation(model: PPOEModel, joints: dict, points: str) -> TagObservation 
     if not pts:
         return None
     sigma = model.config.camera.pixel_sigma if model.config.camera is not None else 0.5
-    return TagObservation(np.vstack(pts), K_CAM, None, pixel_sigma=sigma, labels=labels, name="tags")
+    return TagBearingModel(np.vstack(pts), K_CAM, None, pixel_sigma=sigma, labels=labels, name="tags")
 
 
 def _lateral_cm(T_est: np.ndarray, T_true: np.ndarray) -> float:

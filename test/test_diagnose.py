@@ -21,7 +21,7 @@ from ppoe_core.analysis.diagnose import (
     write_report,
 )
 from ppoe_core.cli.datasets import stops_from_hilti
-from ppoe_core.model.effects import KinematicTree, apply_corrections, make_effect
+from ppoe_core.model.effects import KinematicTree, make_effect, sum_effect_corrections
 from ppoe_core.robot.urdf import parse_urdf
 
 SIGMA = 1e-4  # tracker noise [m]
@@ -44,7 +44,7 @@ def _synthetic(robot, true_effects=(), n=160, sessions=2, seed=0, extra_dq=None)
     t = np.arange(n) * 5.0
     signs = motion_signs(t, Q, t)
     ctx = {"time": t, "motion_sign": {j: signs[:, i] for i, j in enumerate(names)}}
-    dq, dxi = apply_corrections(list(true_effects), q, ctx)
+    dq, dxi = sum_effect_corrections(list(true_effects), q, ctx)
     for k, v in (extra_dq(q) if extra_dq else {}).items():
         dq[k] = dq.get(k, 0.0) + v
     x = (tree.link_poses(q, dq, dxi)["tool0"] @ np.append(POINT, 1.0))[:, :3]
@@ -302,7 +302,7 @@ def test_accelerometer_picks_the_location_the_tracker_cannot(tmp_path):
     eff = make_effect("mount_bending", "riser_joint", robot, list(truth.values()))
     stops = _synthetic(robot, [eff], seed=14)
     tree = KinematicTree(robot)
-    dq, dxi = apply_corrections([eff], stops.q, stops.context)
+    dq, dxi = sum_effect_corrections([eff], stops.q, stops.context)
     R_plate = tree.link_poses(stops.q, dq, dxi)["mount_plate"][:, :3, :3]
     stops.imus = {"plate": ("mount_plate", 9.81 * R_plate[:, 2, :]
                             + np.random.default_rng(15).normal(0, 4e-4, (len(stops), 3)))}

@@ -8,7 +8,7 @@ from conftest import CONFIG
 
 from ppoe_core import lie
 from ppoe_core.errors import ModelConfigError, UnknownJointError
-from ppoe_core.model.effects import EFFECT_NAMES, KinematicTree, apply_corrections, effect_from_config, make_effect
+from ppoe_core.model.effects import EFFECT_NAMES, KinematicTree, effect_from_config, make_effect, sum_effect_corrections
 from ppoe_core.robot.urdf import parse_urdf
 
 
@@ -29,7 +29,7 @@ def _context(tree: KinematicTree, rng: np.random.Generator, n: int) -> dict:
 
 
 def _point(tree, q, effects, ctx, link="tool0", p=(0.01, -0.02, 0.05)):
-    dq, dxi = apply_corrections(effects, q, ctx)
+    dq, dxi = sum_effect_corrections(effects, q, ctx)
     T = tree.link_poses(q, dq, dxi)[link]
     return (T @ np.append(p, 1.0))[..., :3]
 
@@ -194,7 +194,7 @@ def test_ppoe_model_applies_effects_like_the_tree():
     rng = np.random.default_rng(10)
     q = _random_q(tree, rng, 5)
     effects = [effect_from_config(e, tree.robot) for e in entries]
-    dq, dxi = apply_corrections(effects, q, {})
+    dq, dxi = sum_effect_corrections(effects, q, {})
     T_tree = tree.link_poses(q, dq, dxi)["tool0"]
     T_model = model.fk_mean(q, "base_link", "tool0")
     np.testing.assert_allclose(T_model, T_tree, atol=1e-12)

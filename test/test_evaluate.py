@@ -42,6 +42,7 @@ from ppoe_core.analysis.evaluate import (
     write_report,
 )
 from ppoe_core.errors import BagError, ModelConfigError, PpoeError
+from ppoe_core.estimation import camera
 from ppoe_core.io.bagio import BagWriter
 from ppoe_core.sensing import tags
 from ppoe_core.sensing.tag_rows import centre_from_corners, observe_tags
@@ -364,7 +365,7 @@ def test_observe_tags_against_known_projection():
     truth = {}
     for tid, T in zip([3, 7], T_list):
         P = tags.tag_points_local(size) @ T[:3, :3].T + T[:3, 3]
-        truth[tid] = (tags.project_points(P, _K, _D), P[:, :2] / P[:, 2:])
+        truth[tid] = (camera.project_points(P, _K, _D), P[:, :2] / P[:, 2:])
     assert rows.shape == (10, 6)
     for r in rows:
         uv, xy = truth[int(r[0])]
@@ -372,7 +373,7 @@ def test_observe_tags_against_known_projection():
         assert np.linalg.norm(r[2:4] - uv[c]) < 0.3  # px
         assert np.linalg.norm(r[4:6] - xy[c]) < 0.3 / 600
     # x, y are the undistorted u, v (the centre is distorted back from its x, y)
-    np.testing.assert_allclose(tags.undistort_pixels(rows[:, 2:4], _K, _D), rows[:, 4:6], atol=1e-9)
+    np.testing.assert_allclose(camera.undistort_pixels(rows[:, 2:4], _K, _D), rows[:, 4:6], atol=1e-9)
     # the perspective is strong enough that the corners' mean would be wrong by > 1 px
     centres = rows[rows[:, 1] == 0]
     for r in centres:

@@ -19,11 +19,11 @@ from ppoe_core.estimation.fusion import (
     nis_bounds,
 )
 from ppoe_core.estimation.measurements import (
-    ContactPlane,
+    ContactPlaneModel,
     MeasurementModel,
     PointObservation,
     PoseObservation,
-    TagObservation,
+    TagBearingModel,
     tag_points,
 )
 
@@ -99,7 +99,7 @@ def _contact_case():
     P_ppoe = Ad @ cov_joint @ Ad.T  # PPOE first-order propagation to the tool (eq. 10 / 15)
     X_true = X0 @ lie.exp(Ad @ np.r_[0, 0, 0, 0, np.deg2rad(2.0), 0])
     T_base_plane = _pose([0.4, 0.1, X_true[2, 3]], [0, 0, 0])
-    model = ContactPlane(T_base_plane, SIGMA_V, [0.0, 0.0, 0.0])
+    model = ContactPlaneModel(T_base_plane, SIGMA_V, [0.0, 0.0, 0.0])
     return model, X0, X_true, P_ppoe
 
 
@@ -130,7 +130,7 @@ def test_gate_rejects_ten_sigma_outlier_and_keeps_prior():
     rng = np.random.default_rng(2)
     X0 = _pose([0.02, -0.01, 0.7], [np.pi, 0.1, 0.0])
     P = _spd(rng, 6, 1e-5)
-    model = TagObservation(tag_points(0.05), K, D, pixel_sigma=0.5)
+    model = TagBearingModel(tag_points(0.05), K, D, pixel_sigma=0.5)
     z0 = model.h(X0)
     first = iterated_update(X0, P, z0, model)
     S = first.S
@@ -165,7 +165,7 @@ def test_nees_and_nis_inside_95_percent_bounds_over_500_trials():
     rng = np.random.default_rng(42)
     X0 = _pose([0.05, -0.02, 0.6], [np.pi - 0.3, 0.2, 0.1])
     P = _spd(rng, 6, 4e-6)  # ~2 mm / 2 mrad: small errors, linearisation is good
-    model = TagObservation(
+    model = TagBearingModel(
         np.vstack([tag_points(0.05, _pose([0.04, 0, 0], [0, 0, 0])), tag_points(0.05, _pose([-0.04, 0, 0], [0.3, 0, 0]))]),
         K, D, pixel_sigma=0.5, T_ref_camera=np.eye(4), cov_camera=_spd(rng, 6, 1e-6),
     )
@@ -183,7 +183,7 @@ def test_contact_nees_over_500_trials():
     # plane uncertainty small enough for the first-order filter (see docs/studies.md on the
     # paper's 0.5 m lateral sigma: Exp couples it with the tilt into the normal direction)
     sigma_v = np.diag([0.01, 0.01, 0.001, 0.005, 0.005, 0.05]) ** 2
-    model = ContactPlane(T_base_plane, sigma_v, [0.0, 0.0, 0.02], distance_sigma=5e-4)
+    model = ContactPlaneModel(T_base_plane, sigma_v, [0.0, 0.0, 0.02], distance_sigma=5e-4)
     X0 = T_base_plane @ _pose([0.03, 0.01, -0.02], [0.1, 0.2, 0.3])
     P = _spd(rng, 6, 1e-6)
     mean_nees, mean_nis = _mc_nees(model, X0, P, 500, rng)
@@ -214,11 +214,10 @@ def test_nees_of_sampled_estimates_matches_chi2():
 # --------------------------------------------------------------------------- iteration
 def test_iteration_reduces_linearisation_error():
     """Large prior error: the iterated update fits the measurement better than one step."""
-    rng = np.random.default_rng(4)
     X_true = _pose([0.0, 0.0, 0.5], [np.pi, 0.0, 0.0])
     P = np.diag([0.03, 0.03, 0.03, 0.1, 0.1, 0.1]) ** 2
     X0 = X_true @ lie.exp(np.r_[0.04, -0.03, 0.05, 0.15, -0.1, 0.1])
-    model = TagObservation(np.vstack([tag_points(0.08), tag_points(0.06, _pose([0.1, 0, 0], [0, 0, 0]))]), K, D, pixel_sigma=0.5)
+    model = TagBearingModel(np.vstack([tag_points(0.08), tag_points(0.06, _pose([0.1, 0, 0], [0, 0, 0]))]), K, D, pixel_sigma=0.5)
     z = model.h(X_true)
     one = iterated_update(X0, P, z, model, max_iterations=1, gate_probability=None)
     it = iterated_update(X0, P, z, model, max_iterations=20, gate_probability=None)
@@ -240,9 +239,9 @@ def test_update_is_invariant_to_the_reference_frame(g, seed):
     X0 = T_ref_cam @ _pose(np.r_[rng.normal(size=2) * 0.05, 0.6], np.r_[np.pi, rng.normal(size=2) * 0.2])
     P = _spd(rng, 6, 1e-5)
     pts = tag_points(0.05)
-    z = TagObservation(pts, K, D, T_ref_camera=T_ref_cam).h(_sample(rng, X0, P))
-    a = iterated_update(X0, P, z, TagObservation(pts, K, D, T_ref_camera=T_ref_cam), gate_probability=None)
-    b = iterated_update(G @ X0, P, z, TagObservation(pts, K, D, T_ref_camera=G @ T_ref_cam), gate_probability=None)
+    z = TagBearingModel(pts, K, D, T_ref_camera=T_ref_cam).h(_sample(rng, X0, P))
+    a = iterated_update(X0, P, z, TagBearingModel(pts, K, D, T_ref_camera=T_ref_cam), gate_probability=None)
+    b = iterated_update(G @ X0, P, z, TagBearingModel(pts, K, D, T_ref_camera=G @ T_ref_cam), gate_probability=None)
     np.testing.assert_allclose(b.T, G @ a.T, atol=1e-8)
     np.testing.assert_allclose(b.cov, a.cov, atol=1e-10 * np.abs(P).max() + 1e-14)
     # the posterior is symmetric positive definite and not larger than the prior
@@ -254,7 +253,7 @@ def test_update_is_invariant_to_the_reference_frame(g, seed):
 def test_bad_inputs_raise_clear_errors():
     X0 = _pose([0, 0, 0.6], [np.pi, 0, 0])
     P = np.eye(6) * 1e-4
-    model = TagObservation(tag_points(0.05), K, D, name="tags@camera")
+    model = TagBearingModel(tag_points(0.05), K, D, name="tags@camera")
     z = model.h(X0)
     with pytest.raises(MeasurementError, match="tags@camera: measurement contains NaN"):
         iterated_update(X0, P, np.r_[np.nan, z[1:]], model)

@@ -18,7 +18,7 @@ from ppoe_core.estimation.pipeline import (
     Measurement,
     PriorBuffer,
     PriorSample,
-    UpdateResult,
+    ToolUpdate,
 )
 
 
@@ -41,7 +41,7 @@ class LinearUpdater:
         self.gate = gate
         self.calls = 0
 
-    def __call__(self, T, P, m: Measurement, prior=None) -> UpdateResult:
+    def __call__(self, T, P, m: Measurement, prior=None) -> ToolUpdate:
         self.calls += 1
         T_meas, H, R = m.payload
         if not np.all(np.isfinite(T_meas)):
@@ -50,10 +50,10 @@ class LinearUpdater:
         S = H @ P @ H.T + R
         nis = float(r @ np.linalg.solve(S, r))
         if nis > self.gate:
-            return UpdateResult(T, P, False, nis)
+            return ToolUpdate(T, P, False, nis)
         K = np.linalg.solve(S, H @ P).T
         IKH = np.eye(6) - K @ H
-        return UpdateResult(T @ lie.exp(K @ r), IKH @ P @ IKH.T + K @ R @ K.T, True, nis)
+        return ToolUpdate(T @ lie.exp(K @ r), IKH @ P @ IKH.T + K @ R @ K.T, True, nis)
 
 
 # ----------------------------------------------------------------------------
@@ -377,7 +377,7 @@ def test_pipeline_fused_error_monte_carlo_consistency():
 from conftest import CONFIG  # noqa: E402
 
 from ppoe_core.estimation import measurements as mm  # noqa: E402
-from ppoe_core.estimation.pipeline import ModelUpdater, PlaneContact, TagPoints  # noqa: E402
+from ppoe_core.estimation.pipeline import ContactMeasurement, ModelUpdater, TagMeasurement  # noqa: E402
 
 #: a rover configuration in which tag 0 faces the mast camera
 ROVER_Q = {"pan_joint": -0.378, "tilt_joint": 1.477, "arm_joint_1": -0.247, "arm_joint_2": 1.532,
@@ -408,7 +408,7 @@ def rover_tag_points(model, T_base_tool_true, q, rng, pixel_sigma=0.5, f=600.0):
         xy.append(P[:, :2] / P[:, 2:] + rng.normal(size=(5, 2)) * pixel_sigma / f)
     assert ids, "no tag visible in the rover test configuration"
     xy = np.concatenate(xy)
-    return TagPoints("camera_optical_frame", np.array(ids), np.array(corners), xy, fx=f, fy=f)
+    return TagMeasurement("camera_optical_frame", np.array(ids), np.array(corners), xy, fx=f, fy=f)
 
 
 def test_model_updater_tags_correct_the_rover_kinematics(rover):
@@ -425,7 +425,7 @@ def test_model_updater_tags_correct_the_rover_kinematics(rover):
         pipe.add_prior(0.0, T_prior, P_prior, q)
         pipe.add_prior(0.1, T_prior, P_prior, q)
         out = pipe.add_measurement(Measurement(0.05, "/tag_bearing/observations",
-                                               TagPoints(**vars(rover_tag_points(rover, T_true, ROVER_Q, rng)))))
+                                               TagMeasurement(**vars(rover_tag_points(rover, T_true, ROVER_Q, rng)))))
         assert out.status in ("accepted", "rejected"), out.error
         statuses.append(out.status)
         est, _ = pipe.add_prior(0.2, T_prior, P_prior, q)  # carried to the next prior
@@ -451,10 +451,10 @@ def test_model_updater_bad_measurements_name_the_problem(rover):
     pipe.add_prior(0.0, T_prior, P_prior, q)
     rng = np.random.default_rng(1)
     good = rover_tag_points(rover, T_prior, ROVER_Q, rng)
-    bad_frame = TagPoints("no_such_camera", good.ids, good.corners, good.xy, fx=600.0, fy=600.0)
+    bad_frame = TagMeasurement("no_such_camera", good.ids, good.corners, good.xy, fx=600.0, fy=600.0)
     out = pipe.add_measurement(Measurement(0.0, "/obs", bad_frame))
     assert out.status == "bad" and "no_such_camera" in out.error
-    unknown = TagPoints("camera_optical_frame", good.ids + 40, good.corners, good.xy, fx=600.0, fy=600.0)
+    unknown = TagMeasurement("camera_optical_frame", good.ids + 40, good.corners, good.xy, fx=600.0, fy=600.0)
     out = pipe.add_measurement(Measurement(0.0, "/obs", unknown))
     assert out.status == "bad" and "no point of a tag configured" in out.error
     assert upd.unknown_tag_points == len(good.ids)
@@ -465,7 +465,7 @@ def test_model_updater_bad_measurements_name_the_problem(rover):
     assert out.status == "bad" and "pan_joint" in out.error
     # focal length inferred from u, v when camera_info is missing
     uv = good.xy * 600.0 + [320.0, 240.0]
-    inferred = TagPoints("camera_optical_frame", good.ids, good.corners, good.xy, uv=uv)
+    inferred = TagMeasurement("camera_optical_frame", good.ids, good.corners, good.xy, uv=uv)
     assert pipe.add_measurement(Measurement(0.0, "/obs", inferred)).status == "accepted"
 
 
@@ -491,7 +491,7 @@ def test_model_updater_contact_corrects_distance_to_plane():
         pipe = FusionPipeline(ModelUpdater(model, base, tool))
         pipe.add_prior(0.0, T_prior, P_prior, qv)
         out = pipe.add_measurement(Measurement(0.0, "/contact/plane",
-                                               PlaneContact(c.plane_frame, T_frame_plane, c.covariance)))
+                                               ContactMeasurement(c.plane_frame, T_frame_plane, c.covariance)))
         assert out.status == "accepted", out.error
         d_prior.append(abs(n_plane @ (T_prior[:3, 3] - T_true[:3, 3])))
         d_fused.append(abs(n_plane @ (out.estimate.T_base_tool[:3, 3] - T_true[:3, 3])))

@@ -255,9 +255,9 @@ def test_motoman_model_yaml_validates(moto_bag):
 @needs_data
 def test_motoman_tracker_and_reprojection_baselines():
     """README (i) 0.34 mm Leica RMS and (ii) 23.5 / 25.0 px marker RMS, with our model."""
+    from ppoe_core.estimation.camera import project_points
     from ppoe_core.lie import fit_rigid as kabsch
     from ppoe_core.model.ppoe import PPOEModel
-    from ppoe_core.sensing.tags import project_points
 
     ds = mo.load_motoman(MOTOMAN / "leica_right_hand_6x6x6_dataset.mat")
     model = PPOEModel.from_files(MOTOMAN / "motoman_right.urdf")

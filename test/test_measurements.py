@@ -12,12 +12,12 @@ from ppoe_core.errors import CovarianceError, MeasurementError
 from ppoe_core.estimation.fusion import numerical_jacobian_noise, numerical_jacobian_state
 from ppoe_core.estimation.measurements import (
     ChainedObservation,
-    ContactPlane,
+    ContactPlaneModel,
     GravityObservation,
     PointObservation,
     PoseObservation,
     StackedObservation,
-    TagObservation,
+    TagBearingModel,
     tag_points,
 )
 
@@ -45,7 +45,7 @@ def _tag_setup(rng, mode="pixel", camera_noise=True):
     T_cam_tool = _pose(np.r_[rng.normal(size=2) * 0.1, 0.6], np.r_[np.pi + rng.normal() * 0.3, rng.normal(size=2) * 0.3])
     pts = np.vstack([tag_points(0.05, lie.exp(np.r_[0.03, 0, 0, 0, 0, 0])),
                      tag_points(0.04, lie.exp(np.r_[-0.03, 0.01, 0.0, 0.2, 0, 0]))])
-    model = TagObservation(
+    model = TagBearingModel(
         pts, K, D, pixel_sigma=0.5, mode=mode, T_ref_camera=T_ref_camera,
         cov_camera=_spd(rng, 6, 1e-5) if camera_noise else None,
     )
@@ -59,8 +59,8 @@ def _models(rng):
             out.append(_tag_setup(rng, mode, cam))
     T_ref_plane = _rand_pose(rng)
     X = T_ref_plane @ lie.exp(np.r_[0.2, -0.1, 0.01, rng.normal(size=3)])
-    out.append((ContactPlane(T_ref_plane, SIGMA_PLANE, [0.01, 0.02, 0.05]), X))
-    out.append((ContactPlane(T_ref_plane, SIGMA_PLANE, [0.0, 0.0, 0.1], distance_sigma=1e-3), X))
+    out.append((ContactPlaneModel(T_ref_plane, SIGMA_PLANE, [0.01, 0.02, 0.05]), X))
+    out.append((ContactPlaneModel(T_ref_plane, SIGMA_PLANE, [0.0, 0.0, 0.1], distance_sigma=1e-3), X))
     Xp = _rand_pose(rng)
     out.append((PointObservation([0.1, -0.05, 0.2], 0.0005), Xp))
     out.append((PointObservation([0.1, -0.05, 0.2], _spd(rng, 3, 1e-6), _rand_pose(rng), _spd(rng, 6, 1e-5)), Xp))
@@ -96,7 +96,7 @@ def test_analytic_jacobians_match_central_differences(seed):
 def test_tag_jacobian_property(xi, d):
     """Any moderate pose in front of the camera and any plumb_bob coefficients."""
     pts = tag_points(0.06)
-    model = TagObservation(pts, K, np.asarray(d) * np.array([1, 1, 0.05, 0.05, 1]), cov_camera=np.eye(6) * 1e-4)
+    model = TagBearingModel(pts, K, np.asarray(d) * np.array([1, 1, 0.05, 0.05, 1]), cov_camera=np.eye(6) * 1e-4)
     X = _pose([0, 0, 0.8], [np.pi, 0, 0]) @ lie.exp(np.asarray(xi))
     np.testing.assert_allclose(model.jacobian_state(X), numerical_jacobian_state(model, X), atol=2e-4)
     np.testing.assert_allclose(model.jacobian_noise(X), numerical_jacobian_noise(model, X), atol=2e-4)
@@ -106,12 +106,12 @@ def test_tag_reduces_to_paper_eq25():
     """One point at the tool origin, state T_camera_tool: z = [p1/p3 f1, p2/p3 f2] (eq. 25)."""
     f1, f2 = 600.0, 620.0
     Kz = np.diag([f1, f2, 1.0])
-    model = TagObservation(np.zeros((1, 3)), Kz, None, mode="pixel")
+    model = TagBearingModel(np.zeros((1, 3)), Kz, None, mode="pixel")
     p = np.array([0.1, -0.2, 1.5])
     X = lie.exp(np.r_[0, 0, 0, 0.3, 0.1, 0.2])
     X[:3, 3] = p
     np.testing.assert_allclose(model.h(X), [p[0] / p[2] * f1, p[1] / p[2] * f2], rtol=1e-12)
-    norm = TagObservation(np.zeros((1, 3)), Kz, None, mode="normalized")
+    norm = TagBearingModel(np.zeros((1, 3)), Kz, None, mode="normalized")
     np.testing.assert_allclose(norm.h(X), p[:2] / p[2], rtol=1e-12)
     np.testing.assert_allclose(np.diag(norm.noise_cov), [(0.5 / f1) ** 2, (0.5 / f2) ** 2])
 
@@ -122,7 +122,7 @@ def test_tag_pixels_match_opencv():
     model, X = _tag_setup(rng, "pixel", camera_noise=False)
     K0 = K.copy()
     K0[0, 1] = 0.0  # OpenCV ignores the skew entry
-    model = TagObservation(model.points_tool, K0, D, T_ref_camera=model.T_ref_camera)
+    model = TagBearingModel(model.points_tool, K0, D, T_ref_camera=model.T_ref_camera)
     T_cam_tool = lie.inverse(model.T_ref_camera) @ X
     rvec, _ = cv2.Rodrigues(T_cam_tool[:3, :3])
     uv, _ = cv2.projectPoints(model.points_tool, rvec, T_cam_tool[:3, 3], K0, D)
@@ -131,7 +131,7 @@ def test_tag_pixels_match_opencv():
 
 def test_contact_distance_and_sign():
     T_ref_plane = lie.exp(np.r_[0.1, 0.2, 0.7, 0.0, 0.0, 0.4])
-    model = ContactPlane(T_ref_plane, SIGMA_PLANE, [0, 0, 0.05])
+    model = ContactPlaneModel(T_ref_plane, SIGMA_PLANE, [0, 0, 0.05])
     X = T_ref_plane @ lie.exp(np.r_[0.3, -0.2, 0.0, 0, 0, 0])  # tool frame on the plane, point 5 cm above
     np.testing.assert_allclose(model.h(X), [0.05], atol=1e-12)
     X2 = T_ref_plane @ lie.exp(np.r_[0.3, -0.2, -0.07, 0, 0, 0])
@@ -158,7 +158,7 @@ def test_chained_equals_direct_model_on_link():
 
 # ---------------------------------------------------------------------------- bad input
 def test_point_behind_camera_is_a_clear_error():
-    model = TagObservation(tag_points(0.05), K, D, labels=["tag 7 centre"] + [f"tag 7 corner {i}" for i in range(1, 5)])
+    model = TagBearingModel(tag_points(0.05), K, D, labels=["tag 7 centre"] + [f"tag 7 corner {i}" for i in range(1, 5)])
     X = lie.exp(np.r_[0, 0, -0.5, 0, 0, 0])
     with pytest.raises(MeasurementError, match="tag 7 centre is behind the camera"):
         model.h(X)
@@ -166,26 +166,26 @@ def test_point_behind_camera_is_a_clear_error():
 
 def test_bad_construction_inputs():
     with pytest.raises(MeasurementError, match="points_tool"):
-        TagObservation(np.zeros((3, 2)), K)
+        TagBearingModel(np.zeros((3, 2)), K)
     with pytest.raises(MeasurementError, match="K must be"):
-        TagObservation(np.zeros((1, 3)), np.zeros((3, 3)))
+        TagBearingModel(np.zeros((1, 3)), np.zeros((3, 3)))
     with pytest.raises(MeasurementError, match="plumb_bob"):
-        TagObservation(np.zeros((1, 3)), K, np.ones(8))
+        TagBearingModel(np.zeros((1, 3)), K, np.ones(8))
     with pytest.raises(CovarianceError, match="pixel_sigma"):
-        TagObservation(np.zeros((1, 3)), K, pixel_sigma=-1.0)
+        TagBearingModel(np.zeros((1, 3)), K, pixel_sigma=-1.0)
     bad = np.diag([1.0, 1, 1, 1, 1, -1e-3])
     with pytest.raises(CovarianceError, match="cov_plane: covariance is not positive semi-definite"):
-        ContactPlane(np.eye(4), bad)
+        ContactPlaneModel(np.eye(4), bad)
     with pytest.raises(CovarianceError, match="not symmetric"):
         PoseObservation(np.eye(6) + np.triu(np.ones((6, 6)), 1))
     with pytest.raises(CovarianceError, match="6x6"):
         PointObservation([0, 0, 0], 0.1, np.eye(4), np.eye(5))
     with pytest.raises(MeasurementError, match="rotation"):
-        ContactPlane(np.diag([1.0, 1.0, -1.0, 1.0]), SIGMA_PLANE)
+        ContactPlaneModel(np.diag([1.0, 1.0, -1.0, 1.0]), SIGMA_PLANE)
 
 
 def test_validate_rejects_nan_and_wrong_shape():
-    model = TagObservation(tag_points(0.05), K)
+    model = TagBearingModel(tag_points(0.05), K)
     with pytest.raises(MeasurementError, match=r"shape \(8,\), expected \(10,\)"):
         model.validate(np.zeros(8))
     z = np.zeros(10)

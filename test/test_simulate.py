@@ -12,6 +12,7 @@ from conftest import BAGS, CONFIG
 
 from ppoe_core import lie
 from ppoe_core.errors import ScenarioError
+from ppoe_core.estimation import camera
 from ppoe_core.io import bagio
 from ppoe_core.model import effects
 from ppoe_core.robot.urdf import parse_urdf
@@ -154,7 +155,7 @@ def test_backlash_and_thermal_growth_match_the_catalogue() -> None:
     tree = effects.KinematicTree(ARM7)
     effs = [effects.effect_from_config(entries[0], tree),
             effects.effect_from_config({**entries[1], "variable": "time", "reference": 0.0}, tree)]
-    dq, dxi = effects.apply_corrections(effs, q, {"motion_sign": sign, "time": t})
+    dq, dxi = effects.sum_effect_corrections(effs, q, {"motion_sign": sign, "time": t})
     np.testing.assert_allclose(P_true["tool0"], tree.link_poses(q, dq, dxi)["tool0"], atol=1e-12)
 
 
@@ -188,7 +189,7 @@ def test_tags_rendered_at_true_pose_with_camera_error(tmp_path: Path) -> None:
                 if item.id in det:
                     T = T_cam @ P[item.link][0] @ item.T_link_tag
                     pts = tags.tag_points_local(item.size) @ T[:3, :3].T + T[:3, 3]
-                    uv = tags.project_points(pts, d.camera_info.K[i], d.camera_info.D[i])
+                    uv = camera.project_points(pts, d.camera_info.K[i], d.camera_info.D[i])
                     errs.append(np.abs(det[item.id].corners - uv[1:]).max())
     assert n_det >= 2 and res.visible_tags
     # tags drawn at the true pose (corners of ~20 px tags found to a fraction of a pixel)

@@ -13,6 +13,7 @@ from std_msgs.msg import Header  # noqa: E402
 
 from ppoe_core import lie  # noqa: E402
 from ppoe_core.errors import MeasurementError  # noqa: E402
+from ppoe_core.estimation import camera
 from ppoe_core.sensing import tags
 from ppoe_core.sensing.tag_rows import observe_tags  # noqa: E402  (what the node publishes)
 from ppoe_ros.common.tag_cloud import cloud_from_observations, observations_from_cloud  # noqa: E402
@@ -39,7 +40,7 @@ def _truth(T_list):
     rows = []
     for tid, T in zip(TAG_IDS, T_list):
         P = tags.tag_points_local(SIZE) @ T[:3, :3].T + T[:3, 3]
-        uv = tags.project_points(P, K, D)
+        uv = camera.project_points(P, K, D)
         xy = P[:, :2] / P[:, 2:]
         for c in range(5):
             rows.append([tid, c, *uv[c], *xy[c]])
@@ -58,7 +59,7 @@ def test_observe_tags_matches_known_projection():
     err_n = np.linalg.norm(rows[:, 4:6] - truth[:, 4:6], axis=1)
     assert err_n.max() < 0.5 / 600 * 1.5
     # x, y are exactly the undistorted coordinates of u, v (centre: distorted back)
-    np.testing.assert_allclose(tags.undistort_pixels(rows[:, 2:4], K, D), rows[:, 4:6], atol=1e-9)
+    np.testing.assert_allclose(camera.undistort_pixels(rows[:, 2:4], K, D), rows[:, 4:6], atol=1e-9)
     # filtering by id
     rows7, _ = observe_tags(img, K, D, "tag36h11", tag_ids=[7])
     assert set(rows7[:, 0]) == {7.0} and rows7.shape == (5, 6)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from ppoe_core.errors import MeasurementError
+from ppoe_core.estimation import camera
 from ppoe_core.sensing import tags
 
 K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
@@ -41,7 +42,7 @@ def test_render_then_detect_matches_projection(rpy: tuple, t: tuple) -> None:
     det = tags.detect_tags(img)
     assert [d.id for d in det] == [7]
     P = tags.tag_points_local(size) @ T[:3, :3].T + T[:3, 3]
-    uv = tags.project_points(P, K, D)
+    uv = camera.project_points(P, K, D)
     err_corners = np.linalg.norm(det[0].corners - uv[1:], axis=1)
     assert err_corners.max() < 0.15, err_corners           # edge-fit refinement (default)
     # centre: diagonal intersection; with lens distortion it is within a fraction of a pixel
@@ -91,7 +92,7 @@ def test_edge_refinement_on_small_tags() -> None:
         T = _pose((np.pi + rng.uniform(-0.8, 0.8), rng.uniform(-0.3, 0.3), rng.uniform(0, 6)),
                   (rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), rng.uniform(1.0, 1.8)))
         img, _ = tags.render_tags((640, 480), K, D, [T], [10], 0.04, noise_sigma=1.0, rng=rng)
-        uv = tags.project_points(tags.tag_points_local(0.04) @ T[:3, :3].T + T[:3, 3], K, D)[1:]
+        uv = camera.project_points(tags.tag_points_local(0.04) @ T[:3, :3].T + T[:3, 3], K, D)[1:]
         for refine, errs in (("edges", err_edges), ("subpix", err_cv)):
             det = tags.detect_tags(img, refine=refine)
             if det:
@@ -114,6 +115,6 @@ def test_errors_name_the_problem() -> None:
 def test_undistort_inverts_project() -> None:
     rng = np.random.default_rng(3)
     P = np.column_stack([rng.uniform(-0.3, 0.3, (50, 2)), rng.uniform(0.5, 2.0, 50)])
-    uv = tags.project_points(P, K, D)
-    xy = tags.undistort_pixels(uv, K, D)
+    uv = camera.project_points(P, K, D)
+    xy = camera.undistort_pixels(uv, K, D)
     np.testing.assert_allclose(xy, P[:, :2] / P[:, 2:], atol=1e-8)

@@ -58,10 +58,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Diagnose, print and optionally write the report and the updated model; returns 0."""
-    from ppoe_core.io.bagio import bag_topics, read_bag
-    from ppoe_core.analysis.diagnose import (DiagnoseOptions, Stops, add_pixel_diagnosis, concat_pixel_obs, diagnose,
-                                    load_model, pixels_from_bag, stops_from_bag, write_model_yaml, write_report)
+    from ppoe_core.analysis.diagnose import (
+        DiagnoseOptions,
+        Stops,
+        add_pixel_diagnosis,
+        concat_pixel_obs,
+        diagnose,
+        load_model,
+        pixels_from_bag,
+        stops_from_bag,
+        write_model_yaml,
+        write_report,
+    )
     from ppoe_core.errors import BagError
+    from ppoe_core.io.bagio import bag_topics, read_bag
     from ppoe_core.robot.urdf import parse_urdf
 
     urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description

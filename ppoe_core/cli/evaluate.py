@@ -61,7 +61,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Evaluate, print and optionally write the report; returns 0."""
-    from ppoe_core.analysis.evaluate import EvaluateOptions, evaluate_bag, load_fusion_params, markdown_report, write_report
+    from ppoe_core.analysis.evaluate import (
+        EvaluateOptions,
+        evaluate_bag,
+        load_fusion_params,
+        markdown_report,
+        write_report,
+    )
 
     progress = sys.stderr.isatty() if args.progress is None else bool(args.progress)
     fusion = load_fusion_params(args.fusion_params) if args.fusion_params else {}

@@ -28,8 +28,8 @@ import json
 import math
 import os
 import sys
-from typing import Any, TextIO
 from collections.abc import Mapping, Sequence
+from typing import Any, TextIO
 
 import numpy as np
 

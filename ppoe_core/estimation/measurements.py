@@ -12,7 +12,7 @@ perturbation ``X Exp(xi)``, ``xi = [rho; theta]`` (CONTRACT sec. 1), and gives
 
 Models
 ------
-:class:`TagObservation`
+:class:`TagBearingModel`
     Pixel (plumb_bob distorted) or normalised image coordinates of points fixed to the state's
     child frame (tag centres and corners), seen from a camera.  Eq. 25 of the paper is the
     special case of one point at the origin of ``X = T_camera_tool`` in normalised
@@ -20,7 +20,7 @@ Models
     The camera pose ``T_ref_camera`` may be uncertain: its 6x6 covariance (tangent space at
     ``T_ref_camera``) then enters as extra noise through ``M``.  This is how the fusion node
     uses state ``T_base_tool`` with the camera chain ``T_base_camera`` from the PPOE model.
-:class:`ContactPlane`
+:class:`ContactPlaneModel`
     Signed distance of a tool point from a plane along the plane's normal (its z axis);
     in contact ``z = 0``.  The plane pose covariance ``Sigma_v`` (6x6, tangent space at the
     plane pose, i.e. in the plane frame, paper section V-B) enters through ``M``.
@@ -55,25 +55,25 @@ calls them once per iteration.
 
 from __future__ import annotations
 
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.errors import CovarianceError, MeasurementError
+from ppoe_core.estimation.camera import distortion_coefficients, project_points_jacobian
 
 __all__ = [
     "MeasurementModel",
-    "TagObservation",
-    "ContactPlane",
+    "TagBearingModel",
+    "ContactPlaneModel",
     "PointObservation",
     "PoseObservation",
     "GravityObservation",
     "ChainedObservation",
     "StackedObservation",
     "tag_points",
-    "project_points",
 ]
 
 STANDARD_GRAVITY = 9.80665  # m/s^2
@@ -190,80 +190,7 @@ def tag_points(size: float, T_link_tag: np.ndarray | None = None) -> np.ndarray:
     return pts
 
 
-def _distortion(D: Sequence[float] | None, name: str) -> np.ndarray:
-    if D is None:
-        return np.zeros(5)
-    D_arr = np.asarray(D, dtype=float).ravel()
-    if D_arr.size > 5 and np.any(D_arr[5:] != 0):
-        raise MeasurementError(
-            f"{name}: only the plumb_bob model (k1, k2, p1, p2, k3) is supported, got {D_arr.size} "
-            "non-zero-padded distortion coefficients"
-        )
-    if not np.all(np.isfinite(D_arr)):
-        raise MeasurementError(f"{name}: distortion coefficients contain NaN/inf")
-    out = np.zeros(5)
-    out[: min(5, D_arr.size)] = D_arr[:5]
-    return out
-
-
-def _distort(xy: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """plumb_bob distortion of normalised points ``xy`` (n, 2) -> (xd (n,2), J (n,2,2))."""
-    k1, k2, p1, p2, k3 = D
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-    drad = k1 + 2 * k2 * r2 + 3 * k3 * r2**2
-    xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    J = np.empty((xy.shape[0], 2, 2))
-    J[:, 0, 0] = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
-    J[:, 0, 1] = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-    J[:, 1, 0] = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-    J[:, 1, 1] = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
-    return np.stack([xd, yd], axis=-1), J
-
-
-def project_points(
-    p_camera: np.ndarray,
-    K: np.ndarray | None,
-    D: np.ndarray | None,
-    mode: str = "pixel",
-) -> tuple[np.ndarray, np.ndarray]:
-    """Project camera-frame points and return the Jacobian w.r.t. the 3D point.
-
-    Parameters
-    ----------
-    p_camera : ndarray, shape (n, 3)
-        Points in the camera optical frame (z forward), z > 0.
-    K : ndarray, shape (3, 3) or None
-        Intrinsics (only used in "pixel" mode).
-    D : ndarray, shape (5,) or None
-        plumb_bob coefficients (k1, k2, p1, p2, k3) (only used in "pixel" mode).
-    mode : {"pixel", "normalized"}
-        Raw distorted pixels ``(u, v)`` or undistorted normalised ``(X/Z, Y/Z)``.
-
-    Returns
-    -------
-    uv : ndarray, shape (n, 2)
-    J : ndarray, shape (n, 2, 3)
-        ``d uv / d p_camera``.
-    """
-    X, Y, Z = p_camera[:, 0], p_camera[:, 1], p_camera[:, 2]
-    xy = np.stack([X / Z, Y / Z], axis=-1)
-    Jp = np.zeros((p_camera.shape[0], 2, 3))
-    Jp[:, 0, 0] = 1 / Z
-    Jp[:, 0, 2] = -X / Z**2
-    Jp[:, 1, 1] = 1 / Z
-    Jp[:, 1, 2] = -Y / Z**2
-    if mode == "normalized":
-        return xy, Jp
-    xyd, Jd = _distort(xy, np.zeros(5) if D is None else D)
-    A = np.asarray(K, dtype=float)[:2, :2]
-    uv = xyd @ A.T + np.asarray(K, dtype=float)[:2, 2]
-    return uv, np.einsum("ij,njk,nkl->nil", A, Jd, Jp)
-
-
-class TagObservation(MeasurementModel):
+class TagBearingModel(MeasurementModel):
     """Image coordinates of points fixed to the state's child frame (eq. 25 generalised).
 
     State ``X = T_ref_tool``: the points' frame in a reference frame ``ref``.  The camera
@@ -330,7 +257,7 @@ class TagObservation(MeasurementModel):
             raise CovarianceError(f"{name}: pixel_sigma must be > 0, got {pixel_sigma}")
         self.points_tool = pts
         self.K = K
-        self.D = _distortion(D, name)
+        self.D = distortion_coefficients(D, name)
         self.mode = mode
         self.pixel_sigma = float(pixel_sigma)
         self.T_ref_camera = (
@@ -372,18 +299,18 @@ class TagObservation(MeasurementModel):
     def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         """Predicted ``[u_0, v_0, u_1, v_1, ...]`` (2n,) for ``T_state = T_ref_tool``."""
         if v is None:
-            uv, _ = project_points(self.points_camera(T_state), self.K, self.D, self.mode)
+            uv, _ = project_points_jacobian(self.points_camera(T_state), self.K, self.D, self.mode)
             return uv.ravel()
         v = self._noise(v)
         w = v[self.dim :] if self.has_camera_noise else None
-        uv, _ = project_points(self.points_camera(T_state, w), self.K, self.D, self.mode)
+        uv, _ = project_points_jacobian(self.points_camera(T_state, w), self.K, self.D, self.mode)
         return uv.ravel() + v[: self.dim]
 
     def linearize(self, T_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(h(T), H, M)`` sharing one projection (see :meth:`jacobian_state`,
         :meth:`jacobian_noise`)."""
         p_c = self.points_camera(T_state)
-        uv, Jproj = project_points(p_c, self.K, self.D, self.mode)
+        uv, Jproj = project_points_jacobian(p_c, self.K, self.D, self.mode)
         n = p_c.shape[0]
         R_ct = (self.T_camera_ref @ T_state)[:3, :3]
         Jx = np.empty((n, 3, 6))
@@ -409,7 +336,7 @@ class TagObservation(MeasurementModel):
 
 
 # --------------------------------------------------------------------------- contact
-class ContactPlane(MeasurementModel):
+class ContactPlaneModel(MeasurementModel):
     """Signed distance of a tool point from a plane along the plane normal (paper V-B).
 
     State ``X = T_ref_tool``; plane pose ``T_ref_plane`` (normal = plane z axis) with

@@ -39,9 +39,9 @@ from __future__ import annotations
 
 import bisect
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
-from collections.abc import Callable
 
 import numpy as np
 
@@ -53,19 +53,19 @@ __all__ = [
     "PriorBuffer",
     "LookupStatus",
     "Measurement",
-    "UpdateResult",
+    "ToolUpdate",
     "MeasurementUpdater",
     "CorrectionPolicy",
     "CarriedCorrection",
     "FusedEstimate",
     "MeasurementOutcome",
     "FusionPipeline",
-    "TagPoints",
-    "PlaneContact",
+    "TagMeasurement",
+    "ContactMeasurement",
     "ModelUpdater",
     "COUNT_KEYS",
     "posterior_cost",
-    "apply_corrections",
+    "apply_carried_corrections",
     "FUSION_SETTINGS",
     "make_pipeline",
     "make_updater",
@@ -276,7 +276,7 @@ class Measurement:
 
 
 @dataclass(frozen=True)
-class UpdateResult:
+class ToolUpdate:
     """What an updater returns.
 
     Attributes
@@ -298,7 +298,7 @@ class UpdateResult:
 
 
 class MeasurementUpdater(Protocol):
-    """``updater(T_base_tool, cov_tool, measurement, prior) -> UpdateResult``.
+    """``updater(T_base_tool, cov_tool, measurement, prior) -> ToolUpdate``.
 
     ``(T_base_tool, cov_tool)`` is the estimate to update (the prior at the measurement's
     stamp with the carried correction applied); ``cov_tool`` lives in the tangent space at
@@ -309,7 +309,7 @@ class MeasurementUpdater(Protocol):
 
     def __call__(
         self, T_base_tool: Array, cov_tool: Array, measurement: Measurement, prior: PriorSample
-    ) -> UpdateResult:
+    ) -> ToolUpdate:
         ...
 
 
@@ -465,10 +465,10 @@ class CarriedCorrection:
         measurement ``z = H e + n``, ``n ~ N(0, diag(R) / weight)``; covariance in Joseph form
         (tool tangent space at the returned pose).
         """
-        return apply_corrections(prior, [(self, weight)])
+        return apply_carried_corrections(prior, [(self, weight)])
 
 
-def apply_corrections(
+def apply_carried_corrections(
     prior: PriorSample, corrections: list[tuple[CarriedCorrection, float]]
 ) -> tuple[Array, Array]:
     """Apply several weighted corrections (independent equivalent measurements) at once.
@@ -569,7 +569,7 @@ class FusionPipeline:
     Parameters
     ----------
     updater : MeasurementUpdater
-        ``updater(T_base_tool, cov_tool, measurement, prior) -> UpdateResult``: the iterated
+        ``updater(T_base_tool, cov_tool, measurement, prior) -> ToolUpdate``: the iterated
         LG-EKF update with gating (``ppoe_core.estimation.fusion``) for the measurement's model, e.g.
         :class:`ModelUpdater`.
     buffer_duration : float
@@ -605,7 +605,7 @@ class FusionPipeline:
 
     def __init__(
         self,
-        updater: MeasurementUpdater | Callable[[Array, Array, Measurement, PriorSample], UpdateResult],
+        updater: MeasurementUpdater | Callable[[Array, Array, Measurement, PriorSample], ToolUpdate],
         buffer_duration: float = 1.0,
         max_gap: float = 0.2,
         max_hold: float = 0.5,
@@ -765,7 +765,7 @@ class FusionPipeline:
                 applied.append((corr, w))
         if not applied:
             return FusedEstimate(prior.stamp, prior.T_base_tool, prior.cov_tool, 0.0, prior)
-        T, cov = apply_corrections(prior, applied)
+        T, cov = apply_carried_corrections(prior, applied)
         return FusedEstimate(prior.stamp, T, cov, max(w for _, w in applied), prior)
 
     def fused_at(self, stamp: float) -> FusedEstimate | None:
@@ -819,7 +819,7 @@ class FusionPipeline:
 
 
 @dataclass(frozen=True)
-class TagPoints:
+class TagMeasurement:
     """Payload of one ``/tag_bearing/observations`` message (one image).
 
     Attributes
@@ -848,7 +848,7 @@ class TagPoints:
 
 
 @dataclass(frozen=True)
-class PlaneContact:
+class ContactMeasurement:
     """Payload of one ``/contact/plane`` message: the tool point lies on this plane.
 
     Attributes
@@ -973,7 +973,7 @@ class ModelUpdater:
         joints = self._joints(prior)
         p = measurement.payload
         where = f"{measurement.source} at stamp {measurement.stamp:.6f}"
-        if isinstance(p, TagPoints):
+        if isinstance(p, TagMeasurement):
             ids = np.asarray(p.ids).astype(int).reshape(-1)
             corners = np.asarray(p.corners).astype(int).reshape(-1)
             xy = np.asarray(p.xy, dtype=np.float64).reshape(-1, 2)
@@ -1014,18 +1014,18 @@ class ModelUpdater:
             else:
                 T_base_cam, cov_cam = self.model.fk_mean(joints, self.base_frame, p.camera_frame), None
             K = np.array([[fx, 0.0, 0.0], [0.0, fy, 0.0], [0.0, 0.0, 1.0]])
-            obs = mm.TagObservation(
+            obs = mm.TagBearingModel(
                 np.asarray(pts), K, None, pixel_sigma=self.pixel_sigma, mode="normalized",
                 T_ref_camera=T_base_cam, cov_camera=cov_cam, labels=labels, name=where,
             )
             return obs, xy[keep].reshape(-1)
-        if isinstance(p, PlaneContact):
+        if isinstance(p, ContactMeasurement):
             if self.contact is None:
                 raise MeasurementError(f"{where}: the model YAML has no 'contact' section (tool point)")
             T_base_frame = self.model.fk_mean(joints, self.base_frame, p.frame)
             T_tool_contact = self.model.fk_mean(joints, self.tool_frame, self.contact.tool_link)
             point_tool = T_tool_contact[:3, :3] @ self.contact.tool_xyz + T_tool_contact[:3, 3]
-            obs = mm.ContactPlane(
+            obs = mm.ContactPlaneModel(
                 T_base_frame @ np.asarray(p.T_frame_plane, float), p.cov_plane, point_tool,
                 distance_sigma=self.contact_distance_sigma, name=where,
             )
@@ -1034,7 +1034,7 @@ class ModelUpdater:
 
     def __call__(
         self, T_base_tool: Array, cov_tool: Array, measurement: Measurement, prior: PriorSample | None = None
-    ) -> UpdateResult:
+    ) -> ToolUpdate:
         """Iterated LG-EKF update (``ppoe_core.estimation.fusion.iterated_update``) with gating."""
         from ppoe_core.estimation.fusion import chi2_gate, iterated_update
 
@@ -1046,12 +1046,12 @@ class ModelUpdater:
         )
         self.last_result = res
         if self.gating == "prior" or self.gate_probability is None:
-            return UpdateResult(res.T, res.cov, bool(res.accepted), float(res.nis))
+            return ToolUpdate(res.T, res.cov, bool(res.accepted), float(res.nis))
         cost = posterior_cost(obs, res.T, res.residual, res.correction, cov_tool)
         gate = chi2_gate(obs.dim, self.gate_probability)
         if not cost <= gate:
-            return UpdateResult(np.asarray(T_base_tool, float), np.asarray(cov_tool, float), False, cost)
-        return UpdateResult(res.T, res.cov, True, cost)
+            return ToolUpdate(np.asarray(T_base_tool, float), np.asarray(cov_tool, float), False, cost)
+        return ToolUpdate(res.T, res.cov, True, cost)
 
 
 def posterior_cost(obs: Any, T_post: Array, residual: Array, correction: Array, cov_prior: Array) -> float:

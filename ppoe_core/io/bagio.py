@@ -35,10 +35,10 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
-from collections.abc import Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -68,7 +68,7 @@ __all__ = [
     "PoseSeries",
     "PointSeries",
     "ImuSeries",
-    "TagObservations",
+    "TagObservationRows",
     "PoseCovSeries",
     "RawMessage",
     "read_bag",
@@ -697,7 +697,7 @@ class ImuSeries:
 
 
 @dataclass
-class TagObservations:
+class TagObservationRows:
     """``/tag_bearing/observations``, flattened over messages.
 
     ``stamps``/``frame_ids`` are per message (M,); the point arrays are (P,) /
@@ -754,7 +754,7 @@ class BagData:
     ground_truth_pose: PoseSeries = field(default_factory=PoseSeries)
     ground_truth_point: PointSeries = field(default_factory=PointSeries)
     imus: dict[str, ImuSeries] = field(default_factory=dict)
-    tag_observations: TagObservations = field(default_factory=TagObservations)
+    tag_observations: TagObservationRows = field(default_factory=TagObservationRows)
     poses_with_covariance: dict[str, PoseCovSeries] = field(default_factory=dict)
     #: every topic of the bag -> (message type, message count)
     topics: dict[str, tuple[str, int]] = field(default_factory=dict)
@@ -1075,7 +1075,7 @@ def _finish(data: BagData, acc: dict[str, list[Any]]) -> None:
             clouds = [e[2] for e in lst]
             idx = np.concatenate([np.full(c.shape[0], i, dtype=int) for i, c in enumerate(clouds)])
             allp = np.concatenate(clouds, axis=0) if clouds else np.zeros((0, 6))
-            data.tag_observations = TagObservations(stamps, frames, idx, np.rint(allp[:, 0]).astype(int),
+            data.tag_observations = TagObservationRows(stamps, frames, idx, np.rint(allp[:, 0]).astype(int),
                                                     np.rint(allp[:, 1]).astype(int), allp[:, 2:4].copy(),
                                                     allp[:, 4:6].copy())
         else:

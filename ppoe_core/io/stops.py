@@ -24,8 +24,8 @@ def read_stop_info(bag_path: str) -> list[tuple[float, dict]]:
     """
     import json
 
-    from ppoe_core.io.bagio import deserialize, iter_raw
     from ppoe_core.errors import BagError
+    from ppoe_core.io.bagio import deserialize, iter_raw
 
     out = []
     for k, raw in enumerate(iter_raw(bag_path, topics=[STOP_TOPIC])):

@@ -71,7 +71,7 @@ __all__ = [
     "TrackerRegistration",
     "effect_from_config",
     "make_effect",
-    "apply_corrections",
+    "sum_effect_corrections",
 ]
 
 #: standard gravity [m/s^2]
@@ -711,7 +711,7 @@ def effect_from_config(entry: Mapping[str, Any], robot: Robot | KinematicTree,
     return eff.with_params(vals)
 
 
-def apply_corrections(effects: Sequence[Effect], q: Mapping[str, Any],
+def sum_effect_corrections(effects: Sequence[Effect], q: Mapping[str, Any],
                       context: Mapping[str, Any] | None = None,
                       poses: Mapping[str, np.ndarray] | None = None) -> Corrections:
     """Sum the corrections of several effects: ``(dq, dxi)`` dictionaries (eq. 16 hooks)."""

@@ -16,21 +16,21 @@ live node publishes:
 
 from __future__ import annotations
 
-from typing import Any
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
 from ppoe_core import lie
-from ppoe_core.robot.config import ContactConfig
 from ppoe_core.errors import CovarianceError, MeasurementError, ModelConfigError
+from ppoe_core.robot.config import ContactConfig
 
 __all__ = [
     "FORCE_COMPONENTS",
     "DEFAULT_FORCE_THRESHOLD",
     "DEFAULT_RELEASE_THRESHOLD",
     "ContactDetector",
-    "PlaneConfig",
+    "PublishedPlane",
     "plane_from_config",
     "force_measure",
     "contact_stamps",
@@ -116,7 +116,7 @@ class ContactDetector:
         return self.in_contact
 
 
-class PlaneConfig:
+class PublishedPlane:
     """The contact plane as the contact node publishes it.
 
     Attributes
@@ -143,7 +143,7 @@ _PLANE_PARAM_DEFAULTS: dict[str, Any] = {"plane_frame": "", "plane_xyz": [], "pl
 
 
 def plane_from_config(contact: ContactConfig | None, frames_base: str | None,
-                      params: Mapping[str, Any] | None = None, where: str = "contact") -> PlaneConfig:
+                      params: Mapping[str, Any] | None = None, where: str = "contact") -> PublishedPlane:
     """Plane pose and Sigma_v from parameters, falling back on the model YAML ``contact`` section.
 
     Parameters
@@ -163,7 +163,7 @@ def plane_from_config(contact: ContactConfig | None, frames_base: str | None,
 
     Returns
     -------
-    PlaneConfig
+    PublishedPlane
         ``cov_plane`` in the tangent space at ``T_frame_plane`` (plane frame).
 
     Raises
@@ -201,7 +201,7 @@ def plane_from_config(contact: ContactConfig | None, frames_base: str | None,
         cov = lie.check_covariance(cov, f"{where}: contact plane Sigma_v", size=6)
     except CovarianceError as exc:
         raise ModelConfigError(str(exc)) from None
-    return PlaneConfig(str(frame), T, cov)
+    return PublishedPlane(str(frame), T, cov)
 
 
 def contact_stamps(stamps: np.ndarray, force: np.ndarray, detector: ContactDetector,

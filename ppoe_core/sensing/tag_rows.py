@@ -14,11 +14,12 @@ camera optical frame.
 
 from __future__ import annotations
 
-from typing import Any
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
+from ppoe_core.estimation.camera import project_points, undistort_pixels
 from ppoe_core.sensing import tags as tagmod
 
 __all__ = ["OBSERVATION_FIELDS", "DEFAULT_CORNER_REFINEMENT", "observe_tags", "centre_from_corners"]
@@ -67,9 +68,9 @@ def observe_tags(
     """Detect tags in one image and return their observation rows.
 
     Corners come from :func:`ppoe_core.sensing.tags.detect_tags`, ``x, y`` from
-    :func:`ppoe_core.sensing.tags.undistort_pixels` (``cv2.undistortPoints``); the centre is
+    :func:`ppoe_core.estimation.camera.undistort_pixels` (``cv2.undistortPoints``); the centre is
     :func:`centre_from_corners` of the undistorted corners, distorted back with
-    :func:`ppoe_core.sensing.tags.project_points` for its ``u, v``.
+    :func:`ppoe_core.estimation.camera.project_points` for its ``u, v``.
 
     Parameters
     ----------
@@ -106,9 +107,9 @@ def observe_tags(
     if not dets:
         return np.zeros((0, len(OBSERVATION_FIELDS))), []
     corners_uv = np.stack([d.corners for d in dets])  # (n, 4, 2)
-    xy_c = tagmod.undistort_pixels(corners_uv, K, D)  # (n, 4, 2)
+    xy_c = undistort_pixels(corners_uv, K, D)  # (n, 4, 2)
     centre_xy = centre_from_corners(xy_c)  # (n, 2)
-    centre_uv = tagmod.project_points(np.concatenate([centre_xy, np.ones((len(dets), 1))], axis=1), K, D)
+    centre_uv = project_points(np.concatenate([centre_xy, np.ones((len(dets), 1))], axis=1), K, D)
     rows = np.zeros((len(dets), 5, len(OBSERVATION_FIELDS)))
     rows[:, :, 0] = np.array([d.id for d in dets], dtype=float)[:, None]
     rows[:, :, 1] = np.arange(5)[None, :]

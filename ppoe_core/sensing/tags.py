@@ -21,21 +21,20 @@ Pixel coordinates follow OpenCV: the centre of pixel (row r, column c) is (u, v)
 
 from __future__ import annotations
 
-from functools import lru_cache, cache
-from typing import Any, NamedTuple
 from collections.abc import Sequence
+from functools import cache, lru_cache
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ppoe_core.errors import MeasurementError
+from ppoe_core.estimation.camera import project_points, undistort_pixels
 
 __all__ = [
     "TagDetection",
     "TAG_CORNERS_UNIT",
     "aruco_dictionary",
     "tag_points_local",
-    "project_points",
-    "undistort_pixels",
     "detect_tags",
     "render_tags",
 ]
@@ -90,43 +89,6 @@ def tag_points_local(size: float) -> np.ndarray:
     pts = np.zeros((5, 3))
     pts[1:, :2] = TAG_CORNERS_UNIT * float(size)
     return pts
-
-
-def project_points(P_cam: np.ndarray, K: np.ndarray, D: np.ndarray | Sequence[float]) -> np.ndarray:
-    """Project points in the camera optical frame with the plumb_bob model.
-
-    Parameters
-    ----------
-    P_cam : (..., 3)
-        Points in the camera optical frame [m] (z forward).
-    K : (3, 3), D : (k,)
-        Intrinsics and plumb_bob distortion (k1, k2, p1, p2, k3).
-
-    Returns
-    -------
-    (..., 2) distorted pixel coordinates.
-    """
-    import cv2
-
-    P = np.asarray(P_cam, dtype=float)
-    flat = P.reshape(-1, 3)
-    uv, _ = cv2.projectPoints(flat, np.zeros(3), np.zeros(3), np.asarray(K, float),
-                              np.asarray(D, float).reshape(-1))
-    return uv.reshape(P.shape[:-1] + (2,))
-
-
-def undistort_pixels(uv: np.ndarray, K: np.ndarray, D: np.ndarray | Sequence[float]) -> np.ndarray:
-    """Distorted pixels (..., 2) -> undistorted normalised coordinates (x = X/Z, y = Y/Z), (..., 2)."""
-    import cv2
-
-    uv = np.asarray(uv, dtype=float)
-    flat = uv.reshape(-1, 1, 2)
-    if flat.shape[0] == 0:
-        return uv.copy()
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-    xy = cv2.undistortPoints(flat, np.asarray(K, float), np.asarray(D, float).reshape(-1), R=np.eye(3),
-                             P=np.eye(3), criteria=crit)
-    return xy.reshape(uv.shape)
 
 
 def _diagonal_intersection(c: np.ndarray) -> np.ndarray:

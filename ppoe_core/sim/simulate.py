@@ -40,11 +40,12 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.errors import ModelConfigError, PpoeError, ScenarioError, UnknownFrameError, UnknownJointError, UrdfError
+from ppoe_core.estimation.camera import project_points
 from ppoe_core.io.bagio import BagWriter
 from ppoe_core.robot.config import ModelConfig, load_model_config
 from ppoe_core.robot.urdf import Robot, parse_urdf
 from ppoe_core.robot.yaml_io import read_yaml_file
-from ppoe_core.sensing.tags import project_points, render_tags, tag_points_local
+from ppoe_core.sensing.tags import render_tags, tag_points_local
 
 __all__ = [
     "SCENARIO_DOC",

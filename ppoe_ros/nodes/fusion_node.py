@@ -53,13 +53,13 @@ from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, ModelConfigError, PpoeError
 from ppoe_core.estimation.pipeline import (
     FUSION_SETTINGS,
+    ContactMeasurement,
     Measurement,
     MeasurementOutcome,
     ModelUpdater,
-    PlaneContact,
     PriorSample,
-    TagPoints,
-    UpdateResult,
+    TagMeasurement,
+    ToolUpdate,
     make_pipeline,
     make_updater,
     source_key,
@@ -268,7 +268,7 @@ class FusionNode(Node):
         self._set_model(msg.data, f"topic {self.params['robot_description_topic']}")
         self.diagnostics.set_status(None, "")
 
-    def _update(self, T: np.ndarray, cov: np.ndarray, m: Measurement, prior: PriorSample) -> UpdateResult:
+    def _update(self, T: np.ndarray, cov: np.ndarray, m: Measurement, prior: PriorSample) -> ToolUpdate:
         if self.updater is None:
             raise MeasurementError("no robot model yet (waiting for robot_description)")
         return self.updater(T, cov, m, prior)
@@ -307,7 +307,7 @@ class FusionNode(Node):
             return
         frame = msg.header.frame_id
         fx, fy = self.focal.get(frame, (None, None))
-        payload = TagPoints(frame, d["id"].astype(int), d["corner"].astype(int),
+        payload = TagMeasurement(frame, d["id"].astype(int), d["corner"].astype(int),
                             np.column_stack([d["x"], d["y"]]), np.column_stack([d["u"], d["v"]]), fx, fy)
         source = source_key(self.params["observations_topic"], frame)
         self._measure(Measurement(stamp_to_ns(msg.header.stamp) * 1e-9, source, payload))
@@ -318,7 +318,7 @@ class FusionNode(Node):
         cov_plane = lie.check_covariance(lie.cov_ros_to_local(T, cov_ros),
                                          name=f"{self.params['contact_topic']} covariance", size=6)
         source = source_key(self.params["contact_topic"], frame)
-        self._measure(Measurement(stamp_ns * 1e-9, source, PlaneContact(frame, T, cov_plane)))
+        self._measure(Measurement(stamp_ns * 1e-9, source, ContactMeasurement(frame, T, cov_plane)))
 
     def _measure(self, m: Measurement) -> None:
         if self.updater is None:

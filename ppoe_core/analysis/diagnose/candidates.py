@@ -9,7 +9,7 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.analysis.diagnose.stops import Stops
-from ppoe_core.model.effects import Effect, KinematicTree, apply_corrections, make_effect
+from ppoe_core.model.effects import Effect, KinematicTree, make_effect, sum_effect_corrections
 
 # =============================================================================
 # Candidates and the linearised problem
@@ -92,7 +92,7 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
 def predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect]
                      ) -> tuple[np.ndarray, np.ndarray | None, dict, dict, dict]:
     """Nominal prediction with the declared effects; returns x0 (N,3), R0, poses, dq, dxi."""
-    dq, dxi = apply_corrections(declared, stops.q, stops.context)
+    dq, dxi = sum_effect_corrections(declared, stops.q, stops.context)
     poses = tree.link_poses(stops.q, dq, dxi)
     T = poses[stops.link]
     if stops.kind == "pose" and stops.base and stops.base != tree.root:

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from ppoe_core.analysis.diagnose.candidates import Candidate, measurement_jacobian, predict_nominal, candidate_effects
+from ppoe_core.analysis.diagnose.candidates import Candidate, candidate_effects, measurement_jacobian, predict_nominal
 from ppoe_core.analysis.diagnose.imu import _imu_cost, diagnose_imu, imu_tilt_residuals
 from ppoe_core.analysis.diagnose.linear import FitResult, LinearProblem, _identifiable_subset, _ssr, _stack, make_folds
 from ppoe_core.analysis.diagnose.results import DiagnoseOptions, DiagnoseResult

@@ -13,7 +13,7 @@ from ppoe_core.analysis.diagnose.candidates import _carried_mass
 from ppoe_core.analysis.diagnose.stats import _lstsq, _paired_t, _pose_folds, _rotation_covariance
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import MeasurementError
-from ppoe_core.model.effects import Effect, KinematicTree, apply_corrections, make_effect
+from ppoe_core.model.effects import Effect, KinematicTree, make_effect, sum_effect_corrections
 from ppoe_core.robot.urdf import Robot
 
 
@@ -33,7 +33,7 @@ def imu_tilt_residuals(tree: KinematicTree, stops: Stops, effects: Sequence[Effe
     out: dict[str, dict] = {}
     if not stops.imus:
         return out
-    dq, dxi = apply_corrections(list(effects), stops.q, stops.context)
+    dq, dxi = sum_effect_corrections(list(effects), stops.q, stops.context)
     poses = tree.link_poses(stops.q, dq, dxi, links=[ln for ln, _ in stops.imus.values()])
     for name, (link, acc) in stops.imus.items():
         u_m = acc / np.linalg.norm(acc, axis=1)[:, None]
@@ -62,7 +62,7 @@ def imu_tilt_raw(tree: KinematicTree, stops: Stops, effects: Sequence[Effect],
     axes: the root is rotated by ``Exp(w_g)`` w.r.t. gravity, the ``base_tilt`` effect); measured:
     the normalised specific force.  Components: small rotations about the link's x and y axes.
     """
-    dq, dxi = apply_corrections(list(effects), stops.q, stops.context)
+    dq, dxi = sum_effect_corrections(list(effects), stops.q, stops.context)
     links = [ln for ln, _ in stops.imus.values()]
     poses = tree.link_poses(stops.q, dq, dxi, links=links)
     up = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (len(stops), 3))
@@ -138,7 +138,7 @@ def imu_tilt_covariance(tree: KinematicTree, stops: Stops, declared: Sequence[Ef
     ``R' = R Exp(phi)`` the up direction ``u = R^T z`` becomes ``u + u x phi``.
     """
     n, K = len(stops), len(stops.imus)
-    dq_d, dxi_d = apply_corrections(list(declared), stops.q, stops.context)
+    dq_d, dxi_d = sum_effect_corrections(list(declared), stops.q, stops.context)
     poses_d = tree.link_poses(stops.q, dq_d, dxi_d)
     C_tilt = np.zeros((n, K, 2, 2))
     for k, (link, acc) in enumerate(stops.imus.values()):

@@ -10,7 +10,8 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, ModelConfigError
-from ppoe_core.model.effects import Effect, KinematicTree, apply_corrections, make_effect
+from ppoe_core.estimation.camera import project_points_jacobian
+from ppoe_core.model.effects import Effect, KinematicTree, make_effect, sum_effect_corrections
 from ppoe_core.robot.urdf import Robot
 
 # =============================================================================
@@ -88,7 +89,7 @@ def _map_ctx(fn: Any, ctxs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 def _camera_points(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
                    ) -> tuple[np.ndarray, dict, dict, dict]:
     """Marker points in their camera's optical frame, shape (M, 3) [m], with the chain used."""
-    dq, dxi = apply_corrections(list(effects), obs.q, obs.context)
+    dq, dxi = sum_effect_corrections(list(effects), obs.q, obs.context)
     poses = tree.link_poses(obs.q, dq, dxi, links=[obs.link, *obs.cameras])
     p_root = np.einsum("mij,mj->mi", poses[obs.link][:, :3, :3], obs.point) + poses[obs.link][:, :3, 3]
     P = np.empty_like(p_root)  # filled per camera
@@ -101,14 +102,14 @@ def _camera_points(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
 
 def predict_pixels(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> np.ndarray:
     """Predicted raw pixels (M, 2): marker origin on ``obs.link`` -> root -> camera optical frame,
-    projected with the intrinsics and plumb_bob distortion (:func:`ppoe_core.sensing.tags.project_points`).
+    projected with the intrinsics and plumb_bob distortion (:func:`ppoe_core.estimation.camera.project_points`).
 
     Raises
     ------
     MeasurementError
         A marker is behind its camera (names the source and the observation row).
     """
-    from ppoe_core.sensing.tags import project_points
+    from ppoe_core.estimation.camera import project_points
 
     P = _camera_points(tree, obs, effects)[0]
     bad = P[:, 2] <= 1e-6
@@ -120,18 +121,6 @@ def predict_pixels(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
         m = obs.camera == c
         uv[m] = project_points(P[m], obs.K[c], obs.D[c])
     return uv
-
-
-def _projection_jacobian(P: np.ndarray, K: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """``d uv / d P`` (M, 2, 3) of the plumb_bob projection at camera-frame points ``P`` (M, 3)."""
-    import cv2
-
-    if len(P) == 0:
-        return np.zeros((0, 2, 3))
-    _, jac = cv2.projectPoints(P.reshape(-1, 3), np.zeros(3), np.zeros(3), np.asarray(K, float),
-                               np.asarray(D, float).reshape(-1))
-    # columns: d/d rvec (3), d/d tvec (3), ...; with rvec = tvec = 0, d/d tvec = d/d P
-    return jac[:, 3:6].reshape(len(P), 2, 3)
 
 
 def pixel_chain_jacobians(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()
@@ -166,7 +155,7 @@ def pixel_chain_jacobians(tree: KinematicTree, obs: PixelObs, effects: Sequence[
             continue
         A[m] = np.swapaxes(poses[frame][m][:, :3, :3], -1, -2)
         B_c[m] = np.concatenate([-np.broadcast_to(np.eye(3), (int(m.sum()), 3, 3)), lie.hat3(P[m])], axis=-1)
-        Jproj[m] = _projection_jacobian(P[m], obs.K[c], obs.D[c])
+        Jproj[m] = project_points_jacobian(P[m], obs.K[c], obs.D[c])[1]
         cam_jac.append((m, tree.frame_jacobian(obs.q, frame, poses, dq, dxi)))
     G_l = Jproj @ A @ B_l  # (M, 2, 6): d uv / d xi_l
     J_dq: dict[str, np.ndarray] = {k: np.einsum("mij,mj->mi", G_l, v) for k, v in Jq_l.items()}

@@ -155,7 +155,7 @@ def tag_measurements(
 ) -> tuple[list[Any], dict[str, int]]:
     """Measurements of tag observations: recorded ``/tag_bearing/observations`` if present,
     else detections on the camera images (``ppoe_core.sensing.tags.detect_tags``, as the tag node)."""
-    from ppoe_core.estimation.pipeline import Measurement, TagPoints, source_key
+    from ppoe_core.estimation.pipeline import Measurement, TagMeasurement, source_key
     from ppoe_core.sensing.tag_rows import observe_tags
 
     counts = {"tag_messages": 0, "tag_points": 0, "images": 0, "images_without_tags": 0}
@@ -173,7 +173,7 @@ def tag_measurements(
             frame, stamp = obs.frame_ids[i], float(obs.stamps[i])
             KD = cams(frame, stamp)
             fx, fy = (float(KD[0][0, 0]), float(KD[0][1, 1])) if KD is not None else (None, None)
-            payload = TagPoints(frame, m["ids"], m["corners"], m["xy"], m["uv"], fx, fy)
+            payload = TagMeasurement(frame, m["ids"], m["corners"], m["xy"], m["uv"], fx, fy)
             out.append(Measurement(stamp, source_key(topic, frame), payload))
         return out, counts
     imgs = data.images
@@ -195,7 +195,7 @@ def tag_measurements(
             continue
         counts["tag_points"] += int(rows.shape[0])
         ids, corners = np.rint(rows[:, 0]).astype(int), np.rint(rows[:, 1]).astype(int)
-        payload = TagPoints(frame, ids, corners, rows[:, 4:6], rows[:, 2:4], float(K[0, 0]), float(K[1, 1]))
+        payload = TagMeasurement(frame, ids, corners, rows[:, 4:6], rows[:, 2:4], float(K[0, 0]), float(K[1, 1]))
         out.append(Measurement(stamp, source_key("/tag_bearing/observations", frame), payload))
     return out, counts
 
@@ -223,7 +223,7 @@ def contact_measurements(
         ``contact_planes``, and for a replayed wrench its ``wrench`` counts (received, bad,
         contacts, published).
     """
-    from ppoe_core.estimation.pipeline import Measurement, PlaneContact, source_key
+    from ppoe_core.estimation.pipeline import ContactMeasurement, Measurement, source_key
     from ppoe_core.sensing.contact import ContactDetector, contact_stamps, plane_from_config
 
     topic = "/contact/plane"
@@ -236,7 +236,7 @@ def contact_measurements(
             T = series.T[i]
             cov = lie.cov_ros_to_local(T, series.cov_ros[i])
             frame = series.frame_ids[i]
-            out.append(Measurement(float(series.stamps[i]), source_key(topic, frame), PlaneContact(frame, T, cov)))
+            out.append(Measurement(float(series.stamps[i]), source_key(topic, frame), ContactMeasurement(frame, T, cov)))
         counts["contact_planes"] = len(out)
         return out, counts
     wr = data.wrench
@@ -263,7 +263,7 @@ def contact_measurements(
     T_wire = plane.T_frame_plane.copy()
     T_wire[:3, :3] = lie.matrix_from_quat(q / np.linalg.norm(q))
     cov_plane = lie.check_covariance(lie.cov_ros_to_local(T_wire, plane.cov_ros), name=f"{topic} covariance", size=6)
-    payload = PlaneContact(plane.frame, T_wire, cov_plane)
+    payload = ContactMeasurement(plane.frame, T_wire, cov_plane)
     source = source_key(topic, plane.frame)
     out = [Measurement(float(t), source, payload) for t in stamps]
     counts.update({"contact_source": "/wrench", "contact_planes": len(out), "wrench": wcounts,

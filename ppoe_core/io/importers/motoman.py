@@ -265,8 +265,8 @@ def load_marker_poses(model_yaml: str | Path) -> dict[int, np.ndarray]:
 
 def undistort(uv: np.ndarray, camera: MotomanCamera) -> np.ndarray:
     """Raw pixels ``(M, 2)`` -> undistorted normalised coordinates ``(M, 2)`` (x = X/Z, y = Y/Z),
-    with the tag bearing node's :func:`ppoe_core.sensing.tags.undistort_pixels`."""
-    from ppoe_core.sensing.tags import undistort_pixels
+    with the tag bearing node's :func:`ppoe_core.estimation.camera.undistort_pixels`."""
+    from ppoe_core.estimation.camera import undistort_pixels
 
     return undistort_pixels(np.asarray(uv, float).reshape(-1, 2), camera.K, camera.D)
 
