@@ -1,0 +1,332 @@
+"""Measurement updates and carried corrections of the fusion pipeline: what an updater returns, how a correction is
+carried to later priors and how several are applied at once (covariances in the tool frame, docs/conventions.md)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from ppoe_core import lie
+from ppoe_core.errors import PpoeError
+from ppoe_core.estimation.prior_buffer import _INV_JITTER, Array, PriorSample
+
+#: 6x6 identity (read-only; built once instead of per prior)
+_EYE6 = np.eye(6)
+_EYE6.setflags(write=False)
+
+
+# ----------------------------------------------------------------------------
+# Measurements and the update hook
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """A measurement waiting for its prior.
+
+    Attributes
+    ----------
+    stamp : float
+        Measurement time [s].
+    source : str
+        Where it came from, :func:`source_key` of topic and ``header.frame_id``: throttling
+        (``min_interval``) and correction replacement are per source; also used in counts and
+        error messages.
+    payload : Any
+        Whatever the injected updater needs (e.g. a measurement model and ``z``).
+    """
+
+    stamp: float
+    source: str
+    payload: Any
+
+
+@dataclass(frozen=True)
+class ToolUpdate:
+    """What an updater returns.
+
+    Attributes
+    ----------
+    T_base_tool : ndarray, shape (4, 4)
+        Posterior mean (equal to the input prior if rejected).
+    cov_tool : ndarray, shape (6, 6)
+        Posterior covariance in the tangent space at the posterior mean (tool frame).
+    accepted : bool
+        False if the gate rejected the measurement.
+    nis : float
+        Normalised innovation squared at the prior (for diagnostics), NaN if unknown.
+    """
+
+    T_base_tool: Array
+    cov_tool: Array
+    accepted: bool
+    nis: float = float("nan")
+
+
+class MeasurementUpdater(Protocol):
+    """``updater(T_base_tool, cov_tool, measurement, prior) -> ToolUpdate``.
+
+    ``(T_base_tool, cov_tool)`` is the estimate to update (the prior at the measurement's
+    stamp with the carried correction applied); ``cov_tool`` lives in the tangent space at
+    ``T_base_tool``.  ``prior`` is the raw prior sample at that stamp (its ``joints`` place
+    sensors on moving links).  Raises :class:`~ppoe_core.errors.MeasurementError` (or
+    :class:`~ppoe_core.errors.CovarianceError`) for an unusable measurement.
+    """
+
+    def __call__(
+        self, T_base_tool: Array, cov_tool: Array, measurement: Measurement, prior: PriorSample
+    ) -> ToolUpdate:
+        ...
+
+
+# ----------------------------------------------------------------------------
+# Carried correction
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CorrectionPolicy:
+    """When a carried correction fades and when it is dropped.
+
+    Each enabled limit gives a ratio ``r`` = (change since the correction's measurement) /
+    limit: elapsed time ``|dt| / timeout``, joint motion ``max_i |q_i - q_i,0| /
+    joint_motion``, tool translation ``|dp| / tool_translation`` and rotation angle
+    ``|dtheta| / tool_rotation`` (the tool motion is read off the priors, so it also works
+    without joint positions).  With ``r = max`` over the enabled ratios the weight is
+    ``w = 1 - r`` (``decay="linear"``) or ``w = 1`` while ``r < 1`` (``decay="step"``);
+    the correction is dropped once ``r >= 1``.  A limit ``<= 0`` disables that ratio.
+
+    Attributes
+    ----------
+    timeout : float
+        [s], default 10.0.
+    joint_motion : float
+        [rad or m], max-abs over joints, default 0.05.
+    tool_translation : float
+        [m], default 0.05.
+    tool_rotation : float
+        [rad], default 0.1.
+    decay : str
+        ``"linear"`` (default) or ``"step"``.
+    """
+
+    timeout: float = 10.0
+    joint_motion: float = 0.05
+    tool_translation: float = 0.05
+    tool_rotation: float = 0.1
+    decay: str = "linear"
+
+    def __post_init__(self) -> None:
+        if self.decay not in ("linear", "step"):
+            raise PpoeError(f"CorrectionPolicy.decay must be 'linear' or 'step', got {self.decay!r}")
+        for name in ("timeout", "joint_motion", "tool_translation", "tool_rotation"):
+            v = getattr(self, name)
+            if not math.isfinite(v):
+                raise PpoeError(f"CorrectionPolicy.{name} must be finite, got {v!r}")
+        if max(self.timeout, self.joint_motion, self.tool_translation, self.tool_rotation) <= 0.0:
+            raise PpoeError("CorrectionPolicy: every limit is disabled; a correction would never be dropped")
+
+    def ratio(self, anchor: PriorSample, prior: PriorSample) -> float:
+        """Largest change ratio between the correction's anchor prior and ``prior``."""
+        r = 0.0
+        if self.timeout > 0.0:
+            r = max(r, abs(prior.stamp - anchor.stamp) / self.timeout)
+        if self.joint_motion > 0.0 and anchor.joints is not None and prior.joints is not None:
+            if anchor.joints.shape == prior.joints.shape:
+                dq = np.abs(prior.joints - anchor.joints)
+                dq = dq[np.isfinite(dq)]  # NaN = joint not (yet) known
+                if dq.size:
+                    r = max(r, float(dq.max()) / self.joint_motion)
+        if self.tool_translation > 0.0 or self.tool_rotation > 0.0:
+            T_rel = lie.inverse(anchor.T_base_tool) @ prior.T_base_tool
+            if self.tool_translation > 0.0:
+                r = max(r, float(np.linalg.norm(T_rel[:3, 3])) / self.tool_translation)
+            if self.tool_rotation > 0.0:
+                c = min(max((float(np.trace(T_rel[:3, :3])) - 1.0) / 2.0, -1.0), 1.0)  # np.clip, scalar
+                r = max(r, float(np.arccos(c)) / self.tool_rotation)
+        return r
+
+    def weight(self, anchor: PriorSample, prior: PriorSample) -> float:
+        """Weight in [0, 1] of the correction made at ``anchor`` when applied to ``prior``."""
+        r = self.ratio(anchor, prior)
+        if r >= 1.0:
+            return 0.0
+        return 1.0 - r if self.decay == "linear" else 1.0
+
+
+@dataclass(frozen=True)
+class CarriedCorrection:
+    """The information the measurements added to the prior, as an equivalent measurement.
+
+    Attributes
+    ----------
+    anchor : PriorSample
+        The (interpolated) prior at the stamp of the last accepted measurement.
+    H : ndarray, shape (r, 6)
+        Observed directions in the tool tangent space (orthonormal rows).
+    R : ndarray, shape (r,)
+        Variances of the equivalent measurement along those directions.
+    z : ndarray, shape (r,)
+        Equivalent measurement of the tool-frame error of the prior.
+    """
+
+    anchor: PriorSample
+    H: Array
+    R: Array
+    z: Array
+
+    @staticmethod
+    def from_update(
+        anchor: PriorSample,
+        T_post: Array,
+        cov_post: Array,
+        T_pre: Array | None = None,
+        cov_pre: Array | None = None,
+    ) -> CarriedCorrection | None:
+        """Build the correction that turns ``(T_pre, cov_pre)`` into ``(T_post, cov_post)``.
+
+        ``(T_pre, cov_pre)`` is the estimate the update started from (default: the raw
+        prior ``anchor``; with corrections of other sources applied otherwise).  The
+        equivalent measurement is finally re-expressed as a measurement of the error of the
+        raw prior ``anchor.T_base_tool``: ``z += H Log(T_anchor^-1 T_pre)`` (first order).
+
+        ``delta = Log(T_prior^-1 T_post)`` (tool frame); ``I_c = P_post^-1 - P_prior^-1``
+        (clipped to PSD), ``y = P_post^-1 delta``; ``I_c = V diag(lam) V^T`` with the
+        significant eigenvalues gives ``H = V^T``, ``R = 1 / lam``, ``z = R * (V^T y)``.
+        Inverses are taken in the range ``U`` of ``P_prior`` (eigenvectors with non-negligible
+        eigenvalues): a direction the prior is certain about carries no correction.
+        ``cov_post`` is read as a covariance in the tool tangent space at ``T_post``; the
+        change of tangent space between ``T_prior`` and ``T_post`` (second order in
+        ``delta``) is neglected.  Returns None if the update added no information.
+        """
+        # work in the range of the prior covariance: directions the prior is certain about
+        # carry no correction (and P_prior^-1 is not needed there)
+        T_pre = anchor.T_base_tool if T_pre is None else np.asarray(T_pre, dtype=np.float64)
+        cov_pre = anchor.cov_tool if cov_pre is None else cov_pre
+        s0, U = np.linalg.eigh(_sym(cov_pre))
+        keep0 = s0 > 1e-12 * max(float(s0.max()), 1e-300)
+        if not np.any(keep0):
+            return None
+        U = U[:, keep0]
+        info0 = np.diag(1.0 / s0[keep0])
+        P1 = U.T @ _sym(cov_post) @ U
+        P1 = _sym(P1) + _INV_JITTER * np.eye(P1.shape[0])
+        info1 = np.linalg.inv(P1)
+        delta = lie.log(lie.inverse(T_pre) @ T_post)
+        y = info1 @ (U.T @ delta)
+        lam, V = np.linalg.eigh(_sym(info1 - info0))
+        keep = lam > 1e-9 * max(float(np.max(np.abs(lam))), 1e-300)
+        if not np.any(keep):
+            return None
+        lam, V = lam[keep], V[:, keep]
+        H = V.T @ U.T
+        R = 1.0 / lam
+        z = R * (V.T @ y) + H @ lie.log(lie.inverse(anchor.T_base_tool) @ T_pre)
+        return CarriedCorrection(anchor, H, R, z)
+
+    def apply(self, prior: PriorSample, weight: float) -> tuple[Array, Array]:
+        """Fused ``(T_base_tool, cov_tool)`` for ``prior`` with this correction at ``weight``.
+
+        Kalman update of ``(prior.T_base_tool, prior.cov_tool)`` with the equivalent
+        measurement ``z = H e + n``, ``n ~ N(0, diag(R) / weight)``; covariance in Joseph form
+        (tool tangent space at the returned pose).
+        """
+        return apply_carried_corrections(prior, [(self, weight)])
+
+
+def apply_carried_corrections(
+    prior: PriorSample, corrections: list[tuple[CarriedCorrection, float]]
+) -> tuple[Array, Array]:
+    """Apply several weighted corrections (independent equivalent measurements) at once.
+
+    One linear Kalman update of the raw prior ``(T, P)`` with the stacked ``H``, ``z`` and
+    ``diag(R / w)``; returns ``(T Exp(K z), (I-KH) P (I-KH)^T + K R K^T)`` (tool frame).
+    """
+    P = _sym(prior.cov_tool)
+    active = [(c, w) for c, w in corrections if w > 0.0]
+    if not active:
+        return prior.T_base_tool, P
+    if len(active) == 1:  # the common case: no stacking copies (same values)
+        c, w = active[0]
+        H, Rw, z = c.H, np.diag(c.R / w), c.z
+    else:
+        H = np.concatenate([c.H for c, _ in active])
+        Rw = np.diag(np.concatenate([c.R / w for c, w in active]))
+        z = np.concatenate([c.z for c, _ in active])
+    S = H @ P @ H.T + Rw
+    K = np.linalg.solve(S, H @ P).T  # P H^T S^-1
+    m = K @ z
+    IKH = _EYE6 - K @ H
+    cov = _sym(IKH @ P @ IKH.T + K @ Rw @ K.T)
+    return prior.T_base_tool @ lie.exp(m), cov
+
+
+def _sym(A: Array) -> Array:
+    A = np.asarray(A, dtype=np.float64)
+    return 0.5 * (A + A.T)
+
+
+# ----------------------------------------------------------------------------
+# The pipeline
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FusedEstimate:
+    """Fused tool pose at a stamp.
+
+    Attributes
+    ----------
+    stamp : float
+        [s]
+    T_base_tool : ndarray, shape (4, 4)
+    cov_tool : ndarray, shape (6, 6)
+        In the tangent space at ``T_base_tool`` (tool frame).
+    weight : float
+        Weight of the carried correction (0 = none applied, pure prior).
+    prior : PriorSample
+        The prior it was made from.
+    """
+
+    stamp: float
+    T_base_tool: Array
+    cov_tool: Array
+    weight: float
+    prior: PriorSample
+
+
+@dataclass(frozen=True)
+class MeasurementOutcome:
+    """What happened to one measurement.
+
+    ``status`` is one of ``"accepted"``, ``"rejected"`` (gate), ``"stale"`` (older than the
+    buffer), ``"no_prior"`` (no prior within reach), ``"bad"`` (updater raised a
+    PpoeError, e.g. MeasurementError; ``error`` holds the message) or ``"pending"``
+    (waiting for a newer prior) or ``"throttled"`` (``min_interval``).  ``estimate`` is the
+    posterior at the measurement stamp
+    for accepted ones.
+    """
+
+    measurement: Measurement
+    status: str
+    estimate: FusedEstimate | None = None
+    nis: float = float("nan")
+    error: str = ""
+
+
+COUNT_KEYS = (
+    "priors",
+    "priors_late",
+    "resets",
+    "measurements",
+    "accepted",
+    "rejected",
+    "dropped_stale",
+    "dropped_no_prior",
+    "bad",
+    "corrections_dropped",
+    "throttled",
+)

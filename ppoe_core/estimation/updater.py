@@ -1,0 +1,326 @@
+"""The fusion pipeline's measurement updater on a PPOE model: tag and contact measurements -> models -> iterated LG-EKF."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ppoe_core.errors import MeasurementError, PpoeError
+from ppoe_core.estimation.corrections import Measurement, ToolUpdate, _sym
+from ppoe_core.estimation.prior_buffer import Array, PriorSample
+
+# ----------------------------------------------------------------------------
+# Measurement payloads and the model-based updater (PPOEModel + fusion.py)
+# ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TagMeasurement:
+    """Payload of one ``/tag_bearing/observations`` message (one image).
+
+    Attributes
+    ----------
+    camera_frame : str
+        Camera optical frame (URDF link; ``header.frame_id`` of the image).
+    ids : ndarray, shape (n,), int
+        Tag id of each point.
+    corners : ndarray, shape (n,), int
+        0 = tag centre, 1..4 = corners in the order of :mod:`ppoe_core.sensing.tags`.
+    xy : ndarray, shape (n, 2)
+        Undistorted normalised image coordinates ``(X/Z, Y/Z)``.
+    uv : ndarray, shape (n, 2), optional
+        Raw (distorted) pixels, used to infer the focal lengths when ``fx``/``fy`` are None.
+    fx, fy : float, optional
+        Focal lengths [px] (``camera_info`` K); they turn the pixel noise into normalised units.
+    """
+
+    camera_frame: str
+    ids: Array
+    corners: Array
+    xy: Array
+    uv: Array | None = None
+    fx: float | None = None
+    fy: float | None = None
+
+
+@dataclass(frozen=True)
+class ContactMeasurement:
+    """Payload of one ``/contact/plane`` message: the tool point lies on this plane.
+
+    Attributes
+    ----------
+    frame : str
+        Frame the plane pose is given in (``header.frame_id``).
+    T_frame_plane : ndarray, shape (4, 4)
+        Plane pose; plane normal = plane z axis.
+    cov_plane : ndarray, shape (6, 6)
+        ``Sigma_v`` in the tangent space at the plane pose (plane frame, local convention).
+    """
+
+    frame: str
+    T_frame_plane: Array
+    cov_plane: Array
+
+
+def _focal_from_points(uv: Array, xy: Array, where: str) -> tuple[float, float]:
+    """Least-squares fit ``u = fx x + cx``, ``v = fy y + cy`` (distortion neglected)."""
+    out = []
+    for k, axis in enumerate("xy"):
+        a = xy[:, k]
+        if a.size < 2 or float(np.ptp(a)) < 1e-6:
+            raise MeasurementError(
+                f"{where}: no camera_info focal length and the points do not spread in {axis} "
+                "to infer it"
+            )
+        A = np.stack([a, np.ones_like(a)], axis=1)
+        f = float(np.linalg.lstsq(A, uv[:, k], rcond=None)[0][0])
+        if not f > 0.0:
+            raise MeasurementError(f"{where}: inferred focal length f{axis} = {f:.4g} is not positive")
+        out.append(f)
+    return out[0], out[1]
+
+
+class ModelUpdater:
+    """Iterated LG-EKF updates of ``T_base_tool`` for the project's measurement payloads.
+
+    The measurement models of :mod:`ppoe_core.estimation.measurements` are built per measurement from
+    the PPOE model: tag mounts (``tags`` section) and the contact tool point (``contact``
+    section) in the tool frame via ``model.fk_mean(joints, tool, link)``; the camera pose
+    ``T_base_camera`` and its PPOE covariance (camera frame) via ``model.fk(joints, base,
+    camera)``, entering the tag model as noise through ``M``; a plane given in another
+    frame is moved into ``base`` with ``model.fk_mean``.  ``joints`` are the prior's joint
+    positions at the measurement's stamp (``model.joint_names`` order, NaN = unknown); a
+    chain that needs an unknown joint makes the measurement bad (the error names it).
+
+    Parameters
+    ----------
+    model : PPOEModel
+    base_frame, tool_frame : str
+        Frames of the state ``T_base_tool`` (the prior's ``header.frame_id`` and target).
+    pixel_sigma : float, optional
+        1-sigma pixel noise [px]; None = model YAML ``camera.pixel_sigma`` (default 0.5).
+    max_iterations : int
+        Relinearisations of the iterated update (1 = plain LG-EKF).
+    gate_probability : float or None
+        Chi-square gate probability (None = no gating).
+    gating : {"posterior", "prior"}
+        ``"prior"``: the NIS at the prior (``fusion.iterated_update``'s gate, exact for linear
+        models).  ``"posterior"`` (default): the cost of the iterated solution,
+        ``J = r+^T (M R M^T)^-1 r+ + d^T P^+ d`` with the post-fit residual ``r+`` and the
+        correction ``d = Log(X0^-1 X+)`` (``P^+`` pseudo-inverse of the prior covariance),
+        against the same chi-square quantile of the measurement dimension.  ``J`` equals the
+        prior NIS for a linear model, but does not blow up when the prior is wide compared
+        with the sensor (tags seen through 5 deg of plate bending: see docs/fusion_node.md).
+    camera_covariance : bool
+        Let the PPOE covariance of the camera chain enter the tag model.
+    use_centre, use_corners : bool
+        Which tag points enter the update (centre, corners 1..4).
+    contact_distance_sigma : float
+        Extra 1-sigma noise of the contact distance [m].
+    """
+
+    def __init__(
+        self,
+        model: Any,
+        base_frame: str,
+        tool_frame: str,
+        pixel_sigma: float | None = None,
+        max_iterations: int = 5,
+        gate_probability: float | None = 0.9973,
+        gating: str = "posterior",
+        camera_covariance: bool = True,
+        use_centre: bool = True,
+        use_corners: bool = True,
+        contact_distance_sigma: float = 0.0,
+    ) -> None:
+        if not (use_centre or use_corners):
+            raise PpoeError("ModelUpdater: use_centre and use_corners are both false: no tag point would be used")
+        self.model = model
+        self.base_frame = base_frame
+        self.tool_frame = tool_frame
+        cfg = model.config
+        cam_sigma = cfg.camera.pixel_sigma if getattr(cfg, "camera", None) is not None else 0.5
+        self.pixel_sigma = float(cam_sigma if pixel_sigma is None else pixel_sigma)
+        self.max_iterations = int(max_iterations)
+        self.gate_probability = gate_probability
+        if gating not in ("posterior", "prior"):
+            raise PpoeError(f"ModelUpdater: gating must be 'posterior' or 'prior', got {gating!r}")
+        self.gating = gating
+        self.camera_covariance = bool(camera_covariance)
+        self.use_centre = bool(use_centre)
+        self.use_corners = bool(use_corners)
+        self.contact_distance_sigma = float(contact_distance_sigma)
+        self.tags = cfg.tags.by_id() if getattr(cfg, "tags", None) is not None else {}
+        self.contact = getattr(cfg, "contact", None)
+        #: tag points ignored because their id is not in the model YAML
+        self.unknown_tag_points = 0
+        self.last_result: Any = None
+
+    def _joints(self, prior: PriorSample | None) -> dict[str, float]:
+        if prior is None or prior.joints is None:
+            return {}
+        names = self.model.joint_names
+        return {n: float(v) for n, v in zip(names, prior.joints) if math.isfinite(float(v))}
+
+    def build(self, measurement: Measurement, prior: PriorSample | None) -> tuple[Any, Array]:
+        """Measurement model and ``z`` for ``measurement`` (see class docstring)."""
+        from ppoe_core.estimation import measurements as mm
+
+        joints = self._joints(prior)
+        p = measurement.payload
+        where = f"{measurement.source} at stamp {measurement.stamp:.6f}"
+        if isinstance(p, TagMeasurement):
+            ids = np.asarray(p.ids).astype(int).reshape(-1)
+            corners = np.asarray(p.corners).astype(int).reshape(-1)
+            xy = np.asarray(p.xy, dtype=np.float64).reshape(-1, 2)
+            if not (ids.shape[0] == corners.shape[0] == xy.shape[0]):
+                raise MeasurementError(f"{where}: ids, corners and xy differ in length")
+            if not np.all(np.isfinite(xy)):
+                raise MeasurementError(f"{where}: NaN/inf in the normalised coordinates")
+            fx, fy = p.fx, p.fy
+            if fx is None or fy is None:
+                if p.uv is None:
+                    raise MeasurementError(f"{where}: no focal length (camera_info) and no pixels")
+                fx, fy = _focal_from_points(np.asarray(p.uv, float).reshape(-1, 2), xy, where)
+            pts, keep, labels = [], [], []
+            T_tool_link: dict[str, Array] = {}
+            obs: Any
+            for i, (tid, c) in enumerate(zip(ids, corners)):
+                item = self.tags.get(int(tid))
+                if item is None:
+                    self.unknown_tag_points += 1
+                    continue
+                if not 0 <= c <= 4:
+                    raise MeasurementError(f"{where}: tag {tid} has corner index {c}, expected 0..4")
+                if (c == 0 and not self.use_centre) or (c > 0 and not self.use_corners):
+                    continue
+                if item.link not in T_tool_link:
+                    T_tool_link[item.link] = self.model.fk_mean(joints, self.tool_frame, item.link)
+                pts.append(mm.tag_points(item.size, T_tool_link[item.link] @ item.T_link_tag)[c])
+                keep.append(i)
+                labels.append(f"tag {tid} corner {c}")
+            if not pts:
+                raise MeasurementError(
+                    f"{where}: no point of a tag configured in the model YAML (ids {sorted(set(ids.tolist()))})"
+                )
+            if self.camera_covariance:
+                T_base_cam, cov_cam = self.model.fk(joints, self.base_frame, p.camera_frame)
+                if float(np.max(np.abs(cov_cam))) == 0.0:
+                    cov_cam = None
+            else:
+                T_base_cam, cov_cam = self.model.fk_mean(joints, self.base_frame, p.camera_frame), None
+            K = np.array([[fx, 0.0, 0.0], [0.0, fy, 0.0], [0.0, 0.0, 1.0]])
+            obs = mm.TagBearingModel(
+                np.asarray(pts), K, None, pixel_sigma=self.pixel_sigma, mode="normalized",
+                T_ref_camera=T_base_cam, cov_camera=cov_cam, labels=labels, name=where,
+            )
+            return obs, xy[keep].reshape(-1)
+        if isinstance(p, ContactMeasurement):
+            if self.contact is None:
+                raise MeasurementError(f"{where}: the model YAML has no 'contact' section (tool point)")
+            T_base_frame = self.model.fk_mean(joints, self.base_frame, p.frame)
+            T_tool_contact = self.model.fk_mean(joints, self.tool_frame, self.contact.tool_link)
+            point_tool = T_tool_contact[:3, :3] @ self.contact.tool_xyz + T_tool_contact[:3, 3]
+            obs = mm.ContactPlaneModel(
+                T_base_frame @ np.asarray(p.T_frame_plane, float), p.cov_plane, point_tool,
+                distance_sigma=self.contact_distance_sigma, name=where,
+            )
+            return obs, np.zeros(1)
+        raise MeasurementError(f"{where}: unknown payload type {type(p).__name__}")
+
+    def __call__(
+        self, T_base_tool: Array, cov_tool: Array, measurement: Measurement, prior: PriorSample | None = None
+    ) -> ToolUpdate:
+        """Iterated LG-EKF update (``ppoe_core.estimation.fusion.iterated_update``) with gating."""
+        from ppoe_core.estimation.fusion import chi2_gate, iterated_update
+
+        obs, z = self.build(measurement, prior)
+        prior_gate = self.gate_probability if self.gating == "prior" else None
+        res = iterated_update(
+            T_base_tool, cov_tool, z, obs,
+            max_iterations=self.max_iterations, gate_probability=prior_gate,
+        )
+        self.last_result = res
+        if self.gating == "prior" or self.gate_probability is None:
+            return ToolUpdate(res.T, res.cov, bool(res.accepted), float(res.nis))
+        cost = posterior_cost(obs, res.T, res.residual, res.correction, cov_tool)
+        gate = chi2_gate(obs.dim, self.gate_probability)
+        if not cost <= gate:
+            return ToolUpdate(np.asarray(T_base_tool, float), np.asarray(cov_tool, float), False, cost)
+        return ToolUpdate(res.T, res.cov, True, cost)
+
+
+def posterior_cost(obs: Any, T_post: Array, residual: Array, correction: Array, cov_prior: Array) -> float:
+    """Cost of an iterated update's solution, ``r+^T (M R M^T)^-1 r+ + d^T P^+ d``.
+
+    Parameters
+    ----------
+    obs : measurement model (``ppoe_core.estimation.measurements``)
+    T_post : ndarray, shape (4, 4)
+        Posterior estimate.
+    residual : ndarray, shape (m,)
+        Post-fit residual ``z ominus h(T_post)``.
+    correction : ndarray, shape (6,)
+        ``Log(T_prior^-1 T_post)``, tangent space at the prior.
+    cov_prior : ndarray, shape (6, 6)
+        Prior covariance in the tangent space at the prior (tool frame); pseudo-inverted.
+
+    Returns
+    -------
+    float
+        ``chi2(m)``-distributed for a linear Gaussian model (then equal to the prior NIS).
+    """
+    M = obs.jacobian_noise(T_post)
+    if M is None:
+        from ppoe_core.estimation.fusion import numerical_jacobian_noise
+
+        M = numerical_jacobian_noise(obs, T_post)
+    MRM = _sym(M @ obs.noise_cov @ M.T)
+    r = np.asarray(residual, dtype=float)
+    d = np.asarray(correction, dtype=float)
+    s, U = np.linalg.eigh(_sym(cov_prior))
+    keep = s > 1e-12 * max(float(s.max()), 1e-300)
+    dU = U[:, keep].T @ d
+    return float(r @ np.linalg.solve(MRM, r) + dU @ (dU / s[keep]))
+
+#: Fusion settings with their defaults: the fusion node's parameters of the same names
+#: (``config/nodes/fusion_node.yaml`` documents meaning and unit) and ``ppoe evaluate``'s replay.
+FUSION_SETTINGS: dict[str, Any] = {
+    "buffer_duration": 1.0,  # s
+    "max_gap": 0.2,  # s
+    "max_hold": 0.5,  # s
+    "max_pending": 200,
+    "min_interval": 0.05,  # s, per source (topic + frame_id, source_key)
+    "correction_timeout": 10.0,  # s
+    "correction_joint_motion": 0.05,  # rad or m
+    "correction_tool_translation": 0.05,  # m
+    "correction_tool_rotation": 0.1,  # rad
+    "correction_decay": "linear",
+    "max_iterations": 5,
+    "gate_probability": 0.9999,  # >= 1.0: no gating
+    "gating": "posterior",
+    "pixel_sigma": 0.0,  # px; <= 0: model YAML camera.pixel_sigma
+    "use_tag_centre": True,
+    "use_tag_corners": True,
+    "camera_covariance": True,
+    "contact_distance_sigma": 0.0,  # m
+}
+
+
+def make_updater(
+    model: Any, base_frame: str, tool_frame: str, settings: dict[str, Any] | None = None
+) -> ModelUpdater:
+    """The :class:`ModelUpdater` of ``settings`` (keys of :data:`FUSION_SETTINGS`)."""
+    s = {**FUSION_SETTINGS, **(settings or {})}
+    return ModelUpdater(
+        model, base_frame, tool_frame,
+        pixel_sigma=float(s["pixel_sigma"]) if float(s["pixel_sigma"]) > 0 else None,
+        max_iterations=int(s["max_iterations"]),
+        gate_probability=None if float(s["gate_probability"]) >= 1.0 else float(s["gate_probability"]),
+        gating=str(s["gating"]), camera_covariance=bool(s["camera_covariance"]),
+        use_centre=bool(s["use_tag_centre"]), use_corners=bool(s["use_tag_corners"]),
+        contact_distance_sigma=float(s["contact_distance_sigma"]),
+    )
