@@ -87,7 +87,8 @@ def hilti(quick: bool) -> None:
 
 def ten_minute_bag() -> None:
     from ppoe_core.io.bagio import BagWriter
-    from ppoe_core.model.effects import KinematicTree, make_effect, sum_effect_corrections
+    from ppoe_core.model.effects import make_effect, sum_effect_corrections
+    from ppoe_core.robot.tree import KinematicTree
     from ppoe_ros.cli import main
 
     urdf = (REPO / "config" / "robots" / "arm7.urdf").read_text()
@@ -134,7 +135,8 @@ def ten_minute_bag() -> None:
 def motoman() -> None:
     from ppoe_core.analysis.diagnose import diagnose_pixels, pixel_candidates, pixel_rms, pixel_stats
     from ppoe_core.cli.datasets import pixels_from_motoman
-    from ppoe_core.model.effects import KinematicTree, make_effect
+    from ppoe_core.model.effects import make_effect
+    from ppoe_core.robot.tree import KinematicTree
     from ppoe_ros.cli import main
 
     d = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets")) / "motoman_leica"

@@ -21,7 +21,8 @@ from ppoe_core.analysis.diagnose import (
     write_report,
 )
 from ppoe_core.cli.datasets import stops_from_hilti
-from ppoe_core.model.effects import KinematicTree, make_effect, sum_effect_corrections
+from ppoe_core.model.effects import make_effect, sum_effect_corrections
+from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import parse_urdf
 
 SIGMA = 1e-4  # tracker noise [m]

@@ -8,7 +8,8 @@ from conftest import CONFIG
 
 from ppoe_core import lie
 from ppoe_core.errors import ModelConfigError, UnknownJointError
-from ppoe_core.model.effects import EFFECT_NAMES, KinematicTree, effect_from_config, make_effect, sum_effect_corrections
+from ppoe_core.model.effects import EFFECT_NAMES, effect_from_config, make_effect, sum_effect_corrections
+from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import parse_urdf
 
 

@@ -15,6 +15,7 @@ from ppoe_core.errors import ScenarioError
 from ppoe_core.estimation import camera
 from ppoe_core.io import bagio
 from ppoe_core.model import effects
+from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import parse_urdf
 from ppoe_core.sensing import tags
 from ppoe_core.sim.simulate import TrueRobot, load_scenario, simulate
@@ -69,7 +70,7 @@ def test_ground_truth_equals_nominal_fk_without_errors(tmp_path: Path) -> None:
     d = bagio.read_bag(tmp_path / "bag")
     assert res.n_stops == 3 and len(d.ground_truth_pose) == 3
     assert d.robot_description == (CONFIG / "robots" / "arm7.urdf").read_text()
-    tree = effects.KinematicTree(parse_urdf(d.robot_description))
+    tree = KinematicTree(parse_urdf(d.robot_description))
     js = d.joint_states
     idx = np.searchsorted(js.stamps, d.ground_truth_pose.stamps, side="right") - 1
     q = {n: js.positions[idx, i] for i, n in enumerate(js.names)}
@@ -132,7 +133,7 @@ def test_true_effects_match_the_catalogue(entry: dict) -> None:
     q = {j: rng.uniform(-1.2, 1.2, n) for j in ARM7.independent_joints}
     true = TrueRobot(ARM7, [entry])
     P_true = true.poses(q, {}, {}, {}, np.zeros(n), n)
-    tree = effects.KinematicTree(ARM7)
+    tree = KinematicTree(ARM7)
     eff = effects.effect_from_config(entry, tree)
     dq, dxi = eff.corrections(q, {})
     P_cat = tree.link_poses(q, dq, dxi)
@@ -152,7 +153,7 @@ def test_backlash_and_thermal_growth_match_the_catalogue() -> None:
     entries = [{"name": "backlash", "location": "joint_3", "parameters": {"play": 0.003}},
                {"name": "thermal_growth", "location": "joint_4", "parameters": {"alpha": 2e-5}}]
     P_true = TrueRobot(ARM7, entries).poses(q, {}, {}, sign, t, n)
-    tree = effects.KinematicTree(ARM7)
+    tree = KinematicTree(ARM7)
     effs = [effects.effect_from_config(entries[0], tree),
             effects.effect_from_config({**entries[1], "variable": "time", "reference": 0.0}, tree)]
     dq, dxi = effects.sum_effect_corrections(effs, q, {"motion_sign": sign, "time": t})
@@ -176,7 +177,7 @@ def test_tags_rendered_at_true_pose_with_camera_error(tmp_path: Path) -> None:
     model = scen.model
     js = d.joint_states
     true = TrueRobot(scen.robot, [cam_err])
-    tree = effects.KinematicTree(scen.robot)
+    tree = KinematicTree(scen.robot)
     errs_true, errs_nominal, n_det = [], [], 0
     for i in range(len(d.images)):
         k = int(np.searchsorted(js.stamps, d.images.stamps[i], side="right") - 1)
@@ -350,7 +351,7 @@ def _gls_fits(name: str) -> tuple[float, dict]:
     W = np.linalg.inv(R @ cov[:, :3, :3] @ np.swapaxes(R, 1, 2) + 1e-8 * np.eye(3))  # + tracker noise
     r = gt.T[:, :3, 3] - T[:, :3, 3]
     chi0 = np.einsum("ni,nij,nj->", r, W, r)
-    tree = effects.KinematicTree(m.robot)
+    tree = KinematicTree(m.robot)
     fits = {}
     for nm, loc in _CANDIDATES:
         J = effects.make_effect(nm, loc, tree).point_jacobian(q, "tool0", np.zeros(3))

@@ -9,13 +9,13 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.errors import CovarianceError, MeasurementError
 from ppoe_core.estimation.measurement_base import (
-    STANDARD_GRAVITY,
     MeasurementModel,
     _block_diag,
     _check_cov,
     _check_pose,
     _hat,
 )
+from ppoe_core.robot.tree import GRAVITY
 
 
 # --------------------------------------------------------------------------- 3D point
@@ -165,7 +165,7 @@ class GravityObservation(MeasurementModel):
         sigma: float,
         R_link_sensor: Any = None,
         up_ref: Any = (0.0, 0.0, 1.0),
-        gravity: float = STANDARD_GRAVITY,
+        gravity: float = GRAVITY,
         name: str = "gravity",
     ) -> None:
         self.name = name

@@ -12,8 +12,6 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError
 
-STANDARD_GRAVITY = 9.80665  # m/s^2
-
 
 def _hat(v: np.ndarray) -> np.ndarray:
     return lie.hat3(np.asarray(v, dtype=float))

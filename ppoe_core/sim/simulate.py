@@ -43,13 +43,13 @@ from ppoe_core.errors import ModelConfigError, PpoeError, ScenarioError, Unknown
 from ppoe_core.estimation.camera import project_points
 from ppoe_core.io.bagio import BagWriter
 from ppoe_core.robot.config import ModelConfig, load_model_config
+from ppoe_core.robot.tree import GRAVITY
 from ppoe_core.robot.urdf import Robot, parse_urdf
 from ppoe_core.robot.yaml_io import read_yaml_file
 from ppoe_core.sensing.tags import render_tags, tag_points_local
 
 __all__ = [
     "SCENARIO_DOC",
-    "GRAVITY",
     "TRUTH_EFFECTS",
     "Scenario",
     "TrueRobot",
@@ -57,9 +57,6 @@ __all__ = [
     "load_scenario",
     "simulate",
 ]
-
-#: standard gravity [m/s^2]
-GRAVITY = 9.80665
 
 #: effects the simulator can put into the true robot, with their parameters
 TRUTH_EFFECTS: dict[str, tuple[str, ...]] = {

@@ -9,7 +9,8 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.analysis.diagnose.stops import Stops
-from ppoe_core.model.effects import Effect, KinematicTree, make_effect, sum_effect_corrections
+from ppoe_core.model.effects import Effect, make_effect, sum_effect_corrections
+from ppoe_core.robot.tree import KinematicTree
 
 # =============================================================================
 # Candidates and the linearised problem

@@ -22,7 +22,8 @@ from ppoe_core.analysis.diagnose.stats import (
 )
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import MeasurementError, PpoeError
-from ppoe_core.model.effects import Effect, KinematicTree
+from ppoe_core.model.effects import Effect
+from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
 

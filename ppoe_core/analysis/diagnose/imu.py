@@ -13,7 +13,8 @@ from ppoe_core.analysis.diagnose.candidates import _carried_mass
 from ppoe_core.analysis.diagnose.stats import _lstsq, _paired_t, _pose_folds, _rotation_covariance
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import MeasurementError
-from ppoe_core.model.effects import Effect, KinematicTree, make_effect, sum_effect_corrections
+from ppoe_core.model.effects import Effect, make_effect, sum_effect_corrections
+from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
 

@@ -13,7 +13,8 @@ from ppoe_core.analysis.diagnose.candidates import Candidate
 from ppoe_core.analysis.diagnose.results import DiagnoseOptions
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import PpoeError
-from ppoe_core.model.effects import KinematicTree, make_effect
+from ppoe_core.model.effects import make_effect
+from ppoe_core.robot.tree import KinematicTree
 
 
 @dataclass

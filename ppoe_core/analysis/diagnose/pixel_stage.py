@@ -26,7 +26,8 @@ from ppoe_core.analysis.diagnose.results import DiagnoseResult
 from ppoe_core.analysis.diagnose.stats import _lstsq, _paired_t, _pose_folds
 from ppoe_core.analysis.diagnose.stops import _sample_joint, motion_signs
 from ppoe_core.errors import BagError, MeasurementError
-from ppoe_core.model.effects import Effect, KinematicTree, effect_from_config
+from ppoe_core.model.effects import Effect, effect_from_config
+from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
 

@@ -11,7 +11,8 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, ModelConfigError
 from ppoe_core.estimation.camera import project_points_jacobian
-from ppoe_core.model.effects import Effect, KinematicTree, make_effect, sum_effect_corrections
+from ppoe_core.model.effects import Effect, make_effect, sum_effect_corrections
+from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
 # =============================================================================

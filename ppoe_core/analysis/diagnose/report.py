@@ -12,7 +12,8 @@ import numpy as np
 import yaml
 
 from ppoe_core.analysis.diagnose.results import DiagnoseResult
-from ppoe_core.model.effects import Effect, KinematicTree, effect_from_config
+from ppoe_core.model.effects import Effect, effect_from_config
+from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
 

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from ppoe_core.analysis.diagnose.stops import Stops
-from ppoe_core.model.effects import KinematicTree
+from ppoe_core.robot.tree import KinematicTree
 
 _CHI2_DIM = {3: 3.0, 6: 6.0}
 

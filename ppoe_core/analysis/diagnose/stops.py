@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import BagError, ModelConfigError, PpoeError
-from ppoe_core.model.effects import KinematicTree
+from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
 # =============================================================================
