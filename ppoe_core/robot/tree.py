@@ -84,13 +84,16 @@ class KinematicTree:
     # -- poses -------------------------------------------------------------------
     def link_poses(self, q: Mapping[str, Any], dq: Mapping[str, Any] | None = None,
                    dxi: Mapping[str, Any] | None = None,
-                   links: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+                   links: Sequence[str] | None = None,
+                   dT: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
         """``T_root_link`` for every link (or the ancestors of ``links``), shape ``(..., 4, 4)``.
 
         Implements the mean of paper eq. 17 with eq. 16 links
-        ``Exp(p_i) Exp(dxi_i) Exp(zeta_i (q_i + dq_i))``.
+        ``Exp(p_i) Exp(dxi_i) dT_i Exp(zeta_i (q_i + dq_i))``; ``dT`` (joint -> ``(..., 4, 4)``) are
+        insertions given as transforms (the simulator's composed truth), identity where absent.
         """
         dxi = dxi or {}
+        dT = dT or {}
         if links is not None:
             need = set()
             for ln in links:
@@ -101,7 +104,8 @@ class KinematicTree:
         vals = self.joint_values(q, dq, joints)
         # batch shape of all given joint values (also when the links asked for hang on fixed joints)
         batch = np.broadcast_shapes(*[np.shape(v) for v in q.values()], *[np.shape(v) for v in vals.values()],
-                                    *[np.shape(v)[:-1] for v in dxi.values()])
+                                    *[np.shape(v)[:-1] for v in dxi.values()],
+                                    *[np.shape(v)[:-2] for v in dT.values()])
         eye = np.broadcast_to(np.eye(4), batch + (4, 4))
         poses: dict[str, np.ndarray] = {self.root: eye}
         for jn in joints:
@@ -109,6 +113,8 @@ class KinematicTree:
             T = poses[j.parent] @ j.origin
             if jn in dxi:
                 T = T @ lie.exp(np.asarray(dxi[jn], dtype=float))
+            if jn in dT:
+                T = T @ dT[jn]
             if j.movable:
                 T = T @ self._motion(j, vals[jn])
             poses[j.child] = T

@@ -43,7 +43,7 @@ from ppoe_core.errors import ModelConfigError, PpoeError, ScenarioError, Unknown
 from ppoe_core.estimation.camera import project_points
 from ppoe_core.io.bagio import BagWriter
 from ppoe_core.robot.config import ModelConfig, load_model_config
-from ppoe_core.robot.tree import GRAVITY
+from ppoe_core.robot.tree import GRAVITY, KinematicTree
 from ppoe_core.robot.urdf import Robot, parse_urdf
 from ppoe_core.robot.yaml_io import read_yaml_file
 from ppoe_core.sensing.tags import render_tags, tag_points_local
@@ -289,14 +289,8 @@ class TrueRobot:
 
     def __init__(self, robot: Robot, effects: Sequence[Mapping[str, Any]], where: str = "truth.effects") -> None:
         self.robot = robot
-        order: list[str] = []
-        stack = [robot.root]
-        while stack:
-            link = stack.pop()
-            kids = robot.children(link)
-            order.extend(kids)
-            stack.extend(robot.joints[j].child for j in reversed(kids))
-        self.order = order
+        self.tree = KinematicTree(robot)
+        self.order = self.tree.order
         self.effects: list[dict[str, Any]] = []
         for i, e in enumerate(effects):
             self.effects.append(self._validate(e, f"{where}[{i}]"))
@@ -328,45 +322,15 @@ class TrueRobot:
         return sum(e["parameters"][key] for e in self.effects if e["name"] == name)
 
     # -- chain ------------------------------------------------------------------
-    def _values(self, q: Mapping[str, np.ndarray], dq: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-        out = {}
-        for jn in self.order:
-            j = self.robot.joints[jn]
-            if not j.movable:
-                continue
-            if j.mimic_root is not None:
-                src, mult, off = j.mimic_root
-                out[jn] = mult * (q[src] + dq.get(src, 0.0)) + off
-            else:
-                out[jn] = q[jn] + dq.get(jn, 0.0)
-        return out
-
     def link_poses(self, q: Mapping[str, np.ndarray], dq: Mapping[str, np.ndarray],
-                   dxi: Mapping[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
-        """``T_root_link`` (n, 4, 4) of every link with eq. 16 links ``Exp(p) Exp(dxi) Exp(zeta (q + dq))``.
+                   dT: Mapping[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+        """``T_root_link`` (n, 4, 4) of every link with eq. 16 links ``Exp(p) dT Exp(zeta (q + dq))``,
+        on the one kinematic tree (:class:`~ppoe_core.robot.tree.KinematicTree`).
 
-        ``dxi`` here already holds ``log(Exp(dxi_effects) Exp(xi))`` composed by the caller
+        ``dT`` here already holds ``Exp(dxi_effects) Exp(xi)`` composed by the caller
         (as separate factors, see :meth:`poses`).
         """
-        vals = self._values(q, dq)
-        poses = {self.robot.root: np.broadcast_to(np.eye(4), (n, 4, 4)).copy()}
-        for jn in self.order:
-            j = self.robot.joints[jn]
-            T = poses[j.parent] @ j.origin
-            if jn in dxi:
-                T = T @ dxi[jn]
-            if j.movable:
-                T = T @ lie.exp(np.asarray(vals[jn])[..., None] * j.twist)
-            poses[j.child] = T
-        return poses
-
-    def _subtree(self, joint: str) -> list[str]:
-        out, stack = [], [self.robot.joints[joint].child]
-        while stack:
-            ln = stack.pop()
-            out.append(ln)
-            stack.extend(self.robot.joints[c].child for c in self.robot.children(ln))
-        return out
+        return self.tree.link_poses(q, dq, dT=dT)
 
     def gravity_moment(self, poses: Mapping[str, np.ndarray], joint: str, after_motion: bool) -> tuple[np.ndarray, np.ndarray]:
         """Weight of the links carried by ``joint``: force [N] (n,3) and moment [N m] (n,3) about the
@@ -378,7 +342,7 @@ class TrueRobot:
         F = np.zeros((n, 3))
         M = np.zeros((n, 3))
         g = np.array([0.0, 0.0, -GRAVITY])
-        for ln in self._subtree(joint):
+        for ln in self.tree.subtree_links(joint):
             inert = self.robot.links[ln].inertial
             if inert is None or inert.mass <= 0:
                 continue
