@@ -1,0 +1,229 @@
+"""Simulation scenario files: schema (:data:`SCENARIO_DOC`), checks with file and key in every error, :class:`Scenario`."""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ppoe_core import lie
+from ppoe_core.errors import ModelConfigError, ScenarioError, UnknownFrameError, UnknownJointError, UrdfError
+from ppoe_core.robot.config import ModelConfig, load_model_config
+from ppoe_core.robot.urdf import Robot, parse_urdf
+from ppoe_core.robot.yaml_io import read_yaml_file
+
+#: effects the simulator can put into the true robot, with their parameters
+TRUTH_EFFECTS: dict[str, tuple[str, ...]] = {
+    "joint_offset": ("offset",),
+    "link_error": ("x", "y", "z", "rx", "ry", "rz"),
+    "camera_extrinsics": ("x", "y", "z", "rx", "ry", "rz"),
+    "gravity_compliance": ("compliance",),
+    "mount_bending": ("compliance_x", "compliance_y"),
+    "base_tilt": ("tilt_x", "tilt_y"),
+    "backlash": ("play",),
+    "thermal_growth": ("alpha",),
+    "time_offset": ("dt",),
+    # outside the CONTRACT sec. 6 vocabulary (for testing that diagnose reports it as unexplained):
+    "transmission_error": ("amplitude", "periods"),
+}
+
+SCENARIO_DOC = """\
+# ppoe simulate scenario (all keys; defaults in brackets). Paths are relative to the scenario file.
+robot:
+  urdf: ../config/robots/rover.urdf        # nominal URDF (written to /robot_description) [required]
+  model: ../config/robots/rover_model.yaml # model YAML: perturbations, joint_noise, tags, camera, tracker, imus, contact [required]
+seed: 0                    # RNG seed; `--seed` overrides [0]
+start_time: 100.0          # stamp of the first message [s] [100.0]
+truth:
+  perturbations: once      # draw the model's perturbations xi: once | per_stop | none [once]
+  perturbation_scale: 1.0  # multiplies the drawn xi [1.0]
+  joint_noise: true        # add the model's joint_noise (per stop) to the true joint values [true]
+  record_draws: false      # write each stop's window [s], drawn xi and joint errors to the truth file [false]
+  effects:                 # systematic effects of the true robot, CONTRACT sec. 6 names [none]
+    - {name: joint_offset, location: JOINT, parameters: {offset: 0.01}}        # q_true = q_meas + offset [rad|m]
+    - {name: link_error, location: JOINT, parameters: {x: 0.001, rz: 0.002}}   # dxi at JOINT [m, rad]
+    - {name: camera_extrinsics, location: JOINT, parameters: {x: .., rz: ..}}   # dxi at the camera's fixed joint [m, rad]
+    - {name: gravity_compliance, location: JOINT, parameters: {compliance: 1e-4}}  # dq = c * gravity torque [rad/(N m)]
+    - {name: mount_bending, location: JOINT, parameters: {compliance_x: 1e-4, compliance_y: 1e-4}}  # theta = c * moment [rad/(N m)]
+    - {name: base_tilt, location: ROOT_LINK, parameters: {tilt_x: 0.002, tilt_y: 0.0}}  # robot tilted about root x, y [rad]
+    - {name: backlash, location: JOINT, parameters: {play: 0.002}}             # dq = play * sign(last motion) [rad|m]
+    - {name: thermal_growth, location: JOINT, parameters: {alpha: 1e-6}}      # origin of JOINT grows by alpha*(t - start_time) [1/s]
+    - {name: time_offset, location: /joint_states, parameters: {dt: 0.02}}     # joint states stamped t carry q(t - dt) [s]
+    - {name: transmission_error, location: JOINT, parameters: {amplitude: 0.003, periods: 3}}  # NOT in the
+      # contract vocabulary: cyclic gear error dq = amplitude sin(periods q) [rad, periods per rad]
+trajectory:
+  joint_rate: 100.0        # /joint_states rate [Hz] (>= 50) [100.0]
+  dwell: 0.5               # default time at each stop [s] [0.5]
+  settle: 0.1              # time after arriving before the stop's measurements start [s] [0.1]
+  move_time: 1.0           # min-jerk joint-space motion between stops [s] [1.0]
+  extra_joints: {}         # joints published but not driven (name: value), e.g. a gripper [{}]
+  start: {}                # values of joints not given in a stop [0 for each joint]
+  stops:                   # configurations; each {joints: {name: value}, dwell: s, contact: {...}} [[]]
+    - {joints: {joint_1: 0.3}, dwell: 0.5}
+    # contact: {press_joint: JOINT, force: 10.0, approach: 0.15}: solve press_joint so the true
+    # tool point presses the true plane with `force` [N]; an approach stop `approach` [rad|m] away is added.
+  random_stops:            # optional, appended after `stops` [none]
+    count: 20              # number of stops
+    around: {}             # centre configuration (name: value); joints not listed come from `start`
+    spread: 0.2            # uniform +- spread per joint [rad|m], or a mapping joint -> spread
+    min_visible_tags: 0    # reject configurations where fewer model tags face the camera in view [0]
+    min_link_z: {}         # reject configurations where a link's origin is below this root-frame z [m] [{}]
+    max_tries: 5000        # give up after this many rejected draws [5000]
+  smooth:                  # optional instead of stops: q_j(t) = centre + amplitude sin(2 pi t / period + phase)
+    duration: 60.0         # [s]
+    centre: {}             # [rad|m]
+    amplitude: {}          # [rad|m]
+    period: {}             # [s] [10 for each joint]
+    phase: {}              # [rad] [0 for each joint]
+camera:                    # optional; needs the model's camera and tags sections [none]
+  frame: camera_optical_frame  # optical frame link [model camera.frame]
+  width: 640               # [px] [640]
+  height: 480              # [px] [480]
+  intrinsics: [600, 600, 320, 240]   # fx, fy, cx, cy [px] [600, 600, width/2, height/2]
+  D: [0, 0, 0, 0, 0]       # plumb_bob k1 k2 p1 p2 k3 [zeros]
+  rate: 5.0                # image rate [Hz] (<= 30) [5.0]
+  during: stops            # stops: only inside stops; always: whole bag [stops]
+  format: png              # png | jpeg (/camera/image_raw/compressed) or raw (mono8 /camera/image_raw) [png]
+  noise_sigma: 1.0         # Gaussian grey-level noise [1.0]
+  blur_sigma: 0.0          # Gaussian blur before the noise [px] [0.0]
+  background: 128          # grey level [128]
+  time_offset: 0.0         # image stamps = true exposure time + this [s] [0.0]
+ground_truth:
+  pose:                    # /ground_truth/pose, optional [none]
+    frame: base_link       # reference (header.frame_id) [model frames.base]
+    target: tool0          # measured frame [model frames.tool]
+    sigma_xyz: 0.0001      # tracker position noise 1-sigma [m] [0.0001]
+    sigma_rot: 0.0002      # tracker rotation noise 1-sigma [rad] [0.0002]
+    rate: 0.0              # [Hz]; 0 = once per stop [0.0]
+  point:                   # /ground_truth/point, optional [none]
+    link: tool0            # link carrying the reflector [model tracker.link]
+    xyz: [0, 0, 0.02]      # reflector in that link [m] [model tracker.xyz]
+    sigma: 0.0002          # noise 1-sigma per axis [m] [model tracker.sigma]
+    frame: tracker         # header.frame_id (not in the URDF) [tracker]
+    T_tracker_base: {xyz: [3, 1, 0.5], rpy: [0, 0, 2.5]}  # unknown registration [m, rad] [identity]
+    rate: 0.0              # [Hz]; 0 = once per stop [0.0]
+imus:                      # /imu/<name> for every IMU of the model, optional [none]
+  rate: 0.0                # [Hz]; 0 = once per stop [0.0]
+  sigma: null              # noise 1-sigma [m/s^2] [model imus.<name>.sigma]
+contact:                   # /wrench, optional [none]
+  plane: {frame: base_link, xyz: [0, 0, 0], rpy: [0, 0, 0]}  # TRUE plane pose, normal = z [model contact.plane]
+  tool_point: {link: fingertip, xyz: [0, 0, 0]}  # contact point [model contact.tool_point]
+  stiffness: 100000.0      # contact stiffness [N/m] [1e5]
+  force_sigma: 0.1         # wrench noise 1-sigma per axis [N] [0.1]
+  frame: fingertip         # wrench header.frame_id (force in its axes) [tool_point.link]
+  rate: null               # [Hz] [trajectory.joint_rate]
+"""
+
+_TOP_KEYS = ("robot", "seed", "start_time", "truth", "trajectory", "camera", "ground_truth", "imus", "contact")
+
+
+# =============================================================================
+# scenario parsing
+# =============================================================================
+
+
+def _where(path: str, key: str) -> str:
+    return f"scenario {path}: {key}"
+
+
+def _check_keys(d: Any, allowed: Sequence[str], path: str, key: str) -> dict:
+    if d is None:
+        return {}
+    if not isinstance(d, Mapping):
+        raise ScenarioError(f"{_where(path, key)} must be a mapping, got {type(d).__name__}")
+    bad = sorted(set(d) - set(allowed))
+    if bad:
+        raise ScenarioError(f"{_where(path, key)}: unknown keys {bad} (allowed: {list(allowed)})")
+    return dict(d)
+
+
+def _num(d: Mapping, k: str, default: Any, path: str, key: str, minimum: float | None = None,
+         maximum: float | None = None) -> Any:
+    v = d.get(k, default)
+    if v is None:
+        return None
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise ScenarioError(f"{_where(path, key + '.' + k)} must be a number, got {v!r}") from None
+    if not math.isfinite(f) or (minimum is not None and f < minimum) or (maximum is not None and f > maximum):
+        raise ScenarioError(f"{_where(path, key + '.' + k)} = {v!r} out of range [{minimum}, {maximum}]")
+    return f
+
+
+def _joints_map(d: Any, path: str, key: str, robot: Robot) -> dict[str, float]:
+    if d is None:
+        return {}
+    if not isinstance(d, Mapping):
+        raise ScenarioError(f"{_where(path, key)} must map joint names to values")
+    out = {}
+    for name, v in d.items():
+        if name not in robot.joints or not robot.joints[name].movable:
+            raise ScenarioError(f"{_where(path, key)}: '{name}' is not a movable joint of {robot.source}")
+        try:
+            out[str(name)] = float(v)
+        except (TypeError, ValueError):
+            raise ScenarioError(f"{_where(path, key + '.' + str(name))} must be a number, got {v!r}") from None
+        if not math.isfinite(out[str(name)]):
+            raise ScenarioError(f"{_where(path, key + '.' + str(name))} must be finite, got {v!r}")
+    return out
+
+
+def _pose_cfg(d: Any, path: str, key: str) -> np.ndarray:
+    d = _check_keys(d, ("xyz", "rpy", "frame"), path, key)
+    try:
+        xyz = np.asarray(d.get("xyz", [0, 0, 0]), dtype=float).reshape(3)
+        rpy = np.asarray(d.get("rpy", [0, 0, 0]), dtype=float).reshape(3)
+    except (TypeError, ValueError):
+        raise ScenarioError(f"{_where(path, key)}: xyz and rpy must be 3 numbers each") from None
+    return lie.from_xyz_rpy(xyz, rpy)
+
+
+@dataclass
+class Scenario:
+    """A parsed, validated scenario (see :data:`SCENARIO_DOC`)."""
+
+    path: str
+    raw: dict
+    robot: Robot
+    model: ModelConfig
+    urdf_text: str
+    seed: int
+    start_time: float
+
+
+def load_scenario(path: str | os.PathLike) -> Scenario:
+    """Read a scenario YAML and load its robot and model.
+
+    Raises
+    ------
+    ScenarioError
+        Missing file, YAML error, unknown key, bad value; the message names the file and key.
+    """
+    p = Path(path)
+    raw, _ = read_yaml_file(p, "scenario", ScenarioError)
+    raw = _check_keys(raw, _TOP_KEYS, str(p), "top level")
+    rob = _check_keys(raw.get("robot"), ("urdf", "model"), str(p), "robot")
+    if "urdf" not in rob or "model" not in rob:
+        raise ScenarioError(f"{_where(str(p), 'robot')} needs 'urdf' and 'model'")
+    urdf_path = (p.parent / str(rob["urdf"])).resolve()
+    model_path = (p.parent / str(rob["model"])).resolve()
+    try:
+        urdf_text = urdf_path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{_where(str(p), 'robot.urdf')}: cannot read {urdf_path}: {exc}") from None
+    try:
+        robot = parse_urdf(str(urdf_path))
+        model = load_model_config(str(model_path), robot)
+    except (UrdfError, ModelConfigError, UnknownJointError, UnknownFrameError) as exc:
+        raise ScenarioError(f"scenario {p}: {exc}") from None
+    seed = raw.get("seed", 0)
+    if not isinstance(seed, int) or seed < 0:
+        raise ScenarioError(f"{_where(str(p), 'seed')} must be a non-negative integer, got {seed!r}")
+    start = _num(raw, "start_time", 100.0, str(p), "top", minimum=0.0)
+    return Scenario(str(p), raw, robot, model, urdf_text, int(seed), float(start))

@@ -1,0 +1,187 @@
+"""The true robot of a simulation: nominal URDF + drawn perturbations + the scenario's effects, on the one kinematic tree.
+
+The effects' physics is the simulator's own (deliberately independent of :mod:`ppoe_core.model.effects`, so that
+``ppoe diagnose`` is tested against physics, not against its own parametrisation)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from ppoe_core import lie
+from ppoe_core.errors import ScenarioError
+from ppoe_core.robot.tree import GRAVITY, KinematicTree
+from ppoe_core.robot.urdf import Robot
+from ppoe_core.sim.scenario import TRUTH_EFFECTS
+
+# =============================================================================
+# true robot
+# =============================================================================
+
+
+class TrueRobot:
+    """Forward kinematics of the true robot: nominal URDF + drawn xi + effects.
+
+    Parameters
+    ----------
+    robot : Robot
+    effects : list of dict
+        ``{name, location, parameters}`` entries (validated here).
+    where : str
+        Used in error messages (scenario file).
+    """
+
+    def __init__(self, robot: Robot, effects: Sequence[Mapping[str, Any]], where: str = "truth.effects") -> None:
+        self.robot = robot
+        self.tree = KinematicTree(robot)
+        self.order = self.tree.order
+        self.effects: list[dict[str, Any]] = []
+        for i, e in enumerate(effects):
+            self.effects.append(self._validate(e, f"{where}[{i}]"))
+
+    def _validate(self, e: Any, where: str) -> dict[str, Any]:
+        if not isinstance(e, Mapping) or set(e) - {"name", "location", "parameters"} or "name" not in e:
+            raise ScenarioError(f"{where}: an effect is {{name, location, parameters}}, got {e!r}")
+        name = e["name"]
+        if name not in TRUTH_EFFECTS:
+            raise ScenarioError(f"{where}: unknown effect {name!r} (known: {list(TRUTH_EFFECTS)})")
+        loc = str(e.get("location", ""))
+        params = e.get("parameters") or {}
+        bad = sorted(set(params) - set(TRUTH_EFFECTS[name]))
+        if bad:
+            raise ScenarioError(f"{where}: effect {name} has no parameters {bad} (has {list(TRUTH_EFFECTS[name])})")
+        if name == "base_tilt":
+            if loc != self.robot.root:
+                raise ScenarioError(f"{where}: base_tilt location must be the root link '{self.robot.root}'")
+        elif name != "time_offset":
+            if loc not in self.robot.joints:
+                raise ScenarioError(f"{where}: location '{loc}' is not a joint of {self.robot.source}")
+            if name in ("joint_offset", "gravity_compliance", "backlash", "transmission_error") and not self.robot.joints[loc].movable:
+                raise ScenarioError(f"{where}: {name} needs a movable joint, '{loc}' is {self.robot.joints[loc].type}")
+        return {"name": name, "location": loc,
+                "parameters": {k: float(params.get(k, 0.0)) for k in TRUTH_EFFECTS[name]}}
+
+    def effect_param(self, name: str, key: str) -> float:
+        """Sum of parameter ``key`` over the true effects called ``name`` (0 if none)."""
+        return sum(e["parameters"][key] for e in self.effects if e["name"] == name)
+
+    # -- chain ------------------------------------------------------------------
+    def link_poses(self, q: Mapping[str, np.ndarray], dq: Mapping[str, np.ndarray],
+                   dT: Mapping[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+        """``T_root_link`` (n, 4, 4) of every link with eq. 16 links ``Exp(p) dT Exp(zeta (q + dq))``,
+        on the one kinematic tree (:class:`~ppoe_core.robot.tree.KinematicTree`).
+
+        ``dT`` here already holds ``Exp(dxi_effects) Exp(xi)`` composed by the caller
+        (as separate factors, see :meth:`poses`).
+        """
+        return self.tree.link_poses(q, dq, dT=dT)
+
+    def gravity_moment(self, poses: Mapping[str, np.ndarray], joint: str, after_motion: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Weight of the links carried by ``joint``: force [N] (n,3) and moment [N m] (n,3) about the
+        joint frame origin, in the joint frame axes (``after_motion``: the child frame; else the frame
+        right after the joint's origin).  Gravity is -z of the root."""
+        j = self.robot.joints[joint]
+        T = poses[j.child] if after_motion else poses[j.parent] @ j.origin
+        n = T.shape[0]
+        F = np.zeros((n, 3))
+        M = np.zeros((n, 3))
+        g = np.array([0.0, 0.0, -GRAVITY])
+        for ln in self.tree.subtree_links(joint):
+            inert = self.robot.links[ln].inertial
+            if inert is None or inert.mass <= 0:
+                continue
+            c = (poses[ln] @ inert.origin)[:, :3, 3]
+            f = inert.mass * g
+            F += f
+            M += np.cross(c - T[:, :3, 3], f)
+        Rt = np.swapaxes(T[:, :3, :3], 1, 2)
+        return np.einsum("nij,nj->ni", Rt, F), np.einsum("nij,nj->ni", Rt, M)
+
+    def poses(self, q: Mapping[str, np.ndarray], xi: Mapping[str, np.ndarray], dq_noise: Mapping[str, np.ndarray],
+              motion_sign: Mapping[str, np.ndarray], elapsed: np.ndarray, n: int) -> dict[str, np.ndarray]:
+        """True link poses (n, 4, 4) in the root frame.
+
+        Parameters
+        ----------
+        q : joint -> (n,)
+            Commanded (= recorded) joint values of the independent joints.
+        xi : joint -> (n, 6)
+            Drawn perturbations (paper eq. 16), tangent space right after the joint origin.
+        dq_noise : joint -> (n,)
+            Drawn joint-value errors (model ``joint_noise``).
+        motion_sign : joint -> (n,)
+            Sign of each joint's last motion (backlash).
+        elapsed : (n,)
+            Seconds since the start of the bag (thermal growth).
+        n : int
+            Number of samples (the batch size of every array above).
+
+        Returns
+        -------
+        dict link -> (n, 4, 4) ``T_root_link`` of the true robot.
+        """
+        dq: dict[str, np.ndarray] = {k: np.asarray(v, float).copy() for k, v in dq_noise.items()}
+        fx: dict[str, np.ndarray] = {}  # effect twists per joint (n, 6)
+
+        def add_dq(j: str, v: Any) -> None:
+            dq[j] = dq.get(j, np.zeros(n)) + v
+
+        def add_fx(j: str, v: np.ndarray) -> None:
+            fx[j] = fx.get(j, np.zeros((n, 6))) + v
+
+        for e in self.effects:
+            nm, loc, p = e["name"], e["location"], e["parameters"]
+            if nm == "joint_offset":
+                add_dq(loc, p["offset"])
+            elif nm == "transmission_error":
+                add_dq(loc, p["amplitude"] * np.sin(p["periods"] * np.asarray(q[loc], float)))
+            elif nm == "backlash":
+                add_dq(loc, p["play"] * np.asarray(motion_sign.get(loc, np.zeros(n)), float))
+            elif nm in ("link_error", "camera_extrinsics"):
+                add_fx(loc, np.broadcast_to([p[k] for k in TRUTH_EFFECTS[nm]], (n, 6)))
+            elif nm == "thermal_growth":
+                o = self.robot.joints[loc].origin
+                d = o[:3, :3].T @ o[:3, 3]
+                v = np.zeros((n, 6))
+                v[:, :3] = p["alpha"] * np.asarray(elapsed)[:, None] * d
+                add_fx(loc, v)
+            elif nm == "base_tilt":
+                # everything hanging on the root rotates about the root's x and y axes:
+                # Exp(w) Exp(p_j) = Exp(p_j) Exp(Ad(Exp(p_j)^-1) w) for each child joint j of the root
+                w = np.array([0, 0, 0, p["tilt_x"], p["tilt_y"], 0.0])
+                for jn in self.robot.children(self.robot.root):
+                    Ad = lie.adjoint(lie.inverse(self.robot.joints[jn].origin))
+                    add_fx(jn, np.broadcast_to(Ad @ w, (n, 6)))
+
+        def build(dq_: Mapping[str, np.ndarray], fx_: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+            dx = {}
+            for jn in set(xi) | set(fx_):
+                T = np.broadcast_to(np.eye(4), (n, 4, 4))
+                if jn in fx_:
+                    T = T @ lie.exp(fx_[jn])
+                if jn in xi:
+                    T = T @ lie.exp(xi[jn])
+                dx[jn] = T
+            return self.link_poses(q, dq_, dx, n)
+
+        # gravity-dependent effects: loads evaluated on the chain without them (first order in the
+        # deflection); gravity is -z of the root link
+        grav = [e for e in self.effects if e["name"] in ("gravity_compliance", "mount_bending")]
+        if grav:
+            base = build(dq, fx)
+            for e in grav:
+                loc, p = e["location"], e["parameters"]
+                if e["name"] == "gravity_compliance":
+                    j = self.robot.joints[loc]
+                    F, M = self.gravity_moment(base, loc, after_motion=True)
+                    tau = (F if j.type == "prismatic" else M) @ j.axis
+                    add_dq(loc, p["compliance"] * tau)
+                else:
+                    _, M = self.gravity_moment(base, loc, after_motion=False)
+                    v = np.zeros((n, 6))
+                    v[:, 3] = p["compliance_x"] * M[:, 0]
+                    v[:, 4] = p["compliance_y"] * M[:, 1]
+                    add_fx(loc, v)
+        return build(dq, fx)
