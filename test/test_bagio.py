@@ -120,7 +120,7 @@ def test_contract_violations_name_the_topic(tmp_path: Path) -> None:
     # JointState with mismatched name / position lengths (written raw)
     path = tmp_path / "badjs"
     JS = ts.types["sensor_msgs/msg/JointState"]
-    msg = JS(header=bagio._header(0, ""), name=["a", "b"], position=np.array([1.0]),
+    msg = JS(header=bagio.header_msg(0, ""), name=["a", "b"], position=np.array([1.0]),
              velocity=np.zeros(0), effort=np.zeros(0))
     with bagio.BagWriter(path) as bag:
         bag.write_raw("/joint_states", "sensor_msgs/msg/JointState", 5, bagio.serialize(msg, JS.__msgtype__))
@@ -200,9 +200,9 @@ def test_fast_joint_state_cdr_equals_rosbags(names: list, pos: list, vel: list |
     JS = ts.types["sensor_msgs/msg/JointState"]
     arr = lambda a: np.asarray(a if a is not None else [], dtype=np.float64)  # noqa: E731
     for ns in (0, 1_234_567_891_011, 99):
-        msg = JS(header=bagio._header(ns, ""), name=names, position=arr(pos), velocity=arr(vel), effort=arr(eff))
+        msg = JS(header=bagio.header_msg(ns, ""), name=names, position=arr(pos), velocity=arr(vel), effort=arr(eff))
         ref = bagio.serialize(msg, JS.__msgtype__)
-        assert bagio._cdr_joint_state(ns, names, arr(pos), arr(vel), arr(eff)) == ref
+        assert bagio.cdr_joint_state(ns, names, arr(pos), arr(vel), arr(eff)) == ref
 
 
 def test_both_image_topics_and_empty_tag_observations(tmp_path: Path) -> None:
