@@ -1,0 +1,107 @@
+"""Pose covariances: local (tangent space at the mean) <-> ROS (``B S B^T``, parent-frame axes; docs/conventions.md
+sec. 2), and THE covariance check of ppoe_core (shape, symmetry, positive semi-definiteness)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from ppoe_core.errors import CovarianceError
+from ppoe_core.lie.so3 import Array, _f
+
+# ----------------------------------------------------------------------------
+# Covariances
+# ----------------------------------------------------------------------------
+
+
+def _ros_block(T: Array) -> Array:
+    R = T[..., :3, :3]
+    B = np.zeros(T.shape[:-2] + (6, 6))
+    B[..., :3, :3] = R
+    B[..., 3:, 3:] = R
+    return B
+
+
+def cov_local_to_ros(T: ArrayLike, cov: ArrayLike) -> Array:
+    """Local covariance -> ROS ``PoseWithCovariance`` convention (CONTRACT section 2).
+
+    Parameters
+    ----------
+    T : array_like, shape (..., 4, 4)
+        Mean pose ``T_parent_child``.
+    cov : array_like, shape (..., 6, 6)
+        Covariance in the tangent space at ``T`` (right perturbation, ``[rho; theta]``).
+
+    Returns
+    -------
+    ndarray, shape (..., 6, 6)
+        ``B cov B^T`` with ``B = blockdiag(R, R)``: translation and small rotations both in
+        the axes of the parent frame (``header.frame_id``), order ``(x, y, z, rx, ry, rz)``.
+    """
+    B = _ros_block(_f(T))
+    return B @ _f(cov) @ np.swapaxes(B, -1, -2)
+
+
+def cov_ros_to_local(T: ArrayLike, cov_ros: ArrayLike) -> Array:
+    """Inverse of :func:`cov_local_to_ros`: ROS covariance (parent axes) -> tangent space at ``T``.
+
+    Parameters
+    ----------
+    T : array_like, shape (..., 4, 4)
+        Mean pose ``T_parent_child``.
+    cov_ros : array_like, shape (..., 6, 6)
+        ``PoseWithCovariance.covariance`` as 6x6: order ``(x, y, z, rx, ry, rz)``, all in the
+        axes of the parent frame (``header.frame_id``), CONTRACT section 2.
+
+    Returns
+    -------
+    ndarray, shape (..., 6, 6)
+        ``B^T cov_ros B`` with ``B = blockdiag(R, R)``: the covariance in the tangent space at
+        ``T`` (child frame, right perturbation, ``[rho; theta]``).
+    """
+    B = _ros_block(_f(T))
+    Bt = np.swapaxes(B, -1, -2)
+    return Bt @ _f(cov_ros) @ B
+
+
+def check_covariance(
+    cov: ArrayLike, name: str = "covariance", size: int | None = None, tol: float = 1e-9
+) -> Array:
+    """Validate a covariance matrix and return it as a float array.
+
+    Parameters
+    ----------
+    cov : array_like, shape (..., n, n)
+    name : str
+        What the covariance belongs to (joint, topic, file:line); used in the error message.
+    size : int, optional
+        Required ``n``.
+    tol : float
+        Relative tolerance for symmetry and for negative eigenvalues.
+
+    Raises
+    ------
+    CovarianceError
+        Not square / wrong size, non-finite, not symmetric or not positive semi-definite.
+    """
+    try:
+        C = np.asarray(cov, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise CovarianceError(f"{name}: not a numeric matrix ({exc})") from None
+    if C.ndim < 2 or C.shape[-1] != C.shape[-2]:
+        raise CovarianceError(f"{name}: must be a square matrix, got shape {C.shape}")
+    if size is not None and C.shape[-1] != size:
+        raise CovarianceError(f"{name}: must be {size}x{size}, got {C.shape[-2]}x{C.shape[-1]}")
+    # array methods instead of np.all / np.max: the same reductions without the dispatch
+    # overhead (this runs once per message in the nodes)
+    if not np.isfinite(C).all():
+        raise CovarianceError(f"{name}: contains NaN or infinite entries")
+    scale = max(float(np.abs(C).max()), 1e-300)
+    Ct = np.swapaxes(C, -1, -2)
+    asym = float(np.abs(C - Ct).max())
+    if asym > tol * scale:
+        raise CovarianceError(f"{name}: not symmetric (max |C - C^T| = {asym:.3g})")
+    eig_min = float(np.linalg.eigvalsh(0.5 * (C + Ct)).min())
+    if eig_min < -tol * scale:
+        raise CovarianceError(f"{name}: not positive semi-definite (smallest eigenvalue {eig_min:.3g})")
+    return C
