@@ -17,18 +17,39 @@ Defaults (a section that is absent):
 
 from __future__ import annotations
 
-import math
-import numbers
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ppoe_core import lie
-from ppoe_core.errors import CovarianceError, ModelConfigError, UnknownFrameError, UnknownJointError
+from ppoe_core.errors import ModelConfigError, UnknownJointError
+from ppoe_core.robot.config_checks import (
+    _check_keys,
+    _Ctx,
+    _kind,
+    _link,
+    _mapping,
+    _number,
+    _pose,
+    _sigma_or_cov,
+    _vector,
+    low_rank_factor,
+)
+from ppoe_core.robot.config_types import (
+    EFFECT_NAMES,
+    CameraConfig,
+    ContactConfig,
+    Frames,
+    ImuConfig,
+    ModelConfig,
+    NaiveConfig,
+    Perturbation,
+    TagItem,
+    TagsConfig,
+    TrackerConfig,
+)
 from ppoe_core.robot.urdf import Robot
 from ppoe_core.robot.yaml_io import _LDict, read_yaml_file, read_yaml_text
 
@@ -48,353 +69,6 @@ __all__ = [
     "load_contact_config",
     "low_rank_factor",
 ]
-
-#: Effect names of CONTRACT.md section 6.
-EFFECT_NAMES = (
-    "joint_offset",
-    "link_error",
-    "gravity_compliance",
-    "mount_bending",
-    "base_tilt",
-    "backlash",
-    "thermal_growth",
-    "time_offset",
-    "camera_extrinsics",
-    "tracker_registration",
-)
-
-
-# ----------------------------------------------------------------------------
-# Data classes
-# ----------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Perturbation:
-    """Perturbation ``xi`` of one joint (paper eq. 16), zero mean.
-
-    Attributes
-    ----------
-    joint : str
-    covariance : ndarray, shape (6, 6)
-        ``E[xi xi^T]`` of ``[rho; theta]`` [m^2, rad^2], in the tangent space right after
-        the joint's static origin ``Exp(p_i)`` (the frame ``F_{i,p}`` of paper Fig. 2).
-    factor : ndarray, shape (6, r)
-        ``covariance = factor @ factor.T`` with only the non-zero directions (r <= 6).
-    """
-
-    joint: str
-    covariance: np.ndarray
-    factor: np.ndarray
-
-
-@dataclass(frozen=True)
-class Frames:
-    """Default frames for fk / evaluate / nodes (URDF link names)."""
-
-    base: str
-    tool: str | None
-
-
-@dataclass(frozen=True)
-class CameraConfig:
-    """``camera``: optical frame (URDF link, z forward) and pixel noise 1-sigma [px]."""
-
-    frame: str
-    pixel_sigma: float = 0.5
-
-
-@dataclass(frozen=True)
-class TagItem:
-    """One tag fixed to a link.
-
-    Attributes
-    ----------
-    id : int
-    link : str
-    size : float
-        Edge of the black square [m].
-    T_link_tag : ndarray, shape (4, 4)
-        Tag centre pose in link coordinates (tag z = normal out of the tag).
-    """
-
-    id: int
-    link: str
-    size: float
-    T_link_tag: np.ndarray
-
-
-@dataclass(frozen=True)
-class TagsConfig:
-    """``tags``: tag family (default ``tag36h11``) and the tags."""
-
-    family: str
-    items: tuple[TagItem, ...]
-
-    def by_id(self) -> dict[int, TagItem]:
-        """Tags keyed by id."""
-        return {t.id: t for t in self.items}
-
-
-@dataclass(frozen=True)
-class ContactConfig:
-    """``contact``: a known plane the tool touches (paper section V).
-
-    Attributes
-    ----------
-    plane_frame : str
-        URDF link the plane pose is given in.
-    T_frame_plane : ndarray, shape (4, 4)
-        Plane pose; plane normal = plane z axis.
-    covariance : ndarray, shape (6, 6)
-        ``Sigma_v`` of the contact, in the tangent space at the plane pose (plane frame).
-    tool_link : str
-    tool_xyz : ndarray, shape (3,)
-        Contact point in ``tool_link`` coordinates [m].
-    force_threshold, release_threshold : float
-        Contact enters above / leaves below these force magnitudes [N]. Defaults 5.0 / 2.0.
-    """
-
-    plane_frame: str
-    T_frame_plane: np.ndarray
-    covariance: np.ndarray
-    tool_link: str
-    tool_xyz: np.ndarray
-    force_threshold: float = 5.0
-    release_threshold: float = 2.0
-
-
-@dataclass(frozen=True)
-class TrackerConfig:
-    """``tracker``: point reflector on a link, measured by an external tracker.
-
-    ``xyz`` [m] in ``link`` coordinates, ``sigma`` 1-sigma per axis [m] (default 0.0005).
-    """
-
-    link: str
-    xyz: np.ndarray
-    sigma: float = 0.0005
-
-
-@dataclass(frozen=True)
-class ImuConfig:
-    """One accelerometer on a link; ``sigma`` 1-sigma per axis [m/s^2] (default 0.0004)."""
-
-    name: str
-    link: str
-    sigma: float = 0.0004
-
-
-@dataclass(frozen=True)
-class NaiveConfig:
-    """``naive``: the naive diagonal covariance (tool frame tangent space) for comparisons."""
-
-    covariance: np.ndarray
-
-
-@dataclass(frozen=True)
-class ModelConfig:
-    """The validated model YAML.
-
-    Attributes
-    ----------
-    perturbations : dict[str, Perturbation]
-        Keyed by joint name (any URDF joint, fixed joints included).
-    joint_noise : dict[str, float]
-        1-sigma joint-value noise along the joint axis [rad or m] (paper IV-D, ``xi = zeta``);
-        movable joints only.
-    frames : Frames
-    camera, tags, contact, tracker, naive : optional sections (None if absent)
-    imus : dict[str, ImuConfig]
-    effects : list[dict]
-        ``{"name", "location", "parameters"[, "ci", "variable", "reference"]}``, names from
-        CONTRACT section 6.
-    effect_wheres : list[str]
-        ``file:line`` of each effect entry (for messages of ``effects.effect_from_config``).
-    source : str
-        File name, ``"<string>"`` or ``"<dict>"``.
-    """
-
-    perturbations: dict[str, Perturbation] = field(default_factory=dict)
-    joint_noise: dict[str, float] = field(default_factory=dict)
-    frames: Frames | None = None
-    camera: CameraConfig | None = None
-    tags: TagsConfig | None = None
-    contact: ContactConfig | None = None
-    tracker: TrackerConfig | None = None
-    imus: dict[str, ImuConfig] = field(default_factory=dict)
-    naive: NaiveConfig | None = None
-    effects: list[dict] = field(default_factory=list)
-    effect_wheres: list[str] = field(default_factory=list)
-    source: str = "<dict>"
-
-
-# ----------------------------------------------------------------------------
-# YAML with line numbers
-# ----------------------------------------------------------------------------
-
-
-# the line-aware loader lives in ppoe_core.robot.yaml_io (the one YAML reader)
-
-
-# ----------------------------------------------------------------------------
-# Validation helpers
-# ----------------------------------------------------------------------------
-
-
-class _Ctx:
-    """Where we are: file + path of keys, for messages."""
-
-    def __init__(self, source: str) -> None:
-        self.source = source
-        self.effect_wheres: list[str] = []
-
-    def at(self, obj: Any = None, key: Any = None) -> str:
-        line = None
-        if key is not None and isinstance(obj, _LDict):
-            line = obj.key_lines.get(key)
-        if line is None and obj is not None:
-            line = getattr(obj, "line", None)
-        return f"{self.source}:{line}" if line else self.source
-
-    def error(self, obj: Any, key: Any, path: str, msg: str) -> ModelConfigError:
-        return ModelConfigError(f"{self.at(obj, key)}: {path}: {msg}")
-
-
-def _kind(val: Any) -> str:
-    """What a YAML value is, in the user's words (no internal class names such as ``_LList``)."""
-    if val is None:
-        return "nothing (null)"
-    if isinstance(val, Mapping):
-        return "a mapping"
-    if isinstance(val, str):
-        return f"the string {val!r}"
-    if isinstance(val, (list, tuple)):
-        return f"a list of {len(val)} item{'' if len(val) == 1 else 's'}"
-    if isinstance(val, bool):
-        return f"the boolean {val}"
-    if isinstance(val, (int, float)):
-        return f"the number {val}"
-    return type(val).__name__
-
-
-def _mapping(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str) -> Mapping:
-    if not isinstance(val, Mapping):
-        raise ctx.error(parent, key, path, f"must be a mapping, got {_kind(val)}")
-    return val
-
-
-def _check_keys(ctx: _Ctx, d: Mapping, allowed: tuple, path: str, required: tuple = ()) -> None:
-    for k in d:
-        if k not in allowed:
-            raise ctx.error(
-                d, k, path, f"unknown key '{k}' (allowed: {', '.join(allowed)})"
-            )
-    for k in required:
-        if k not in d:
-            raise ctx.error(d, None, path, f"missing required key '{k}'")
-
-
-def _number(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, minimum: float | None = None,
-            positive: bool = False) -> float:
-    if isinstance(val, (bool, np.bool_)) or not isinstance(val, numbers.Real):
-        raise ctx.error(parent, key, path, f"must be a number, got {val!r}")
-    f = float(val)
-    if not math.isfinite(f):
-        raise ctx.error(parent, key, path, f"must be finite, got {val!r}")
-    if minimum is not None and f < minimum:
-        raise ctx.error(parent, key, path, f"must be >= {minimum}, got {f}")
-    if positive and f <= 0:
-        raise ctx.error(parent, key, path, f"must be > 0, got {f}")
-    return f
-
-
-def _vector(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, n: int, minimum: float | None = None) -> np.ndarray:
-    if isinstance(val, np.ndarray):
-        val = val.tolist()
-    if not isinstance(val, (list, tuple)) or len(val) != n:
-        raise ctx.error(parent, key, path, f"must be a list of {n} numbers, got {val!r}")
-    return np.array([_number(ctx, v, parent, key, path, minimum) for v in val], dtype=float)
-
-
-def _matrix(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, n: int) -> np.ndarray:
-    if isinstance(val, np.ndarray):
-        val = val.tolist()
-    if not isinstance(val, (list, tuple)) or len(val) != n or not all(
-        isinstance(r, (list, tuple)) and len(r) == n for r in val
-    ):
-        raise ctx.error(parent, key, path, f"must be a {n}x{n} list of lists")
-    return np.array([[_number(ctx, v, parent, key, path) for v in r] for r in val], dtype=float)
-
-
-def _covariance(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, what: str) -> np.ndarray:
-    C = _matrix(ctx, val, parent, key, path, 6)
-    try:
-        return lie.check_covariance(C, f"{ctx.at(parent, key)}: {path} ({what})", size=6)
-    except CovarianceError:
-        raise
-    except Exception as exc:  # pragma: no cover - defensive
-        raise CovarianceError(f"{ctx.at(parent, key)}: {path} ({what}): {exc}") from None
-
-
-def _sigma_or_cov(ctx: _Ctx, d: Mapping, path: str, what: str) -> np.ndarray:
-    _check_keys(ctx, d, ("sigma", "covariance"), path)
-    if ("sigma" in d) == ("covariance" in d):
-        raise ctx.error(d, None, path, "give exactly one of 'sigma' (6 numbers) or 'covariance' (6x6)")
-    if "sigma" in d:
-        s = _vector(ctx, d["sigma"], d, "sigma", path + ".sigma", 6, minimum=0.0)
-        return np.diag(s**2)
-    return _covariance(ctx, d["covariance"], d, "covariance", path + ".covariance", what)
-
-
-def low_rank_factor(cov: np.ndarray, rel_tol: float = 1e-12) -> np.ndarray:
-    """Factor ``L`` with ``cov = L L^T``, keeping only the non-zero directions.
-
-    A diagonal covariance gives the scaled unit columns of its non-zero sigmas; a full one
-    its eigenvectors scaled by sqrt(eigenvalue) above ``rel_tol * max eigenvalue``.
-
-    Parameters
-    ----------
-    cov : ndarray, shape (n, n)
-        Symmetric positive semi-definite covariance (already validated), e.g. a joint's
-        perturbation covariance in the tangent space at the joint origin (eq. 16).
-    rel_tol : float
-        Eigenvalues at or below ``rel_tol`` times the largest one are dropped.
-
-    Returns
-    -------
-    ndarray, shape (n, r)
-        ``r`` = number of kept directions (0 for a zero covariance); columns live in the same
-        tangent space as ``cov``.
-    """
-    cov = np.asarray(cov, dtype=float)
-    n = cov.shape[0]
-    if np.count_nonzero(cov - np.diag(np.diag(cov))) == 0:
-        d = np.diag(cov)
-        idx = np.flatnonzero(d > 0)
-        L = np.zeros((n, idx.size))
-        L[idx, np.arange(idx.size)] = np.sqrt(d[idx])
-        return L
-    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
-    keep = w > rel_tol * max(float(w.max()), 0.0)
-    return V[:, keep] * np.sqrt(w[keep])
-
-
-def _link(ctx: _Ctx, robot: Robot | None, val: Any, parent: Any, key: Any, path: str) -> str:
-    """A link name; checked against ``robot`` unless it is None (no URDF at hand)."""
-    if not isinstance(val, str):
-        raise ctx.error(parent, key, path, f"must be a link name, got {val!r}")
-    if robot is not None and val not in robot.links:
-        raise UnknownFrameError(
-            f"{ctx.at(parent, key)}: {path}: unknown link '{val}' (not in URDF {robot.source})"
-        )
-    return val
-
-
-def _pose(ctx: _Ctx, d: Mapping, path: str) -> np.ndarray:
-    xyz = _vector(ctx, d["xyz"], d, "xyz", path + ".xyz", 3) if "xyz" in d else np.zeros(3)
-    rpy = _vector(ctx, d["rpy"], d, "rpy", path + ".rpy", 3) if "rpy" in d else np.zeros(3)
-    return lie.from_xyz_rpy(xyz, rpy)
 
 
 # ----------------------------------------------------------------------------
