@@ -369,27 +369,12 @@ def iterated_update(
     gate = float("inf")
     steps = []
     converged = False
-    I6 = np.eye(6)
     for it in range(1, max_iterations + 1):
         z_pred, H, M = _linearize(model, Xi, jacobians)
         r = np.asarray(model.residual(z, z_pred), dtype=float)
-        if it == 1:
-            e = np.zeros(6)
-            Pi = P0
-        else:
-            e = lie.log(lie.inverse(Xi) @ X0)  # X_0 ominus X_i, tangent at X_i
-            J = lie.right_jacobian_inv(e)
-            Pi = J @ P0 @ J.T
+        e, Pi = _prior_at(Xi, X0, P0, first=it == 1)
         MRM = M @ R @ M.T
-        S = H @ Pi @ H.T + MRM
-        S = 0.5 * (S + S.T)
-        try:
-            cho = scipy.linalg.cho_factor(S, lower=True, check_finite=True)
-        except (np.linalg.LinAlgError, ValueError) as exc:
-            raise CovarianceError(
-                f"{model.name}: innovation covariance H P H^T + M R M^T is not positive "
-                f"definite ({exc}); give the measurement a non-zero noise"
-            ) from None
+        S, cho = _innovation_covariance(H, Pi, MRM, model.name)
         if it == 1:
             y0, S0 = r, S
             nis_value = float(r @ scipy.linalg.cho_solve(cho, r))
@@ -409,12 +394,7 @@ def iterated_update(
         steps.append(step)
         if step < step_tolerance or it == max_iterations:
             converged = step < step_tolerance
-            A = I6 - K @ H
-            P_post = A @ Pi @ A.T + K @ MRM @ K.T  # Joseph form (eq. 23)
-            if transport_covariance:
-                Jr = lie.right_jacobian(d)
-                P_post = Jr @ P_post @ Jr.T
-            P_post = _spd(P_post)
+            P_post = _posterior_covariance(K, H, Pi, MRM, d if transport_covariance else None)
             Xi = X_next
             break
         Xi = X_next
@@ -425,6 +405,47 @@ def iterated_update(
         converged=converged, innovation=y0, S=S0, residual=res, gain=K, H=H,
         correction=lie.log(lie.inverse(X0) @ Xi), steps=tuple(steps),
     )
+
+
+def _prior_at(Xi: np.ndarray, X0: np.ndarray, P0: np.ndarray, first: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The prior seen from the iterate ``X_i``: ``e = X_0 ominus X_i`` and ``P_i = J P_0 J^T`` (tangent at ``X_i``)."""
+    if first:
+        return np.zeros(6), P0
+    e = lie.log(lie.inverse(Xi) @ X0)  # X_0 ominus X_i, tangent at X_i
+    J = lie.right_jacobian_inv(e)
+    return e, J @ P0 @ J.T
+
+
+def _innovation_covariance(H: np.ndarray, Pi: np.ndarray, MRM: np.ndarray, name: str) -> tuple[np.ndarray, Any]:
+    """``S = H P H^T + M R M^T`` (symmetrised) and its Cholesky factor (eq. 20).
+
+    Raises
+    ------
+    CovarianceError
+        ``S`` is not positive definite (a measurement without noise).
+    """
+    S = H @ Pi @ H.T + MRM
+    S = 0.5 * (S + S.T)
+    try:
+        cho = scipy.linalg.cho_factor(S, lower=True, check_finite=True)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        raise CovarianceError(
+            f"{name}: innovation covariance H P H^T + M R M^T is not positive "
+            f"definite ({exc}); give the measurement a non-zero noise"
+        ) from None
+    return S, cho
+
+
+def _posterior_covariance(K: np.ndarray, H: np.ndarray, Pi: np.ndarray, MRM: np.ndarray,
+                          d_transport: np.ndarray | None) -> np.ndarray:
+    """Joseph form ``(I-KH) P (I-KH)^T + K M R M^T K^T`` (eq. 23), moved to the tangent space at the
+    new estimate with the right Jacobian of the last step ``d`` when given."""
+    A = np.eye(6) - K @ H
+    P_post = A @ Pi @ A.T + K @ MRM @ K.T
+    if d_transport is not None:
+        Jr = lie.right_jacobian(d_transport)
+        P_post = Jr @ P_post @ Jr.T
+    return _spd(P_post)
 
 
 def _reorthonormalise(T: np.ndarray) -> np.ndarray:

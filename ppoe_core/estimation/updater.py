@@ -167,69 +167,86 @@ class ModelUpdater:
 
     def build(self, measurement: Measurement, prior: PriorSample | None) -> tuple[Any, Array]:
         """Measurement model and ``z`` for ``measurement`` (see class docstring)."""
-        from ppoe_core.estimation import measurements as mm
-
         joints = self._joints(prior)
         p = measurement.payload
         where = f"{measurement.source} at stamp {measurement.stamp:.6f}"
         if isinstance(p, TagMeasurement):
-            ids = np.asarray(p.ids).astype(int).reshape(-1)
-            corners = np.asarray(p.corners).astype(int).reshape(-1)
-            xy = np.asarray(p.xy, dtype=np.float64).reshape(-1, 2)
-            if not (ids.shape[0] == corners.shape[0] == xy.shape[0]):
-                raise MeasurementError(f"{where}: ids, corners and xy differ in length")
-            if not np.all(np.isfinite(xy)):
-                raise MeasurementError(f"{where}: NaN/inf in the normalised coordinates")
-            fx, fy = p.fx, p.fy
-            if fx is None or fy is None:
-                if p.uv is None:
-                    raise MeasurementError(f"{where}: no focal length (camera_info) and no pixels")
-                fx, fy = _focal_from_points(np.asarray(p.uv, float).reshape(-1, 2), xy, where)
-            pts, keep, labels = [], [], []
-            T_tool_link: dict[str, Array] = {}
-            obs: Any
-            for i, (tid, c) in enumerate(zip(ids, corners)):
-                item = self.tags.get(int(tid))
-                if item is None:
-                    self.unknown_tag_points += 1
-                    continue
-                if not 0 <= c <= 4:
-                    raise MeasurementError(f"{where}: tag {tid} has corner index {c}, expected 0..4")
-                if (c == 0 and not self.use_centre) or (c > 0 and not self.use_corners):
-                    continue
-                if item.link not in T_tool_link:
-                    T_tool_link[item.link] = self.model.fk_mean(joints, self.tool_frame, item.link)
-                pts.append(mm.tag_points(item.size, T_tool_link[item.link] @ item.T_link_tag)[c])
-                keep.append(i)
-                labels.append(f"tag {tid} corner {c}")
-            if not pts:
-                raise MeasurementError(
-                    f"{where}: no point of a tag configured in the model YAML (ids {sorted(set(ids.tolist()))})"
-                )
-            if self.camera_covariance:
-                T_base_cam, cov_cam = self.model.fk(joints, self.base_frame, p.camera_frame)
-                if float(np.max(np.abs(cov_cam))) == 0.0:
-                    cov_cam = None
-            else:
-                T_base_cam, cov_cam = self.model.fk_mean(joints, self.base_frame, p.camera_frame), None
-            K = np.array([[fx, 0.0, 0.0], [0.0, fy, 0.0], [0.0, 0.0, 1.0]])
-            obs = mm.TagBearingModel(
-                np.asarray(pts), K, None, pixel_sigma=self.pixel_sigma, mode="normalized",
-                T_ref_camera=T_base_cam, cov_camera=cov_cam, labels=labels, name=where,
-            )
-            return obs, xy[keep].reshape(-1)
+            return self._build_tags(p, joints, where)
         if isinstance(p, ContactMeasurement):
-            if self.contact is None:
-                raise MeasurementError(f"{where}: the model YAML has no 'contact' section (tool point)")
-            T_base_frame = self.model.fk_mean(joints, self.base_frame, p.frame)
-            T_tool_contact = self.model.fk_mean(joints, self.tool_frame, self.contact.tool_link)
-            point_tool = T_tool_contact[:3, :3] @ self.contact.tool_xyz + T_tool_contact[:3, 3]
-            obs = mm.ContactPlaneModel(
-                T_base_frame @ np.asarray(p.T_frame_plane, float), p.cov_plane, point_tool,
-                distance_sigma=self.contact_distance_sigma, name=where,
-            )
-            return obs, np.zeros(1)
+            return self._build_contact(p, joints, where)
         raise MeasurementError(f"{where}: unknown payload type {type(p).__name__}")
+
+    def _build_tags(self, p: TagMeasurement, joints: Any, where: str) -> tuple[Any, Array]:
+        """Tag bearing model (normalised coordinates, camera pose from the chain) and ``z``."""
+        from ppoe_core.estimation import measurements as mm
+
+        ids = np.asarray(p.ids).astype(int).reshape(-1)
+        corners = np.asarray(p.corners).astype(int).reshape(-1)
+        xy = np.asarray(p.xy, dtype=np.float64).reshape(-1, 2)
+        if not (ids.shape[0] == corners.shape[0] == xy.shape[0]):
+            raise MeasurementError(f"{where}: ids, corners and xy differ in length")
+        if not np.all(np.isfinite(xy)):
+            raise MeasurementError(f"{where}: NaN/inf in the normalised coordinates")
+        fx, fy = p.fx, p.fy
+        if fx is None or fy is None:
+            if p.uv is None:
+                raise MeasurementError(f"{where}: no focal length (camera_info) and no pixels")
+            fx, fy = _focal_from_points(np.asarray(p.uv, float).reshape(-1, 2), xy, where)
+        pts, keep, labels = self._tag_points_tool(ids, corners, joints, where)
+        if self.camera_covariance:
+            T_base_cam, cov_cam = self.model.fk(joints, self.base_frame, p.camera_frame)
+            if float(np.max(np.abs(cov_cam))) == 0.0:
+                cov_cam = None
+        else:
+            T_base_cam, cov_cam = self.model.fk_mean(joints, self.base_frame, p.camera_frame), None
+        K = np.array([[fx, 0.0, 0.0], [0.0, fy, 0.0], [0.0, 0.0, 1.0]])
+        obs = mm.TagBearingModel(
+            np.asarray(pts), K, None, pixel_sigma=self.pixel_sigma, mode="normalized",
+            T_ref_camera=T_base_cam, cov_camera=cov_cam, labels=labels, name=where,
+        )
+        return obs, xy[keep].reshape(-1)
+
+    def _tag_points_tool(self, ids: Array, corners: Array, joints: Any,
+                         where: str) -> tuple[list[Array], list[int], list[str]]:
+        """Tag points (centre 0, corners 1..4) in the tool frame for the observed rows the model knows."""
+        from ppoe_core.estimation import measurements as mm
+
+        pts, keep, labels = [], [], []
+        T_tool_link: dict[str, Array] = {}
+        for i, (tid, c) in enumerate(zip(ids, corners)):
+            item = self.tags.get(int(tid))
+            if item is None:
+                self.unknown_tag_points += 1
+                continue
+            if not 0 <= c <= 4:
+                raise MeasurementError(f"{where}: tag {tid} has corner index {c}, expected 0..4")
+            if (c == 0 and not self.use_centre) or (c > 0 and not self.use_corners):
+                continue
+            if item.link not in T_tool_link:
+                T_tool_link[item.link] = self.model.fk_mean(joints, self.tool_frame, item.link)
+            pts.append(mm.tag_points(item.size, T_tool_link[item.link] @ item.T_link_tag)[c])
+            keep.append(i)
+            labels.append(f"tag {tid} corner {c}")
+        if not pts:
+            raise MeasurementError(
+                f"{where}: no point of a tag configured in the model YAML (ids {sorted(set(ids.tolist()))})"
+            )
+        return pts, keep, labels
+
+    def _build_contact(self, p: ContactMeasurement, joints: Any, where: str) -> tuple[Any, Array]:
+        """Contact plane model (plane from the chain, tool point on the contact link) and ``z = 0``."""
+        from ppoe_core.estimation import measurements as mm
+
+        if self.contact is None:
+            raise MeasurementError(f"{where}: the model YAML has no 'contact' section (tool point)")
+        T_base_frame = self.model.fk_mean(joints, self.base_frame, p.frame)
+        T_tool_contact = self.model.fk_mean(joints, self.tool_frame, self.contact.tool_link)
+        point_tool = T_tool_contact[:3, :3] @ self.contact.tool_xyz + T_tool_contact[:3, 3]
+        obs = mm.ContactPlaneModel(
+            T_base_frame @ np.asarray(p.T_frame_plane, float), p.cov_plane, point_tool,
+            distance_sigma=self.contact_distance_sigma, name=where,
+        )
+        return obs, np.zeros(1)
 
     def __call__(
         self, T_base_tool: Array, cov_tool: Array, measurement: Measurement, prior: PriorSample | None = None
