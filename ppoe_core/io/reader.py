@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -194,6 +194,105 @@ def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_imag
     return data
 
 
+# -- per-topic parsers: message -> one row of the topic's accumulator --------------------------------------------
+
+
+def _row_joint_state(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    names = list(msg.name)
+    pos = np.asarray(msg.position, dtype=float)
+    if pos.shape[0] != len(names):
+        raise BagError(f"topic {topic}: message {k} has {len(names)} names but {pos.shape[0]} positions")
+    if len(set(names)) != len(names):
+        raise BagError(f"topic {topic}: message {k} lists a joint twice: {names}")
+    vel = np.asarray(msg.velocity, dtype=float)
+    eff = np.asarray(msg.effort, dtype=float)
+    for what, arr in (("velocities", vel), ("efforts", eff)):
+        if arr.shape[0] not in (0, len(names)):
+            raise BagError(f"topic {topic}: message {k} has {len(names)} names but {arr.shape[0]} {what}")
+    return (_stamp_s(msg.header), names, pos, vel, eff)
+
+
+def _row_camera_info(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    K = np.asarray(msg.k, dtype=float).reshape(3, 3)
+    return (_stamp_s(msg.header), msg.header.frame_id, K, np.asarray(msg.d, dtype=float),
+            int(msg.width), int(msg.height), msg.distortion_model)
+
+
+def _row_compressed_image(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    f = msg.format.lower()
+    fmt = "png" if "png" in f else "jpeg" if ("jpeg" in f or "jpg" in f) else None
+    if fmt is None:
+        raise BagError(f"topic {topic}: message {k} format {msg.format!r} is neither png nor jpeg")
+    return (_stamp_s(msg.header), msg.header.frame_id, fmt,
+            np.asarray(msg.data, dtype=np.uint8).tobytes() if load_images else b"", None)
+
+
+def _row_image(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    enc = msg.encoding
+    ch = {"mono8": 1, "bgr8": 3, "rgb8": 3}.get(enc)
+    if ch is None:
+        raise BagError(f"topic {topic}: message {k} encoding {enc!r} not supported (mono8, bgr8, rgb8)")
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    buf = np.asarray(msg.data, dtype=np.uint8)
+    if step < w * ch or buf.shape[0] < h * step:
+        raise BagError(f"topic {topic}: message {k} data size {buf.shape[0]} too small for {w}x{h} {enc}")
+    img = buf[: h * step].reshape(h, step)[:, : w * ch]
+    shape = (h, w) if ch == 1 else (h, w, 3)
+    return (_stamp_s(msg.header), msg.header.frame_id, enc,
+            np.ascontiguousarray(img).tobytes() if load_images else b"", shape)
+
+
+def _row_wrench(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, _v3(msg.wrench.force), _v3(msg.wrench.torque))
+
+
+def _row_pose(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, _pose_to_T(msg.pose))
+
+
+def _row_point(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    p = msg.point
+    return (_stamp_s(msg.header), msg.header.frame_id, [p.x, p.y, p.z])
+
+
+def _row_imu(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, _v3(msg.linear_acceleration),
+            _v3(msg.angular_velocity), np.asarray(msg.linear_acceleration_covariance, float).reshape(3, 3))
+
+
+def _row_tag_cloud(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, _parse_cloud(msg, topic, k))
+
+
+def _row_pose_cov(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, _pose_to_T(msg.pose.pose),
+            np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6))
+
+
+_RowParser = Callable[[Any, str, int, bool], tuple]
+#: topic -> parser of one message into a row (``/imu/<name>`` and pose-with-covariance topics by prefix / type)
+_ROW_PARSERS: dict[str, _RowParser] = {
+    TOPIC_JOINT_STATES: _row_joint_state,
+    TOPIC_CAMERA_INFO: _row_camera_info,
+    TOPIC_COMPRESSED_IMAGE: _row_compressed_image,
+    TOPIC_IMAGE: _row_image,
+    TOPIC_WRENCH: _row_wrench,
+    TOPIC_GT_POSE: _row_pose,
+    TOPIC_GT_POINT: _row_point,
+    TOPIC_TAG_OBSERVATIONS: _row_tag_cloud,
+}
+
+
+def _row_parser(topic: str, msgtype: str) -> _RowParser:
+    if topic in _ROW_PARSERS:
+        return _ROW_PARSERS[topic]
+    if topic.startswith(IMU_TOPIC_PREFIX):
+        return _row_imu
+    if msgtype == T_POSE_COV:
+        return _row_pose_cov
+    raise BagError(f"topic {topic}: no parser for {msgtype}")  # pragma: no cover - filtered before
+
+
 def _collect(data: BagData, acc: dict[str, list[Any]], topic: str, msgtype: str, msg: Any,
              stamp_ns: int, k: int, load_images: bool) -> None:
     lst = acc.setdefault(topic, [])
@@ -202,60 +301,97 @@ def _collect(data: BagData, acc: dict[str, list[Any]], topic: str, msgtype: str,
             raise BagError(f"topic {topic}: message {k} differs from the first (contract: once)")
         data.robot_description = msg.data
         return
-    if topic == TOPIC_JOINT_STATES:
-        names = list(msg.name)
-        pos = np.asarray(msg.position, dtype=float)
-        if pos.shape[0] != len(names):
-            raise BagError(f"topic {topic}: message {k} has {len(names)} names but {pos.shape[0]} positions")
-        if len(set(names)) != len(names):
-            raise BagError(f"topic {topic}: message {k} lists a joint twice: {names}")
-        vel = np.asarray(msg.velocity, dtype=float)
-        eff = np.asarray(msg.effort, dtype=float)
-        for what, arr in (("velocities", vel), ("efforts", eff)):
-            if arr.shape[0] not in (0, len(names)):
-                raise BagError(f"topic {topic}: message {k} has {len(names)} names but {arr.shape[0]} {what}")
-        lst.append((_stamp_s(msg.header), names, pos, vel, eff))
-    elif topic == TOPIC_CAMERA_INFO:
-        K = np.asarray(msg.k, dtype=float).reshape(3, 3)
-        lst.append((_stamp_s(msg.header), msg.header.frame_id, K, np.asarray(msg.d, dtype=float),
-                    int(msg.width), int(msg.height), msg.distortion_model))
-    elif topic == TOPIC_COMPRESSED_IMAGE:
-        f = msg.format.lower()
-        fmt = "png" if "png" in f else "jpeg" if ("jpeg" in f or "jpg" in f) else None
-        if fmt is None:
-            raise BagError(f"topic {topic}: message {k} format {msg.format!r} is neither png nor jpeg")
-        lst.append((_stamp_s(msg.header), msg.header.frame_id, fmt,
-                    np.asarray(msg.data, dtype=np.uint8).tobytes() if load_images else b"", None))
-    elif topic == TOPIC_IMAGE:
-        enc = msg.encoding
-        ch = {"mono8": 1, "bgr8": 3, "rgb8": 3}.get(enc)
-        if ch is None:
-            raise BagError(f"topic {topic}: message {k} encoding {enc!r} not supported (mono8, bgr8, rgb8)")
-        h, w, step = int(msg.height), int(msg.width), int(msg.step)
-        buf = np.asarray(msg.data, dtype=np.uint8)
-        if step < w * ch or buf.shape[0] < h * step:
-            raise BagError(f"topic {topic}: message {k} data size {buf.shape[0]} too small for {w}x{h} {enc}")
-        img = buf[: h * step].reshape(h, step)[:, : w * ch]
-        shape = (h, w) if ch == 1 else (h, w, 3)
-        lst.append((_stamp_s(msg.header), msg.header.frame_id, enc,
-                    np.ascontiguousarray(img).tobytes() if load_images else b"", shape))
-    elif topic == TOPIC_WRENCH:
-        lst.append((_stamp_s(msg.header), msg.header.frame_id, _v3(msg.wrench.force), _v3(msg.wrench.torque)))
-    elif topic == TOPIC_GT_POSE:
-        lst.append((_stamp_s(msg.header), msg.header.frame_id, _pose_to_T(msg.pose)))
-    elif topic == TOPIC_GT_POINT:
-        p = msg.point
-        lst.append((_stamp_s(msg.header), msg.header.frame_id, [p.x, p.y, p.z]))
-    elif topic.startswith(IMU_TOPIC_PREFIX):
-        lst.append((_stamp_s(msg.header), msg.header.frame_id, _v3(msg.linear_acceleration),
-                    _v3(msg.angular_velocity), np.asarray(msg.linear_acceleration_covariance, float).reshape(3, 3)))
-    elif topic == TOPIC_TAG_OBSERVATIONS:
-        lst.append((_stamp_s(msg.header), msg.header.frame_id, _parse_cloud(msg, topic, k)))
-    elif msgtype == T_POSE_COV:
-        lst.append((_stamp_s(msg.header), msg.header.frame_id, _pose_to_T(msg.pose.pose),
-                    np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)))
-    else:  # pragma: no cover - filtered before
-        raise BagError(f"topic {topic}: no parser for {msgtype}")
+    lst.append(_row_parser(topic, msgtype)(msg, topic, k, load_images))
+
+
+# -- per-topic finishers: accumulated rows -> the series of BagData ----------------------------------------------
+
+
+def _finish_joint_states(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    names: list[str] = []
+    index: dict[str, int] = {}
+    for e in lst:
+        for n in e[1]:
+            if n not in index:
+                index[n] = len(names)
+                names.append(n)
+    N, n = len(lst), len(names)
+    P = np.full((N, n), np.nan)
+    V = np.full((N, n), np.nan)
+    E = np.full((N, n), np.nan)
+    for i, (_, nm, pos, vel, eff) in enumerate(lst):
+        cols = np.fromiter((index[x] for x in nm), dtype=int, count=len(nm))
+        P[i, cols] = pos
+        if vel.shape[0]:
+            V[i, cols] = vel
+        if eff.shape[0]:
+            E[i, cols] = eff
+    data.joint_states = JointStates(stamps, names, P, V, E)
+
+
+def _finish_camera_info(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    Ds = [e[3] for e in lst]
+    width = max(d.shape[0] for d in Ds)
+    D = np.zeros((len(lst), width))
+    for i, d in enumerate(Ds):
+        D[i, : d.shape[0]] = d
+    data.camera_info = CameraInfos(stamps, frames, np.stack([e[2] for e in lst]), D,
+                                   np.array([e[4] for e in lst]), np.array([e[5] for e in lst]),
+                                   [e[6] for e in lst])
+
+
+def _finish_images(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    imgs = Images(topic, stamps, frames, [e[2] for e in lst], [e[3] for e in lst], [e[4] for e in lst])
+    if topic == TOPIC_IMAGE:
+        data.raw_images = imgs
+        if not len(data.images):
+            data.images = imgs
+    else:
+        data.images = imgs
+
+
+def _finish_wrench(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.wrench = Wrenches(stamps, frames, np.array([e[2] for e in lst]), np.array([e[3] for e in lst]))
+
+
+def _finish_pose(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.ground_truth_pose = PoseSeries(stamps, frames, np.stack([e[2] for e in lst]))
+
+
+def _finish_point(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.ground_truth_point = PointSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float))
+
+
+def _finish_imu(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.imus[topic[len(IMU_TOPIC_PREFIX):]] = ImuSeries(
+        stamps, frames, np.array([e[2] for e in lst]), np.array([e[3] for e in lst]),
+        np.stack([e[4] for e in lst]))
+
+
+def _finish_tag_cloud(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    clouds = [e[2] for e in lst]
+    idx = np.concatenate([np.full(c.shape[0], i, dtype=int) for i, c in enumerate(clouds)])
+    allp = np.concatenate(clouds, axis=0) if clouds else np.zeros((0, 6))
+    data.tag_observations = TagObservationRows(stamps, frames, idx, np.rint(allp[:, 0]).astype(int),
+                                               np.rint(allp[:, 1]).astype(int), allp[:, 2:4].copy(),
+                                               allp[:, 4:6].copy())
+
+
+def _finish_pose_cov(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.poses_with_covariance[topic] = PoseCovSeries(stamps, frames, np.stack([e[2] for e in lst]),
+                                                      np.stack([e[3] for e in lst]))
+
+
+_FINISHERS: dict[str, Callable[[BagData, str, np.ndarray, list, list], None]] = {
+    TOPIC_JOINT_STATES: _finish_joint_states,
+    TOPIC_CAMERA_INFO: _finish_camera_info,
+    TOPIC_COMPRESSED_IMAGE: _finish_images,
+    TOPIC_IMAGE: _finish_images,
+    TOPIC_WRENCH: _finish_wrench,
+    TOPIC_GT_POSE: _finish_pose,
+    TOPIC_GT_POINT: _finish_point,
+    TOPIC_TAG_OBSERVATIONS: _finish_tag_cloud,
+}
 
 
 def _finish(data: BagData, acc: dict[str, list[Any]]) -> None:
@@ -264,60 +400,10 @@ def _finish(data: BagData, acc: dict[str, list[Any]]) -> None:
             continue
         stamps = np.array([e[0] for e in lst], dtype=float)
         frames = [e[1] for e in lst]
-        if topic == TOPIC_JOINT_STATES:
-            names: list[str] = []
-            index: dict[str, int] = {}
-            for e in lst:
-                for n in e[1]:
-                    if n not in index:
-                        index[n] = len(names)
-                        names.append(n)
-            N, n = len(lst), len(names)
-            P = np.full((N, n), np.nan)
-            V = np.full((N, n), np.nan)
-            E = np.full((N, n), np.nan)
-            for i, (_, nm, pos, vel, eff) in enumerate(lst):
-                cols = np.fromiter((index[x] for x in nm), dtype=int, count=len(nm))
-                P[i, cols] = pos
-                if vel.shape[0]:
-                    V[i, cols] = vel
-                if eff.shape[0]:
-                    E[i, cols] = eff
-            data.joint_states = JointStates(stamps, names, P, V, E)
-        elif topic == TOPIC_CAMERA_INFO:
-            Ds = [e[3] for e in lst]
-            width = max(d.shape[0] for d in Ds)
-            D = np.zeros((len(lst), width))
-            for i, d in enumerate(Ds):
-                D[i, : d.shape[0]] = d
-            data.camera_info = CameraInfos(stamps, frames, np.stack([e[2] for e in lst]), D,
-                                           np.array([e[4] for e in lst]), np.array([e[5] for e in lst]),
-                                           [e[6] for e in lst])
-        elif topic in (TOPIC_COMPRESSED_IMAGE, TOPIC_IMAGE):
-            imgs = Images(topic, stamps, frames, [e[2] for e in lst], [e[3] for e in lst], [e[4] for e in lst])
-            if topic == TOPIC_IMAGE:
-                data.raw_images = imgs
-                if not len(data.images):
-                    data.images = imgs
-            else:
-                data.images = imgs
-        elif topic == TOPIC_WRENCH:
-            data.wrench = Wrenches(stamps, frames, np.array([e[2] for e in lst]), np.array([e[3] for e in lst]))
-        elif topic == TOPIC_GT_POSE:
-            data.ground_truth_pose = PoseSeries(stamps, frames, np.stack([e[2] for e in lst]))
-        elif topic == TOPIC_GT_POINT:
-            data.ground_truth_point = PointSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float))
+        if topic in _FINISHERS:
+            finisher = _FINISHERS[topic]
         elif topic.startswith(IMU_TOPIC_PREFIX):
-            data.imus[topic[len(IMU_TOPIC_PREFIX):]] = ImuSeries(
-                stamps, frames, np.array([e[2] for e in lst]), np.array([e[3] for e in lst]),
-                np.stack([e[4] for e in lst]))
-        elif topic == TOPIC_TAG_OBSERVATIONS:
-            clouds = [e[2] for e in lst]
-            idx = np.concatenate([np.full(c.shape[0], i, dtype=int) for i, c in enumerate(clouds)])
-            allp = np.concatenate(clouds, axis=0) if clouds else np.zeros((0, 6))
-            data.tag_observations = TagObservationRows(stamps, frames, idx, np.rint(allp[:, 0]).astype(int),
-                                                    np.rint(allp[:, 1]).astype(int), allp[:, 2:4].copy(),
-                                                    allp[:, 4:6].copy())
+            finisher = _finish_imu
         else:
-            data.poses_with_covariance[topic] = PoseCovSeries(stamps, frames, np.stack([e[2] for e in lst]),
-                                                              np.stack([e[3] for e in lst]))
+            finisher = _finish_pose_cov
+        finisher(data, topic, stamps, frames, lst)

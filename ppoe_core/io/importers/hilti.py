@@ -191,6 +191,34 @@ def _vector(value: Any, n: int, where: str) -> np.ndarray:
     return arr
 
 
+def _waypoint(m: Any, height: Any, space: Any, role: str, where: str) -> HiltiStop:
+    """One waypoint of a station (``where`` names file, station and index in errors)."""
+    if not isinstance(m, dict):
+        raise DatasetError(f"{where}: not a mapping")
+    try:
+        t = float(m["time"])
+        stop = HiltiStop(
+            waypoint_id=int(m["id"]),
+            time=t,
+            column_height=float(height),
+            solution_space=int(space),
+            role=role,
+            upside_down=bool(m.get("upside_down", False)),
+            doosan_cmd=_vector(m["doosan_cmd"], 3, where + "/doosan_cmd"),
+            joints=_vector(m["joint_states"], 7, where + "/joint_states"),
+            prism_position=_vector(m["prism_position"], 3, where + "/prism_position"),
+            accel_base=_vector(m["tilt_sensor_base_accel"], 3, where + "/tilt_sensor_base_accel"),
+            accel_column_tip=_vector(m["tilt_sensor_column_accel"], 3, where + "/tilt_sensor_column_accel"),
+        )
+    except KeyError as exc:
+        raise DatasetError(f"{where}: missing key {exc.args[0]!r}") from None
+    except (TypeError, ValueError) as exc:
+        raise DatasetError(f"{where}: bad value: {exc}") from None
+    if not math.isfinite(t):
+        raise DatasetError(f"{where}/time: not finite")
+    return stop
+
+
 def load_hilti(path: str | Path) -> HiltiDataset:
     """Parse a Hilti dataset YAML (``flat.yaml`` etc.).
 
@@ -239,33 +267,7 @@ def load_hilti(path: str | Path) -> HiltiDataset:
             for key, role in _ROLES.items():
                 for k, m in enumerate(sval.get(key) or []):
                     where = f"{path}: column_heights/{height}/solution_spaces/{space}/{key}[{k}]"
-                    if not isinstance(m, dict):
-                        raise DatasetError(f"{where}: not a mapping")
-                    try:
-                        t = float(m["time"])
-                        stops.append(
-                            HiltiStop(
-                                waypoint_id=int(m["id"]),
-                                time=t,
-                                column_height=float(height),
-                                solution_space=int(space),
-                                role=role,
-                                upside_down=bool(m.get("upside_down", False)),
-                                doosan_cmd=_vector(m["doosan_cmd"], 3, where + "/doosan_cmd"),
-                                joints=_vector(m["joint_states"], 7, where + "/joint_states"),
-                                prism_position=_vector(m["prism_position"], 3, where + "/prism_position"),
-                                accel_base=_vector(m["tilt_sensor_base_accel"], 3, where + "/tilt_sensor_base_accel"),
-                                accel_column_tip=_vector(
-                                    m["tilt_sensor_column_accel"], 3, where + "/tilt_sensor_column_accel"
-                                ),
-                            )
-                        )
-                    except KeyError as exc:
-                        raise DatasetError(f"{where}: missing key {exc.args[0]!r}") from None
-                    except (TypeError, ValueError) as exc:
-                        raise DatasetError(f"{where}: bad value: {exc}") from None
-                    if not math.isfinite(t):
-                        raise DatasetError(f"{where}/time: not finite")
+                    stops.append(_waypoint(m, height, space, role, where))
     stops.sort(key=lambda s: s.time)
     times = np.array([s.time for s in stops])
     if len(times) > 1 and np.min(np.diff(times)) <= (BURST_COUNT - 1) * BURST_PERIOD_S + MEASUREMENT_DELAY_S:
