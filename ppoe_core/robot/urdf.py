@@ -217,30 +217,6 @@ def _parse_joint(where: str, el: _Element) -> Joint:
         if norm < 1e-12:
             raise _err(where, ae if ae is not None else el, f"joint '{name}' has a zero axis")
         axis = axis / norm
-    limit = None
-    le = el.find("limit")
-    if le is not None:
-        limit = JointLimit(
-            lower=_float(where, le, "lower"),
-            upper=_float(where, le, "upper"),
-            effort=_float(where, le, "effort"),
-            velocity=_float(where, le, "velocity"),
-        )
-        if limit.lower is not None and limit.upper is not None and limit.lower > limit.upper:
-            raise _err(where, le, f"joint '{name}': limit lower {limit.lower} > upper {limit.upper}")
-    mimic = None
-    mie = el.find("mimic")
-    if mie is not None:
-        mj = mie.attrib.get("joint")
-        if not mj:
-            raise _err(where, mie, f"joint '{name}': <mimic> without 'joint' attribute")
-        if jtype == "fixed":
-            raise _err(where, mie, f"joint '{name}': a fixed joint cannot mimic '{mj}'")
-        mimic = Mimic(
-            joint=mj,
-            multiplier=float(_float(where, mie, "multiplier", 1.0)),  # type: ignore[arg-type]
-            offset=float(_float(where, mie, "offset", 0.0)),  # type: ignore[arg-type]
-        )
     return Joint(
         name=name,
         type=jtype,
@@ -248,9 +224,42 @@ def _parse_joint(where: str, el: _Element) -> Joint:
         child=ce.attrib["link"],
         origin=_origin(where, el),
         axis=axis,
-        limit=limit,
-        mimic=mimic,
+        limit=_parse_limit(where, el, name),
+        mimic=_parse_mimic(where, el, name, jtype),
         line=el.line,
+    )
+
+
+def _parse_limit(where: str, el: _Element, name: str) -> JointLimit | None:
+    """``<limit>`` of joint ``name`` (None when absent); lower must not exceed upper."""
+    le = el.find("limit")
+    if le is None:
+        return None
+    limit = JointLimit(
+        lower=_float(where, le, "lower"),
+        upper=_float(where, le, "upper"),
+        effort=_float(where, le, "effort"),
+        velocity=_float(where, le, "velocity"),
+    )
+    if limit.lower is not None and limit.upper is not None and limit.lower > limit.upper:
+        raise _err(where, le, f"joint '{name}': limit lower {limit.lower} > upper {limit.upper}")
+    return limit
+
+
+def _parse_mimic(where: str, el: _Element, name: str, jtype: str) -> Mimic | None:
+    """``<mimic>`` of joint ``name`` (None when absent); a fixed joint cannot mimic."""
+    mie = el.find("mimic")
+    if mie is None:
+        return None
+    mj = mie.attrib.get("joint")
+    if not mj:
+        raise _err(where, mie, f"joint '{name}': <mimic> without 'joint' attribute")
+    if jtype == "fixed":
+        raise _err(where, mie, f"joint '{name}': a fixed joint cannot mimic '{mj}'")
+    return Mimic(
+        joint=mj,
+        multiplier=float(_float(where, mie, "multiplier", 1.0)),  # type: ignore[arg-type]
+        offset=float(_float(where, mie, "offset", 0.0)),  # type: ignore[arg-type]
     )
 
 
@@ -307,6 +316,21 @@ def parse_urdf(source: str | bytes | os.PathLike, *, text_source: str | None = N
         raise _err(where, root_el, f"root element is <{root_el.tag}>, expected <robot>")
     robot_name = root_el.attrib.get("name", "")
 
+    links, joints = _elements(where, root_el)
+    parent_joint, root = _tree_structure(where, links, joints)
+    resolved = {j.name: _resolve_mimic(where, j, joints) for j in joints.values()}
+    return Robot(
+        name=robot_name,
+        links=links,
+        joints=resolved,
+        root=root,
+        source=where,
+        _parent_joint=parent_joint,
+    )
+
+
+def _elements(where: str, root_el: _Element) -> tuple[dict[str, Link], dict[str, Joint]]:
+    """The ``<link>`` and ``<joint>`` elements of ``<robot>``, names unique."""
     links: dict[str, Link] = {}
     joints: dict[str, Joint] = {}
     for el in root_el.children:
@@ -324,8 +348,11 @@ def parse_urdf(source: str | bytes | os.PathLike, *, text_source: str | None = N
             joints[joint.name] = joint
     if not links:
         raise _err(where, root_el, "URDF has no <link>")
+    return links, joints
 
-    # tree structure
+
+def _tree_structure(where: str, links: dict[str, Link], joints: dict[str, Joint]) -> tuple[dict[str, str], str]:
+    """``(child link -> parent joint, root link)``; refuses unknown links, two parents, several roots, cycles."""
     parent_joint: dict[str, str] = {}
     for j in joints.values():
         for role, ln in (("parent", j.parent), ("child", j.child)):
@@ -358,39 +385,30 @@ def parse_urdf(source: str | bytes | os.PathLike, *, text_source: str | None = N
                 j = joints[parent_joint[ln]]
                 raise UrdfError(f"{where}:{j.line}: the joints form a cycle through link '{ln}'")
             seen.add(cur)
+    return parent_joint, roots[0]
 
-    # mimic resolution
-    resolved: dict[str, Joint] = {}
-    for j in joints.values():
-        if j.mimic is None:
-            resolved[j.name] = j
-            continue
-        mult, off = 1.0, 0.0
-        cur_j = j
-        visited = [j.name]
-        while cur_j.mimic is not None:
-            m = cur_j.mimic
-            if m.joint not in joints:
-                raise UrdfError(f"{where}:{cur_j.line}: joint '{cur_j.name}' mimics unknown joint '{m.joint}'")
-            master = joints[m.joint]
-            if not master.movable:
-                raise UrdfError(
-                    f"{where}:{cur_j.line}: joint '{cur_j.name}' mimics '{m.joint}', which is {master.type}"
-                )
-            # q_cur = m.multiplier * q_master + m.offset; q_j = mult * q_cur + off
-            off = mult * m.offset + off
-            mult = mult * m.multiplier
-            if master.name in visited:
-                raise UrdfError(f"{where}:{j.line}: mimic cycle {' -> '.join(visited + [master.name])}")
-            visited.append(master.name)
-            cur_j = master
-        resolved[j.name] = replace(j, mimic_root=(cur_j.name, mult, off))
 
-    return Robot(
-        name=robot_name,
-        links=links,
-        joints=resolved,
-        root=roots[0],
-        source=where,
-        _parent_joint=parent_joint,
-    )
+def _resolve_mimic(where: str, j: Joint, joints: dict[str, Joint]) -> Joint:
+    """``j`` with ``mimic_root = (independent joint, multiplier, offset)`` through chains of mimics."""
+    if j.mimic is None:
+        return j
+    mult, off = 1.0, 0.0
+    cur_j = j
+    visited = [j.name]
+    while cur_j.mimic is not None:
+        m = cur_j.mimic
+        if m.joint not in joints:
+            raise UrdfError(f"{where}:{cur_j.line}: joint '{cur_j.name}' mimics unknown joint '{m.joint}'")
+        master = joints[m.joint]
+        if not master.movable:
+            raise UrdfError(
+                f"{where}:{cur_j.line}: joint '{cur_j.name}' mimics '{m.joint}', which is {master.type}"
+            )
+        # q_cur = m.multiplier * q_master + m.offset; q_j = mult * q_cur + off
+        off = mult * m.offset + off
+        mult = mult * m.multiplier
+        if master.name in visited:
+            raise UrdfError(f"{where}:{j.line}: mimic cycle {' -> '.join(visited + [master.name])}")
+        visited.append(master.name)
+        cur_j = master
+    return replace(j, mimic_root=(cur_j.name, mult, off))
