@@ -352,25 +352,8 @@ def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequ
             continue
         if rays is None:
             rays = _ray_grid(w, h, tuple(K.reshape(-1)), tuple(D))
-        xy = _rays(rays, u0, v0, u1, v1, ss).astype(float)
-        # ray r = (x, y, 1); plane point p = R^T (s r - t), with normal_c . (s r - t) = 0
-        d = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=-1)
-        denom = d @ normal
-        lam = float(normal @ t) / np.where(np.abs(denom) < 1e-12, 1e-12, denom)
-        p_tag = (lam[..., None] * d - t) @ R  # (.., 3) in tag frame
-        tex = _texture(dictionary, tag_id, 16, 0)
-        tex_n = tex.shape[0]
-        # texture of the black square spans [-s/2, s/2]; quiet zone is white (value 1)
-        scale = tex_n / s
-        map_x = ((p_tag[..., 0] + 0.5 * s) * scale - 0.5).astype(np.float32)
-        map_y = ((0.5 * s - p_tag[..., 1]) * scale - 0.5).astype(np.float32)
-        val = cv2.remap(tex, map_x, map_y, interpolation=cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
-        inside = ((np.abs(p_tag[..., 0]) <= half) & (np.abs(p_tag[..., 1]) <= half) & (lam > 0)).astype(np.float32)
-        grey = black + (white - black) * val
-        hh, ww = (v1 - v0 + 1), (u1 - u0 + 1)
-        cover = inside.reshape(hh, ss, ww, ss).mean(axis=(1, 3))
-        col = (grey * inside).reshape(hh, ss, ww, ss).sum(axis=(1, 3)) / (ss * ss)
+        cover, col = _sample_tag(_rays(rays, u0, v0, u1, v1, ss).astype(float), (v1 - v0 + 1, u1 - u0 + 1), ss,
+                                 R, t, s, half, dictionary, tag_id, black, white)
         patch = canvas[v0:v1 + 1, u0:u1 + 1]
         canvas[v0:v1 + 1, u0:u1 + 1] = patch * (1.0 - cover) + col
         drawn.append(tag_id)
@@ -381,3 +364,33 @@ def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequ
             raise MeasurementError("render_tags: noise_sigma > 0 needs an rng (np.random.default_rng(seed))")
         canvas = canvas + rng.normal(0.0, noise_sigma, canvas.shape).astype(np.float32)
     return np.clip(np.rint(canvas), 0, 255).astype(np.uint8), sorted(drawn)
+
+
+def _sample_tag(xy: np.ndarray, hw: tuple[int, int], ss: int, R: np.ndarray, t: np.ndarray, s: float, half: float,
+                dictionary: str, tag_id: int, black: int, white: int) -> tuple[np.ndarray, np.ndarray]:
+    """Coverage and grey sum per pixel of one tag over its pixel box, from the box's sub-pixel rays ``xy``.
+
+    The ray ``(x, y, 1)`` meets the tag plane (normal ``R[:, 2]`` through ``t``, camera frame); the texture of the
+    black square spans ``[-s/2, s/2]`` and the quiet zone (up to ``half``) is white.
+    """
+    import cv2
+
+    normal = R[:, 2]
+    # ray r = (x, y, 1); plane point p = R^T (s r - t), with normal_c . (s r - t) = 0
+    d = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=-1)
+    denom = d @ normal
+    lam = float(normal @ t) / np.where(np.abs(denom) < 1e-12, 1e-12, denom)
+    p_tag = (lam[..., None] * d - t) @ R  # (.., 3) in tag frame
+    tex = _texture(dictionary, tag_id, 16, 0)
+    tex_n = tex.shape[0]
+    scale = tex_n / s
+    map_x = ((p_tag[..., 0] + 0.5 * s) * scale - 0.5).astype(np.float32)
+    map_y = ((0.5 * s - p_tag[..., 1]) * scale - 0.5).astype(np.float32)
+    val = cv2.remap(tex, map_x, map_y, interpolation=cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+    inside = ((np.abs(p_tag[..., 0]) <= half) & (np.abs(p_tag[..., 1]) <= half) & (lam > 0)).astype(np.float32)
+    grey = black + (white - black) * val
+    hh, ww = hw
+    cover = inside.reshape(hh, ss, ww, ss).mean(axis=(1, 3))
+    col = (grey * inside).reshape(hh, ss, ww, ss).sum(axis=(1, 3)) / (ss * ss)
+    return cover, col
