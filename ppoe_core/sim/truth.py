@@ -122,6 +122,51 @@ class TrueRobot:
         -------
         dict link -> (n, 4, 4) ``T_root_link`` of the true robot.
         """
+        dq, fx = self._static_corrections(q, dq_noise, motion_sign, elapsed, n)
+
+        def add_dq(j: str, v: Any) -> None:
+            dq[j] = dq.get(j, np.zeros(n)) + v
+
+        def add_fx(j: str, v: np.ndarray) -> None:
+            fx[j] = fx.get(j, np.zeros((n, 6))) + v
+
+        def build(dq_: Mapping[str, np.ndarray], fx_: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+            dx = {}
+            for jn in set(xi) | set(fx_):
+                T = np.broadcast_to(np.eye(4), (n, 4, 4))
+                if jn in fx_:
+                    T = T @ lie.exp(fx_[jn])
+                if jn in xi:
+                    T = T @ lie.exp(xi[jn])
+                dx[jn] = T
+            return self.link_poses(q, dq_, dx, n)
+
+        # gravity-dependent effects: loads evaluated on the chain without them (first order in the
+        # deflection); gravity is -z of the root link
+        grav = [e for e in self.effects if e["name"] in ("gravity_compliance", "mount_bending")]
+        if grav:
+            base = build(dq, fx)
+            for e in grav:
+                loc, p = e["location"], e["parameters"]
+                if e["name"] == "gravity_compliance":
+                    j = self.robot.joints[loc]
+                    F, M = self.gravity_moment(base, loc, after_motion=True)
+                    tau = (F if j.type == "prismatic" else M) @ j.axis
+                    add_dq(loc, p["compliance"] * tau)
+                else:
+                    _, M = self.gravity_moment(base, loc, after_motion=False)
+                    v = np.zeros((n, 6))
+                    v[:, 3] = p["compliance_x"] * M[:, 0]
+                    v[:, 4] = p["compliance_y"] * M[:, 1]
+                    add_fx(loc, v)
+        return build(dq, fx)
+
+    def _static_corrections(self, q: Mapping[str, np.ndarray], dq_noise: Mapping[str, np.ndarray],
+                            motion_sign: Mapping[str, np.ndarray], elapsed: np.ndarray,
+                            n: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Joint-value errors ``dq`` (joint -> (n,)) and effect twists ``fx`` (joint -> (n, 6)) of the effects
+        that do not depend on gravity (joint offset, transmission error, backlash, link error, camera
+        extrinsics, thermal growth, base tilt), on top of the drawn joint noise."""
         dq: dict[str, np.ndarray] = {k: np.asarray(v, float).copy() for k, v in dq_noise.items()}
         fx: dict[str, np.ndarray] = {}  # effect twists per joint (n, 6)
 
@@ -154,34 +199,4 @@ class TrueRobot:
                 for jn in self.robot.children(self.robot.root):
                     Ad = lie.adjoint(lie.inverse(self.robot.joints[jn].origin))
                     add_fx(jn, np.broadcast_to(Ad @ w, (n, 6)))
-
-        def build(dq_: Mapping[str, np.ndarray], fx_: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-            dx = {}
-            for jn in set(xi) | set(fx_):
-                T = np.broadcast_to(np.eye(4), (n, 4, 4))
-                if jn in fx_:
-                    T = T @ lie.exp(fx_[jn])
-                if jn in xi:
-                    T = T @ lie.exp(xi[jn])
-                dx[jn] = T
-            return self.link_poses(q, dq_, dx, n)
-
-        # gravity-dependent effects: loads evaluated on the chain without them (first order in the
-        # deflection); gravity is -z of the root link
-        grav = [e for e in self.effects if e["name"] in ("gravity_compliance", "mount_bending")]
-        if grav:
-            base = build(dq, fx)
-            for e in grav:
-                loc, p = e["location"], e["parameters"]
-                if e["name"] == "gravity_compliance":
-                    j = self.robot.joints[loc]
-                    F, M = self.gravity_moment(base, loc, after_motion=True)
-                    tau = (F if j.type == "prismatic" else M) @ j.axis
-                    add_dq(loc, p["compliance"] * tau)
-                else:
-                    _, M = self.gravity_moment(base, loc, after_motion=False)
-                    v = np.zeros((n, 6))
-                    v[:, 3] = p["compliance_x"] * M[:, 0]
-                    v[:, 4] = p["compliance_y"] * M[:, 1]
-                    add_fx(loc, v)
-        return build(dq, fx)
+        return dq, fx
