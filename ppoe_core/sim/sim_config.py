@@ -70,136 +70,176 @@ class _SimConfig:
             if tr.get("stops") or tr.get("random_stops"):
                 raise ScenarioError(f"{_where(P, 'trajectory')}: give either smooth or stops/random_stops")
             return
-        for i, s in enumerate(tr.get("stops") or []):
-            s = _check_keys(s, ("joints", "dwell", "contact"), P, f"trajectory.stops[{i}]")
-            q = dict(self.start)
-            q.update(_joints_map(s.get("joints"), P, f"trajectory.stops[{i}].joints", self.robot))
-            c = None
-            if s.get("contact") is not None:
-                c = _check_keys(s["contact"], ("press_joint", "force", "approach"), P, f"trajectory.stops[{i}].contact")
-                pj = c.get("press_joint")
-                if pj not in self.joints:
-                    raise ScenarioError(f"{_where(P, f'trajectory.stops[{i}].contact.press_joint')}: "
-                                        f"{pj!r} is not an independent joint")
-                c = {"press_joint": pj, "force": _num(c, "force", 10.0, P, f"trajectory.stops[{i}].contact", minimum=0.0),
-                     "approach": _num(c, "approach", 0.15, P, f"trajectory.stops[{i}].contact")}
-            self.stops.append(_Stop(q, _num(s, "dwell", self.dwell, P, f"trajectory.stops[{i}]", minimum=0.0), c))
+        self.stops = [self._parse_stop(i, s) for i, s in enumerate(tr.get("stops") or [])]
         self.random_cfg: Any = None
         if tr.get("random_stops") is not None:
-            rs = _check_keys(tr["random_stops"], ("count", "around", "spread", "min_visible_tags", "max_tries",
-                                                  "min_link_z"), P, "trajectory.random_stops")
-            min_z = rs.get("min_link_z") or {}
-            if not isinstance(min_z, Mapping) or any(k not in self.robot.links for k in min_z):
-                raise ScenarioError(f"{_where(P, 'trajectory.random_stops.min_link_z')} must map links of "
-                                    f"{self.robot.source} to heights [m]")
-            min_z = {str(k): _num(min_z, k, 0.0, P, "trajectory.random_stops.min_link_z") for k in min_z}
-            spread = rs.get("spread", 0.2)
-            around = {**self.start, **_joints_map(rs.get("around"), P, "trajectory.random_stops.around", self.robot)}
-            if isinstance(spread, Mapping):
-                spread = _joints_map(spread, P, "trajectory.random_stops.spread", self.robot)
-            else:
-                spread = {j: float(spread) for j in (rs.get("around") or {})}
-            self.random_cfg = {"count": int(_num(rs, "count", 20, P, "trajectory.random_stops", minimum=1)),
-                               "around": around, "spread": spread,
-                               "min_visible": int(_num(rs, "min_visible_tags", 0, P, "trajectory.random_stops", minimum=0)),
-                               "min_z": min_z,
-                               "max_tries": int(_num(rs, "max_tries", 5000, P, "trajectory.random_stops", minimum=1))}
+            self.random_cfg = self._parse_random_stops(tr["random_stops"])
         if not self.stops and self.random_cfg is None:
             raise ScenarioError(f"{_where(P, 'trajectory')}: needs stops, random_stops or smooth")
 
+    def _parse_stop(self, i: int, s: Any) -> _Stop:
+        """``trajectory.stops[i]``: joints (over the start), dwell [s], optional contact press."""
+        P = self.path
+        s = _check_keys(s, ("joints", "dwell", "contact"), P, f"trajectory.stops[{i}]")
+        q = dict(self.start)
+        q.update(_joints_map(s.get("joints"), P, f"trajectory.stops[{i}].joints", self.robot))
+        c = None
+        if s.get("contact") is not None:
+            c = _check_keys(s["contact"], ("press_joint", "force", "approach"), P, f"trajectory.stops[{i}].contact")
+            pj = c.get("press_joint")
+            if pj not in self.joints:
+                raise ScenarioError(f"{_where(P, f'trajectory.stops[{i}].contact.press_joint')}: "
+                                    f"{pj!r} is not an independent joint")
+            c = {"press_joint": pj, "force": _num(c, "force", 10.0, P, f"trajectory.stops[{i}].contact", minimum=0.0),
+                 "approach": _num(c, "approach", 0.15, P, f"trajectory.stops[{i}].contact")}
+        return _Stop(q, _num(s, "dwell", self.dwell, P, f"trajectory.stops[{i}]", minimum=0.0), c)
+
+    def _parse_random_stops(self, raw: Any) -> dict[str, Any]:
+        """``trajectory.random_stops``: count, centre and spread per joint, visibility and height constraints."""
+        P = self.path
+        rs = _check_keys(raw, ("count", "around", "spread", "min_visible_tags", "max_tries",
+                               "min_link_z"), P, "trajectory.random_stops")
+        min_z = rs.get("min_link_z") or {}
+        if not isinstance(min_z, Mapping) or any(k not in self.robot.links for k in min_z):
+            raise ScenarioError(f"{_where(P, 'trajectory.random_stops.min_link_z')} must map links of "
+                                f"{self.robot.source} to heights [m]")
+        min_z = {str(k): _num(min_z, k, 0.0, P, "trajectory.random_stops.min_link_z") for k in min_z}
+        spread = rs.get("spread", 0.2)
+        around = {**self.start, **_joints_map(rs.get("around"), P, "trajectory.random_stops.around", self.robot)}
+        if isinstance(spread, Mapping):
+            spread = _joints_map(spread, P, "trajectory.random_stops.spread", self.robot)
+        else:
+            spread = {j: float(spread) for j in (rs.get("around") or {})}
+        return {"count": int(_num(rs, "count", 20, P, "trajectory.random_stops", minimum=1)),
+                "around": around, "spread": spread,
+                "min_visible": int(_num(rs, "min_visible_tags", 0, P, "trajectory.random_stops", minimum=0)),
+                "min_z": min_z,
+                "max_tries": int(_num(rs, "max_tries", 5000, P, "trajectory.random_stops", minimum=1))}
+
     def _parse_sensors(self) -> None:
-        P, raw, m = self.path, self.sc.raw, self.model
+        """Scenario ``camera``, ``ground_truth``, ``imus`` and ``contact`` (each None when absent)."""
+        raw = self.sc.raw
         self.cam: Any = None  # camera dict (frame, w, h, K, D, rate, ...) or None
         if raw.get("camera") is not None:
-            c = _check_keys(raw["camera"], ("frame", "width", "height", "intrinsics", "D", "rate", "during", "format",
-                                            "noise_sigma", "blur_sigma", "background", "time_offset"), P, "camera")
-            if m.tags is None:
-                raise ScenarioError(f"{_where(P, 'camera')}: the model {m.source} has no tags section to render")
-            frame = c.get("frame") or (m.camera.frame if m.camera else None)
-            if frame not in self.robot.links:
-                raise ScenarioError(f"{_where(P, 'camera.frame')}: {frame!r} is not a link of {self.robot.source}")
-            w = int(_num(c, "width", 640, P, "camera", minimum=16))
-            h = int(_num(c, "height", 480, P, "camera", minimum=16))
-            intr = c.get("intrinsics", [600.0, 600.0, w / 2.0, h / 2.0])
-            D = np.asarray(c.get("D", [0.0] * 5), dtype=float).reshape(-1)
-            if len(intr) != 4 or D.shape[0] != 5:
-                raise ScenarioError(f"{_where(P, 'camera')}: intrinsics = [fx, fy, cx, cy], D = 5 plumb_bob numbers")
-            fx, fy, cx, cy = (float(v) for v in intr)
-            fmt = c.get("format", "png")
-            if fmt not in ("png", "jpeg", "raw"):
-                raise ScenarioError(f"{_where(P, 'camera.format')} must be png, jpeg or raw")
-            during = c.get("during", "stops")
-            if during not in ("stops", "always"):
-                raise ScenarioError(f"{_where(P, 'camera.during')} must be stops or always")
-            self.cam = {"frame": frame, "w": w, "h": h, "K": np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]),
-                        "D": D, "rate": _num(c, "rate", 5.0, P, "camera", minimum=0.01, maximum=30.0),
-                        "during": during, "format": fmt,
-                        "noise": _num(c, "noise_sigma", 1.0, P, "camera", minimum=0.0),
-                        "blur": _num(c, "blur_sigma", 0.0, P, "camera", minimum=0.0),
-                        "background": int(_num(c, "background", 128, P, "camera", minimum=0, maximum=255)),
-                        "time_offset": _num(c, "time_offset", 0.0, P, "camera")}
-        gt = _check_keys(raw.get("ground_truth"), ("pose", "point"), P, "ground_truth")
+            self.cam = self._parse_camera(raw["camera"])
+        gt = _check_keys(raw.get("ground_truth"), ("pose", "point"), self.path, "ground_truth")
         self.gt_pose: Any = None
         if gt.get("pose") is not None:
-            g = _check_keys(gt["pose"], ("frame", "target", "sigma_xyz", "sigma_rot", "rate"), P, "ground_truth.pose")
-            frame = g.get("frame") or (m.frames.base if m.frames else self.robot.root)
-            target = g.get("target") or (m.frames.tool if m.frames else None)
-            for k, v in (("frame", frame), ("target", target)):
-                if v not in self.robot.links:
-                    raise ScenarioError(f"{_where(P, 'ground_truth.pose.' + k)}: {v!r} is not a link")
-            self.gt_pose = {"frame": frame, "target": target,
-                            "sx": _num(g, "sigma_xyz", 1e-4, P, "ground_truth.pose", minimum=0.0),
-                            "sr": _num(g, "sigma_rot", 2e-4, P, "ground_truth.pose", minimum=0.0),
-                            "rate": _num(g, "rate", 0.0, P, "ground_truth.pose", minimum=0.0)}
+            self.gt_pose = self._parse_gt_pose(gt["pose"])
         self.gt_point: Any = None
         if gt.get("point") is not None:
-            g = _check_keys(gt["point"], ("link", "xyz", "sigma", "frame", "T_tracker_base", "rate"), P,
-                            "ground_truth.point")
-            tr = m.tracker
-            link = g.get("link") or (tr.link if tr else None)
-            if link not in self.robot.links:
-                raise ScenarioError(f"{_where(P, 'ground_truth.point.link')}: {link!r} is not a link")
-            xyz = np.asarray(g.get("xyz", tr.xyz if tr else [0, 0, 0]), dtype=float).reshape(3)
-            self.gt_point = {"link": link, "xyz": xyz,
-                             "sigma": _num(g, "sigma", tr.sigma if tr else 2e-4, P, "ground_truth.point", minimum=0.0),
-                             "frame": str(g.get("frame", "tracker")),
-                             "T_tracker_base": _pose_cfg(g.get("T_tracker_base"), P, "ground_truth.point.T_tracker_base"),
-                             "T_cfg": g.get("T_tracker_base") or {},
-                             "rate": _num(g, "rate", 0.0, P, "ground_truth.point", minimum=0.0)}
+            self.gt_point = self._parse_gt_point(gt["point"])
         self.imu: Any = None
         if raw.get("imus") is not None:
-            g = _check_keys(raw["imus"], ("rate", "sigma"), P, "imus")
-            if not m.imus:
-                raise ScenarioError(f"{_where(P, 'imus')}: the model {m.source} declares no imus")
-            self.imu = {"rate": _num(g, "rate", 0.0, P, "imus", minimum=0.0),
-                        "sigma": _num(g, "sigma", None, P, "imus", minimum=0.0)}
+            self.imu = self._parse_imus(raw["imus"])
         self.contact: Any = None
         if raw.get("contact") is not None:
-            c = _check_keys(raw["contact"], ("plane", "tool_point", "stiffness", "force_sigma", "frame", "rate"), P,
-                            "contact")
-            mc = m.contact
-            if c.get("plane") is not None:
-                pl = _check_keys(c["plane"], ("frame", "xyz", "rpy"), P, "contact.plane")
-                frame = pl.get("frame", self.robot.root)
-                T_fp = _pose_cfg(pl, P, "contact.plane")
-            elif mc is not None:
-                frame, T_fp = mc.plane_frame, mc.T_frame_plane
-            else:
-                raise ScenarioError(f"{_where(P, 'contact.plane')} is required (the model has no contact section)")
-            tp = c.get("tool_point") or ({"link": mc.tool_link, "xyz": list(mc.tool_xyz)} if mc else None)
-            if tp is not None:
-                tp = _check_keys(tp, ("link", "xyz"), P, "contact.tool_point")
-            if tp is None or tp.get("link") not in self.robot.links:
-                raise ScenarioError(f"{_where(P, 'contact.tool_point')}: needs a link of the URDF")
-            if frame not in self.robot.links:
-                raise ScenarioError(f"{_where(P, 'contact.plane.frame')}: {frame!r} is not a link")
-            self.contact = {"frame": frame, "T_frame_plane": T_fp, "link": tp["link"],
-                            "xyz": np.asarray(tp.get("xyz", [0, 0, 0]), float).reshape(3),
-                            "k": _num(c, "stiffness", 1e5, P, "contact", minimum=1.0),
-                            "sigma": _num(c, "force_sigma", 0.1, P, "contact", minimum=0.0),
-                            "wframe": str(c.get("frame", tp["link"])),
-                            "rate": _num(c, "rate", self.rate, P, "contact", minimum=1.0)}
-            if self.contact["wframe"] not in self.robot.links:
-                raise ScenarioError(f"{_where(P, 'contact.frame')}: not a link")
+            self.contact = self._parse_contact(raw["contact"])
+
+    def _parse_camera(self, raw_cam: Any) -> dict[str, Any]:
+        """Scenario ``camera``: frame, size, intrinsics, plumb_bob D, rate, format, noise, blur."""
+        P, m = self.path, self.model
+        c = _check_keys(raw_cam, ("frame", "width", "height", "intrinsics", "D", "rate", "during", "format",
+                                        "noise_sigma", "blur_sigma", "background", "time_offset"), P, "camera")
+        if m.tags is None:
+            raise ScenarioError(f"{_where(P, 'camera')}: the model {m.source} has no tags section to render")
+        frame = c.get("frame") or (m.camera.frame if m.camera else None)
+        if frame not in self.robot.links:
+            raise ScenarioError(f"{_where(P, 'camera.frame')}: {frame!r} is not a link of {self.robot.source}")
+        w = int(_num(c, "width", 640, P, "camera", minimum=16))
+        h = int(_num(c, "height", 480, P, "camera", minimum=16))
+        intr = c.get("intrinsics", [600.0, 600.0, w / 2.0, h / 2.0])
+        D = np.asarray(c.get("D", [0.0] * 5), dtype=float).reshape(-1)
+        if len(intr) != 4 or D.shape[0] != 5:
+            raise ScenarioError(f"{_where(P, 'camera')}: intrinsics = [fx, fy, cx, cy], D = 5 plumb_bob numbers")
+        fx, fy, cx, cy = (float(v) for v in intr)
+        fmt = c.get("format", "png")
+        if fmt not in ("png", "jpeg", "raw"):
+            raise ScenarioError(f"{_where(P, 'camera.format')} must be png, jpeg or raw")
+        during = c.get("during", "stops")
+        if during not in ("stops", "always"):
+            raise ScenarioError(f"{_where(P, 'camera.during')} must be stops or always")
+        return {"frame": frame, "w": w, "h": h, "K": np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]),
+                    "D": D, "rate": _num(c, "rate", 5.0, P, "camera", minimum=0.01, maximum=30.0),
+                    "during": during, "format": fmt,
+                    "noise": _num(c, "noise_sigma", 1.0, P, "camera", minimum=0.0),
+                    "blur": _num(c, "blur_sigma", 0.0, P, "camera", minimum=0.0),
+                    "background": int(_num(c, "background", 128, P, "camera", minimum=0, maximum=255)),
+                    "time_offset": _num(c, "time_offset", 0.0, P, "camera")}
+
+
+    def _parse_gt_pose(self, raw_gt: Any) -> dict[str, Any]:
+        """Scenario ``ground_truth.pose``: tracked frame and target, noise, rate."""
+        P, m = self.path, self.model
+        g = _check_keys(raw_gt, ("frame", "target", "sigma_xyz", "sigma_rot", "rate"), P, "ground_truth.pose")
+        frame = g.get("frame") or (m.frames.base if m.frames else self.robot.root)
+        target = g.get("target") or (m.frames.tool if m.frames else None)
+        for k, v in (("frame", frame), ("target", target)):
+            if v not in self.robot.links:
+                raise ScenarioError(f"{_where(P, 'ground_truth.pose.' + k)}: {v!r} is not a link")
+        return {"frame": frame, "target": target,
+                        "sx": _num(g, "sigma_xyz", 1e-4, P, "ground_truth.pose", minimum=0.0),
+                        "sr": _num(g, "sigma_rot", 2e-4, P, "ground_truth.pose", minimum=0.0),
+                        "rate": _num(g, "rate", 0.0, P, "ground_truth.pose", minimum=0.0)}
+
+
+    def _parse_gt_point(self, raw_gt: Any) -> dict[str, Any]:
+        """Scenario ``ground_truth.point``: reflector link and position, noise, tracker frame and pose."""
+        P, m = self.path, self.model
+        g = _check_keys(raw_gt, ("link", "xyz", "sigma", "frame", "T_tracker_base", "rate"), P,
+                        "ground_truth.point")
+        tr = m.tracker
+        link = g.get("link") or (tr.link if tr else None)
+        if link not in self.robot.links:
+            raise ScenarioError(f"{_where(P, 'ground_truth.point.link')}: {link!r} is not a link")
+        xyz = np.asarray(g.get("xyz", tr.xyz if tr else [0, 0, 0]), dtype=float).reshape(3)
+        return {"link": link, "xyz": xyz,
+                         "sigma": _num(g, "sigma", tr.sigma if tr else 2e-4, P, "ground_truth.point", minimum=0.0),
+                         "frame": str(g.get("frame", "tracker")),
+                         "T_tracker_base": _pose_cfg(g.get("T_tracker_base"), P, "ground_truth.point.T_tracker_base"),
+                         "T_cfg": g.get("T_tracker_base") or {},
+                         "rate": _num(g, "rate", 0.0, P, "ground_truth.point", minimum=0.0)}
+
+
+    def _parse_imus(self, raw_imus: Any) -> dict[str, Any]:
+        """Scenario ``imus``: rate and noise of the model's accelerometers."""
+        P, m = self.path, self.model
+        g = _check_keys(raw_imus, ("rate", "sigma"), P, "imus")
+        if not m.imus:
+            raise ScenarioError(f"{_where(P, 'imus')}: the model {m.source} declares no imus")
+        return {"rate": _num(g, "rate", 0.0, P, "imus", minimum=0.0),
+                    "sigma": _num(g, "sigma", None, P, "imus", minimum=0.0)}
+
+
+    def _parse_contact(self, raw_contact: Any) -> dict[str, Any]:
+        """Scenario ``contact``: plane, tool point, stiffness, force noise, wrench frame, rate."""
+        P, m = self.path, self.model
+        c = _check_keys(raw_contact, ("plane", "tool_point", "stiffness", "force_sigma", "frame", "rate"), P,
+                        "contact")
+        mc = m.contact
+        if c.get("plane") is not None:
+            pl = _check_keys(c["plane"], ("frame", "xyz", "rpy"), P, "contact.plane")
+            frame = pl.get("frame", self.robot.root)
+            T_fp = _pose_cfg(pl, P, "contact.plane")
+        elif mc is not None:
+            frame, T_fp = mc.plane_frame, mc.T_frame_plane
+        else:
+            raise ScenarioError(f"{_where(P, 'contact.plane')} is required (the model has no contact section)")
+        tp = c.get("tool_point") or ({"link": mc.tool_link, "xyz": list(mc.tool_xyz)} if mc else None)
+        if tp is not None:
+            tp = _check_keys(tp, ("link", "xyz"), P, "contact.tool_point")
+        if tp is None or tp.get("link") not in self.robot.links:
+            raise ScenarioError(f"{_where(P, 'contact.tool_point')}: needs a link of the URDF")
+        if frame not in self.robot.links:
+            raise ScenarioError(f"{_where(P, 'contact.plane.frame')}: {frame!r} is not a link")
+        out = {"frame": frame, "T_frame_plane": T_fp, "link": tp["link"],
+               "xyz": np.asarray(tp.get("xyz", [0, 0, 0]), float).reshape(3),
+               "k": _num(c, "stiffness", 1e5, P, "contact", minimum=1.0),
+               "sigma": _num(c, "force_sigma", 0.1, P, "contact", minimum=0.0),
+               "wframe": str(c.get("frame", tp["link"])),
+               "rate": _num(c, "rate", self.rate, P, "contact", minimum=1.0)}
+        if out["wframe"] not in self.robot.links:
+            raise ScenarioError(f"{_where(P, 'contact.frame')}: not a link")
+        return out
 
     # -- random draws ----------------------------------------------------------
