@@ -376,68 +376,90 @@ class _Sim(_SimConfig):
             events.append((float(t), 0, "js", (names, np.concatenate([Qjs[i], extra_vals]))))
         visible_ids: set[int] = set()
         if self.cam is not None:
-            ts = self.sensor_times(self.cam["rate"], self.cam["during"])
-            Q, S, G = self.state_at(ts)
-            poses = self.truth_poses(Q, S, G, ts)
-            Ts, ids, sizes = self._tag_poses_cam(poses)
-            assert self.model.tags is not None
-            for i, t in enumerate(ts):
-                img, drawn = render_tags((self.cam["w"], self.cam["h"]), self.cam["K"], self.cam["D"], Ts[i], ids, sizes,
-                                         dictionary=self.model.tags.family, background=self.cam["background"],
-                                         noise_sigma=self.cam["noise"], rng=self.rng, blur_sigma=self.cam["blur"])
-                visible_ids.update(drawn)
-                st = float(t + self.cam["time_offset"])
-                events.append((st, 1, "cam", (img,)))
+            visible_ids = self._camera_events(events)
         if self.gt_pose is not None:
-            g = self.gt_pose
-            ts = self.sensor_times(g["rate"])
-            Q, S, G = self.state_at(ts)
-            poses = self.truth_poses(Q, S, G, ts)
-            T = lie.inverse(poses[g["frame"]]) @ poses[g["target"]]
-            noise = np.concatenate([g["sx"] * self.rng.standard_normal((len(ts), 3)),
-                                    g["sr"] * self.rng.standard_normal((len(ts), 3))], axis=1)
-            T = T @ lie.exp(noise)
-            for i, t in enumerate(ts):
-                events.append((float(t), 2, "gtpose", (T[i],)))
+            self._gt_pose_events(events)
         if self.gt_point is not None:
-            g = self.gt_point
-            ts = self.sensor_times(g["rate"])
-            Q, S, G = self.state_at(ts)
-            poses = self.truth_poses(Q, S, G, ts)
-            p = (g["T_tracker_base"] @ poses[g["link"]] @ np.append(g["xyz"], 1.0))[:, :3]
-            p = p + g["sigma"] * self.rng.standard_normal(p.shape)
-            for i, t in enumerate(ts):
-                events.append((float(t), 3, "gtpoint", (p[i],)))
+            self._gt_point_events(events)
         if self.imu is not None:
-            ts = self.sensor_times(self.imu["rate"])
-            Q, S, G = self.state_at(ts)
-            poses = self.truth_poses(Q, S, G, ts)
-            for name, cfg in self.model.imus.items():
-                sig = self.imu["sigma"] if self.imu["sigma"] is not None else cfg.sigma
-                R = poses[cfg.link][:, :3, :3]
-                a = np.einsum("nji,j->ni", R, np.array([0.0, 0.0, GRAVITY]))  # specific force at rest
-                a = a + sig * self.rng.standard_normal(a.shape)
-                for i, t in enumerate(ts):
-                    events.append((float(t), 4, "imu", (name, cfg.link, a[i], sig)))
+            self._imu_events(events)
         if self.contact is not None:
-            c = self.contact
-            ts = np.arange(self.t[0], self.t[-1] + 1e-9, 1.0 / c["rate"])
-            Q, S, G = self.state_at(ts)
-            poses = self.truth_poses(Q, S, G, ts)
-            depth = np.maximum(self._contact_penetration(poses), 0.0)
-            T_root_plane = poses[c["frame"]] @ c["T_frame_plane"]
-            f_root = c["k"] * depth[:, None] * T_root_plane[:, :3, 2]  # table pushes along its normal
-            R_w = poses[c["wframe"]][:, :3, :3]
-            f = np.einsum("nji,nj->ni", R_w, f_root) + c["sigma"] * self.rng.standard_normal((len(ts), 3))
-            # torque of the contact force about the wrench frame origin
-            p_c = (poses[c["link"]] @ np.append(c["xyz"], 1.0))[:, :3] - poses[c["wframe"]][:, :3, 3]
-            tq = np.einsum("nji,nj->ni", R_w, np.cross(p_c, f_root)) + 0.01 * c["sigma"] * self.rng.standard_normal((len(ts), 3))
-            for i, t in enumerate(ts):
-                events.append((float(t), 5, "wrench", (f[i], tq[i])))
+            self._wrench_events(events)
         events.sort(key=lambda e: (e[0], e[1]))
         counts = self._write(out, storage, overwrite, events)
         return SimulationResult(str(out), counts, self.truth_dict(), float(self.t[-1] - self.t[0]),
                                 len(self.windows), sorted(visible_ids))
+
+    def _camera_events(self, events: list[tuple[float, int, str, tuple]]) -> set[int]:
+        """Images of the tags at their true poses (noise from the simulator's rng), stamped with the camera's time offset."""
+        visible_ids: set[int] = set()
+        ts = self.sensor_times(self.cam["rate"], self.cam["during"])
+        Q, S, G = self.state_at(ts)
+        poses = self.truth_poses(Q, S, G, ts)
+        Ts, ids, sizes = self._tag_poses_cam(poses)
+        assert self.model.tags is not None
+        for i, t in enumerate(ts):
+            img, drawn = render_tags((self.cam["w"], self.cam["h"]), self.cam["K"], self.cam["D"], Ts[i], ids, sizes,
+                                     dictionary=self.model.tags.family, background=self.cam["background"],
+                                     noise_sigma=self.cam["noise"], rng=self.rng, blur_sigma=self.cam["blur"])
+            visible_ids.update(drawn)
+            st = float(t + self.cam["time_offset"])
+            events.append((st, 1, "cam", (img,)))
+        return visible_ids
+
+    def _gt_pose_events(self, events: list[tuple[float, int, str, tuple]]) -> None:
+        """Ground-truth poses of the target in the tracked frame, with noise."""
+        g = self.gt_pose
+        ts = self.sensor_times(g["rate"])
+        Q, S, G = self.state_at(ts)
+        poses = self.truth_poses(Q, S, G, ts)
+        T = lie.inverse(poses[g["frame"]]) @ poses[g["target"]]
+        noise = np.concatenate([g["sx"] * self.rng.standard_normal((len(ts), 3)),
+                                g["sr"] * self.rng.standard_normal((len(ts), 3))], axis=1)
+        T = T @ lie.exp(noise)
+        for i, t in enumerate(ts):
+            events.append((float(t), 2, "gtpose", (T[i],)))
+
+    def _gt_point_events(self, events: list[tuple[float, int, str, tuple]]) -> None:
+        """Tracker measurements of the reflector in the tracker frame, with noise."""
+        g = self.gt_point
+        ts = self.sensor_times(g["rate"])
+        Q, S, G = self.state_at(ts)
+        poses = self.truth_poses(Q, S, G, ts)
+        p = (g["T_tracker_base"] @ poses[g["link"]] @ np.append(g["xyz"], 1.0))[:, :3]
+        p = p + g["sigma"] * self.rng.standard_normal(p.shape)
+        for i, t in enumerate(ts):
+            events.append((float(t), 3, "gtpoint", (p[i],)))
+
+    def _imu_events(self, events: list[tuple[float, int, str, tuple]]) -> None:
+        """Accelerometer readings (gravity at rest in each IMU's link), with noise."""
+        ts = self.sensor_times(self.imu["rate"])
+        Q, S, G = self.state_at(ts)
+        poses = self.truth_poses(Q, S, G, ts)
+        for name, cfg in self.model.imus.items():
+            sig = self.imu["sigma"] if self.imu["sigma"] is not None else cfg.sigma
+            R = poses[cfg.link][:, :3, :3]
+            a = np.einsum("nji,j->ni", R, np.array([0.0, 0.0, GRAVITY]))  # specific force at rest
+            a = a + sig * self.rng.standard_normal(a.shape)
+            for i, t in enumerate(ts):
+                events.append((float(t), 4, "imu", (name, cfg.link, a[i], sig)))
+
+    def _wrench_events(self, events: list[tuple[float, int, str, tuple]]) -> None:
+        """Contact wrenches (spring law on the penetration of the tool point into the plane), with noise."""
+        c = self.contact
+        ts = np.arange(self.t[0], self.t[-1] + 1e-9, 1.0 / c["rate"])
+        Q, S, G = self.state_at(ts)
+        poses = self.truth_poses(Q, S, G, ts)
+        depth = np.maximum(self._contact_penetration(poses), 0.0)
+        T_root_plane = poses[c["frame"]] @ c["T_frame_plane"]
+        f_root = c["k"] * depth[:, None] * T_root_plane[:, :3, 2]  # table pushes along its normal
+        R_w = poses[c["wframe"]][:, :3, :3]
+        f = np.einsum("nji,nj->ni", R_w, f_root) + c["sigma"] * self.rng.standard_normal((len(ts), 3))
+        # torque of the contact force about the wrench frame origin
+        p_c = (poses[c["link"]] @ np.append(c["xyz"], 1.0))[:, :3] - poses[c["wframe"]][:, :3, 3]
+        tq = np.einsum("nji,nj->ni", R_w, np.cross(p_c, f_root)) + 0.01 * c["sigma"] * self.rng.standard_normal((len(ts), 3))
+        for i, t in enumerate(ts):
+            events.append((float(t), 5, "wrench", (f[i], tq[i])))
 
     def _write(self, out: str | os.PathLike, storage: str, overwrite: bool, events: list) -> dict[str, int]:
         cam_frame = self.cam["frame"] if self.cam else ""
