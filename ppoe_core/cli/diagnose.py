@@ -22,6 +22,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 __all__ = ["add_arguments", "run"]
 
@@ -61,17 +62,13 @@ def run(args: argparse.Namespace) -> int:
     from ppoe_core.analysis.diagnose import (
         DiagnoseOptions,
         Stops,
-        add_pixel_diagnosis,
-        concat_pixel_obs,
         diagnose,
         load_model,
-        pixels_from_bag,
-        stops_from_bag,
         write_model_yaml,
         write_report,
     )
     from ppoe_core.errors import BagError
-    from ppoe_core.io.bagio import bag_topics, read_bag
+    from ppoe_core.io.bagio import read_bag
     from ppoe_core.robot.urdf import parse_urdf
 
     urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description
@@ -79,42 +76,14 @@ def run(args: argparse.Namespace) -> int:
         raise BagError(f"bag {args.bags[0]}: no /robot_description")
     robot = parse_urdf(urdf)
     cfg, declared, pert, jnoise = load_model(args.model, robot)
-    tracker = cfg.tracker
-    frames = cfg.frames
-    parts = []
-    for i, bag in enumerate(args.bags):
-        parts.append(stops_from_bag(
-            bag, robot,
-            tracker_link=args.tool or (tracker.link if tracker else None),
-            tracker_xyz=tracker.xyz if (tracker and not args.tool) or (tracker and args.tool == tracker.link)
-            else (0.0, 0.0, 0.0),
-            tracker_sigma=tracker.sigma if tracker else 5e-4,
-            base=args.base or (frames.base if frames else None),
-            tool=args.tool or (frames.tool if frames else None),
-            stationing_set=None if args.stationing_set == "all" else args.stationing_set,
-            group_name=f"{i}:{Path(bag).name}", measurement=args.measurement))
+    parts = [_stops(args, i, bag, robot, cfg) for i, bag in enumerate(args.bags)]
     stops = Stops.concat(parts)
     opts = DiagnoseOptions(folds=args.folds, cv=args.cv, min_gain=args.min_gain, min_t=args.min_t,
                            max_effects=args.max_effects,
                            imu_sigma={k: v.sigma for k, v in (getattr(cfg, "imus", None) or {}).items()} or None)
     res = diagnose(robot, stops, declared, pert, jnoise, opts)
     if args.pixels != "off":
-        pix = []
-        for bag in args.bags:
-            topics = bag_topics(bag)
-            has_tags = any(t == "/tag_bearing/observations" or t.startswith("/camera/image") for t in topics)
-            if has_tags and cfg.tags is None and args.pixels == "auto":
-                res.summary += (f"\nTag pixels of bag {bag} not diagnosed: model {args.model} has no 'tags' "
-                                "section.")
-            if cfg.tags is not None and has_tags:
-                cam = getattr(cfg, "camera", None)
-                sigma_px = args.pixel_sigma or (cam.pixel_sigma if cam is not None else 1.0)
-                pix.append(pixels_from_bag(bag, robot, args.model, sigma_px=sigma_px))
-            elif args.pixels == "on":
-                raise BagError(f"bag {bag}: --pixels on, but no tag observations/images or no 'tags' in {args.model}")
-        if pix:
-            add_pixel_diagnosis(res, robot, concat_pixel_obs(pix), declared, folds=args.folds,
-                                min_gain=args.min_gain, min_t=args.min_t, pert=pert, jnoise=jnoise)
+        _pixel_stage(args, res, robot, cfg, declared, pert, jnoise)
     paths = {}
     if args.out:
         paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))
@@ -126,3 +95,45 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(paths["md"].read_text() if paths else res.summary)
     return 0
+
+
+def _stops(args: argparse.Namespace, i: int, bag: str, robot: Any, cfg: Any) -> Any:
+    """The static stops of bag ``i`` (tracker reflector or ``--tool`` pose, frames from the model)."""
+    from ppoe_core.analysis.diagnose import stops_from_bag
+
+    tracker, frames = cfg.tracker, cfg.frames
+    return stops_from_bag(
+        bag, robot,
+        tracker_link=args.tool or (tracker.link if tracker else None),
+        tracker_xyz=tracker.xyz if (tracker and not args.tool) or (tracker and args.tool == tracker.link)
+        else (0.0, 0.0, 0.0),
+        tracker_sigma=tracker.sigma if tracker else 5e-4,
+        base=args.base or (frames.base if frames else None),
+        tool=args.tool or (frames.tool if frames else None),
+        stationing_set=None if args.stationing_set == "all" else args.stationing_set,
+        group_name=f"{i}:{Path(bag).name}", measurement=args.measurement)
+
+
+def _pixel_stage(args: argparse.Namespace, res: Any, robot: Any, cfg: Any, declared: Any, pert: Any,
+                 jnoise: Any) -> None:
+    """Tag pixels of every bag with tags (``--pixels auto|on``) diagnosed into ``res``."""
+    from ppoe_core.analysis.diagnose import add_pixel_diagnosis, concat_pixel_obs, pixels_from_bag
+    from ppoe_core.errors import BagError
+    from ppoe_core.io.bagio import bag_topics
+
+    pix = []
+    for bag in args.bags:
+        topics = bag_topics(bag)
+        has_tags = any(t == "/tag_bearing/observations" or t.startswith("/camera/image") for t in topics)
+        if has_tags and cfg.tags is None and args.pixels == "auto":
+            res.summary += (f"\nTag pixels of bag {bag} not diagnosed: model {args.model} has no 'tags' "
+                            "section.")
+        if cfg.tags is not None and has_tags:
+            cam = getattr(cfg, "camera", None)
+            sigma_px = args.pixel_sigma or (cam.pixel_sigma if cam is not None else 1.0)
+            pix.append(pixels_from_bag(bag, robot, args.model, sigma_px=sigma_px))
+        elif args.pixels == "on":
+            raise BagError(f"bag {bag}: --pixels on, but no tag observations/images or no 'tags' in {args.model}")
+    if pix:
+        add_pixel_diagnosis(res, robot, concat_pixel_obs(pix), declared, folds=args.folds,
+                            min_gain=args.min_gain, min_t=args.min_t, pert=pert, jnoise=jnoise)

@@ -58,27 +58,10 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.executors import ExternalShutdownException
     from rosgraph_msgs.msg import Clock
 
-    from ppoe_ros.common import LATCHED_QOS, message_class, ns_to_stamp, reliable_qos
+    from ppoe_ros.common import LATCHED_QOS, reliable_qos
 
     info = bagio.bag_topics(args.bag)  # raises BagError naming the bag
-    if args.topics:
-        missing = [t for t in args.topics if t not in info]
-        if missing:
-            raise BagError(f"bag {args.bag}: no topic {', '.join(missing)} (topics: {', '.join(sorted(info))})")
-        selected = list(dict.fromkeys(args.topics))
-    else:
-        selected = sorted(info)
-    classes: dict[str, Any] = {}
-    for topic in list(selected):
-        try:
-            classes[topic] = message_class(info[topic][0])
-        except PpoeError as exc:
-            if args.topics:  # asked for by name: an error
-                raise BagError(f"bag {args.bag}: topic {topic}: {exc}") from None
-            print(f"ppoe play: skipping {topic}: {exc}", file=sys.stderr)
-            selected.remove(topic)
-    if not selected:
-        raise BagError(f"bag {args.bag}: no topic to play")
+    selected, classes = _select_topics(args, info)
 
     rclpy.init(args=["ppoe_play"])
     node = rclpy.create_node("ppoe_play")
@@ -92,33 +75,11 @@ def run(args: argparse.Namespace) -> int:
         clock_pub = node.create_publisher(Clock, "/clock", reliable_qos(10)) if args.clock else None
         _wait(node, pubs, args.delay, args.wait_for_subscribers)
         log.info(f"playing {args.bag}: {', '.join(f'{t} ({info[t][1]})' for t in selected)} at rate {args.rate:g}")
-        clock_period = 1.0 / args.clock_hz
-        clock_msg = Clock()
         while True:
-            t0_ns: int | None = None
-            start = time.monotonic()
-            last_clock = -1.0
-            for msg in bagio.iter_raw(args.bag, selected):
-                if t0_ns is None:
-                    t0_ns = msg.stamp_ns
-                target = start + (msg.stamp_ns - t0_ns) * 1e-9 / args.rate
-                while True:
-                    if not rclpy.ok():
-                        return 0
-                    now = time.monotonic()
-                    if now >= target:
-                        break
-                    if clock_pub is not None and now - last_clock >= clock_period:
-                        clock_msg.clock = ns_to_stamp(t0_ns + int((now - start) * args.rate * 1e9))
-                        clock_pub.publish(clock_msg)
-                        last_clock = now
-                    time.sleep(min(target - now, clock_period if clock_pub is not None else 0.05))
-                if clock_pub is not None:
-                    clock_msg.clock = ns_to_stamp(msg.stamp_ns)
-                    clock_pub.publish(clock_msg)
-                    last_clock = time.monotonic()
-                pubs[msg.topic].publish(msg.data)
-                n_sent += 1
+            sent = _play_once(args, pubs, clock_pub)
+            if sent is None:  # shut down while playing
+                return 0
+            n_sent += sent
             if not args.loop:
                 break
         _drain(node, pubs, 1.0)
@@ -157,3 +118,66 @@ def _drain(node: Any, pubs: dict[str, Any], timeout: float) -> None:
     while rclpy.ok() and time.monotonic() < end:
         if all(p.wait_for_all_acked(Duration(seconds=0.05)) for p in pubs.values()):
             return
+
+
+def _select_topics(args: argparse.Namespace, info: dict[str, Any]) -> tuple[list[str], dict[str, Any]]:
+    """Topics to play (``--topics`` or all) and their message classes; unknown types skipped with a word."""
+    from ppoe_ros.common import message_class
+
+    if args.topics:
+        missing = [t for t in args.topics if t not in info]
+        if missing:
+            raise BagError(f"bag {args.bag}: no topic {', '.join(missing)} (topics: {', '.join(sorted(info))})")
+        selected = list(dict.fromkeys(args.topics))
+    else:
+        selected = sorted(info)
+    classes: dict[str, Any] = {}
+    for topic in list(selected):
+        try:
+            classes[topic] = message_class(info[topic][0])
+        except PpoeError as exc:
+            if args.topics:  # asked for by name: an error
+                raise BagError(f"bag {args.bag}: topic {topic}: {exc}") from None
+            print(f"ppoe play: skipping {topic}: {exc}", file=sys.stderr)
+            selected.remove(topic)
+    if not selected:
+        raise BagError(f"bag {args.bag}: no topic to play")
+    return selected, classes
+
+
+def _play_once(args: argparse.Namespace, pubs: dict[str, Any], clock_pub: Any) -> int | None:
+    """One pass over the bag at ``args.rate``, publishing ``/clock`` while waiting; messages sent, or None
+    when ROS shut down meanwhile."""
+    import rclpy
+    from rosgraph_msgs.msg import Clock
+
+    from ppoe_ros.common import ns_to_stamp
+
+    clock_period = 1.0 / args.clock_hz
+    clock_msg = Clock()
+    t0_ns: int | None = None
+    start = time.monotonic()
+    last_clock = -1.0
+    n_sent = 0
+    for msg in bagio.iter_raw(args.bag, list(pubs)):
+        if t0_ns is None:
+            t0_ns = msg.stamp_ns
+        target = start + (msg.stamp_ns - t0_ns) * 1e-9 / args.rate
+        while True:
+            if not rclpy.ok():
+                return None
+            now = time.monotonic()
+            if now >= target:
+                break
+            if clock_pub is not None and now - last_clock >= clock_period:
+                clock_msg.clock = ns_to_stamp(t0_ns + int((now - start) * args.rate * 1e9))
+                clock_pub.publish(clock_msg)
+                last_clock = now
+            time.sleep(min(target - now, clock_period if clock_pub is not None else 0.05))
+        if clock_pub is not None:
+            clock_msg.clock = ns_to_stamp(msg.stamp_ns)
+            clock_pub.publish(clock_msg)
+            last_clock = time.monotonic()
+        pubs[msg.topic].publish(msg.data)
+        n_sent += 1
+    return n_sent
