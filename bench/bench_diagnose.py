@@ -78,9 +78,11 @@ def hilti(quick: bool) -> None:
         b = protocol_scores(robot, parts[f])
         a = protocol_scores(robot, parts[f], r.chosen)
         ratios.append(a["r95_xy"] / b["r95_xy"])
-        print(f"| {f} | {', '.join(e.describe() for e in r.chosen)} | {1e3 * b['rms']:.2f} -> {1e3 * a['rms']:.2f} | "
-              f"{1e3 * b['r95_xy']:.1f} -> {1e3 * a['r95_xy']:.1f} | {1e3 * b['r95_z']:.1f} -> {1e3 * a['r95_z']:.1f} |",
-              flush=True)
+        print(
+            f"| {f} | {', '.join(e.describe() for e in r.chosen)} | {1e3 * b['rms']:.2f} -> {1e3 * a['rms']:.2f} | "
+            f"{1e3 * b['r95_xy']:.1f} -> {1e3 * a['r95_xy']:.1f} | {1e3 * b['r95_z']:.1f} -> {1e3 * a['r95_z']:.1f} |",
+            flush=True,
+        )
     print(f"hilti_nested_time: {time.perf_counter() - t0:.1f} s")
     print(f"hilti_nested_r95xy_ratio_mean: {np.mean(ratios):.3f} (after/before)")
 
@@ -109,7 +111,7 @@ def ten_minute_bag() -> None:
             for k in range(n_stops):
                 ts = np.arange(0.0, period, 1.0 / rate)
                 s = np.clip(ts / (0.6 * period), 0.0, 1.0)[:, None]
-                qs = prev + (targets[k] - prev) * (3 * s ** 2 - 2 * s ** 3)  # move, then rest
+                qs = prev + (targets[k] - prev) * (3 * s**2 - 2 * s**3)  # move, then rest
                 for t, qv in zip(k * period + ts, qs):
                     w.write_joint_state(float(t), names, qv)
                 q = {j: np.array(targets[k][i]) for i, j in enumerate(names)}
@@ -127,8 +129,11 @@ def ten_minute_bag() -> None:
         dt = time.perf_counter() - t0
         doc = json.loads(buf.getvalue())
         print(f"bag10min_diagnose_time: {dt:.1f} s")
-        print("bag10min_effects_found: " + "; ".join(f"{e['name']}@{e['location']} {e['parameters']}"
-                                                     for e in doc["effects"]) + " (injected: gravity_compliance@joint_2 2e-4)")
+        print(
+            "bag10min_effects_found: "
+            + "; ".join(f"{e['name']}@{e['location']} {e['parameters']}" for e in doc["effects"])
+            + " (injected: gravity_compliance@joint_2 2e-4)"
+        )
         print(f"bag10min_realtime_ratio: {600.0 / dt:.1f} bag s per wall s")
 
 
@@ -151,41 +156,65 @@ def motoman() -> None:
 
     for f in files:
         st = pixel_stats(tree, obs[f])
-        print(f"motoman_pixel_nominal_{f}: " + " / ".join(
-            f"{short[k]} RMS {v['rms']:.2f} median {v['median']:.2f} max {v['max']:.2f} (n {v['n']})"
-            for k, v in st.items()) + " px")
+        print(
+            f"motoman_pixel_nominal_{f}: "
+            + " / ".join(
+                f"{short[k]} RMS {v['rms']:.2f} median {v['median']:.2f} max {v['max']:.2f} (n {v['n']})"
+                for k, v in st.items()
+            )
+            + " px"
+        )
     o = obs[files[0]]
     t0 = time.perf_counter()
     res = diagnose_pixels(robot, o)
     print(f"motoman_pixel_diagnose_time_6x6x6: {time.perf_counter() - t0:.2f} s ({res.n} observations)")
     for e in res.effects:
-        print(f"motoman_pixel_effect: {e['name']}@{e['location']} ({e['frame']}) " + ", ".join(
-            f"{k}={v:.4g} [{e['ci'][k][0]:.4g}, {e['ci'][k][1]:.4g}]" for k, v in e["parameters"].items()))
+        print(
+            f"motoman_pixel_effect: {e['name']}@{e['location']} ({e['frame']}) "
+            + ", ".join(f"{k}={v:.4g} [{e['ci'][k][0]:.4g}, {e['ci'][k][1]:.4g}]" for k, v in e["parameters"].items())
+        )
     print(f"motoman_pixel_cv_rms_6x6x6: {fmt(res.rms_before)} -> {fmt(res.rms_after)} px (5-fold over poses)")
     print(f"motoman_pixel_insample_rms_6x6x6: {fmt(res.rms_before_insample)} -> {fmt(res.rms_after_insample)} px")
     even, odd = o.subset(o.pose % 2 == 0), o.subset(o.pose % 2 == 1)
     r2 = diagnose_pixels(robot, even)
     print(f"motoman_pixel_even_to_odd: {fmt(pixel_rms(tree, odd))} -> {fmt(pixel_rms(tree, odd, r2.fitted))} px")
     for f in files[1:]:
-        print(f"motoman_pixel_6x6x6_to_{f}: {fmt(pixel_rms(tree, obs[f]))} -> "
-              f"{fmt(pixel_rms(tree, obs[f], res.fitted))} px")
+        print(
+            f"motoman_pixel_6x6x6_to_{f}: {fmt(pixel_rms(tree, obs[f]))} -> "
+            f"{fmt(pixel_rms(tree, obs[f], res.fitted))} px"
+        )
         rf = diagnose_pixels(robot, obs[f])
-        print(f"motoman_pixel_infile_cv_{f}: effects {[e['location'] for e in rf.effects]}, "
-              f"{fmt(rf.rms_before)} -> {fmt(rf.rms_after)} px")
-    arm = [make_effect("joint_offset", j, robot) for j in
-           ["joint_S1", "joint_L1", "joint_U1", "joint_R1", "joint_B1", "joint_T1"]]
+        print(
+            f"motoman_pixel_infile_cv_{f}: effects {[e['location'] for e in rf.effects]}, "
+            f"{fmt(rf.rms_before)} -> {fmt(rf.rms_after)} px"
+        )
+    arm = [
+        make_effect("joint_offset", j, robot)
+        for j in ["joint_S1", "joint_L1", "joint_U1", "joint_R1", "joint_B1", "joint_T1"]
+    ]
     arm.append(make_effect("link_error", "T1_to_EE1", robot))
     r3 = diagnose_pixels(robot, o, candidates=pixel_candidates(robot, o) + arm, max_effects=8)
     print("motoman_pixel_arm_candidates_effects: " + ", ".join(s["effect"] for s in r3.steps))
     print(f"motoman_pixel_arm_candidates_cv_rms_6x6x6: {fmt(r3.rms_before)} -> {fmt(r3.rms_after)} px")
     for f in files[1:]:
-        print(f"motoman_pixel_arm_candidates_6x6x6_to_{f}: {fmt(pixel_rms(tree, obs[f]))} -> "
-              f"{fmt(pixel_rms(tree, obs[f], r3.fitted))} px")
+        print(
+            f"motoman_pixel_arm_candidates_6x6x6_to_{f}: {fmt(pixel_rms(tree, obs[f]))} -> "
+            f"{fmt(pixel_rms(tree, obs[f], r3.fitted))} px"
+        )
     with tempfile.TemporaryDirectory() as tmp:
         bag = Path(tmp) / "m666"
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-            main(["import", "motoman", str(d / "leica_right_hand_6x6x6_dataset.mat"), "--model-yaml",
-                  str(d / "model.yaml"), "--out", str(bag)])
+            main(
+                [
+                    "import",
+                    "motoman",
+                    str(d / "leica_right_hand_6x6x6_dataset.mat"),
+                    "--model-yaml",
+                    str(d / "model.yaml"),
+                    "--out",
+                    str(bag),
+                ]
+            )
         model = next(Path(tmp).glob("*.yaml"), None) or next(bag.glob("*.yaml"))
         buf = io.StringIO()
         t0 = time.perf_counter()
@@ -198,12 +227,16 @@ def motoman() -> None:
         if "pixels" in doc:
             px = doc["pixels"]
             print(f"motoman_bag_pixel_rms_declared_only: {fmt(px['pixel_rms_declared_only'])} px")
-            print(f"motoman_bag_pixel_rms: {fmt(px['pixel_rms_before'])} -> {fmt(px['pixel_rms_after'])} px "
-                  "(held-out, with the tracker effects)")
+            print(
+                f"motoman_bag_pixel_rms: {fmt(px['pixel_rms_before'])} -> {fmt(px['pixel_rms_after'])} px "
+                "(held-out, with the tracker effects)"
+            )
             print(f"motoman_bag_pixel_noise_floor: {fmt(px['pixel_noise_floor'])} px (declared covariance)")
-            print(f"motoman_bag_pixel_unexplained: {fmt(px['pixel_unexplained'])} px; held-out NEES "
-                  f"{px['pixel_nees_before']:.3g} -> {px['pixel_nees_after']:.3g} (expectation 2), "
-                  f"flag {px['pixel_unexplained_flag']}")
+            print(
+                f"motoman_bag_pixel_unexplained: {fmt(px['pixel_unexplained'])} px; held-out NEES "
+                f"{px['pixel_nees_before']:.3g} -> {px['pixel_nees_after']:.3g} (expectation 2), "
+                f"flag {px['pixel_unexplained_flag']}"
+            )
 
 
 if __name__ == "__main__":

@@ -48,7 +48,10 @@ _CENTRE = {"pan_joint": -2.97, "tilt_joint": 0.65, "arm_joint_1": 0.37, "arm_joi
 def scenario(duration: float, rate: float, camera_rate: float, gt_rate: float) -> dict:
     """The benchmark scenario (``ppoe simulate`` format, see ``--help-scenario``)."""
     return {
-        "robot": {"urdf": str(REPO / "config" / "robots" / "rover.urdf"), "model": str(REPO / "config" / "robots" / "rover_model.yaml")},
+        "robot": {
+            "urdf": str(REPO / "config" / "robots" / "rover.urdf"),
+            "model": str(REPO / "config" / "robots" / "rover_model.yaml"),
+        },
         "seed": 5,
         "start_time": 100.0,
         "truth": {"perturbations": "once", "joint_noise": True, "effects": []},
@@ -61,8 +64,15 @@ def scenario(duration: float, rate: float, camera_rate: float, gt_rate: float) -
                 "period": {"arm_joint_1": 23.0, "arm_joint_2": 17.0, "arm_joint_4": 29.0, "arm_joint_6": 31.0},
             },
         },
-        "camera": {"width": 640, "height": 480, "intrinsics": [600.0, 600.0, 320.0, 240.0],
-                   "D": [-0.05, 0.02, 0.0, 0.0, 0.0], "rate": camera_rate, "during": "always", "format": "png"},
+        "camera": {
+            "width": 640,
+            "height": 480,
+            "intrinsics": [600.0, 600.0, 320.0, 240.0],
+            "D": [-0.05, 0.02, 0.0, 0.0, 0.0],
+            "rate": camera_rate,
+            "during": "always",
+            "format": "png",
+        },
         "ground_truth": {"pose": {"frame": "base_link", "target": "tool_link", "rate": gt_rate}},
     }
 

@@ -11,7 +11,8 @@ Before timing, the PPOE covariance is checked against the pytransform3d one (pyt
 orders tangent vectors ``[omega; v]``, ours ``[rho; theta]``: the comparison permutes) and
 against the Monte-Carlo covariance.
 
-Times are best-of-N process CPU times (robust on a shared machine). Output: ``name: value unit`` lines. Targets (one core): ``single_speedup_vs_pytransform3d`` >= 50,
+Times are best-of-N process CPU times (robust on a shared machine). Output: ``name: value unit`` lines. Targets (one
+core): ``single_speedup_vs_pytransform3d`` >= 50,
 ``batched_configs_per_s`` >= 200000. Run::
 
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python bench/bench_fk.py [--batch N] [--repeat R]
@@ -45,7 +46,15 @@ URDF = REPO / "config" / "robots" / "arm7.urdf"
 MODEL = REPO / "config" / "robots" / "arm7_model.yaml"
 FRM, TO = "base_link", "tool0"
 #: config/README.md example configuration of arm7 [rad]
-Q_EXAMPLE = {"joint_1": 0.3, "joint_2": 0.6, "joint_3": 0.0, "joint_4": -1.2, "joint_5": 0.0, "joint_6": 0.9, "joint_7": 0.0}
+Q_EXAMPLE = {
+    "joint_1": 0.3,
+    "joint_2": 0.6,
+    "joint_3": 0.0,
+    "joint_4": -1.2,
+    "joint_5": 0.0,
+    "joint_6": 0.9,
+    "joint_7": 0.0,
+}
 #: [rho; theta] <-> pytransform3d's [omega; v]
 PERM = np.array([3, 4, 5, 0, 1, 2])
 

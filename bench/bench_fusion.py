@@ -61,7 +61,9 @@ def main() -> int:
     K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
     D = np.array([-0.2, 0.08, 0.001, -0.001, -0.01])
     T_base_cam = _pose([0.2, 0.0, 1.0], [-2.0, 0.0, 0.0])
-    pts = np.vstack([tag_points(0.04, _pose([0.03, 0, 0], [0, 0, 0])), tag_points(0.04, _pose([-0.03, 0, 0], [0, 0, 0]))])
+    pts = np.vstack(
+        [tag_points(0.04, _pose([0.03, 0, 0], [0, 0, 0])), tag_points(0.04, _pose([-0.03, 0, 0], [0, 0, 0]))]
+    )
     A = rng.normal(size=(6, 6))
     cov_cam = 1e-5 * (A @ A.T / 6 + 0.1 * np.eye(6))
     tags = TagBearingModel(pts, K, D, 0.5, T_ref_camera=T_base_cam, cov_camera=cov_cam)

@@ -90,8 +90,10 @@ def main(argv: list[str] | None = None) -> int:
     Q, _ = evaluate.joint_matrix(js, model.joint_names, str(BAG))
     Q = Q[order]
     T_all, cov_all = model.fk({n: Q[:, k] for k, n in enumerate(model.joint_names)}, base, tool)
-    msgs = [pose_cov_stamped_msg(T_all[i], lie.cov_local_to_ros(T_all[i], cov_all[i]), int(round(stamps[i] * 1e9)), base)
-            for i in range(len(stamps))]
+    msgs = [
+        pose_cov_stamped_msg(T_all[i], lie.cov_local_to_ros(T_all[i], cov_all[i]), int(round(stamps[i] * 1e9)), base)
+        for i in range(len(stamps))
+    ]
     meas, _ = evaluate.tag_measurements(data, model, str(BAG))
     meas = sorted(meas, key=lambda m: m.stamp)
     res = {}

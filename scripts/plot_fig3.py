@@ -132,7 +132,8 @@ def main(argv: list[str] | None = None) -> int:
         ax.plot(samples[:, 0, 3], samples[:, 1, 3], ".", color="tab:green", ms=3, alpha=0.7,
                 label=f"{args.samples} samples")
         for k, c in enumerate(enclosure_curves(T, cov)):
-            ax.plot(c[:, 0], c[:, 1], "-", color="tab:blue", lw=1.2, zorder=2, label="80 % enclosure" if k == 0 else None)
+            ax.plot(c[:, 0], c[:, 1], "-", color="tab:blue", lw=1.2, zorder=2,
+                    label="80 % enclosure" if k == 0 else None)
         pts = np.array([model.fk_mean(joints, "base_link", link)[:3, 3] for link in LINKS])
         ax.plot(pts[:, 0], pts[:, 1], "-", color="k", lw=2.5, solid_capstyle="round", zorder=3)
         perturbed = set(model.config.perturbations)

@@ -237,7 +237,8 @@ def main(argv: list[str] | None = None) -> int:
     pr, nv = runs["PPOE"], runs["naive"]
     lines.append(
         f"Plotted run (seed {args.seed}): 3D error FK {1e3 * np.linalg.norm(pr.pos_err_plane[0]):.2f} mm -> "
-        f"PPOE {1e3 * np.linalg.norm(pr.pos_err_plane[-1]):.2f} mm, naive {1e3 * np.linalg.norm(nv.pos_err_plane[-1]):.2f} mm."
+        f"PPOE {1e3 * np.linalg.norm(pr.pos_err_plane[-1]):.2f} mm, "
+        f"naive {1e3 * np.linalg.norm(nv.pos_err_plane[-1]):.2f} mm."
     )
     text = "\n".join(lines)
     print(text)

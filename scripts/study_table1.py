@@ -283,13 +283,19 @@ def main(argv: list[str] | None = None) -> int:
         "| paper (real LRU): FK / PPOE / naive | | 0.82 / 0.29 / 0.44 | 1.48 / 0.50 / 0.52 |",
         "",
         "Visible tags per image: " + ", ".join(f"{n}: {results[n]['tags_per_image']:.2f}" for n in names) + ".",
-        "PPOE lateral 1-sigma (sqrt(var x + var y), tool frame; naive: 9.9 cm): " + ", ".join(
-            f"{n}: {results[n]['ppoe_lateral_sigma_cm']:.2f} cm" for n in names) + ".",
-        "Position error RMS along the camera axes x, y (image plane), z (depth) [cm]: " + "; ".join(
-            f"{n}: " + ", ".join(f"{k} {np.array2string(v, precision=2)}" for k, v in results[n]["camera_axes_rms_cm"].items())
-            for n in names) + ".",
-        "Share of (robot, configuration) pairs where PPOE beats naive: " + ", ".join(
-            f"{n}: {100 * np.nanmean(results[n]['ppoe'] < results[n]['naive']):.0f} %" for n in names) + ".",
+        "PPOE lateral 1-sigma (sqrt(var x + var y), tool frame; naive: 9.9 cm): "
+        + ", ".join(f"{n}: {results[n]['ppoe_lateral_sigma_cm']:.2f} cm" for n in names)
+        + ".",
+        "Position error RMS along the camera axes x, y (image plane), z (depth) [cm]: "
+        + "; ".join(
+            f"{n}: "
+            + ", ".join(f"{k} {np.array2string(v, precision=2)}" for k, v in results[n]["camera_axes_rms_cm"].items())
+            for n in names
+        )
+        + ".",
+        "Share of (robot, configuration) pairs where PPOE beats naive: "
+        + ", ".join(f"{n}: {100 * np.nanmean(results[n]['ppoe'] < results[n]['naive']):.0f} %" for n in names)
+        + ".",
     ]
     text = "\n".join(lines)
     print(text)

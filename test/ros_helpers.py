@@ -120,7 +120,7 @@ class NodeProcess:
             return self.proc.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             self.stop()
-            raise AssertionError(f"{self.cmd} did not exit within {timeout} s:\n{self.output()[-3000:]}")
+            raise AssertionError(f"{self.cmd} did not exit within {timeout} s:\n{self.output()[-3000:]}") from None
 
     def stop(self, timeout: float = 5.0) -> int | None:
         """SIGINT the process group, then SIGKILL after ``timeout`` s; return the exit code."""

@@ -86,12 +86,24 @@ def test_frames_default_to_model_frames_and_non_root_reference(capsys: pytest.Ca
 
 def test_subprocess_entry_point(planar3: PPOEModel) -> None:
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    argv = [sys.executable, "-m", "ppoe_ros.cli"] + BASE + ["--joints", "joint1=0.1", "joint2=0.2", "joint3=-0.3", "--json"]
+    argv = (
+        [sys.executable, "-m", "ppoe_ros.cli"]
+        + BASE
+        + ["--joints", "joint1=0.1", "joint2=0.2", "joint3=-0.3", "--json"]
+    )
     proc = subprocess.run(argv, capture_output=True, text=True, cwd=str(REPO), env=env, timeout=60)
     assert proc.returncode == 0, proc.stderr
-    _check_doc(json.loads(proc.stdout), *planar3.fk({"joint1": 0.1, "joint2": 0.2, "joint3": -0.3}, "base_link", "tool0"))
-    bad = subprocess.run(argv[:-5] + ["--joints", "joint1=0.1", "--json"], capture_output=True, text=True,
-                         cwd=str(REPO), env=env, timeout=60)
+    _check_doc(
+        json.loads(proc.stdout), *planar3.fk({"joint1": 0.1, "joint2": 0.2, "joint3": -0.3}, "base_link", "tool0")
+    )
+    bad = subprocess.run(
+        argv[:-5] + ["--joints", "joint1=0.1", "--json"],
+        capture_output=True,
+        text=True,
+        cwd=str(REPO),
+        env=env,
+        timeout=60,
+    )
     assert bad.returncode == 2 and "joint2" in bad.stderr and "Traceback" not in bad.stderr
 
 
@@ -108,8 +120,9 @@ def test_batch_prints_rows_in_order(planar3: PPOEModel, tmp_path: Path, capsys: 
         _check_doc(json.loads(line), *planar3.fk({"joint1": q1, "joint2": q2, "joint3": 0.25}, "base_link", "tool0"))
 
 
-def test_text_output_is_readable_and_consistent(planar3: PPOEModel, tmp_path: Path,
-                                               capsys: pytest.CaptureFixture[str]) -> None:
+def test_text_output_is_readable_and_consistent(
+    planar3: PPOEModel, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     code, out, err = _run(BASE + ["--joints", "joint1=0.3", "joint2=-0.5", "joint3=0.9"], capsys)
     assert code == 0, err
     T, cov = planar3.fk({"joint1": 0.3, "joint2": -0.5, "joint3": 0.9}, "base_link", "tool0")
@@ -152,8 +165,9 @@ def test_bad_joint_arguments_exit_2(joints: list[str], needle: str, capsys: pyte
         ("joint1,joint1,joint3\n0,0,0\n", ["twice"]),
     ],
 )
-def test_bad_batch_csv_exit_2(content: str, needles: list[str], tmp_path: Path,
-                              capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_batch_csv_exit_2(
+    content: str, needles: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     csv = tmp_path / "bad.csv"
     csv.write_text(content)
     code, out, err = _run(BASE + ["--batch", str(csv), "--json"], capsys)

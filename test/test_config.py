@@ -78,7 +78,8 @@ def test_effects_section(robot):
     c = load_model_config(
         "effects:\n"
         "  - {name: joint_offset, location: j1, parameters: {offset: 0.001}}\n"
-        "  - {name: thermal_growth, location: link2, parameters: {alpha: 1.0e-5}, variable: temperature, reference: 20}\n"
+        "  - {name: thermal_growth, location: link2, parameters: {alpha: 1.0e-5},"
+        " variable: temperature, reference: 20}\n"
         "  - {name: link_error, location: j3, parameters: {x: 0.001, rz: [0.1]}, ci: {x: [0.0, 0.002]}}\n",
         robot,
     )
@@ -128,8 +129,11 @@ def test_unknown_key_in_entry(robot, tmp_path):
         ("camera: {frame: cam_nope}\n", UnknownFrameError, "unknown link 'cam_nope'"),
         ("frames: {base: base_link, tool: tool9}\n", UnknownFrameError, "unknown link 'tool9'"),
         ("tags:\n  items:\n    - {id: 1, link: l9, size: 0.04}\n", UnknownFrameError, "unknown link 'l9'"),
-        ("tags:\n  items:\n    - {id: 1, link: tool0, size: 0.04}\n    - {id: 1, link: link4, size: 0.04}\n",
-         ModelConfigError, "duplicate tag id 1"),
+        (
+            "tags:\n  items:\n    - {id: 1, link: tool0, size: 0.04}\n    - {id: 1, link: link4, size: 0.04}\n",
+            ModelConfigError,
+            "duplicate tag id 1",
+        ),
         ("tags:\n  items:\n    - {id: 1, link: tool0}\n", ModelConfigError, "missing required key 'size'"),
         ("imus:\n  a: {link: link1, rate: 3}\n", ModelConfigError, "unknown key 'rate'"),
         ("tracker: {link: link4, sigma: -1}\n", ModelConfigError, "must be > 0"),
@@ -141,11 +145,22 @@ def test_unknown_key_in_entry(robot, tmp_path):
         ("perturbations:\n  j1: [1, 2]\n", ModelConfigError, "must be a mapping, got a list of 2 items"),
         ("perturbations:\n  j1: {covariance: [[1, 0], [0, 1]]}\n", ModelConfigError, "6x6"),
         ("contact:\n  plane: {frame: base_link}\n  tool_point: {link: tool0}\n", ModelConfigError, "'sigma'"),
-        ("contact:\n  plane: {frame: base_link}\n  sigma: [1, 1, 1, 1, 1, 1]\n  tool_point: {link: tool0}\n"
-         "  force_threshold: 2\n  release_threshold: 3\n", ModelConfigError, "above the force threshold"),
-        ("effects:\n  - {name: gremlins, location: j1, parameters: {}}\n", ModelConfigError, "unknown effect 'gremlins'"),
-        ("effects:\n  - {name: joint_offset, location: j1, parameters: {offset: 1}, note: x}\n",
-         ModelConfigError, "unknown key 'note'"),
+        (
+            "contact:\n  plane: {frame: base_link}\n  sigma: [1, 1, 1, 1, 1, 1]\n  tool_point: {link: tool0}\n"
+            "  force_threshold: 2\n  release_threshold: 3\n",
+            ModelConfigError,
+            "above the force threshold",
+        ),
+        (
+            "effects:\n  - {name: gremlins, location: j1, parameters: {}}\n",
+            ModelConfigError,
+            "unknown effect 'gremlins'",
+        ),
+        (
+            "effects:\n  - {name: joint_offset, location: j1, parameters: {offset: 1}, note: x}\n",
+            ModelConfigError,
+            "unknown key 'note'",
+        ),
         ("perturbations: {j1: {sigma: [0, 0, 0, 0, 0, 1]}}\nperturbations: {}\n", ModelConfigError, "duplicate key"),
         ("perturbations:\n  j1: {sigma: [0, 0\n", ModelConfigError, "does not parse"),
         ("- just\n- a list\n", ModelConfigError, "mapping at the top level, got a list of 2 items"),
@@ -193,15 +208,19 @@ def test_contact_section_alone_without_urdf(robot, tmp_path):
     alone = load_contact_config(humanoid)
     np.testing.assert_array_equal(alone.T_frame_plane, full.T_frame_plane)
     np.testing.assert_array_equal(alone.covariance, full.covariance)
-    assert (alone.plane_frame, alone.force_threshold, alone.release_threshold) == \
-        (full.plane_frame, full.force_threshold, full.release_threshold)
+    assert (alone.plane_frame, alone.force_threshold, alone.release_threshold) == (
+        full.plane_frame,
+        full.force_threshold,
+        full.release_threshold,
+    )
     assert load_contact_config("perturbations: {}\n", is_text=True) is None
     text = "contact:\n  plane: {frame: table}\n  sigma: [1, 1, 1, 1, 1, 1]\n  tool_point: {link: tip}\n"
     assert load_contact_config(text, is_text=True).plane_frame == "table"  # no URDF: names not checked
     with pytest.raises(UnknownFrameError, match="unknown link 'table'"):
         load_contact_config(text, robot, is_text=True)
     bad = tmp_path / "bad.yaml"
-    bad.write_text("frames: {base: x}\ncontact:\n  plane: {frame: table}\n  sigma: [1, 1, 1]\n"
-                   "  tool_point: {link: tip}\n")
+    bad.write_text(
+        "frames: {base: x}\ncontact:\n  plane: {frame: table}\n  sigma: [1, 1, 1]\n  tool_point: {link: tip}\n"
+    )
     with pytest.raises(ModelConfigError, match=r"bad.yaml:4: contact.sigma: must be a list of 6 numbers"):
         load_contact_config(bad)

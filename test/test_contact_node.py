@@ -1,4 +1,5 @@
-"""contact_node: hysteresis (detector unit tests: test_contact_detector.py), plane + Sigma_v output through live topics, bad input, parameters.
+"""contact_node: hysteresis (detector unit tests: test_contact_detector.py), plane + Sigma_v output through live
+topics, bad input, parameters.
 
 The node runs as a separate process in an isolated DDS domain with the contact
 section of config/robots/humanoid_model.yaml; parameter validation is checked on a node
@@ -44,15 +45,27 @@ def test_wrench_hysteresis_plane_and_bad_input_live(tmp_path: Path) -> None:
     T_plane = lie.from_xyz_rpy(cfg["plane"]["xyz"], cfg["plane"]["rpy"])
     cov_ros_ref = lie.cov_local_to_ros(T_plane, np.diag(np.square(cfg["sigma"])))
     env = ros_env(tmp_path)
-    with Probe(env) as probe, NodeProcess.node("contact_node", env, tmp_path,
-                                               params={"model_file": str(MODEL), "log_throttle": 0.0}) as proc:
+    with (
+        Probe(env) as probe,
+        NodeProcess.node("contact_node", env, tmp_path, params={"model_file": str(MODEL), "log_throttle": 0.0}) as proc,
+    ):
         pub = probe.publisher("/wrench", WrenchStamped, 100)
         out = probe.collect("/contact/plane", PoseWithCovarianceStamped)
         probe.wait_for_subscribers(pub, proc)
         probe.wait_for_publishers("/contact/plane", proc)
         # force norms 0, 3, 6 (enter), 4, 2.5 (stay), NaN (bad), 1.9 (leave), 4 (stay off), 5 (enter), 1 (leave)
-        forces = [(0, 0, 0), (0, 3, 0), (0, 0, -6), (4, 0, 0), (1.5, 2, 0), (float("nan"), 0, 0), (0, 0, 1.9),
-                  (0, 4, 0), (3, 0, 4), (1, 0, 0)]
+        forces = [
+            (0, 0, 0),
+            (0, 3, 0),
+            (0, 0, -6),
+            (4, 0, 0),
+            (1.5, 2, 0),
+            (float("nan"), 0, 0),
+            (0, 0, 1.9),
+            (0, 4, 0),
+            (3, 0, 4),
+            (1, 0, 0),
+        ]
         stamps = [int(10e9) + k * 10_000_000 for k in range(len(forces))]
         for ns, f in zip(stamps, forces):
             pub.publish(_wrench(ns, f))
@@ -80,8 +93,13 @@ def test_wrench_hysteresis_plane_and_bad_input_live(tmp_path: Path) -> None:
 
 def test_contact_flag_topic_and_plane_parameters_live(tmp_path: Path) -> None:
     env = ros_env(tmp_path)
-    params = {"contact_flag_topic": "/in_contact", "plane_frame": "base_link", "plane_xyz": [0.1, 0.2, 0.3],
-              "plane_rpy": [0.0, 0.0, 0.5], "plane_sigma": [0.1, 0.1, 0.002, 0.01, 0.01, 0.1]}
+    params = {
+        "contact_flag_topic": "/in_contact",
+        "plane_frame": "base_link",
+        "plane_xyz": [0.1, 0.2, 0.3],
+        "plane_rpy": [0.0, 0.0, 0.5],
+        "plane_sigma": [0.1, 0.1, 0.002, 0.01, 0.01, 0.1],
+    }
     with Probe(env) as probe, NodeProcess.node("contact_node", env, tmp_path, params=params) as proc:
         pub = probe.publisher("/in_contact", Bool, 100)
         out = probe.collect("/contact/plane", PoseWithCovarianceStamped)
@@ -98,7 +116,7 @@ def test_contact_flag_topic_and_plane_parameters_live(tmp_path: Path) -> None:
         cov_local = np.diag(np.square([0.1, 0.1, 0.002, 0.01, 0.01, 0.1]))
         np.testing.assert_allclose(cov_ros, lie.cov_local_to_ros(T_ref, cov_local), rtol=1e-12, atol=1e-15)
         # rotated about z: the in-plane x/y variances mix, the normal (z) variance stays
-        assert cov_ros[2, 2] == pytest.approx(0.002 ** 2) and abs(cov_ros[0, 1]) == pytest.approx(0.0, abs=1e-15)
+        assert cov_ros[2, 2] == pytest.approx(0.002**2) and abs(cov_ros[0, 1]) == pytest.approx(0.0, abs=1e-15)
 
 
 def test_parameters_validated_in_process(tmp_path: Path) -> None:
@@ -119,17 +137,20 @@ def test_parameters_validated_in_process(tmp_path: Path) -> None:
         finally:
             node.destroy_node()
         with pytest.raises(ModelConfigError, match="parameter 'force_component' must be one of"):
-            ContactNode(context=probe.context, parameter_overrides=overrides + [
-                Parameter("force_component", value="sideways")])
+            ContactNode(
+                context=probe.context, parameter_overrides=overrides + [Parameter("force_component", value="sideways")]
+            )
         with pytest.raises(ModelConfigError, match="no plane Sigma_v"):
             ContactNode(context=probe.context, parameter_overrides=[Parameter("plane_frame", value="base_link")])
         with pytest.raises(ModelConfigError, match="release_threshold .* must be below"):
-            ContactNode(context=probe.context, parameter_overrides=overrides + [
-                Parameter("release_threshold", value=6.0)])
+            ContactNode(
+                context=probe.context, parameter_overrides=overrides + [Parameter("release_threshold", value=6.0)]
+            )
         # a malformed contact section is refused naming file, line and key (validated by ppoe_core.robot.config)
         bad = tmp_path / "bad_model.yaml"
-        bad.write_text("contact:\n  plane: {frame: table}\n  sigma: [0.1, x, 0.1, 0.1, 0.1, 0.1]\n"
-                       "  tool_point: {link: tip}\n")
+        bad.write_text(
+            "contact:\n  plane: {frame: table}\n  sigma: [0.1, x, 0.1, 0.1, 0.1, 0.1]\n  tool_point: {link: tip}\n"
+        )
         with pytest.raises(ModelConfigError, match=r"bad_model.yaml:3: contact.sigma"):
             ContactNode(context=probe.context, parameter_overrides=[Parameter("model_file", value=str(bad))])
 

@@ -424,19 +424,45 @@ def test_cli_contact_thresholds_and_settings(capsys):
 
     parser = argparse.ArgumentParser()
     cli_evaluate.add_arguments(parser)
-    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "robots" / "humanoid_model.yaml"),
-                              "--set", "force_threshold=100.0", "--set", "release_threshold=50", "--json",
-                              "--no-progress"])
+    args = parser.parse_args(
+        [
+            str(REPO / "bags" / "contact"),
+            "--model",
+            str(REPO / "config" / "robots" / "humanoid_model.yaml"),
+            "--set",
+            "force_threshold=100.0",
+            "--set",
+            "release_threshold=50",
+            "--json",
+            "--no-progress",
+        ]
+    )
     assert cli_evaluate.run(args) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["measurements"]["contact_planes"] == 0 and doc["measurements"]["wrench"]["contacts"] == 0
     assert list(doc["methods"]) == ["fk"]
-    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "robots" / "humanoid_model.yaml"),
-                              "--set", "release_threshold=6.0", "--no-progress"])
+    args = parser.parse_args(
+        [
+            str(REPO / "bags" / "contact"),
+            "--model",
+            str(REPO / "config" / "robots" / "humanoid_model.yaml"),
+            "--set",
+            "release_threshold=6.0",
+            "--no-progress",
+        ]
+    )
     with pytest.raises(ModelConfigError, match="humanoid_model.yaml: contact: release_threshold .* must be below"):
         cli_evaluate.run(args)
-    args = parser.parse_args([str(REPO / "bags" / "contact"), "--model", str(REPO / "config" / "robots" / "humanoid_model.yaml"),
-                              "--set", "no_such_key=1", "--no-progress"])
+    args = parser.parse_args(
+        [
+            str(REPO / "bags" / "contact"),
+            "--model",
+            str(REPO / "config" / "robots" / "humanoid_model.yaml"),
+            "--set",
+            "no_such_key=1",
+            "--no-progress",
+        ]
+    )
     with pytest.raises(ModelConfigError, match="unknown fusion setting"):
         cli_evaluate.run(args)
 
@@ -468,10 +494,12 @@ def test_evaluate_matches_live_node_pipeline(tmp_path):
     pf_kin = write_params_file(tmp_path / "kin.yaml", common)
     pf_tag = write_params_file(tmp_path / "tag.yaml", common)
     topics = ["/robot_description", "/joint_states", "/camera/camera_info", "/camera/image_raw/compressed"]
-    with Probe(env) as probe, \
-            NodeProcess.node("kinematics_node", env, tmp_path, params_file=pf_kin) as kin, \
-            NodeProcess.node("tag_bearing_node", env, tmp_path, params_file=pf_tag) as tag, \
-            NodeProcess.node("fusion_node", env, tmp_path, params_file=pf_fusion) as fus:
+    with (
+        Probe(env) as probe,
+        NodeProcess.node("kinematics_node", env, tmp_path, params_file=pf_kin) as kin,
+        NodeProcess.node("tag_bearing_node", env, tmp_path, params_file=pf_tag) as tag,
+        NodeProcess.node("fusion_node", env, tmp_path, params_file=pf_fusion) as fus,
+    ):
         fused = probe.collect("/ppoe/fused_pose", PoseWithCovarianceStamped)
         probe.wait_for_publishers("/ppoe/fused_pose", fus)
         # the bag's URDF first (latched, from the probe), the data only once both nodes built their model
@@ -484,9 +512,12 @@ def test_evaluate_matches_live_node_pipeline(tmp_path):
         for p in (kin, fus):
             probe.spin_until(lambda p=p: "model from topic" in p.output(), timeout=60.0, proc=p, what="the model")
         # half speed: on a loaded 2-core machine the nodes otherwise lag and drop sensor-QoS messages
-        play = NodeProcess.ppoe(["play", str(bag), "--rate", "0.5", "--topics", *topics[1:],
-                                 "--wait-for-subscribers", "30"],
-                                env, tmp_path, "play")
+        play = NodeProcess.ppoe(
+            ["play", str(bag), "--rate", "0.5", "--topics", *topics[1:], "--wait-for-subscribers", "30"],
+            env,
+            tmp_path,
+            "play",
+        )
         with play:
             probe.spin_until(lambda: not play.alive(), timeout=120.0)  # keep receiving while playing
             rc = play.wait(10)

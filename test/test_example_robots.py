@@ -101,7 +101,9 @@ def test_planar3_fk_matches_hand_computation() -> None:
     T = model.fk_mean(dict(zip(["joint1", "joint2", "joint3"], q)), "base_link", "tool0")
     c = np.cumsum(q)
     np.testing.assert_allclose(T[:3, 3], [np.cos(c).sum(), np.sin(c).sum(), 0.0], atol=1e-12)
-    np.testing.assert_allclose(T[:3, :3], [[np.cos(c[-1]), -np.sin(c[-1]), 0], [np.sin(c[-1]), np.cos(c[-1]), 0], [0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(
+        T[:3, :3], [[np.cos(c[-1]), -np.sin(c[-1]), 0], [np.sin(c[-1]), np.cos(c[-1]), 0], [0, 0, 1]], atol=1e-12
+    )
 
 
 def test_planar3_perturbations_are_10_deg_about_the_joint_axes() -> None:
@@ -127,13 +129,31 @@ def test_planar3_joint1_only_gives_rank1_tool_position_covariance() -> None:
 
 # --------------------------------------------------------------------------- rover
 
-ROVER_STRETCHED = dict(pan_joint=2.53, tilt_joint=0.45, arm_joint_1=1.83, arm_joint_2=1.5, arm_joint_3=-0.1,
-                       arm_joint_4=-1.28, arm_joint_5=0.29, arm_joint_6=0.0)
-ROVER_CLOSE = dict(pan_joint=-2.97, tilt_joint=0.65, arm_joint_1=0.37, arm_joint_2=-0.54, arm_joint_3=1.93,
-                   arm_joint_4=-0.72, arm_joint_5=1.39, arm_joint_6=0.0)
+ROVER_STRETCHED = dict(
+    pan_joint=2.53,
+    tilt_joint=0.45,
+    arm_joint_1=1.83,
+    arm_joint_2=1.5,
+    arm_joint_3=-0.1,
+    arm_joint_4=-1.28,
+    arm_joint_5=0.29,
+    arm_joint_6=0.0,
+)
+ROVER_CLOSE = dict(
+    pan_joint=-2.97,
+    tilt_joint=0.65,
+    arm_joint_1=0.37,
+    arm_joint_2=-0.54,
+    arm_joint_3=1.93,
+    arm_joint_4=-0.72,
+    arm_joint_5=1.39,
+    arm_joint_6=0.0,
+)
 
 
-@pytest.mark.parametrize(("q", "facing_ids"), [(ROVER_STRETCHED, {0, 3}), (ROVER_CLOSE, {1})], ids=["stretched", "close"])
+@pytest.mark.parametrize(
+    ("q", "facing_ids"), [(ROVER_STRETCHED, {0, 3}), (ROVER_CLOSE, {1})], ids=["stretched", "close"]
+)
 def test_rover_example_configurations_show_tags_to_the_camera(q: dict, facing_ids: set) -> None:
     """config/README.md: at the example configurations these tags face the mast camera and are in the image."""
     model = _model("rover")
@@ -152,26 +172,39 @@ def test_rover_example_configurations_show_tags_to_the_camera(q: dict, facing_id
 
 def test_rover_sigmas_are_the_papers() -> None:
     cfg = _model("rover").config
-    np.testing.assert_allclose(np.sqrt(np.diag(cfg.perturbations["mount_joint"].covariance)),
-                               [0, 0, 0, 1 * DEG, 1 * DEG, 5 * DEG], rtol=1e-6)
+    np.testing.assert_allclose(
+        np.sqrt(np.diag(cfg.perturbations["mount_joint"].covariance)), [0, 0, 0, 1 * DEG, 1 * DEG, 5 * DEG], rtol=1e-6
+    )
     for i in range(1, 7):
-        np.testing.assert_allclose(np.sqrt(np.diag(cfg.perturbations[f"arm_joint_{i}"].covariance))[3:],
-                                   0.5 * DEG, rtol=1e-5)
-    np.testing.assert_allclose(np.sqrt(np.diag(cfg.naive.covariance)),
-                               [0.07, 0.07, 0.03, 5 * DEG, 5 * DEG, 15 * DEG], rtol=1e-6)
+        np.testing.assert_allclose(
+            np.sqrt(np.diag(cfg.perturbations[f"arm_joint_{i}"].covariance))[3:], 0.5 * DEG, rtol=1e-5
+        )
+    np.testing.assert_allclose(
+        np.sqrt(np.diag(cfg.naive.covariance)), [0.07, 0.07, 0.03, 5 * DEG, 5 * DEG, 15 * DEG], rtol=1e-6
+    )
     assert cfg.camera.pixel_sigma == 0.5
     # reach of the arm from the shoulder (arm_joint_2) to the tool tip: about 0.9 m
     robot = model_robot = _model("rover").robot
-    reach = sum(np.linalg.norm(robot.joints[j].origin[:3, 3]) for j in
-                ["arm_joint_3", "arm_joint_4", "arm_joint_5", "arm_joint_6", "tool_joint"])
+    reach = sum(
+        np.linalg.norm(robot.joints[j].origin[:3, 3])
+        for j in ["arm_joint_3", "arm_joint_4", "arm_joint_5", "arm_joint_6", "tool_joint"]
+    )
     assert 0.8 < reach < 1.0, model_robot.name
 
 
 # --------------------------------------------------------------------------- humanoid
 
-HUMANOID_TOUCH = dict(shoulder_pitch_joint=-0.5, shoulder_roll_joint=0.0, shoulder_yaw_joint=0.0, elbow_joint=-1.2,
-                      wrist_flex_joint=0.6, wrist_abduct_joint=0.0, index_mcp_joint=0.3, index_pip_joint=-0.2,
-                      index_dip_joint=-0.1)
+HUMANOID_TOUCH = dict(
+    shoulder_pitch_joint=-0.5,
+    shoulder_roll_joint=0.0,
+    shoulder_yaw_joint=0.0,
+    elbow_joint=-1.2,
+    wrist_flex_joint=0.6,
+    wrist_abduct_joint=0.0,
+    index_mcp_joint=0.3,
+    index_pip_joint=-0.2,
+    index_dip_joint=-0.1,
+)
 
 
 def test_humanoid_table_plane_touches_fingertip_at_example_configuration() -> None:

@@ -166,8 +166,14 @@ def test_nees_and_nis_inside_95_percent_bounds_over_500_trials():
     X0 = _pose([0.05, -0.02, 0.6], [np.pi - 0.3, 0.2, 0.1])
     P = _spd(rng, 6, 4e-6)  # ~2 mm / 2 mrad: small errors, linearisation is good
     model = TagBearingModel(
-        np.vstack([tag_points(0.05, _pose([0.04, 0, 0], [0, 0, 0])), tag_points(0.05, _pose([-0.04, 0, 0], [0.3, 0, 0]))]),
-        K, D, pixel_sigma=0.5, T_ref_camera=np.eye(4), cov_camera=_spd(rng, 6, 1e-6),
+        np.vstack(
+            [tag_points(0.05, _pose([0.04, 0, 0], [0, 0, 0])), tag_points(0.05, _pose([-0.04, 0, 0], [0.3, 0, 0]))]
+        ),
+        K,
+        D,
+        pixel_sigma=0.5,
+        T_ref_camera=np.eye(4),
+        cov_camera=_spd(rng, 6, 1e-6),
     )
     n = 500
     mean_nees, mean_nis = _mc_nees(model, X0, P, n, rng)
@@ -217,7 +223,9 @@ def test_iteration_reduces_linearisation_error():
     X_true = _pose([0.0, 0.0, 0.5], [np.pi, 0.0, 0.0])
     P = np.diag([0.03, 0.03, 0.03, 0.1, 0.1, 0.1]) ** 2
     X0 = X_true @ lie.exp(np.r_[0.04, -0.03, 0.05, 0.15, -0.1, 0.1])
-    model = TagBearingModel(np.vstack([tag_points(0.08), tag_points(0.06, _pose([0.1, 0, 0], [0, 0, 0]))]), K, D, pixel_sigma=0.5)
+    model = TagBearingModel(
+        np.vstack([tag_points(0.08), tag_points(0.06, _pose([0.1, 0, 0], [0, 0, 0]))]), K, D, pixel_sigma=0.5
+    )
     z = model.h(X_true)
     one = iterated_update(X0, P, z, model, max_iterations=1, gate_probability=None)
     it = iterated_update(X0, P, z, model, max_iterations=20, gate_probability=None)
@@ -322,10 +330,12 @@ def test_tracker_point_and_chained_accelerometer_fused_consistently():
     P = _spd(rng, 6, 2e-5)
     T_tool_L = _pose([-0.3, 0.0, 0.1], [0.0, 0.5, 0.0])
     cov_L = _spd(rng, 6, 1e-6)
-    model = StackedObservation([
-        PointObservation([0.0, 0.0, 0.05], 0.001, name="tracker"),
-        ChainedObservation(GravityObservation(0.02, name="imu"), T_tool_L, cov_L),
-    ])
+    model = StackedObservation(
+        [
+            PointObservation([0.0, 0.0, 0.05], 0.001, name="tracker"),
+            ChainedObservation(GravityObservation(0.02, name="imu"), T_tool_L, cov_L),
+        ]
+    )
     L_P, L_L = np.linalg.cholesky(P), np.linalg.cholesky(cov_L)
     vals, tilt_before, tilt_after = [], [], []
     for _ in range(300):

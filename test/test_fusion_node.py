@@ -284,15 +284,18 @@ def test_end_to_end_bag_with_contact(tmp_path):
     e_prior, e_fused = np.linalg.norm(v_prior, axis=1), np.linalg.norm(v_fused, axis=1)
     # error along the table normal (the direction a contact observes), on the stops where the
     # fusion changed the pose (the contact stops; free stops pass the prior unchanged)
-    plane = PPOEModel.from_files(CONFIG / "robots" / "humanoid.urdf", CONFIG / "robots" / "humanoid_model.yaml").config.contact
+    robots = CONFIG / "robots"
+    plane = PPOEModel.from_files(robots / "humanoid.urdf", robots / "humanoid_model.yaml").config.contact
     normal = plane.T_frame_plane[:3, 2]
     touched = np.linalg.norm(v_fused - v_prior, axis=1) > 1e-9
     n_prior, n_fused = np.abs(v_prior[touched] @ normal), np.abs(v_fused[touched] @ normal)
     diag = _diag(recorded, "fusion_node")
-    print(f"\ncontact end to end: {len(e_fused)}/{n_gt} stops, position error mean prior "
-          f"{e_prior.mean() * 1000:.2f} mm, fused {e_fused.mean() * 1000:.2f} mm; along the table normal on the "
-          f"{touched.sum()} corrected stops: prior {n_prior.mean() * 1000:.2f} mm, fused {n_fused.mean() * 1000:.2f} mm;"
-          f" fusion diagnostics {diag}")
+    print(
+        f"\ncontact end to end: {len(e_fused)}/{n_gt} stops, position error mean prior "
+        f"{e_prior.mean() * 1000:.2f} mm, fused {e_fused.mean() * 1000:.2f} mm; along the table normal on the "
+        f"{touched.sum()} corrected stops: prior {n_prior.mean() * 1000:.2f} mm, fused {n_fused.mean() * 1000:.2f} mm;"
+        f" fusion diagnostics {diag}"
+    )
     assert len(e_fused) >= n_gt // 2
     assert e_fused.mean() < e_prior.mean()
     assert touched.sum() >= 4 and n_fused.mean() < 0.1 * n_prior.mean()
@@ -320,7 +323,7 @@ def test_config_file_documents_every_parameter(node):
         key = line.strip().split(":")[0]
         if line.startswith("    ") and not line.strip().startswith("#") and key in values:
             assert lines[i - 1].strip().startswith("#"), f"{path.name}: '{key}' has no comment"
-            assert "Default" in " ".join(lines[max(0, i - 4):i]), f"{path.name}: '{key}' comment names no default"
+            assert "Default" in " ".join(lines[max(0, i - 4) : i]), f"{path.name}: '{key}' comment names no default"
 
 
 def test_joint_buffer_merges_partial_messages_and_looks_up_by_stamp():

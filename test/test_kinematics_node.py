@@ -397,15 +397,22 @@ def test_unknown_frame_or_model_file_refused_at_startup(tmp_path: Path) -> None:
             KinematicsNode(context=probe.context, parameter_overrides=[urdf,
                                                                        Parameter("model_file", value="/no/such.yaml")])
         bad = tmp_path / "bad_model.yaml"
-        bad.write_text("frames: {base: base_link, tool: tool0}\nperturbations:\n  joint_9: {sigma: [0, 0, 0, 0, 0, 1]}\n")
-        with pytest.raises(UnknownJointError, match=r"parameter robot_description: .*bad_model.yaml:3: "
-                                                    r"perturbations.joint_9: unknown joint 'joint_9'"):
+        bad.write_text("frames: {base: base_link, tool: tool0}\n"
+                       "perturbations:\n  joint_9: {sigma: [0, 0, 0, 0, 0, 1]}\n")
+        with pytest.raises(
+            UnknownJointError,
+            match=r"parameter robot_description: .*bad_model.yaml:3: "
+            r"perturbations.joint_9: unknown joint 'joint_9'",
+        ):
             KinematicsNode(context=probe.context, parameter_overrides=[urdf, Parameter("model_file", value=str(bad))])
         with pytest.raises(ModelConfigError, match="'extra_target_frames' repeats 'tool0'"):
-            KinematicsNode(context=probe.context, parameter_overrides=[
-                urdf, Parameter("extra_target_frames", value=["arm_link_3", "tool0"])])
-        node = KinematicsNode(context=probe.context, parameter_overrides=[urdf, Parameter("model_file",
-                                                                                          value=str(MODEL))])
+            KinematicsNode(
+                context=probe.context,
+                parameter_overrides=[urdf, Parameter("extra_target_frames", value=["arm_link_3", "tool0"])],
+            )
+        node = KinematicsNode(
+            context=probe.context, parameter_overrides=[urdf, Parameter("model_file", value=str(MODEL))]
+        )
         try:  # defaults from the model YAML frames section; needed joints = the arm's 7
             assert node.reference == "base_link" and node.targets[0].frame == "tool0"
             assert node._needed == ARM

@@ -19,9 +19,9 @@ SETTINGS = settings(max_examples=60, deadline=None)
 
 def batch_twists(max_angle: float = 3.0):
     """Twists of random batch shape; rotation angle below ``max_angle``."""
-    return arrays(np.float64, array_shapes(min_dims=1, max_dims=3, max_side=4).map(lambda s: s + (6,)), elements=FINITE).map(
-        lambda xi: _clip_angle(xi, max_angle)
-    )
+    return arrays(
+        np.float64, array_shapes(min_dims=1, max_dims=3, max_side=4).map(lambda s: s + (6,)), elements=FINITE
+    ).map(lambda xi: _clip_angle(xi, max_angle))
 
 
 def _clip_angle(xi: np.ndarray, max_angle: float) -> np.ndarray:
@@ -69,8 +69,9 @@ def test_exp_log_round_trip_batched(xi):
 
 
 @SETTINGS
-@given(arrays(np.float64, (3,), elements=st.floats(-1, 1)).filter(lambda v: np.linalg.norm(v) > 1e-3),
-       st.floats(-12, -3))
+@given(
+    arrays(np.float64, (3,), elements=st.floats(-1, 1)).filter(lambda v: np.linalg.norm(v) > 1e-3), st.floats(-12, -3)
+)
 def test_near_identity_round_trip(axis, log_angle):
     w = unit(axis) * 10.0**log_angle
     xi = np.concatenate([np.array([0.3, -0.2, 0.1]), w])
@@ -82,8 +83,9 @@ def test_near_identity_round_trip(axis, log_angle):
 
 
 @SETTINGS
-@given(arrays(np.float64, (3,), elements=st.floats(-1, 1)).filter(lambda v: np.linalg.norm(v) > 1e-3),
-       st.floats(-10, -2))
+@given(
+    arrays(np.float64, (3,), elements=st.floats(-1, 1)).filter(lambda v: np.linalg.norm(v) > 1e-3), st.floats(-10, -2)
+)
 def test_near_pi_round_trip(axis, log_gap):
     angle = np.pi - 10.0**log_gap
     w = unit(axis) * angle
@@ -307,9 +309,11 @@ def test_fit_rigid_with_noise_is_the_least_squares_fit():
     err = lie.ominus(T_fit, T)
     tol = 5 * sigma * np.sqrt(3 / 200)
     assert np.linalg.norm(err[:3]) < tol and np.linalg.norm(err[3:]) < tol
+
     # and a least-squares minimum: no small perturbation lowers the residual
     def cost(Tc):
         return float(np.sum((P @ Tc[:3, :3].T + Tc[:3, 3] - Q) ** 2))
+
     c0 = cost(T_fit)
     assert c0 <= cost(T) + 1e-15
     for d in rng.normal(size=(50, 6)) * 1e-5:

@@ -42,11 +42,22 @@ def _spd(rng, n, scale=1e-3):
 def _tag_setup(rng, mode="pixel", camera_noise=True):
     T_ref_camera = _rand_pose(rng)
     # tool 0.6 m in front of the camera, tag facing it (rotated by up to ~30 deg)
-    T_cam_tool = _pose(np.r_[rng.normal(size=2) * 0.1, 0.6], np.r_[np.pi + rng.normal() * 0.3, rng.normal(size=2) * 0.3])
-    pts = np.vstack([tag_points(0.05, lie.exp(np.r_[0.03, 0, 0, 0, 0, 0])),
-                     tag_points(0.04, lie.exp(np.r_[-0.03, 0.01, 0.0, 0.2, 0, 0]))])
+    T_cam_tool = _pose(
+        np.r_[rng.normal(size=2) * 0.1, 0.6], np.r_[np.pi + rng.normal() * 0.3, rng.normal(size=2) * 0.3]
+    )
+    pts = np.vstack(
+        [
+            tag_points(0.05, lie.exp(np.r_[0.03, 0, 0, 0, 0, 0])),
+            tag_points(0.04, lie.exp(np.r_[-0.03, 0.01, 0.0, 0.2, 0, 0])),
+        ]
+    )
     model = TagBearingModel(
-        pts, K, D, pixel_sigma=0.5, mode=mode, T_ref_camera=T_ref_camera,
+        pts,
+        K,
+        D,
+        pixel_sigma=0.5,
+        mode=mode,
+        T_ref_camera=T_ref_camera,
         cov_camera=_spd(rng, 6, 1e-5) if camera_noise else None,
     )
     return model, T_ref_camera @ T_cam_tool
@@ -69,8 +80,14 @@ def _models(rng):
     inner = PointObservation([0.1, 0.0, 0.0], 0.001)
     out.append((ChainedObservation(inner, _rand_pose(rng), _spd(rng, 6, 1e-5)), Xp))
     out.append((ChainedObservation(GravityObservation(0.01), _rand_pose(rng), _spd(rng, 6, 1e-5)), Xp))
-    out.append((StackedObservation([PointObservation([0, 0, 0.1], 0.001), GravityObservation(0.01),
-                                    PoseObservation(_spd(rng, 6))]), Xp))
+    out.append(
+        (
+            StackedObservation(
+                [PointObservation([0, 0, 0.1], 0.001), GravityObservation(0.01), PoseObservation(_spd(rng, 6))]
+            ),
+            Xp,
+        )
+    )
     return out
 
 
@@ -118,6 +135,7 @@ def test_tag_reduces_to_paper_eq25():
 
 def test_tag_pixels_match_opencv():
     import cv2  # a hard dependency (setup.py): no skip
+
     rng = np.random.default_rng(5)
     model, X = _tag_setup(rng, "pixel", camera_noise=False)
     K0 = K.copy()
@@ -158,7 +176,9 @@ def test_chained_equals_direct_model_on_link():
 
 # ---------------------------------------------------------------------------- bad input
 def test_point_behind_camera_is_a_clear_error():
-    model = TagBearingModel(tag_points(0.05), K, D, labels=["tag 7 centre"] + [f"tag 7 corner {i}" for i in range(1, 5)])
+    model = TagBearingModel(
+        tag_points(0.05), K, D, labels=["tag 7 centre"] + [f"tag 7 corner {i}" for i in range(1, 5)]
+    )
     X = lie.exp(np.r_[0, 0, -0.5, 0, 0, 0])
     with pytest.raises(MeasurementError, match="tag 7 centre is behind the camera"):
         model.h(X)

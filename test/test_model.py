@@ -356,7 +356,8 @@ def test_effects_from_config_are_built_lazily(monkeypatch):
         built.append((entry["name"], where))
         return _FakeEffect()
 
-    monkeypatch.setitem(sys.modules, "ppoe_core.model.effects", types.SimpleNamespace(effect_from_config=effect_from_config))
+    fake = types.SimpleNamespace(effect_from_config=effect_from_config)
+    monkeypatch.setitem(sys.modules, "ppoe_core.model.effects", fake)
     import ppoe_core
     import ppoe_core.model
 
@@ -368,8 +369,9 @@ def test_effects_from_config_are_built_lazily(monkeypatch):
     assert built == [("joint_offset", f"<string>:{text.count(chr(10))}: effects[0]")]
     edge = PPOEModel.from_files(EDGE, EDGE_YAML)
     dxi = {"j3": np.array([0.001, 0.0, 0.002, 0.01, -0.02, 0.005])}
-    T_ref, _ = reference_fk(reference_chain(edge, dict.fromkeys(edge.joint_names, 0.0), "base_link", "tool0",
-                                            {"j2": 0.1}, dxi))
+    T_ref, _ = reference_fk(
+        reference_chain(edge, dict.fromkeys(edge.joint_names, 0.0), "base_link", "tool0", {"j2": 0.1}, dxi)
+    )
     np.testing.assert_allclose(T, T_ref, atol=1e-12)
 
 
@@ -478,13 +480,13 @@ def test_fk_multi_joint_covariance_matches_reference(edge):
     for i, to in enumerate(tos):
         Ti, ci = edge.fk(q, frm, to)
         np.testing.assert_allclose(T[i], Ti, atol=1e-13)
-        np.testing.assert_allclose(cov[6 * i:6 * i + 6, 6 * i:6 * i + 6], ci, rtol=1e-9, atol=1e-20)
+        np.testing.assert_allclose(cov[6 * i : 6 * i + 6, 6 * i : 6 * i + 6], ci, rtol=1e-9, atol=1e-20)
         for j in range(len(tos)):
             cross = np.zeros((6, 6))
             for key, (Ji, S) in refs[i].items():
                 if key in refs[j]:
                     cross += Ji @ S @ refs[j][key][0].T
-            np.testing.assert_allclose(cov[6 * i:6 * i + 6, 6 * j:6 * j + 6], cross, rtol=1e-9, atol=1e-18)
+            np.testing.assert_allclose(cov[6 * i : 6 * i + 6, 6 * j : 6 * j + 6], cross, rtol=1e-9, atol=1e-18)
     # the up-branch (link1 -> base_link) shares mount/j1 perturbations with nothing else here,
     # but tool0 and finger share j2, j3, j4: a clearly non-zero cross block
     assert np.abs(cov[0:6, 12:18]).max() > 1e-6
@@ -582,8 +584,11 @@ def test_from_strings_names_the_yaml_file_and_the_urdf_source(tmp_path) -> None:
     urdf_xml = EDGE.read_text()
     bad = tmp_path / "bad_model.yaml"
     bad.write_text("perturbations:\n  j1: {sigma: [0, 0, 0, 0, 0, 1]}\n  nope: {sigma: [0, 0, 0, 0, 0, 1]}\n")
-    with pytest.raises(UnknownJointError, match=r"bad_model.yaml:3: perturbations.nope: unknown joint 'nope' "
-                                                r"\(not in URDF bag b1 /robot_description\)"):
+    with pytest.raises(
+        UnknownJointError,
+        match=r"bad_model.yaml:3: perturbations.nope: unknown joint 'nope' "
+        r"\(not in URDF bag b1 /robot_description\)",
+    ):
         PPOEModel.from_strings(urdf_xml, bad, urdf_source="bag b1 /robot_description")
     m = PPOEModel.from_strings(urdf_xml, EDGE_YAML, urdf_source="bag b1 /robot_description")
     ref = PPOEModel.from_files(EDGE, EDGE_YAML)

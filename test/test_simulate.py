@@ -141,7 +141,8 @@ def test_true_effects_match_the_catalogue(entry: dict) -> None:
         np.testing.assert_allclose(P_true[link], P_cat[link], atol=1e-12)
     # and the effect is not nothing
     P0 = tree.link_poses(q)
-    moved = np.abs(P_true["tool0"] - P0["tool0"]).max() + np.abs(P_true["camera_optical_frame"] - P0["camera_optical_frame"]).max()
+    cam = "camera_optical_frame"
+    moved = np.abs(P_true["tool0"] - P0["tool0"]).max() + np.abs(P_true[cam] - P0[cam]).max()
     assert moved > 1e-3
 
 
@@ -150,22 +151,36 @@ def test_backlash_and_thermal_growth_match_the_catalogue() -> None:
     q = {j: np.linspace(-0.5, 0.5, n) for j in ARM7.independent_joints}
     sign = {"joint_3": np.array([1.0, -1.0, 1.0, 0.0])}
     t = np.array([0.0, 10.0, 100.0, 1000.0])
-    entries = [{"name": "backlash", "location": "joint_3", "parameters": {"play": 0.003}},
-               {"name": "thermal_growth", "location": "joint_4", "parameters": {"alpha": 2e-5}}]
+    entries = [
+        {"name": "backlash", "location": "joint_3", "parameters": {"play": 0.003}},
+        {"name": "thermal_growth", "location": "joint_4", "parameters": {"alpha": 2e-5}},
+    ]
     P_true = TrueRobot(ARM7, entries).poses(q, {}, {}, sign, t, n)
     tree = KinematicTree(ARM7)
-    effs = [effects.effect_from_config(entries[0], tree),
-            effects.effect_from_config({**entries[1], "variable": "time", "reference": 0.0}, tree)]
+    effs = [
+        effects.effect_from_config(entries[0], tree),
+        effects.effect_from_config({**entries[1], "variable": "time", "reference": 0.0}, tree),
+    ]
     dq, dxi = effects.sum_effect_corrections(effs, q, {"motion_sign": sign, "time": t})
     np.testing.assert_allclose(P_true["tool0"], tree.link_poses(q, dq, dxi)["tool0"], atol=1e-12)
 
 
 def test_tags_rendered_at_true_pose_with_camera_error(tmp_path: Path) -> None:
     cam_err = {"name": "camera_extrinsics", "location": "camera_joint", "parameters": {"x": 0.01, "ry": 0.01}}
-    sc = _scenario(tmp_path, truth={"perturbations": "none", "joint_noise": False, "effects": [cam_err]},
-                   camera={"width": 640, "height": 480, "intrinsics": [700, 700, 320, 240],
-                           "D": [-0.05, 0.02, 0, 0, 0], "rate": 1.0, "noise_sigma": 1.0},
-                   ground_truth=None, imus=None)
+    sc = _scenario(
+        tmp_path,
+        truth={"perturbations": "none", "joint_noise": False, "effects": [cam_err]},
+        camera={
+            "width": 640,
+            "height": 480,
+            "intrinsics": [700, 700, 320, 240],
+            "D": [-0.05, 0.02, 0, 0, 0],
+            "rate": 1.0,
+            "noise_sigma": 1.0,
+        },
+        ground_truth=None,
+        imus=None,
+    )
     sc_text = yaml.safe_load(sc.read_text())
     sc_text["trajectory"]["stops"] = [{"joints": {}}, {"joints": {"joint_1": 0.35}}]
     sc.write_text(yaml.safe_dump(sc_text))
@@ -181,7 +196,7 @@ def test_tags_rendered_at_true_pose_with_camera_error(tmp_path: Path) -> None:
     errs_true, errs_nominal, n_det = [], [], 0
     for i in range(len(d.images)):
         k = int(np.searchsorted(js.stamps, d.images.stamps[i], side="right") - 1)
-        q = {n: js.positions[k:k + 1, j] for j, n in enumerate(js.names)}
+        q = {n: js.positions[k : k + 1, j] for j, n in enumerate(js.names)}
         det = {t.id: t for t in tags.detect_tags(d.images.decode(i))}
         n_det += len(det)
         for P, errs in ((true.poses(q, {}, {}, {}, np.zeros(1), 1), errs_true), (tree.link_poses(q), errs_nominal)):
@@ -195,20 +210,32 @@ def test_tags_rendered_at_true_pose_with_camera_error(tmp_path: Path) -> None:
     assert n_det >= 2 and res.visible_tags
     # tags drawn at the true pose (corners of ~20 px tags found to a fraction of a pixel)
     assert max(errs_true) < 0.5
-    assert min(errs_nominal) > 3.0          # and the camera error is visible against the nominal one
+    assert min(errs_nominal) > 3.0  # and the camera error is visible against the nominal one
 
 
 def test_raw_blurred_images_with_camera_time_offset(tmp_path: Path) -> None:
-    sc = _scenario(tmp_path, truth={"perturbations": "none", "joint_noise": False, "effects": []},
-                   camera={"width": 640, "height": 480, "intrinsics": [700, 700, 320, 240], "rate": 1.0,
-                           "format": "raw", "blur_sigma": 0.7, "noise_sigma": 0.0, "time_offset": 0.004},
-                   ground_truth={"pose": {"sigma_xyz": 0.0, "sigma_rot": 0.0}}, imus=None)
+    sc = _scenario(
+        tmp_path,
+        truth={"perturbations": "none", "joint_noise": False, "effects": []},
+        camera={
+            "width": 640,
+            "height": 480,
+            "intrinsics": [700, 700, 320, 240],
+            "rate": 1.0,
+            "format": "raw",
+            "blur_sigma": 0.7,
+            "noise_sigma": 0.0,
+            "time_offset": 0.004,
+        },
+        ground_truth={"pose": {"sigma_xyz": 0.0, "sigma_rot": 0.0}},
+        imus=None,
+    )
     simulate(sc, tmp_path / "bag")
     d = bagio.read_bag(tmp_path / "bag")
     assert d.images.topic == "/camera/image_raw" and set(d.images.formats) == {"mono8"}
     img = d.images.decode(0)
     assert img.shape == (480, 640)
-    assert tags.detect_tags(img)                                   # still detectable when blurred
+    assert tags.detect_tags(img)  # still detectable when blurred
     # blur: no pixel jumps by more than the blurred edge allows (sharp renders jump by ~200)
     assert np.abs(np.diff(img.astype(int), axis=1)).max() < 140
     # images stamped 4 ms after the ground truth taken at the same instant
@@ -217,12 +244,21 @@ def test_raw_blurred_images_with_camera_time_offset(tmp_path: Path) -> None:
 
 def test_time_offset_and_smooth_motion(tmp_path: Path) -> None:
     dt = 0.05
-    sc = _scenario(tmp_path, truth={"perturbations": "none", "joint_noise": False,
-                                    "effects": [{"name": "time_offset", "location": "/joint_states",
-                                                 "parameters": {"dt": dt}}]},
-                   trajectory={"joint_rate": 200.0, "start": dict(ARM7_START),
-                               "smooth": {"duration": 2.0, "amplitude": {"joint_1": 0.4}, "period": {"joint_1": 2.0}}},
-                   ground_truth={"pose": {"sigma_xyz": 0.0, "sigma_rot": 0.0, "rate": 50.0}}, imus=None)
+    sc = _scenario(
+        tmp_path,
+        truth={
+            "perturbations": "none",
+            "joint_noise": False,
+            "effects": [{"name": "time_offset", "location": "/joint_states", "parameters": {"dt": dt}}],
+        },
+        trajectory={
+            "joint_rate": 200.0,
+            "start": dict(ARM7_START),
+            "smooth": {"duration": 2.0, "amplitude": {"joint_1": 0.4}, "period": {"joint_1": 2.0}},
+        },
+        ground_truth={"pose": {"sigma_xyz": 0.0, "sigma_rot": 0.0, "rate": 50.0}},
+        imus=None,
+    )
     simulate(sc, tmp_path / "bag")
     d = bagio.read_bag(tmp_path / "bag")
     js = d.joint_states
@@ -232,21 +268,38 @@ def test_time_offset_and_smooth_motion(tmp_path: Path) -> None:
 
 
 def test_contact_wrench_reaches_the_commanded_force(tmp_path: Path) -> None:
-    sc = {"robot": {"urdf": str(CONFIG / "robots" / "humanoid.urdf"), "model": str(CONFIG / "robots" / "humanoid_model.yaml")},
-          "seed": 3, "truth": {"perturbations": "once"},
-          "trajectory": {"start": {"shoulder_pitch_joint": -0.5, "elbow_joint": -1.2, "wrist_flex_joint": 0.6,
-                                   "index_mcp_joint": 0.3, "index_pip_joint": -0.2, "index_dip_joint": -0.1},
-                         "dwell": 0.5, "move_time": 0.5,
-                         "stops": [{"joints": {"shoulder_pitch_joint": -0.8}},
-                                   {"joints": {}, "contact": {"press_joint": "shoulder_pitch_joint", "force": 12.0}}]},
-          "contact": {"stiffness": 1e5, "force_sigma": 0.0}}
+    sc = {
+        "robot": {
+            "urdf": str(CONFIG / "robots" / "humanoid.urdf"),
+            "model": str(CONFIG / "robots" / "humanoid_model.yaml"),
+        },
+        "seed": 3,
+        "truth": {"perturbations": "once"},
+        "trajectory": {
+            "start": {
+                "shoulder_pitch_joint": -0.5,
+                "elbow_joint": -1.2,
+                "wrist_flex_joint": 0.6,
+                "index_mcp_joint": 0.3,
+                "index_pip_joint": -0.2,
+                "index_dip_joint": -0.1,
+            },
+            "dwell": 0.5,
+            "move_time": 0.5,
+            "stops": [
+                {"joints": {"shoulder_pitch_joint": -0.8}},
+                {"joints": {}, "contact": {"press_joint": "shoulder_pitch_joint", "force": 12.0}},
+            ],
+        },
+        "contact": {"stiffness": 1e5, "force_sigma": 0.0},
+    }
     p = tmp_path / "c.yaml"
     p.write_text(yaml.safe_dump(sc))
     simulate(p, tmp_path / "bag")
     d = bagio.read_bag(tmp_path / "bag")
     f = np.linalg.norm(d.wrench.force, axis=1)
     assert f.max() == pytest.approx(12.0, abs=1e-3)
-    assert f[0] == 0.0                       # free at the start
+    assert f[0] == 0.0  # free at the start
     assert d.rate("/wrench") == pytest.approx(100.0)
 
 
@@ -257,16 +310,21 @@ def test_scenario_file_that_is_not_text(tmp_path: Path) -> None:
         simulate(sc, tmp_path / "bag")
 
 
-@pytest.mark.parametrize("patch,match", [
-    ({"bogus": 1}, r"unknown keys \['bogus'\]"),
-    ({"truth": {"effects": [{"name": "wobble", "location": "joint_2"}]}}, "unknown effect 'wobble'"),
-    ({"truth": {"effects": [{"name": "joint_offset", "location": "mount_joint", "parameters": {"offset": 1}}]}},
-     "needs a movable joint"),
-    ({"trajectory": {"joint_rate": 20.0, "stops": [{"joints": {}}]}}, r"joint_rate = 20.0 out of range"),
-    ({"trajectory": {"stops": [{"joints": {"nojoint": 1.0}}]}}, "'nojoint' is not a movable joint"),
-    ({"trajectory": {"stops": [{"joints": {"joint_2": float("nan")}}]}}, r"joints.joint_2 must be finite"),
-    ({"camera": {"rate": 60.0}}, r"camera.rate = 60.0 out of range"),
-])
+@pytest.mark.parametrize(
+    "patch,match",
+    [
+        ({"bogus": 1}, r"unknown keys \['bogus'\]"),
+        ({"truth": {"effects": [{"name": "wobble", "location": "joint_2"}]}}, "unknown effect 'wobble'"),
+        (
+            {"truth": {"effects": [{"name": "joint_offset", "location": "mount_joint", "parameters": {"offset": 1}}]}},
+            "needs a movable joint",
+        ),
+        ({"trajectory": {"joint_rate": 20.0, "stops": [{"joints": {}}]}}, r"joint_rate = 20.0 out of range"),
+        ({"trajectory": {"stops": [{"joints": {"nojoint": 1.0}}]}}, "'nojoint' is not a movable joint"),
+        ({"trajectory": {"stops": [{"joints": {"joint_2": float("nan")}}]}}, r"joints.joint_2 must be finite"),
+        ({"camera": {"rate": 60.0}}, r"camera.rate = 60.0 out of range"),
+    ],
+)
 def test_scenario_errors_name_file_and_key(tmp_path: Path, patch: dict, match: str) -> None:
     sc = _scenario(tmp_path, **patch)
     with pytest.raises(ScenarioError, match=match) as exc:
@@ -277,20 +335,33 @@ def test_scenario_errors_name_file_and_key(tmp_path: Path, patch: dict, match: s
 def test_cli_writes_bag_and_truth(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     from ppoe_ros.cli import main
 
-    sc = _scenario(tmp_path, truth={"perturbations": "once",
-                                    "effects": [{"name": "joint_offset", "location": "joint_2",
-                                                 "parameters": {"offset": 0.01}}]})
+    sc = _scenario(
+        tmp_path,
+        truth={
+            "perturbations": "once",
+            "effects": [{"name": "joint_offset", "location": "joint_2", "parameters": {"offset": 0.01}}],
+        },
+    )
     assert main(["simulate", str(sc), "--out", str(tmp_path / "bag"), "--seed", "9", "--json"]) == 0
     out = yaml.safe_load(capsys.readouterr().out)
     assert out["counts"]["/ground_truth/pose"] == 3
     truth = yaml.safe_load((tmp_path / "bag.truth.yaml").read_text())
     assert truth["seed"] == 9 and truth["effects"][0]["parameters"]["offset"] == 0.01
-    assert main(["simulate", str(sc), "--out", str(tmp_path / "bag")]) == 2       # exists, no --force
+    assert main(["simulate", str(sc), "--out", str(tmp_path / "bag")]) == 2  # exists, no --force
 
 
 # ------------------------------------------------------------------ shipped bags
-SHIPPED = ["table1_exp1", "table1_exp2", "contact", "no_effect", "effect_joint_offset",
-           "effect_gravity_compliance", "effect_mount_bending", "effect_unexplained", "effect_camera_extrinsics"]
+SHIPPED = [
+    "table1_exp1",
+    "table1_exp2",
+    "contact",
+    "no_effect",
+    "effect_joint_offset",
+    "effect_gravity_compliance",
+    "effect_mount_bending",
+    "effect_unexplained",
+    "effect_camera_extrinsics",
+]
 #: least fraction of a bag's images with a detected tag
 MIN_DETECTED = {"table1_exp1": 1.0, "table1_exp2": 1.0, "effect_camera_extrinsics": 0.8}
 
@@ -317,12 +388,13 @@ def test_shipped_bag_follows_the_contract(name: str) -> None:
     assert np.all(np.diff(d.joint_states.stamps) > 0)
     truth = yaml.safe_load((BAGS / f"{name}.truth.yaml").read_text())
     scen = yaml.safe_load((BAGS / f"{name}.yaml").read_text())
-    assert truth["effects"] == [dict(e, parameters={**dict.fromkeys(e["parameters"], 0.0), **e["parameters"]})
-                                for e in truth["effects"]]  # plain mapping
+    assert truth["effects"] == [
+        dict(e, parameters={**dict.fromkeys(e["parameters"], 0.0), **e["parameters"]}) for e in truth["effects"]
+    ]  # plain mapping
     assert [e["name"] for e in truth["effects"]] == [e["name"] for e in scen["truth"]["effects"]]
     if len(d.images):
         assert d.rate(d.images.topic) <= 30.0
-        np.testing.assert_array_equal(d.images.stamps, d.camera_info.stamps)   # camera_info with each image
+        np.testing.assert_array_equal(d.images.stamps, d.camera_info.stamps)  # camera_info with each image
         assert set(d.images.formats) == {"png"}
         detected = [bool(tags.detect_tags(d.images.decode(i))) for i in range(len(d.images))]
         assert np.mean(detected) >= MIN_DETECTED[name], detected
@@ -333,8 +405,14 @@ def test_shipped_bag_follows_the_contract(name: str) -> None:
 
 
 # candidate effects for the identifiability check of the shipped arm7 bags
-_CANDIDATES = [("joint_offset", "joint_2"), ("gravity_compliance", "joint_2"), ("mount_bending", "mount_joint"),
-               ("joint_offset", "joint_3"), ("gravity_compliance", "joint_4"), ("joint_offset", "joint_4")]
+_CANDIDATES = [
+    ("joint_offset", "joint_2"),
+    ("gravity_compliance", "joint_2"),
+    ("mount_bending", "mount_joint"),
+    ("joint_offset", "joint_3"),
+    ("gravity_compliance", "joint_4"),
+    ("joint_offset", "joint_4"),
+]
 
 
 def _gls_fits(name: str) -> tuple[float, dict]:
@@ -379,4 +457,4 @@ def test_shipped_effect_bags_are_identifiable(name: str) -> None:
 def test_shipped_no_effect_bag_is_consistent() -> None:
     chi2_per_dof, fits = _gls_fits("no_effect")
     assert chi2_per_dof < 1.5
-    assert max(f[2] for f in fits.values()) < 16.0   # no candidate explains much (max of 6 tests)
+    assert max(f[2] for f in fits.values()) < 16.0  # no candidate explains much (max of 6 tests)

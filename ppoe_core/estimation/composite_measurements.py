@@ -1,4 +1,5 @@
-"""Measurement combinators: a sensor on another link than the state (chained) and several measurements at once (stacked)."""
+"""Measurement combinators: a sensor on another link than the state (chained) and several measurements at once
+(stacked)."""
 
 from __future__ import annotations
 
@@ -111,9 +112,7 @@ class StackedObservation(MeasurementModel):
     def validate(self, z: Any) -> np.ndarray:
         arr = np.asarray(z, dtype=float).ravel()
         if arr.size != sum(self._zsizes):
-            raise MeasurementError(
-                f"{self.name}: measurement has {arr.size} numbers, expected {sum(self._zsizes)}"
-            )
+            raise MeasurementError(f"{self.name}: measurement has {arr.size} numbers, expected {sum(self._zsizes)}")
         parts = []
         for p, zp in zip(self.parts, self._split(arr, self._zsizes)):
             zp = zp.reshape(4, 4) if isinstance(p, PoseObservation) else zp

@@ -1,4 +1,5 @@
-"""Prior buffer of the fusion pipeline: kinematics priors (pose + covariance in the tool frame) by stamp, interpolated on SE(3)."""
+"""Prior buffer of the fusion pipeline: kinematics priors (pose + covariance in the tool frame) by stamp,
+interpolated on SE(3)."""
 
 from __future__ import annotations
 

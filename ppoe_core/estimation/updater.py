@@ -1,4 +1,5 @@
-"""The fusion pipeline's measurement updater on a PPOE model: tag and contact measurements -> models -> iterated LG-EKF."""
+"""The fusion pipeline's measurement updater on a PPOE model: tag and contact measurements -> models -> iterated
+LG-EKF."""
 
 from __future__ import annotations
 
@@ -72,8 +73,7 @@ def _focal_from_points(uv: Array, xy: Array, where: str) -> tuple[float, float]:
         a = xy[:, k]
         if a.size < 2 or float(np.ptp(a)) < 1e-6:
             raise MeasurementError(
-                f"{where}: no camera_info focal length and the points do not spread in {axis} "
-                "to infer it"
+                f"{where}: no camera_info focal length and the points do not spread in {axis} to infer it"
             )
         A = np.stack([a, np.ones_like(a)], axis=1)
         f = float(np.linalg.lstsq(A, uv[:, k], rcond=None)[0][0])
@@ -201,13 +201,21 @@ class ModelUpdater:
             T_base_cam, cov_cam = self.model.fk_mean(joints, self.base_frame, p.camera_frame), None
         K = np.array([[fx, 0.0, 0.0], [0.0, fy, 0.0], [0.0, 0.0, 1.0]])
         obs = mm.TagBearingModel(
-            np.asarray(pts), K, None, pixel_sigma=self.pixel_sigma, mode="normalized",
-            T_ref_camera=T_base_cam, cov_camera=cov_cam, labels=labels, name=where,
+            np.asarray(pts),
+            K,
+            None,
+            pixel_sigma=self.pixel_sigma,
+            mode="normalized",
+            T_ref_camera=T_base_cam,
+            cov_camera=cov_cam,
+            labels=labels,
+            name=where,
         )
         return obs, xy[keep].reshape(-1)
 
-    def _tag_points_tool(self, ids: Array, corners: Array, joints: Any,
-                         where: str) -> tuple[list[Array], list[int], list[str]]:
+    def _tag_points_tool(
+        self, ids: Array, corners: Array, joints: Any, where: str
+    ) -> tuple[list[Array], list[int], list[str]]:
         """Tag points (centre 0, corners 1..4) in the tool frame for the observed rows the model knows."""
         from ppoe_core.estimation import measurements as mm
 
@@ -243,8 +251,11 @@ class ModelUpdater:
         T_tool_contact = self.model.fk_mean(joints, self.tool_frame, self.contact.tool_link)
         point_tool = T_tool_contact[:3, :3] @ self.contact.tool_xyz + T_tool_contact[:3, 3]
         obs = mm.ContactPlaneModel(
-            T_base_frame @ np.asarray(p.T_frame_plane, float), p.cov_plane, point_tool,
-            distance_sigma=self.contact_distance_sigma, name=where,
+            T_base_frame @ np.asarray(p.T_frame_plane, float),
+            p.cov_plane,
+            point_tool,
+            distance_sigma=self.contact_distance_sigma,
+            name=where,
         )
         return obs, np.zeros(1)
 
@@ -257,8 +268,12 @@ class ModelUpdater:
         obs, z = self.build(measurement, prior)
         prior_gate = self.gate_probability if self.gating == "prior" else None
         res = iterated_update(
-            T_base_tool, cov_tool, z, obs,
-            max_iterations=self.max_iterations, gate_probability=prior_gate,
+            T_base_tool,
+            cov_tool,
+            z,
+            obs,
+            max_iterations=self.max_iterations,
+            gate_probability=prior_gate,
         )
         self.last_result = res
         if self.gating == "prior" or self.gate_probability is None:
@@ -303,6 +318,7 @@ def posterior_cost(obs: Any, T_post: Array, residual: Array, correction: Array, 
     dU = U[:, keep].T @ d
     return float(r @ np.linalg.solve(MRM, r) + dU @ (dU / s[keep]))
 
+
 #: Fusion settings with their defaults: the fusion node's parameters of the same names
 #: (``config/nodes/fusion_node.yaml`` documents meaning and unit) and ``ppoe evaluate``'s replay.
 FUSION_SETTINGS: dict[str, Any] = {
@@ -327,17 +343,19 @@ FUSION_SETTINGS: dict[str, Any] = {
 }
 
 
-def make_updater(
-    model: Any, base_frame: str, tool_frame: str, settings: dict[str, Any] | None = None
-) -> ModelUpdater:
+def make_updater(model: Any, base_frame: str, tool_frame: str, settings: dict[str, Any] | None = None) -> ModelUpdater:
     """The :class:`ModelUpdater` of ``settings`` (keys of :data:`FUSION_SETTINGS`)."""
     s = {**FUSION_SETTINGS, **(settings or {})}
     return ModelUpdater(
-        model, base_frame, tool_frame,
+        model,
+        base_frame,
+        tool_frame,
         pixel_sigma=float(s["pixel_sigma"]) if float(s["pixel_sigma"]) > 0 else None,
         max_iterations=int(s["max_iterations"]),
         gate_probability=None if float(s["gate_probability"]) >= 1.0 else float(s["gate_probability"]),
-        gating=str(s["gating"]), camera_covariance=bool(s["camera_covariance"]),
-        use_centre=bool(s["use_tag_centre"]), use_corners=bool(s["use_tag_corners"]),
+        gating=str(s["gating"]),
+        camera_covariance=bool(s["camera_covariance"]),
+        use_centre=bool(s["use_tag_centre"]),
+        use_corners=bool(s["use_tag_corners"]),
         contact_distance_sigma=float(s["contact_distance_sigma"]),
     )

@@ -102,10 +102,36 @@ def quat_from_matrix(R: ArrayLike) -> Array:
     # Four candidate formulas, each well conditioned when its pivot is largest.
     cand = np.stack(
         [
-            np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1], 1.0 + tr], -1),
-            np.stack([1.0 + r00 - r11 - r22, R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0], R[..., 2, 1] - R[..., 1, 2]], -1),
-            np.stack([R[..., 0, 1] + R[..., 1, 0], 1.0 - r00 + r11 - r22, R[..., 1, 2] + R[..., 2, 1], R[..., 0, 2] - R[..., 2, 0]], -1),
-            np.stack([R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1], 1.0 - r00 - r11 + r22, R[..., 1, 0] - R[..., 0, 1]], -1),
+            np.stack(
+                [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1], 1.0 + tr], -1
+            ),
+            np.stack(
+                [
+                    1.0 + r00 - r11 - r22,
+                    R[..., 0, 1] + R[..., 1, 0],
+                    R[..., 0, 2] + R[..., 2, 0],
+                    R[..., 2, 1] - R[..., 1, 2],
+                ],
+                -1,
+            ),
+            np.stack(
+                [
+                    R[..., 0, 1] + R[..., 1, 0],
+                    1.0 - r00 + r11 - r22,
+                    R[..., 1, 2] + R[..., 2, 1],
+                    R[..., 0, 2] - R[..., 2, 0],
+                ],
+                -1,
+            ),
+            np.stack(
+                [
+                    R[..., 0, 2] + R[..., 2, 0],
+                    R[..., 1, 2] + R[..., 2, 1],
+                    1.0 - r00 - r11 + r22,
+                    R[..., 1, 0] - R[..., 0, 1],
+                ],
+                -1,
+            ),
         ],
         axis=-2,
     )
@@ -144,11 +170,13 @@ def matrix_from_quat(q: ArrayLike) -> Array:
     q_arr = q_arr / np.linalg.norm(q_arr, axis=-1, keepdims=True)
     if q_arr.shape == (4,):  # one quaternion (one message): Python floats, the same operations
         x, y, z, w = q_arr.tolist()
-        return np.array([
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ])
+        return np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+            ]
+        )
     x, y, z, w = q_arr[..., 0], q_arr[..., 1], q_arr[..., 2], q_arr[..., 3]
     R = np.empty(q_arr.shape[:-1] + (3, 3))
     R[..., 0, 0] = 1 - 2 * (y * y + z * z)

@@ -1,4 +1,5 @@
-"""Fourth-order covariance of a compounded pose (Barfoot & Furgale 2014, right perturbations; the paper's eq. 15 beyond second order).
+"""Fourth-order covariance of a compounded pose (Barfoot & Furgale 2014, right perturbations; the paper's eq. 15
+beyond second order).
 
 Covariances live in the tangent space at the mean (docs/conventions.md); ``[rho; theta]`` order."""
 
@@ -56,7 +57,7 @@ def compound_fourth_order(cov1: ArrayLike, cov2: ArrayLike) -> Array:
     right = np.stack([rr2, rt2, tr2, tt2, tr2, tt2, tt2])
     ops = _covop1(np.concatenate([left, right, right @ left, np.stack([rt1 + tr1, rt2 + tr2])]))
     n = 7
-    pair = ops[:n] @ ops[n:2 * n] + ops[2 * n:3 * n]
+    pair = ops[:n] @ ops[n : 2 * n] + ops[2 * n : 3 * n]
     shape = c1.shape
     B = np.empty(shape)
     B[..., :3, :3] = pair[0] + pair[1] + pair[2] + pair[3]

@@ -221,7 +221,10 @@ class PPOEModel:
             try:
                 arr = np.asarray(joints, dtype=float)
             except (TypeError, ValueError):
-                raise JointValueError(f"joint values must be a mapping name -> value or a numeric array, got {type(joints).__name__}") from None
+                raise JointValueError(
+                    "joint values must be a mapping name -> value or a numeric array, "
+                    f"got {type(joints).__name__}"
+                ) from None
             n_joints = len(self.joint_names)
             if arr.ndim == 0 or arr.shape[-1] != n_joints:
                 raise JointValueError(
@@ -306,7 +309,9 @@ class PPOEModel:
                 for k, v in dq.items():
                     dq_tot[k] = dq_tot.get(k, 0.0) + np.broadcast_to(np.asarray(v, dtype=float), shape).reshape(N)
                 for k, v in dxi.items():
-                    dxi_tot[k] = dxi_tot.get(k, 0.0) + np.broadcast_to(np.asarray(v, dtype=float), shape + (6,)).reshape(N, 6)
+                    dxi_tot[k] = dxi_tot.get(k, 0.0) + np.broadcast_to(
+                        np.asarray(v, dtype=float), shape + (6,)
+                    ).reshape(N, 6)
             for k in list(dq_tot) + list(dxi_tot):
                 if k not in self.robot.joints:
                     raise UnknownJointError(f"an effect returned a correction for unknown joint '{k}'")
@@ -324,8 +329,9 @@ class PPOEModel:
                         D[k] = np.eye(4)[:, :, None]
         return ch, theta, D, shape, N
 
-    def fk_mean(self, joints: Joints, frm: str | None = None, to: str | None = None,
-                context: Mapping[str, Any] | None = None) -> Array:
+    def fk_mean(
+        self, joints: Joints, frm: str | None = None, to: str | None = None, context: Mapping[str, Any] | None = None
+    ) -> Array:
         """Mean pose ``T_frm_to`` (eq. 17 with all perturbations zero, effects applied).
 
         Parameters
@@ -356,8 +362,14 @@ class PPOEModel:
             T[a:b, :3, :] = np.moveaxis(B, 2, 0)
         return T.reshape(shape + (4, 4))
 
-    def fk(self, joints: Joints, frm: str | None = None, to: str | None = None, order: int = 2,
-           context: Mapping[str, Any] | None = None) -> tuple[Array, Array]:
+    def fk(
+        self,
+        joints: Joints,
+        frm: str | None = None,
+        to: str | None = None,
+        order: int = 2,
+        context: Mapping[str, Any] | None = None,
+    ) -> tuple[Array, Array]:
         """Mean pose and covariance of ``T_frm_to`` (paper eq. 15-18).
 
         Parameters
@@ -427,8 +439,9 @@ class PPOEModel:
                 cov[a:b] = _fourth_order_batch_last(ch, G).transpose(2, 0, 1)
         return T.reshape(shape + (4, 4)), cov.reshape(shape + (6, 6))
 
-    def fk_multi(self, joints: Joints, frm: str | None, tos: Sequence[str],
-                 context: Mapping[str, Any] | None = None) -> tuple[Array, Array]:
+    def fk_multi(
+        self, joints: Joints, frm: str | None, tos: Sequence[str], context: Mapping[str, Any] | None = None
+    ) -> tuple[Array, Array]:
         """Mean poses of several frames and their JOINT second-order covariance.
 
         Chains that share perturbations (e.g. ``base -> tool`` and ``base -> camera``) are
@@ -472,13 +485,20 @@ class PPOEModel:
         Gall = np.zeros((len(index), 6 * k, N))
         for i, (G, cid) in enumerate(zip(Gs, ids)):
             if G is not None and cid:
-                Gall[[index[key] for key in cid], 6 * i:6 * i + 6] = G
+                Gall[[index[key] for key in cid], 6 * i : 6 * i + 6] = G
         cov = np.einsum("min,mjn->nij", Gall, Gall)
         T = np.stack(Ts, axis=1)
         return T.reshape(shape + (k, 4, 4)), cov.reshape(shape + (6 * k, 6 * k))
 
-    def sample(self, joints: Joints, frm: str | None = None, to: str | None = None, n: int = 1000,
-               rng: np.random.Generator | None = None, context: Mapping[str, Any] | None = None) -> Array:
+    def sample(
+        self,
+        joints: Joints,
+        frm: str | None = None,
+        to: str | None = None,
+        n: int = 1000,
+        rng: np.random.Generator | None = None,
+        context: Mapping[str, Any] | None = None,
+    ) -> Array:
         """Monte-Carlo samples of ``T_frm_to`` from the same model.
 
         Every perturbation ``xi_k ~ N(0, Sigma_k)`` (and joint noise) is drawn independently
@@ -503,8 +523,9 @@ class PPOEModel:
         P = _eval_forward(ch, theta_r, D_r, pert)
         return _rows_to_T(P).reshape((n,) + shape + (4, 4))
 
-    def jacobian_joints(self, joints: Joints, frm: str | None = None, to: str | None = None,
-                        context: Mapping[str, Any] | None = None) -> Array:
+    def jacobian_joints(
+        self, joints: Joints, frm: str | None = None, to: str | None = None, context: Mapping[str, Any] | None = None
+    ) -> Array:
         """Right-tangent derivative of ``T_frm_to`` w.r.t. the independent joint values.
 
         ``T(q + dq) ~= T(q) Exp(J dq)``; mimic joints contribute through their master

@@ -130,7 +130,9 @@ def _camera(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> CameraConfig | N
     sec = _mapping(ctx, sec, top, "camera", "camera")
     _check_keys(ctx, sec, ("frame", "pixel_sigma"), "camera", required=("frame",))
     frame = _link(ctx, robot, sec["frame"], sec, "frame", "camera.frame")
-    ps = _number(ctx, sec["pixel_sigma"], sec, "pixel_sigma", "camera.pixel_sigma", positive=True) if "pixel_sigma" in sec else 0.5
+    ps = 0.5
+    if "pixel_sigma" in sec:
+        ps = _number(ctx, sec["pixel_sigma"], sec, "pixel_sigma", "camera.pixel_sigma", positive=True)
     return CameraConfig(frame=frame, pixel_sigma=ps)
 
 
@@ -168,8 +170,11 @@ def _contact(ctx: _Ctx, robot: Robot | None, sec: Any, top: Mapping) -> ContactC
         return None
     sec = _mapping(ctx, sec, top, "contact", "contact")
     _check_keys(
-        ctx, sec, ("plane", "sigma", "covariance", "tool_point", "force_threshold", "release_threshold"),
-        "contact", required=("plane", "tool_point"),
+        ctx,
+        sec,
+        ("plane", "sigma", "covariance", "tool_point", "force_threshold", "release_threshold"),
+        "contact",
+        required=("plane", "tool_point"),
     )
     plane = _mapping(ctx, sec["plane"], sec, "plane", "contact.plane")
     _check_keys(ctx, plane, ("frame", "xyz", "rpy"), "contact.plane", required=("frame",))
@@ -186,13 +191,32 @@ def _contact(ctx: _Ctx, robot: Robot | None, sec: Any, top: Mapping) -> ContactC
     _check_keys(ctx, tp, ("link", "xyz"), "contact.tool_point", required=("link",))
     tlink = _link(ctx, robot, tp["link"], tp, "link", "contact.tool_point.link")
     txyz = _vector(ctx, tp["xyz"], tp, "xyz", "contact.tool_point.xyz", 3) if "xyz" in tp else np.zeros(3)
-    fth = _number(ctx, sec["force_threshold"], sec, "force_threshold", "contact.force_threshold", positive=True) if "force_threshold" in sec else 5.0
-    rth = _number(ctx, sec["release_threshold"], sec, "release_threshold", "contact.release_threshold", minimum=0.0) if "release_threshold" in sec else min(2.0, fth)
+    fth = (
+        _number(ctx, sec["force_threshold"], sec, "force_threshold", "contact.force_threshold", positive=True)
+        if "force_threshold" in sec
+        else 5.0
+    )
+    rth = (
+        _number(ctx, sec["release_threshold"], sec, "release_threshold", "contact.release_threshold", minimum=0.0)
+        if "release_threshold" in sec
+        else min(2.0, fth)
+    )
     if rth > fth:
-        raise ctx.error(sec, "release_threshold", "contact.release_threshold",
-                        f"release threshold {rth} N is above the force threshold {fth} N")
-    return ContactConfig(plane_frame=frame, T_frame_plane=T, covariance=cov, tool_link=tlink,
-                         tool_xyz=txyz, force_threshold=fth, release_threshold=rth)
+        raise ctx.error(
+            sec,
+            "release_threshold",
+            "contact.release_threshold",
+            f"release threshold {rth} N is above the force threshold {fth} N",
+        )
+    return ContactConfig(
+        plane_frame=frame,
+        T_frame_plane=T,
+        covariance=cov,
+        tool_link=tlink,
+        tool_xyz=txyz,
+        force_threshold=fth,
+        release_threshold=rth,
+    )
 
 
 def _tracker(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> TrackerConfig | None:
@@ -216,7 +240,9 @@ def _imus(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, ImuConfi
         entry = _mapping(ctx, entry, sec, name, path)
         _check_keys(ctx, entry, ("link", "sigma"), path, required=("link",))
         link = _link(ctx, robot, entry["link"], entry, "link", path + ".link")
-        sigma = _number(ctx, entry["sigma"], entry, "sigma", path + ".sigma", positive=True) if "sigma" in entry else 0.0004
+        sigma = (
+            _number(ctx, entry["sigma"], entry, "sigma", path + ".sigma", positive=True) if "sigma" in entry else 0.0004
+        )
         out[str(name)] = ImuConfig(name=str(name), link=link, sigma=sigma)
     return out
 
@@ -238,15 +264,23 @@ def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
     for i, e in enumerate(sec):
         path = f"effects[{i}]"
         e = _mapping(ctx, e, sec, None, path)
-        _check_keys(ctx, e, ("name", "location", "parameters", "ci", "variable", "reference"), path,
-                    required=("name", "location"))
+        _check_keys(
+            ctx,
+            e,
+            ("name", "location", "parameters", "ci", "variable", "reference"),
+            path,
+            required=("name", "location"),
+        )
         name = e["name"]
         if name not in EFFECT_NAMES:
-            raise ctx.error(e, "name", path + ".name",
-                            f"unknown effect '{name}' (CONTRACT section 6: {', '.join(EFFECT_NAMES)})")
+            raise ctx.error(
+                e, "name", path + ".name", f"unknown effect '{name}' (CONTRACT section 6: {', '.join(EFFECT_NAMES)})"
+            )
         loc = e["location"]
         if not isinstance(loc, str) or not loc:
-            raise ctx.error(e, "location", path + ".location", f"must be a joint, link, topic or frame name, got {loc!r}")
+            raise ctx.error(
+                e, "location", path + ".location", f"must be a joint, link, topic or frame name, got {loc!r}"
+            )
         params = e.get("parameters", {}) or {}
         params = _mapping(ctx, params, e, "parameters", path + ".parameters")
         pclean: dict[str, Any] = {}
@@ -296,8 +330,9 @@ _SECTIONS = {
 # ----------------------------------------------------------------------------
 
 
-def load_model_config(source: str | os.PathLike | Mapping | None, robot: Robot, *,
-                      is_text: bool = False) -> ModelConfig:
+def load_model_config(
+    source: str | os.PathLike | Mapping | None, robot: Robot, *, is_text: bool = False
+) -> ModelConfig:
     """Load and validate a model YAML against ``robot``.
 
     Parameters
@@ -340,7 +375,10 @@ def _read_yaml(source: str | os.PathLike | Mapping | None, is_text: bool, caller
     if isinstance(source, Mapping):
         return source, "<dict>"
     if isinstance(source, os.PathLike) or (
-        isinstance(source, str) and not is_text and source.strip() != "" and "\n" not in source
+        isinstance(source, str)
+        and not is_text
+        and source.strip() != ""
+        and "\n" not in source
         and (Path(source).suffix in (".yaml", ".yml") or Path(source).is_file())
     ):
         return read_yaml_file(source, "model YAML")
@@ -349,8 +387,9 @@ def _read_yaml(source: str | os.PathLike | Mapping | None, is_text: bool, caller
     raise ModelConfigError(f"{caller}: expected a path, YAML text or mapping, got {type(source).__name__}")
 
 
-def load_contact_config(source: str | os.PathLike | Mapping | None, robot: Robot | None = None, *,
-                        is_text: bool = False) -> ContactConfig | None:
+def load_contact_config(
+    source: str | os.PathLike | Mapping | None, robot: Robot | None = None, *, is_text: bool = False
+) -> ContactConfig | None:
     """Only the ``contact`` section of a model YAML, validated as :func:`load_model_config` does.
 
     For users that have no URDF at hand (the contact node): with ``robot=None`` the link names

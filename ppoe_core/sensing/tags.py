@@ -201,8 +201,13 @@ def detect_tags(image: np.ndarray, dictionary: str = "tag36h11", refine: str = "
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
     params = cv2.aruco.DetectorParameters()
-    methods = {"edges": cv2.aruco.CORNER_REFINE_SUBPIX, "subpix": cv2.aruco.CORNER_REFINE_SUBPIX, "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
-               "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG, "none": cv2.aruco.CORNER_REFINE_NONE}
+    methods = {
+        "edges": cv2.aruco.CORNER_REFINE_SUBPIX,
+        "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+        "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+        "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
+        "none": cv2.aruco.CORNER_REFINE_NONE,
+    }
     if refine not in methods:
         raise MeasurementError(f"detect_tags: refine must be one of {sorted(methods)}, got {refine!r}")
     params.cornerRefinementMethod = methods[refine]
@@ -232,8 +237,7 @@ def _texture(dictionary: str, tag_id: int, px_per_cell: int, border_cells: int) 
     d = aruco_dictionary(dictionary)
     n_cells = int(d.markerSize) + 2
     if not 0 <= tag_id < d.bytesList.shape[0]:
-        raise MeasurementError(f"tag id {tag_id} is not in dictionary {dictionary} "
-                               f"(0..{d.bytesList.shape[0] - 1})")
+        raise MeasurementError(f"tag id {tag_id} is not in dictionary {dictionary} (0..{d.bytesList.shape[0] - 1})")
     marker = cv2.aruco.generateImageMarker(d, int(tag_id), n_cells * px_per_cell, borderBits=1)
     pad = border_cells * px_per_cell
     tex = np.pad(marker, pad, constant_values=255).astype(np.float32) / 255.0
@@ -251,8 +255,9 @@ def _ray_grid(width: int, height: int, K_key: tuple[float, ...], D_key: tuple[fl
     if np.any(D != 0):
         xy = undistort_pixels(uv, K, D)
     else:
-        xy = np.stack([(uu - K[0, 2] - K[0, 1] * (vv - K[1, 2]) / K[1, 1]) / K[0, 0],
-                       (vv - K[1, 2]) / K[1, 1]], axis=-1)
+        xy = np.stack(
+            [(uu - K[0, 2] - K[0, 1] * (vv - K[1, 2]) / K[1, 1]) / K[0, 0], (vv - K[1, 2]) / K[1, 1]], axis=-1
+        )
     return xy.astype(np.float32)
 
 
@@ -268,12 +273,25 @@ def _rays(grid: np.ndarray, u0: int, v0: int, u1: int, v1: int, ss: int) -> np.n
     return cv2.remap(grid, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
-def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequence[float],
-                T_cam_tag_list: np.ndarray | Sequence[np.ndarray], ids: Sequence[int], size: float | Sequence[float] | np.ndarray,
-                dictionary: str = "tag36h11", background: np.ndarray | int = 128, border_cells: float = 1.0,
-                black: int = 25, white: int = 235, supersample: int = 3, noise_sigma: float = 0.0,
-                rng: np.random.Generator | None = None, min_depth: float = 0.05,
-                max_angle_deg: float = 80.0, blur_sigma: float = 0.0) -> tuple[np.ndarray, list[int]]:
+def render_tags(
+    image_size: tuple[int, int],
+    K: np.ndarray,
+    D: np.ndarray | Sequence[float],
+    T_cam_tag_list: np.ndarray | Sequence[np.ndarray],
+    ids: Sequence[int],
+    size: float | Sequence[float] | np.ndarray,
+    dictionary: str = "tag36h11",
+    background: np.ndarray | int = 128,
+    border_cells: float = 1.0,
+    black: int = 25,
+    white: int = 235,
+    supersample: int = 3,
+    noise_sigma: float = 0.0,
+    rng: np.random.Generator | None = None,
+    min_depth: float = 0.05,
+    max_angle_deg: float = 80.0,
+    blur_sigma: float = 0.0,
+) -> tuple[np.ndarray, list[int]]:
     """Draw tags at their true pose into a grey image (per-pixel inverse mapping).
 
     Every sub-pixel sample's camera ray (through the plumb_bob model, inverted
@@ -352,10 +370,21 @@ def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequ
             continue
         if rays is None:
             rays = _ray_grid(w, h, tuple(K.reshape(-1)), tuple(D))
-        cover, col = _sample_tag(_rays(rays, u0, v0, u1, v1, ss).astype(float), (v1 - v0 + 1, u1 - u0 + 1), ss,
-                                 R, t, s, half, dictionary, tag_id, black, white)
-        patch = canvas[v0:v1 + 1, u0:u1 + 1]
-        canvas[v0:v1 + 1, u0:u1 + 1] = patch * (1.0 - cover) + col
+        cover, col = _sample_tag(
+            _rays(rays, u0, v0, u1, v1, ss).astype(float),
+            (v1 - v0 + 1, u1 - u0 + 1),
+            ss,
+            R,
+            t,
+            s,
+            half,
+            dictionary,
+            tag_id,
+            black,
+            white,
+        )
+        patch = canvas[v0 : v1 + 1, u0 : u1 + 1]
+        canvas[v0 : v1 + 1, u0 : u1 + 1] = patch * (1.0 - cover) + col
         drawn.append(tag_id)
     if blur_sigma > 0:
         canvas = np.asarray(cv2.GaussianBlur(canvas, (0, 0), float(blur_sigma)), dtype=np.float32)
@@ -366,8 +395,19 @@ def render_tags(image_size: tuple[int, int], K: np.ndarray, D: np.ndarray | Sequ
     return np.clip(np.rint(canvas), 0, 255).astype(np.uint8), sorted(drawn)
 
 
-def _sample_tag(xy: np.ndarray, hw: tuple[int, int], ss: int, R: np.ndarray, t: np.ndarray, s: float, half: float,
-                dictionary: str, tag_id: int, black: int, white: int) -> tuple[np.ndarray, np.ndarray]:
+def _sample_tag(
+    xy: np.ndarray,
+    hw: tuple[int, int],
+    ss: int,
+    R: np.ndarray,
+    t: np.ndarray,
+    s: float,
+    half: float,
+    dictionary: str,
+    tag_id: int,
+    black: int,
+    white: int,
+) -> tuple[np.ndarray, np.ndarray]:
     """Coverage and grey sum per pixel of one tag over its pixel box, from the box's sub-pixel rays ``xy``.
 
     The ray ``(x, y, 1)`` meets the tag plane (normal ``R[:, 2]`` through ``t``, camera frame); the texture of the
@@ -386,8 +426,7 @@ def _sample_tag(xy: np.ndarray, hw: tuple[int, int], ss: int, R: np.ndarray, t: 
     scale = tex_n / s
     map_x = ((p_tag[..., 0] + 0.5 * s) * scale - 0.5).astype(np.float32)
     map_y = ((0.5 * s - p_tag[..., 1]) * scale - 0.5).astype(np.float32)
-    val = cv2.remap(tex, map_x, map_y, interpolation=cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+    val = cv2.remap(tex, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
     inside = ((np.abs(p_tag[..., 0]) <= half) & (np.abs(p_tag[..., 1]) <= half) & (lam > 0)).astype(np.float32)
     grey = black + (white - black) * val
     hh, ww = hw

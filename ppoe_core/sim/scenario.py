@@ -1,4 +1,5 @@
-"""Simulation scenario files: schema (:data:`SCENARIO_DOC`), checks with file and key in every error, :class:`Scenario`."""
+"""Simulation scenario files: schema (:data:`SCENARIO_DOC`), checks with file and key in every error,
+:class:`Scenario`."""
 
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ SCENARIO_DOC = """\
 # ppoe simulate scenario (all keys; defaults in brackets). Paths are relative to the scenario file.
 robot:
   urdf: ../config/robots/rover.urdf        # nominal URDF (written to /robot_description) [required]
-  model: ../config/robots/rover_model.yaml # model YAML: perturbations, joint_noise, tags, camera, tracker, imus, contact [required]
+  model: ../config/robots/rover_model.yaml # model YAML: perturbations, joint_noise, tags, camera, tracker, imus,
+  contact [required]
 seed: 0                    # RNG seed; `--seed` overrides [0]
 start_time: 100.0          # stamp of the first message [s] [100.0]
 truth:
@@ -47,13 +49,18 @@ truth:
   effects:                 # systematic effects of the true robot, CONTRACT sec. 6 names [none]
     - {name: joint_offset, location: JOINT, parameters: {offset: 0.01}}        # q_true = q_meas + offset [rad|m]
     - {name: link_error, location: JOINT, parameters: {x: 0.001, rz: 0.002}}   # dxi at JOINT [m, rad]
-    - {name: camera_extrinsics, location: JOINT, parameters: {x: .., rz: ..}}   # dxi at the camera's fixed joint [m, rad]
+    - {name: camera_extrinsics, location: JOINT, parameters: {x: .., rz: ..}}   # dxi at the camera's fixed joint [m,
+    rad]
     - {name: gravity_compliance, location: JOINT, parameters: {compliance: 1e-4}}  # dq = c * gravity torque [rad/(N m)]
-    - {name: mount_bending, location: JOINT, parameters: {compliance_x: 1e-4, compliance_y: 1e-4}}  # theta = c * moment [rad/(N m)]
-    - {name: base_tilt, location: ROOT_LINK, parameters: {tilt_x: 0.002, tilt_y: 0.0}}  # robot tilted about root x, y [rad]
+    - {name: mount_bending, location: JOINT, parameters: {compliance_x: 1e-4, compliance_y: 1e-4}}  # theta = c *
+    moment [rad/(N m)]
+    - {name: base_tilt, location: ROOT_LINK, parameters: {tilt_x: 0.002, tilt_y: 0.0}}  # robot tilted about root x,
+    y [rad]
     - {name: backlash, location: JOINT, parameters: {play: 0.002}}             # dq = play * sign(last motion) [rad|m]
-    - {name: thermal_growth, location: JOINT, parameters: {alpha: 1e-6}}      # origin of JOINT grows by alpha*(t - start_time) [1/s]
-    - {name: time_offset, location: /joint_states, parameters: {dt: 0.02}}     # joint states stamped t carry q(t - dt) [s]
+    - {name: thermal_growth, location: JOINT, parameters: {alpha: 1e-6}}      # origin of JOINT grows by alpha*(t -
+    start_time) [1/s]
+    - {name: time_offset, location: /joint_states, parameters: {dt: 0.02}}     # joint states stamped t carry q(t -
+    dt) [s]
     - {name: transmission_error, location: JOINT, parameters: {amplitude: 0.003, periods: 3}}  # NOT in the
       # contract vocabulary: cyclic gear error dq = amplitude sin(periods q) [rad, periods per rad]
 trajectory:
@@ -142,8 +149,9 @@ def _check_keys(d: Any, allowed: Sequence[str], path: str, key: str) -> dict:
     return dict(d)
 
 
-def _num(d: Mapping, k: str, default: Any, path: str, key: str, minimum: float | None = None,
-         maximum: float | None = None) -> Any:
+def _num(
+    d: Mapping, k: str, default: Any, path: str, key: str, minimum: float | None = None, maximum: float | None = None
+) -> Any:
     v = d.get(k, default)
     if v is None:
         return None

@@ -1,4 +1,5 @@
-"""What a simulation scenario asks for: the stops/trajectory and the sensors, parsed and checked (file and key in errors).
+"""What a simulation scenario asks for: the stops/trajectory and the sensors, parsed and checked (file and key in
+errors).
 
 :class:`_SimConfig` is the parsing part of the simulator (:class:`ppoe_core.sim.simulate._Sim` derives from it):
 it sets the trajectory (rate, dwell, stops, random stops, smoothing) and sensor (camera, tracker, poses, IMUs,
@@ -59,7 +60,9 @@ class _SimConfig:
         self.smooth: Any = None
         self.stops: list[_Stop] = []
         if tr.get("smooth") is not None:
-            sm = _check_keys(tr["smooth"], ("duration", "centre", "amplitude", "period", "phase"), P, "trajectory.smooth")
+            sm = _check_keys(
+                tr["smooth"], ("duration", "centre", "amplitude", "period", "phase"), P, "trajectory.smooth"
+            )
             self.smooth = {
                 "duration": _num(sm, "duration", 60.0, P, "trajectory.smooth", minimum=0.1),
                 "centre": {**self.start, **_joints_map(sm.get("centre"), P, "trajectory.smooth.centre", self.robot)},
@@ -88,21 +91,31 @@ class _SimConfig:
             c = _check_keys(s["contact"], ("press_joint", "force", "approach"), P, f"trajectory.stops[{i}].contact")
             pj = c.get("press_joint")
             if pj not in self.joints:
-                raise ScenarioError(f"{_where(P, f'trajectory.stops[{i}].contact.press_joint')}: "
-                                    f"{pj!r} is not an independent joint")
-            c = {"press_joint": pj, "force": _num(c, "force", 10.0, P, f"trajectory.stops[{i}].contact", minimum=0.0),
-                 "approach": _num(c, "approach", 0.15, P, f"trajectory.stops[{i}].contact")}
+                raise ScenarioError(
+                    f"{_where(P, f'trajectory.stops[{i}].contact.press_joint')}: {pj!r} is not an independent joint"
+                )
+            c = {
+                "press_joint": pj,
+                "force": _num(c, "force", 10.0, P, f"trajectory.stops[{i}].contact", minimum=0.0),
+                "approach": _num(c, "approach", 0.15, P, f"trajectory.stops[{i}].contact"),
+            }
         return _Stop(q, _num(s, "dwell", self.dwell, P, f"trajectory.stops[{i}]", minimum=0.0), c)
 
     def _parse_random_stops(self, raw: Any) -> dict[str, Any]:
         """``trajectory.random_stops``: count, centre and spread per joint, visibility and height constraints."""
         P = self.path
-        rs = _check_keys(raw, ("count", "around", "spread", "min_visible_tags", "max_tries",
-                               "min_link_z"), P, "trajectory.random_stops")
+        rs = _check_keys(
+            raw,
+            ("count", "around", "spread", "min_visible_tags", "max_tries", "min_link_z"),
+            P,
+            "trajectory.random_stops",
+        )
         min_z = rs.get("min_link_z") or {}
         if not isinstance(min_z, Mapping) or any(k not in self.robot.links for k in min_z):
-            raise ScenarioError(f"{_where(P, 'trajectory.random_stops.min_link_z')} must map links of "
-                                f"{self.robot.source} to heights [m]")
+            raise ScenarioError(
+                f"{_where(P, 'trajectory.random_stops.min_link_z')} must map links of "
+                f"{self.robot.source} to heights [m]"
+            )
         min_z = {str(k): _num(min_z, k, 0.0, P, "trajectory.random_stops.min_link_z") for k in min_z}
         spread = rs.get("spread", 0.2)
         around = {**self.start, **_joints_map(rs.get("around"), P, "trajectory.random_stops.around", self.robot)}
@@ -110,11 +123,14 @@ class _SimConfig:
             spread = _joints_map(spread, P, "trajectory.random_stops.spread", self.robot)
         else:
             spread = {j: float(spread) for j in (rs.get("around") or {})}
-        return {"count": int(_num(rs, "count", 20, P, "trajectory.random_stops", minimum=1)),
-                "around": around, "spread": spread,
-                "min_visible": int(_num(rs, "min_visible_tags", 0, P, "trajectory.random_stops", minimum=0)),
-                "min_z": min_z,
-                "max_tries": int(_num(rs, "max_tries", 5000, P, "trajectory.random_stops", minimum=1))}
+        return {
+            "count": int(_num(rs, "count", 20, P, "trajectory.random_stops", minimum=1)),
+            "around": around,
+            "spread": spread,
+            "min_visible": int(_num(rs, "min_visible_tags", 0, P, "trajectory.random_stops", minimum=0)),
+            "min_z": min_z,
+            "max_tries": int(_num(rs, "max_tries", 5000, P, "trajectory.random_stops", minimum=1)),
+        }
 
     def _parse_sensors(self) -> None:
         """Scenario ``camera``, ``ground_truth``, ``imus`` and ``contact`` (each None when absent)."""
@@ -139,8 +155,25 @@ class _SimConfig:
     def _parse_camera(self, raw_cam: Any) -> dict[str, Any]:
         """Scenario ``camera``: frame, size, intrinsics, plumb_bob D, rate, format, noise, blur."""
         P, m = self.path, self.model
-        c = _check_keys(raw_cam, ("frame", "width", "height", "intrinsics", "D", "rate", "during", "format",
-                                        "noise_sigma", "blur_sigma", "background", "time_offset"), P, "camera")
+        c = _check_keys(
+            raw_cam,
+            (
+                "frame",
+                "width",
+                "height",
+                "intrinsics",
+                "D",
+                "rate",
+                "during",
+                "format",
+                "noise_sigma",
+                "blur_sigma",
+                "background",
+                "time_offset",
+            ),
+            P,
+            "camera",
+        )
         if m.tags is None:
             raise ScenarioError(f"{_where(P, 'camera')}: the model {m.source} has no tags section to render")
         frame = c.get("frame") or (m.camera.frame if m.camera else None)
@@ -159,14 +192,20 @@ class _SimConfig:
         during = c.get("during", "stops")
         if during not in ("stops", "always"):
             raise ScenarioError(f"{_where(P, 'camera.during')} must be stops or always")
-        return {"frame": frame, "w": w, "h": h, "K": np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]),
-                    "D": D, "rate": _num(c, "rate", 5.0, P, "camera", minimum=0.01, maximum=30.0),
-                    "during": during, "format": fmt,
-                    "noise": _num(c, "noise_sigma", 1.0, P, "camera", minimum=0.0),
-                    "blur": _num(c, "blur_sigma", 0.0, P, "camera", minimum=0.0),
-                    "background": int(_num(c, "background", 128, P, "camera", minimum=0, maximum=255)),
-                    "time_offset": _num(c, "time_offset", 0.0, P, "camera")}
-
+        return {
+            "frame": frame,
+            "w": w,
+            "h": h,
+            "K": np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]),
+            "D": D,
+            "rate": _num(c, "rate", 5.0, P, "camera", minimum=0.01, maximum=30.0),
+            "during": during,
+            "format": fmt,
+            "noise": _num(c, "noise_sigma", 1.0, P, "camera", minimum=0.0),
+            "blur": _num(c, "blur_sigma", 0.0, P, "camera", minimum=0.0),
+            "background": int(_num(c, "background", 128, P, "camera", minimum=0, maximum=255)),
+            "time_offset": _num(c, "time_offset", 0.0, P, "camera"),
+        }
 
     def _parse_gt_pose(self, raw_gt: Any) -> dict[str, Any]:
         """Scenario ``ground_truth.pose``: tracked frame and target, noise, rate."""
@@ -177,29 +216,32 @@ class _SimConfig:
         for k, v in (("frame", frame), ("target", target)):
             if v not in self.robot.links:
                 raise ScenarioError(f"{_where(P, 'ground_truth.pose.' + k)}: {v!r} is not a link")
-        return {"frame": frame, "target": target,
-                        "sx": _num(g, "sigma_xyz", 1e-4, P, "ground_truth.pose", minimum=0.0),
-                        "sr": _num(g, "sigma_rot", 2e-4, P, "ground_truth.pose", minimum=0.0),
-                        "rate": _num(g, "rate", 0.0, P, "ground_truth.pose", minimum=0.0)}
-
+        return {
+            "frame": frame,
+            "target": target,
+            "sx": _num(g, "sigma_xyz", 1e-4, P, "ground_truth.pose", minimum=0.0),
+            "sr": _num(g, "sigma_rot", 2e-4, P, "ground_truth.pose", minimum=0.0),
+            "rate": _num(g, "rate", 0.0, P, "ground_truth.pose", minimum=0.0),
+        }
 
     def _parse_gt_point(self, raw_gt: Any) -> dict[str, Any]:
         """Scenario ``ground_truth.point``: reflector link and position, noise, tracker frame and pose."""
         P, m = self.path, self.model
-        g = _check_keys(raw_gt, ("link", "xyz", "sigma", "frame", "T_tracker_base", "rate"), P,
-                        "ground_truth.point")
+        g = _check_keys(raw_gt, ("link", "xyz", "sigma", "frame", "T_tracker_base", "rate"), P, "ground_truth.point")
         tr = m.tracker
         link = g.get("link") or (tr.link if tr else None)
         if link not in self.robot.links:
             raise ScenarioError(f"{_where(P, 'ground_truth.point.link')}: {link!r} is not a link")
         xyz = np.asarray(g.get("xyz", tr.xyz if tr else [0, 0, 0]), dtype=float).reshape(3)
-        return {"link": link, "xyz": xyz,
-                         "sigma": _num(g, "sigma", tr.sigma if tr else 2e-4, P, "ground_truth.point", minimum=0.0),
-                         "frame": str(g.get("frame", "tracker")),
-                         "T_tracker_base": _pose_cfg(g.get("T_tracker_base"), P, "ground_truth.point.T_tracker_base"),
-                         "T_cfg": g.get("T_tracker_base") or {},
-                         "rate": _num(g, "rate", 0.0, P, "ground_truth.point", minimum=0.0)}
-
+        return {
+            "link": link,
+            "xyz": xyz,
+            "sigma": _num(g, "sigma", tr.sigma if tr else 2e-4, P, "ground_truth.point", minimum=0.0),
+            "frame": str(g.get("frame", "tracker")),
+            "T_tracker_base": _pose_cfg(g.get("T_tracker_base"), P, "ground_truth.point.T_tracker_base"),
+            "T_cfg": g.get("T_tracker_base") or {},
+            "rate": _num(g, "rate", 0.0, P, "ground_truth.point", minimum=0.0),
+        }
 
     def _parse_imus(self, raw_imus: Any) -> dict[str, Any]:
         """Scenario ``imus``: rate and noise of the model's accelerometers."""
@@ -207,15 +249,15 @@ class _SimConfig:
         g = _check_keys(raw_imus, ("rate", "sigma"), P, "imus")
         if not m.imus:
             raise ScenarioError(f"{_where(P, 'imus')}: the model {m.source} declares no imus")
-        return {"rate": _num(g, "rate", 0.0, P, "imus", minimum=0.0),
-                    "sigma": _num(g, "sigma", None, P, "imus", minimum=0.0)}
-
+        return {
+            "rate": _num(g, "rate", 0.0, P, "imus", minimum=0.0),
+            "sigma": _num(g, "sigma", None, P, "imus", minimum=0.0),
+        }
 
     def _parse_contact(self, raw_contact: Any) -> dict[str, Any]:
         """Scenario ``contact``: plane, tool point, stiffness, force noise, wrench frame, rate."""
         P, m = self.path, self.model
-        c = _check_keys(raw_contact, ("plane", "tool_point", "stiffness", "force_sigma", "frame", "rate"), P,
-                        "contact")
+        c = _check_keys(raw_contact, ("plane", "tool_point", "stiffness", "force_sigma", "frame", "rate"), P, "contact")
         mc = m.contact
         if c.get("plane") is not None:
             pl = _check_keys(c["plane"], ("frame", "xyz", "rpy"), P, "contact.plane")
@@ -232,12 +274,16 @@ class _SimConfig:
             raise ScenarioError(f"{_where(P, 'contact.tool_point')}: needs a link of the URDF")
         if frame not in self.robot.links:
             raise ScenarioError(f"{_where(P, 'contact.plane.frame')}: {frame!r} is not a link")
-        out = {"frame": frame, "T_frame_plane": T_fp, "link": tp["link"],
-               "xyz": np.asarray(tp.get("xyz", [0, 0, 0]), float).reshape(3),
-               "k": _num(c, "stiffness", 1e5, P, "contact", minimum=1.0),
-               "sigma": _num(c, "force_sigma", 0.1, P, "contact", minimum=0.0),
-               "wframe": str(c.get("frame", tp["link"])),
-               "rate": _num(c, "rate", self.rate, P, "contact", minimum=1.0)}
+        out = {
+            "frame": frame,
+            "T_frame_plane": T_fp,
+            "link": tp["link"],
+            "xyz": np.asarray(tp.get("xyz", [0, 0, 0]), float).reshape(3),
+            "k": _num(c, "stiffness", 1e5, P, "contact", minimum=1.0),
+            "sigma": _num(c, "force_sigma", 0.1, P, "contact", minimum=0.0),
+            "wframe": str(c.get("frame", tp["link"])),
+            "rate": _num(c, "rate", self.rate, P, "contact", minimum=1.0),
+        }
         if out["wframe"] not in self.robot.links:
             raise ScenarioError(f"{_where(P, 'contact.frame')}: not a link")
         return out

@@ -137,7 +137,8 @@ class _Sim(_SimConfig):
         return out
 
     # -- truth evaluation over a batch of samples --------------------------------
-    def truth_poses(self, Q: np.ndarray, set_idx: np.ndarray, signs: np.ndarray, t: np.ndarray) -> dict[str, np.ndarray]:
+    def truth_poses(self, Q: np.ndarray, set_idx: np.ndarray, signs: np.ndarray,
+                    t: np.ndarray) -> dict[str, np.ndarray]:
         """True link poses for commanded joints Q (n, nj), draw-set index (n,), motion signs (n, nj), stamps."""
         n = Q.shape[0]
         q = {j: Q[:, i] for i, j in enumerate(self.joints)}
@@ -171,7 +172,9 @@ class _Sim(_SimConfig):
                 if np.any(P[:, 2] < 0.05):
                     continue
                 uv = project_points(P, self.cam["K"], self.cam["D"])
-                if np.all((uv[:, 0] > 5) & (uv[:, 0] < self.cam["w"] - 5) & (uv[:, 1] > 5) & (uv[:, 1] < self.cam["h"] - 5)):
+                if np.all(
+                    (uv[:, 0] > 5) & (uv[:, 0] < self.cam["w"] - 5) & (uv[:, 1] > 5) & (uv[:, 1] < self.cam["h"] - 5)
+                ):
                     vis[a, b] = True
         return vis
 
@@ -200,14 +203,18 @@ class _Sim(_SimConfig):
         lo_hi = {}
         for j in names:
             lim = self.robot.joints[j].limit
-            lo_hi[j] = ((lim.lower if lim and lim.lower is not None else -np.inf),
-                        (lim.upper if lim and lim.upper is not None else np.inf))
+            lo_hi[j] = (
+                (lim.lower if lim and lim.lower is not None else -np.inf),
+                (lim.upper if lim and lim.upper is not None else np.inf),
+            )
         got = 0
         while got < need:
             tries += 1
             if tries > cfg["max_tries"]:
-                raise ScenarioError(f"{_where(self.path, 'trajectory.random_stops')}: only {got} of {need} "
-                                    f"acceptable configurations (min_visible_tags, min_link_z) in {cfg['max_tries']} tries")
+                raise ScenarioError(
+                    f"{_where(self.path, 'trajectory.random_stops')}: only {got} of {need} "
+                    f"acceptable configurations (min_visible_tags, min_link_z) in {cfg['max_tries']} tries"
+                )
             q = dict(cfg["around"])
             for j in names:
                 q[j] = float(np.clip(q[j] + self.rng.uniform(-cfg["spread"][j], cfg["spread"][j]), *lo_hi[j]))
@@ -218,7 +225,9 @@ class _Sim(_SimConfig):
                     continue
             if cfg["min_visible"] > 0:
                 if self.cam is None:
-                    raise ScenarioError(f"{_where(self.path, 'trajectory.random_stops.min_visible_tags')} needs a camera")
+                    raise ScenarioError(
+                        f"{_where(self.path, 'trajectory.random_stops.min_visible_tags')} needs a camera"
+                    )
                 Q = np.array([[q[j] for j in self.joints]])
                 poses = self.true.poses({j: Q[:, i] for i, j in enumerate(self.joints)}, {}, {}, {}, np.zeros(1), 1)
                 Ts, _, sizes = self._tag_poses_cam(poses)
@@ -246,7 +255,7 @@ class _Sim(_SimConfig):
             pj = s.contact["press_joint"]
             target = s.contact["force"] / self.contact["k"]
 
-            def depth(v: float) -> float:
+            def depth(v: float, s: _Stop = s, pj: str = pj) -> float:
                 q = dict(s.q)
                 q[pj] = v
                 Q = np.array([[q[j] for j in self.joints]])
@@ -261,8 +270,10 @@ class _Sim(_SimConfig):
                 h = 1e-4
                 slope = (depth(v + h) - depth(v - h)) / (2 * h)
                 if abs(slope) < 1e-9:
-                    raise ScenarioError(f"{_where(self.path, f'trajectory.stops[{k}].contact')}: joint {pj} does not "
-                                        "move the tool point towards the plane")
+                    raise ScenarioError(
+                        f"{_where(self.path, f'trajectory.stops[{k}].contact')}: joint {pj} does not "
+                        "move the tool point towards the plane"
+                    )
                 v = v - f / slope
             else:
                 raise ScenarioError(f"{_where(self.path, f'trajectory.stops[{k}].contact')}: could not reach the plane")
@@ -387,11 +398,13 @@ class _Sim(_SimConfig):
             self._wrench_events(events)
         events.sort(key=lambda e: (e[0], e[1]))
         counts = self._write(out, storage, overwrite, events)
-        return SimulationResult(str(out), counts, self.truth_dict(), float(self.t[-1] - self.t[0]),
-                                len(self.windows), sorted(visible_ids))
+        return SimulationResult(
+            str(out), counts, self.truth_dict(), float(self.t[-1] - self.t[0]), len(self.windows), sorted(visible_ids)
+        )
 
     def _camera_events(self, events: list[tuple[float, int, str, tuple]]) -> set[int]:
-        """Images of the tags at their true poses (noise from the simulator's rng), stamped with the camera's time offset."""
+        """Images of the tags at their true poses (noise from the simulator's rng), stamped with the camera's time
+        offset."""
         visible_ids: set[int] = set()
         ts = self.sensor_times(self.cam["rate"], self.cam["during"])
         Q, S, G = self.state_at(ts)
@@ -399,9 +412,19 @@ class _Sim(_SimConfig):
         Ts, ids, sizes = self._tag_poses_cam(poses)
         assert self.model.tags is not None
         for i, t in enumerate(ts):
-            img, drawn = render_tags((self.cam["w"], self.cam["h"]), self.cam["K"], self.cam["D"], Ts[i], ids, sizes,
-                                     dictionary=self.model.tags.family, background=self.cam["background"],
-                                     noise_sigma=self.cam["noise"], rng=self.rng, blur_sigma=self.cam["blur"])
+            img, drawn = render_tags(
+                (self.cam["w"], self.cam["h"]),
+                self.cam["K"],
+                self.cam["D"],
+                Ts[i],
+                ids,
+                sizes,
+                dictionary=self.model.tags.family,
+                background=self.cam["background"],
+                noise_sigma=self.cam["noise"],
+                rng=self.rng,
+                blur_sigma=self.cam["blur"],
+            )
             visible_ids.update(drawn)
             st = float(t + self.cam["time_offset"])
             events.append((st, 1, "cam", (img,)))
@@ -414,8 +437,9 @@ class _Sim(_SimConfig):
         Q, S, G = self.state_at(ts)
         poses = self.truth_poses(Q, S, G, ts)
         T = lie.inverse(poses[g["frame"]]) @ poses[g["target"]]
-        noise = np.concatenate([g["sx"] * self.rng.standard_normal((len(ts), 3)),
-                                g["sr"] * self.rng.standard_normal((len(ts), 3))], axis=1)
+        noise = np.concatenate(
+            [g["sx"] * self.rng.standard_normal((len(ts), 3)), g["sr"] * self.rng.standard_normal((len(ts), 3))], axis=1
+        )
         T = T @ lie.exp(noise)
         for i, t in enumerate(ts):
             events.append((float(t), 2, "gtpose", (T[i],)))
@@ -457,7 +481,9 @@ class _Sim(_SimConfig):
         f = np.einsum("nji,nj->ni", R_w, f_root) + c["sigma"] * self.rng.standard_normal((len(ts), 3))
         # torque of the contact force about the wrench frame origin
         p_c = (poses[c["link"]] @ np.append(c["xyz"], 1.0))[:, :3] - poses[c["wframe"]][:, :3, 3]
-        tq = np.einsum("nji,nj->ni", R_w, np.cross(p_c, f_root)) + 0.01 * c["sigma"] * self.rng.standard_normal((len(ts), 3))
+        tq = np.einsum("nji,nj->ni", R_w, np.cross(p_c, f_root)) + 0.01 * c["sigma"] * self.rng.standard_normal(
+            (len(ts), 3)
+        )
         for i, t in enumerate(ts):
             events.append((float(t), 5, "wrench", (f[i], tq[i])))
 
@@ -501,27 +527,46 @@ class _Sim(_SimConfig):
         if self.gt_point is not None:
             T = self.gt_point["T_tracker_base"]
             d["T_tracker_base"] = [[float(x) for x in row] for row in T]
-            d["tracker_registration"] = {"frame": self.gt_point["frame"],
-                                         "xyz": [float(x) for x in self.gt_point["T_cfg"].get("xyz", [0, 0, 0])],
-                                         "rpy": [float(x) for x in self.gt_point["T_cfg"].get("rpy", [0, 0, 0])]}
+            d["tracker_registration"] = {
+                "frame": self.gt_point["frame"],
+                "xyz": [float(x) for x in self.gt_point["T_cfg"].get("xyz", [0, 0, 0])],
+                "rpy": [float(x) for x in self.gt_point["T_cfg"].get("rpy", [0, 0, 0])],
+            }
         if self.cam is not None:
-            d["camera"] = {"frame": self.cam["frame"], "K": self.cam["K"].tolist(), "D": self.cam["D"].tolist(),
-                           "width": self.cam["w"], "height": self.cam["h"]}
+            d["camera"] = {
+                "frame": self.cam["frame"],
+                "K": self.cam["K"].tolist(),
+                "D": self.cam["D"].tolist(),
+                "width": self.cam["w"],
+                "height": self.cam["h"],
+            }
         if self.contact is not None:
-            d["contact_plane"] = {"frame": self.contact["frame"],
-                                  "T_frame_plane": self.contact["T_frame_plane"].tolist(),
-                                  "stiffness": self.contact["k"]}
+            d["contact_plane"] = {
+                "frame": self.contact["frame"],
+                "T_frame_plane": self.contact["T_frame_plane"].tolist(),
+                "stiffness": self.contact["k"],
+            }
         d["stops"] = len(self.windows)
         if self.record_draws:
-            d["stop_draws"] = [{"start": float(a), "end": float(b),
-                                "xi": {k: [float(x) for x in v] for k, v in self.xi_sets[self.stops[k_].draw].items()},
-                                "joint_noise": {k: float(v) for k, v in self.noise_sets[self.stops[k_].draw].items()}}
-                               for a, b, k_ in self.windows]
+            d["stop_draws"] = [
+                {
+                    "start": float(a),
+                    "end": float(b),
+                    "xi": {k: [float(x) for x in v] for k, v in self.xi_sets[self.stops[k_].draw].items()},
+                    "joint_noise": {k: float(v) for k, v in self.noise_sets[self.stops[k_].draw].items()},
+                }
+                for a, b, k_ in self.windows
+            ]
         return d
 
 
-def simulate(scenario: str | os.PathLike | Scenario, out: str | os.PathLike, seed: int | None = None,
-             storage: str = "mcap", overwrite: bool = False) -> SimulationResult:
+def simulate(
+    scenario: str | os.PathLike | Scenario,
+    out: str | os.PathLike,
+    seed: int | None = None,
+    storage: str = "mcap",
+    overwrite: bool = False,
+) -> SimulationResult:
     """Run a scenario and write the bag.
 
     Parameters

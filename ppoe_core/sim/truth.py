@@ -1,4 +1,5 @@
-"""The true robot of a simulation: nominal URDF + drawn perturbations + the scenario's effects, on the one kinematic tree.
+"""The true robot of a simulation: nominal URDF + drawn perturbations + the scenario's effects, on the one kinematic
+tree.
 
 The effects' physics is the simulator's own (deliberately independent of :mod:`ppoe_core.model.effects`, so that
 ``ppoe diagnose`` is tested against physics, not against its own parametrisation)."""
@@ -58,18 +59,25 @@ class TrueRobot:
         elif name != "time_offset":
             if loc not in self.robot.joints:
                 raise ScenarioError(f"{where}: location '{loc}' is not a joint of {self.robot.source}")
-            if name in ("joint_offset", "gravity_compliance", "backlash", "transmission_error") and not self.robot.joints[loc].movable:
+            if (
+                name in ("joint_offset", "gravity_compliance", "backlash", "transmission_error")
+                and not self.robot.joints[loc].movable
+            ):
                 raise ScenarioError(f"{where}: {name} needs a movable joint, '{loc}' is {self.robot.joints[loc].type}")
-        return {"name": name, "location": loc,
-                "parameters": {k: float(params.get(k, 0.0)) for k in TRUTH_EFFECTS[name]}}
+        return {
+            "name": name,
+            "location": loc,
+            "parameters": {k: float(params.get(k, 0.0)) for k in TRUTH_EFFECTS[name]},
+        }
 
     def effect_param(self, name: str, key: str) -> float:
         """Sum of parameter ``key`` over the true effects called ``name`` (0 if none)."""
         return sum(e["parameters"][key] for e in self.effects if e["name"] == name)
 
     # -- chain ------------------------------------------------------------------
-    def link_poses(self, q: Mapping[str, np.ndarray], dq: Mapping[str, np.ndarray],
-                   dT: Mapping[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    def link_poses(
+        self, q: Mapping[str, np.ndarray], dq: Mapping[str, np.ndarray], dT: Mapping[str, np.ndarray], n: int
+    ) -> dict[str, np.ndarray]:
         """``T_root_link`` (n, 4, 4) of every link with eq. 16 links ``Exp(p) dT Exp(zeta (q + dq))``,
         on the one kinematic tree (:class:`~ppoe_core.robot.tree.KinematicTree`).
 
@@ -78,7 +86,9 @@ class TrueRobot:
         """
         return self.tree.link_poses(q, dq, dT=dT)
 
-    def gravity_moment(self, poses: Mapping[str, np.ndarray], joint: str, after_motion: bool) -> tuple[np.ndarray, np.ndarray]:
+    def gravity_moment(
+        self, poses: Mapping[str, np.ndarray], joint: str, after_motion: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Weight of the links carried by ``joint``: force [N] (n,3) and moment [N m] (n,3) about the
         joint frame origin, in the joint frame axes (``after_motion``: the child frame; else the frame
         right after the joint's origin).  Gravity is -z of the root."""
@@ -99,8 +109,15 @@ class TrueRobot:
         Rt = np.swapaxes(T[:, :3, :3], 1, 2)
         return np.einsum("nij,nj->ni", Rt, F), np.einsum("nij,nj->ni", Rt, M)
 
-    def poses(self, q: Mapping[str, np.ndarray], xi: Mapping[str, np.ndarray], dq_noise: Mapping[str, np.ndarray],
-              motion_sign: Mapping[str, np.ndarray], elapsed: np.ndarray, n: int) -> dict[str, np.ndarray]:
+    def poses(
+        self,
+        q: Mapping[str, np.ndarray],
+        xi: Mapping[str, np.ndarray],
+        dq_noise: Mapping[str, np.ndarray],
+        motion_sign: Mapping[str, np.ndarray],
+        elapsed: np.ndarray,
+        n: int,
+    ) -> dict[str, np.ndarray]:
         """True link poses (n, 4, 4) in the root frame.
 
         Parameters
@@ -161,9 +178,14 @@ class TrueRobot:
                     add_fx(loc, v)
         return build(dq, fx)
 
-    def _static_corrections(self, q: Mapping[str, np.ndarray], dq_noise: Mapping[str, np.ndarray],
-                            motion_sign: Mapping[str, np.ndarray], elapsed: np.ndarray,
-                            n: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    def _static_corrections(
+        self,
+        q: Mapping[str, np.ndarray],
+        dq_noise: Mapping[str, np.ndarray],
+        motion_sign: Mapping[str, np.ndarray],
+        elapsed: np.ndarray,
+        n: int,
+    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Joint-value errors ``dq`` (joint -> (n,)) and effect twists ``fx`` (joint -> (n, 6)) of the effects
         that do not depend on gravity (joint offset, transmission error, backlash, link error, camera
         extrinsics, thermal growth, base tilt), on top of the drawn joint noise."""

@@ -92,8 +92,12 @@ _D = FUSION_SETTINGS
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("model_file", "", "model YAML: tags, camera, contact, perturbations (required)", check=check_nonempty),
     ParamSpec("robot_description", "", "URDF XML; empty = take it from robot_description_topic"),
-    ParamSpec("robot_description_topic", "/robot_description", "latched std_msgs/String topic carrying the URDF",
-              check=check_nonempty),
+    ParamSpec(
+        "robot_description_topic",
+        "/robot_description",
+        "latched std_msgs/String topic carrying the URDF",
+        check=check_nonempty,
+    ),
     ParamSpec("base_frame", "", "frame of the prior (its header.frame_id); empty = model YAML frames.base"),
     ParamSpec("tool_frame", "", "frame whose pose the prior is; empty = model YAML frames.tool"),
     ParamSpec("prior_topic", "/ppoe/pose", "kinematics prior (PoseWithCovarianceStamped)", check=check_nonempty),
@@ -102,54 +106,162 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("camera_info_topic", "/camera/camera_info", "CameraInfo for the focal lengths; empty = fit from u,v"),
     ParamSpec("joint_states_topic", "/joint_states", "JointState for joint positions at the prior stamps; empty = off"),
     ParamSpec("fused_topic", "/ppoe/fused_pose", "output topic (PoseWithCovarianceStamped)", check=check_nonempty),
-    ParamSpec("buffer_duration", _D["buffer_duration"], "history of priors kept; older measurements are dropped",
-              unit="s", min_value=1e-3, max_value=3600.0),
-    ParamSpec("max_gap", _D["max_gap"], "neighbouring priors further apart are not interpolated between",
-              unit="s", min_value=1e-6, max_value=3600.0),
-    ParamSpec("max_hold", _D["max_hold"], "max distance to the nearest prior when interpolation is impossible",
-              unit="s", min_value=0.0, max_value=3600.0),
-    ParamSpec("max_pending", _D["max_pending"], "measurements newer than the newest prior kept waiting",
-              min_value=0, max_value=100000),
-    ParamSpec("min_interval", _D["min_interval"], "per source (topic + frame_id): a measurement less than this after the last one "
-              "processed is skipped (counted as throttled); 0 = process all", unit="s", min_value=0.0,
-              max_value=3600.0),
-    ParamSpec("pending_timeout", 1.0, "when no prior arrived for this long (steady clock), pending measurements "
-              "are processed with the newest prior (hold) or dropped", unit="s", min_value=0.0, max_value=3600.0),
-    ParamSpec("correction_timeout", _D["correction_timeout"], "a carried correction fades over / is dropped "
-              "after this; <= 0 = off", unit="s", max_value=1e6),
-    ParamSpec("correction_joint_motion", _D["correction_joint_motion"], "... after this max-abs joint motion; "
-              "<= 0 = off", unit="rad or m", max_value=1e6),
-    ParamSpec("correction_tool_translation", _D["correction_tool_translation"], "... after this tool "
-              "translation; <= 0 = off", unit="m", max_value=1e6),
-    ParamSpec("correction_tool_rotation", _D["correction_tool_rotation"], "... after this tool rotation; "
-              "<= 0 = off", unit="rad", max_value=1e6),
-    ParamSpec("correction_decay", _D["correction_decay"], "linear: weight 1 - ratio; step: full weight until "
-              "dropped", check=lambda v: None if v in ("linear", "step") else f"must be 'linear' or 'step', got {v!r}"),
-    ParamSpec("max_iterations", _D["max_iterations"], "relinearisations of the iterated LG-EKF update "
-              "(1 = plain LG-EKF)", min_value=1, max_value=100),
-    ParamSpec("gate_probability", _D["gate_probability"], "chi-square gate probability; 1.0 = no gating",
-              min_value=0.5, max_value=1.0),
-    ParamSpec("gating", _D["gating"], "posterior: cost of the iterated solution; prior: NIS at the prior",
-              check=lambda v: None if v in ("posterior", "prior") else f"must be 'posterior' or 'prior', got {v!r}"),
-    ParamSpec("pixel_sigma", _D["pixel_sigma"], "1-sigma pixel noise; <= 0 = model YAML camera.pixel_sigma",
-              unit="px", max_value=1e6),
+    ParamSpec(
+        "buffer_duration",
+        _D["buffer_duration"],
+        "history of priors kept; older measurements are dropped",
+        unit="s",
+        min_value=1e-3,
+        max_value=3600.0,
+    ),
+    ParamSpec(
+        "max_gap",
+        _D["max_gap"],
+        "neighbouring priors further apart are not interpolated between",
+        unit="s",
+        min_value=1e-6,
+        max_value=3600.0,
+    ),
+    ParamSpec(
+        "max_hold",
+        _D["max_hold"],
+        "max distance to the nearest prior when interpolation is impossible",
+        unit="s",
+        min_value=0.0,
+        max_value=3600.0,
+    ),
+    ParamSpec(
+        "max_pending",
+        _D["max_pending"],
+        "measurements newer than the newest prior kept waiting",
+        min_value=0,
+        max_value=100000,
+    ),
+    ParamSpec(
+        "min_interval",
+        _D["min_interval"],
+        "per source (topic + frame_id): a measurement less than this after the last one "
+        "processed is skipped (counted as throttled); 0 = process all",
+        unit="s",
+        min_value=0.0,
+        max_value=3600.0,
+    ),
+    ParamSpec(
+        "pending_timeout",
+        1.0,
+        "when no prior arrived for this long (steady clock), pending measurements "
+        "are processed with the newest prior (hold) or dropped",
+        unit="s",
+        min_value=0.0,
+        max_value=3600.0,
+    ),
+    ParamSpec(
+        "correction_timeout",
+        _D["correction_timeout"],
+        "a carried correction fades over / is dropped after this; <= 0 = off",
+        unit="s",
+        max_value=1e6,
+    ),
+    ParamSpec(
+        "correction_joint_motion",
+        _D["correction_joint_motion"],
+        "... after this max-abs joint motion; <= 0 = off",
+        unit="rad or m",
+        max_value=1e6,
+    ),
+    ParamSpec(
+        "correction_tool_translation",
+        _D["correction_tool_translation"],
+        "... after this tool translation; <= 0 = off",
+        unit="m",
+        max_value=1e6,
+    ),
+    ParamSpec(
+        "correction_tool_rotation",
+        _D["correction_tool_rotation"],
+        "... after this tool rotation; <= 0 = off",
+        unit="rad",
+        max_value=1e6,
+    ),
+    ParamSpec(
+        "correction_decay",
+        _D["correction_decay"],
+        "linear: weight 1 - ratio; step: full weight until dropped",
+        check=lambda v: None if v in ("linear", "step") else f"must be 'linear' or 'step', got {v!r}",
+    ),
+    ParamSpec(
+        "max_iterations",
+        _D["max_iterations"],
+        "relinearisations of the iterated LG-EKF update (1 = plain LG-EKF)",
+        min_value=1,
+        max_value=100,
+    ),
+    ParamSpec(
+        "gate_probability",
+        _D["gate_probability"],
+        "chi-square gate probability; 1.0 = no gating",
+        min_value=0.5,
+        max_value=1.0,
+    ),
+    ParamSpec(
+        "gating",
+        _D["gating"],
+        "posterior: cost of the iterated solution; prior: NIS at the prior",
+        check=lambda v: None if v in ("posterior", "prior") else f"must be 'posterior' or 'prior', got {v!r}",
+    ),
+    ParamSpec(
+        "pixel_sigma",
+        _D["pixel_sigma"],
+        "1-sigma pixel noise; <= 0 = model YAML camera.pixel_sigma",
+        unit="px",
+        max_value=1e6,
+    ),
     ParamSpec("use_tag_centre", _D["use_tag_centre"], "use the tag centres (corner 0)"),
     ParamSpec("use_tag_corners", _D["use_tag_corners"], "use the tag corners 1..4"),
-    ParamSpec("camera_covariance", _D["camera_covariance"], "let the PPOE covariance of the camera chain "
-              "enter the tag model"),
-    ParamSpec("contact_distance_sigma", _D["contact_distance_sigma"], "extra 1-sigma noise of the contact "
-              "distance", unit="m", min_value=0.0, max_value=1e3),
+    ParamSpec(
+        "camera_covariance", _D["camera_covariance"], "let the PPOE covariance of the camera chain enter the tag model"
+    ),
+    ParamSpec(
+        "contact_distance_sigma",
+        _D["contact_distance_sigma"],
+        "extra 1-sigma noise of the contact distance",
+        unit="m",
+        min_value=0.0,
+        max_value=1e3,
+    ),
     ParamSpec("publish_on_update", True, "publish the newest fused pose right after an accepted measurement"),
-    ParamSpec("qos_depth", 1000, "history depth of the input subscriptions (a node that falls behind a "
-              "1 kHz prior stream catches up instead of losing priors)", min_value=1, max_value=100000),
+    ParamSpec(
+        "qos_depth",
+        1000,
+        "history depth of the input subscriptions (a node that falls behind a "
+        "1 kHz prior stream catches up instead of losing priors)",
+        min_value=1,
+        max_value=100000,
+    ),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
-    ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
-              min_value=0.0),
+    ParamSpec(
+        "log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s", min_value=0.0
+    ),
 )
 
-_STAT_KEYS = ("received", "published", "bad", "priors", "measurements", "accepted", "rejected", "dropped",
-              "dropped_stale", "dropped_no_prior", "dropped_no_model", "throttled", "corrections_dropped",
-              "pending", "empty_observations", "resets")
+_STAT_KEYS = (
+    "received",
+    "published",
+    "bad",
+    "priors",
+    "measurements",
+    "accepted",
+    "rejected",
+    "dropped",
+    "dropped_stale",
+    "dropped_no_prior",
+    "dropped_no_model",
+    "throttled",
+    "corrections_dropped",
+    "pending",
+    "empty_observations",
+    "resets",
+)
 
 
 class _JointBuffer:
@@ -210,8 +322,7 @@ class FusionNode(Node):
         self.tool_frame = p["tool_frame"] or frames.get("tool") or "tool0"
         self.settings = {k: p[k] for k in FUSION_SETTINGS}
         try:
-            self.pipeline = make_pipeline(None, self.base_frame, self.tool_frame, self.settings,
-                                          updater=self._update)
+            self.pipeline = make_pipeline(None, self.base_frame, self.tool_frame, self.settings, updater=self._update)
         except PpoeError as exc:
             raise ModelConfigError(f"node {self.get_name()}: {exc}") from None
         self.updater: ModelUpdater | None = None
@@ -235,8 +346,11 @@ class FusionNode(Node):
         sub(CameraInfo, p["camera_info_topic"], self._camera_info, qos)
         sub(JointState, p["joint_states_topic"], self._joint_state, qos)
         self._last_prior_wall = time.monotonic()
-        self.create_timer(0.1, guarded(self.stats, "pending measurements")(self._expire_pending),
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.create_timer(
+            0.1,
+            guarded(self.stats, "pending measurements")(self._expire_pending),
+            clock=Clock(clock_type=ClockType.STEADY_TIME),
+        )
 
         take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
         self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
@@ -260,7 +374,8 @@ class FusionNode(Node):
         self.joints.set_names(model.joint_names)
         self.get_logger().info(
             f"model from {where}: fusing into {self.base_frame} -> {self.tool_frame}; tags "
-            f"{sorted(updater.tags)}; contact {'yes' if updater.contact is not None else 'no'}")
+            f"{sorted(updater.tags)}; contact {'yes' if updater.contact is not None else 'no'}"
+        )
 
     def _robot_description(self, msg: String) -> None:
         if msg.data == self._urdf:
@@ -307,16 +422,24 @@ class FusionNode(Node):
             return
         frame = msg.header.frame_id
         fx, fy = self.focal.get(frame, (None, None))
-        payload = TagMeasurement(frame, d["id"].astype(int), d["corner"].astype(int),
-                            np.column_stack([d["x"], d["y"]]), np.column_stack([d["u"], d["v"]]), fx, fy)
+        payload = TagMeasurement(
+            frame,
+            d["id"].astype(int),
+            d["corner"].astype(int),
+            np.column_stack([d["x"], d["y"]]),
+            np.column_stack([d["u"], d["v"]]),
+            fx,
+            fy,
+        )
         source = source_key(self.params["observations_topic"], frame)
         self._measure(Measurement(stamp_to_ns(msg.header.stamp) * 1e-9, source, payload))
 
     def _contact(self, msg: PoseWithCovarianceStamped) -> None:
         self.stats.counts["received"] += 1
         T, cov_ros, stamp_ns, frame = pose_cov_from_msg(msg)
-        cov_plane = lie.check_covariance(lie.cov_ros_to_local(T, cov_ros),
-                                         name=f"{self.params['contact_topic']} covariance", size=6)
+        cov_plane = lie.check_covariance(
+            lie.cov_ros_to_local(T, cov_ros), name=f"{self.params['contact_topic']} covariance", size=6
+        )
         source = source_key(self.params["contact_topic"], frame)
         self._measure(Measurement(stamp_ns * 1e-9, source, ContactMeasurement(frame, T, cov_plane)))
 
@@ -342,9 +465,12 @@ class FusionNode(Node):
         if o.status == "bad":
             self.stats.bad(src, o.error)
         elif o.status in ("stale", "no_prior"):
-            self.stats.bad(src, f"measurement at {o.measurement.stamp:.6f} s: {o.status} (prior buffer "
-                                f"{self.pipeline.buffer.oldest} .. {self.pipeline.buffer.newest} s)",
-                           kind="dropped")
+            self.stats.bad(
+                src,
+                f"measurement at {o.measurement.stamp:.6f} s: {o.status} (prior buffer "
+                f"{self.pipeline.buffer.oldest} .. {self.pipeline.buffer.newest} s)",
+                kind="dropped",
+            )
         elif o.status == "rejected":
             self.stats.bad(src, f"rejected by the gate (cost {o.nis:.3g})", kind="rejected")
         elif o.status == "accepted" and self.params["publish_on_update"]:
@@ -358,8 +484,17 @@ class FusionNode(Node):
 
     def _sync_counts(self) -> None:
         c, s = self.pipeline.counts, self.stats.counts
-        for k in ("priors", "measurements", "accepted", "rejected", "dropped_stale", "dropped_no_prior",
-                  "corrections_dropped", "resets", "throttled"):
+        for k in (
+            "priors",
+            "measurements",
+            "accepted",
+            "rejected",
+            "dropped_stale",
+            "dropped_no_prior",
+            "corrections_dropped",
+            "resets",
+            "throttled",
+        ):
             s[k] = c[k]
         s["dropped"] = c["dropped_stale"] + c["dropped_no_prior"]
         s["pending"] = len(self.pipeline.pending)

@@ -233,7 +233,7 @@ def _relocate_by_imu(tree: KinematicTree, problem: LinearProblem, stops: Stops, 
     for k, c in enumerate(list(chosen)):
         others = [x for i, x in enumerate(chosen) if i != k]
 
-        def fitted(cand: Candidate) -> tuple[float, list[Effect]]:
+        def fitted(cand: Candidate, others: list[Candidate] = others) -> tuple[float, list[Effect]]:
             G = _stack(others + [cand], len(stops), stops.dim)
             fit = problem.fit(G, rows, iterations=2)
             ssr = float(np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows),
@@ -257,8 +257,14 @@ def _relocate_by_imu(tree: KinematicTree, problem: LinearProblem, stops: Stops, 
             if cost < 0.8 * best[0]:
                 best = (cost, alt)
         if best[1] is not c:
-            swaps.append({"from": c.key, "to": best[1].key, "imu_cost_from": _imu_cost(tree, stops, list(declared) + effs0),
-                          "imu_cost_to": best[0]})
+            swaps.append(
+                {
+                    "from": c.key,
+                    "to": best[1].key,
+                    "imu_cost_from": _imu_cost(tree, stops, list(declared) + effs0),
+                    "imu_cost_to": best[0],
+                }
+            )
             chosen[k] = best[1]
     return swaps
 
@@ -267,7 +273,7 @@ def _with_thetas(chosen: Sequence[Candidate], theta: np.ndarray) -> list[Effect]
     """The chosen effects with their slices of the stacked parameter vector."""
     out, i = [], 0
     for c in chosen:
-        out.append(c.effect.with_params(theta[i:i + c.effect.n_params]))
+        out.append(c.effect.with_params(theta[i : i + c.effect.n_params]))
         i += c.effect.n_params
     return out
 
@@ -278,12 +284,16 @@ def _summary(res: DiagnoseResult) -> str:
         head = f"found {len(res.effects)} effect(s): {names}"
     else:
         head = "no catalogue effect explains the residual significantly"
-    tail = (f"held-out RMS {1e3 * res.residual_before:.3f} mm -> {1e3 * res.residual_after:.3f} mm "
-            f"(noise floor {1e3 * res.noise_floor:.3f} mm)")
+    tail = (
+        f"held-out RMS {1e3 * res.residual_before:.3f} mm -> {1e3 * res.residual_after:.3f} mm "
+        f"(noise floor {1e3 * res.noise_floor:.3f} mm)"
+    )
     if res.extra.get("unexplained_significant"):
-        tail += (f"; UNEXPLAINED: {1e3 * res.unexplained:.3f} mm RMS above the noise floor is not "
-                 f"explained by any catalogue effect (held-out mean Mahalanobis^2 "
-                 f"{res.extra['heldout_mahalanobis2']:.2f}, expected 3)")
+        tail += (
+            f"; UNEXPLAINED: {1e3 * res.unexplained:.3f} mm RMS above the noise floor is not "
+            f"explained by any catalogue effect (held-out mean Mahalanobis^2 "
+            f"{res.extra['heldout_mahalanobis2']:.2f}, expected 3)"
+        )
     return head + "; " + tail
 
 
@@ -293,14 +303,25 @@ def _scores(R: np.ndarray) -> dict[str, float]:
     if not R.size:
         return {"n": 0}
     n3 = np.linalg.norm(R, axis=1)
-    return {"n": int(R.shape[0]), "rms": float(np.sqrt(np.mean(n3 ** 2))), "max": float(n3.max()),
-            "r95_xy": float(np.percentile(np.linalg.norm(R[:, :2], axis=1), 95)),
-            "r95_z": float(np.percentile(np.abs(R[:, 2]), 95))}
+    return {
+        "n": int(R.shape[0]),
+        "rms": float(np.sqrt(np.mean(n3**2))),
+        "max": float(n3.max()),
+        "r95_xy": float(np.percentile(np.linalg.norm(R[:, :2], axis=1), 95)),
+        "r95_z": float(np.percentile(np.abs(R[:, 2]), 95)),
+    }
 
 
-def _refit_sigma(tree: KinematicTree, stops: Stops, poses: Mapping, dq: Mapping, dxi: Mapping,
-                 pert: Mapping[str, np.ndarray], jnoise: Mapping[str, float], Rb: np.ndarray
-                 ) -> tuple[float, float, float, dict[str, float] | None]:
+def _refit_sigma(
+    tree: KinematicTree,
+    stops: Stops,
+    poses: Mapping,
+    dq: Mapping,
+    dxi: Mapping,
+    pert: Mapping[str, np.ndarray],
+    jnoise: Mapping[str, float],
+    Rb: np.ndarray,
+) -> tuple[float, float, float, dict[str, float] | None]:
     """Scale ``k`` of the model covariance so that the mean held-out NEES is 3.
 
     ``C_i = k^2 C_model,i + sigma^2 I`` with ``C_model`` the first-order PPOE covariance of the
@@ -317,7 +338,7 @@ def _refit_sigma(tree: KinematicTree, stops: Stops, poses: Mapping, dq: Mapping,
     ok = np.all(np.isfinite(Rb), axis=1)
     if not ok.any():
         return float("nan"), float("nan"), 1.0, None
-    S0 = stops.sigma ** 2 * np.eye(3)
+    S0 = stops.sigma**2 * np.eye(3)
 
     def nees(k: float) -> float:
         C = k * k * C_model[ok] + S0

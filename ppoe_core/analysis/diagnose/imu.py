@@ -362,9 +362,19 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         raw = np.einsum("nkij,nkj->nki", np.linalg.inv(W), rr.reshape(n, K, 2))
         return {k: [float(v) for v in np.sqrt(np.mean(raw[:, j] ** 2, axis=0))] for j, k in enumerate(stops.imus)}
 
-    return {"effects": effects_out, "steps": steps, "rejected": rejected,
-            "tilt_rms_before": rms_per_imu([]), "tilt_rms_after": rms_per_imu(chosen),
-            "heldout_mahalanobis2_before": float(np.mean(base0)) / (2 * K),
-            "heldout_mahalanobis2_after": float(np.mean(base)) / (2 * K),
-            "sigma_scale": math.sqrt(s2), "n": n, "reference_imu": list(stops.imus)[ref], "mounting": mounting, "imus": {k: ln for k, (ln, _) in stops.imus.items()},
-            "found": list(fitted.values()), "tilt": tilt}
+    return {
+        "effects": effects_out,
+        "steps": steps,
+        "rejected": rejected,
+        "tilt_rms_before": rms_per_imu([]),
+        "tilt_rms_after": rms_per_imu(chosen),
+        "heldout_mahalanobis2_before": float(np.mean(base0)) / (2 * K),
+        "heldout_mahalanobis2_after": float(np.mean(base)) / (2 * K),
+        "sigma_scale": math.sqrt(s2),
+        "n": n,
+        "reference_imu": list(stops.imus)[ref],
+        "mounting": mounting,
+        "imus": {k: ln for k, (ln, _) in stops.imus.items()},
+        "found": list(fitted.values()),
+        "tilt": tilt,
+    }

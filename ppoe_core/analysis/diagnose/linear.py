@@ -169,7 +169,8 @@ class LinearProblem:
                 d = -(np.einsum("sab,sb->sa", Hinv, gs) + HiHst @ dtheta)
                 T = lie.exp(d) @ T
                 theta = theta + dtheta
-                if it > 0 and np.abs(d).max(initial=0.0) < 1e-12 and np.all(np.abs(dtheta) <= 1e-10 * (1 + np.abs(theta))):
+                if (it > 0 and np.abs(d).max(initial=0.0) < 1e-12
+                        and np.all(np.abs(dtheta) <= 1e-10 * (1 + np.abs(theta)))):
                     break
             else:
                 r = self.whitened(self.residuals(G, theta, regs, rows), regs, rows)
@@ -183,13 +184,14 @@ class LinearProblem:
             regs = {int(k): T[i] for i, k in enumerate(sids)}
         r = self.whitened(self.residuals(G, theta, regs, rows), regs, rows)
         n_par = P + 6 * len(regs)
-        s2 = float(np.nansum(r ** 2) / max(r.size - n_par, 1))
+        s2 = float(np.nansum(r**2) / max(r.size - n_par, 1))
         cond, absorbed = _identifiability(H_red, H_tt, r.size)
         cov = s2 * np.linalg.pinv(H_red) if P else np.zeros((0, 0))
         return FitResult(theta, regs, cov, s2, cond, absorbed, rows)
 
-    def heldout(self, G: np.ndarray, folds: Sequence[tuple[np.ndarray, np.ndarray]]
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def heldout(
+        self, G: np.ndarray, folds: Sequence[tuple[np.ndarray, np.ndarray]]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Held-out residuals over ``folds``: ``(r_meas, r_base, e2w)``; ``r_meas`` and ``r_base``
         (N, 3) [m], NaN where a stop is not scored, in the measurement frame and rotated into
         the robot base frame axes; ``e2w`` (N,) the whitened squared position error
@@ -233,8 +235,9 @@ class LinearProblem:
 def _ssr(problem: LinearProblem, G: np.ndarray, rows: np.ndarray) -> float:
     """In-sample sum of squared residuals after a fit (screening of candidates)."""
     fit = problem.fit(G, rows, iterations=1)
-    return float(np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows),
-                                            fit.regs, fit.rows) ** 2))
+    return float(
+        np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows), fit.regs, fit.rows) ** 2)
+    )
 
 
 def _solve(H: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -302,9 +305,14 @@ def _restrict(c: Candidate, keep: Sequence[int], tree: KinematicTree) -> Candida
     return Candidate(eff, c.G[..., list(keep)])
 
 
-def _identifiable_subset(problem: LinearProblem, chosen: Sequence[Candidate], cand: Candidate,
-                         options: DiagnoseOptions, tree: KinematicTree, rows: np.ndarray
-                         ) -> tuple[Candidate | None, str, float]:
+def _identifiable_subset(
+    problem: LinearProblem,
+    chosen: Sequence[Candidate],
+    cand: Candidate,
+    options: DiagnoseOptions,
+    tree: KinematicTree,
+    rows: np.ndarray,
+) -> tuple[Candidate | None, str, float]:
     """Candidate (possibly with fewer link_error components) identifiable together with the
     registration and ``chosen``, with physically signed parameters; also its in-sample SSR.
 
@@ -319,15 +327,15 @@ def _identifiable_subset(problem: LinearProblem, chosen: Sequence[Candidate], ca
         if np.any(fit.absorbed[nb:] > options.max_absorbed):
             return False, "not separable from the tracker registration", math.inf
         if fit.condition > options.max_condition:
-            return False, (f"not separable from the effects already chosen (condition "
-                           f"{fit.condition:.2g})"), math.inf
+            return False, (f"not separable from the effects already chosen (condition {fit.condition:.2g})"), math.inf
         th = fit.theta[nb:]
         sd = np.sqrt(np.maximum(np.diag(fit.cov)[nb:], 0.0))
         neg = [k for k, v, s in zip(names, th, sd) if k in cand.effect.nonnegative and v + 1.96 * s < 0]
         if neg:
             return False, f"fitted {', '.join(neg)} < 0: unphysical sign", math.inf
-        ssr = float(np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows),
-                                               fit.regs, fit.rows) ** 2))
+        ssr = float(
+            np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows), fit.regs, fit.rows) ** 2)
+        )
         return True, "", ssr
 
     ok, why, ssr = check(cand.G, cand.effect.param_names)

@@ -1,4 +1,5 @@
-"""Tag-pixel measurement model of the pixel stage: predicted pixels, chain Jacobians, PPOE pixel covariance, candidates."""
+"""Tag-pixel measurement model of the pixel stage: predicted pixels, chain Jacobians, PPOE pixel covariance,
+candidates."""
 
 from __future__ import annotations
 
@@ -69,10 +70,20 @@ class PixelObs:
 
     def subset(self, rows: np.ndarray) -> PixelObs:
         """The observations ``rows`` (index or boolean array)."""
-        return PixelObs(q={k: v[rows] for k, v in self.q.items()}, link=self.link, point=self.point[rows],
-                        camera=self.camera[rows], cameras=self.cameras, K=self.K, D=self.D, uv=self.uv[rows],
-                        pose=self.pose[rows], sigma_px=self.sigma_px, name=self.name,
-                        context=_map_ctx(lambda v: v[rows], [self.context]))
+        return PixelObs(
+            q={k: v[rows] for k, v in self.q.items()},
+            link=self.link,
+            point=self.point[rows],
+            camera=self.camera[rows],
+            cameras=self.cameras,
+            K=self.K,
+            D=self.D,
+            uv=self.uv[rows],
+            pose=self.pose[rows],
+            sigma_px=self.sigma_px,
+            name=self.name,
+            context=_map_ctx(lambda v: v[rows], [self.context]),
+        )
 
 
 def _map_ctx(fn: Any, ctxs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -87,8 +98,9 @@ def _map_ctx(fn: Any, ctxs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def _camera_points(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
-                   ) -> tuple[np.ndarray, dict, dict, dict]:
+def _camera_points(
+    tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
+) -> tuple[np.ndarray, dict, dict, dict]:
     """Marker points in their camera's optical frame, shape (M, 3) [m], with the chain used."""
     dq, dxi = sum_effect_corrections(list(effects), obs.q, obs.context)
     poses = tree.link_poses(obs.q, dq, dxi, links=[obs.link, *obs.cameras])
@@ -115,8 +127,10 @@ def predict_pixels(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
     P = _camera_points(tree, obs, effects)[0]
     bad = P[:, 2] <= 1e-6
     if np.any(bad):
-        raise MeasurementError(f"{obs.name}: observation {int(np.flatnonzero(bad)[0])}: marker is behind "
-                               f"camera '{obs.cameras[int(obs.camera[bad][0])]}' (z = {P[bad][0, 2]:.3g} m)")
+        raise MeasurementError(
+            f"{obs.name}: observation {int(np.flatnonzero(bad)[0])}: marker is behind "
+            f"camera '{obs.cameras[int(obs.camera[bad][0])]}' (z = {P[bad][0, 2]:.3g} m)"
+        )
     uv = np.empty((len(obs), 2))
     for c in range(len(obs.cameras)):
         m = obs.camera == c
@@ -124,8 +138,9 @@ def predict_pixels(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
     return uv
 
 
-def pixel_chain_jacobians(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()
-                          ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+def pixel_chain_jacobians(
+    tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Analytic derivatives of the predicted pixels w.r.t. the eq. 16 insertions, on the chain
     corrected by ``effects``.
 
@@ -146,7 +161,7 @@ def pixel_chain_jacobians(tree: KinematicTree, obs: PixelObs, effects: Sequence[
     Jq_l, Jx_l = tree.frame_jacobian(obs.q, obs.link, poses, dq, dxi)
     R_l = poses[obs.link][:, :3, :3]
     B_l = np.concatenate([R_l, -R_l @ lie.hat3(obs.point)], axis=-1)  # (M, 3, 6): d p_root / d xi_l
-    A = np.zeros((n, 3, 3))   # d P_cam / d p_root = R_cam^T
+    A = np.zeros((n, 3, 3))  # d P_cam / d p_root = R_cam^T
     B_c = np.zeros((n, 3, 6))  # d P_cam / d xi_cam
     Jproj = np.zeros((n, 2, 3))
     cam_jac = []
@@ -172,8 +187,7 @@ def pixel_chain_jacobians(tree: KinematicTree, obs: PixelObs, effects: Sequence[
     return J_dq, J_dxi
 
 
-def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect,
-                   effects: Sequence[Effect] = ()) -> np.ndarray:
+def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect, effects: Sequence[Effect] = ()) -> np.ndarray:
     """Analytic derivative (M, 2, P) of the predicted pixels w.r.t. ``effect``'s parameters,
     evaluated on the chain corrected by ``effects``: :func:`pixel_chain_jacobians` times
     :meth:`Effect.basis` (evaluated on the nominal chain)."""
@@ -189,9 +203,13 @@ def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect,
     return out
 
 
-def pixel_covariance(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = (),
-                     pert: Mapping[str, np.ndarray] | None = None,
-                     jnoise: Mapping[str, float] | None = None) -> np.ndarray:
+def pixel_covariance(
+    tree: KinematicTree,
+    obs: PixelObs,
+    effects: Sequence[Effect] = (),
+    pert: Mapping[str, np.ndarray] | None = None,
+    jnoise: Mapping[str, float] | None = None,
+) -> np.ndarray:
     """Expected covariance (M, 2, 2) of each pixel residual [px^2], image axes: the first-order
     PPOE covariance (paper eq. 18 to first order: ``pert`` = 6x6 covariances of the insertions,
     tangent right after each joint's origin; ``jnoise`` = joint 1-sigma [rad, m]) propagated
@@ -239,13 +257,23 @@ def pixel_stats(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = 
     """Per camera frame: ``n``, ``rms``, ``median`` and ``max`` of the 2D reprojection error [px]
     (norm of measured minus predicted pixel, every observation counted)."""
     e = np.linalg.norm(obs.uv - predict_pixels(tree, obs, effects), axis=1)
-    return {f: {"n": int(np.sum(obs.camera == c)), "rms": float(np.sqrt(np.mean(e[obs.camera == c] ** 2))),
-                "median": float(np.median(e[obs.camera == c])), "max": float(np.max(e[obs.camera == c]))}
-            for c, f in enumerate(obs.cameras) if np.any(obs.camera == c)}
+    return {
+        f: {
+            "n": int(np.sum(obs.camera == c)),
+            "rms": float(np.sqrt(np.mean(e[obs.camera == c] ** 2))),
+            "median": float(np.median(e[obs.camera == c])),
+            "max": float(np.max(e[obs.camera == c])),
+        }
+        for c, f in enumerate(obs.cameras)
+        if np.any(obs.camera == c)
+    }
 
 
 def pixel_rms(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> dict[str, float]:
     """RMS of the 2D reprojection error [px] per camera frame (cameras without rows omitted)."""
     e = obs.uv - predict_pixels(tree, obs, effects)
-    return {f: float(np.sqrt(np.mean(np.sum(e[obs.camera == c] ** 2, axis=1))))
-            for c, f in enumerate(obs.cameras) if np.any(obs.camera == c)}
+    return {
+        f: float(np.sqrt(np.mean(np.sum(e[obs.camera == c] ** 2, axis=1))))
+        for c, f in enumerate(obs.cameras)
+        if np.any(obs.camera == c)
+    }

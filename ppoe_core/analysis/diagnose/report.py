@@ -42,7 +42,7 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
     if scale_sigmas and math.isfinite(k):
         pert = doc.get("perturbations") or {}
         if pert:
-            for jn, entry in pert.items():
+            for _jn, entry in pert.items():
                 if "sigma" in entry:
                     entry["sigma"] = [float(v * k) for v in entry["sigma"]]
                 if "covariance" in entry:

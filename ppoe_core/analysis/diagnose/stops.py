@@ -267,7 +267,7 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
            "joint_velocity": vel}
     # gravity direction in the root frame from an accelerometer on a link rigidly fixed to the root
     tree = KinematicTree(robot)
-    for imu_name, imu in sorted(data.imus.items()):
+    for _imu_name, imu in sorted(data.imus.items()):
         frame = imu.frame_ids[0] if imu.frame_ids else ""
         if (len(imu) and frame in robot.links
                 and not any(robot.joints[j].movable for j in robot.path_from_root(frame))):

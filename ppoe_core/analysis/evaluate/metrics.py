@@ -1,4 +1,5 @@
-"""Error metrics of ``ppoe evaluate``: position/rotation errors, their statistics, NEES of a pose or point covariance."""
+"""Error metrics of ``ppoe evaluate``: position/rotation errors, their statistics, NEES of a pose or point
+covariance."""
 
 from __future__ import annotations
 
@@ -111,7 +112,13 @@ def nees_stats(nees: np.ndarray, dof: int) -> dict[str, Any]:
     v = v[np.isfinite(v)]
     n = int(v.size)
     if n == 0:
-        return {"mean": float("nan"), "dof": dof, "n": 0, "bounds95": [float("nan")] * 2, "fraction_inside": float("nan")}
+        return {
+            "mean": float("nan"),
+            "dof": dof,
+            "n": 0,
+            "bounds95": [float("nan")] * 2,
+            "fraction_inside": float("nan"),
+        }
     lo, hi = scipy.stats.chi2.ppf([0.025, 0.975], n * dof) / n
     slo, shi = scipy.stats.chi2.ppf([0.025, 0.975], dof)
     return {

@@ -236,7 +236,8 @@ def contact_measurements(
             T = series.T[i]
             cov = lie.cov_ros_to_local(T, series.cov_ros[i])
             frame = series.frame_ids[i]
-            out.append(Measurement(float(series.stamps[i]), source_key(topic, frame), ContactMeasurement(frame, T, cov)))
+            payload = ContactMeasurement(frame, T, cov)
+            out.append(Measurement(float(series.stamps[i]), source_key(topic, frame), payload))
         counts["contact_planes"] = len(out)
         return out, counts
     wr = data.wrench
@@ -266,8 +267,15 @@ def contact_measurements(
     payload = ContactMeasurement(plane.frame, T_wire, cov_plane)
     source = source_key(topic, plane.frame)
     out = [Measurement(float(t), source, payload) for t in stamps]
-    counts.update({"contact_source": "/wrench", "contact_planes": len(out), "wrench": wcounts,
-                   "force_threshold": enter, "release_threshold": release})
+    counts.update(
+        {
+            "contact_source": "/wrench",
+            "contact_planes": len(out),
+            "wrench": wcounts,
+            "force_threshold": enter,
+            "release_threshold": release,
+        }
+    )
     return out, counts
 
 
@@ -363,9 +371,13 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     if kind == "pose":
         bad = [f for f in set(gt_pose.frame_ids) if f != base]
         if bad:
-            raise BagError(f"bag {bag}: topic /ground_truth/pose has frame_id {bad[0]!r}, expected the base frame {base!r}")
+            raise BagError(
+                f"bag {bag}: topic /ground_truth/pose has frame_id {bad[0]!r}, expected the base frame {base!r}"
+            )
     elif cfg.tracker is None:
-        raise ModelConfigError(f"{model_yaml}: the bag has /ground_truth/point but the model YAML has no 'tracker' section")
+        raise ModelConfigError(
+            f"{model_yaml}: the bag has /ground_truth/point but the model YAML has no 'tracker' section"
+        )
 
     order = np.argsort(js.stamps, kind="stable")
     stamps = js.stamps[order]
@@ -487,8 +499,10 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     # without any measurement the fused estimates are the priors: only FK is scored
     methods = ["fk"] + (list(pipes) if meas else [])
     if not meas:
-        summary["fusion"] = ("no tag observations, images, contact planes or wrenches in contact in the bag: only "
-                             "forward kinematics scored")
+        summary["fusion"] = (
+            "no tag observations, images, contact planes or wrenches in contact in the bag: only "
+            "forward kinematics scored"
+        )
 
     if kind == "pose":
         sel = np.flatnonzero(have)
@@ -500,9 +514,19 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             Te, Ce = est_T[m][sel], est_cov[m][sel]
             e3, el = position_errors(Te[:, :3, 3], p_gt, z_axis)
             rot = rotation_errors(Te, T_gt)
-            ne = _nees(lambda: fusion.nees(Te, _regularised(Ce), T_gt), bag, m)
-            samples.update({f"{m}_position_3d": e3, f"{m}_lateral": el, f"{m}_rotation": rot, f"{m}_nees": ne,
-                            f"{m}_position_error": Te[:, :3, 3] - p_gt})
+            def pose_nees(Te: np.ndarray = Te, Ce: np.ndarray = Ce) -> Any:
+                return fusion.nees(Te, _regularised(Ce), T_gt)
+
+            ne = _nees(pose_nees, bag, m)
+            samples.update(
+                {
+                    f"{m}_position_3d": e3,
+                    f"{m}_lateral": el,
+                    f"{m}_rotation": rot,
+                    f"{m}_nees": ne,
+                    f"{m}_position_error": Te[:, :3, 3] - p_gt,
+                }
+            )
             summary["methods"][m] = {
                 "position_3d": error_stats(e3),
                 "lateral": error_stats(el),
@@ -537,8 +561,14 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             res_fit = np.linalg.norm(
                 gt_point.p[fit] @ T_base_tracker[:3, :3].T + T_base_tracker[:3, 3] - p_fk[fit], axis=1
             )
-            reg.append({"group": name, "fit": int(len(fit)), "scored": int(len(ev_idx)),
-                        "fit_rms": float(np.sqrt(np.mean(res_fit**2)))})
+            reg.append(
+                {
+                    "group": name,
+                    "fit": int(len(fit)),
+                    "scored": int(len(ev_idx)),
+                    "fit_rms": float(np.sqrt(np.mean(res_fit**2))),
+                }
+            )
             scored.extend(ev_idx.tolist())
         sel = np.array(sorted(scored), int)
         summary["ground_truth"]["registration"] = {"method": desc, "groups": reg, "unscored": int(unscored)}
@@ -551,9 +581,18 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             e3, el = position_errors(p_e, p_gt_base[sel], z_axis)
             Cp = point_covariance(Te, Ce, r_tool[sel]) + cov_gt
             # e^T C^-1 e of the reflector position error (fusion.nis: the same quadratic form)
-            ne = _nees(lambda: fusion.nis(p_e - p_gt_base[sel], _regularised(Cp)), bag, m)
-            samples.update({f"{m}_position_3d": e3, f"{m}_lateral": el, f"{m}_nees": ne,
-                            f"{m}_position_error": p_e - p_gt_base[sel]})
+            def point_nees(p_e: np.ndarray = p_e, Cp: np.ndarray = Cp) -> Any:
+                return fusion.nis(p_e - p_gt_base[sel], _regularised(Cp))
+
+            ne = _nees(point_nees, bag, m)
+            samples.update(
+                {
+                    f"{m}_position_3d": e3,
+                    f"{m}_lateral": el,
+                    f"{m}_nees": ne,
+                    f"{m}_position_error": p_e - p_gt_base[sel],
+                }
+            )
             summary["methods"][m] = {
                 "position_3d": error_stats(e3),
                 "lateral": error_stats(el),

@@ -78,11 +78,16 @@ def markdown_report(ev: Evaluation) -> str:
         ne = r["nees"]
         lines.append(
             f"| {_LABELS[name]} | {r['position_3d']['n']} | {_fmt_mm(r['position_3d'])} | {_fmt_mm(r['lateral'])} | "
-            f"{_fmt_deg(r.get('rotation'))} | {ne['mean']:.3g} ({ne['dof']}, {ne['bounds95'][0]:.2f}-{ne['bounds95'][1]:.2f}) |"
+            f"{_fmt_deg(r.get('rotation'))} | {ne['mean']:.3g} "
+            f"({ne['dof']}, {ne['bounds95'][0]:.2f}-{ne['bounds95'][1]:.2f}) |"
         )
     fused = [(n, r) for n, r in ev.table_rows() if "measurements" in r]
     if fused:
-        lines += ["", "| method | accepted | rejected | stale | no prior | bad | NIS mean / dim |", "|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "| method | accepted | rejected | stale | no prior | bad | NIS mean / dim |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for name, r in fused:
             c = r["measurements"]["counts"]
             lines.append(

@@ -198,7 +198,9 @@ def load_motoman(path: str | Path) -> MotomanDataset:
     diff = np.abs(np.nan_to_num(data[:, cols] - per_pose[inverse][:, cols], nan=0.0))
     if np.any(diff > 1e-12):
         row = int(np.flatnonzero(np.any(diff > 1e-12, axis=1))[0]) + 1
-        raise DatasetError(f"{path}: row {row}: joint/Leica values differ from the first row of pose {data[row - 1, 0]:g}")
+        raise DatasetError(
+            f"{path}: row {row}: joint/Leica values differ from the first row of pose {data[row - 1, 0]:g}"
+        )
     return MotomanDataset(
         path=path,
         pose_ids=pose_ids.astype(int),
@@ -287,7 +289,13 @@ def motoman_model_dict(model_yaml: str | Path) -> dict[str, Any]:
     for face, T in sorted(markers.items()):
         rpy = lie.rpy_from_matrix(T[:3, :3])
         items.append(
-            {"id": face, "link": "EE1", "size": 0.03, "xyz": [float(v) for v in T[:3, 3]], "rpy": [float(v) for v in rpy]}
+            {
+                "id": face,
+                "link": "EE1",
+                "size": 0.03,
+                "xyz": [float(v) for v in T[:3, 3]],
+                "rpy": [float(v) for v in rpy],
+            }
         )
     return {
         "joint_noise": {j: 0.0005 for j in JOINT_NAMES},
