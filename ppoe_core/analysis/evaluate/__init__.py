@@ -89,10 +89,10 @@ from ppoe_core.analysis.evaluate.replay import (
     contact_measurements,
     evaluate_bag,
     joint_matrix,
-    registration_split,
     tag_measurements,
 )
 from ppoe_core.analysis.evaluate.report import markdown_report, write_report
+from ppoe_core.analysis.evaluate.scoring import registration_split
 
 __all__ = [
     "registration_split",

@@ -6,6 +6,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -14,17 +15,10 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.analysis.evaluate.metrics import (
     METHODS,
-    _nees,
-    _regularised,
-    error_stats,
-    nees_stats,
-    point_covariance,
-    position_errors,
-    rotation_errors,
 )
 from ppoe_core.analysis.evaluate.options import EvaluateOptions, Evaluation
+from ppoe_core.analysis.evaluate.scoring import score_points, score_poses
 from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
-from ppoe_core.estimation import fusion
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
 
 # ----------------------------------------------------------------------------
@@ -279,48 +273,6 @@ def contact_measurements(
     return out, counts
 
 
-def _stop_roles(bag: str, gt_stamps: np.ndarray) -> list[dict[str, Any] | None]:
-    """For each ground-truth stamp, the ``/dataset/stop`` info of the stop it belongs to (or None)."""
-    from ppoe_core.io.stops import read_stop_info
-
-    stops = read_stop_info(bag)
-    if not stops:
-        return [None] * len(gt_stamps)
-    st = np.array([s for s, _ in stops])
-    k = np.searchsorted(st, gt_stamps, side="right") - 1
-    return [stops[j][1] if j >= 0 else None for j in k]
-
-
-def registration_split(
-    roles: list[dict[str, Any] | None], n: int, fit_set: str
-) -> tuple[list[tuple[str, np.ndarray, np.ndarray]], str, int]:
-    """Groups ``(name, fit_idx, eval_idx)`` for point ground truth, a description, unscored count."""
-    if fit_set not in ("cross", "square", "all"):
-        raise PpoeError(f"--fit-set must be cross, square or all, not {fit_set!r}")
-    if all(r is not None and "role" in r and "station" in r for r in roles) and n:
-        groups: dict[str, tuple[list[int], list[int]]] = {}
-        for i, r in enumerate(roles):
-            assert r is not None
-            g = groups.setdefault(str(r["station"]), ([], []))
-            if r["role"] == "stationing" and (fit_set == "all" or fit_set in r.get("point_sets", [])):
-                g[0].append(i)
-            elif r["role"] == "evaluation":
-                g[1].append(i)
-        out, unscored = [], 0
-        for name, (fit, ev) in groups.items():
-            if len(fit) < 3:
-                unscored += len(ev)
-                continue
-            out.append((name, np.array(fit, int), np.array(ev, int)))
-        desc = (
-            f"per station (/dataset/stop): fitted on its stationing stops of set '{fit_set}', "
-            "scored on its evaluation stops"
-        )
-        return out, desc, unscored
-    idx = np.arange(n)
-    return [("all", idx[0::2], idx[1::2])], "one registration: fitted on even-numbered samples, scored on odd", 0
-
-
 def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptions | None = None) -> Evaluation:
     """Replay ``bag`` through the core pipeline and score FK, PPOE-fused and naive-fused poses.
 
@@ -343,22 +295,71 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     ModelConfigError, UnknownFrameError
         Bad model YAML or frame names.
     """
-    from ppoe_core.estimation.pipeline import make_pipeline, make_updater
     from ppoe_core.io.bagio import read_bag
 
     opt = options or EvaluateOptions()
     bag = str(bag)
     t_start = time.perf_counter()
     data = read_bag(bag)
-    urdf_xml = data.require_robot_description()
-    model = _load_model(urdf_xml, model_yaml)
+    model = _load_model(data.require_robot_description(), model_yaml)
+    base, tool, kind = _check_inputs(data, model, model_yaml, opt, bag)
+    pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml)
+    fs = opt.fusion_settings()
+    tag_meas, tag_counts = tag_measurements(data, model, bag, refine=str(fs["corner_refinement"]))
+    contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
+    meas = sorted(tag_meas + contact_meas, key=lambda m: m.stamp)
+    pipes, updaters = _pipelines(model, base, tool, fs, pri.cov_naive)
+    gt_stamps = data.ground_truth_pose.stamps if kind == "pose" else data.ground_truth_point.stamps
+    run = _replay(pri, meas, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
+
+    n_gt = len(gt_stamps)
+    have = np.all(np.isfinite(run.est_T["fk"].reshape(n_gt, -1)), axis=1)
+    summary: dict[str, Any] = {
+        "bag": bag,
+        "model": str(model_yaml),
+        "base": base,
+        "tool": tool,
+        "units": {"length": "m", "angle": "rad"},
+        "joint_states": int(len(data.joint_states)),
+        "joint_values_held": int(pri.held),
+        "bag_duration_s": float(pri.stamps[-1] - pri.stamps[0]) if len(pri.stamps) > 1 else 0.0,
+        "ground_truth": {
+            "topic": f"/ground_truth/{kind}",
+            "kind": kind,
+            "samples": int(n_gt),
+            "without_prior": int(np.sum(~have)),
+        },
+        "measurements": {"total": len(meas), **tag_counts, **contact_counts},
+        "fusion_settings": fs,
+        "methods": {},
+    }
+    samples: dict[str, np.ndarray] = {}
+    # without any measurement the fused estimates are the priors: only FK is scored
+    methods = ["fk"] + (list(pipes) if meas else [])
+    if not meas:
+        summary["fusion"] = (
+            "no tag observations, images, contact planes or wrenches in contact in the bag: only "
+            "forward kinematics scored"
+        )
+    if kind == "pose":
+        score_poses(summary, samples, run, data.ground_truth_pose, have, methods, bag)
+    else:
+        score_points(summary, samples, run, data.ground_truth_point, have, methods, model, tool, opt.fit_set, bag)
+    _measurement_summary(summary, run, pipes, updaters, methods)
+    summary["wall_time_s"] = float(time.perf_counter() - t_start)
+    return Evaluation(summary, samples)
+
+
+def _check_inputs(data: Any, model: Any, model_yaml: str | Path, opt: EvaluateOptions,
+                  bag: str) -> tuple[str, str, str]:
+    """``(base, tool, ground-truth kind)``; refuses a bag without joint states or ground truth, a ground-truth
+    pose in another frame than the base, or tracker points without a model ``tracker``."""
     cfg = model.config
     base = opt.base or (cfg.frames.base if cfg.frames is not None else None)
     tool = opt.tool or (cfg.frames.tool if cfg.frames is not None else None)
     if not base or not tool:
         raise ModelConfigError(f"{model_yaml}: no frames.base/frames.tool and no --base/--tool given")
-    js = data.joint_states
-    if len(js) == 0:
+    if len(data.joint_states) == 0:
         raise BagError(f"bag {bag}: no /joint_states messages")
     gt_pose, gt_point = data.ground_truth_pose, data.ground_truth_point
     if len(gt_pose) == 0 and len(gt_point) == 0:
@@ -378,30 +379,49 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         raise ModelConfigError(
             f"{model_yaml}: the bag has /ground_truth/point but the model YAML has no 'tracker' section"
         )
+    return base, tool, kind
 
-    order = np.argsort(js.stamps, kind="stable")
-    stamps = js.stamps[order]
+
+@dataclass
+class _Priors:
+    """Kinematics priors of every joint state (stamp order): ``T_base_tool`` and its covariance (tool frame)."""
+
+    stamps: np.ndarray
+    Q: np.ndarray
+    held: int
+    T_all: np.ndarray
+    cov_all: np.ndarray
+    cov_naive: np.ndarray | None
+
+
+def _fk_priors(js: Any, model: Any, base: str, tool: str, order: int, bag: str,
+               model_yaml: str | Path) -> _Priors:
+    """PPOE mean and covariance of the tool for every joint state (the kinematics node's output)."""
+    idx = np.argsort(js.stamps, kind="stable")
+    stamps = js.stamps[idx]
     Q, held = joint_matrix(js, model.joint_names, bag)
-    Q = Q[order]
+    Q = Q[idx]
     joints = {n: Q[:, j] for j, n in enumerate(model.joint_names)}
     try:
-        T_all, cov_all = model.fk(joints, base, tool, order=opt.order)
+        T_all, cov_all = model.fk(joints, base, tool, order=order)
     except (UnknownJointError, JointValueError) as exc:
         raise BagError(f"bag {bag}: topic /joint_states: {exc}") from None
+    cfg = model.config
     cov_naive = cfg.naive.covariance if cfg.naive is not None else None
     # validated once for the whole batch here (and the naive one by the model YAML loader), so
     # the pipelines skip the per-prior check
     lie.check_covariance(cov_all, name=f"bag {bag}: forward-kinematics covariance of {tool} in {base}", size=6)
     if cov_naive is not None:
         lie.check_covariance(cov_naive, name=f"{model_yaml}: naive covariance", size=6)
+    return _Priors(stamps, Q, held, T_all, cov_all, cov_naive)
 
-    fs = opt.fusion_settings()
-    tag_meas, tag_counts = tag_measurements(data, model, bag, refine=str(fs["corner_refinement"]))
-    contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
-    meas = sorted(tag_meas + contact_meas, key=lambda m: m.stamp)
 
-    # the fusion node's pipeline and updater (ppoe_core.estimation.pipeline.make_pipeline / make_updater
-    # with the node's settings); the naive model knows nothing of the camera chain's covariance
+def _pipelines(model: Any, base: str, tool: str, fs: dict[str, Any],
+               cov_naive: np.ndarray | None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The fusion node's pipeline and updater (``make_pipeline`` / ``make_updater`` with the node's settings) for
+    the PPOE and the naive prior; the naive model knows nothing of the camera chain's covariance."""
+    from ppoe_core.estimation.pipeline import make_pipeline, make_updater
+
     node_settings = {k: fs[k] for k in FUSION_SETTINGS}
     pipes: dict[str, Any] = {}
     updaters: dict[str, Any] = {}
@@ -414,204 +434,102 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             pipes[name] = make_pipeline(model, base, tool, s_name, updater=updaters[name])
         except (TypeError, ValueError) as exc:
             raise ModelConfigError(f"fusion settings: {exc}") from None
+    return pipes, updaters
 
-    gt_stamps = gt_pose.stamps if kind == "pose" else gt_point.stamps
-    # events: (stamp, kind rank, index); priors first, then measurements, then ground truth
-    ev_t = np.concatenate([stamps, [m.stamp for m in meas], gt_stamps])
-    ev_k = np.concatenate([np.zeros(len(stamps), int), np.ones(len(meas), int), np.full(len(gt_stamps), 2)])
-    ev_i = np.concatenate([np.arange(len(stamps)), np.arange(len(meas)), np.arange(len(gt_stamps))])
-    ev = np.lexsort((ev_i, ev_k, ev_t))
-    n_gt = len(gt_stamps)
-    est_T = {m: np.full((n_gt, 4, 4), np.nan) for m in METHODS}
-    est_cov = {m: np.full((n_gt, 6, 6), np.nan) for m in METHODS}
-    gt_joints = np.full((n_gt, len(model.joint_names)), np.nan)
-    nis: dict[str, list[tuple[float, int]]] = {m: [] for m in pipes}
-    outcomes: dict[str, dict[str, int]] = {m: {} for m in pipes}
-    errors: dict[str, list[str]] = {m: [] for m in pipes}
 
-    def record(name: str, outs: Sequence[Any]) -> None:
+@dataclass
+class ReplayRun:
+    """What the replay gives per method (``fk``, ``ppoe``, ``naive``) at every ground-truth stamp (NaN where no
+    prior): tool pose and covariance (tool frame), the joints of the prior, and the measurement outcomes."""
+
+    est_T: dict[str, np.ndarray]
+    est_cov: dict[str, np.ndarray]
+    gt_joints: np.ndarray
+    nis: dict[str, list[tuple[float, int]]]
+    outcomes: dict[str, dict[str, int]]
+    errors: dict[str, list[str]]
+
+    def record(self, name: str, outs: Sequence[Any], known_tags: Any) -> None:
+        """Count measurement outcomes; NIS with its dimension; the first 20 errors."""
         for o in outs:
-            outcomes[name][o.status] = outcomes[name].get(o.status, 0) + 1
+            self.outcomes[name][o.status] = self.outcomes[name].get(o.status, 0) + 1
             if o.status in ("accepted", "rejected") and math.isfinite(o.nis):
                 pl = o.measurement.payload
-                known = updaters[name].tags
-                dim = 2 * sum(int(t) in known for t in pl.ids) if hasattr(pl, "ids") else 1
-                nis[name].append((o.nis, dim))
-            if o.status == "bad" and len(errors[name]) < 20:
-                errors[name].append(o.error)
+                dim = 2 * sum(int(t) in known_tags for t in pl.ids) if hasattr(pl, "ids") else 1
+                self.nis[name].append((o.nis, dim))
+            if o.status == "bad" and len(self.errors[name]) < 20:
+                self.errors[name].append(o.error)
 
-    bar = ProgressBar(len(ev), opt.progress)
+
+def _replay(pri: _Priors, meas: list[Any], gt_stamps: np.ndarray, pipes: dict[str, Any], updaters: dict[str, Any],
+            n_joints: int, progress: bool) -> ReplayRun:
+    """Priors, measurements and ground-truth stamps in time order through the pipelines (as the nodes see them)."""
+    # events: (stamp, kind rank, index); priors first, then measurements, then ground truth
+    ev_t = np.concatenate([pri.stamps, [m.stamp for m in meas], gt_stamps])
+    ev_k = np.concatenate([np.zeros(len(pri.stamps), int), np.ones(len(meas), int), np.full(len(gt_stamps), 2)])
+    ev_i = np.concatenate([np.arange(len(pri.stamps)), np.arange(len(meas)), np.arange(len(gt_stamps))])
+    ev = np.lexsort((ev_i, ev_k, ev_t))
+    n_gt = len(gt_stamps)
+    run = ReplayRun({m: np.full((n_gt, 4, 4), np.nan) for m in METHODS},
+                    {m: np.full((n_gt, 6, 6), np.nan) for m in METHODS}, np.full((n_gt, n_joints), np.nan),
+                    {m: [] for m in pipes}, {m: {} for m in pipes}, {m: [] for m in pipes})
+    bar = ProgressBar(len(ev), progress)
     for done, e in enumerate(ev):
         k, i = int(ev_k[e]), int(ev_i[e])
         if k == 0:
             for name, pipe in pipes.items():
-                cov = cov_all[i] if name == "ppoe" else cov_naive
-                _, outs = pipe.add_prior(float(stamps[i]), T_all[i], cov, Q[i], validated=True)
-                record(name, outs)
+                cov = pri.cov_all[i] if name == "ppoe" else pri.cov_naive
+                _, outs = pipe.add_prior(float(pri.stamps[i]), pri.T_all[i], cov, pri.Q[i], validated=True)
+                run.record(name, outs, updaters[name].tags)
         elif k == 1:
             for name, pipe in pipes.items():
                 o = pipe.add_measurement(meas[i])
                 if o.status != "pending":
-                    record(name, [o])
+                    run.record(name, [o], updaters[name].tags)
         else:
-            t = float(gt_stamps[i])
-            for name, pipe in pipes.items():
-                # stamps near 1.7e9 s resolve ~0.24 us in float64: 1 us margin
-                record(name, pipe.flush(older_than=t + 1e-6))
-                status, prior = pipe.buffer.lookup_hold(t)
-                if prior is None:
-                    continue
-                fused = pipe.fuse(prior)
-                est_T[name][i], est_cov[name][i] = fused.T_base_tool, fused.cov_tool
-                if name == "ppoe":
-                    est_T["fk"][i], est_cov["fk"][i] = prior.T_base_tool, prior.cov_tool
-                    gt_joints[i] = prior.joints
-            if not pipes:  # no fusion at all: FK from the nearest joint state
-                j = int(np.clip(np.searchsorted(stamps, t, side="right") - 1, 0, len(stamps) - 1))
-                est_T["fk"][i], est_cov["fk"][i], gt_joints[i] = T_all[j], cov_all[j], Q[j]
+            _at_ground_truth(run, pri, float(gt_stamps[i]), i, pipes, updaters)
         if done % 256 == 0:
             bar.update(done)
     for name, pipe in pipes.items():
-        record(name, pipe.flush())
+        run.record(name, pipe.flush(), updaters[name].tags)
     bar.close()
+    return run
 
-    have = np.all(np.isfinite(est_T["fk"].reshape(n_gt, -1)), axis=1)
-    summary: dict[str, Any] = {
-        "bag": bag,
-        "model": str(model_yaml),
-        "base": base,
-        "tool": tool,
-        "units": {"length": "m", "angle": "rad"},
-        "joint_states": int(len(js)),
-        "joint_values_held": int(held),
-        "bag_duration_s": float(stamps[-1] - stamps[0]) if len(stamps) > 1 else 0.0,
-        "ground_truth": {
-            "topic": f"/ground_truth/{kind}",
-            "kind": kind,
-            "samples": int(n_gt),
-            "without_prior": int(np.sum(~have)),
-        },
-        "measurements": {"total": len(meas), **tag_counts, **contact_counts},
-        "fusion_settings": fs,
-        "methods": {},
-    }
-    samples: dict[str, np.ndarray] = {}
-    # without any measurement the fused estimates are the priors: only FK is scored
-    methods = ["fk"] + (list(pipes) if meas else [])
-    if not meas:
-        summary["fusion"] = (
-            "no tag observations, images, contact planes or wrenches in contact in the bag: only "
-            "forward kinematics scored"
-        )
 
-    if kind == "pose":
-        sel = np.flatnonzero(have)
-        T_gt = gt_pose.T[sel]
-        z_axis = T_gt[:, :3, 2]
-        p_gt = T_gt[:, :3, 3]
-        samples["stamp"] = gt_stamps[sel]
-        for m in methods:
-            Te, Ce = est_T[m][sel], est_cov[m][sel]
-            e3, el = position_errors(Te[:, :3, 3], p_gt, z_axis)
-            rot = rotation_errors(Te, T_gt)
-            def pose_nees(Te: np.ndarray = Te, Ce: np.ndarray = Ce) -> Any:
-                return fusion.nees(Te, _regularised(Ce), T_gt)
+def _at_ground_truth(run: ReplayRun, pri: _Priors, t: float, i: int, pipes: dict[str, Any],
+                     updaters: dict[str, Any]) -> None:
+    """Estimates of every method at ground-truth sample ``i`` (stamp ``t``)."""
+    for name, pipe in pipes.items():
+        # stamps near 1.7e9 s resolve ~0.24 us in float64: 1 us margin
+        run.record(name, pipe.flush(older_than=t + 1e-6), updaters[name].tags)
+        status, prior = pipe.buffer.lookup_hold(t)
+        if prior is None:
+            continue
+        fused = pipe.fuse(prior)
+        run.est_T[name][i], run.est_cov[name][i] = fused.T_base_tool, fused.cov_tool
+        if name == "ppoe":
+            run.est_T["fk"][i], run.est_cov["fk"][i] = prior.T_base_tool, prior.cov_tool
+            run.gt_joints[i] = prior.joints
+    if not pipes:  # no fusion at all: FK from the nearest joint state
+        j = int(np.clip(np.searchsorted(pri.stamps, t, side="right") - 1, 0, len(pri.stamps) - 1))
+        run.est_T["fk"][i], run.est_cov["fk"][i], run.gt_joints[i] = pri.T_all[j], pri.cov_all[j], pri.Q[j]
 
-            ne = _nees(pose_nees, bag, m)
-            samples.update(
-                {
-                    f"{m}_position_3d": e3,
-                    f"{m}_lateral": el,
-                    f"{m}_rotation": rot,
-                    f"{m}_nees": ne,
-                    f"{m}_position_error": Te[:, :3, 3] - p_gt,
-                }
-            )
-            summary["methods"][m] = {
-                "position_3d": error_stats(e3),
-                "lateral": error_stats(el),
-                "rotation": error_stats(rot),
-                "nees": nees_stats(ne, 6),
-            }
-    else:
-        tr = cfg.tracker
-        roles = _stop_roles(bag, gt_stamps)
-        groups, desc, unscored = registration_split(roles, n_gt, opt.fit_set)
-        usable = have & np.all(np.isfinite(gt_point.p), axis=1)
-        # reflector in tool coordinates at each sample (the chain tool -> tracker link may move)
-        r_tool = np.full((n_gt, 3), np.nan)
-        if usable.any():
-            jd = {n: gt_joints[usable, j] for j, n in enumerate(model.joint_names)}
-            T_tool_link = model.fk_mean(jd, tool, tr.link)
-            r_tool[usable] = T_tool_link[..., :3, :3] @ tr.xyz + T_tool_link[..., :3, 3]
-        Tfk = est_T["fk"]
-        p_fk = np.einsum("nij,nj->ni", Tfk[:, :3, :3], r_tool) + Tfk[:, :3, 3]
-        p_gt_base = np.full((n_gt, 3), np.nan)
-        scored: list[int] = []
-        reg = []
-        for name, fit, ev_idx in groups:
-            fit = fit[usable[fit]]
-            ev_idx = ev_idx[usable[ev_idx]]
-            if len(fit) < 3:
-                unscored += len(ev_idx)
-                continue
-            T_tracker_base = lie.fit_rigid(p_fk[fit], gt_point.p[fit])
-            T_base_tracker = lie.inverse(T_tracker_base)
-            p_gt_base[ev_idx] = gt_point.p[ev_idx] @ T_base_tracker[:3, :3].T + T_base_tracker[:3, 3]
-            res_fit = np.linalg.norm(
-                gt_point.p[fit] @ T_base_tracker[:3, :3].T + T_base_tracker[:3, 3] - p_fk[fit], axis=1
-            )
-            reg.append(
-                {
-                    "group": name,
-                    "fit": int(len(fit)),
-                    "scored": int(len(ev_idx)),
-                    "fit_rms": float(np.sqrt(np.mean(res_fit**2))),
-                }
-            )
-            scored.extend(ev_idx.tolist())
-        sel = np.array(sorted(scored), int)
-        summary["ground_truth"]["registration"] = {"method": desc, "groups": reg, "unscored": int(unscored)}
-        samples["stamp"] = gt_stamps[sel]
-        cov_gt = np.eye(3) * tr.sigma**2
-        z_axis = Tfk[sel, :3, 2]
-        for m in methods:
-            Te, Ce = est_T[m][sel], est_cov[m][sel]
-            p_e = np.einsum("nij,nj->ni", Te[:, :3, :3], r_tool[sel]) + Te[:, :3, 3]
-            e3, el = position_errors(p_e, p_gt_base[sel], z_axis)
-            Cp = point_covariance(Te, Ce, r_tool[sel]) + cov_gt
-            # e^T C^-1 e of the reflector position error (fusion.nis: the same quadratic form)
-            def point_nees(p_e: np.ndarray = p_e, Cp: np.ndarray = Cp) -> Any:
-                return fusion.nis(p_e - p_gt_base[sel], _regularised(Cp))
 
-            ne = _nees(point_nees, bag, m)
-            samples.update(
-                {
-                    f"{m}_position_3d": e3,
-                    f"{m}_lateral": el,
-                    f"{m}_nees": ne,
-                    f"{m}_position_error": p_e - p_gt_base[sel],
-                }
-            )
-            summary["methods"][m] = {
-                "position_3d": error_stats(e3),
-                "lateral": error_stats(el),
-                "nees": nees_stats(ne, 3),
-            }
+def _measurement_summary(summary: dict[str, Any], run: ReplayRun, pipes: dict[str, Any], updaters: dict[str, Any],
+                         methods: list[str]) -> None:
+    """Per fused method: pipeline counts, outcomes, unknown tag points, first errors, mean NIS."""
     for name, pipe in pipes.items():
         if name not in methods:
             continue
-        v = np.array(nis[name]) if nis[name] else np.zeros((0, 2))
+        v = np.array(run.nis[name]) if run.nis[name] else np.zeros((0, 2))
         summary["methods"][name]["measurements"] = {
             "counts": dict(pipe.counts),
-            "outcomes": outcomes[name],
+            "outcomes": run.outcomes[name],
             "unknown_tag_points": int(updaters[name].unknown_tag_points),
-            "errors": errors[name],
+            "errors": run.errors[name],
         }
         summary["methods"][name]["nis"] = {
             "mean": float(np.mean(v[:, 0])) if len(v) else float("nan"),
             "mean_per_dim": float(np.mean(v[:, 0] / v[:, 1])) if len(v) else float("nan"),
             "n": int(len(v)),
         }
-    summary["wall_time_s"] = float(time.perf_counter() - t_start)
-    return Evaluation(summary, samples)
