@@ -266,7 +266,9 @@ def test_ros_covariance_convention_monte_carlo():
 
 def test_check_covariance_errors():
     good = np.diag([1.0, 2, 3, 4, 5, 6])
-    assert lie.check_covariance(good, "ok", size=6) is not None
+    checked = lie.check_covariance(good.tolist(), "ok", size=6)  # a list is accepted and returned as an array
+    assert isinstance(checked, np.ndarray) and checked.dtype == float
+    np.testing.assert_array_equal(checked, good)
     with pytest.raises(CovarianceError, match="joint_a.*symmetric"):
         bad = good.copy()
         bad[0, 1] = 0.5

@@ -62,14 +62,23 @@ def _plain(msg) -> object:
     return msg
 
 
-def test_fastcdr_padding_trap_exists() -> None:
-    """The trap the recorder handles: rclpy's bytes of a one-joint JointState fail rosbags' size check."""
+def test_our_deserialiser_reads_rclpy_bytes_and_refuses_garbage() -> None:
+    """rclpy's bytes of a one-joint JointState end in FastCDR padding; ``bagio.deserialize`` (what the
+    recorder and the readers use) reads them as rclpy meant, and refuses truncated or trailing garbage
+    with an error naming the topic."""
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
 
+    from ppoe_core.errors import BagError
+    from ppoe_core.io import bagio
+
     raw = serialize_message(JointState(name=["a"], position=[1.0]))
-    with pytest.raises(Exception, match="size mismatch"):
-        TS.deserialize_cdr(raw, "sensor_msgs/msg/JointState")
+    msg = bagio.deserialize(raw, "sensor_msgs/msg/JointState", topic="/joint_states")
+    assert list(msg.name) == ["a"] and msg.position.tolist() == [1.0]
+    with pytest.raises(BagError, match="topic /joint_states: "):
+        bagio.deserialize(raw[:10], "sensor_msgs/msg/JointState", topic="/joint_states")
+    with pytest.raises(BagError, match="/joint_states: .* unexpected trailing bytes"):
+        bagio.deserialize(raw + b"\x01" * 16, "sensor_msgs/msg/JointState", topic="/joint_states")
 
 
 @pytest.mark.parametrize("sim_time", [False, True], ids=["wall_time", "use_sim_time"])

@@ -124,9 +124,10 @@ def serialize(msg: Any, msgtype: str) -> bytes:
 def deserialize(data: bytes | memoryview, msgtype: str, *, topic: str = "?") -> Any:
     """CDR bytes -> rosbags message object, tolerant of trailing alignment padding.
 
-    FastCDR (rclpy) may pad the end of a message; rosbags' own size check rejects
-    more than 3 bytes of it, so the payload is parsed here and any trailing bytes
-    that are all zero are accepted.
+    FastCDR (rclpy) pads the end of a message up to the next 8-byte boundary, with
+    whatever was in memory (seen: non-zero bytes); rosbags' own size check rejects
+    more than 3 bytes of it, so the payload is parsed here: up to 8 trailing bytes
+    of any content, and any number of zero bytes, are accepted.
 
     Raises
     ------
@@ -144,6 +145,6 @@ def deserialize(data: bytes | memoryview, msgtype: str, *, topic: str = "?") -> 
     except Exception as exc:  # rosbags raises several types; re-raise as ours
         raise BagError(f"topic {topic}: cannot deserialise {msgtype}: {exc}") from exc
     tail = raw[4 + pos:]
-    if len(tail) > 7 and any(tail):
+    if len(tail) > 8 and any(tail):
         raise BagError(f"topic {topic}: {len(tail)} unexpected trailing bytes after a {msgtype} message")
     return message
