@@ -15,9 +15,9 @@ from conftest import REPO
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from ppoe_core import lie
 from ppoe_core.cli.fk import parse_joint_assignments
 from ppoe_core.errors import JointValueError, UnknownJointError
-from ppoe_core import lie
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_ros.cli import main
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import CONFIG
+from jacobian_check import SE3_MINUS, check_jacobian
 
-from ppoe_core import lie
 from ppoe_core.errors import ModelConfigError, UnknownJointError
 from ppoe_core.model.effects import EFFECT_NAMES, effect_from_config, make_effect, sum_effect_corrections
 from ppoe_core.robot.tree import KinematicTree
@@ -41,23 +41,15 @@ def test_chain_jacobians_match_finite_differences(tree):
     link, p = "gripper_link", np.array([0.02, 0.01, 0.07])
     Jq, Jx = tree.point_jacobian(q, link, p)
     Fq, Fx = tree.frame_jacobian(q, link)
-    T0 = tree.link_poses(q)[link]
-    h = 1e-6
+    p_h = np.append(p, 1.0)
     for jn, J in Jx.items():
-        for k in range(6):
-            e = np.zeros(6)
-            e[k] = h
-            Tp = tree.link_poses(q, dxi={jn: e})[link]
-            Tm = tree.link_poses(q, dxi={jn: -e})[link]
-            fd = ((Tp - Tm) @ np.append(p, 1.0))[..., :3] / (2 * h)
-            np.testing.assert_allclose(J[..., k], fd, atol=1e-7)
-            fd_frame = (lie.ominus(Tp, T0) - lie.ominus(Tm, T0)) / (2 * h)
-            np.testing.assert_allclose(Fx[jn][..., k], fd_frame, atol=1e-7)
+        check_jacobian(lambda e, jn=jn: (tree.link_poses(q, dxi={jn: e})[link] @ p_h)[..., :3], np.zeros(6), J,
+                       err_msg=f"point wrt dxi {jn}")
+        check_jacobian(lambda e, jn=jn: tree.link_poses(q, dxi={jn: e})[link], np.zeros(6), Fx[jn],
+                       minus=SE3_MINUS, err_msg=f"frame wrt dxi {jn}")
     for jn, J in Jq.items():
-        Tp = tree.link_poses(q, dq={jn: h})[link]
-        Tm = tree.link_poses(q, dq={jn: -h})[link]
-        fd = ((Tp - Tm) @ np.append(p, 1.0))[..., :3] / (2 * h)
-        np.testing.assert_allclose(J, fd, atol=1e-7)
+        check_jacobian(lambda d, jn=jn: (tree.link_poses(q, dq={jn: d[0]})[link] @ p_h)[..., :3], np.zeros(1),
+                       J[..., None], err_msg=f"point wrt q {jn}")
 
 
 def test_mimic_offsets_propagate():

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import DATA
+from jacobian_check import SE3_MINUS, check_jacobian
 
 from ppoe_core import PPOEModel, lie, load_model_config, parse_urdf
 from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
@@ -265,13 +266,8 @@ def test_jacobian_joints_central_differences(edge, frm, to):
     q = _random_q(edge, rng)
     J = edge.jacobian_joints(q, frm, to)
     assert J.shape == (6, 4)
-    eps = 1e-6
     T0 = edge.fk_mean(q, frm, to)
-    for i in range(4):
-        dq = np.zeros(4)
-        dq[i] = eps
-        fd = lie.log(lie.inverse(edge.fk_mean(q - dq, frm, to)) @ edge.fk_mean(q + dq, frm, to)) / (2 * eps)
-        np.testing.assert_allclose(J[:, i], fd, atol=1e-8, err_msg=f"column {edge.joint_names[i]}")
+    check_jacobian(lambda x: edge.fk_mean(x, frm, to), q, J, minus=SE3_MINUS, atol=1e-8, err_msg=f"{frm}->{to}")
     assert np.all(np.isfinite(T0))
     Jb = edge.jacobian_joints(np.stack([q, q, q]), frm, to)
     np.testing.assert_allclose(Jb[2], J, atol=1e-14)
