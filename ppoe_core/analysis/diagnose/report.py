@@ -66,6 +66,16 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
     out.mkdir(parents=True, exist_ok=True)
     paths = {"json": out / "diagnose.json", "md": out / "diagnose.md", "png": out / "diagnose.png"}
     paths["json"].write_text(json.dumps(result.to_json(), indent=2), encoding="utf-8")
+    lines = (_md_effects(result, title) + _md_imu_tilt(result) + _md_imu_fit(result) + _md_pixels(result)
+             + _md_steps(result))
+    paths["md"].write_text("\n".join(lines) + "\n", encoding="utf-8")
+    if not _plot(result, paths["png"]):
+        paths.pop("png")
+    return paths
+
+
+def _md_effects(result: DiagnoseResult, title: str) -> list[str]:
+    """Title, residuals before/after, noise floor, NEES and the table of effects found."""
     lines = [f"# {title}", "", result.summary, "",
              f"* held-out residual (RMS 3D, {result.cv} cross-validation, {result.n_stops} stops, "
              f"{result.n_sessions} sessions): before **{1e3 * result.residual_before:.3f} mm**, after "
@@ -87,6 +97,12 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
                          f"{v:.6g} | [{lo:.6g}, {hi:.6g}] | {share} |")
     if not result.effects:
         lines.append("| (none) | | | | | |")
+    return lines
+
+
+def _md_imu_tilt(result: DiagnoseResult) -> list[str]:
+    """Accelerometer tilt residuals before/after (not used by the fit)."""
+    lines: list[str] = []
     if result.extra.get("imu_tilt"):
         lines += ["", "## Accelerometer tilt residuals (not used by the fit; per-session mean removed)", "",
                   "| IMU | link | stops | RMS rx, ry before [mrad] | after [mrad] |", "|---|---|---|---|---|"]
@@ -94,6 +110,12 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
             lines.append(f"| {k} | {v['link']} | {v['n']} | {1e3 * v['rms_before'][0]:.3f}, "
                          f"{1e3 * v['rms_before'][1]:.3f} | {1e3 * v['rms_after'][0]:.3f}, "
                          f"{1e3 * v['rms_after'][1]:.3f} |")
+    return lines
+
+
+def _md_imu_fit(result: DiagnoseResult) -> list[str]:
+    """The accelerometer stage: base tilt per bag/file and IMU-visible effects."""
+    lines: list[str] = []
     fit = result.extra.get("imu_fit")
     if fit:
         lines += ["", "## Accelerometer stage (base tilt per bag/file, effects seen by the IMUs)", "",
@@ -114,6 +136,12 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
                     f"{k} {v:.4g} [{e['ci'][k][0]:.4g}, {e['ci'][k][1]:.4g}]" for k, v in e["parameters"].items()))
         if not fit["effects"]:
             lines.append("* nothing found (no base tilt, no IMU-visible effect)")
+    return lines
+
+
+def _md_pixels(result: DiagnoseResult) -> list[str]:
+    """The tag-pixel stage: held-out and in-sample pixel RMS per camera."""
+    lines: list[str] = []
     if result.extra.get("pixels"):
         px = result.extra["pixels"]
         lines += ["", f"## Tag pixels ({px['n']} points; effects marked `measurement: pixels` above, share = of "
@@ -126,6 +154,12 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
         for f in px["pixel_rms_before"]:
             lines.append(f"| {f} | {px['pixel_rms_before'][f]:.2f} | {px['pixel_rms_after'][f]:.2f} | "
                          f"{px['pixel_rms_before_insample'][f]:.2f} | {px['pixel_rms_after_insample'][f]:.2f} |")
+    return lines
+
+
+def _md_steps(result: DiagnoseResult) -> list[str]:
+    """The selection steps and the candidates never attributed (not identifiable)."""
+    lines: list[str] = []
     lines += ["", "## Selection steps", "", "| candidate | accepted | held-out RMS [mm] | gain | t |",
               "|---|---|---|---|---|"]
     for s in result.steps:
@@ -134,7 +168,11 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
     if result.rejected:
         lines += ["", "## Not identifiable (never attributed)", ""]
         lines += [f"* {r['candidate']}: {r['reason']}" for r in result.rejected]
-    paths["md"].write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return lines
+
+
+def _plot(result: DiagnoseResult, png: Path) -> bool:
+    """Held-out error histogram and RMS per accepted step into ``png``; False without matplotlib."""
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -157,11 +195,11 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
         ax[1].set_ylabel("held-out RMS [mm]")
         ax[1].legend()
         fig.tight_layout()
-        fig.savefig(paths["png"], dpi=100)
+        fig.savefig(png, dpi=100)
         plt.close(fig)
     except ImportError:  # matplotlib is optional for the report
-        paths.pop("png")
-    return paths
+        return False
+    return True
 
 
 def load_model(model_yaml: str | Path | None, robot: Robot) -> tuple[Any, list[Effect], dict, dict]:
