@@ -245,6 +245,20 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
         raise BagError(f"bag {path}: no /ground_truth/point or /ground_truth/pose "
                        f"(measurement={measurement}): nothing to diagnose against")
     robot.check_link(link)
+    q, ctx = _joint_context(js, robot, link, stamps, path)
+    _gravity_context(data, robot, stamps, ctx)
+    imus = _imu_samples(data, robot, stamps)
+    n = len(stamps)
+    session, session_names, reg, score = _sessions(path, data, name, stamps, stationing_set)
+    return Stops(q=q, p_meas=np.asarray(meas, dtype=float), R_meas=R_meas, kind=kind, link=link, point=point,
+                 sigma=float(sigma), sigma_rot=pose_sigma_rot, base=base or robot.root, session=session,
+                 session_names=session_names, group=np.zeros(n, dtype=int), group_names=[name],
+                 reg_mask=reg, score_mask=score, context=ctx, imus=imus)
+
+
+def _joint_context(js: Any, robot: Robot, link: str, stamps: np.ndarray,
+                   path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Joint values at the measurement stamps and the context (time, motion sign, joint velocity)."""
     order = np.argsort(js.stamps, kind="stable")
     t_js = js.stamps[order]
     q: dict[str, np.ndarray] = {}
@@ -265,7 +279,12 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
     signs = motion_signs(t_js, np.column_stack(pos_cols), stamps) if pos_cols else np.zeros((len(stamps), 0))
     ctx = {"time": stamps - t_js[0], "motion_sign": {j: signs[:, i] for i, j in enumerate(jnames)},
            "joint_velocity": vel}
-    # gravity direction in the root frame from an accelerometer on a link rigidly fixed to the root
+    return q, ctx
+
+
+def _gravity_context(data: Any, robot: Robot, stamps: np.ndarray, ctx: dict[str, Any]) -> None:
+    """``ctx["gravity"]``: gravity direction in the root frame from the first accelerometer on a link
+    rigidly fixed to the root (none: no key)."""
     tree = KinematicTree(robot)
     for _imu_name, imu in sorted(data.imus.items()):
         frame = imu.frame_ids[0] if imu.frame_ids else ""
@@ -276,12 +295,22 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
             g = -np.column_stack([_sample_joint(imu.stamps, a[:, k], stamps) for k in range(3)]) @ R.T
             ctx["gravity"] = g / np.linalg.norm(g, axis=1)[:, None]
             break
+
+
+def _imu_samples(data: Any, robot: Robot, stamps: np.ndarray) -> dict[str, tuple[str, np.ndarray]]:
+    """Accelerometer readings (name -> (link, (n, 3))) at the measurement stamps."""
     imus: dict[str, tuple[str, np.ndarray]] = {}
     for imu_name, imu in sorted(data.imus.items()):
         frame = imu.frame_ids[0] if imu.frame_ids else ""
         if len(imu) and frame in robot.links:
             imus[imu_name] = (frame, np.column_stack([_sample_joint(imu.stamps, imu.linear_acceleration[:, k], stamps)
                                                       for k in range(3)]))
+    return imus
+
+
+def _sessions(path: str | Path, data: Any, name: str, stamps: np.ndarray,
+              stationing_set: str | None) -> tuple[np.ndarray, list[str], np.ndarray, np.ndarray]:
+    """Registration sessions and stop roles: one session per bag, or per station with ``/dataset/stop``."""
     n = len(stamps)
     session = np.zeros(n, dtype=int)
     session_names = [name]
@@ -299,7 +328,4 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
         reg = np.array([r == "stationing" and (stationing_set is None or stationing_set in s)
                         for r, s in zip(roles, sets)])
         score = np.array([r == "evaluation" for r in roles])
-    return Stops(q=q, p_meas=np.asarray(meas, dtype=float), R_meas=R_meas, kind=kind, link=link, point=point,
-                 sigma=float(sigma), sigma_rot=pose_sigma_rot, base=base or robot.root, session=session,
-                 session_names=session_names, group=np.zeros(n, dtype=int), group_names=[name],
-                 reg_mask=reg, score_mask=score, context=ctx, imus=imus)
+    return session, session_names, reg, score
