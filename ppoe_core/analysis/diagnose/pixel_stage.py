@@ -269,7 +269,6 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
     """
     from ppoe_core.estimation.measurements import tag_points
     from ppoe_core.io import bagio
-    from ppoe_core.sensing.tag_rows import observe_tags
 
     cfg = load_model(model_yaml, robot)[0]
     if cfg.tags is None or not cfg.tags.items:
@@ -283,29 +282,7 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
     intr: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for i, f in enumerate(ci.frame_ids):
         intr.setdefault(f, (ci.K[i], ci.D[i]))
-    rows_all: list[np.ndarray] = []  # [msg, id, corner, u, v]
-    frames: list[str] = []
-    stamps: list[float] = []
-    obs = data.tag_observations
-    if len(obs):
-        for i in range(len(obs)):
-            m = obs.message(i)
-            frames.append(obs.frame_ids[i])
-            stamps.append(float(obs.stamps[i]))
-            rows_all.append(np.column_stack([np.full(m["ids"].shape, i), m["ids"], m["corners"], m["uv"]]))
-    elif len(data.images):
-        imgs = data.images
-        for i in range(len(imgs)):
-            f = imgs.frame_ids[i]
-            if f not in intr:
-                raise BagError(f"bag {path}: topic {imgs.topic} message {i}: "
-                               f"no /camera/camera_info with frame_id {f!r}")
-            r, _ = observe_tags(imgs.decode(i), *intr[f], cfg.tags.family, tuple(by_id), refine)
-            frames.append(f)
-            stamps.append(float(imgs.stamps[i]))
-            rows_all.append(np.column_stack([np.full(len(r), i), r[:, :4]]))
-    else:
-        raise BagError(f"bag {path}: neither /tag_bearing/observations nor camera images")
+    rows_all, frames, stamps = _pixel_rows(data, path, intr, cfg, by_id, refine)
     rows = np.concatenate(rows_all) if rows_all else np.zeros((0, 5))
     if len(rows) == 0:
         raise BagError(f"bag {path}: no tag observed in {len(frames)} messages")
@@ -323,25 +300,7 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
     for f in cams:
         if f not in robot.links:
             raise BagError(f"bag {path}: camera frame {f!r} is not a link of URDF {robot.source}")
-    js = data.joint_states
-    at = np.asarray(stamps)[msg]
-    order = np.argsort(js.stamps, kind="stable")
-    t_js = js.stamps[order]
-    q: dict[str, np.ndarray] = {}
-    vel: dict[str, np.ndarray] = {}
-    cols = []
-    for j in KinematicTree(robot).joint_names:
-        col = js.column(j)[order]
-        good = np.isfinite(col)
-        if not np.any(good):
-            raise BagError(f"bag {path}: /joint_states carries no value of joint {j!r}")
-        q[j] = _sample_joint(t_js[good], col[good], at)
-        cols.append(np.interp(t_js, t_js[good], col[good]))
-        v = np.gradient(col[good], t_js[good]) if good.sum() > 1 else np.zeros(good.sum())
-        vel[j] = _sample_joint(t_js[good], v, at)
-    signs = motion_signs(t_js, np.column_stack(cols), at)
-    ctx = {"time": at - t_js[0], "joint_velocity": vel,
-           "motion_sign": {j: signs[:, i] for i, j in enumerate(q)}}
+    q, ctx = _joints_at(data.joint_states, robot, np.asarray(stamps)[msg], path)
     return PixelObs(q=q, context=ctx, link=links[0], point=point, camera=np.array([cams.index(frames[k]) for k in msg]),
                     cameras=cams, K=[intr[f][0] for f in cams], D=[intr[f][1] for f in cams], uv=rows[:, 3:5].copy(),
                     pose=msg, sigma_px=float(sigma_px), name=Path(path).name)
@@ -410,3 +369,57 @@ def add_pixel_diagnosis(result: DiagnoseResult, robot: Robot, obs: PixelObs, dec
     names = ", ".join(f"{e['name']}@{e['location']}" for e in pres.effects) or "none"
     result.summary += f"\nTag pixels ({pres.n} points): effects {names}; held-out RMS {per}."
     return pres
+
+
+def _pixel_rows(data: Any, path: str | Path, intr: dict[str, tuple[np.ndarray, np.ndarray]], cfg: Any,
+                by_id: dict, refine: str) -> tuple[list[np.ndarray], list[str], list[float]]:
+    """Rows ``[message, id, corner, u, v]`` per message from ``/tag_bearing/observations`` or, without it, from
+    tags detected on the images (the tag bearing node's function); camera frame and stamp per message."""
+    from ppoe_core.sensing.tag_rows import observe_tags
+
+    rows_all: list[np.ndarray] = []  # [msg, id, corner, u, v]
+    frames: list[str] = []
+    stamps: list[float] = []
+    obs = data.tag_observations
+    if len(obs):
+        for i in range(len(obs)):
+            m = obs.message(i)
+            frames.append(obs.frame_ids[i])
+            stamps.append(float(obs.stamps[i]))
+            rows_all.append(np.column_stack([np.full(m["ids"].shape, i), m["ids"], m["corners"], m["uv"]]))
+    elif len(data.images):
+        imgs = data.images
+        for i in range(len(imgs)):
+            f = imgs.frame_ids[i]
+            if f not in intr:
+                raise BagError(f"bag {path}: topic {imgs.topic} message {i}: "
+                               f"no /camera/camera_info with frame_id {f!r}")
+            r, _ = observe_tags(imgs.decode(i), *intr[f], cfg.tags.family, tuple(by_id), refine)
+            frames.append(f)
+            stamps.append(float(imgs.stamps[i]))
+            rows_all.append(np.column_stack([np.full(len(r), i), r[:, :4]]))
+    else:
+        raise BagError(f"bag {path}: neither /tag_bearing/observations nor camera images")
+    return rows_all, frames, stamps
+
+
+def _joints_at(js: Any, robot: Robot, at: np.ndarray, path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
+    """Joint values at the observation stamps ``at`` and the context (time, joint velocity, motion sign)."""
+    order = np.argsort(js.stamps, kind="stable")
+    t_js = js.stamps[order]
+    q: dict[str, np.ndarray] = {}
+    vel: dict[str, np.ndarray] = {}
+    cols = []
+    for j in KinematicTree(robot).joint_names:
+        col = js.column(j)[order]
+        good = np.isfinite(col)
+        if not np.any(good):
+            raise BagError(f"bag {path}: /joint_states carries no value of joint {j!r}")
+        q[j] = _sample_joint(t_js[good], col[good], at)
+        cols.append(np.interp(t_js, t_js[good], col[good]))
+        v = np.gradient(col[good], t_js[good]) if good.sum() > 1 else np.zeros(good.sum())
+        vel[j] = _sample_joint(t_js[good], v, at)
+    signs = motion_signs(t_js, np.column_stack(cols), at)
+    ctx = {"time": at - t_js[0], "joint_velocity": vel,
+           "motion_sign": {j: signs[:, i] for i, j in enumerate(q)}}
+    return q, ctx
