@@ -105,150 +105,185 @@ def diagnose_pixels(robot: Robot, obs: PixelObs, declared: Sequence[Effect] = ()
     MeasurementError
         Fewer than ``folds`` poses, or a marker behind its camera.
     """
-    tree = KinematicTree(robot)
-    declared = list(declared)
-    cands = list(candidates) if candidates is not None else pixel_candidates(robot, obs)
-    if len(np.unique(obs.pose)) < folds:
-        raise MeasurementError(f"{obs.name}: {len(np.unique(obs.pose))} poses with pixels, need >= {folds} folds")
-    C = pixel_covariance(tree, obs, declared, pert, jnoise)  # (M, 2, 2) [px^2]
-    W = np.linalg.inv(np.linalg.cholesky(C))  # whitening: W C W^T = I
-    e_raw = obs.uv - predict_pixels(tree, obs, declared)  # (M, 2) [px]
-    e0 = np.einsum("mij,mj->mi", W, e_raw)
-    J_raw = [pixel_jacobian(tree, obs, c, declared) for c in cands]  # (M, 2, P) [px / unit]
-    Gs = [W @ J for J in J_raw]
-    test_masks = _pose_folds(obs.pose, folds, seed)
-    poses_u, pose_idx = np.unique(obs.pose, return_inverse=True)
+    pp = _PixelProblem(robot, obs, list(declared), candidates, folds, seed, pert, jnoise)
+    chosen, steps, rejected, hist = pp.select(max_effects, max_condition, min_gain, min_t)
+    fitted, theta, G, r, sizes = pp.gauss_newton([pp.cands[i] for i in chosen], iterations)
+    cur = pp.declared + fitted
+    dof = max(len(r) - len(theta), 1)
+    s2 = float(r @ r / dof)
+    effects_out = pp.effects_out(fitted, G, r, sizes, hist, robust, s2) if fitted else []
 
-    def heldout(idx: Sequence[int]) -> np.ndarray:
+    def per_cam(v: np.ndarray, root: bool = True) -> dict[str, float]:
+        return {f: float(np.sqrt(np.mean(v[obs.camera == c])) if root else np.mean(v[obs.camera == c]))
+                for c, f in enumerate(obs.cameras) if np.any(obs.camera == c)}
+
+    sq0, m0 = pp.cv_errors([])
+    sq1, m1 = pp.cv_errors(chosen)
+    floor = per_cam(np.trace(pp.C, axis1=1, axis2=2))
+    unexplained = {f: float(np.sqrt(max(per_cam(sq1)[f] ** 2 - floor[f] ** 2, 0.0))) for f in floor}
+    # held-out mean Mahalanobis^2 per point (expectation 2 if the declared covariance is right);
+    # standard error from the per-pose sums (points of a pose are correlated)
+    counts = np.maximum(np.bincount(pp.pose_idx, minlength=len(pp.poses_u)), 1)
+    pm = np.bincount(pp.pose_idx, m1, minlength=len(pp.poses_u)) / counts
+    se = float(np.std(pm, ddof=1) / math.sqrt(len(pm))) if len(pm) > 1 else float("inf")
+    nees_after = float(np.mean(m1))
+    flagged = nees_after > 2.0 + 3.0 * se
+    tree = pp.tree
+    return PixelDiagnosis(effects=effects_out, fitted=fitted, rms_before=per_cam(sq0), rms_after=per_cam(sq1),
+                          rms_before_insample=pixel_rms(tree, obs, pp.declared),
+                          rms_after_insample=pixel_rms(tree, obs, cur),
+                          stats_before=pixel_stats(tree, obs, pp.declared),
+                          stats_after=pixel_stats(tree, obs, cur), steps=steps, rejected=rejected,
+                          sigma_scale=math.sqrt(s2), n=len(obs), noise_floor=floor, unexplained=unexplained,
+                          nees_before=float(np.mean(m0)), nees_after=nees_after, unexplained_flag=bool(flagged))
+
+
+class _PixelProblem:
+    """The whitened, linearised pixel problem of :func:`diagnose_pixels`: ``e = e0 - G theta`` per candidate,
+    pose-wise folds, and the steps of the stage (selection, Gauss-Newton fit, covariance, effects out)."""
+
+    def __init__(self, robot: Robot, obs: PixelObs, declared: list[Effect], candidates: Sequence[Effect] | None,
+                 folds: int, seed: int, pert: Mapping[str, np.ndarray] | None,
+                 jnoise: Mapping[str, float] | None) -> None:
+        self.robot, self.obs, self.declared = robot, obs, declared
+        self.tree = tree = KinematicTree(robot)
+        self.cands = list(candidates) if candidates is not None else pixel_candidates(robot, obs)
+        if len(np.unique(obs.pose)) < folds:
+            raise MeasurementError(f"{obs.name}: {len(np.unique(obs.pose))} poses with pixels, need >= {folds} folds")
+        self.C = pixel_covariance(tree, obs, declared, pert, jnoise)  # (M, 2, 2) [px^2]
+        self.W = np.linalg.inv(np.linalg.cholesky(self.C))  # whitening: W C W^T = I
+        self.e_raw = obs.uv - predict_pixels(tree, obs, declared)  # (M, 2) [px]
+        self.e0 = np.einsum("mij,mj->mi", self.W, self.e_raw)
+        self.J_raw = [pixel_jacobian(tree, obs, c, declared) for c in self.cands]  # (M, 2, P) [px / unit]
+        self.Gs = [self.W @ J for J in self.J_raw]
+        self.test_masks = _pose_folds(obs.pose, folds, seed)
+        self.poses_u, self.pose_idx = np.unique(obs.pose, return_inverse=True)
+
+    def heldout(self, idx: Sequence[int]) -> np.ndarray:
         """Per-pose held-out sum of squared whitened errors with candidates ``idx``."""
+        obs, Gs, e0 = self.obs, self.Gs, self.e0
         err = np.zeros(len(obs))
-        for test in test_masks:
+        for test in self.test_masks:
             G = np.concatenate([Gs[i] for i in idx], axis=2) if idx else np.zeros((len(obs), 2, 0))
             r = e0.copy()
             if idx:
                 th, _ = _lstsq(G[~test].reshape(-1, G.shape[2]), e0[~test].reshape(-1))
                 r = e0 - G @ th
             err[test] = np.sum(r[test] ** 2, axis=1)
-        return np.bincount(pose_idx, err, minlength=len(poses_u))
+        return np.bincount(self.pose_idx, err, minlength=len(self.poses_u))
 
-    chosen: list[int] = []
-    steps: list[dict[str, Any]] = []
-    rejected: list[dict[str, Any]] = []
-    base = heldout(chosen)
-    hist = [float(base.sum())]
-    while len(chosen) < max_effects:
-        best = None
-        for i in range(len(cands)):
-            if i in chosen:
-                continue
-            idx = chosen + [i]
-            G = np.concatenate([Gs[k] for k in idx], axis=2).reshape(-1, sum(Gs[k].shape[2] for k in idx))
-            _, Hs = _lstsq(G, e0.reshape(-1))
-            cond = float(np.linalg.cond(Hs))
-            key = cands[i].describe()
-            if not np.isfinite(cond) or cond > max_condition:
-                rejected.append({"effect": key, "reason": f"not identifiable (condition {cond:.3g})"})
-                continue
-            new = heldout(idx)
-            d = base - new
-            gain = float(d.sum() / max(base.sum(), 1e-300))
-            t = _paired_t(d)
-            if best is None or gain > best[1]:
-                best = (i, gain, t, new, cond)
-        if best is None:
-            break
-        i, gain, t, new, cond = best
-        step = {"effect": cands[i].describe(), "heldout_gain": gain, "t": t, "condition": cond}
-        if gain < min_gain or t < min_t:
-            rejected.append({**step, "reason": f"held-out gain {gain:.3f} (min {min_gain}), t {t:.2f} (min {min_t})"})
-            break
-        steps.append(step)
-        chosen.append(i)
-        base = new
-        hist.append(float(new.sum()))
+    def select(self, max_effects: int, max_condition: float, min_gain: float,
+               min_t: float) -> tuple[list[int], list[dict[str, Any]], list[dict[str, Any]], list[float]]:
+        """Greedy forward selection by held-out gain with a paired t test over poses (see diagnose_pixels)."""
+        Gs, cands, e0 = self.Gs, self.cands, self.e0
+        chosen: list[int] = []
+        steps: list[dict[str, Any]] = []
+        rejected: list[dict[str, Any]] = []
+        base = self.heldout(chosen)
+        hist = [float(base.sum())]
+        while len(chosen) < max_effects:
+            best = None
+            for i in range(len(cands)):
+                if i in chosen:
+                    continue
+                idx = chosen + [i]
+                G = np.concatenate([Gs[k] for k in idx], axis=2).reshape(-1, sum(Gs[k].shape[2] for k in idx))
+                _, Hs = _lstsq(G, e0.reshape(-1))
+                cond = float(np.linalg.cond(Hs))
+                key = cands[i].describe()
+                if not np.isfinite(cond) or cond > max_condition:
+                    rejected.append({"effect": key, "reason": f"not identifiable (condition {cond:.3g})"})
+                    continue
+                new = self.heldout(idx)
+                d = base - new
+                gain = float(d.sum() / max(base.sum(), 1e-300))
+                t = _paired_t(d)
+                if best is None or gain > best[1]:
+                    best = (i, gain, t, new, cond)
+            if best is None:
+                break
+            i, gain, t, new, cond = best
+            step = {"effect": cands[i].describe(), "heldout_gain": gain, "t": t, "condition": cond}
+            if gain < min_gain or t < min_t:
+                rejected.append({**step,
+                                 "reason": f"held-out gain {gain:.3f} (min {min_gain}), t {t:.2f} (min {min_t})"})
+                break
+            steps.append(step)
+            chosen.append(i)
+            base = new
+            hist.append(float(new.sum()))
+        return chosen, steps, rejected, hist
 
-    # final nonlinear Gauss-Newton fit on all data
-    fitted = [cands[i].with_params(np.zeros(cands[i].n_params)) for i in chosen]
-    sizes = [f.n_params for f in fitted]
-    theta = np.zeros(sum(sizes))
-    Hs = np.zeros((0, 0))
-    G = np.zeros((len(obs) * 2, 0))
-    r = e0.reshape(-1)
-    for _ in range(iterations if fitted else 0):
+    def gauss_newton(self, chosen: list[Effect],
+                     iterations: int) -> tuple[list[Effect], np.ndarray, np.ndarray, np.ndarray, list[int]]:
+        """Nonlinear Gauss-Newton fit of the chosen effects on all data: (fitted, theta, G, whitened r, sizes)."""
+        tree, obs, W, declared = self.tree, self.obs, self.W, self.declared
+        fitted = [c.with_params(np.zeros(c.n_params)) for c in chosen]
+        sizes = [f.n_params for f in fitted]
+        theta = np.zeros(sum(sizes))
+        G = np.zeros((len(obs) * 2, 0))
+        r = self.e0.reshape(-1)
+        for _ in range(iterations if fitted else 0):
+            cur = declared + fitted
+            r = np.einsum("mij,mj->mi", W, obs.uv - predict_pixels(tree, obs, cur)).reshape(-1)
+            G = np.concatenate([W @ pixel_jacobian(tree, obs, f, cur) for f in fitted], axis=2).reshape(len(r), -1)
+            dth, _ = _lstsq(G, r)
+            theta = theta + dth
+            fitted = [f.with_params(p) for f, p in zip(fitted, np.split(theta, np.cumsum(sizes)[:-1]))]
         cur = declared + fitted
         r = np.einsum("mij,mj->mi", W, obs.uv - predict_pixels(tree, obs, cur)).reshape(-1)
-        G = np.concatenate([W @ pixel_jacobian(tree, obs, f, cur) for f in fitted], axis=2).reshape(len(r), -1)
-        dth, Hs = _lstsq(G, r)
-        theta = theta + dth
-        fitted = [f.with_params(p) for f, p in zip(fitted, np.split(theta, np.cumsum(sizes)[:-1]))]
-    cur = declared + fitted
-    r = np.einsum("mij,mj->mi", W, obs.uv - predict_pixels(tree, obs, cur)).reshape(-1)
-    dof = max(len(r) - len(theta), 1)
-    s2 = float(r @ r / dof)
-    effects_out: list[dict[str, Any]] = []
-    if fitted:
+        return fitted, theta, G, r, sizes
+
+    def param_covariance(self, G: np.ndarray, r: np.ndarray, robust: bool, s2: float) -> np.ndarray:
+        """Parameter covariance: cluster-robust sandwich over poses (``robust``) or ``s^2 H^-1``."""
         H_inv = np.linalg.pinv(G.T @ G)
-        if robust:
-            # cluster-robust (sandwich) covariance, clusters = poses: errors of the points seen at
-            # one pose share that pose's arm and camera error
-            rp = r.reshape(len(obs), 2)
-            Gp = G.reshape(len(obs), 2, -1)
-            S = np.zeros((G.shape[1], G.shape[1]))
-            for g in range(len(poses_u)):
-                m = pose_idx == g
-                sg = np.einsum("mki,mk->i", Gp[m], rp[m])
-                S += np.outer(sg, sg)
-            n_g = len(poses_u)
-            cov_theta = H_inv @ S @ H_inv * (n_g / max(n_g - 1, 1))
-        else:
-            cov_theta = H_inv * s2
+        if not robust:
+            return H_inv * s2
+        # cluster-robust (sandwich) covariance, clusters = poses: errors of the points seen at
+        # one pose share that pose's arm and camera error
+        obs = self.obs
+        rp = r.reshape(len(obs), 2)
+        Gp = G.reshape(len(obs), 2, -1)
+        S = np.zeros((G.shape[1], G.shape[1]))
+        for g in range(len(self.poses_u)):
+            m = self.pose_idx == g
+            sg = np.einsum("mki,mk->i", Gp[m], rp[m])
+            S += np.outer(sg, sg)
+        n_g = len(self.poses_u)
+        return H_inv @ S @ H_inv * (n_g / max(n_g - 1, 1))
+
+    def effects_out(self, fitted: list[Effect], G: np.ndarray, r: np.ndarray, sizes: list[int], hist: list[float],
+                    robust: bool, s2: float) -> list[dict[str, Any]]:
+        """Effect entries (parameters, 95 % CI, sigma, share of the pixel residual) of the fitted effects."""
+        cov_theta = self.param_covariance(G, r, robust, s2)
         sig = np.sqrt(np.maximum(np.diag(cov_theta), 0.0))
+        out: list[dict[str, Any]] = []
         for k, (f, sg) in enumerate(zip(fitted, np.split(sig, np.cumsum(sizes)[:-1]))):
-            frame = next((cf for cf in obs.cameras if camera_mount_joint(robot, cf) == f.location), None)
-            effects_out.append({
+            frame = next((cf for cf in self.obs.cameras if camera_mount_joint(self.robot, cf) == f.location), None)
+            out.append({
                 "name": f.name, "location": f.location, "frame": frame, "measurement": "pixels",
                 "parameters": {p: float(v) for p, v in zip(f.param_names, f.params)},
                 "ci": {p: [float(v - 1.96 * s), float(v + 1.96 * s)] for p, v, s in zip(f.param_names, f.params, sg)},
                 "sigma": {p: float(s) for p, s in zip(f.param_names, sg)},
                 "share": float((hist[k] - hist[k + 1]) / hist[0]) if hist[0] > 0 else 0.0,
             })
+        return out
 
-    def cv_errors(idx: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    def cv_errors(self, idx: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
         """Held-out squared raw error [px^2] and Mahalanobis^2 per observation."""
+        obs, Gs, e0, e_raw = self.obs, self.Gs, self.e0, self.e_raw
         sq = np.zeros(len(obs))
         maha = np.zeros(len(obs))
-        for test in test_masks:
+        for test in self.test_masks:
             rr, ww = e_raw, e0
             if idx:
                 Gi = np.concatenate([Gs[k] for k in idx], axis=2)
                 th, _ = _lstsq(Gi[~test].reshape(-1, Gi.shape[2]), e0[~test].reshape(-1))
-                rr = e_raw - np.concatenate([J_raw[k] for k in idx], axis=2) @ th
+                rr = e_raw - np.concatenate([self.J_raw[k] for k in idx], axis=2) @ th
                 ww = e0 - Gi @ th
             sq[test] = np.sum(rr[test] ** 2, axis=1)
             maha[test] = np.sum(ww[test] ** 2, axis=1)
         return sq, maha
-
-    def per_cam(v: np.ndarray, root: bool = True) -> dict[str, float]:
-        return {f: float(np.sqrt(np.mean(v[obs.camera == c])) if root else np.mean(v[obs.camera == c]))
-                for c, f in enumerate(obs.cameras) if np.any(obs.camera == c)}
-
-    sq0, m0 = cv_errors([])
-    sq1, m1 = cv_errors(chosen)
-    floor = per_cam(np.trace(C, axis1=1, axis2=2))
-    unexplained = {f: float(np.sqrt(max(per_cam(sq1)[f] ** 2 - floor[f] ** 2, 0.0))) for f in floor}
-    # held-out mean Mahalanobis^2 per point (expectation 2 if the declared covariance is right);
-    # standard error from the per-pose sums (points of a pose are correlated)
-    counts = np.maximum(np.bincount(pose_idx, minlength=len(poses_u)), 1)
-    pm = np.bincount(pose_idx, m1, minlength=len(poses_u)) / counts
-    se = float(np.std(pm, ddof=1) / math.sqrt(len(pm))) if len(pm) > 1 else float("inf")
-    nees_after = float(np.mean(m1))
-    flagged = nees_after > 2.0 + 3.0 * se
-    return PixelDiagnosis(effects=effects_out, fitted=fitted, rms_before=per_cam(sq0), rms_after=per_cam(sq1),
-                          rms_before_insample=pixel_rms(tree, obs, declared),
-                          rms_after_insample=pixel_rms(tree, obs, cur), stats_before=pixel_stats(tree, obs, declared),
-                          stats_after=pixel_stats(tree, obs, cur), steps=steps, rejected=rejected,
-                          sigma_scale=math.sqrt(s2), n=len(obs), noise_floor=floor, unexplained=unexplained,
-                          nees_before=float(np.mean(m0)), nees_after=nees_after, unexplained_flag=bool(flagged))
 
 
 def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigma_px: float = 1.0,
