@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -49,6 +50,57 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     """
     options = options or DiagnoseOptions()
     tree = KinematicTree(robot)
+    _check_finite(robot, stops)
+    pert, jnoise = perturbation_cov or {}, joint_noise or {}
+    lin = _linearise(tree, stops, declared, pert, jnoise)
+    problem = LinearProblem(stops, lin.x0, lin.R0, lin.W_base, lin.W_rot)
+    cands = _candidates(tree, stops, lin, options)
+    mode, folds = make_folds(stops, options)
+    all_rows = np.arange(len(stops))
+    sel = _forward_selection(tree, problem, stops, cands, folds, options, all_rows)
+    chosen = sel.chosen
+    # locations the tracker cannot tell apart: let the accelerometers decide (not fitted to them)
+    relocated = _relocate_by_imu(tree, problem, stops, declared, chosen, cands, all_rows) if stops.imus else []
+    fit, ins_before, ins_after, lin_err = _final_fit(tree, stops, declared, chosen, problem, lin, all_rows)
+    effects_out, found = _effect_entries(chosen, fit, sel.steps, _rms_m(sel.R_before) ** 2)
+
+    # sigma refit (NEES on held-out stops)
+    ok = np.isfinite(sel.e2)
+    nees_before, nees_after, k_scale, fitted_jn = _refit_sigma(
+        tree, stops, lin.poses, lin.dq0, lin.dxi0, pert, jnoise, sel.Rb_after)
+    floor = math.sqrt(float(np.mean(np.trace(lin.C_exp, axis1=-2, axis2=-1))))
+    rms_b = _rms_m(sel.R_before)
+    rms_a = _rms_m(sel.R_after)
+    unexplained = math.sqrt(max(rms_a ** 2 - floor ** 2, 0.0))
+    res = DiagnoseResult(
+        effects=effects_out, residual_before=rms_b, residual_after=rms_a,
+        residual_before_insample=ins_before, residual_after_insample=ins_after,
+        noise_floor=floor, unexplained=unexplained, steps=sel.steps,
+        rejected=[{"candidate": k, "reason": v} for k, v in sel.rejected.items()],
+        nees_before=nees_before, nees_after=nees_after, sigma_scale=k_scale,
+        linearisation_error=lin_err, cv=mode, n_stops=int(ok.sum()), n_sessions=len(np.unique(stops.session)),
+        e2_before=np.sum(sel.R_before ** 2, axis=1), e2_after=np.sum(sel.R_after ** 2, axis=1), chosen=found)
+    res.extra["per_group"] = {stops.group_names[g]: {"before": _scores(sel.R_before[stops.group == g]),
+                                                     "after": _scores(sel.R_after[stops.group == g])}
+                              for g in np.unique(stops.group)}
+    if fitted_jn:
+        res.extra["fitted_joint_noise"] = fitted_jn
+    if relocated:
+        res.extra["relocated_by_imu"] = relocated
+    if stops.imus:
+        _accelerometer_extras(res, robot, tree, stops, declared, found, options, perturbation_cov, joint_noise)
+    # a systematic residual remains if the held-out mean squared Mahalanobis distance under the
+    # declared covariance exceeds its expectation 3 by more than 3 standard errors (chi^2_3 mean)
+    m2 = float(np.nanmean(sel.e2))
+    n_ok = int(np.isfinite(sel.e2).sum())
+    res.extra["heldout_mahalanobis2"] = m2
+    res.extra["unexplained_significant"] = bool(m2 > 3.0 + 3.0 * math.sqrt(6.0 / max(n_ok, 1)))
+    res.summary = _summary(res)
+    return res
+
+
+def _check_finite(robot: Robot, stops: Stops) -> None:
+    """At least 6 stops; no NaN/inf in the measurements or in the joint values the measured link needs."""
     n = len(stops)
     if n < 6:
         raise PpoeError(f"diagnose: only {n} stops with measurements; need at least 6")
@@ -61,6 +113,29 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         raise MeasurementError(f"diagnose: {int(bad.sum())} stops have non-finite measurements or joint "
                                f"values (first: stop {i} of {stops.group_names[stops.group[i]]}, session "
                                f"{stops.session_names[stops.session[i]]})")
+
+
+@dataclass
+class _Linearisation:
+    """The nominal prediction with the declared effects, chain Jacobians and whitening (expected covariance of the
+    measured point: declared PPOE covariance + sensor noise, base frame)."""
+
+    x0: np.ndarray
+    R0: np.ndarray | None
+    poses: dict[str, np.ndarray]
+    dq0: dict[str, np.ndarray]
+    dxi0: dict[str, np.ndarray]
+    chain: tuple
+    base_R: np.ndarray | None
+    nominal: dict[str, np.ndarray]
+    C_exp: np.ndarray
+    W_base: np.ndarray
+    W_rot: np.ndarray | None
+
+
+def _linearise(tree: KinematicTree, stops: Stops, declared: Sequence[Effect], pert: Mapping[str, np.ndarray],
+               jnoise: Mapping[str, float]) -> _Linearisation:
+    """Prediction, Jacobians and whitening at the declared model (see :class:`_Linearisation`)."""
     x0, R0, poses, dq0, dxi0 = predict_nominal(tree, stops, declared)
     base_R = None
     Jq, Jx = tree.point_jacobian(stops.q, stops.link, stops.point, poses, dq0, dxi0)
@@ -68,58 +143,54 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     if stops.kind == "pose" and stops.base and stops.base != tree.root:
         base_R = poses[stops.base][..., :3, :3]
     nominal = tree.link_poses(stops.q)
-    C_exp = _point_covariance(tree, stops, poses, dq0, dxi0, perturbation_cov or {}, joint_noise or {})
+    C_exp = _point_covariance(tree, stops, poses, dq0, dxi0, pert, jnoise)
     C_exp = C_exp + stops.sigma ** 2 * np.eye(3)
     W_base = np.linalg.inv(np.linalg.cholesky(C_exp))
     W_rot = None
     if stops.kind == "pose":
-        C_rot = _rotation_covariance(stops, Fq, Fx, perturbation_cov or {}, joint_noise or {})
+        C_rot = _rotation_covariance(stops, Fq, Fx, pert, jnoise)
         W_rot = np.linalg.inv(np.linalg.cholesky(C_rot + stops.sigma_rot ** 2 * np.eye(3)))
-    problem = LinearProblem(stops, x0, R0, W_base, W_rot)
+    return _Linearisation(x0, R0, poses, dq0, dxi0, (Jq, Jx, Fq, Fx), base_R, nominal, C_exp, W_base, W_rot)
+
+
+def _candidates(tree: KinematicTree, stops: Stops, lin: _Linearisation, options: DiagnoseOptions) -> list[Candidate]:
+    """Catalogue effects at plausible locations that move the measurement at all (``options.candidates`` filter)."""
     cands = []
     for eff in candidate_effects(tree, stops):
-        c = Candidate(eff, measurement_jacobian(tree, stops, eff, nominal, (Jq, Jx, Fq, Fx), base_R))
+        c = Candidate(eff, measurement_jacobian(tree, stops, eff, lin.nominal, lin.chain, lin.base_R))
         if options.candidates and not any(c.key.startswith(p) for p in options.candidates):
             continue
         if np.abs(c.G).max() > 0.0:
             cands.append(c)
-    mode, folds = make_folds(stops, options)
-    all_rows = np.arange(n)
+    return cands
 
+
+@dataclass
+class _Selection:
+    """Forward selection: chosen candidates, steps, rejections, held-out residuals before/after (metres, whitened
+    base-frame rows ``Rb``) and the held-out squared Mahalanobis distance per stop ``e2``."""
+
+    chosen: list[Candidate]
+    steps: list[dict[str, Any]]
+    rejected: dict[str, str]
+    R_before: np.ndarray
+    R_after: np.ndarray
+    Rb_after: np.ndarray
+    e2: np.ndarray
+
+
+def _forward_selection(tree: KinematicTree, problem: LinearProblem, stops: Stops, cands: list[Candidate],
+                       folds: Any, options: DiagnoseOptions, all_rows: np.ndarray) -> _Selection:
+    """Greedy forward selection by held-out error with paired t and signed-rank statistics (module docstring)."""
+    n = len(stops)
     chosen: list[Candidate] = []
     R_before, Rb_before, e2 = problem.heldout(_stack(chosen, n, stops.dim), folds)
     R_after, Rb_after = R_before, Rb_before
     steps: list[dict[str, Any]] = []
     rejected: dict[str, str] = {}
     while len(chosen) < options.max_effects:
-        best = None
-        screened = []
-        G_now = _stack(chosen, n, stops.dim)
-        ssr_now = _ssr(problem, G_now, all_rows)
-        for c in cands:
-            if c.key in rejected or any(c.key == k.key for k in chosen):
-                continue
-            if any(ch.effect.name == c.effect.name and ch.effect.location == c.effect.location for ch in chosen):
-                continue
-            c2, why, ssr = _identifiable_subset(problem, chosen, c, options, tree, all_rows)
-            if c2 is None:
-                rejected[c.key] = why
-                continue
-            screened.append((1.0 - ssr / ssr_now, c, c2))
-        screened.sort(key=lambda z: -z[0])
-        for _, c, c2 in screened[:options.screen]:
-            Rc, Rbc, e2c = problem.heldout(_stack(chosen + [c2], n, stops.dim), folds)
-            ok = np.isfinite(e2) & np.isfinite(e2c)
-            if ok.sum() < 3:
-                continue
-            mse0, mse1 = float(np.mean(e2[ok])), float(np.mean(e2c[ok]))
-            d = e2[ok] - e2c[ok]
-            t = _paired_t(d)
-            z = _signed_rank_z(d)
-            gain = 1.0 - mse1 / mse0
-            if best is None or mse1 < best[1]:
-                best = (c2, mse1, gain, (t, z), e2c, c.key, Rc, Rbc)
-    # (mse: mean whitened squared held-out error; reported RMS values are in metres)
+        best = _best_candidate(tree, problem, stops, cands, chosen, rejected, folds, options, all_rows, e2)
+        # (mse: mean whitened squared held-out error; reported RMS values are in metres)
         if best is None:
             break
         c2, mse1, gain, (t, z), e2c, key, Rc, Rbc = best
@@ -131,11 +202,50 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         chosen.append(c2)
         e2 = e2c
         R_after, Rb_after = Rc, Rbc
+    return _Selection(chosen, steps, rejected, R_before, R_after, Rb_after, e2)
 
-    # locations the tracker cannot tell apart: let the accelerometers decide (not fitted to them)
-    relocated = _relocate_by_imu(tree, problem, stops, declared, chosen, cands, all_rows) if stops.imus else []
 
-    # final fit on all stops, relinearised at the estimate (Gauss-Newton on the full chain)
+def _best_candidate(tree: KinematicTree, problem: LinearProblem, stops: Stops, cands: list[Candidate],
+                    chosen: list[Candidate], rejected: dict[str, str], folds: Any, options: DiagnoseOptions,
+                    all_rows: np.ndarray, e2: np.ndarray) -> tuple | None:
+    """The candidate with the lowest held-out error among the ``options.screen`` best screened in-sample."""
+    n = len(stops)
+    best = None
+    screened = []
+    G_now = _stack(chosen, n, stops.dim)
+    ssr_now = _ssr(problem, G_now, all_rows)
+    for c in cands:
+        if c.key in rejected or any(c.key == k.key for k in chosen):
+            continue
+        if any(ch.effect.name == c.effect.name and ch.effect.location == c.effect.location for ch in chosen):
+            continue
+        c2, why, ssr = _identifiable_subset(problem, chosen, c, options, tree, all_rows)
+        if c2 is None:
+            rejected[c.key] = why
+            continue
+        screened.append((1.0 - ssr / ssr_now, c, c2))
+    screened.sort(key=lambda z: -z[0])
+    for _, c, c2 in screened[:options.screen]:
+        Rc, Rbc, e2c = problem.heldout(_stack(chosen + [c2], n, stops.dim), folds)
+        ok = np.isfinite(e2) & np.isfinite(e2c)
+        if ok.sum() < 3:
+            continue
+        mse0, mse1 = float(np.mean(e2[ok])), float(np.mean(e2c[ok]))
+        d = e2[ok] - e2c[ok]
+        t = _paired_t(d)
+        z = _signed_rank_z(d)
+        gain = 1.0 - mse1 / mse0
+        if best is None or mse1 < best[1]:
+            best = (c2, mse1, gain, (t, z), e2c, c.key, Rc, Rbc)
+    return best
+
+
+def _final_fit(tree: KinematicTree, stops: Stops, declared: Sequence[Effect], chosen: list[Candidate],
+               problem: LinearProblem, lin: _Linearisation,
+               all_rows: np.ndarray) -> tuple[FitResult, float, float, float]:
+    """Final fit on all stops, relinearised at the estimate (Gauss-Newton on the full chain): fit, in-sample RMS
+    before/after and the linearisation error of the selection stage at the final estimate."""
+    n = len(stops)
     G = _stack(chosen, n, stops.dim)
     fit = problem.fit(G, all_rows, iterations=6)
     fit0 = problem.fit(G[..., :0], all_rows)
@@ -148,9 +258,9 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         xk, Rk, pk, dqk, dxik = predict_nominal(tree, stops, list(declared) + current)
         chain = (*tree.point_jacobian(stops.q, stops.link, stops.point, pk, dqk, dxik),
                  *tree.frame_jacobian(stops.q, stops.link, pk, dqk, dxik))
-        Gk = np.concatenate([measurement_jacobian(tree, stops, c.effect, nominal, chain, base_R)
+        Gk = np.concatenate([measurement_jacobian(tree, stops, c.effect, lin.nominal, chain, lin.base_R)
                              for c in chosen], axis=-1)
-        pk_problem = LinearProblem(stops, xk, Rk, W_base, W_rot)
+        pk_problem = LinearProblem(stops, xk, Rk, lin.W_base, lin.W_rot)
         gn_step = pk_problem.fit(Gk, all_rows, iterations=6)
         theta = theta + gn_step.theta
         ins_after = _rms3(pk_problem.residuals(Gk, gn_step.theta, gn_step.regs, gn_step.rows))
@@ -160,11 +270,16 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
             break
     if chosen:  # accuracy of the linear model used during selection, at the final estimate
         x_nl = predict_nominal(tree, stops, list(declared) + _with_thetas(chosen, theta))[0]
-        lin_err = float(np.max(np.linalg.norm(x_nl - (x0 + G[:, :3] @ theta), axis=1)))
+        lin_err = float(np.max(np.linalg.norm(x_nl - (lin.x0 + G[:, :3] @ theta), axis=1)))
+    return fit, ins_before, ins_after, lin_err
+
+
+def _effect_entries(chosen: list[Candidate], fit: FitResult, steps: list[dict[str, Any]],
+                    mse_before: float) -> tuple[list[dict[str, Any]], list[Effect]]:
+    """Contract entries (name, location, parameters, 95 % CI, sigma, share of the residual) and the effects."""
     effects_out: list[dict[str, Any]] = []
     found: list[Effect] = []
     i = 0
-    mse_before = _rms_m(R_before) ** 2
     for k, c in enumerate(chosen):
         P = c.effect.n_params
         th = fit.theta[i:i + P]
@@ -179,49 +294,24 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
         prev = mse_before if k == 0 else steps[k - 1]["heldout_rms"] ** 2
         entry["share"] = float((prev - steps[k]["heldout_rms"] ** 2) / mse_before)
         effects_out.append(entry)
+    return effects_out, found
 
-    # sigma refit (NEES on held-out stops)
-    ok = np.isfinite(e2)
-    nees_before, nees_after, k_scale, fitted_jn = _refit_sigma(
-        tree, stops, poses, dq0, dxi0, perturbation_cov or {}, joint_noise or {}, Rb_after)
-    floor = math.sqrt(float(np.mean(np.trace(C_exp, axis1=-2, axis2=-1))))
-    rms_b = _rms_m(R_before)
-    rms_a = _rms_m(R_after)
-    unexplained = math.sqrt(max(rms_a ** 2 - floor ** 2, 0.0))
-    res = DiagnoseResult(
-        effects=effects_out, residual_before=rms_b, residual_after=rms_a,
-        residual_before_insample=ins_before, residual_after_insample=ins_after,
-        noise_floor=floor, unexplained=unexplained, steps=steps,
-        rejected=[{"candidate": k, "reason": v} for k, v in rejected.items()],
-        nees_before=nees_before, nees_after=nees_after, sigma_scale=k_scale,
-        linearisation_error=lin_err, cv=mode, n_stops=int(ok.sum()), n_sessions=len(np.unique(stops.session)),
-        e2_before=np.sum(R_before ** 2, axis=1), e2_after=np.sum(R_after ** 2, axis=1), chosen=found)
-    res.extra["per_group"] = {stops.group_names[g]: {"before": _scores(R_before[stops.group == g]),
-                                                     "after": _scores(R_after[stops.group == g])}
-                              for g in np.unique(stops.group)}
-    if fitted_jn:
-        res.extra["fitted_joint_noise"] = fitted_jn
-    if relocated:
-        res.extra["relocated_by_imu"] = relocated
-    if stops.imus:  # accelerometer tilt residuals, before / after (in-sample, not used by the fit)
-        before = imu_tilt_residuals(tree, stops, list(declared))
-        after = imu_tilt_residuals(tree, stops, list(declared) + found)
-        res.extra["imu_tilt"] = {k: {"link": before[k]["link"], "n": before[k]["n"],
-                                     "rms_before": before[k]["rms"], "rms_after": after[k]["rms"]}
-                                 for k in before}
-        # accelerometer stage: per-file base tilt and IMU-visible effects on top of declared + found
-        imu_fit = diagnose_imu(robot, stops, list(declared) + found, seed=options.seed,
-                               sigma=options.imu_sigma if options.imu_sigma else 4e-4,
-                               perturbation_cov=perturbation_cov, joint_noise=joint_noise)
-        res.extra["imu_fit"] = {k: v for k, v in imu_fit.items() if k not in ("found", "tilt")}
-    # a systematic residual remains if the held-out mean squared Mahalanobis distance under the
-    # declared covariance exceeds its expectation 3 by more than 3 standard errors (chi^2_3 mean)
-    m2 = float(np.nanmean(e2))
-    n_ok = int(np.isfinite(e2).sum())
-    res.extra["heldout_mahalanobis2"] = m2
-    res.extra["unexplained_significant"] = bool(m2 > 3.0 + 3.0 * math.sqrt(6.0 / max(n_ok, 1)))
-    res.summary = _summary(res)
-    return res
+
+def _accelerometer_extras(res: DiagnoseResult, robot: Robot, tree: KinematicTree, stops: Stops,
+                          declared: Sequence[Effect], found: list[Effect], options: DiagnoseOptions,
+                          perturbation_cov: Mapping[str, np.ndarray] | None,
+                          joint_noise: Mapping[str, float] | None) -> None:
+    """Accelerometer tilt residuals before/after (in-sample, not used by the fit) and the accelerometer stage."""
+    before = imu_tilt_residuals(tree, stops, list(declared))
+    after = imu_tilt_residuals(tree, stops, list(declared) + found)
+    res.extra["imu_tilt"] = {k: {"link": before[k]["link"], "n": before[k]["n"],
+                                 "rms_before": before[k]["rms"], "rms_after": after[k]["rms"]}
+                             for k in before}
+    # accelerometer stage: per-file base tilt and IMU-visible effects on top of declared + found
+    imu_fit = diagnose_imu(robot, stops, list(declared) + found, seed=options.seed,
+                           sigma=options.imu_sigma if options.imu_sigma else 4e-4,
+                           perturbation_cov=perturbation_cov, joint_noise=joint_noise)
+    res.extra["imu_fit"] = {k: v for k, v in imu_fit.items() if k not in ("found", "tilt")}
 
 
 def _relocate_by_imu(tree: KinematicTree, problem: LinearProblem, stops: Stops, declared: Sequence[Effect],
