@@ -10,7 +10,8 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.analysis.diagnose.candidates import _carried_mass
-from ppoe_core.analysis.diagnose.stats import _lstsq, _paired_t, _pose_folds, _rotation_covariance
+from ppoe_core.analysis.diagnose.selection import GainSelection, select_by_heldout_gain
+from ppoe_core.analysis.diagnose.stats import _lstsq, _pose_folds, _rotation_covariance
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import MeasurementError
 from ppoe_core.model.effects import Effect, make_effect, sum_effect_corrections
@@ -188,193 +189,183 @@ def diagnose_imu(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     """
     if not stops.imus:
         raise MeasurementError("diagnose_imu: the stops carry no accelerometer (/imu/<name>) data")
-    tree = KinematicTree(robot)
-    declared = list(declared)
-    n, K = len(stops), len(stops.imus)
-    if n < folds:
-        raise MeasurementError(f"diagnose_imu: {n} stops with accelerometer data, need >= {folds}")
-    sig = np.array([sigma.get(k, 4e-4) if isinstance(sigma, Mapping) else float(sigma) for k in stops.imus])
-    C_tilt = imu_tilt_covariance(tree, stops, declared, sig, perturbation_cov, joint_noise)
-    W = np.linalg.inv(np.linalg.cholesky(C_tilt))  # (N, K, 2, 2) whitening
-
-    def wh(x: np.ndarray) -> np.ndarray:
-        """Whiten (N, K, 2) residuals or (N, K, 2, P) Jacobians."""
-        return np.einsum("nkij,nkj...->nki...", W, x)
-
-    n_grp = len(stops.group_names)
-    zero_tilt = np.zeros((n_grp, 2))
-    e_raw = imu_tilt_raw(tree, stops, declared, zero_tilt)
-    if not np.all(np.isfinite(e_raw)):
-        i = int(np.flatnonzero(~np.all(np.isfinite(e_raw), axis=(1, 2)))[0])
-        raise MeasurementError(f"diagnose_imu: non-finite accelerometer or joint values (first: stop {i} "
-                               f"of {stops.group_names[stops.group[i]]})")
-    e0 = wh(e_raw).reshape(n, -1)  # (N, 2K) whitened
-    cands = list(candidates) if candidates is not None else imu_candidates(tree, stops)
-    names = ["base_tilt@" + tree.root] + [c.describe() for c in cands]
-    effs: list[Effect | None] = [None] + cands
-    Gs = [wh(imu_jacobian(tree, stops, e, declared, zero_tilt)).reshape(n, 2 * K, -1)
-          for e in effs]
-    test_masks = _pose_folds(np.arange(n), folds, seed)
-    # mounting of every IMU but the reference (the one nearest the root, whose mounting is part of
-    # the base tilt): a constant small rotation, additive on its two tilt components (nuisance)
-    depth = [len(robot.path_from_root(ln)) for ln, _ in stops.imus.values()]
-    ref = int(np.argmin(depth))
-    mount_imus = [k for k in range(K) if k != ref]
-    Gm_axes = np.zeros((n, K, 2, 2 * len(mount_imus)))
-    for c, k in enumerate(mount_imus):
-        Gm_axes[:, k, 0, 2 * c] = 1.0
-        Gm_axes[:, k, 1, 2 * c + 1] = 1.0
-    Gm = wh(Gm_axes).reshape(n, 2 * K, -1)
-    nm = Gm.shape[2]
-
-    def stacked(idx: Sequence[int]) -> np.ndarray:
-        return np.concatenate([Gm] + [Gs[i] for i in idx], axis=2)
-
-    def heldout(idx: Sequence[int]) -> np.ndarray:
-        err = np.zeros(n)
-        G = stacked(idx)
-        for test in test_masks:
-            r = e0
-            if G.shape[2]:
-                Gt = G[~test].reshape(-1, G.shape[2])
-                live = np.any(Gt != 0.0, axis=0)  # groups without training stops stay at 0
-                th = np.zeros(G.shape[2])
-                th[live], _ = _lstsq(Gt[:, live], e0[~test].reshape(-1))
-                r = e0 - G @ th
-            err[test] = np.sum(r[test] ** 2, axis=1)
-        return err
-
-    chosen: list[int] = []
-    steps: list[dict[str, Any]] = []
-    rejected: list[dict[str, Any]] = []
-    base = heldout(chosen)
-    base0 = base.copy()
-    while len(chosen) < max_effects:
-        best = None
-        for i in range(len(effs)):
-            if i in chosen or any(r.get("effect") == names[i] for r in rejected):
-                continue
-            idx = chosen + [i]
-            G = stacked(idx).reshape(-1, stacked(idx).shape[2])
-            th, Hs = _lstsq(G, e0.reshape(-1))
-            cond = float(np.linalg.cond(Hs))
-            if not np.isfinite(cond) or cond > max_condition:
-                rejected.append({"effect": names[i], "reason": f"not identifiable (condition {cond:.3g})"})
-                continue
-            P = Gs[i].shape[2]
-            eff = effs[i]
-            if eff is not None and any(th[-P + k] < 0 for k, p in enumerate(eff.param_names) if p in eff.nonnegative):
-                rejected.append({"effect": names[i], "reason": "negative compliance"})
-                continue
-            new = heldout(idx)
-            d = base - new
-            gain = float(d.sum() / max(base.sum(), 1e-300))
-            t = _paired_t(d)
-            if best is None or gain > best[1]:
-                best = (i, gain, t, new, cond)
-        if best is None:
-            break
-        i, gain, t, new, cond = best
-        step = {"effect": names[i], "heldout_gain": gain, "t": t, "condition": cond}
-        if gain < min_gain or t < min_t:
-            rejected.append({**step, "reason": f"held-out gain {gain:.3f} (min {min_gain}), t {t:.2f} (min {min_t})"})
-            break
-        steps.append(step)
-        chosen.append(i)
-        base = new
-
-    # final Gauss-Newton on the nonlinear chain
-    tilt = zero_tilt.copy()
-    fitted = {i: e.with_params(np.zeros(e.n_params)) for i in chosen if (e := effs[i]) is not None}
-    sizes = [Gs[i].shape[2] for i in chosen]
-    theta = np.zeros(nm + sum(sizes))
-    G = np.zeros((n * 2 * K, 0))
-    live = np.zeros(0, dtype=bool)
-    mount = np.zeros((K, 2))
-
-    def unpack(th: np.ndarray) -> None:
-        nonlocal tilt
-        mount[mount_imus] = th[:nm].reshape(-1, 2)
-        for i, p in zip(chosen, np.split(th[nm:], np.cumsum(sizes)[:-1])):
-            if effs[i] is None:
-                tilt = p.reshape(n_grp, 2).copy()
-            else:
-                fitted[i] = fitted[i].with_params(p)
-
-    for _ in range(iterations):
-        cur = declared + list(fitted.values())
-        r = wh(imu_tilt_raw(tree, stops, cur, tilt) - mount).reshape(-1)
-        G = np.concatenate([Gm.reshape(n * 2 * K, -1)] + [wh(imu_jacobian(tree, stops, fitted.get(i), cur, tilt))
-                            .reshape(n * 2 * K, -1) for i in chosen], axis=1)
-        live = np.any(G != 0.0, axis=0)
-        dth = np.zeros(G.shape[1])
-        dth[live], _ = _lstsq(G[:, live], r)
-        theta = theta + dth
-        unpack(theta)
-    cur = declared + list(fitted.values())
-    r = wh(imu_tilt_raw(tree, stops, cur, tilt) - mount).reshape(-1)
-    s2 = float(r @ r / max(r.size - int(live.sum()), 1))
-    cov = np.zeros((theta.size, theta.size))
-    if theta.size:
-        cov[np.ix_(live, live)] = np.linalg.pinv(G[:, live].T @ G[:, live]) * max(s2, 1.0)
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    ip = _ImuProblem(robot, stops, list(declared), sigma, candidates, folds, seed, perturbation_cov, joint_noise)
+    sel = select_by_heldout_gain(len(ip.effs), lambda i: ip.names[i],
+                                 lambda idx: ip.stacked(idx).reshape(-1, ip.stacked(idx).shape[2]),
+                                 ip.heldout, ip.e0, max_effects=max_effects, max_condition=max_condition,
+                                 min_gain=min_gain, min_t=min_t, skip_rejected=True, check=ip.negative_compliance)
+    fitted, theta, tilt, mount, s2, sd = ip.gauss_newton(sel.chosen, iterations)
+    nm = ip.nm
     mount_sd = sd[:nm].reshape(-1, 2)
     mounting = {list(stops.imus)[k]: {"rx": float(mount[k, 0]), "ry": float(mount[k, 1]),
                                       "sigma": [float(v) for v in mount_sd[c]]}
-                for c, k in enumerate(mount_imus)}
-    theta, sd = theta[nm:], sd[nm:]
-    effects_out: list[dict[str, Any]] = []
-    tot0 = float(base0.sum())
-    prev = tot0
-    for k, (i, th, s) in enumerate(zip(chosen, np.split(theta, np.cumsum(sizes)[:-1]),
-                                       np.split(sd, np.cumsum(sizes)[:-1]))):
-        share = float(steps[k]["heldout_gain"] * prev / tot0) if tot0 > 0 else 0.0
-        prev = prev * (1.0 - steps[k]["heldout_gain"])
-        if effs[i] is None:
-            tv, ts = th.reshape(n_grp, 2), s.reshape(n_grp, 2)
-            per = {g: {"tilt_x": float(tv[j, 0]), "tilt_y": float(tv[j, 1]),
-                       "ci": {"tilt_x": [float(tv[j, 0] - 1.96 * ts[j, 0]), float(tv[j, 0] + 1.96 * ts[j, 0])],
-                              "tilt_y": [float(tv[j, 1] - 1.96 * ts[j, 1]), float(tv[j, 1] + 1.96 * ts[j, 1])]},
-                       "sigma": {"tilt_x": float(ts[j, 0]), "tilt_y": float(ts[j, 1])}}
-                   for j, g in enumerate(stops.group_names) if np.any(stops.group == j)}
-            effects_out.append({"name": "base_tilt", "location": tree.root, "measurement": "imu",
-                                "per_group": per, "share": share})
-        else:
-            f = fitted[i]
-            effects_out.append({"name": f.name, "location": f.location, "measurement": "imu",
-                                "parameters": {p: float(v) for p, v in zip(f.param_names, th)},
-                                "ci": {p: [float(v - 1.96 * q), float(v + 1.96 * q)]
-                                       for p, v, q in zip(f.param_names, th, s)},
-                                "sigma": {p: float(q) for p, q in zip(f.param_names, s)}, "share": share})
-
-    def rms_per_imu(err_idx: Sequence[int]) -> dict[str, list[float]]:
-        G = stacked(err_idx)
-        rr = np.zeros_like(e0)
-        for test in test_masks:
-            r_ = e0
-            if G.shape[2]:
-                Gt = G[~test].reshape(-1, G.shape[2])
-                lv = np.any(Gt != 0.0, axis=0)
-                th = np.zeros(G.shape[2])
-                th[lv], _ = _lstsq(Gt[:, lv], e0[~test].reshape(-1))
-                r_ = e0 - G @ th
-            rr[test] = r_[test]
-        raw = np.einsum("nkij,nkj->nki", np.linalg.inv(W), rr.reshape(n, K, 2))
-        return {k: [float(v) for v in np.sqrt(np.mean(raw[:, j] ** 2, axis=0))] for j, k in enumerate(stops.imus)}
-
+                for c, k in enumerate(ip.mount_imus)}
+    effects_out = ip.effects_out(sel, fitted, theta[nm:], sd[nm:])
+    K = ip.K
     return {
         "effects": effects_out,
-        "steps": steps,
-        "rejected": rejected,
-        "tilt_rms_before": rms_per_imu([]),
-        "tilt_rms_after": rms_per_imu(chosen),
-        "heldout_mahalanobis2_before": float(np.mean(base0)) / (2 * K),
-        "heldout_mahalanobis2_after": float(np.mean(base)) / (2 * K),
+        "steps": sel.steps,
+        "rejected": sel.rejected,
+        "tilt_rms_before": ip.rms_per_imu([]),
+        "tilt_rms_after": ip.rms_per_imu(sel.chosen),
+        "heldout_mahalanobis2_before": float(np.mean(sel.base0)) / (2 * K),
+        "heldout_mahalanobis2_after": float(np.mean(sel.base)) / (2 * K),
         "sigma_scale": math.sqrt(s2),
-        "n": n,
-        "reference_imu": list(stops.imus)[ref],
+        "n": ip.n,
+        "reference_imu": list(stops.imus)[ip.ref],
         "mounting": mounting,
         "imus": {k: ln for k, (ln, _) in stops.imus.items()},
         "found": list(fitted.values()),
         "tilt": tilt,
     }
+
+
+class _ImuProblem:
+    """The whitened, linearised accelerometer problem of :func:`diagnose_imu`: tilt residuals per stop and IMU
+    (rad, IMU link), candidate Jacobians, IMU mounting nuisance columns and stop-wise folds."""
+
+    def __init__(self, robot: Robot, stops: Stops, declared: list[Effect], sigma: float | Mapping[str, float],
+                 candidates: Sequence[Effect] | None, folds: int, seed: int,
+                 perturbation_cov: Mapping[str, np.ndarray] | None, joint_noise: Mapping[str, float] | None) -> None:
+        self.stops, self.declared = stops, declared
+        self.tree = tree = KinematicTree(robot)
+        self.n, self.K = n, K = len(stops), len(stops.imus)
+        if n < folds:
+            raise MeasurementError(f"diagnose_imu: {n} stops with accelerometer data, need >= {folds}")
+        sig = np.array([sigma.get(k, 4e-4) if isinstance(sigma, Mapping) else float(sigma) for k in stops.imus])
+        C_tilt = imu_tilt_covariance(tree, stops, declared, sig, perturbation_cov, joint_noise)
+        self.W = np.linalg.inv(np.linalg.cholesky(C_tilt))  # (N, K, 2, 2) whitening
+        self.n_grp = len(stops.group_names)
+        self.zero_tilt = np.zeros((self.n_grp, 2))
+        e_raw = imu_tilt_raw(tree, stops, declared, self.zero_tilt)
+        if not np.all(np.isfinite(e_raw)):
+            i = int(np.flatnonzero(~np.all(np.isfinite(e_raw), axis=(1, 2)))[0])
+            raise MeasurementError(f"diagnose_imu: non-finite accelerometer or joint values (first: stop {i} "
+                                   f"of {stops.group_names[stops.group[i]]})")
+        self.e0 = self.wh(e_raw).reshape(n, -1)  # (N, 2K) whitened
+        cands = list(candidates) if candidates is not None else imu_candidates(tree, stops)
+        self.names = ["base_tilt@" + tree.root] + [c.describe() for c in cands]
+        self.effs: list[Effect | None] = [None, *cands]
+        self.Gs = [self.wh(imu_jacobian(tree, stops, e, declared, self.zero_tilt)).reshape(n, 2 * K, -1)
+                   for e in self.effs]
+        self.test_masks = _pose_folds(np.arange(n), folds, seed)
+        # mounting of every IMU but the reference (the one nearest the root, whose mounting is part of
+        # the base tilt): a constant small rotation, additive on its two tilt components (nuisance)
+        depth = [len(robot.path_from_root(ln)) for ln, _ in stops.imus.values()]
+        self.ref = int(np.argmin(depth))
+        self.mount_imus = [k for k in range(K) if k != self.ref]
+        Gm_axes = np.zeros((n, K, 2, 2 * len(self.mount_imus)))
+        for c, k in enumerate(self.mount_imus):
+            Gm_axes[:, k, 0, 2 * c] = 1.0
+            Gm_axes[:, k, 1, 2 * c + 1] = 1.0
+        self.Gm = self.wh(Gm_axes).reshape(n, 2 * K, -1)
+        self.nm = self.Gm.shape[2]
+
+    def wh(self, x: np.ndarray) -> np.ndarray:
+        """Whiten (N, K, 2) residuals or (N, K, 2, P) Jacobians."""
+        return np.einsum("nkij,nkj...->nki...", self.W, x)
+
+    def stacked(self, idx: Sequence[int]) -> np.ndarray:
+        return np.concatenate([self.Gm] + [self.Gs[i] for i in idx], axis=2)
+
+    def _cv_residual(self, G: np.ndarray) -> np.ndarray:
+        """Held-out whitened residual per stop (N, 2K) with the design ``G`` (groups without training stops stay 0)."""
+        e0 = self.e0
+        rr = np.zeros_like(e0)
+        for test in self.test_masks:
+            r = e0
+            if G.shape[2]:
+                Gt = G[~test].reshape(-1, G.shape[2])
+                live = np.any(Gt != 0.0, axis=0)
+                th = np.zeros(G.shape[2])
+                th[live], _ = _lstsq(Gt[:, live], e0[~test].reshape(-1))
+                r = e0 - G @ th
+            rr[test] = r[test]
+        return rr
+
+    def heldout(self, idx: Sequence[int]) -> np.ndarray:
+        """Held-out squared whitened error per stop with the candidates ``idx``."""
+        return np.sum(self._cv_residual(self.stacked(idx)) ** 2, axis=1)
+
+    def negative_compliance(self, i: int, th: np.ndarray) -> str | None:
+        """Reject a candidate whose in-sample fit gives a negative compliance."""
+        P = self.Gs[i].shape[2]
+        eff = self.effs[i]
+        if eff is not None and any(th[-P + k] < 0 for k, p in enumerate(eff.param_names) if p in eff.nonnegative):
+            return "negative compliance"
+        return None
+
+    def gauss_newton(self, chosen: list[int], iterations: int) -> tuple[dict[int, Effect], np.ndarray, np.ndarray,
+                                                                         np.ndarray, float, np.ndarray]:
+        """Final Gauss-Newton on the nonlinear chain: fitted effects, theta, tilt per group, IMU mounting,
+        residual variance and parameter sigmas (``max(s^2, 1) H^-1``)."""
+        tree, stops, n, K, nm, effs = self.tree, self.stops, self.n, self.K, self.nm, self.effs
+        tilt = self.zero_tilt.copy()
+        fitted = {i: e.with_params(np.zeros(e.n_params)) for i in chosen if (e := effs[i]) is not None}
+        sizes = [self.Gs[i].shape[2] for i in chosen]
+        theta = np.zeros(nm + sum(sizes))
+        G = np.zeros((n * 2 * K, 0))
+        live = np.zeros(0, dtype=bool)
+        mount = np.zeros((K, 2))
+        for _ in range(iterations):
+            cur = self.declared + list(fitted.values())
+            r = self.wh(imu_tilt_raw(tree, stops, cur, tilt) - mount).reshape(-1)
+            G = np.concatenate([self.Gm.reshape(n * 2 * K, -1)]
+                               + [self.wh(imu_jacobian(tree, stops, fitted.get(i), cur, tilt)).reshape(n * 2 * K, -1)
+                                  for i in chosen], axis=1)
+            live = np.any(G != 0.0, axis=0)
+            dth = np.zeros(G.shape[1])
+            dth[live], _ = _lstsq(G[:, live], r)
+            theta = theta + dth
+            mount[self.mount_imus] = theta[:nm].reshape(-1, 2)
+            for i, p in zip(chosen, np.split(theta[nm:], np.cumsum(sizes)[:-1])):
+                if effs[i] is None:
+                    tilt = p.reshape(self.n_grp, 2).copy()
+                else:
+                    fitted[i] = fitted[i].with_params(p)
+        cur = self.declared + list(fitted.values())
+        r = self.wh(imu_tilt_raw(tree, stops, cur, tilt) - mount).reshape(-1)
+        s2 = float(r @ r / max(r.size - int(live.sum()), 1))
+        cov = np.zeros((theta.size, theta.size))
+        if theta.size:
+            cov[np.ix_(live, live)] = np.linalg.pinv(G[:, live].T @ G[:, live]) * max(s2, 1.0)
+        sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        return fitted, theta, tilt, mount, s2, sd
+
+    def effects_out(self, sel: GainSelection, fitted: dict[int, Effect], theta: np.ndarray,
+                    sd: np.ndarray) -> list[dict[str, Any]]:
+        """Effect entries: ``base_tilt`` per group (tilt_x, tilt_y, CI) and the IMU-visible effects."""
+        sizes = [self.Gs[i].shape[2] for i in sel.chosen]
+        out: list[dict[str, Any]] = []
+        tot0 = float(sel.base0.sum())
+        prev = tot0
+        for k, (i, th, s) in enumerate(zip(sel.chosen, np.split(theta, np.cumsum(sizes)[:-1]),
+                                           np.split(sd, np.cumsum(sizes)[:-1]))):
+            share = float(sel.steps[k]["heldout_gain"] * prev / tot0) if tot0 > 0 else 0.0
+            prev = prev * (1.0 - sel.steps[k]["heldout_gain"])
+            if self.effs[i] is None:
+                out.append({"name": "base_tilt", "location": self.tree.root, "measurement": "imu",
+                            "per_group": self._tilt_per_group(th, s), "share": share})
+            else:
+                f = fitted[i]
+                out.append({"name": f.name, "location": f.location, "measurement": "imu",
+                            "parameters": {p: float(v) for p, v in zip(f.param_names, th)},
+                            "ci": {p: [float(v - 1.96 * q), float(v + 1.96 * q)]
+                                   for p, v, q in zip(f.param_names, th, s)},
+                            "sigma": {p: float(q) for p, q in zip(f.param_names, s)}, "share": share})
+        return out
+
+    def _tilt_per_group(self, th: np.ndarray, s: np.ndarray) -> dict[str, Any]:
+        stops = self.stops
+        tv, ts = th.reshape(self.n_grp, 2), s.reshape(self.n_grp, 2)
+        return {g: {"tilt_x": float(tv[j, 0]), "tilt_y": float(tv[j, 1]),
+                    "ci": {"tilt_x": [float(tv[j, 0] - 1.96 * ts[j, 0]), float(tv[j, 0] + 1.96 * ts[j, 0])],
+                           "tilt_y": [float(tv[j, 1] - 1.96 * ts[j, 1]), float(tv[j, 1] + 1.96 * ts[j, 1])]},
+                    "sigma": {"tilt_x": float(ts[j, 0]), "tilt_y": float(ts[j, 1])}}
+                for j, g in enumerate(stops.group_names) if np.any(stops.group == j)}
+
+    def rms_per_imu(self, err_idx: Sequence[int]) -> dict[str, list[float]]:
+        """Held-out tilt RMS per IMU [rad], x / y, with the candidates ``err_idx``."""
+        rr = self._cv_residual(self.stacked(err_idx))
+        raw = np.einsum("nkij,nkj->nki", np.linalg.inv(self.W), rr.reshape(self.n, self.K, 2))
+        return {k: [float(v) for v in np.sqrt(np.mean(raw[:, j] ** 2, axis=0))] for j, k in enumerate(self.stops.imus)}

@@ -23,7 +23,8 @@ from ppoe_core.analysis.diagnose.pixels import (
 )
 from ppoe_core.analysis.diagnose.report import load_model
 from ppoe_core.analysis.diagnose.results import DiagnoseResult
-from ppoe_core.analysis.diagnose.stats import _lstsq, _paired_t, _pose_folds
+from ppoe_core.analysis.diagnose.selection import select_by_heldout_gain
+from ppoe_core.analysis.diagnose.stats import _lstsq, _pose_folds
 from ppoe_core.analysis.diagnose.stops import _sample_joint, motion_signs
 from ppoe_core.errors import BagError, MeasurementError
 from ppoe_core.model.effects import Effect, effect_from_config
@@ -175,44 +176,15 @@ class _PixelProblem:
     def select(self, max_effects: int, max_condition: float, min_gain: float,
                min_t: float) -> tuple[list[int], list[dict[str, Any]], list[dict[str, Any]], list[float]]:
         """Greedy forward selection by held-out gain with a paired t test over poses (see diagnose_pixels)."""
-        Gs, cands, e0 = self.Gs, self.cands, self.e0
-        chosen: list[int] = []
-        steps: list[dict[str, Any]] = []
-        rejected: list[dict[str, Any]] = []
-        base = self.heldout(chosen)
-        hist = [float(base.sum())]
-        while len(chosen) < max_effects:
-            best = None
-            for i in range(len(cands)):
-                if i in chosen:
-                    continue
-                idx = chosen + [i]
-                G = np.concatenate([Gs[k] for k in idx], axis=2).reshape(-1, sum(Gs[k].shape[2] for k in idx))
-                _, Hs = _lstsq(G, e0.reshape(-1))
-                cond = float(np.linalg.cond(Hs))
-                key = cands[i].describe()
-                if not np.isfinite(cond) or cond > max_condition:
-                    rejected.append({"effect": key, "reason": f"not identifiable (condition {cond:.3g})"})
-                    continue
-                new = self.heldout(idx)
-                d = base - new
-                gain = float(d.sum() / max(base.sum(), 1e-300))
-                t = _paired_t(d)
-                if best is None or gain > best[1]:
-                    best = (i, gain, t, new, cond)
-            if best is None:
-                break
-            i, gain, t, new, cond = best
-            step = {"effect": cands[i].describe(), "heldout_gain": gain, "t": t, "condition": cond}
-            if gain < min_gain or t < min_t:
-                rejected.append({**step,
-                                 "reason": f"held-out gain {gain:.3f} (min {min_gain}), t {t:.2f} (min {min_t})"})
-                break
-            steps.append(step)
-            chosen.append(i)
-            base = new
-            hist.append(float(new.sum()))
-        return chosen, steps, rejected, hist
+        Gs = self.Gs
+
+        def design(idx: Sequence[int]) -> np.ndarray:
+            return np.concatenate([Gs[k] for k in idx], axis=2).reshape(-1, sum(Gs[k].shape[2] for k in idx))
+
+        sel = select_by_heldout_gain(len(self.cands), lambda i: self.cands[i].describe(), design, self.heldout,
+                                     self.e0, max_effects=max_effects, max_condition=max_condition,
+                                     min_gain=min_gain, min_t=min_t)
+        return sel.chosen, sel.steps, sel.rejected, sel.hist
 
     def gauss_newton(self, chosen: list[Effect],
                      iterations: int) -> tuple[list[Effect], np.ndarray, np.ndarray, np.ndarray, list[int]]:
