@@ -51,11 +51,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
-from ppoe_core.model.chain import (
-    _CHUNK,
-    Array,
-    _Chain,
-    _compile,
+from ppoe_core.model.chain import _CHUNK, Array, _Chain, _compile
+from ppoe_core.model.chain_eval import (
     _eval_backward,
     _eval_forward,
     _eval_single,
