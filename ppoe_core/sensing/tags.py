@@ -331,13 +331,7 @@ def render_tags(
     w, h = int(image_size[0]), int(image_size[1])
     K = np.asarray(K, dtype=float)
     D = np.asarray(D, dtype=float).reshape(-1)
-    if np.isscalar(background):
-        canvas = np.full((h, w), float(background), dtype=np.float32)  # type: ignore[arg-type]
-    else:
-        bg = np.asarray(background)
-        if bg.shape != (h, w):
-            raise MeasurementError(f"render_tags: background shape {bg.shape} != {(h, w)}")
-        canvas = bg.astype(np.float32)
+    canvas = _canvas(w, h, background)
     T_all = np.asarray(T_cam_tag_list, dtype=float).reshape(-1, 4, 4)
     ids = [int(i) for i in ids]
     sizes = np.broadcast_to(np.asarray(size, dtype=float), (len(ids),))
@@ -370,19 +364,8 @@ def render_tags(
             continue
         if rays is None:
             rays = _ray_grid(w, h, tuple(K.reshape(-1)), tuple(D))
-        cover, col = _sample_tag(
-            _rays(rays, u0, v0, u1, v1, ss).astype(float),
-            (v1 - v0 + 1, u1 - u0 + 1),
-            ss,
-            R,
-            t,
-            s,
-            half,
-            dictionary,
-            tag_id,
-            black,
-            white,
-        )
+        cover, col = _sample_tag(_rays(rays, u0, v0, u1, v1, ss).astype(float), (v1 - v0 + 1, u1 - u0 + 1), ss,
+                                 R, t, s, half, dictionary, tag_id, black, white)
         patch = canvas[v0 : v1 + 1, u0 : u1 + 1]
         canvas[v0 : v1 + 1, u0 : u1 + 1] = patch * (1.0 - cover) + col
         drawn.append(tag_id)
@@ -393,6 +376,16 @@ def render_tags(
             raise MeasurementError("render_tags: noise_sigma > 0 needs an rng (np.random.default_rng(seed))")
         canvas = canvas + rng.normal(0.0, noise_sigma, canvas.shape).astype(np.float32)
     return np.clip(np.rint(canvas), 0, 255).astype(np.uint8), sorted(drawn)
+
+
+def _canvas(w: int, h: int, background: np.ndarray | int) -> np.ndarray:
+    """A float32 (h, w) canvas: a grey value or a copy of a (h, w) image."""
+    if np.isscalar(background):
+        return np.full((h, w), float(background), dtype=np.float32)  # type: ignore[arg-type]
+    bg = np.asarray(background)
+    if bg.shape != (h, w):
+        raise MeasurementError(f"render_tags: background shape {bg.shape} != {(h, w)}")
+    return bg.astype(np.float32)
 
 
 def _sample_tag(

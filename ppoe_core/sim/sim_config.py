@@ -31,6 +31,11 @@ class _Stop:
     draw: int = 0
 
 
+def _min_jerk(s: np.ndarray) -> np.ndarray:
+    s = np.clip(s, 0.0, 1.0)
+    return s ** 3 * (10 - 15 * s + 6 * s * s)
+
+
 class _SimConfig:
     """Scenario ``trajectory`` and ``sensors`` -> attributes of the simulator."""
 

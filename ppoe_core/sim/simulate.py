@@ -52,7 +52,7 @@ from ppoe_core.sim.scenario import (
     _where,
     load_scenario,
 )
-from ppoe_core.sim.sim_config import _SimConfig, _Stop
+from ppoe_core.sim.sim_config import _min_jerk, _SimConfig, _Stop
 from ppoe_core.sim.truth import TrueRobot
 
 __all__ = [
@@ -69,11 +69,6 @@ __all__ = [
 # =============================================================================
 # trajectory
 # =============================================================================
-
-
-def _min_jerk(s: np.ndarray) -> np.ndarray:
-    s = np.clip(s, 0.0, 1.0)
-    return s ** 3 * (10 - 15 * s + 6 * s * s)
 
 
 @dataclass

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -153,20 +154,7 @@ class LinearProblem:
                 r = (A @ (s.p_meas[rows] - y)[:, :, None])[..., 0]
                 Js = -A @ np.concatenate([np.broadcast_to(np.eye(3), (y.shape[0], 3, 3)), -lie.hat3(y)],
                                          axis=-1)
-                JsT = np.swapaxes(Js, -1, -2)
-                Jts = -(Wr @ Gr[:, :3])
-                Hss = seg(JsT @ Js) + 1e-12 * np.eye(6)
-                Hst = seg(JsT @ Jts)
-                gs = seg((JsT @ r[:, :, None])[..., 0])
-                Jf = Jts.reshape(Jts.shape[0] * 3, P)
-                H_tt = Jf.T @ Jf
-                g_t = Jf.T @ r.reshape(-1)
-                Hinv = np.linalg.inv(Hss)
-                HiHst = Hinv @ Hst  # (S, 6, P)
-                H_red = H_tt - np.einsum("sap,saq->pq", Hst, HiHst)
-                g_red = g_t - np.einsum("sap,sa->p", Hst, np.einsum("sab,sb->sa", Hinv, gs))
-                dtheta = -_solve(H_red, g_red) if P else np.zeros(0)
-                d = -(np.einsum("sab,sb->sa", Hinv, gs) + HiHst @ dtheta)
+                H_tt, H_red, dtheta, d = _schur_step(Js, -(Wr @ Gr[:, :3]), r, seg, P)
                 T = lie.exp(d) @ T
                 theta = theta + dtheta
                 if (it > 0 and np.abs(d).max(initial=0.0) < 1e-12
@@ -352,3 +340,23 @@ def _identifiable_subset(
     if not keep:
         return None, why, math.inf
     return _restrict(cand, keep, tree), "", ssr
+
+
+def _schur_step(Js: np.ndarray, Jts: np.ndarray, r: np.ndarray, seg: Any,
+                P: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One Gauss-Newton step with the registrations eliminated (Schur complement): ``(H_tt, H_red, dtheta, d)``
+    with ``d`` the registration steps per session; ``seg`` sums per-row terms per session."""
+    JsT = np.swapaxes(Js, -1, -2)
+    Hss = seg(JsT @ Js) + 1e-12 * np.eye(6)
+    Hst = seg(JsT @ Jts)
+    gs = seg((JsT @ r[:, :, None])[..., 0])
+    Jf = Jts.reshape(Jts.shape[0] * 3, P)
+    H_tt = Jf.T @ Jf
+    g_t = Jf.T @ r.reshape(-1)
+    Hinv = np.linalg.inv(Hss)
+    HiHst = Hinv @ Hst  # (S, 6, P)
+    H_red = H_tt - np.einsum("sap,saq->pq", Hst, HiHst)
+    g_red = g_t - np.einsum("sap,sa->p", Hst, np.einsum("sab,sb->sa", Hinv, gs))
+    dtheta = -_solve(H_red, g_red) if P else np.zeros(0)
+    d = -(np.einsum("sab,sb->sa", Hinv, gs) + HiHst @ dtheta)
+    return H_tt, H_red, dtheta, d

@@ -50,21 +50,7 @@ def markdown_report(ev: Evaluation) -> str:
             f"{sum(g['fit'] for g in r['groups'])} fit / {sum(g['scored'] for g in r['groups'])} scored samples, "
             f"{r['unscored']} not scored"
         )
-    m = s["measurements"]
-    lines.append(
-        f"- measurements: {m['total']} ({m.get('tag_messages', 0)} tag messages, {m.get('tag_points', 0)} tag points, "
-        f"{m.get('contact_planes', 0)} contact planes)"
-    )
-    if m.get("contact_source") == "/wrench":
-        w = m["wrench"]
-        lines.append(
-            f"- contact planes from `/wrench` through the contact detector (enter {m['force_threshold']:g} N, "
-            f"release {m['release_threshold']:g} N): {w['received']} wrenches, {w['contacts']} contacts, "
-            f"{w['bad']} bad"
-        )
-    if m.get("wrench_without_contact_config"):
-        lines.append(f"- {m['wrench_without_contact_config']} `/wrench` messages not used: the model YAML has no "
-                     "`contact` section")
+    lines += _measurement_lines(s["measurements"])
     if "fusion" in s:
         lines.append(f"- {s['fusion']}")
     lines += [
@@ -140,3 +126,23 @@ def write_report(ev: Evaluation, out_dir: str | Path) -> list[Path]:
     fig.savefig(paths[2], dpi=100)
     plt.close(fig)
     return paths
+
+
+def _measurement_lines(m: dict) -> list[str]:
+    """Report lines on the measurements used: tags, contact planes, the wrench contact detector."""
+    lines: list[str] = []
+    lines.append(
+        f"- measurements: {m['total']} ({m.get('tag_messages', 0)} tag messages, {m.get('tag_points', 0)} tag points, "
+        f"{m.get('contact_planes', 0)} contact planes)"
+    )
+    if m.get("contact_source") == "/wrench":
+        w = m["wrench"]
+        lines.append(
+            f"- contact planes from `/wrench` through the contact detector (enter {m['force_threshold']:g} N, "
+            f"release {m['release_threshold']:g} N): {w['received']} wrenches, {w['contacts']} contacts, "
+            f"{w['bad']} bad"
+        )
+    if m.get("wrench_without_contact_config"):
+        lines.append(f"- {m['wrench_without_contact_config']} `/wrench` messages not used: the model YAML has no "
+                     "`contact` section")
+    return lines
