@@ -6,7 +6,7 @@ Arguments
     kinematics, tag_bearing, contact, fusion
                   start that node (default true each)
 
-Each node reads its parameters from ``share/ppoe_ros/config/<executable>.yaml``
+Each node reads its parameters from ``share/ppoe_ros/config/nodes/<executable>.yaml``
 (every key documented there); ``model_file`` and ``use_sim_time`` given here
 override the file.  The kinematics node takes the URDF from ``/robot_description``
 (robot_state_publisher, or ``ppoe play`` of a recorded bag).

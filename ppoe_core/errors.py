@@ -61,7 +61,7 @@ class MeasurementError(PpoeError, ValueError):
 
 
 class BagError(PpoeError):
-    """A bag that does not follow the recorded-bag contract (CONTRACT.md section 3)."""
+    """A bag that does not follow the recorded-bag contract (docs/conventions.md section 3)."""
 
 
 class ScenarioError(PpoeError):

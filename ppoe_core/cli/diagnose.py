@@ -1,6 +1,6 @@
 """``ppoe diagnose BAG... --model MODEL.yaml [--base FRAME] [--tool FRAME] [--out DIR] [--json]``.
 
-Finds the systematic effects (CONTRACT.md sec. 6 vocabulary) that the model lacks, from the
+Finds the systematic effects (docs/conventions.md sec. 6 vocabulary) that the model lacks, from the
 bags' ``/ground_truth/point`` (tracker, registration estimated per session) or
 ``/ground_truth/pose`` measurements; see :mod:`ppoe_core.analysis.diagnose`.  Prints a markdown summary
 (or, with ``--json``, one JSON document on stdout with keys ``effects``, ``residual_before``,
@@ -28,7 +28,7 @@ __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the ``diagnose`` options (CONTRACT.md section 6 plus ours)."""
+    """Add the ``diagnose`` options (docs/conventions.md section 6 plus ours)."""
     parser.add_argument("bags", nargs="+", metavar="BAG", help="contract bag directories (one robot)")
     parser.add_argument("--model", required=True, metavar="MODEL.yaml", help="model YAML of the bags' robot")
     parser.add_argument("--base", default=None, help="frame of /ground_truth/pose (default: frames.base)")

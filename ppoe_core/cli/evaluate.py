@@ -22,7 +22,7 @@ __all__ = ["add_arguments", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the ``evaluate`` options (CONTRACT.md section 6 plus ours)."""
+    """Add the ``evaluate`` options (docs/conventions.md section 6 plus ours)."""
     parser.add_argument("bag", metavar="BAG", help="contract bag directory")
     parser.add_argument("--model", required=True, metavar="MODEL.yaml", help="model YAML for the bag's robot")
     parser.add_argument("--base", default=None, help="reference frame (default: model YAML frames.base)")

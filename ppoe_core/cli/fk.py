@@ -1,4 +1,4 @@
-"""``ppoe fk``: mean pose and covariance of one frame relative to another (CONTRACT.md sec. 6).
+"""``ppoe fk``: mean pose and covariance of one frame relative to another (docs/conventions.md sec. 6).
 
 ::
 
@@ -10,7 +10,7 @@ With ``--json`` one JSON document goes to stdout with the keys ``T`` (4x4 mean p
 ``T_from_to``), ``cov_local`` (6x6 covariance in the tangent space at ``T``, right
 perturbation, ``[rho; theta]``, paper eq. 8-9) and ``cov_ros`` (6x6, ``B cov_local B^T``
 with ``B = blockdiag(R, R)``: translation and small rotations in the axes of the ``--from``
-frame, CONTRACT.md sec. 2), all as nested lists. With ``--batch`` (CSV, header = joint
+frame, docs/conventions.md sec. 2), all as nested lists. With ``--batch`` (CSV, header = joint
 names, one configuration per row) one such object is printed per line, in row order; all
 rows are computed in one batched call. Without ``--json`` a readable text form is printed.
 
@@ -47,7 +47,7 @@ __all__ = [
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the ``ppoe fk`` options to ``parser`` (CONTRACT.md sec. 6)."""
+    """Add the ``ppoe fk`` options to ``parser`` (docs/conventions.md sec. 6)."""
     parser.add_argument("--urdf", required=True, metavar="URDF", help="robot description (URDF file)")
     parser.add_argument(
         "--model",
@@ -222,7 +222,7 @@ def fk_result(T_from_to: np.ndarray, cov_to: np.ndarray) -> dict[str, Any]:
     -------
     dict
         ``{"T": 4x4, "cov_local": 6x6, "cov_ros": 6x6}`` as nested lists; ``cov_ros`` is in the
-        axes of the reference frame (CONTRACT.md sec. 2).
+        axes of the reference frame (docs/conventions.md sec. 2).
     """
     cov_ros = lie.cov_local_to_ros(T_from_to, cov_to)
     return {"T": T_from_to.tolist(), "cov_local": cov_to.tolist(), "cov_ros": cov_ros.tolist()}

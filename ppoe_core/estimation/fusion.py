@@ -2,10 +2,10 @@
 
 The state is one pose ``X = T_ref_state`` (e.g. ``T_camera_tool`` as in the paper, or
 ``T_base_tool`` in the fusion node) with a covariance ``cov_state`` in the tangent space at
-``X`` (right / local perturbation, ``X_true = X @ Exp(xi)``, CONTRACT sec. 1).  A measurement
+``X`` (right / local perturbation, ``X_true = X @ Exp(xi)``, docs/conventions.md sec. 1).  A measurement
 model (see :mod:`ppoe_core.estimation.measurements`) gives ``z = h(X, v)`` with noise ``v ~ N(0, R)``.
 
-The update implements eq. 19-24 with the gain of CONTRACT sec. 1,
+The update implements eq. 19-24 with the gain of docs/conventions.md sec. 1,
 ``K = P H^T (H P H^T + M R M^T)^-1``, where the innovation covariance ``S`` is factorised by
 Cholesky (never inverted explicitly), the covariance is updated in Joseph form and the step
 is iterated (iterated EKF, relinearising at the current estimate ``X_i``):
@@ -315,7 +315,7 @@ def iterated_update(
     transport_covariance: bool = True,
     jacobians: str = "auto",
 ) -> UpdateResult:
-    """Iterated LG-EKF measurement update on SE(3) (eq. 19-24, gain of CONTRACT sec. 1).
+    """Iterated LG-EKF measurement update on SE(3) (eq. 19-24, gain of docs/conventions.md sec. 1).
 
     Parameters
     ----------

@@ -1,7 +1,7 @@
 """Measurement models ``z = h(X, v)`` for the iterated LG-EKF (paper eq. 19, 24, 25).
 
 Every model works on one state pose ``X = T_ref_state`` (4, 4) with the right / local
-perturbation ``X Exp(xi)``, ``xi = [rho; theta]`` (CONTRACT sec. 1), and gives
+perturbation ``X Exp(xi)``, ``xi = [rho; theta]`` (docs/conventions.md sec. 1), and gives
 
 * ``h(X, v=None)`` - the predicted measurement for noise ``v`` (``None`` = zero noise);
 * ``jacobian_state(X)`` - ``H = dh/dxi`` (m, 6), analytic;
@@ -16,7 +16,7 @@ Models
     Pixel (plumb_bob distorted) or normalised image coordinates of points fixed to the state's
     child frame (tag centres and corners), seen from a camera.  Eq. 25 of the paper is the
     special case of one point at the origin of ``X = T_camera_tool`` in normalised
-    coordinates times the focal lengths (with ``p2`` in the second row, as CONTRACT says).
+    coordinates times the focal lengths (with ``p2`` in the second row, as docs/conventions.md says).
     The camera pose ``T_ref_camera`` may be uncertain: its 6x6 covariance (tangent space at
     ``T_ref_camera``) then enters as extra noise through ``M``.  This is how the fusion node
     uses state ``T_base_tool`` with the camera chain ``T_base_camera`` from the PPOE model.

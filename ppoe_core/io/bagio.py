@@ -1,4 +1,4 @@
-"""Read and write recorded bags (CONTRACT.md section 3) with ``rosbags``.
+"""Read and write recorded bags (docs/conventions.md section 3) with ``rosbags``.
 
 Pure Python: no rclpy and no ROS message packages.  Messages are built and
 parsed with the ``rosbags`` type store of ROS 2 Jazzy, so a bag written here is

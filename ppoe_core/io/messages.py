@@ -34,7 +34,7 @@ T_IMU = "sensor_msgs/msg/Imu"
 T_POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 T_POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"
 
-#: topic -> required message type (CONTRACT sec. 3 plus our tag observations);
+#: topic -> required message type (docs/conventions.md sec. 3 plus our tag observations);
 #: ``/imu/<name>`` topics must be ``sensor_msgs/msg/Imu``.
 CONTRACT_TYPES: dict[str, str] = {
     TOPIC_ROBOT_DESCRIPTION: T_STRING,

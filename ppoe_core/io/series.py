@@ -191,7 +191,7 @@ class TagObservationRows:
 @dataclass
 class PoseCovSeries:
     """``PoseWithCovarianceStamped`` series: ``T`` (N,4,4), ``cov_ros`` (N,6,6) in the ROS
-    convention (CONTRACT sec. 2: axes of ``frame_ids[i]``, order x y z rx ry rz)."""
+    convention (docs/conventions.md sec. 2: axes of ``frame_ids[i]``, order x y z rx ry rz)."""
 
     stamps: np.ndarray = field(default_factory=lambda: np.zeros(0))
     frame_ids: list[str] = field(default_factory=list)

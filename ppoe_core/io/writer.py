@@ -319,7 +319,7 @@ class BagWriter:
     def write_pose_with_covariance(self, topic: str, stamp: float, frame_id: str, T: np.ndarray,
                                    cov_ros: np.ndarray) -> None:
         """A ``PoseWithCovarianceStamped``; ``cov_ros`` (6,6) in the ROS convention
-        (CONTRACT sec. 2: parent-frame axes, order x y z rx ry rz)."""
+        (docs/conventions.md sec. 2: parent-frame axes, order x y z rx ry rz)."""
         types = typestore().types
         cov = np.asarray(cov_ros, dtype=float)
         if cov.shape != (6, 6):

@@ -1,6 +1,6 @@
 """SE(3) and SO(3) Lie group tools, batched over leading axes.
 
-Conventions (CONTRACT.md section 1, paper section III):
+Conventions (docs/conventions.md section 1, paper section III):
 
 * A twist is ``xi = [rho; theta]`` with shape ``(..., 6)``: translation first.
 * Poses are homogeneous matrices of shape ``(..., 4, 4)``.

@@ -23,7 +23,7 @@ def _ros_block(T: Array) -> Array:
 
 
 def cov_local_to_ros(T: ArrayLike, cov: ArrayLike) -> Array:
-    """Local covariance -> ROS ``PoseWithCovariance`` convention (CONTRACT section 2).
+    """Local covariance -> ROS ``PoseWithCovariance`` convention (docs/conventions.md section 2).
 
     Parameters
     ----------
@@ -51,7 +51,7 @@ def cov_ros_to_local(T: ArrayLike, cov_ros: ArrayLike) -> Array:
         Mean pose ``T_parent_child``.
     cov_ros : array_like, shape (..., 6, 6)
         ``PoseWithCovariance.covariance`` as 6x6: order ``(x, y, z, rx, ry, rz)``, all in the
-        axes of the parent frame (``header.frame_id``), CONTRACT section 2.
+        axes of the parent frame (``header.frame_id``), docs/conventions.md section 2.
 
     Returns
     -------

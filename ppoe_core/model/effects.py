@@ -1,4 +1,4 @@
-"""Catalogue of systematic effects that a nominal PPOE model may lack (CONTRACT sec. 6).
+"""Catalogue of systematic effects that a nominal PPOE model may lack (docs/conventions.md sec. 6).
 
 Every effect is a small physical parametrisation that changes the kinematic chain through
 the two hooks of paper eq. 16, ``Exp(p_i) Exp(dxi_i) Exp(xi_i) Exp(zeta_i (q_i + dq_i))``:
@@ -73,7 +73,7 @@ __all__ = [
     "sum_effect_corrections",
 ]
 
-#: the contract vocabulary (CONTRACT.md sec. 6), in catalogue order (defined in config)
+#: the contract vocabulary (docs/conventions.md sec. 6), in catalogue order (defined in config)
 EFFECT_NAMES = _CONFIG_EFFECT_NAMES
 
 _TWIST_KEYS = ("x", "y", "z", "rx", "ry", "rz")

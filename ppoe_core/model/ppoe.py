@@ -1,6 +1,6 @@
 """The Probabilistic Product-of-Exponentials (PPOE) model of a URDF robot.
 
-One link of the chain is (paper eq. 16, CONTRACT section 1)::
+One link of the chain is (paper eq. 16, docs/conventions.md section 1)::
 
     X_i,i+1(q_i) = Exp(p_i) [Exp(dxi_i)] Exp(xi_i) Exp(zeta_i q_i) [Exp(zeta_i n_i)]
 

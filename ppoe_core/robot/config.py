@@ -1,6 +1,6 @@
 """Model YAML -> :class:`ModelConfig`, validated against a :class:`~ppoe_core.robot.urdf.Robot`.
 
-The ``perturbations`` section is fixed by CONTRACT.md section 5; the other
+The ``perturbations`` section is fixed by docs/conventions.md section 5; the other
 sections are the project's (docs/ARCHITECTURE.md, "Model YAML").  Every key is
 checked: an unknown key, a wrong shape, an unknown joint or link, or a
 non-symmetric / non-PSD covariance raises one of the package's errors that names
@@ -274,7 +274,8 @@ def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
         name = e["name"]
         if name not in EFFECT_NAMES:
             raise ctx.error(
-                e, "name", path + ".name", f"unknown effect '{name}' (CONTRACT section 6: {', '.join(EFFECT_NAMES)})"
+                e, "name", path + ".name",
+                f"unknown effect '{name}' (docs/conventions.md section 6: {', '.join(EFFECT_NAMES)})"
             )
         loc = e["location"]
         if not isinstance(loc, str) or not loc:

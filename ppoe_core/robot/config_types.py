@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: Effect names of CONTRACT.md section 6.
+#: Effect names of docs/conventions.md section 6.
 EFFECT_NAMES = (
     "joint_offset",
     "link_error",
@@ -166,7 +166,7 @@ class ModelConfig:
     imus : dict[str, ImuConfig]
     effects : list[dict]
         ``{"name", "location", "parameters"[, "ci", "variable", "reference"]}``, names from
-        CONTRACT section 6.
+        docs/conventions.md section 6.
     effect_wheres : list[str]
         ``file:line`` of each effect entry (for messages of ``effects.effect_from_config``).
     source : str

@@ -128,7 +128,7 @@ class PublishedPlane:
     cov_plane : ndarray, shape (6, 6)
         Sigma_v in the tangent space at ``T_frame_plane`` (plane frame, right perturbation).
     cov_ros : ndarray, shape (6, 6)
-        The same in the ROS convention (axes of ``frame``, CONTRACT.md sec. 2).
+        The same in the ROS convention (axes of ``frame``, docs/conventions.md sec. 2).
     """
 
     def __init__(self, frame: str, T_frame_plane: np.ndarray, cov_plane: np.ndarray) -> None:

@@ -29,7 +29,7 @@ TRUTH_EFFECTS: dict[str, tuple[str, ...]] = {
     "backlash": ("play",),
     "thermal_growth": ("alpha",),
     "time_offset": ("dt",),
-    # outside the CONTRACT sec. 6 vocabulary (for testing that diagnose reports it as unexplained):
+    # outside the docs/conventions.md sec. 6 vocabulary (for testing that diagnose reports it as unexplained):
     "transmission_error": ("amplitude", "periods"),
 }
 
@@ -46,7 +46,7 @@ truth:
   perturbation_scale: 1.0  # multiplies the drawn xi [1.0]
   joint_noise: true        # add the model's joint_noise (per stop) to the true joint values [true]
   record_draws: false      # write each stop's window [s], drawn xi and joint errors to the truth file [false]
-  effects:                 # systematic effects of the true robot, CONTRACT sec. 6 names [none]
+  effects:                 # systematic effects of the true robot, docs/conventions.md sec. 6 names [none]
     - {name: joint_offset, location: JOINT, parameters: {offset: 0.01}}        # q_true = q_meas + offset [rad|m]
     - {name: link_error, location: JOINT, parameters: {x: 0.001, rz: 0.002}}   # dxi at JOINT [m, rad]
     - {name: camera_extrinsics, location: JOINT, parameters: {x: .., rz: ..}}   # dxi at the camera's fixed joint [m,

@@ -1,11 +1,11 @@
-"""``ppoe simulate``: record contract bags (CONTRACT.md sec. 3) of a simulated robot.
+"""``ppoe simulate``: record contract bags (docs/conventions.md sec. 3) of a simulated robot.
 
 The *true* robot is the nominal URDF plus
 
 * the declared perturbations ``xi_i`` of the model YAML, drawn from their covariance
   (once per bag, once per stop, or not at all) and the declared joint noise (per stop),
 * named systematic effects from the scenario's ``truth.effects`` that the model may not
-  declare (CONTRACT sec. 6 vocabulary, implemented here independently of
+  declare (docs/conventions.md sec. 6 vocabulary, implemented here independently of
   :mod:`ppoe_core.model.effects` so that ``ppoe diagnose`` is tested against physics, not
   against its own code): ``joint_offset``, ``link_error``, ``gravity_compliance``,
   ``mount_bending``, ``base_tilt``, ``backlash``, ``thermal_growth``, ``time_offset``,

@@ -1,4 +1,4 @@
-"""The ``ppoe`` command line (CONTRACT.md section 6).
+"""The ``ppoe`` command line (docs/conventions.md section 6).
 
 Each subcommand lives in its own module exposing ``add_arguments(parser)`` and
 ``run(args) -> int``; it is imported only when used, so ``ppoe fk`` works on a

@@ -16,7 +16,7 @@ the same pieces from here:
 * QoS profiles (:func:`sensor_qos`, :data:`LATCHED_QOS`, :func:`reliable_qos`) and
   message <-> numpy conversions, among them :func:`pose_cov_stamped_msg` which fills
   a ``PoseWithCovarianceStamped`` with a covariance already in the ROS convention
-  (CONTRACT.md section 2, ``cov_ros``).
+  (docs/conventions.md section 2, ``cov_ros``).
 * :func:`run_node`: the standard ``main()`` of a node.
 
 This module imports rclpy and ROS message packages: it is ``ppoe_ros`` only,

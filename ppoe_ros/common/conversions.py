@@ -67,7 +67,7 @@ def pose_cov_stamped_msg(T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp:
     T_parent_child : (4, 4)
         Pose of the child frame in ``frame_id`` (the parent).
     cov_ros : (6, 6)
-        Covariance in the ROS convention of CONTRACT.md sec. 2: order
+        Covariance in the ROS convention of docs/conventions.md sec. 2: order
         ``(x, y, z, rot_x, rot_y, rot_z)``, translation and small rotation both in
         the axes of ``frame_id``.  Convert a local (right-perturbation) covariance
         ``cov_child`` with ``lie.cov_local_to_ros(T_parent_child, cov_child)`` first.
@@ -87,7 +87,7 @@ def pose_cov_stamped_msg(T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp:
 def pose_cov_from_msg(msg: PoseWithCovarianceStamped) -> tuple[np.ndarray, np.ndarray, int, str]:
     """``PoseWithCovarianceStamped`` -> ``(T (4,4), cov_ros (6,6), stamp_ns, frame_id)``.
 
-    ``cov_ros`` is in the ROS convention (CONTRACT.md sec. 2, axes of ``frame_id``).
+    ``cov_ros`` is in the ROS convention (docs/conventions.md sec. 2, axes of ``frame_id``).
     """
     T = matrix_from_pose_msg(msg.pose.pose)
     cov_ros = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)

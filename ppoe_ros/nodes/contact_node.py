@@ -8,7 +8,7 @@ Publications
     message while in contact: the configured plane pose ``T_frame_plane`` (normal =
     plane z axis) with ``header.frame_id`` = the plane's frame, and its Sigma_v
     (paper sec. V, given in the plane frame, i.e. local / right perturbation)
-    converted to the ROS convention of CONTRACT.md sec. 2.  Stamp = the wrench
+    converted to the ROS convention of docs/conventions.md sec. 2.  Stamp = the wrench
     stamp (a ``Bool`` has no header: the node clock, so ``use_sim_time`` applies).
     ``/diagnostics``: ``received``, ``published``, ``bad``, ``contacts`` (number of
     contact onsets), ``in_contact`` (0/1).

@@ -8,7 +8,7 @@ Publications
     ``/ppoe/pose`` (``geometry_msgs/PoseWithCovarianceStamped``): ``T_reference_target``
     with ``header.frame_id = reference_frame`` and ``header.stamp`` = the joint-state
     stamp; the covariance is ``cov_target`` (local, right perturbation, paper
-    eq. 8-9/18) converted to the ROS convention of CONTRACT.md sec. 2.
+    eq. 8-9/18) converted to the ROS convention of docs/conventions.md sec. 2.
     ``/ppoe/<frame>/pose`` (same type) for each of ``extra_target_frames``.
     ``/diagnostics``: counters ``received``, ``published``, ``bad``, ``dropped``.
 

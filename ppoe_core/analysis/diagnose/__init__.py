@@ -1,6 +1,6 @@
 """``ppoe diagnose``: trace the residual of a PPOE model to systematic effects, add them, report.
 
-Pipeline (issue 6, CONTRACT sec. 6):
+Pipeline (issue 6, docs/conventions.md sec. 6):
 
 1. **Residuals.**  Static stops (:class:`Stops`): measured tracker points (a reflector on a link,
    in the tracker's own frame, the tracker-to-base registration is a nuisance estimated per

@@ -40,7 +40,7 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     stops : Stops
     declared : effects the model already declares (part of the nominal prediction)
     perturbation_cov : joint -> 6x6 covariance of the model's perturbation xi_j, in the tangent
-        space right after the joint's origin (CONTRACT sec. 5)
+        space right after the joint's origin (docs/conventions.md sec. 5)
     joint_noise : joint -> 1-sigma along the joint axis [rad or m]
     options : DiagnoseOptions
 

@@ -181,7 +181,7 @@ def _stop_info(path: str | Path) -> list[tuple[float, dict]]:
 def _sample_joint(t: np.ndarray, v: np.ndarray, at: np.ndarray) -> np.ndarray:
     """Joint values at times ``at``: linear interpolation between samples, but the last sample
     is held across a gap longer than 5 median sample periods (a static stop's burst followed
-    by its measurements, CONTRACT sec. 3)."""
+    by its measurements, docs/conventions.md sec. 3)."""
     if t.size == 0:
         return np.full(at.shape, np.nan)
     if t.size == 1:

@@ -279,7 +279,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     Parameters
     ----------
     bag : str or Path
-        Contract bag (CONTRACT.md section 3).
+        Contract bag (docs/conventions.md section 3).
     model_yaml : str or Path
         The project's model YAML for the bag's ``/robot_description``.
     options : EvaluateOptions, optional

@@ -4,7 +4,7 @@ Source data: ``Hilti-Research/construction_robot_stationing_datasets`` (CC BY-NC
 see ``../shared/datasets/hilti_stationing/README.md``).  The data are not ours to
 redistribute: bags written here must not be committed or shipped.
 
-Bag layout (CONTRACT.md section 3, static dataset; every stop is one waypoint of the file):
+Bag layout (docs/conventions.md section 3, static dataset; every stop is one waypoint of the file):
 
 =====================  ==============================  ===========================================
 topic                  type                            content

@@ -5,7 +5,7 @@ see ``../shared/datasets/motoman_leica/README.md``).  Bags and model YAMLs writt
 are derived from those data and must not be committed or shipped.
 
 The files carry no time; pose ``k`` (0-based, in pose-ID order) is stamped at
-``T0_S + k * STOP_PERIOD_S``.  Bag layout (CONTRACT.md section 3, static dataset):
+``T0_S + k * STOP_PERIOD_S``.  Bag layout (docs/conventions.md section 3, static dataset):
 
 ==============================  ================================  =====================================
 topic                           type                              content
