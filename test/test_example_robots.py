@@ -248,3 +248,23 @@ def test_arm7_is_a_7dof_chain_with_camera_and_mimic_gripper() -> None:
     q = dict(joint_1=0.3, joint_2=0.6, joint_3=0.0, joint_4=-1.2, joint_5=0.0, joint_6=0.9, joint_7=0.0)
     p = model.fk_mean(q, "camera_optical_frame", "tool0")[:3, 3]
     assert p[2] > 0.5 and abs(p[0] / p[2]) < 0.5 and abs(p[1] / p[2]) < 0.4
+
+
+@pytest.mark.parametrize("name", ["planar3", "rover", "humanoid", "arm7"])
+def test_compiled_chains_equal_the_kinematic_tree(name: str) -> None:
+    """PPOEModel's compiled chain programs give the nominal poses of robot.tree.KinematicTree (the one tree),
+    for every link relative to the root and for an up/down chain between two leaves."""
+    from ppoe_core.robot.tree import KinematicTree
+
+    model = _model(name)
+    tree = KinematicTree(model.robot)
+    rng = np.random.default_rng(11)
+    q = {j: rng.uniform(-1.0, 1.0, 5) for j in model.joint_names}
+    poses = tree.link_poses(q)
+    links = sorted(model.robot.links)
+    for ln in links:
+        T = np.broadcast_to(model.fk_mean(q, model.robot.root, ln), poses[ln].shape)
+        np.testing.assert_allclose(T, poses[ln], atol=1e-12, err_msg=ln)
+    a, b = links[0], links[-1]
+    T_ab = np.linalg.inv(poses[a]) @ poses[b]
+    np.testing.assert_allclose(model.fk_mean(q, a, b), T_ab, atol=1e-12)

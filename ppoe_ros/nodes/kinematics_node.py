@@ -33,9 +33,7 @@ Parameters: see ``config/nodes/kinematics_node.yaml`` (every key documented ther
 
 from __future__ import annotations
 
-import collections
 import sys
-import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -49,6 +47,7 @@ from std_msgs.msg import String
 
 from ppoe_core import lie
 from ppoe_core.errors import JointValueError, ModelConfigError, PpoeError
+from ppoe_core.estimation.batch_worker import BatchWorker
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_ros.common import (
@@ -139,7 +138,7 @@ class KinematicsNode(Node):
         self._needed: list[str] = []
         self._model_joints: list[str] = []
         self._src = self._dst = np.zeros(0, dtype=np.intp)
-        self._worker: _BatchWorker | None = None
+        self._worker: BatchWorker | None = None
 
         out_qos = reliable_qos(100)
         self.targets = [_Target(target, self.create_publisher(PoseWithCovarianceStamped, p["pose_topic"],
@@ -161,7 +160,9 @@ class KinematicsNode(Node):
         take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
         self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
         if p["max_batch"] > 1:  # last: nothing after it can fail and leave the thread behind
-            self._worker = _BatchWorker(self._process, self.stats, p["max_batch"], p["max_queue"], js_topic)
+            self._worker = BatchWorker(self._process, p["max_batch"], p["max_queue"],
+                                       on_dropped=lambda why: self.stats.bad(js_topic, why, kind="dropped"),
+                                       on_error=lambda exc: self.stats.error(js_topic, exc))
 
     # ------------------------------------------------------------------ model
     def _set_model(self, urdf_xml: str, where: str) -> None:
@@ -304,56 +305,6 @@ class KinematicsNode(Node):
         if self._worker is not None:
             self._worker.stop()
         super().destroy_node()
-
-
-class _BatchWorker:
-    """Worker thread: processes whatever joint states queued up since its last batch.
-
-    At low rates every batch holds one message (no added latency); when the FK falls
-    behind, batches grow and the vectorised FK catches up.  A queue longer than
-    ``max_queue`` drops its oldest entries (counted as ``dropped``).
-    """
-
-    def __init__(self, process: Any, stats: NodeStats, max_batch: int, max_queue: int, topic: str) -> None:
-        self._process = process
-        self._stats = stats
-        self._max_batch = max_batch
-        self._max_queue = max_queue
-        self._topic = topic
-        self._queue: collections.deque = collections.deque()
-        self._cv = threading.Condition()
-        self._stop = False
-        self._thread = threading.Thread(target=self._run, name="ppoe_fk_worker", daemon=True)
-        self._thread.start()
-
-    def put(self, item: Any) -> None:
-        with self._cv:
-            self._queue.append(item)
-            if len(self._queue) > self._max_queue:
-                self._queue.popleft()
-                self._stats.bad(self._topic, f"FK queue longer than {self._max_queue}: oldest dropped",
-                                kind="dropped")
-            self._cv.notify()
-
-    def _run(self) -> None:
-        while True:
-            with self._cv:
-                while not self._queue and not self._stop:
-                    self._cv.wait(0.2)
-                if self._stop:
-                    return
-                n = min(len(self._queue), self._max_batch)
-                batch = [self._queue.popleft() for _ in range(n)]
-            try:
-                self._process(batch)
-            except Exception as exc:  # noqa: BLE001 - the worker must survive anything
-                self._stats.error(self._topic, exc)
-
-    def stop(self) -> None:
-        with self._cv:
-            self._stop = True
-            self._cv.notify()
-        self._thread.join(timeout=2.0)
 
 
 def main(args: Sequence[str] | None = None) -> int:
