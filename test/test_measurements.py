@@ -201,7 +201,7 @@ def test_bad_construction_inputs():
     with pytest.raises(CovarianceError, match="pixel_sigma"):
         TagBearingModel(np.zeros((1, 3)), K, pixel_sigma=-1.0)
     bad = np.diag([1.0, 1, 1, 1, 1, -1e-3])
-    with pytest.raises(CovarianceError, match="cov_plane: covariance is not positive semi-definite"):
+    with pytest.raises(CovarianceError, match="cov_plane: not positive semi-definite"):
         ContactPlaneModel(np.eye(4), bad)
     with pytest.raises(CovarianceError, match="not symmetric"):
         PoseObservation(np.eye(6) + np.triu(np.ones((6, 6)), 1))

@@ -180,7 +180,9 @@ def check_pose(T: Any, name: str) -> np.ndarray:
 
 
 def check_noise_covariance(cov: Any, dim: int, name: str, *, tol: float = 1e-12) -> np.ndarray:
-    """Return ``cov`` as a symmetric PSD float (dim, dim) array or raise CovarianceError.
+    """``cov`` as a symmetric PSD float (dim, dim) array (symmetrised) or CovarianceError: the one covariance check
+    (:func:`ppoe_core.lie.check_covariance`) with the filter's tolerances (asymmetry 1e-9, eigenvalues ``tol``,
+    relative to the largest entry).
 
     Parameters
     ----------
@@ -191,23 +193,9 @@ def check_noise_covariance(cov: Any, dim: int, name: str, *, tol: float = 1e-12)
     name : str
         What the covariance is, for the message.
     tol : float
-        Relative tolerance for asymmetry and negative eigenvalues.
+        Relative tolerance for negative eigenvalues.
     """
-    cov = np.asarray(cov, dtype=float)
-    if cov.shape != (dim, dim):
-        raise CovarianceError(f"{name}: expected a {dim}x{dim} covariance, got shape {cov.shape}")
-    if not np.all(np.isfinite(cov)):
-        raise CovarianceError(f"{name}: covariance contains NaN or inf")
-    scale = max(float(np.max(np.abs(cov))), 1e-300)
-    if np.max(np.abs(cov - cov.T)) > 1e-9 * scale:
-        raise CovarianceError(f"{name}: covariance is not symmetric")
-    cov = 0.5 * (cov + cov.T)
-    min_eig = float(np.min(np.linalg.eigvalsh(cov))) if dim else 0.0
-    if min_eig < -tol * scale - 1e-300:
-        raise CovarianceError(
-            f"{name}: covariance is not positive semi-definite (smallest eigenvalue {min_eig:.3g})"
-        )
-    return cov
+    return lie.check_covariance(cov, name, size=dim, tol=1e-9, eig_tol=tol, symmetrize=True)
 
 
 def _spd(P: np.ndarray) -> np.ndarray:

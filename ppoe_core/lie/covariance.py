@@ -65,7 +65,8 @@ def cov_ros_to_local(T: ArrayLike, cov_ros: ArrayLike) -> Array:
 
 
 def check_covariance(
-    cov: ArrayLike, name: str = "covariance", size: int | None = None, tol: float = 1e-9
+    cov: ArrayLike, name: str = "covariance", size: int | None = None, tol: float = 1e-9,
+    eig_tol: float | None = None, symmetrize: bool = False,
 ) -> Array:
     """Validate a covariance matrix and return it as a float array.
 
@@ -77,7 +78,11 @@ def check_covariance(
     size : int, optional
         Required ``n``.
     tol : float
-        Relative tolerance for symmetry and for negative eigenvalues.
+        Relative tolerance for symmetry and (unless ``eig_tol`` is given) for negative eigenvalues.
+    eig_tol : float, optional
+        Relative tolerance for negative eigenvalues (the filter's noise covariances: 1e-12).
+    symmetrize : bool
+        Return ``(C + C^T) / 2`` instead of ``C``.
 
     Raises
     ------
@@ -101,7 +106,8 @@ def check_covariance(
     asym = float(np.abs(C - Ct).max())
     if asym > tol * scale:
         raise CovarianceError(f"{name}: not symmetric (max |C - C^T| = {asym:.3g})")
-    eig_min = float(np.linalg.eigvalsh(0.5 * (C + Ct)).min())
-    if eig_min < -tol * scale:
+    C_sym = 0.5 * (C + Ct)
+    eig_min = float(np.linalg.eigvalsh(C_sym).min()) if C.shape[-1] else 0.0
+    if eig_min < -(tol if eig_tol is None else eig_tol) * scale - 1e-300:
         raise CovarianceError(f"{name}: not positive semi-definite (smallest eigenvalue {eig_min:.3g})")
-    return C
+    return C_sym if symmetrize else C
