@@ -542,13 +542,13 @@ def test_random_trees_against_reference(tree, data):
 
 
 def test_fourth_order_batch_last_matches_reference_form():
-    from ppoe_core.model.fourth_order import _compound4_batch_last
+    from ppoe_core.model.fourth_order import compound_fourth_order_batch_last
 
     rng = np.random.default_rng(7)
     A = rng.normal(size=(5, 6, 6)) * 0.1
     B = rng.normal(size=(5, 6, 6)) * 0.1
     c1, c2 = A @ A.transpose(0, 2, 1), B @ B.transpose(0, 2, 1)
-    out = _compound4_batch_last(np.moveaxis(c1, 0, -1), np.moveaxis(c2, 0, -1))
+    out = compound_fourth_order_batch_last(np.moveaxis(c1, 0, -1), np.moveaxis(c2, 0, -1))
     np.testing.assert_allclose(np.moveaxis(out, -1, 0), compound_fourth_order(c1, c2), rtol=1e-12, atol=1e-16)
 
 

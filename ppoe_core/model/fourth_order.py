@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+__all__ = ["compound_fourth_order", "compound_fourth_order_batch_last"]
+
 from ppoe_core.model.chain import Array, _Chain
 
 
@@ -108,7 +110,7 @@ def _op1(A: Array) -> Array:
     return out
 
 
-def _compound4_batch_last(c1: Array, c2: Array) -> Array:
+def compound_fourth_order_batch_last(c1: Array, c2: Array) -> Array:
     """:func:`compound_fourth_order` for covariances ``(6, 6, N)`` (batch last, elementwise)."""
     rr1, rt1, tt1 = c1[:3, :3], c1[:3, 3:], c1[3:, 3:]
     rr2, rt2, tt2 = c2[:3, :3], c2[:3, 3:], c2[3:, 3:]
@@ -146,6 +148,6 @@ def _fourth_order_batch_last(ch: _Chain, G: Array) -> Array:
         _, _, _, _, c0, c1 = ch.site_cols[k]
         Gk = G[c0:c1]
         Sk = np.einsum("rin,rjn->ijn", Gk, Gk)
-        cov = Sk if cov is None else _compound4_batch_last(cov, Sk)
+        cov = Sk if cov is None else compound_fourth_order_batch_last(cov, Sk)
     assert cov is not None
     return cov
