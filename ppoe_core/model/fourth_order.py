@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["compound_fourth_order", "compound_fourth_order_batch_last"]
-
 from ppoe_core.model.chain import Array, _Chain
+
+__all__ = ["compound_fourth_order", "compound_fourth_order_batch_last"]
 
 
 def _covop1(A: Array) -> Array:
