@@ -7,11 +7,10 @@ import time
 
 import numpy as np
 import pytest
+from conftest import CONFIG_ROBOTS
 
 from ppoe_core.estimation.batch_worker import BatchWorker
 from ppoe_core.model.ppoe import PPOEModel
-
-from conftest import CONFIG_ROBOTS
 
 
 def _wait(cond, timeout: float = 5.0) -> None:

@@ -556,3 +556,29 @@ def test_evaluate_matches_live_node_pipeline(tmp_path):
     np.testing.assert_allclose(live_e3[cmp], ev.samples["ppoe_position_3d"][cmp], atol=1e-6)
     # and the fusion did something: the errors are well below FK's
     assert live_e3[cmp].mean() < 0.5 * fk_e3[cmp].mean()
+
+
+@pytest.mark.parametrize("command", ["evaluate", "diagnose"])
+def test_out_path_checked_before_the_run(tmp_path, capsys, monkeypatch, command):
+    """``--out`` on an existing file or an unwritable place: one clear line naming it, exit 2, and the bag is
+    never read (checked before the run, not after it)."""
+    import ppoe_core.analysis.evaluate
+    import ppoe_core.io.bagio
+    from ppoe_ros.cli import main
+
+    def never(*args, **kwargs):
+        raise AssertionError("the run started although --out is unusable")
+
+    monkeypatch.setattr(ppoe_core.analysis.evaluate, "evaluate_bag", never)
+    monkeypatch.setattr(ppoe_core.io.bagio, "read_bag", never)
+    existing = tmp_path / "report.txt"
+    existing.write_text("keep me")
+    bag, model = (("no_effect", "arm7_model.yaml") if command == "diagnose" else ("contact", "humanoid_model.yaml"))
+    argv = [command, str(REPO / "bags" / bag), "--model", str(REPO / "config" / "robots" / model)]
+    assert main([*argv, "--out", str(existing)]) == 2
+    err = capsys.readouterr().err
+    assert f"--out {existing}: is an existing file, not a directory" in err and "Traceback" not in err
+    assert existing.read_text() == "keep me"
+    assert main([*argv, "--out", "/proc/ppoe_cannot_create_this"]) == 2
+    err = capsys.readouterr().err
+    assert "--out /proc/ppoe_cannot_create_this: cannot write there" in err

@@ -67,10 +67,13 @@ def run(args: argparse.Namespace) -> int:
         write_model_yaml,
         write_report,
     )
+    from ppoe_core.cli.output import prepare_out_dir
     from ppoe_core.errors import BagError
     from ppoe_core.io.bagio import read_bag
     from ppoe_core.robot.urdf import parse_urdf
 
+    if args.out:  # checked before the run, not after it
+        prepare_out_dir(args.out)
     urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description
     if not urdf:
         raise BagError(f"bag {args.bags[0]}: no /robot_description")

@@ -69,6 +69,10 @@ def run(args: argparse.Namespace) -> int:
         write_report,
     )
 
+    from ppoe_core.cli.output import prepare_out_dir
+
+    if args.out:  # checked before the run, not after it
+        prepare_out_dir(args.out)
     progress = sys.stderr.isatty() if args.progress is None else bool(args.progress)
     fusion = load_fusion_params(args.fusion_params) if args.fusion_params else {}
     for key, value in (("max_iterations", args.iterations), ("gate_probability", args.gate),
