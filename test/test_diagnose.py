@@ -667,3 +667,42 @@ def test_imu_tilt_covariance_matches_monte_carlo(robot):
     # measured minus nominal prediction: its covariance is the predicted one (3 stops, 2x2 each)
     emp = np.einsum("mni,mnj->nij", samples, samples) / M
     assert np.allclose(emp, C, rtol=0.1, atol=0.05 * np.abs(C).max())
+
+
+def _rewrite_no_effect(tmp_path, stamp_js, value_js):
+    """The shipped no_effect bag rewritten with joint-state stamps / values changed by the given functions."""
+    from ppoe_core.io.bagio import BagWriter, read_bag
+
+    data = read_bag(BAGS / "no_effect", load_images=False)
+    js, gt = data.joint_states, data.ground_truth_point
+    out = tmp_path / "bad"
+    with BagWriter(out) as w:
+        w.write_robot_description(data.robot_description, 0.0)
+        for i in range(len(js)):
+            w.write_joint_state(stamp_js(i, float(js.stamps[i])), js.names, value_js(js.names, js.positions[i]))
+        for i in range(len(gt)):
+            w.write_ground_truth_point(float(gt.stamps[i]), gt.frame_ids[i], gt.p[i])
+    return out
+
+
+def test_stamps_that_do_not_advance_or_a_nan_joint_are_refused(tmp_path, capsys):
+    """Joint-state stamps all 0 (or repeated), or a chain joint NaN in every message: one line naming the bag
+    and the joint, exit 2 (no 'nan mm', no numpy traceback)."""
+    from ppoe_ros.cli import main
+
+    model = str(CONFIG / "robots" / "arm7_model.yaml")
+    zero = _rewrite_no_effect(tmp_path / "zero", lambda i, t: 0.0, lambda names, q: q)
+    assert main(["diagnose", str(zero), "--model", model]) == 2
+    err = capsys.readouterr().err
+    assert f"bag {zero}: /joint_states stamps of joint" in err and "do not advance" in err
+    assert "Traceback" not in err and "nan mm" not in err
+
+    def nan_joint_2(names, q):
+        q = np.array(q, dtype=float)
+        q[list(names).index("joint_2")] = np.nan
+        return q
+
+    nan_bag = _rewrite_no_effect(tmp_path / "nan", lambda i, t: t, nan_joint_2)
+    assert main(["diagnose", str(nan_bag), "--model", model]) == 2
+    err = capsys.readouterr().err
+    assert f"bag {nan_bag}: /joint_states carries no finite value of joint 'joint_2'" in err

@@ -256,6 +256,25 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
                  reg_mask=reg, score_mask=score, context=ctx, imus=imus)
 
 
+def _check_joint_samples(path: str | Path, jn: str, t: np.ndarray, n_messages: int) -> None:
+    """A joint needs finite values, and its stamps (sorted) must advance: repeated stamps (all 0, a clock that
+    ran backwards and was sorted) make velocities and motion signs meaningless.
+
+    Raises
+    ------
+    BagError
+        Naming the bag, the joint and what is wrong.
+    """
+    if t.size == 0:
+        raise BagError(f"bag {path}: /joint_states carries no finite value of joint {jn!r} "
+                       f"(NaN or inf in all {n_messages} messages)")
+    repeated = int(np.sum(np.diff(t) <= 0.0))
+    if repeated:
+        raise BagError(f"bag {path}: /joint_states stamps of joint {jn!r} do not advance: {repeated} of {t.size} "
+                       f"messages repeat an earlier stamp (first stamp {t[0]:.9g} s); stamps must come from one "
+                       "running clock")
+
+
 def _joint_context(js: Any, robot: Robot, link: str, stamps: np.ndarray,
                    path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Joint values at the measurement stamps and the context (time, motion sign, joint velocity)."""
@@ -272,6 +291,7 @@ def _joint_context(js: Any, robot: Robot, link: str, stamps: np.ndarray,
         col = js.positions[order, js.names.index(jn)]
         good = np.isfinite(col)
         tg, cg = t_js[good], col[good]
+        _check_joint_samples(path, jn, tg, len(col))
         q[jn] = _sample_joint(tg, cg, stamps)
         pos_cols.append(np.interp(t_js, tg, cg))
         v = np.gradient(cg, tg) if good.sum() > 1 else np.zeros(good.sum())
