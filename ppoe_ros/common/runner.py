@@ -7,6 +7,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
@@ -38,6 +39,31 @@ def take_robot_description(node: Node, params: Mapping[str, Any], stats: NodeSta
 # ---------------------------------------------------------------------------- main
 
 
+def check_params_files(argv: Sequence[str]) -> None:
+    """Every ``--params-file PATH`` after ``--ros-args`` names a readable YAML mapping (else rcl fails later with a
+    raw ``RCLError``).
+
+    Raises
+    ------
+    ModelConfigError
+        Naming the file (and the line of a YAML error).
+    """
+    from ppoe_core.errors import ModelConfigError
+    from ppoe_core.robot.yaml_io import read_yaml_file
+
+    if "--ros-args" not in argv:
+        return
+    ros = list(argv[argv.index("--ros-args") + 1:])
+    for i, a in enumerate(ros):
+        if a == "--params-file":
+            if i + 1 >= len(ros):
+                raise ModelConfigError("--params-file without a path")
+            data, where = read_yaml_file(ros[i + 1], "parameter file")
+            if not isinstance(data, dict):
+                raise ModelConfigError(f"{where}: parameter file must be a mapping of node names, got "
+                                       f"{type(data).__name__}")
+
+
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
     """The standard ``main()`` of a node: init, build, spin, shut down; returns the exit code.
 
@@ -54,7 +80,17 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     A ``SingleThreadedExecutor``: rclpy's experimental ``EventsExecutor`` (Jazzy) received
     no messages and spun at 100 % CPU after SIGTERM in a trial here, so it is not offered.
     """
-    rclpy.init(args=list(sys.argv if args is None else args))
+    argv = list(sys.argv if args is None else args)
+    name = getattr(factory, "__name__", "node")
+    try:
+        check_params_files(argv)
+        rclpy.init(args=argv)
+    except PpoeError as exc:
+        print(f"[FATAL] {name}: {exc}", file=sys.stderr, flush=True)
+        return 2
+    except RCLError as exc:  # rcl's own argument parsing (e.g. a malformed --remap)
+        print(f"[FATAL] {name}: cannot start: {str(exc).split(', at ')[0]}", file=sys.stderr, flush=True)
+        return 2
     node: Node | None = None
     code = 0
     try:
