@@ -88,6 +88,16 @@ def test_wrench_hysteresis_plane_and_bad_input_live(tmp_path: Path) -> None:
         assert "bad message on /wrench: non-finite wrench" in log
         assert "bad message on /wrench: stamp jumped back by 0.090000 s" in log
         assert log.count("contact begins") == 3 and log.count("contact ends") == 2
+        # a clock reset (bag loop, simulator restart: 10 s back, > stamp_reset_threshold) starts a new
+        # timeline instead of rejecting every later wrench (issue 13 item 7)
+        n0 = len(out)
+        reset = [int(0.5e9) + k * 10_000_000 for k in range(3)]
+        for ns in reset:
+            pub.publish(_wrench(ns, (0, 0, 9.0)))
+        probe.spin_until(lambda: len(out) >= n0 + 3, 10, proc, "planes after the clock reset")
+        assert [stamp_to_ns(m.header.stamp) for m in out[n0:]] == reset
+        log = proc.output()
+        assert "(> stamp_reset_threshold): new timeline, contact state reset" in log
         assert proc.alive()
 
 

@@ -91,6 +91,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               "wrench frame", check=lambda v: None if v in _COMPONENTS else f"must be one of {_COMPONENTS}"),
     ParamSpec("qos_depth", 100, "history depth of the input subscription (sensor-data QoS)",
               min_value=1, max_value=100000),
+    ParamSpec("stamp_reset_threshold", 1.0, "a wrench stamp this much older than the last one starts a new "
+              "timeline (bag loop, simulator restart): counted, the contact state reset", unit="s", min_value=0.0),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
     ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
               min_value=0.0),
@@ -158,8 +160,15 @@ class ContactNode(Node):
         if not np.all(np.isfinite(w)):
             raise ValueError(f"non-finite wrench {w.tolist()}")
         stamp_ns = stamp_to_ns(msg.header.stamp)
-        if self._last_ns is not None and stamp_ns < self._last_ns:
-            raise ValueError(f"stamp jumped back by {(self._last_ns - stamp_ns) * 1e-9:.6f} s: message ignored")
+        last = self._last_ns
+        if last is not None and stamp_ns < last:
+            jump = (last - stamp_ns) * 1e-9
+            if jump <= self.params["stamp_reset_threshold"]:
+                raise ValueError(f"stamp jumped back by {jump:.6f} s: message ignored")
+            self.stats.bad(self.params["wrench_topic"],
+                           f"stamp jumped back by {jump:.3f} s (> stamp_reset_threshold): new timeline, "
+                           "contact state reset")
+            self.detector.in_contact = False
         self._last_ns = stamp_ns
         force = float(force_measure(w[:3], self._component))
         was = self.detector.in_contact
