@@ -706,3 +706,29 @@ def test_stamps_that_do_not_advance_or_a_nan_joint_are_refused(tmp_path, capsys)
     assert main(["diagnose", str(nan_bag), "--model", model]) == 2
     err = capsys.readouterr().err
     assert f"bag {nan_bag}: /joint_states carries no finite value of joint 'joint_2'" in err
+
+
+def test_diagnosed_model_goes_back_into_evaluate_and_the_library(tmp_path, capsys):
+    """The result goes back in (issue 10): the diagnosed model YAML of a tracker bag loads in ``ppoe evaluate``
+    scored against the tracker points (it crashed on a chain without moving joints before), and lowers the
+    FK error; the JSON effect entries (with ci, sigma, share) load through ``effect_from_config``."""
+    import json
+
+    from ppoe_core.analysis.evaluate import evaluate_bag
+    from ppoe_core.analysis.evaluate.options import EvaluateOptions
+    from ppoe_core.model.effects import effect_from_config
+    from ppoe_ros.cli import main
+
+    bag, model = BAGS / "effect_joint_offset", CONFIG / "robots" / "arm7_model.yaml"
+    out = tmp_path / "dg"
+    assert main(["diagnose", str(bag), "--model", str(model), "--out", str(out)]) == 0
+    capsys.readouterr()
+    opts = EvaluateOptions(ground_truth="point")
+    before = evaluate_bag(bag, model, opts).summary["methods"]["fk"]["position_3d"]["rms"]
+    after = evaluate_bag(bag, out / "model_diagnosed.yaml", opts).summary["methods"]["fk"]["position_3d"]["rms"]
+    assert after < 0.85 * before, (before, after)
+    doc = json.loads((out / "diagnose.json").read_text())
+    assert doc["effects"] and {"ci", "sigma", "share"} <= set(doc["effects"][0])
+    effs = [effect_from_config(e, parse_urdf(CONFIG / "robots" / "arm7.urdf")) for e in doc["effects"]]
+    assert [e.describe() for e in effs] == ["joint_offset@joint_2"]
+    np.testing.assert_allclose(effs[0].params, [doc["effects"][0]["parameters"]["offset"]])

@@ -439,13 +439,19 @@ def make_effect(name: str, location: str, robot_or_tree: Robot | KinematicTree,
     return _CLASSES[name](tree, location, params, **options)
 
 
+#: keys ``ppoe diagnose`` adds to an effect entry; they describe the fit, not the effect, and are ignored on load
+_REPORT_KEYS = ("ci", "sigma", "share", "measurement", "frame")
+
+
 def effect_from_config(entry: Mapping[str, Any], robot: Robot | KinematicTree,
                        where: str = "effects") -> Effect:
     """Build an effect from a model-YAML entry ``{name, location, parameters}``.
 
     ``parameters`` maps parameter names to values; a ``link_error`` /
     ``camera_extrinsics`` entry uses only the twist components it lists (``x y z rx ry rz``).
-    ``thermal_growth`` accepts ``variable`` and ``reference``; a ``ci`` key is ignored.
+    ``thermal_growth`` accepts ``variable`` and ``reference``.  The annotations ``ppoe diagnose`` adds to an
+    entry (``ci``, ``sigma``, ``share``, ``measurement``, ``frame``) are ignored, so its JSON entries load as they
+    are.
 
     Raises
     ------
@@ -456,7 +462,7 @@ def effect_from_config(entry: Mapping[str, Any], robot: Robot | KinematicTree,
     """
     if not isinstance(entry, Mapping):
         raise ModelConfigError(f"{where}: an effect entry must be a mapping, got {type(entry).__name__}")
-    extra = set(entry) - {"name", "location", "parameters", "ci", "variable", "reference"}
+    extra = set(entry) - {"name", "location", "parameters", "variable", "reference", *_REPORT_KEYS}
     if extra:
         raise ModelConfigError(f"{where}: unknown keys {sorted(extra)}")
     for key in ("name", "location", "parameters"):

@@ -297,6 +297,8 @@ class PPOEModel:
             theta = np.zeros((0, N))
         D = None
         effects = self._effects
+        if effects and isinstance(joints, Mapping):
+            theta, shape, N = _batch_over_all_joints(theta, shape, joints)
         if effects:
             qd = self._all_joint_dict(joints, shape)
             dq_tot: dict[str, Array] = {}
@@ -546,3 +548,15 @@ class PPOEModel:
         """Perturbation sites on the chain (``"xi:<joint>"``, ``"noise:<joint>"``), chain order."""
         frm, to = self._frames(frm, to)
         return list(self._chain(frm, to, False).site_label)
+
+
+def _batch_over_all_joints(theta: Array, shape: tuple, joints: Mapping[str, Any]) -> tuple[Array, tuple, int]:
+    """Effects may depend on joints off the chain (gravity loads): the motion values ``theta`` (n_motion, N)
+    broadcast to the batch shape of every given joint value (a chain without moving joints has shape ``()``)."""
+    full = np.broadcast_shapes(shape, *(np.shape(v) for v in joints.values()))
+    N = int(np.prod(full)) if full else 1
+    if full == shape:
+        return theta, shape, N
+    lead = (theta.shape[0],) + (1,) * (len(full) - len(shape))
+    theta = np.broadcast_to(theta.reshape(lead + tuple(shape)), (theta.shape[0], *full))
+    return theta.reshape(theta.shape[0], N), full, N

@@ -267,7 +267,9 @@ def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
         _check_keys(
             ctx,
             e,
-            ("name", "location", "parameters", "ci", "variable", "reference"),
+            # ci, sigma, share, measurement, frame: what ppoe diagnose adds to an entry (kept, not used)
+            ("name", "location", "parameters", "ci", "sigma", "share", "measurement", "frame", "variable",
+             "reference"),
             path,
             required=("name", "location"),
         )
@@ -291,8 +293,9 @@ def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
             else:
                 pclean[str(k)] = _number(ctx, v, params, k, f"{path}.parameters.{k}")
         entry: dict[str, Any] = {"name": name, "location": loc, "parameters": pclean}
-        if "ci" in e:
-            entry["ci"] = _plain(e["ci"])
+        for key in ("ci", "sigma", "share", "measurement", "frame"):
+            if key in e:
+                entry[key] = _plain(e[key])
         if "variable" in e:  # thermal_growth: name of the context variable (e.g. temperature)
             if not isinstance(e["variable"], str):
                 raise ctx.error(e, "variable", path + ".variable", f"must be a string, got {e['variable']!r}")
