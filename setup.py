@@ -33,6 +33,7 @@ setup(
         "opencv-python-headless>=4.8",
         "rosbags>=0.10",
         "matplotlib>=3.7",
+        "ruamel.yaml>=0.18",
     ],
     extras_require={
         "ros": [

@@ -179,6 +179,13 @@ def test_updated_model_yaml_loads_and_reports_are_written(robot, tmp_path):
     src = yaml.safe_load((CONFIG / "robots" / "arm7_model.yaml").read_text())
     assert cfg.perturbations["joint_1"].covariance[0, 0] == pytest.approx(
         (src["perturbations"]["joint_1"]["sigma"][0] * res.sigma_scale) ** 2)
+    assert cfg.joint_noise["joint_3"] == pytest.approx(src["joint_noise"]["joint_3"] * res.sigma_scale)
+    # the input's comments are kept (round trip), below a header saying what changed
+    text = out.read_text()
+    assert text.startswith("# Model updated by `ppoe diagnose`")
+    for comment in [line.split("#", 1)[1] for line in (CONFIG / "robots" / "arm7_model.yaml").read_text().splitlines()
+                    if "#" in line][:12]:
+        assert comment in text, comment
     # a second diagnosis with the effect declared finds nothing new
     res2 = diagnose(robot, _synthetic(robot, [eff], seed=8), declared, pert)
     assert res2.effects == []

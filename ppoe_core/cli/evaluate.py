@@ -68,7 +68,6 @@ def run(args: argparse.Namespace) -> int:
         markdown_report,
         write_report,
     )
-
     from ppoe_core.cli.output import prepare_out_dir
 
     if args.out:  # checked before the run, not after it

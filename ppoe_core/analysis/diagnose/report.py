@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import math
 from collections.abc import Mapping
@@ -9,7 +10,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from ppoe_core.analysis.diagnose.results import DiagnoseResult
 from ppoe_core.model.effects import Effect, effect_from_config
@@ -21,14 +21,19 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
                      scale_sigmas: bool = True) -> Path:
     """Updated model YAML: the input plus the found ``effects`` (with ``ci``) and, if
     ``scale_sigmas``, perturbation sigmas / covariances and joint noise scaled by the NEES fit.
-    Comments of the input are not preserved (a header says where it came from)."""
+    The input file is edited as a round trip (ruamel.yaml): its comments and key order are kept; a header
+    says what changed."""
+    from ruamel.yaml import YAML
+
+    rt = YAML()
+    rt.width = 120
     if model_yaml is None:
-        doc: dict[str, Any] = {}
+        doc: Any = {}
     elif isinstance(model_yaml, Mapping):
         doc = dict(model_yaml)
     else:
         with open(model_yaml, encoding="utf-8") as fh:
-            doc = yaml.safe_load(fh) or {}
+            doc = rt.load(fh) or {}
     effects = list(doc.get("effects") or [])
     for e in result.effects:
         entry = {"name": e["name"], "location": e["location"], "parameters": e["parameters"]}
@@ -56,7 +61,9 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
     out_path.parent.mkdir(parents=True, exist_ok=True)
     header = ("# Model updated by `ppoe diagnose`: effects found (with 95 % CIs) appended to `effects`,\n"
               f"# perturbation sigmas scaled by {k:.4g} for held-out NEES = 3.\n")
-    out_path.write_text(header + yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+    buf = io.StringIO()
+    rt.dump(doc, buf)
+    out_path.write_text(header + buf.getvalue(), encoding="utf-8")
     return out_path
 
 
