@@ -193,3 +193,33 @@ def test_node_refuses_unknown_dictionary(tmp_path):
     proc.stop()
     assert code == 2
     assert "parameter 'dictionary'" in out and "tag99h1" in out
+
+
+def test_image_size_read_from_the_header_and_huge_images_refused_before_decoding():
+    """A small PNG that decodes to a huge image is refused from its header (issue 13 item 8); an image whose
+    size differs from camera_info is refused naming both sizes (item 3)."""
+    import struct
+    import zlib
+
+    import cv2
+    from sensor_msgs.msg import CompressedImage
+
+    from ppoe_ros.nodes.tag_bearing_node import check_image_size, image_size_from_header
+
+    ok, png = cv2.imencode(".png", np.zeros((48, 64), np.uint8))
+    ok2, jpg = cv2.imencode(".jpg", np.zeros((48, 64, 3), np.uint8))
+    assert ok and ok2
+    assert image_size_from_header(png.tobytes()) == (64, 48)
+    assert image_size_from_header(jpg.tobytes()) == (64, 48)
+    assert image_size_from_header(b"not an image") is None
+    # the IHDR of the small PNG rewritten to 8000 x 8000 (CRC fixed): decoding would allocate 64 M pixels
+    data = bytearray(png.tobytes())
+    data[16:24] = struct.pack(">II", 8000, 8000)
+    data[29:33] = struct.pack(">I", zlib.crc32(bytes(data[12:29])))
+    msg = CompressedImage(format="png", data=bytes(data))
+    with pytest.raises(MeasurementError, match="8000x8000 pixels .* larger than max_image_pixels"):
+        decode_image(msg, compressed=True)
+    assert decode_image(CompressedImage(format="png", data=png.tobytes()), compressed=True).shape == (48, 64)
+    check_image_size(np.zeros((480, 640), np.uint8), (640, 480))
+    with pytest.raises(MeasurementError, match="image is 1280x960 but camera_info gives 640x480"):
+        check_image_size(np.zeros((960, 1280), np.uint8), (640, 480))

@@ -32,6 +32,7 @@ Parameters: :data:`PARAMS`, documented in ``config/nodes/tag_bearing_node.yaml``
 
 from __future__ import annotations
 
+import struct
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -63,6 +64,8 @@ __all__ = [
     "OBSERVATION_FIELDS",
     "main",
     "decode_image",
+    "image_size_from_header",
+    "check_image_size",
     "camera_from_info",
 ]
 
@@ -85,6 +88,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("publish_debug_image", False, "publish an image with the detections drawn"),
     ParamSpec("debug_image_topic", "/tag_bearing/debug_image", "debug image topic (sensor_msgs/Image bgr8)",
               check=check_nonempty),
+    ParamSpec("max_image_pixels", 4096 * 4096, "images with more pixels (read from the PNG/JPEG header before "
+              "decoding) are refused", min_value=1),
     ParamSpec("qos_depth", 10, "history depth of the image and camera_info subscriptions", min_value=1,
               max_value=1000),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
@@ -98,19 +103,26 @@ _CHANNELS = {"mono8": 1, "8UC1": 1, "bgr8": 3, "rgb8": 3, "8UC3": 3, "bgra8": 4,
              "mono16": 1, "16UC1": 1}
 
 
-def decode_image(msg: Any, compressed: bool) -> np.ndarray:
+def decode_image(msg: Any, compressed: bool, max_pixels: int = 4096 * 4096) -> np.ndarray:
     """Image message -> uint8 grey (H, W) or BGR (H, W, 3) array.
+
+    The size is checked from the PNG / JPEG header (or the ``Image`` fields) before decoding: more than
+    ``max_pixels`` pixels is refused (a small file that decodes to a huge image would stall the node).
 
     Raises
     ------
     MeasurementError
-        Empty data, undecodable compressed data, unknown encoding or inconsistent size.
+        Empty data, too many pixels, undecodable compressed data, unknown encoding or inconsistent size.
     """
     import cv2
 
     data = bytes(msg.data)
     if not data:
         raise MeasurementError("empty image (no data)")
+    size = image_size_from_header(data) if compressed else (int(msg.width), int(msg.height))
+    if size is not None and size[0] * size[1] > max_pixels:
+        raise MeasurementError(f"image of {size[0]}x{size[1]} pixels (from its header) is larger than "
+                               f"max_image_pixels = {max_pixels}: not decoded")
     if compressed:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None or img.size == 0:
@@ -142,6 +154,38 @@ def decode_image(msg: Any, compressed: bool) -> np.ndarray:
     if img.dtype != np.uint8:
         raise MeasurementError(f"unsupported pixel type {img.dtype}")
     return np.ascontiguousarray(img)
+
+
+def image_size_from_header(data: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` from a PNG IHDR or a JPEG SOF header without decoding; None if not found."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", data[16:24])
+        return int(w), int(h)
+    if data[:2] == b"\xff\xd8":  # JPEG: walk the markers to the first start-of-frame
+        i = 2
+        while i + 9 < len(data) and data[i] == 0xFF:
+            marker, seg = data[i + 1], struct.unpack(">H", data[i + 2:i + 4])[0]
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+                h, w = struct.unpack(">HH", data[i + 5:i + 9])
+                return int(w), int(h)
+            i += 2 + seg
+    return None
+
+
+def check_image_size(image: np.ndarray, info_size: tuple[int, int] | None) -> None:
+    """An image must have the size its ``camera_info`` gives (else the intrinsics do not apply).
+
+    Raises
+    ------
+    MeasurementError
+        Naming both sizes.
+    """
+    if info_size is None or info_size == (0, 0):
+        return
+    h, w = image.shape[:2]
+    if (w, h) != info_size:
+        raise MeasurementError(f"image is {w}x{h} but camera_info gives {info_size[0]}x{info_size[1]}: "
+                               "its intrinsics do not apply, image not used")
 
 
 def camera_from_info(msg: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -211,6 +255,7 @@ class TagBearingNode(Node):
         self.K: np.ndarray | None = None
         self.D: np.ndarray | None = None
         self.info_frame = ""
+        self.info_size: tuple[int, int] | None = None
         self.pub = self.create_publisher(PointCloud2, p["observations_topic"], reliable_qos(50))
         self.debug_pub = (self.create_publisher(Image, p["debug_image_topic"], reliable_qos(5))
                           if p["publish_debug_image"] else None)
@@ -227,6 +272,7 @@ class TagBearingNode(Node):
     def _camera_info(self, msg: CameraInfo) -> None:
         self.K, self.D = camera_from_info(msg)  # raises (counted as bad) before replacing
         self.info_frame = msg.header.frame_id
+        self.info_size = (int(msg.width), int(msg.height))
         self.stats.counts["camera_info"] += 1
 
     def _image(self, msg: Any) -> None:
@@ -235,7 +281,8 @@ class TagBearingNode(Node):
         if self.K is None or self.D is None:
             st.bad(self.params["image_topic"], "no valid camera_info yet: image dropped", kind="dropped")
             return
-        image = decode_image(msg, self.params["compressed"])
+        image = decode_image(msg, self.params["compressed"], self.params["max_image_pixels"])
+        check_image_size(image, self.info_size)
         rows, dets = observe_tags(image, self.K, self.D, self.dictionary, self.tag_ids,
                                   self.params["corner_refinement"])
         header = msg.header
