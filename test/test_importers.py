@@ -327,3 +327,33 @@ def test_cli_import_json(tmp_path, capsys):
     # a second import to the same place is refused without --force, naming the bag
     rc = main(["import", "hilti", str(f), "--out", str(tmp_path / "b"), "--urdf", str(urdf)])
     assert rc == 2 and "exists" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("state", ["null", "missing", "empty"])
+def test_hilti_incomplete_station_refused_then_counted(tmp_path, capsys, state):
+    """Issue 13 item 4: a station whose stationing list is null/missing/empty is not dropped silently."""
+    from ppoe_ros.cli import main
+
+    doc = _hilti_doc()
+    station = doc["column_heights"][2.0]["solution_spaces"][0]
+    if state == "missing":
+        del station["stationing_measurements"]
+    else:
+        station["stationing_measurements"] = None if state == "null" else []
+    f = tmp_path / "x.yaml"
+    f.write_text(yaml.safe_dump(doc))
+    with pytest.raises(DatasetError) as ei:
+        hi.load_hilti(f)
+    msg = str(ei.value)
+    assert str(f) in msg and f"solution_spaces/0/stationing_measurements is {state}" in msg
+    assert "1 evaluation stops are kept" in msg and "--allow-incomplete" in msg
+    urdf = tmp_path / "r.urdf"
+    urdf.write_text('<robot name="r"><link name="base_link"/></robot>')
+    out = tmp_path / "b"
+    assert main(["import", "hilti", str(f), "--out", str(out), "--urdf", str(urdf)]) == 2
+    assert "stationing_measurements is" in capsys.readouterr().err and not out.exists()
+    rc = main(["import", "hilti", str(f), "--out", str(out), "--urdf", str(urdf), "--allow-incomplete", "--json"])
+    captured = capsys.readouterr()
+    assert rc == 0 and "warning" in captured.err and f"stationing_measurements is {state}" in captured.err
+    doc_out = json.loads(captured.out)
+    assert len(doc_out["incomplete"]) == 1 and doc_out["counts"]["/joint_states"] == hi.BURST_COUNT

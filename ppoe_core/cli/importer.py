@@ -3,6 +3,7 @@
 ::
 
     ppoe import hilti FILE.yaml --out BAG [--urdf trailblazer.urdf] [--ppoe-model OUT.yaml] [--force] [--json]
+                      [--allow-incomplete]
     ppoe import motoman FILE.mat --model-yaml MODEL.yaml --out BAG [--urdf URDF]
                         [--ppoe-model OUT.yaml] [--force] [--json]
 
@@ -32,6 +33,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     h.add_argument(
         "--ppoe-model", default=None, metavar="OUT.yaml", help="where to write the ppoe model (default: BAG.model.yaml)"
     )
+    h.add_argument("--allow-incomplete", action="store_true",
+                   help="import a file in which some stations lack stationing or evaluation measurements")
     m = sub.add_parser("motoman", help="Motoman Leica .mat -> contract bag + ppoe model YAML")
     m.add_argument("file", metavar="FILE.mat", help="dataset file, e.g. leica_right_hand_6x6x6_dataset.mat")
     m.add_argument("--model-yaml", required=True, metavar="MODEL.yaml", help="the dataset's model.yaml")
@@ -50,7 +53,10 @@ def run(args: argparse.Namespace) -> int:
     if args.dataset == "hilti":
         from ppoe_core.io.importers.hilti import import_hilti
 
-        res = import_hilti(args.file, args.out, urdf=args.urdf, overwrite=args.force, ppoe_model_out=args.ppoe_model)
+        res = import_hilti(args.file, args.out, urdf=args.urdf, overwrite=args.force, ppoe_model_out=args.ppoe_model,
+                           allow_incomplete=args.allow_incomplete)
+        for line in res["incomplete"]:
+            print(f"ppoe import: warning: {args.file}: {line}", file=sys.stderr)
         result = {"bag": args.out, **res}
     else:
         from ppoe_core.io.importers.motoman import import_motoman

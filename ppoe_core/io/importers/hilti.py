@@ -174,6 +174,8 @@ class HiltiDataset:
     path: Path
     joint_names: list[str]
     stops: list[HiltiStop] = field(default_factory=list)
+    incomplete: list[str] = field(default_factory=list)
+    """Stations lacking a role list (``null``, missing or empty), one line each; their other stops are kept."""
 
     @property
     def stations(self) -> list[str]:
@@ -219,13 +221,17 @@ def _waypoint(m: Any, height: Any, space: Any, role: str, where: str) -> HiltiSt
     return stop
 
 
-def load_hilti(path: str | Path) -> HiltiDataset:
+def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset:
     """Parse a Hilti dataset YAML (``flat.yaml`` etc.).
 
     Parameters
     ----------
     path : str or Path
         The dataset file.
+    allow_incomplete : bool
+        Accept stations whose ``stationing_measurements`` or ``evaluation_measurements`` is
+        ``null``, missing or empty (listed in :attr:`HiltiDataset.incomplete`); by default such a
+        file is refused, naming every such station.
 
     Returns
     -------
@@ -254,6 +260,7 @@ def load_hilti(path: str | Path) -> HiltiDataset:
     if joint_names != _EXPECTED_JOINTS:
         raise DatasetError(f"{path}: joint_names {joint_names} differ from the expected {_EXPECTED_JOINTS}")
     stops: list[HiltiStop] = []
+    incomplete: list[str] = []
     heights = doc["column_heights"]
     if not isinstance(heights, dict):
         raise DatasetError(f"{path}: column_heights must be a mapping")
@@ -265,7 +272,13 @@ def load_hilti(path: str | Path) -> HiltiDataset:
             if not isinstance(sval, dict):
                 raise DatasetError(f"{path}: column_heights/{height}/solution_spaces/{space}: not a mapping")
             for key, role in _ROLES.items():
-                for k, m in enumerate(sval.get(key) or []):
+                entries = sval.get(key)
+                if not entries:
+                    incomplete.append(_incomplete_line(sval, key, height, space))
+                    continue
+                if not isinstance(entries, list):
+                    raise DatasetError(f"{path}: column_heights/{height}/solution_spaces/{space}/{key}: not a list")
+                for k, m in enumerate(entries):
                     where = f"{path}: column_heights/{height}/solution_spaces/{space}/{key}[{k}]"
                     stops.append(_waypoint(m, height, space, role, where))
     stops.sort(key=lambda s: s.time)
@@ -276,7 +289,21 @@ def load_hilti(path: str | Path) -> HiltiDataset:
             f"{path}: waypoints {stops[i].station}/{stops[i].waypoint_id} and "
             f"{stops[i + 1].station}/{stops[i + 1].waypoint_id} are too close in time to be separate stops"
         )
-    return HiltiDataset(path=path, joint_names=joint_names, stops=stops)
+    if incomplete and not allow_incomplete:
+        raise DatasetError(
+            f"{path}: {len(incomplete)} station role list(s) missing or empty, so those stations cannot be "
+            f"scored by the stationing protocol: " + "; ".join(incomplete)
+            + " (pass --allow-incomplete to import the other stops)")
+    return HiltiDataset(path=path, joint_names=joint_names, stops=stops, incomplete=incomplete)
+
+
+def _incomplete_line(sval: dict, key: str, height: Any, space: Any) -> str:
+    """One line naming a station's missing role list and what it leaves unusable."""
+    state = "missing" if key not in sval else ("null" if sval[key] is None else "empty")
+    other = [k for k in _ROLES if k != key][0]
+    n_other = len(sval.get(other) or [])
+    return (f"column_heights/{height}/solution_spaces/{space}/{key} is {state} "
+            f"(the station's {n_other} {other.split('_')[0]} stops are kept)")
 
 
 def _string_msg(text: str) -> Any:
@@ -348,6 +375,7 @@ def import_hilti(
     urdf: str | Path | None = None,
     overwrite: bool = False,
     ppoe_model_out: str | Path | None = None,
+    allow_incomplete: bool = False,
 ) -> dict[str, Any]:
     """``ppoe import hilti``: parse ``path`` and write the bag ``out``.
 
@@ -364,14 +392,17 @@ def import_hilti(
     ppoe_model_out : str or Path, optional
         Where to write the ppoe model YAML (:func:`hilti_model_dict`); default
         ``<out>.model.yaml`` next to the bag.
+    allow_incomplete : bool
+        See :func:`load_hilti`.
 
     Returns
     -------
     dict
-        ``counts`` (messages per topic) and ``model`` (path of the written model YAML).
+        ``counts`` (messages per topic), ``model`` (path of the written model YAML) and
+        ``incomplete`` (stations with a missing role list, one line each).
     """
     path, out = Path(path), Path(out)
-    dataset = load_hilti(path)
+    dataset = load_hilti(path, allow_incomplete=allow_incomplete)
     urdf_path = Path(urdf) if urdf is not None else path.with_name("trailblazer.urdf")
     try:
         urdf_xml = urdf_path.read_text()
@@ -387,4 +418,4 @@ def import_hilti(
         "# tracker: prism on link prism, total-station 1-sigma [m]; imus: accelerometers, 1-sigma [m/s^2].\n"
     )
     model_out.write_text(header + yaml.safe_dump(hilti_model_dict(), sort_keys=False))
-    return {"counts": counts, "model": str(model_out)}
+    return {"counts": counts, "model": str(model_out), "incomplete": list(dataset.incomplete)}
