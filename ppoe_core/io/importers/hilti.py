@@ -175,7 +175,7 @@ class HiltiDataset:
     joint_names: list[str]
     stops: list[HiltiStop] = field(default_factory=list)
     incomplete: list[str] = field(default_factory=list)
-    """Stations lacking a role list (``null``, missing or empty), one line each; their other stops are kept."""
+    """Stations lacking a role list (``null`` or missing), one line each; their other stops are kept."""
 
     @property
     def stations(self) -> list[str]:
@@ -230,8 +230,8 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
         The dataset file.
     allow_incomplete : bool
         Accept stations whose ``stationing_measurements`` or ``evaluation_measurements`` is
-        ``null``, missing or empty (listed in :attr:`HiltiDataset.incomplete`); by default such a
-        file is refused, naming every such station.
+        ``null`` or missing (listed in :attr:`HiltiDataset.incomplete`); by default such a file is
+        refused, naming every such station.  An empty list ``[]`` is explicit and accepted.
 
     Returns
     -------
@@ -273,7 +273,7 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
                 raise DatasetError(f"{path}: column_heights/{height}/solution_spaces/{space}: not a mapping")
             for key, role in _ROLES.items():
                 entries = sval.get(key)
-                if not entries:
+                if entries is None:  # an empty list is explicit (space 4 has no stationing points)
                     incomplete.append(_incomplete_line(sval, key, height, space))
                     continue
                 if not isinstance(entries, list):
@@ -291,7 +291,7 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
         )
     if incomplete and not allow_incomplete:
         raise DatasetError(
-            f"{path}: {len(incomplete)} station role list(s) missing or empty, so those stations cannot be "
+            f"{path}: {len(incomplete)} station role list(s) missing or null, so those stations cannot be "
             f"scored by the stationing protocol: " + "; ".join(incomplete)
             + " (pass --allow-incomplete to import the other stops)")
     return HiltiDataset(path=path, joint_names=joint_names, stops=stops, incomplete=incomplete)
@@ -299,7 +299,7 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
 
 def _incomplete_line(sval: dict, key: str, height: Any, space: Any) -> str:
     """One line naming a station's missing role list and what it leaves unusable."""
-    state = "missing" if key not in sval else ("null" if sval[key] is None else "empty")
+    state = "missing" if key not in sval else "null"
     other = [k for k in _ROLES if k != key][0]
     n_other = len(sval.get(other) or [])
     return (f"column_heights/{height}/solution_spaces/{space}/{key} is {state} "
