@@ -90,8 +90,10 @@ def test_fusion_node_live_corrects_prior_drops_stale_and_survives_bad_input(tmp_
             send_prior(k)
             probe.spin_for(0.01)
         probe.spin_until(lambda: len(fused) >= 25, 20, proc, "25 fused poses (no correction yet)")
-        # before any measurement the fused pose is the prior
+        # before any measurement the fused pose is the prior, and /diagnostics says so (issue 13 item 15)
         np.testing.assert_allclose(matrix_from_pose_msg(fused[-1].pose.pose), T_prior, atol=1e-9)
+        probe.spin_until(lambda: counts().get("converging") == "True", 10, proc, "diagnostics: converging")
+        assert diags[-1].status[0].level == b"\x01" and "uncorrected prior" in diags[-1].status[0].message
 
         # tag observation at prior 12.5 (interpolated), a stale one 5 s old, a bad one
         hdr = Header(frame_id="camera_optical_frame", stamp=ns_to_stamp(t0 + 12 * dt + dt // 2))
@@ -113,6 +115,16 @@ def test_fusion_node_live_corrects_prior_drops_stale_and_survives_bad_input(tmp_
             probe.spin_for(0.01)
         probe.spin_until(lambda: len(fused) >= n_before + 10 and counts().get("bad") == "2", 20, proc,
                          "fused poses after the update")
+        assert counts().get("converging") == "False"
+        # issue 13 item 5: a prior 1.5 s late, one 0.1 s back in time, an image listing a corner twice
+        pub_prior.publish(pose_cov_stamped_msg(T_prior, cov_ros, ns_to_stamp(t0 + 35 * dt - 1_500_000_000),
+                                               "base_link"))
+        pub_prior.publish(pose_cov_stamped_msg(T_prior, cov_ros, ns_to_stamp(t0 + 35 * dt - 100_000_000),
+                                               "base_link"))
+        hdr30 = Header(frame_id="camera_optical_frame", stamp=ns_to_stamp(t0 + 30 * dt))
+        pub_obs.publish(cloud_from_observations(np.vstack([rows, rows[:1]]), hdr30))
+        probe.spin_until(lambda: counts().get("priors_late") == "1" and counts().get("priors_out_of_order") == "1"
+                         and counts().get("bad") == "3", 20, proc, "late 1, out of order 1, bad 3")
         assert proc.alive()
         log = proc.output()
 
@@ -126,6 +138,8 @@ def test_fusion_node_live_corrects_prior_drops_stale_and_survives_bad_input(tmp_
     c = {kv.key: kv.value for kv in diags[-1].status[0].values}
     assert c["dropped"] == "1" and c["rejected"] == "0"
     assert "stale" in log and "no point of a tag configured" in log
+    assert "is older than the prior buffer" in log and "out of order" in log
+    assert f"duplicated observation rows (tag {int(rows[0, 0])} corner {int(rows[0, 1])} x2)" in log
     print(f"fusion node: prior position error {err_prior * 1000:.1f} mm, fused {err_fused * 1000:.1f} mm")
 
 

@@ -19,7 +19,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: E402
 from ros_helpers import REPO, NodeProcess, Probe, ros_env, write_params_file  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
@@ -300,6 +300,68 @@ def test_guarded_counts_bad_and_unexpected_errors() -> None:
     assert stats.counts["bad"] == 1 and stats.counts["errors"] == 1
     assert node.logger.lines[0] == ("warn", "bad message on /joint_states: joint 'j1' is NaN")
     assert node.logger.lines[1][0] == "error" and "RuntimeError: boom" in node.logger.lines[1][1]
+
+
+def test_sequence_gaps_count_losses_and_pause_with_several_publishers() -> None:
+    """Issue 13 item 6: messages lost before the callback are counted from sequence gaps."""
+    from ppoe_ros.common import NodeStats, SequenceGaps
+
+    stats = NodeStats(_FakeNode(), throttle_sec=0.0)
+    gaps = SequenceGaps("/joint_states", stats)
+    for seq in (1, 2, 5, 6, 10):
+        gaps.observe({"publication_sequence_number": seq})
+    assert stats.counts["lost_before_node"] == 2 + 3 and "sequence 6 -> 10" in stats.last_reason
+    gaps.observe({"publication_sequence_number": 1})  # the publisher restarted: nothing lost
+    gaps.observe({"publication_sequence_number": 2})
+    assert stats.counts["lost_before_node"] == 5
+    gaps.set_publishers(2)  # two publishers interleave their numbers: paused
+    for seq in (3, 1, 7, 2):
+        gaps.observe({"publication_sequence_number": seq})
+    gaps.set_publishers(1)
+    gaps.observe({"publication_sequence_number": 40})
+    gaps.observe({"publication_sequence_number": 42})
+    gaps.observe({"publication_sequence_number": None})  # an rmw without numbers
+    assert stats.counts["lost_before_node"] == 6
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_burst_losses_are_counted_on_diagnostics(tmp_path: Path) -> None:
+    """A burst into a 2-deep subscription: received + lost_before_node = sent, and /diagnostics WARNs."""
+    env = ros_env(tmp_path)
+    pf = write_params_file(tmp_path / "p.yaml", {
+        "robot_description": URDF.read_text(), "model_file": str(MODEL), "max_batch": 1, "drain_max": 0,
+        "qos_depth": 2, "diagnostics_period": 0.2})
+    with Probe(env) as probe, NodeProcess.node("kinematics_node", env, tmp_path, params_file=pf) as proc:
+        js = probe.publisher("/joint_states", JointState, 5000)
+        diags = probe.collect("/diagnostics", DiagnosticArray)
+        probe.wait_for_subscribers(js, proc)
+        probe.spin_for(0.5)
+
+        def kv() -> dict[str, str]:
+            st = [s for d in diags for s in d.status if s.name == "kinematics_node"]
+            return {k.key: k.value for k in st[-1].values} if st else {}
+
+        n = 3000
+        # the first message sets the sequence baseline (what a publisher sent before it is not known)
+        msg = JointState(name=ARM, position=[0.0] * 7)
+        msg.header.stamp = ns_to_stamp(999_000_000)
+        js.publish(msg)
+        probe.spin_until(lambda: kv().get("received") == "1", 10, proc, "the first message")
+        for k in range(1, n):
+            msg = JointState(name=ARM, position=[0.01 * (k % 50)] * 7)
+            msg.header.stamp = ns_to_stamp(1_000_000_000 + k * 1_000_000)
+            js.publish(msg)
+        probe.spin_for(1.0)
+        msg.header.stamp = ns_to_stamp(10_000_000_000)  # a last message closes any trailing gap
+        js.publish(msg)
+        probe.spin_until(lambda: int(kv().get("received", 0)) + int(kv().get("lost_before_node", 0)) == n + 1,
+                         30, proc, f"received + lost_before_node = {n + 1} (last {kv()})")
+        c = kv()
+        assert int(c["lost_before_node"]) > 0 and c["loss_tracking"] == "on", c
+        assert int(c["published"]) == int(c["received"])
+        assert any(s.level == DiagnosticStatus.WARN and "lost before the node" in s.message
+                   for d in diags for s in d.status)
 
 
 def test_pose_cov_message_round_trip() -> None:

@@ -320,6 +320,7 @@ class MeasurementOutcome:
 COUNT_KEYS = (
     "priors",
     "priors_late",
+    "priors_out_of_order",
     "resets",
     "measurements",
     "accepted",

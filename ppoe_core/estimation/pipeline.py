@@ -211,6 +211,8 @@ class FusionPipeline:
         if newest is not None and sample.stamp < newest - self.reset_jump:
             self.reset()
             self.counts["resets"] += 1
+        elif newest is not None and sample.stamp <= newest:
+            self.counts["priors_out_of_order"] += 1  # still kept: it serves measurement lookups
         if not self.buffer.add(sample):
             self.counts["priors_late"] += 1
             return None, []

@@ -66,6 +66,16 @@ class ContactMeasurement:
     cov_plane: Array
 
 
+def _check_unique_rows(ids: Array, corners: Array, where: str) -> None:
+    """Refuse an observation that lists a (tag id, corner) twice: it would count as two measurements."""
+    if ids.size == 0:
+        return
+    pairs, counts = np.unique(np.column_stack([ids, corners]), axis=0, return_counts=True)
+    if np.any(counts > 1):
+        dup = ", ".join(f"tag {int(t)} corner {int(c)} x{int(n)}" for (t, c), n in zip(pairs, counts) if n > 1)
+        raise MeasurementError(f"{where}: duplicated observation rows ({dup}); the whole image is refused")
+
+
 def _focal_from_points(uv: Array, xy: Array, where: str) -> tuple[float, float]:
     """Least-squares fit ``u = fx x + cx``, ``v = fy y + cy`` (distortion neglected)."""
     out = []
@@ -187,6 +197,7 @@ class ModelUpdater:
             raise MeasurementError(f"{where}: ids, corners and xy differ in length")
         if not np.all(np.isfinite(xy)):
             raise MeasurementError(f"{where}: NaN/inf in the normalised coordinates")
+        _check_unique_rows(ids, corners, where)
         fx, fy = p.fx, p.fy
         if fx is None or fy is None:
             if p.uv is None:

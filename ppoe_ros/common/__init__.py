@@ -17,6 +17,8 @@ the same pieces from here:
   message <-> numpy conversions, among them :func:`pose_cov_stamped_msg` which fills
   a ``PoseWithCovarianceStamped`` with a covariance already in the ROS convention
   (docs/conventions.md section 2, ``cov_ros``).
+* :func:`counted_subscription`: a guarded subscription that also counts the messages lost
+  before the callback (publisher sequence gaps, the middleware's message-lost events).
 * :func:`run_node`: the standard ``main()`` of a node.
 
 This module imports rclpy and ROS message packages: it is ``ppoe_ros`` only,
@@ -38,6 +40,7 @@ from ppoe_ros.common.conversions import (
     wrench_to_numpy,
 )
 from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats, guarded
+from ppoe_ros.common.losses import SequenceGaps, counted_subscription
 from ppoe_ros.common.params import (
     ParamSpec,
     check_length,
@@ -56,6 +59,8 @@ __all__ = [
     "NodeStats",
     "DiagnosticsPublisher",
     "guarded",
+    "counted_subscription",
+    "SequenceGaps",
     "take_robot_description",
     "sensor_qos",
     "reliable_qos",

@@ -40,6 +40,10 @@ class NodeStats:
         self._last_log: dict[tuple[str, str], float] = {}
         self._suppressed: dict[tuple[str, str], int] = {}
         self.last_reason: str = ""
+        self.warn_keys: set[str] = {"bad", "errors"}
+        """Counters whose growth turns ``/diagnostics`` to WARN (losses and bad input)."""
+        self.gap_counters: list[Any] = []
+        """Per-input sequence-gap counters (:class:`ppoe_ros.common.losses.SequenceGaps`)."""
 
     def inc(self, key: str, n: int = 1) -> None:
         """Add ``n`` to counter ``key``."""
@@ -104,7 +108,8 @@ def guarded(stats: NodeStats, topic: str,
 class DiagnosticsPublisher:
     """Publish a node's :class:`NodeStats` on ``/diagnostics`` every ``period`` seconds.
 
-    Level WARN while bad messages or errors arrived in the last period, else OK
+    Level WARN while bad messages, errors or losses (counters in ``NodeStats.warn_keys``)
+    arrived in the last period, else OK
     (or the level set by :meth:`set_status`).  The timer runs on the steady clock.
     """
 
@@ -129,10 +134,20 @@ class DiagnosticsPublisher:
         self._message = message
         self._extra.update({k: str(v) for k, v in extra.items()})
 
+    def _refresh_gap_counters(self) -> list[str]:
+        """Give every sequence-gap counter its topic's publisher count; returns the paused topics."""
+        paused = []
+        for gaps in self._stats.gap_counters:
+            gaps.set_publishers(self._node.count_publishers(gaps.topic))
+            if not gaps.tracking:
+                paused.append(gaps.topic)
+        return paused
+
     def publish(self) -> None:
         """Publish one ``DiagnosticArray`` now."""
+        paused = self._refresh_gap_counters()
         counts = self._stats.counts
-        n_bad = counts.get("bad", 0) + counts.get("errors", 0)
+        n_bad = sum(counts.get(k, 0) for k in self._stats.warn_keys)
         status = DiagnosticStatus()
         status.name = self._name
         status.hardware_id = self._hardware_id
@@ -141,13 +156,16 @@ class DiagnosticsPublisher:
             status.message = self._message
         elif n_bad > self._last_bad:
             status.level = DiagnosticStatus.WARN
-            status.message = f"{n_bad - self._last_bad} bad messages; last: {self._stats.last_reason}"
+            status.message = f"{n_bad - self._last_bad} bad or lost messages; last: {self._stats.last_reason}"
         else:
             status.level = DiagnosticStatus.OK
             status.message = self._message or "ok"
         self._last_bad = n_bad
         status.values = [KeyValue(key=k, value=str(v)) for k, v in counts.items()]
         status.values += [KeyValue(key=k, value=v) for k, v in self._extra.items()]
+        if self._stats.gap_counters:
+            status.values.append(KeyValue(key="loss_tracking", value=(
+                "on" if not paused else "paused (not exactly one publisher): " + ", ".join(paused))))
         msg = DiagnosticArray()
         msg.header.stamp = self._node.get_clock().now().to_msg()
         msg.status = [status]

@@ -55,7 +55,7 @@ from ppoe_ros.common import (
     check_length,
     check_nonempty,
     declare_parameters,
-    guarded,
+    counted_subscription,
     mapping_get,
     pose_cov_stamped_msg,
     reliable_qos,
@@ -127,10 +127,10 @@ class ContactNode(Node):
         qos = sensor_qos(p["qos_depth"])
         if p["contact_flag_topic"]:
             t = p["contact_flag_topic"]
-            self.create_subscription(Bool, t, guarded(self.stats, t)(self._flag), qos)
+            counted_subscription(self, self.stats, Bool, t, self._flag, qos)
         else:
             t = p["wrench_topic"]
-            self.create_subscription(WrenchStamped, t, guarded(self.stats, t)(self._wrench), qos)
+            counted_subscription(self, self.stats, WrenchStamped, t, self._wrench, qos)
         self.get_logger().info(
             f"plane in {self.plane.frame} at {self.plane.T_frame_plane[:3, 3].tolist()}, contact on {t} "
             f"(enter {self.detector.enter} N, release {self.detector.release} N) -> {p['plane_topic']}")

@@ -70,6 +70,7 @@ from ppoe_ros.common import (
     NodeStats,
     ParamSpec,
     check_nonempty,
+    counted_subscription,
     declare_parameters,
     guarded,
     joint_positions,
@@ -238,6 +239,8 @@ PARAMS: tuple[ParamSpec, ...] = (
         min_value=1,
         max_value=100000,
     ),
+    ParamSpec("output_qos_depth", 1000, "history depth of the fused-pose publisher (reliable): a subscriber "
+              "that falls behind by more loses poses; 1000 = 1 s at 1 kHz", min_value=1, max_value=100000),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
     ParamSpec(
         "log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s", min_value=0.0
@@ -261,6 +264,8 @@ _STAT_KEYS = (
     "pending",
     "empty_observations",
     "resets",
+    "priors_late",
+    "priors_out_of_order",
 )
 
 
@@ -316,6 +321,9 @@ class FusionNode(Node):
         p = declare_parameters(self, PARAMS)
         self.params = p
         self.stats = NodeStats(self, _STAT_KEYS, p["log_throttle"])
+        self.stats.warn_keys |= {"priors_late", "priors_out_of_order"}
+        self._converging: bool | None = None  # no measurement fused since start / the last reset
+        self._accepted_base = (0, 0)  # (resets, accepted) when the filter last started over
         self.model_yaml = read_yaml_mapping(p["model_file"], "model file")
         frames = mapping_get(self.model_yaml, "frames", default={}) or {}
         self.base_frame = p["base_frame"] or frames.get("base") or "base_link"
@@ -331,14 +339,15 @@ class FusionNode(Node):
         self.joints = _JointBuffer(int((p["buffer_duration"] + 1.0) * 1e9))
         self.focal: dict[str, tuple[float, float]] = {}
 
-        self.pub = self.create_publisher(PoseWithCovarianceStamped, p["fused_topic"], reliable_qos(100))
+        self.pub = self.create_publisher(PoseWithCovarianceStamped, p["fused_topic"],
+                                          reliable_qos(p["output_qos_depth"]))
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         qos = sensor_qos(p["qos_depth"])
         rel = reliable_qos(p["qos_depth"])
 
         def sub(msg_type: Any, topic: str, cb: Any, q: Any) -> None:
             if topic:
-                self.create_subscription(msg_type, topic, guarded(self.stats, topic)(cb), q)
+                counted_subscription(self, self.stats, msg_type, topic, cb, q)
 
         sub(PoseWithCovarianceStamped, p["prior_topic"], self._prior, qos)
         sub(PointCloud2, p["observations_topic"], self._observations, rel)
@@ -382,6 +391,7 @@ class FusionNode(Node):
             return
         self._set_model(msg.data, f"topic {self.params['robot_description_topic']}")
         self.diagnostics.set_status(None, "")
+        self._converging = None  # re-announced at the next prior
 
     def _update(self, T: np.ndarray, cov: np.ndarray, m: Measurement, prior: PriorSample) -> ToolUpdate:
         if self.updater is None:
@@ -406,7 +416,15 @@ class FusionNode(Node):
         if frame != self.base_frame:
             raise MeasurementError(f"prior frame '{frame}' is not base_frame '{self.base_frame}'")
         cov_tool = lie.cov_ros_to_local(T, cov_ros)
+        newest, topic = self.pipeline.buffer.newest, self.params["prior_topic"]
         est, outcomes = self.pipeline.add_prior(stamp_ns * 1e-9, T, cov_tool, self.joints.at(stamp_ns))
+        if est is None:
+            self.stats.bad(topic, f"prior at {stamp_ns * 1e-9:.6f} s is older than the prior buffer "
+                                  f"(newest {newest:.6f} s, {self.params['buffer_duration']:g} s kept): dropped",
+                           kind="priors_late")
+        elif newest is not None and newest - self.pipeline.reset_jump <= stamp_ns * 1e-9 <= newest:
+            self.stats.bad(topic, f"prior at {stamp_ns * 1e-9:.6f} s is not newer than the last one "
+                                  f"({newest:.6f} s): used, out of order", kind="priors_out_of_order")
         self._last_prior_wall = time.monotonic()
         for o in outcomes:
             self._report(o)
@@ -498,6 +516,23 @@ class FusionNode(Node):
             s[k] = c[k]
         s["dropped"] = c["dropped_stale"] + c["dropped_no_prior"]
         s["pending"] = len(self.pipeline.pending)
+        if c["resets"] != self._accepted_base[0]:
+            self._accepted_base = (c["resets"], c["accepted"])
+        self._set_converging(c["accepted"] == self._accepted_base[1])
+
+    def _set_converging(self, converging: bool) -> None:
+        """``/diagnostics`` WARN "converging" until a measurement is fused after start or a clock reset."""
+        if converging == self._converging or self.model is None:
+            return
+        self._converging = converging
+        if converging:
+            from diagnostic_msgs.msg import DiagnosticStatus
+
+            self.diagnostics.set_status(
+                DiagnosticStatus.WARN, "converging: no measurement fused since start or the last clock reset; "
+                "the output is the uncorrected prior", converging=True)
+        else:
+            self.diagnostics.set_status(None, "", converging=False)
 
 
 def main(args: Sequence[str] | None = None) -> int:

@@ -53,6 +53,7 @@ from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_ros.common import (
     DiagnosticsPublisher,
     NodeStats,
+    counted_subscription,
     ParamSpec,
     check_nonempty,
     declare_parameters,
@@ -92,6 +93,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               min_value=0, max_value=100000),
     ParamSpec("qos_depth", 100, "history depth of the joint-state subscription (sensor-data QoS)",
               min_value=1, max_value=100000),
+    ParamSpec("output_qos_depth", 1000, "history depth of the pose publishers (reliable): a subscriber "
+              "that falls behind by more loses poses; 1000 = 1 s at 1 kHz", min_value=1, max_value=100000),
     ParamSpec("stamp_reset_threshold", 1.0, "a stamp this much older than the last one starts a new timeline",
               unit="s", min_value=0.0),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
@@ -140,7 +143,7 @@ class KinematicsNode(Node):
         self._src = self._dst = np.zeros(0, dtype=np.intp)
         self._worker: BatchWorker | None = None
 
-        out_qos = reliable_qos(100)
+        out_qos = reliable_qos(p["output_qos_depth"])
         self.targets = [_Target(target, self.create_publisher(PoseWithCovarianceStamped, p["pose_topic"],
                                                               out_qos))]
         for frame in p["extra_target_frames"]:
@@ -154,8 +157,8 @@ class KinematicsNode(Node):
         js_topic = p["joint_states_topic"]
         self._on_joint_state = guarded(self.stats, js_topic)(self._joint_state)
         self._drain_max = int(p["drain_max"])
-        self._js_sub = self.create_subscription(JointState, js_topic, self._on_joint_state_burst,
-                                                sensor_qos(p["qos_depth"]))
+        self._js_sub, self._js_gaps = counted_subscription(self, self.stats, JointState, js_topic,
+                                                           self._on_joint_state_burst, sensor_qos(p["qos_depth"]))
 
         take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
         self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
@@ -217,6 +220,7 @@ class KinematicsNode(Node):
                 return
             if taken is None:
                 return
+            self._js_gaps.observe(taken[1])
             self._on_joint_state(taken[0])
 
     def _joint_state(self, msg: JointState) -> None:

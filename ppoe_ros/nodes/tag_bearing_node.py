@@ -51,6 +51,7 @@ from ppoe_ros.common import (
     ParamSpec,
     check_nonempty,
     declare_parameters,
+    counted_subscription,
     guarded,
     mapping_get,
     reliable_qos,
@@ -263,8 +264,7 @@ class TagBearingNode(Node):
         qos = sensor_qos(p["qos_depth"])
         it, ct = p["image_topic"], p["camera_info_topic"]
         self.create_subscription(CameraInfo, ct, guarded(self.stats, ct)(self._camera_info), qos)
-        self.create_subscription(CompressedImage if p["compressed"] else Image, it,
-                                 guarded(self.stats, it)(self._image), qos)
+        counted_subscription(self, self.stats, CompressedImage if p["compressed"] else Image, it, self._image, qos)
         self.get_logger().info(
             f"detecting {self.dictionary} tags {self.tag_ids or 'all'} in {it} "
             f"({'compressed' if p['compressed'] else 'raw'}), publishing {p['observations_topic']}")

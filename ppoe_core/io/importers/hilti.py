@@ -271,16 +271,7 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
         for space, sval in spaces.items():
             if not isinstance(sval, dict):
                 raise DatasetError(f"{path}: column_heights/{height}/solution_spaces/{space}: not a mapping")
-            for key, role in _ROLES.items():
-                entries = sval.get(key)
-                if entries is None:  # an empty list is explicit (space 4 has no stationing points)
-                    incomplete.append(_incomplete_line(sval, key, height, space))
-                    continue
-                if not isinstance(entries, list):
-                    raise DatasetError(f"{path}: column_heights/{height}/solution_spaces/{space}/{key}: not a list")
-                for k, m in enumerate(entries):
-                    where = f"{path}: column_heights/{height}/solution_spaces/{space}/{key}[{k}]"
-                    stops.append(_waypoint(m, height, space, role, where))
+            _station_stops(path, height, space, sval, stops, incomplete)
     stops.sort(key=lambda s: s.time)
     times = np.array([s.time for s in stops])
     if len(times) > 1 and np.min(np.diff(times)) <= (BURST_COUNT - 1) * BURST_PERIOD_S + MEASUREMENT_DELAY_S:
@@ -295,6 +286,21 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
             f"scored by the stationing protocol: " + "; ".join(incomplete)
             + " (pass --allow-incomplete to import the other stops)")
     return HiltiDataset(path=path, joint_names=joint_names, stops=stops, incomplete=incomplete)
+
+
+def _station_stops(path: Path, height: Any, space: Any, sval: dict, stops: list[HiltiStop],
+                   incomplete: list[str]) -> None:
+    """Append one station's waypoints to ``stops``; a null or missing role list to ``incomplete``."""
+    for key, role in _ROLES.items():
+        entries = sval.get(key)
+        if entries is None:  # an empty list is explicit (space 4 has no stationing points)
+            incomplete.append(_incomplete_line(sval, key, height, space))
+            continue
+        if not isinstance(entries, list):
+            raise DatasetError(f"{path}: column_heights/{height}/solution_spaces/{space}/{key}: not a list")
+        for k, m in enumerate(entries):
+            where = f"{path}: column_heights/{height}/solution_spaces/{space}/{key}[{k}]"
+            stops.append(_waypoint(m, height, space, role, where))
 
 
 def _incomplete_line(sval: dict, key: str, height: Any, space: Any) -> str:

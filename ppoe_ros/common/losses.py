@@ -1,0 +1,96 @@
+"""Messages lost before a node's callback: publisher sequence gaps and the middleware's lost events.
+
+Two counters go to ``/diagnostics`` for every input subscribed with :func:`counted_subscription`:
+
+``lost_before_node``
+    Gaps in the publisher's sequence numbers (``publication_sequence_number`` of the message
+    info rclpy hands to a two-argument callback): messages the publisher sent that never reached
+    the callback, whatever dropped them (the network, a full subscription history under
+    ``KEEP_LAST``, a slow executor).  Sequence numbers are per publisher and the message info
+    does not say which publisher sent a message, so the count is kept while the topic has
+    exactly one publisher; with several it is paused (``loss_tracking`` on ``/diagnostics``
+    names the topics) and restarts when one is left.
+``lost_in_transport``
+    What the middleware reports through the subscription's ``message_lost`` event (samples
+    the DDS reader knows it missed).  These are part of ``lost_before_node`` when that is tracked.
+
+A publisher that restarts begins its sequence again: a number not larger than the last one
+starts a new count and loses nothing.  What a publisher sent before the first message the node
+received from it is not known (the node may simply have started later), so it is not counted.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from ppoe_ros.common.diagnostics import NodeStats, guarded
+
+__all__ = ["SequenceGaps", "counted_subscription"]
+
+
+class SequenceGaps:
+    """Counts gaps in one topic's publication sequence numbers into ``stats['lost_before_node']``."""
+
+    __slots__ = ("topic", "stats", "last", "tracking")
+
+    def __init__(self, topic: str, stats: NodeStats) -> None:
+        self.topic = topic
+        self.stats = stats
+        self.last: int | None = None
+        self.tracking = True
+
+    def observe(self, info: Any) -> None:
+        """Account for one received message given its message info (dict or object)."""
+        if not self.tracking:
+            return
+        seq = info.get("publication_sequence_number") if isinstance(info, dict) else \
+            getattr(info, "publication_sequence_number", None)
+        if not seq:  # None or 0: the middleware does not number its samples
+            return
+        last, self.last = self.last, int(seq)
+        if last is not None and seq > last + 1:
+            n = int(seq) - last - 1
+            self.stats.inc("lost_before_node", n)
+            self.stats.last_reason = f"{self.topic}: {n} message(s) lost before the node (sequence {last} -> {seq})"
+
+    def set_publishers(self, count: int) -> None:
+        """Track only while exactly one publisher numbers the messages."""
+        tracking = count == 1
+        if tracking != self.tracking:
+            self.last = None
+        self.tracking = tracking
+
+
+def counted_subscription(node: Any, stats: NodeStats, msg_type: Any, topic: str,
+                         callback: Callable[[Any], Any], qos: Any) -> tuple[Any, SequenceGaps]:
+    """Subscribe ``callback`` (guarded: a bad message is counted, never fatal) with loss counting.
+
+    Returns the subscription and its :class:`SequenceGaps` (also registered on ``stats`` so
+    that :class:`~ppoe_ros.common.diagnostics.DiagnosticsPublisher` refreshes its publisher
+    count once per period).
+    """
+    from rclpy.event_handler import SubscriptionEventCallbacks
+
+    gaps = SequenceGaps(topic, stats)
+    stats.gap_counters.append(gaps)
+    stats.warn_keys |= {"lost_before_node", "lost_in_transport"}
+    for key in ("lost_before_node", "lost_in_transport"):
+        stats.counts.setdefault(key, 0)
+    safe = guarded(stats, topic)(callback)
+
+    def on_message(msg: Any, info: Any) -> None:  # two arguments: rclpy passes the message info
+        gaps.observe(info)
+        safe(msg)
+
+    def on_lost(event: Any) -> None:
+        n = int(getattr(event, "total_count_change", 0))
+        stats.inc("lost_in_transport", n)
+        stats.last_reason = f"{topic}: the middleware reports {n} message(s) lost"
+
+    try:
+        events = SubscriptionEventCallbacks(message_lost=on_lost)
+        sub = node.create_subscription(msg_type, topic, on_message, qos, event_callbacks=events)
+    except Exception:  # noqa: BLE001 - an rmw without the message-lost event: count the gaps only
+        sub = node.create_subscription(msg_type, topic, on_message, qos)
+    return sub, gaps
