@@ -215,3 +215,23 @@ def test_parse_errors_are_package_types() -> None:
         parse_joint_assignments(["wrist=1"], ["joint1"])
     with pytest.raises(JointValueError, match="inf"):
         parse_joint_assignments(["joint1=inf"], ["joint1"])
+
+
+def test_numerical_warnings_become_one_line(monkeypatch, capsys):
+    """Issue 13: numpy RuntimeWarnings do not reach the terminal raw; the CLI prints one line."""
+    import numpy as np
+
+    import ppoe_core.cli.fk as fk_cli
+    from ppoe_ros.cli import main
+
+    def noisy_run(args):
+        with np.errstate(all="warn"):
+            np.log(np.array([-1.0, 0.0]))
+            np.array([0.0]) / np.array([0.0])
+        return 0
+
+    monkeypatch.setattr(fk_cli, "run", noisy_run)
+    assert main(["fk", "--urdf", "x", "--from", "a", "--to", "b"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("ppoe fk: note: 3 numerical warning(s), first: "), err
+    assert "RuntimeWarning" not in err[0]

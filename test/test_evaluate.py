@@ -187,9 +187,9 @@ def test_cli_evaluate_json_and_out(small_table1_bag, tmp_path, capsys):
 # ----------------------------------------------------------------------------- bad bags
 
 
-def _tiny_bag(path, *, gt=True, joint="j1", gt_frame="base"):
-    urdf = """<robot name="r"><link name="base"/><link name="l1"/>
-      <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>
+def _tiny_bag(path, *, gt=True, joint="j1", gt_frame="base", axis="0 0 1"):
+    urdf = f"""<robot name="r"><link name="base"/><link name="l1"/>
+      <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="{axis}"/>
       <origin xyz="1 0 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint></robot>"""
     with BagWriter(path) as w:
         w.write_robot_description(urdf, 0.0)
@@ -224,6 +224,26 @@ def test_bad_bags_name_the_topic(tmp_path):
     _tiny_bag(tmp_path / "ok")
     with pytest.raises(ModelConfigError, match="cannot read"):
         evaluate_bag(tmp_path / "ok", tmp_path / "nomodel.yaml")
+
+
+def test_errors_name_the_bags_urdf_and_the_model_file_line(tmp_path, capsys):
+    """Issue 13: an error in a bag's URDF names the bag and topic, not ``<string>``; a model YAML
+    error names its file and line; both through the CLI as one line with exit 2."""
+    from ppoe_ros.cli import main
+
+    _tiny_bag(tmp_path / "zeroaxis", axis="0 0 0")
+    model = _tiny_model(tmp_path)
+    for cmd in ("evaluate", "diagnose"):
+        assert main([cmd, str(tmp_path / "zeroaxis"), "--model", str(model)]) == 2
+        err = capsys.readouterr().err
+        assert f"bag {tmp_path / 'zeroaxis'} /robot_description" in err and "<string>" not in err, err
+        assert "j1" in err and len(err.strip().splitlines()) == 1, err
+    _tiny_bag(tmp_path / "ok")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("frames: {base: base, tool: l1}\njoint_noise:\n  j1: 0.01\n  nope: 0.02\n")
+    assert main(["evaluate", str(tmp_path / "ok"), "--model", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert f"{bad}:4:" in err and "nope" in err and "<string>" not in err, err
 
 
 def test_tiny_bag_fk_error_is_exact(tmp_path):

@@ -356,3 +356,20 @@ def test_joint_buffer_merges_partial_messages_and_looks_up_by_stamp():
     jb.add(10, {"c": 3.0})  # time went backwards: new timeline
     assert jb.stamps == [10]
     np.testing.assert_array_equal(jb.at(10), [1.0, 2.0, 3.0])
+
+
+def test_evaluate_refuses_what_the_node_refuses(tmp_path, capsys):
+    """Issue 13: ``ppoe evaluate --set max_iterations=0`` is refused like the node's parameter; the
+    ranges of ``FUSION_RANGES`` are the node's ParamSpec ranges."""
+    from ppoe_core.estimation.updater import FUSION_RANGES
+    from ppoe_ros.cli import main
+    from ppoe_ros.nodes.fusion_node import PARAMS
+
+    spec = {p.name: p for p in PARAMS}
+    for key, (lo, hi) in FUSION_RANGES.items():
+        assert (spec[key].min_value, spec[key].max_value) == (lo, hi), key
+    bag = REPO / "bags" / "table1_exp1"
+    for setting in ("max_iterations=0", "gate_probability=1.5", "max_gap=-1"):
+        rc = main(["evaluate", str(bag), "--model", str(CONFIG / "robots" / "rover_model.yaml"), "--set", setting])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"fusion setting {setting.replace('=', ' = ')} is outside" in err, err

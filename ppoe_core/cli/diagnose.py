@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description
     if not urdf:
         raise BagError(f"bag {args.bags[0]}: no /robot_description")
-    robot = parse_urdf(urdf)
+    robot = parse_urdf(urdf, text_source=f"bag {args.bags[0]} /robot_description")
     cfg, declared, pert, jnoise = load_model(args.model, robot)
     parts = [_stops(args, i, bag, robot, cfg) for i, bag in enumerate(args.bags)]
     stops = Stops.concat(parts)

@@ -354,6 +354,20 @@ FUSION_SETTINGS: dict[str, Any] = {
 }
 
 
+#: inclusive ranges of the numeric :data:`FUSION_SETTINGS` (the fusion node's parameter ranges; a
+#: test keeps them equal), checked by ``ppoe evaluate`` so that offline refuses what the node refuses
+FUSION_RANGES: dict[str, tuple[float, float]] = {
+    "buffer_duration": (1e-3, 3600.0),
+    "max_gap": (1e-6, 3600.0),
+    "max_hold": (0.0, 3600.0),
+    "max_pending": (0, 100000),
+    "min_interval": (0.0, 3600.0),
+    "max_iterations": (1, 100),
+    "gate_probability": (0.5, 1.0),
+    "contact_distance_sigma": (0.0, 1e3),
+}
+
+
 def make_updater(model: Any, base_frame: str, tool_frame: str, settings: dict[str, Any] | None = None) -> ModelUpdater:
     """The :class:`ModelUpdater` of ``settings`` (keys of :data:`FUSION_SETTINGS`)."""
     s = {**FUSION_SETTINGS, **(settings or {})}

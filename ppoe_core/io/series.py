@@ -96,7 +96,7 @@ class Images:
 
         fmt = self.formats[i]
         if fmt in ("png", "jpeg"):
-            img = cv2.imdecode(np.frombuffer(self.data[i], dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+            img = decode_compressed(self.data[i])
             if img is None:
                 raise BagError(f"topic {self.topic}: message {i} (stamp {self.stamps[i]:.6f} s) "
                                f"is not a decodable {fmt} image")
@@ -109,6 +109,22 @@ class Images:
         if grey and img.ndim == 3:
             img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_BGR2GRAY)
         return np.ascontiguousarray(img)
+
+
+def decode_compressed(data: bytes) -> np.ndarray | None:
+    """PNG / JPEG bytes -> image array (as stored: grey, BGR or BGRA), or None if they do not decode.
+
+    OpenCV's own log lines about broken data (``IHDR chunk shall be first`` ...) are silenced: the
+    caller reports the failure in one line naming the topic or file.
+    """
+    import cv2
+
+    try:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    except AttributeError:  # pragma: no cover - an OpenCV build without the logging module
+        pass
+    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    return None if img is None or img.size == 0 else img
 
 
 @dataclass

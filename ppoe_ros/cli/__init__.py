@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 from collections.abc import Sequence
 
 __all__ = ["main", "SUBCOMMANDS"]
@@ -53,13 +54,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(args_list)
     from ppoe_core.errors import PpoeError
 
-    try:
-        return int(args._run(args) or 0)
-    except PpoeError as exc:
-        print(f"ppoe {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)  # numpy's numerical warnings: summarised below
+        try:
+            return int(args._run(args) or 0)
+        except PpoeError as exc:
+            print(f"ppoe {args.command}: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            return 130
+        finally:
+            _report_warnings(args.command, caught)
+
+
+def _report_warnings(command: str, caught: list[warnings.WarningMessage]) -> None:
+    """Numerical RuntimeWarnings as one line on stderr (not numpy's raw lines); others as usual."""
+    numeric = [w for w in caught if issubclass(w.category, RuntimeWarning)]
+    for w in caught:
+        if not issubclass(w.category, RuntimeWarning):
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    if numeric:
+        first = numeric[0]
+        print(f"ppoe {command}: note: {len(numeric)} numerical warning(s), first: '{first.message}' "
+              f"at {first.filename}:{first.lineno}; results may hold NaN or inf", file=sys.stderr)
 
 
 if __name__ == "__main__":  # pragma: no cover

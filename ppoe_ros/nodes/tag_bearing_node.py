@@ -57,6 +57,7 @@ from ppoe_ros.common import (
     reliable_qos,
     sensor_qos,
 )
+from ppoe_core.io.series import decode_compressed
 from ppoe_ros.common.tag_cloud import cloud_from_observations
 
 __all__ = [
@@ -115,7 +116,6 @@ def decode_image(msg: Any, compressed: bool, max_pixels: int = 4096 * 4096) -> n
     MeasurementError
         Empty data, too many pixels, undecodable compressed data, unknown encoding or inconsistent size.
     """
-    import cv2
 
     data = bytes(msg.data)
     if not data:
@@ -125,8 +125,8 @@ def decode_image(msg: Any, compressed: bool, max_pixels: int = 4096 * 4096) -> n
         raise MeasurementError(f"image of {size[0]}x{size[1]} pixels (from its header) is larger than "
                                f"max_image_pixels = {max_pixels}: not decoded")
     if compressed:
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-        if img is None or img.size == 0:
+        img = decode_compressed(data)
+        if img is None:
             raise MeasurementError(f"cannot decode compressed image (format '{msg.format}', {len(data)} bytes)")
     else:
         enc = msg.encoding

@@ -12,6 +12,7 @@ import numpy as np
 from ppoe_core.analysis.evaluate.metrics import METHODS
 from ppoe_core.errors import ModelConfigError
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
+from ppoe_core.estimation.updater import FUSION_RANGES
 from ppoe_core.sensing.contact import FORCE_COMPONENTS
 from ppoe_core.sensing.tag_rows import DEFAULT_CORNER_REFINEMENT
 
@@ -123,6 +124,10 @@ class EvaluateOptions:
                 ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
             if not ok:
                 raise ModelConfigError(f"fusion setting {k} = {v!r} has the wrong type (default {default!r})")
+        for k, (lo, hi) in FUSION_RANGES.items():
+            if k in self.fusion and not lo <= self.fusion[k] <= hi:
+                raise ModelConfigError(f"fusion setting {k} = {self.fusion[k]!r} is outside [{lo:g}, {hi:g}] "
+                                       "(the fusion node's range)")
         if self.fusion.get("force_component", "norm") not in FORCE_COMPONENTS:
             raise ModelConfigError(f"fusion setting force_component = {self.fusion['force_component']!r}: "
                                    f"must be one of {FORCE_COMPONENTS}")

@@ -76,18 +76,14 @@ class ProgressBar:
 # ----------------------------------------------------------------------------
 
 
-def _load_model(urdf_xml: str, model_yaml: str | Path) -> Any:
+def _load_model(urdf_xml: str, model_yaml: str | Path, bag: str) -> Any:
+    """The bag's URDF with the model YAML; errors name the YAML file and line, or the bag's URDF."""
     from ppoe_core.model.ppoe import PPOEModel
 
     path = Path(model_yaml)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ModelConfigError(f"{path}: cannot read model YAML: {exc}") from None
-    try:
-        return PPOEModel.from_strings(urdf_xml, text)
-    except ModelConfigError as exc:
-        raise ModelConfigError(f"{path}: {exc}") from None
+    if not path.is_file():
+        raise ModelConfigError(f"{path}: cannot read model YAML: no such file")
+    return PPOEModel.from_strings(urdf_xml, path, urdf_source=f"bag {bag} /robot_description")
 
 
 def joint_matrix(js: Any, joint_names: Sequence[str], bag: str) -> tuple[np.ndarray, int]:
@@ -301,7 +297,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     bag = str(bag)
     t_start = time.perf_counter()
     data = read_bag(bag)
-    model = _load_model(data.require_robot_description(), model_yaml)
+    model = _load_model(data.require_robot_description(), model_yaml, bag)
     base, tool, kind = _check_inputs(data, model, model_yaml, opt, bag)
     pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml)
     fs = opt.fusion_settings()
