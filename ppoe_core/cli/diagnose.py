@@ -37,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=None, metavar="DIR",
                         help="write diagnose.md/.json/.png and model_diagnosed.yaml here")
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    parser.add_argument("--accept-partial", action="store_true",
+                        help="use what can be read of a damaged bag (default: refuse it, naming per topic "
+                             "what was lost)")
     parser.add_argument("--cv", default="auto", choices=("auto", "stops", "groups"),
                         help="cross-validation: over stops, or leave-one-bag-out (auto: bags if >= 3)")
     parser.add_argument("--folds", type=int, default=5, help="folds of the stop-wise cross-validation")
@@ -74,6 +77,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out:  # checked before the run, not after it
         prepare_out_dir(args.out)
+    from ppoe_core.io.bagio import check_bag
+
+    for bag in args.bags:  # a damaged bag is refused (or, accepted, announced) before the run
+        for note in check_bag(bag, accept_partial=args.accept_partial)[0]:
+            print(f"ppoe diagnose: warning: {note}", file=sys.stderr)
     urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description
     if not urdf:
         raise BagError(f"bag {args.bags[0]}: no /robot_description")
@@ -114,7 +122,7 @@ def _stops(args: argparse.Namespace, i: int, bag: str, robot: Any, cfg: Any) -> 
         base=args.base or (frames.base if frames else None),
         tool=args.tool or (frames.tool if frames else None),
         stationing_set=None if args.stationing_set == "all" else args.stationing_set,
-        group_name=f"{i}:{Path(bag).name}", measurement=args.measurement)
+        group_name=f"{i}:{Path(bag).name}", measurement=args.measurement, accept_partial=args.accept_partial)
 
 
 def _pixel_stage(args: argparse.Namespace, res: Any, robot: Any, cfg: Any, declared: Any, pert: Any,
@@ -134,7 +142,8 @@ def _pixel_stage(args: argparse.Namespace, res: Any, robot: Any, cfg: Any, decla
         if cfg.tags is not None and has_tags:
             cam = getattr(cfg, "camera", None)
             sigma_px = args.pixel_sigma or (cam.pixel_sigma if cam is not None else 1.0)
-            pix.append(pixels_from_bag(bag, robot, args.model, sigma_px=sigma_px))
+            pix.append(pixels_from_bag(bag, robot, args.model, sigma_px=sigma_px,
+                                       accept_partial=args.accept_partial))
         elif args.pixels == "on":
             raise BagError(f"bag {bag}: --pixels on, but no tag observations/images or no 'tags' in {args.model}")
     if pix:

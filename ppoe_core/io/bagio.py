@@ -54,6 +54,8 @@ from ppoe_core.io.messages import (
 )
 from ppoe_core.io.reader import (
     bag_topics,
+    BagCheck,
+    check_bag,
     iter_raw,
     read_bag,
 )
@@ -103,6 +105,8 @@ __all__ = [
     "read_bag",
     "iter_raw",
     "bag_topics",
+    "BagCheck",
+    "check_bag",
     "deserialize",
     "serialize",
     "stamp_to_ns",

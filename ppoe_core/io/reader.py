@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -27,7 +27,9 @@ from ppoe_core.io.messages import (
     TOPIC_WRENCH,
     _stamp_s,
     deserialize,
+    typestore,
 )
+from ppoe_core.io.recovery import RecoveredMcap, expected_counts, loss_report, recording_in_progress
 from ppoe_core.io.series import (
     BagData,
     CameraInfos,
@@ -44,6 +46,8 @@ from ppoe_core.io.series import (
 
 
 def _open_reader(path: str | Path) -> Any:
+    """The rosbags reader of a bag directory; a bag it cannot open (no footer or no metadata: an
+    unfinished recording) is read record by record instead (:class:`RecoveredMcap`, with a ``note``)."""
     from rosbags.rosbag2 import Reader
 
     p = Path(path)
@@ -52,9 +56,84 @@ def _open_reader(path: str | Path) -> Any:
     try:
         reader = Reader(p)
         reader.open()
-    except Exception as exc:
-        raise BagError(f"bag {p}: cannot open as a rosbag2 directory: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 - any failure of rosbags: try the record-by-record scan
+        if recording_in_progress(p):
+            return RecoveredMcap(p, "the recording was never closed (its metadata.yaml is the recorder's interim one)")
+        return RecoveredMcap(p, f"cannot open as a rosbag2 directory ({type(exc).__name__}: {exc})")
     return reader
+
+
+class _ReadStatus:
+    """Messages read per topic and why reading stopped early (empty if it did not)."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}  # read and decodable
+        self.error = ""
+        self.undecodable = 0
+        self.first_undecodable = ""
+
+    def reject(self, topic: str, k: int, exc: Exception) -> None:
+        """Message ``k`` of ``topic`` was read but its bytes do not parse (damaged): not counted as read."""
+        self.counts[topic] -= 1
+        self.undecodable += 1
+        self.first_undecodable = self.first_undecodable or f"{topic} message {k}: {exc}"
+
+    def problem(self) -> str:
+        """Why messages are missing beyond the per-topic counts ('' if nothing went wrong)."""
+        bad = (f"{self.undecodable} message(s) read but undecodable (first: {self.first_undecodable})"
+               if self.undecodable else "")
+        return "; ".join(p for p in (self.error, bad) if p)
+
+
+def _messages(reader: Any, conns: list[Any], status: _ReadStatus,
+              validate: bool = False) -> Iterator[tuple[Any, int, Any]]:
+    """``reader.messages`` that stops, instead of raising, where the file is damaged (noted in ``status``).
+
+    ``validate``: deserialise each message of a known type and skip (count) those that do not parse.
+    """
+    known = typestore().types
+    it = iter(reader.messages(connections=conns)) if conns else iter(())
+    while True:
+        try:
+            conn, stamp_ns, data = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:  # noqa: BLE001 - ReaderError, struct/zstd errors, OverflowError of a damaged file
+            status.error = f"{type(exc).__name__}: {exc}"
+            return
+        status.counts[conn.topic] = status.counts.get(conn.topic, 0) + 1
+        if validate and conn.msgtype in known:
+            try:
+                deserialize(data, conn.msgtype, topic=conn.topic)
+            except BagError as exc:
+                status.reject(conn.topic, status.counts[conn.topic] - 1, exc)
+                continue
+        yield conn, stamp_ns, data
+
+
+def _account(path: str | Path, reader: Any, conns: list[Any], status: _ReadStatus, accept_partial: bool) -> list[str]:
+    """Compare what was read with ``metadata.yaml`` (else the file's own counts); returns notes for the user.
+
+    Raises
+    ------
+    BagError
+        Messages were lost (per topic, read of expected) and ``accept_partial`` is False.
+    """
+    notes = [reader.note] if isinstance(reader, RecoveredMcap) else []
+    meta = expected_counts(Path(path))
+    topics = {c.topic for c in conns}
+    if meta is not None:
+        expected = {t: n for t, n in meta.items() if t in topics}
+    elif isinstance(reader, RecoveredMcap):
+        expected = {}  # nothing to compare with: the note says it was recovered
+    else:
+        expected = {c.topic: int(c.msgcount) for c in conns}
+    report = loss_report(path, status.counts, expected, status.problem())
+    if report is not None:
+        if not accept_partial:
+            raise BagError(report + "; pass --accept-partial to use what was read")
+        notes.append(report + " (accepted: --accept-partial)")
+    return notes
 
 
 def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
@@ -66,18 +145,66 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
         reader.close()
 
 
-def iter_raw(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
-    """Yield the messages of a bag in log-time order as :class:`RawMessage` (for ``ppoe play``).
+class BagCheck(NamedTuple):
+    """What :func:`check_bag` found: notes for the user, readable messages per topic, and whether the
+    file had to be scanned record by record (pass ``scanned`` on to :func:`iter_raw`)."""
 
-    ``topics`` restricts to these topic names (unknown names are ignored).
+    notes: list[str]
+    counts: dict[str, int]
+    scanned: bool
+
+
+def _count(reader: Any, topics: Iterable[str] | None) -> tuple[list[Any], _ReadStatus]:
+    """Read (and validate) every message of the wanted topics; the connections and what was read."""
+    wanted = set(topics) if topics is not None else None
+    conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+    status = _ReadStatus()
+    for _ in _messages(reader, conns, status, validate=True):
+        pass
+    return conns, status
+
+
+def check_bag(path: str | Path, topics: Iterable[str] | None = None, *, accept_partial: bool = False) -> BagCheck:
+    """Read every message (decoding it) and compare with the bag's metadata, before playing it.
+
+    A damaged file is also scanned record by record (resynchronising over damaged bytes); the
+    reading that recovers more messages is kept.
+
+    Raises
+    ------
+    BagError
+        Messages were lost (named per topic, read of expected) and ``accept_partial`` is False.
     """
     reader = _open_reader(path)
     try:
+        conns, status = _count(reader, topics)
+    finally:
+        reader.close()
+    if (status.problem() or _lost(path, conns, status)) and not isinstance(reader, RecoveredMcap):
+        try:
+            rescue = RecoveredMcap(Path(path), f"damaged ({status.problem() or 'messages missing'})")
+            conns2, status2 = _count(rescue, topics)
+            if sum(status2.counts.values()) > sum(status.counts.values()):
+                reader, conns, status = rescue, conns2, status2
+        except BagError:
+            pass
+    notes = _account(path, reader, conns, status, accept_partial)
+    return BagCheck(notes, dict(status.counts), isinstance(reader, RecoveredMcap))
+
+
+def iter_raw(path: str | Path, topics: Iterable[str] | None = None, *, scanned: bool = False) -> Iterator[RawMessage]:
+    """Yield the messages of a bag in log-time order as :class:`RawMessage` (for ``ppoe play``).
+
+    ``topics`` restricts to these topic names (unknown names are ignored).  Messages that do not
+    decode are skipped and reading stops quietly where the indexed reader fails: call
+    :func:`check_bag` first to know what will be lost, and pass its ``scanned`` to read the file
+    the way it recovered the most.
+    """
+    reader = RecoveredMcap(Path(path), "damaged") if scanned else _open_reader(path)
+    try:
         wanted = set(topics) if topics is not None else None
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
-        if not conns:
-            return
-        for conn, stamp_ns, data in reader.messages(connections=conns):
+        for conn, stamp_ns, data in _messages(reader, conns, _ReadStatus(), validate=True):
             yield RawMessage(conn.topic, conn.msgtype, int(stamp_ns), bytes(data))
     finally:
         reader.close()
@@ -133,7 +260,8 @@ def _parse_cloud(msg: Any, topic: str, k: int) -> np.ndarray:
     return out
 
 
-def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_images: bool = True) -> BagData:
+def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_images: bool = True,
+             accept_partial: bool = False) -> BagData:
     """Read a contract bag into numpy arrays.
 
     Parameters
@@ -144,6 +272,11 @@ def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_imag
         Parse only these topics (all by default); the others are still listed in ``topics``.
     load_images
         Keep the encoded image bytes (``False`` keeps only stamps and formats).
+    accept_partial
+        Keep what could be read of a damaged bag (fewer messages than its ``metadata.yaml``
+        says, or a file that stops being readable) instead of raising; :attr:`BagData.notes`
+        then says per topic what was lost.  An unfinished recording (no footer or metadata) is
+        always read record by record, with a note.
 
     Returns
     -------
@@ -156,42 +289,67 @@ def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_imag
         message that breaks the contract; the message names the topic.
     """
     reader = _open_reader(path)
-    data = BagData(path=str(path))
     try:
-        conns = list(reader.connections)
-        for c in conns:
-            cnt = data.topics.get(c.topic, (c.msgtype, 0))[1] + int(c.msgcount)
-            data.topics[c.topic] = (c.msgtype, cnt)
-        wanted = set(topics) if topics is not None else None
-        parse = []
-        for c in conns:
-            exp = _expected_type(c.topic)
-            if exp is not None and c.msgtype != exp:
-                raise BagError(f"bag {path}: topic {c.topic} carries {c.msgtype}, the contract requires {exp}")
-            if exp is None and c.msgtype != T_POSE_COV:
-                data.unknown_topics[c.topic] = c.msgtype
-                continue
-            if wanted is not None and c.topic not in wanted:
-                continue
-            parse.append(c)
-
-        acc: dict[str, list[Any]] = {}
-        counters: dict[str, int] = {}
-        for conn, stamp_ns, raw in (reader.messages(connections=parse) if parse else ()):
-            topic = conn.topic
-            k = counters.get(topic, 0)
-            counters[topic] = k + 1
-            msg = deserialize(raw, conn.msgtype, topic=topic)
-            try:
-                _collect(data, acc, topic, conn.msgtype, msg, stamp_ns, k, load_images)
-            except BagError:
-                raise
-            except (ValueError, TypeError, AttributeError) as exc:
-                raise BagError(f"bag {path}: topic {topic} message {k}: {exc}") from exc
+        data, parse, status = _read_with(reader, path, topics, load_images)
     finally:
         reader.close()
-    _finish(data, acc)
+    if (status.problem() or _lost(path, parse, status)) and not isinstance(reader, RecoveredMcap):
+        # a damaged file: the record-by-record scan may read more than the indexed reader
+        try:
+            rescue = RecoveredMcap(Path(path), f"damaged ({status.problem() or 'messages missing'})")
+            data2, parse2, status2 = _read_with(rescue, path, topics, load_images)
+            if sum(status2.counts.values()) > sum(status.counts.values()):
+                reader, data, parse, status = rescue, data2, parse2, status2
+        except BagError:
+            pass
+    data.notes = _account(path, reader, parse, status, accept_partial)
     return data
+
+
+def _lost(path: str | Path, parse: list[Any], status: _ReadStatus) -> bool:
+    meta = expected_counts(Path(path)) or {c.topic: int(c.msgcount) for c in parse}
+    return any(status.counts.get(c.topic, 0) < meta.get(c.topic, 0) for c in parse)
+
+
+def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None,
+               load_images: bool) -> tuple[BagData, list[Any], _ReadStatus]:
+    """Parse the wanted contract topics of an open reader; returns the data, the parsed connections
+    and what was read."""
+    data = BagData(path=str(path))
+    conns = list(reader.connections)
+    for c in conns:
+        cnt = data.topics.get(c.topic, (c.msgtype, 0))[1] + int(c.msgcount)
+        data.topics[c.topic] = (c.msgtype, cnt)
+    wanted = set(topics) if topics is not None else None
+    parse = []
+    for c in conns:
+        exp = _expected_type(c.topic)
+        if exp is not None and c.msgtype != exp:
+            raise BagError(f"bag {path}: topic {c.topic} carries {c.msgtype}, the contract requires {exp}")
+        if exp is None and c.msgtype != T_POSE_COV:
+            data.unknown_topics[c.topic] = c.msgtype
+            continue
+        if wanted is not None and c.topic not in wanted:
+            continue
+        parse.append(c)
+    acc: dict[str, list[Any]] = {}
+    status = _ReadStatus()
+    for conn, stamp_ns, raw in _messages(reader, parse, status):
+        topic = conn.topic
+        k = status.counts[topic] - 1
+        try:
+            msg = deserialize(raw, conn.msgtype, topic=topic)
+        except BagError as exc:
+            status.reject(topic, k, exc)
+            continue
+        try:
+            _collect(data, acc, topic, conn.msgtype, msg, stamp_ns, k, load_images)
+        except BagError:
+            raise
+        except (ValueError, TypeError, AttributeError) as exc:
+            raise BagError(f"bag {path}: topic {topic} message {k}: {exc}") from exc
+    _finish(data, acc)
+    return data, parse, status
 
 
 # -- per-topic parsers: message -> one row of the topic's accumulator --------------------------------------------

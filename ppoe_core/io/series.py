@@ -243,6 +243,9 @@ class BagData:
     topics: dict[str, tuple[str, int]] = field(default_factory=dict)
     #: topics that were not parsed (not in the contract) -> message type
     unknown_topics: dict[str, str] = field(default_factory=dict)
+    #: what the user must be told about the reading: a recovered unfinished recording, or what was
+    #: lost of a damaged bag read with ``accept_partial`` (one line each)
+    notes: list[str] = field(default_factory=list)
 
     def require_robot_description(self) -> str:
         """The URDF; raises BagError if the bag has no ``/robot_description``."""

@@ -57,13 +57,20 @@ class BagWriter:
         ``"mcap"`` (default) or ``"sqlite3"``.
     overwrite
         Delete an existing bag directory at ``path`` first.
+    flush_period
+        Seconds (mcap only): write ``metadata.yaml`` at :meth:`open` and, at most this long after a
+        message, close the pending chunk, flush it to disk and rewrite ``metadata.yaml`` with the counts
+        so far (marked as a recording in progress).  A writer killed with ``-9`` then leaves a bag
+        that :func:`~ppoe_core.io.reader.read_bag` reads up to the last flush.  ``None`` (default):
+        one chunk per MiB, metadata at :meth:`close` (rosbags' behaviour).
 
     All ``stamp`` arguments are seconds (float); the message header stamp and
     the bag's log time are both set to it.  Use as a context manager, or call
     :meth:`open` / :meth:`close`.
     """
 
-    def __init__(self, path: str | os.PathLike[str], storage: str = "mcap", *, overwrite: bool = False) -> None:
+    def __init__(self, path: str | os.PathLike[str], storage: str = "mcap", *, overwrite: bool = False,
+                 flush_period: float | None = None) -> None:
         from rosbags.rosbag2 import StoragePlugin
 
         self.path = Path(path)
@@ -77,6 +84,8 @@ class BagWriter:
 
             shutil.rmtree(self.path)
         self._storage = plugins[storage]
+        self._flush_period = flush_period if storage == "mcap" else None
+        self._last_flush = 0.0
         self._writer: Any = None
         self._connections: dict[str, Any] = {}
         self.counts: dict[str, int] = {}
@@ -95,6 +104,8 @@ class BagWriter:
         except WriterError as exc:
             raise BagError(f"bag {self.path}: cannot open for writing: {exc}") from None
         self._writer = writer
+        if self._flush_period is not None:
+            self.flush()
         return self
 
     def close(self) -> None:
@@ -102,6 +113,32 @@ class BagWriter:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+
+    def flush(self) -> None:
+        """Close the pending chunk, flush the mcap to disk and rewrite ``metadata.yaml`` (mcap only).
+
+        Between flushes the file holds whole chunks only; ``metadata.yaml`` is written after the chunk
+        is on disk, so its counts never exceed what the file holds.
+        """
+        import time
+
+        self._last_flush = time.monotonic()
+        storage = getattr(self._writer, "storage", None)
+        if storage is None or not hasattr(storage, "close_chunk"):
+            return
+        if storage.chunk.msgs:
+            storage.close_chunk()
+        storage.bio.flush()
+        os.fsync(storage.bio.fileno())
+        _write_metadata_in_progress(self._writer)
+
+    def flush_if_due(self) -> None:
+        """:meth:`flush` if ``flush_period`` has passed since the last one (call it from a timer)."""
+        import time
+
+        if self._flush_period is not None and self._writer is not None \
+                and time.monotonic() - self._last_flush >= self._flush_period:
+            self.flush()
 
     def __enter__(self) -> BagWriter:
         return self.open()
@@ -139,6 +176,7 @@ class BagWriter:
             data = serialize(deserialize(data, msgtype, topic=topic), msgtype)
         self._writer.write(conn, int(stamp_ns), bytes(data))
         self.counts[topic] = self.counts.get(topic, 0) + 1
+        self.flush_if_due()
 
     def write_message(self, topic: str, msg: Any, stamp: float, msgtype: str | None = None) -> None:
         """Write a rosbags message object (type taken from ``msg.__msgtype__``)."""
@@ -146,6 +184,7 @@ class BagWriter:
         conn = self._connection(topic, msgtype)
         self._writer.write(conn, stamp_to_ns(stamp), serialize(msg, msgtype))
         self.counts[topic] = self.counts.get(topic, 0) + 1
+        self.flush_if_due()
 
     # -- typed writers
     def write_robot_description(self, urdf_xml: str, stamp: float = 0.0) -> None:
@@ -178,6 +217,7 @@ class BagWriter:
         conn = self._connection(topic, T_JOINT_STATE)
         self._writer.write(conn, ns, data)
         self.counts[topic] = self.counts.get(topic, 0) + 1
+        self.flush_if_due()
 
     def write_camera_info(self, stamp: float, frame_id: str, width: int, height: int,
                           K: np.ndarray, D: Sequence[float] | np.ndarray,
@@ -365,6 +405,42 @@ def cdr_joint_state(stamp_ns: int, names: Sequence[str], pos: np.ndarray, vel: n
     doubles(vel)
     doubles(eff)
     return bytes(out)
+
+
+def _write_metadata_in_progress(writer: Any) -> None:
+    """``metadata.yaml`` of a rosbags mcap writer that is still open (counts so far, ``custom_data`` marks it).
+
+    The fields are those rosbags writes at close (:meth:`rosbags.rosbag2.Writer.close`); the file is
+    replaced atomically.
+    """
+    import yaml
+    from rosbags.rosbag2.metadata import dump_qos_v9
+
+    from ppoe_core.io.recovery import RECORDING_KEY
+
+    count = sum(writer.counts.values())
+    start = writer.min_timestamp if count else 0
+    duration = max(0, writer.max_timestamp - writer.min_timestamp) if count else 0
+    name = writer.storage.path.name
+    info = {
+        "version": writer.version, "storage_identifier": "mcap", "relative_file_paths": [name],
+        "duration": {"nanoseconds": duration}, "starting_time": {"nanoseconds_since_epoch": start},
+        "message_count": count,
+        "topics_with_message_count": [
+            {"topic_metadata": {"name": c.topic, "type": c.msgtype,
+                                "serialization_format": c.ext.serialization_format,
+                                "offered_qos_profiles": dump_qos_v9(c.ext.offered_qos_profiles),
+                                "type_description_hash": c.digest},
+             "message_count": writer.counts[c.id]} for c in writer.connections],
+        "compression_format": "", "compression_mode": "",
+        "files": [{"path": name, "starting_time": {"nanoseconds_since_epoch": start},
+                   "duration": {"nanoseconds": duration}, "message_count": count}],
+        "custom_data": {RECORDING_KEY: "in progress: the bag was not closed"},
+        "ros_distro": "rosbags",
+    }
+    tmp = writer.metapath.with_suffix(".yaml.tmp")
+    tmp.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False))
+    tmp.replace(writer.metapath)
 
 
 def _tag_cloud(ids: Any, corners: Any, uv: Any, xy: Any, topic: str) -> np.ndarray:

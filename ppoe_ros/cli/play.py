@@ -12,7 +12,11 @@ other topics reliable with a deep history.  ``--loop`` starts over at the end
 A topic whose message type is not installed here is skipped with a message on
 stderr (an error if it was asked for with ``--topics``).
 
-Exit codes: 0 done (or interrupted), 2 unreadable bag / unknown topic / nothing to play.
+A damaged bag (fewer readable messages than its ``metadata.yaml`` says) is refused before
+anything is published, naming per topic what was lost, unless ``--accept-partial``; an
+unfinished recording (no footer or metadata) is read record by record, with a warning.
+
+Exit codes: 0 done (or interrupted), 2 unreadable or damaged bag / unknown topic / nothing to play.
 """
 
 from __future__ import annotations
@@ -48,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
     parser.add_argument("--delay", type=float, default=0.5,
                         help="seconds to wait after creating the publishers, for discovery (default 0.5)")
+    parser.add_argument("--accept-partial", action="store_true",
+                        help="play what can be read of a damaged bag (default: refuse it, naming per topic "
+                             "what was lost)")
     parser.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SECONDS",
                         help="before playing, wait up to SECONDS until every played topic has a subscriber")
 
@@ -62,6 +69,12 @@ def run(args: argparse.Namespace) -> int:
 
     info = bagio.bag_topics(args.bag)  # raises BagError naming the bag
     selected, classes = _select_topics(args, info)
+    # read it all once before playing: a damaged bag is refused (per topic, what was lost), or with
+    # --accept-partial announced; the counts announced below are those that will be played
+    check = bagio.check_bag(args.bag, selected, accept_partial=args.accept_partial)
+    args.scanned = check.scanned  # read the file the way that recovered the most
+    for note in check.notes:
+        print(f"ppoe play: warning: {note}", file=sys.stderr)
 
     rclpy.init(args=["ppoe_play"])
     node = rclpy.create_node("ppoe_play")
@@ -74,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
             pubs[topic] = node.create_publisher(classes[topic], topic, qos)
         clock_pub = node.create_publisher(Clock, "/clock", reliable_qos(10)) if args.clock else None
         _wait(node, pubs, args.delay, args.wait_for_subscribers)
-        log.info(f"playing {args.bag}: {', '.join(f'{t} ({info[t][1]})' for t in selected)} at rate {args.rate:g}")
+        counts = ", ".join(f"{t} ({check.counts.get(t, 0)})" for t in selected)
+        log.info(f"playing {args.bag}: {counts} at rate {args.rate:g}")
         while True:
             sent = _play_once(args, pubs, clock_pub)
             if sent is None:  # shut down while playing
@@ -159,7 +173,7 @@ def _play_once(args: argparse.Namespace, pubs: dict[str, Any], clock_pub: Any) -
     start = time.monotonic()
     last_clock = -1.0
     n_sent = 0
-    for msg in bagio.iter_raw(args.bag, list(pubs)):
+    for msg in bagio.iter_raw(args.bag, list(pubs), scanned=getattr(args, "scanned", False)):
         if t0_ns is None:
             t0_ns = msg.stamp_ns
         target = start + (msg.stamp_ns - t0_ns) * 1e-9 / args.rate

@@ -11,7 +11,12 @@ The subscription QoS follows the publishers: transient local when all of them
 are (``/robot_description``), best effort if any publisher is best effort.
 The log time of a message is its receive time on the node clock
 (``--use-sim-time`` to take it from ``/clock``).  Stops on SIGINT/SIGTERM or
-after ``--duration``; the bag is closed properly either way.
+after ``--duration``; the bag is closed properly either way (exit 0).
+
+Every ``--flush-period`` seconds (0.5) the pending messages go to disk as one
+mcap chunk and ``metadata.yaml`` is rewritten with the counts so far, so a
+recorder killed with ``-9`` loses at most about that much: ``ppoe play`` /
+``evaluate`` read such a bag from its chunks and say that it was not closed.
 
 Exit codes: 0 done, 2 output exists (without ``--force``) / cannot write.
 """
@@ -38,6 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after this many seconds (default: until interrupted)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing bag directory")
     parser.add_argument("--use-sim-time", action="store_true", help="log times from /clock")
+    parser.add_argument("--flush-period", type=float, default=0.5, metavar="SECONDS",
+                        help="write the messages to disk at least this often, with metadata.yaml, so that a "
+                             "recorder killed with -9 leaves a readable bag (mcap; default 0.5)")
 
 
 def _qos_for(publishers: list[Any]) -> Any:
@@ -107,32 +115,61 @@ class Recorder:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Record until interrupted or ``--duration``; returns the exit code."""
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-    from rclpy.parameter import Parameter
+    """Record until SIGINT/SIGTERM or ``--duration``; returns the exit code.
 
-    writer = BagWriter(args.out, storage=args.storage, overwrite=args.force)  # BagError if it exists
-    rclpy.init(args=["ppoe_record"])
-    node = rclpy.create_node("ppoe_record", parameter_overrides=[
-        Parameter("use_sim_time", Parameter.Type.BOOL, bool(args.use_sim_time))])
-    writer.open()
+    rclpy's own signal handlers are off: a signal only sets a flag that the spin loop checks, so
+    the loop never spins a context that a handler has just shut down (that raced into ``RCLError:
+    failed to initialize wait set`` under SIGTERM), and the bag is closed on every path.
+    """
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.signals import SignalHandlerOptions
+
+    writer = BagWriter(args.out, storage=args.storage, overwrite=args.force,
+                       flush_period=args.flush_period)  # BagError if it exists
+    stop = _StopFlag()
     recorder: Recorder | None = None
+    node = None
     try:
+        rclpy.init(args=["ppoe_record"], signal_handler_options=SignalHandlerOptions.NO)
+        node = rclpy.create_node("ppoe_record", parameter_overrides=[
+            Parameter("use_sim_time", Parameter.Type.BOOL, bool(args.use_sim_time))])
+        writer.open()
         recorder = Recorder(node, writer, args.topics)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         end = time.monotonic() + args.duration if args.duration > 0 else None
-        while rclpy.ok() and (end is None or time.monotonic() < end):
+        while not stop.raised and rclpy.ok() and (end is None or time.monotonic() < end):
             executor.spin_once(timeout_sec=0.05)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+            writer.flush_if_due()
     finally:
         writer.close()
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
+        stop.restore()
     counts = ", ".join(f"{t}: {n}" for t, n in sorted(writer.counts.items())) or "nothing"
     print(f"ppoe record: wrote {args.out} ({counts})", file=sys.stderr)
     if recorder is not None and recorder.pending:
         print(f"ppoe record: never saw a publisher of {', '.join(recorder.pending)}", file=sys.stderr)
     return 0
+
+
+class _StopFlag:
+    """SIGINT/SIGTERM set :attr:`raised` (instead of raising in the middle of a write); :meth:`restore`."""
+
+    def __init__(self) -> None:
+        import signal
+
+        self.raised = False
+        self._old = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        self.raised = True
+
+    def restore(self) -> None:
+        import signal
+
+        for sig, old in self._old.items():
+            signal.signal(sig, old)

@@ -259,7 +259,7 @@ class _PixelProblem:
 
 
 def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigma_px: float = 1.0,
-                    refine: str = "subpix") -> PixelObs:
+                    refine: str = "subpix", accept_partial: bool = False) -> PixelObs:
     """Tag pixels of a contract bag as :class:`PixelObs` (centre and corner points).
 
     ``/tag_bearing/observations`` if the bag has it (e.g. the Motoman importer: marker centres),
@@ -284,7 +284,7 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
     links = sorted({t.link for t in cfg.tags.items})
     if len(links) != 1:
         raise BagError(f"{model_yaml}: tags on several links {links}; pixel diagnosis supports one tag link")
-    data = bagio.read_bag(path, load_images=True)
+    data = bagio.read_bag(path, load_images=True, accept_partial=accept_partial)
     ci = data.camera_info
     intr: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for i, f in enumerate(ci.frame_ids):

@@ -198,7 +198,8 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
                    tracker_xyz: Sequence[float] = (0.0, 0.0, 0.0), tracker_sigma: float = 5e-4,
                    base: str | None = None, tool: str | None = None, pose_sigma: float = 5e-4,
                    pose_sigma_rot: float = 1e-3, stationing_set: str | None = "cross",
-                   group_name: str | None = None, measurement: str = "auto") -> Stops:
+                   group_name: str | None = None, measurement: str = "auto",
+                   accept_partial: bool = False) -> Stops:
     """Measurements of a contract bag as :class:`Stops`.
 
     ``/ground_truth/point`` (preferred by ``measurement="auto"``) or ``/ground_truth/pose``
@@ -208,11 +209,12 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
     on a link rigidly fixed to the root, if any.  One registration session per bag unless the bag carries importer
     metadata ``/dataset/stop`` (``station``, ``role``, ``point_sets``): then one session per
     station, stationing stops (of ``stationing_set`` if given) define the registration and
-    evaluation stops are scored.
+    evaluation stops are scored.  ``accept_partial``: use what can be read of a damaged bag
+    (:func:`ppoe_core.io.bagio.read_bag`).
     """
     from ppoe_core.io import bagio
 
-    data = bagio.read_bag(path, load_images=False)
+    data = bagio.read_bag(path, load_images=False, accept_partial=accept_partial)
     js = data.joint_states
     if len(js) == 0:
         raise BagError(f"bag {path}: no /joint_states")

@@ -93,6 +93,9 @@ class EvaluateOptions:
         (default: the pose if the bag has one, else the point).
     progress : bool
         Draw a progress bar on stderr.
+    accept_partial : bool
+        Score what can be read of a damaged bag (``read_bag(accept_partial=True)``); the summary's
+        ``bag_notes`` then say per topic what was lost.
     """
 
     base: str | None = None
@@ -102,6 +105,7 @@ class EvaluateOptions:
     fusion: dict[str, Any] = field(default_factory=dict)
     ground_truth: str = "auto"
     progress: bool = False
+    accept_partial: bool = False
 
     def fusion_settings(self) -> dict[str, Any]:
         """:data:`EVALUATE_SETTINGS` updated with :attr:`fusion`.

@@ -296,7 +296,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     opt = options or EvaluateOptions()
     bag = str(bag)
     t_start = time.perf_counter()
-    data = read_bag(bag)
+    data = read_bag(bag, accept_partial=opt.accept_partial)
     model = _load_model(data.require_robot_description(), model_yaml, bag)
     base, tool, kind = _check_inputs(data, model, model_yaml, opt, bag)
     pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml)
@@ -342,6 +342,8 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     else:
         score_points(summary, samples, run, data.ground_truth_point, have, methods, model, tool, opt.fit_set, bag)
     _measurement_summary(summary, run, pipes, updaters, methods)
+    if data.notes:
+        summary["bag_notes"] = list(data.notes)
     summary["wall_time_s"] = float(time.perf_counter() - t_start)
     return Evaluation(summary, samples)
 
