@@ -1,4 +1,4 @@
-"""``ppoe diagnose BAG... --model MODEL.yaml [--base FRAME] [--tool FRAME] [--out DIR] [--json]``.
+"""``ppoe diagnose BAG... --model MODEL.yaml [--base FRAME] [--tool FRAME] [--out DIR] [--json] [--test BAG...]``.
 
 Finds the systematic effects (docs/conventions.md sec. 6 vocabulary) that the model lacks, from the
 bags' ``/ground_truth/point`` (tracker, registration estimated per session) or
@@ -11,6 +11,11 @@ Tag pixels (``--pixels``, default ``auto``: when the model has ``tags`` and a ba
 ``/tag_bearing/observations`` or camera images) are diagnosed too, on top of the tracker/pose
 effects: ``camera_extrinsics`` candidates per camera, JSON key ``pixels`` (held-out pixel RMS
 per camera before -> after), found effects appended to ``effects``.
+
+``--test TEST_BAG...`` scores the fitted model, unchanged, on other bags of the same robot (JSON key
+``test``, one object per bag: ``rms``, ``mean``, ``median``, ``p95``, ``max`` [m], ``n``, the same
+``before``, and the ``protocol``: a bag with stop roles is scored by them, else one registration
+per session on all its stops; see :mod:`ppoe_core.analysis.diagnose.testing`).
 
 ``--tool`` names the link that carries the tracker's reflector (default: the model's
 ``tracker.link``) or, for pose bags, the tool frame (default ``frames.tool``).
@@ -37,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default=None, metavar="DIR",
                         help="write diagnose.md/.json/.png and model_diagnosed.yaml here")
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    parser.add_argument("--test", nargs="+", default=[], metavar="TEST_BAG",
+                        help="score the fitted model, unchanged, on these bags (JSON key 'test': rms, mean, "
+                             "median, p95, max [m] and n per bag; stop roles scored by their protocol)")
     parser.add_argument("--accept-partial", action="store_true",
                         help="use what can be read of a damaged bag (default: refuse it, naming per topic "
                              "what was lost)")
@@ -79,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         prepare_out_dir(args.out)
     from ppoe_core.io.bagio import check_bag
 
-    for bag in args.bags:  # a damaged bag is refused (or, accepted, announced) before the run
+    for bag in [*args.bags, *args.test]:  # a damaged bag is refused (or, accepted, announced) before the run
         for note in check_bag(bag, accept_partial=args.accept_partial)[0]:
             print(f"ppoe diagnose: warning: {note}", file=sys.stderr)
     urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description
@@ -95,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
     res = diagnose(robot, stops, declared, pert, jnoise, opts)
     if args.pixels != "off":
         _pixel_stage(args, res, robot, cfg, declared, pert, jnoise)
+    if args.test:
+        _test_stage(args, res, robot, cfg, declared)
     paths = {}
     if args.out:
         paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))
@@ -122,7 +132,29 @@ def _stops(args: argparse.Namespace, i: int, bag: str, robot: Any, cfg: Any) -> 
         base=args.base or (frames.base if frames else None),
         tool=args.tool or (frames.tool if frames else None),
         stationing_set=None if args.stationing_set == "all" else args.stationing_set,
-        group_name=f"{i}:{Path(bag).name}", measurement=args.measurement, accept_partial=args.accept_partial)
+        group_name=f"{i}:{Path(bag).name}", measurement=args.measurement, accept_partial=args.accept_partial,
+        trackers=() if args.tool else tuple(getattr(cfg, "trackers", ()) or ()))
+
+
+def _test_stage(args: argparse.Namespace, res: Any, robot: Any, cfg: Any, declared: Any) -> None:
+    """``--test``: each test bag scored with the fitted model (``res.extra["test"]``, keyed by bag name)."""
+    from ppoe_core.analysis.diagnose.engine import append_test_summary
+    from ppoe_core.analysis.diagnose.testing import check_same_robot, score_stops
+    from ppoe_core.errors import BagError
+    from ppoe_core.io.bagio import read_bag
+    from ppoe_core.robot.urdf import parse_urdf
+
+    test: dict[str, Any] = {}
+    for k, bag in enumerate(args.test):
+        urdf = read_bag(bag, topics=["/robot_description"], load_images=False).robot_description
+        if not urdf:
+            raise BagError(f"bag {bag}: no /robot_description")
+        check_same_robot(robot, parse_urdf(urdf, text_source=f"bag {bag} /robot_description"), args.bags[0], bag)
+        name = Path(bag).name if Path(bag).name not in test else f"{Path(bag).name}#{k}"
+        stops = _stops(args, len(args.bags) + k, bag, robot, cfg)
+        test[name] = score_stops(robot, stops, declared, res.chosen)
+    res.extra["test"] = test
+    append_test_summary(res)
 
 
 def _pixel_stage(args: argparse.Namespace, res: Any, robot: Any, cfg: Any, declared: Any, pert: Any,

@@ -14,7 +14,9 @@ from ppoe_core.io.messages import (
     CONTRACT_TYPES,
     IMU_TOPIC_PREFIX,
     T_IMU,
+    T_POINT,
     T_POSE_COV,
+    T_TEMPERATURE,
     TAG_OBSERVATION_FIELDS,
     TOPIC_CAMERA_INFO,
     TOPIC_COMPRESSED_IMAGE,
@@ -24,12 +26,13 @@ from ppoe_core.io.messages import (
     TOPIC_JOINT_STATES,
     TOPIC_ROBOT_DESCRIPTION,
     TOPIC_TAG_OBSERVATIONS,
+    TOPIC_TEMPERATURE,
     TOPIC_WRENCH,
     _stamp_s,
     deserialize,
     typestore,
 )
-from ppoe_core.io.recovery import RecoveredMcap, expected_counts, loss_report, recording_in_progress
+from ppoe_core.io.recovery import RecoveredMcap, ReadStatus, account, lost_messages, recording_in_progress
 from ppoe_core.io.series import (
     BagData,
     CameraInfos,
@@ -41,6 +44,7 @@ from ppoe_core.io.series import (
     PoseSeries,
     RawMessage,
     TagObservationRows,
+    TemperatureSeries,
     Wrenches,
 )
 
@@ -63,29 +67,7 @@ def _open_reader(path: str | Path) -> Any:
     return reader
 
 
-class _ReadStatus:
-    """Messages read per topic and why reading stopped early (empty if it did not)."""
-
-    def __init__(self) -> None:
-        self.counts: dict[str, int] = {}  # read and decodable
-        self.error = ""
-        self.undecodable = 0
-        self.first_undecodable = ""
-
-    def reject(self, topic: str, k: int, exc: Exception) -> None:
-        """Message ``k`` of ``topic`` was read but its bytes do not parse (damaged): not counted as read."""
-        self.counts[topic] -= 1
-        self.undecodable += 1
-        self.first_undecodable = self.first_undecodable or f"{topic} message {k}: {exc}"
-
-    def problem(self) -> str:
-        """Why messages are missing beyond the per-topic counts ('' if nothing went wrong)."""
-        bad = (f"{self.undecodable} message(s) read but undecodable (first: {self.first_undecodable})"
-               if self.undecodable else "")
-        return "; ".join(p for p in (self.error, bad) if p)
-
-
-def _messages(reader: Any, conns: list[Any], status: _ReadStatus,
+def _messages(reader: Any, conns: list[Any], status: ReadStatus,
               validate: bool = False) -> Iterator[tuple[Any, int, Any]]:
     """``reader.messages`` that stops, instead of raising, where the file is damaged (noted in ``status``).
 
@@ -111,31 +93,6 @@ def _messages(reader: Any, conns: list[Any], status: _ReadStatus,
         yield conn, stamp_ns, data
 
 
-def _account(path: str | Path, reader: Any, conns: list[Any], status: _ReadStatus, accept_partial: bool) -> list[str]:
-    """Compare what was read with ``metadata.yaml`` (else the file's own counts); returns notes for the user.
-
-    Raises
-    ------
-    BagError
-        Messages were lost (per topic, read of expected) and ``accept_partial`` is False.
-    """
-    notes = [reader.note] if isinstance(reader, RecoveredMcap) else []
-    meta = expected_counts(Path(path))
-    topics = {c.topic for c in conns}
-    if meta is not None:
-        expected = {t: n for t, n in meta.items() if t in topics}
-    elif isinstance(reader, RecoveredMcap):
-        expected = {}  # nothing to compare with: the note says it was recovered
-    else:
-        expected = {c.topic: int(c.msgcount) for c in conns}
-    report = loss_report(path, status.counts, expected, status.problem())
-    if report is not None:
-        if not accept_partial:
-            raise BagError(report + "; pass --accept-partial to use what was read")
-        notes.append(report + " (accepted: --accept-partial)")
-    return notes
-
-
 def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
     """Topics of a bag -> (message type, message count), without reading messages."""
     reader = _open_reader(path)
@@ -154,11 +111,11 @@ class BagCheck(NamedTuple):
     scanned: bool
 
 
-def _count(reader: Any, topics: Iterable[str] | None) -> tuple[list[Any], _ReadStatus]:
+def _count(reader: Any, topics: Iterable[str] | None) -> tuple[list[Any], ReadStatus]:
     """Read (and validate) every message of the wanted topics; the connections and what was read."""
     wanted = set(topics) if topics is not None else None
     conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
-    status = _ReadStatus()
+    status = ReadStatus()
     for _ in _messages(reader, conns, status, validate=True):
         pass
     return conns, status
@@ -180,7 +137,7 @@ def check_bag(path: str | Path, topics: Iterable[str] | None = None, *, accept_p
         conns, status = _count(reader, topics)
     finally:
         reader.close()
-    if (status.problem() or _lost(path, conns, status)) and not isinstance(reader, RecoveredMcap):
+    if (status.problem() or lost_messages(path, conns, status)) and not isinstance(reader, RecoveredMcap):
         try:
             rescue = RecoveredMcap(Path(path), f"damaged ({status.problem() or 'messages missing'})")
             conns2, status2 = _count(rescue, topics)
@@ -188,7 +145,7 @@ def check_bag(path: str | Path, topics: Iterable[str] | None = None, *, accept_p
                 reader, conns, status = rescue, conns2, status2
         except BagError:
             pass
-    notes = _account(path, reader, conns, status, accept_partial)
+    notes = account(path, reader, conns, status, accept_partial)
     return BagCheck(notes, dict(status.counts), isinstance(reader, RecoveredMcap))
 
 
@@ -204,7 +161,7 @@ def iter_raw(path: str | Path, topics: Iterable[str] | None = None, *, scanned: 
     try:
         wanted = set(topics) if topics is not None else None
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
-        for conn, stamp_ns, data in _messages(reader, conns, _ReadStatus(), validate=True):
+        for conn, stamp_ns, data in _messages(reader, conns, ReadStatus(), validate=True):
             yield RawMessage(conn.topic, conn.msgtype, int(stamp_ns), bytes(data))
     finally:
         reader.close()
@@ -215,7 +172,16 @@ def _expected_type(topic: str) -> str | None:
         return CONTRACT_TYPES[topic]
     if topic.startswith(IMU_TOPIC_PREFIX):
         return T_IMU
+    if _named(topic, TOPIC_GT_POINT):
+        return T_POINT
+    if topic == TOPIC_TEMPERATURE or _named(topic, TOPIC_TEMPERATURE):
+        return T_TEMPERATURE
     return None
+
+
+def _named(topic: str, prefix: str) -> bool:
+    """``topic`` is ``<prefix>/<name>`` (one of several sensors of a kind)."""
+    return topic.startswith(prefix + "/") and len(topic) > len(prefix) + 1
 
 
 def _pose_to_T(pose: Any) -> np.ndarray:
@@ -293,7 +259,7 @@ def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_imag
         data, parse, status = _read_with(reader, path, topics, load_images)
     finally:
         reader.close()
-    if (status.problem() or _lost(path, parse, status)) and not isinstance(reader, RecoveredMcap):
+    if (status.problem() or lost_messages(path, parse, status)) and not isinstance(reader, RecoveredMcap):
         # a damaged file: the record-by-record scan may read more than the indexed reader
         try:
             rescue = RecoveredMcap(Path(path), f"damaged ({status.problem() or 'messages missing'})")
@@ -302,17 +268,12 @@ def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_imag
                 reader, data, parse, status = rescue, data2, parse2, status2
         except BagError:
             pass
-    data.notes = _account(path, reader, parse, status, accept_partial)
+    data.notes = account(path, reader, parse, status, accept_partial)
     return data
 
 
-def _lost(path: str | Path, parse: list[Any], status: _ReadStatus) -> bool:
-    meta = expected_counts(Path(path)) or {c.topic: int(c.msgcount) for c in parse}
-    return any(status.counts.get(c.topic, 0) < meta.get(c.topic, 0) for c in parse)
-
-
 def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None,
-               load_images: bool) -> tuple[BagData, list[Any], _ReadStatus]:
+               load_images: bool) -> tuple[BagData, list[Any], ReadStatus]:
     """Parse the wanted contract topics of an open reader; returns the data, the parsed connections
     and what was read."""
     data = BagData(path=str(path))
@@ -333,7 +294,7 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None,
             continue
         parse.append(c)
     acc: dict[str, list[Any]] = {}
-    status = _ReadStatus()
+    status = ReadStatus()
     for conn, stamp_ns, raw in _messages(reader, parse, status):
         topic = conn.topic
         k = status.counts[topic] - 1
@@ -413,6 +374,10 @@ def _row_point(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
     return (_stamp_s(msg.header), msg.header.frame_id, [p.x, p.y, p.z])
 
 
+def _row_temperature(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, float(msg.temperature), float(msg.variance))
+
+
 def _row_imu(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
     return (_stamp_s(msg.header), msg.header.frame_id, _v3(msg.linear_acceleration),
             _v3(msg.angular_velocity), np.asarray(msg.linear_acceleration_covariance, float).reshape(3, 3))
@@ -446,6 +411,10 @@ def _row_parser(topic: str, msgtype: str) -> _RowParser:
         return _ROW_PARSERS[topic]
     if topic.startswith(IMU_TOPIC_PREFIX):
         return _row_imu
+    if msgtype == T_POINT:
+        return _row_point
+    if msgtype == T_TEMPERATURE:
+        return _row_temperature
     if msgtype == T_POSE_COV:
         return _row_pose_cov
     raise BagError(f"topic {topic}: no parser for {msgtype}")  # pragma: no cover - filtered before
@@ -520,6 +489,15 @@ def _finish_point(data: BagData, topic: str, stamps: np.ndarray, frames: list, l
     data.ground_truth_point = PointSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float))
 
 
+def _finish_named_point(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.ground_truth_points[topic] = PointSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float))
+
+
+def _finish_temperature(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.temperatures[topic] = TemperatureSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float),
+                                                 np.array([e[3] for e in lst], dtype=float))
+
+
 def _finish_imu(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
     data.imus[topic[len(IMU_TOPIC_PREFIX):]] = ImuSeries(
         stamps, frames, np.array([e[2] for e in lst]), np.array([e[3] for e in lst]),
@@ -562,6 +540,10 @@ def _finish(data: BagData, acc: dict[str, list[Any]]) -> None:
             finisher = _FINISHERS[topic]
         elif topic.startswith(IMU_TOPIC_PREFIX):
             finisher = _finish_imu
+        elif _named(topic, TOPIC_GT_POINT):
+            finisher = _finish_named_point
+        elif _expected_type(topic) == T_TEMPERATURE:
+            finisher = _finish_temperature
         else:
             finisher = _finish_pose_cov
         finisher(data, topic, stamps, frames, lst)

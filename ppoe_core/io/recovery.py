@@ -26,8 +26,8 @@ from typing import Any
 
 from ppoe_core.errors import BagError
 
-__all__ = ["RECORDING_KEY", "RecoveredConnection", "RecoveredMcap", "expected_counts", "loss_report",
-           "recording_in_progress"]
+__all__ = ["RECORDING_KEY", "ReadStatus", "RecoveredConnection", "RecoveredMcap", "account", "expected_counts",
+           "loss_report", "lost_messages", "recording_in_progress"]
 
 #: ``custom_data`` key of the interim ``metadata.yaml`` a recorder writes while the bag is open
 RECORDING_KEY = "ppoe_recording"
@@ -237,3 +237,56 @@ def loss_report(path: Path | str, read: Mapping[str, int], expected: Mapping[str
     parts = ", ".join(f"{t} {r} of {n}" for t, (r, n) in sorted(lost.items()))
     return (f"bag {path}: damaged: read {n_read} of {sum(expected.values())} messages"
             + (f" ({parts})" if parts else "") + (f"; reading stopped: {error}" if error else ""))
+
+
+class ReadStatus:
+    """Messages read per topic and why reading stopped early (empty if it did not)."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}  # read and decodable
+        self.error = ""
+        self.undecodable = 0
+        self.first_undecodable = ""
+
+    def reject(self, topic: str, k: int, exc: Exception) -> None:
+        """Message ``k`` of ``topic`` was read but its bytes do not parse (damaged): not counted as read."""
+        self.counts[topic] -= 1
+        self.undecodable += 1
+        self.first_undecodable = self.first_undecodable or f"{topic} message {k}: {exc}"
+
+    def problem(self) -> str:
+        """Why messages are missing beyond the per-topic counts ('' if nothing went wrong)."""
+        bad = (f"{self.undecodable} message(s) read but undecodable (first: {self.first_undecodable})"
+               if self.undecodable else "")
+        return "; ".join(p for p in (self.error, bad) if p)
+
+
+def account(path: str | Path, reader: Any, conns: list[Any], status: ReadStatus,
+            accept_partial: bool) -> list[str]:
+    """Compare what was read with ``metadata.yaml`` (else the file's own counts); returns notes for the user.
+
+    Raises
+    ------
+    BagError
+        Messages were lost (per topic, read of expected) and ``accept_partial`` is False.
+    """
+    notes = [reader.note] if isinstance(reader, RecoveredMcap) else []
+    meta = expected_counts(Path(path))
+    topics = {c.topic for c in conns}
+    if meta is not None:
+        expected = {t: n for t, n in meta.items() if t in topics}
+    elif isinstance(reader, RecoveredMcap):
+        expected = {}  # nothing to compare with: the note says it was recovered
+    else:
+        expected = {c.topic: int(c.msgcount) for c in conns}
+    report = loss_report(path, status.counts, expected, status.problem())
+    if report is not None:
+        if not accept_partial:
+            raise BagError(report + "; pass --accept-partial to use what was read")
+        notes.append(report + " (accepted: --accept-partial)")
+    return notes
+
+
+def lost_messages(path: str | Path, parse: list[Any], status: ReadStatus) -> bool:
+    meta = expected_counts(Path(path)) or {c.topic: int(c.msgcount) for c in parse}
+    return any(status.counts.get(c.topic, 0) < meta.get(c.topic, 0) for c in parse)

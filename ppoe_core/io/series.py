@@ -165,6 +165,19 @@ class PointSeries:
 
 
 @dataclass
+class TemperatureSeries:
+    """``/temperature[/<name>]`` (``sensor_msgs/Temperature``): ``temperature`` (N,) [deg C], ``variance`` (N,)."""
+
+    stamps: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    frame_ids: list[str] = field(default_factory=list)
+    temperature: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    variance: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def __len__(self) -> int:
+        return int(self.stamps.shape[0])
+
+
+@dataclass
 class ImuSeries:
     """``/imu/<name>``: linear acceleration (N,3) [m/s^2], angular velocity (N,3) [rad/s],
     accelerometer covariance (N,3,3), in the link ``frame_ids[i]``."""
@@ -236,6 +249,10 @@ class BagData:
     wrench: Wrenches = field(default_factory=Wrenches)
     ground_truth_pose: PoseSeries = field(default_factory=PoseSeries)
     ground_truth_point: PointSeries = field(default_factory=PointSeries)
+    #: ``/ground_truth/point/<name>`` (several reflectors), keyed by the full topic name
+    ground_truth_points: dict[str, PointSeries] = field(default_factory=dict)
+    #: ``/temperature`` and ``/temperature/<name>``, keyed by the full topic name
+    temperatures: dict[str, TemperatureSeries] = field(default_factory=dict)
     imus: dict[str, ImuSeries] = field(default_factory=dict)
     tag_observations: TagObservationRows = field(default_factory=TagObservationRows)
     poses_with_covariance: dict[str, PoseCovSeries] = field(default_factory=dict)
@@ -277,6 +294,10 @@ class BagData:
             return self.imus[topic[len(IMU_TOPIC_PREFIX):]].stamps
         if topic in self.poses_with_covariance:
             return self.poses_with_covariance[topic].stamps
+        if topic in self.ground_truth_points:
+            return self.ground_truth_points[topic].stamps
+        if topic in self.temperatures:
+            return self.temperatures[topic].stamps
         raise BagError(f"bag {self.path}: topic {topic} was not parsed (topics: {sorted(self.topics)})")
 
 

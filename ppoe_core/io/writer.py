@@ -24,6 +24,7 @@ from ppoe_core.io.messages import (
     T_POSE,
     T_POSE_COV,
     T_STRING,
+    T_TEMPERATURE,
     T_WRENCH,
     TAG_OBSERVATION_FIELDS,
     TOPIC_CAMERA_INFO,
@@ -34,6 +35,7 @@ from ppoe_core.io.messages import (
     TOPIC_JOINT_STATES,
     TOPIC_ROBOT_DESCRIPTION,
     TOPIC_TAG_OBSERVATIONS,
+    TOPIC_TEMPERATURE,
     TOPIC_WRENCH,
     _pose_msg,
     _vec3,
@@ -305,6 +307,16 @@ class BagWriter:
             raise BagError(f"topic {topic}: point must be 3 finite numbers, got {p_tracker!r}")
         msg = types[T_POINT](header=header_msg(stamp_to_ns(stamp), frame_id),
                              point=types["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2])))
+        self.write_message(topic, msg, stamp)
+
+    def write_temperature(self, stamp: float, frame_id: str, temperature: float, variance: float = 0.0,
+                          topic: str = TOPIC_TEMPERATURE) -> None:
+        """``/temperature`` (or ``/temperature/<name>``, ``sensor_msgs/Temperature``) [deg C]."""
+        if not np.isfinite(temperature):
+            raise BagError(f"topic {topic}: temperature must be finite, got {temperature!r}")
+        types = typestore().types
+        msg = types[T_TEMPERATURE](header=header_msg(stamp_to_ns(stamp), frame_id), temperature=float(temperature),
+                                   variance=float(variance))
         self.write_message(topic, msg, stamp)
 
     def write_imu(self, name: str, stamp: float, frame_id: str, linear_acceleration: Sequence[float] | np.ndarray,

@@ -11,7 +11,7 @@ Defaults (a section that is absent):
 * ``perturbations``: none (every joint exact); ``joint_noise``: none.
 * ``frames``: ``base`` = the URDF root link, ``tool`` = the only leaf link if the
   tree has exactly one leaf, else None (then callers must name it).
-* ``camera``, ``tags``, ``contact``, ``tracker``, ``naive``: None; ``imus``: empty;
+* ``camera``, ``tags``, ``contact``, ``tracker``, ``naive``: None; ``imus``, ``trackers``: empty;
   ``effects``: empty.
 """
 
@@ -47,6 +47,7 @@ from ppoe_core.robot.config_types import (
     NaiveConfig,
     Perturbation,
     TagItem,
+    TOPIC_GT_POINT,
     TagsConfig,
     TrackerConfig,
 )
@@ -223,11 +224,42 @@ def _tracker(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> TrackerConfig |
     if sec is None:
         return None
     sec = _mapping(ctx, sec, top, "tracker", "tracker")
-    _check_keys(ctx, sec, ("link", "xyz", "sigma"), "tracker", required=("link",))
-    link = _link(ctx, robot, sec["link"], sec, "link", "tracker.link")
-    xyz = _vector(ctx, sec["xyz"], sec, "xyz", "tracker.xyz", 3) if "xyz" in sec else np.zeros(3)
-    sigma = _number(ctx, sec["sigma"], sec, "sigma", "tracker.sigma", positive=True) if "sigma" in sec else 0.0005
-    return TrackerConfig(link=link, xyz=xyz, sigma=sigma)
+    return _tracker_entry(ctx, robot, sec, "tracker", ("link", "xyz", "sigma"), TOPIC_GT_POINT)
+
+
+def _tracker_entry(ctx: _Ctx, robot: Robot, sec: Mapping, path: str, keys: tuple, topic: str) -> TrackerConfig:
+    """One reflector: ``link`` (required), ``xyz`` [m] (default 0), ``sigma`` [m] (default 0.0005)."""
+    _check_keys(ctx, sec, keys, path, required=("link",))
+    link = _link(ctx, robot, sec["link"], sec, "link", path + ".link")
+    xyz = _vector(ctx, sec["xyz"], sec, "xyz", path + ".xyz", 3) if "xyz" in sec else np.zeros(3)
+    sigma = _number(ctx, sec["sigma"], sec, "sigma", path + ".sigma", positive=True) if "sigma" in sec else 0.0005
+    return TrackerConfig(link=link, xyz=xyz, sigma=sigma, topic=topic)
+
+
+def _trackers(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> tuple[TrackerConfig, ...]:
+    """``trackers`` (CONTRACT.md sec. 5): one entry per reflector, ``topic`` ``/ground_truth/point[/<name>]``."""
+    if sec is None:
+        return ()
+    if "tracker" in top:
+        raise ctx.error(top, "trackers", "trackers", "give either 'tracker' (one reflector) or 'trackers', not both")
+    if not isinstance(sec, list) or not sec:
+        raise ctx.error(top, "trackers", "trackers", "must be a non-empty list of {topic, link, xyz, sigma}")
+    out: list[TrackerConfig] = []
+    seen: dict[str, str] = {}
+    for i, entry in enumerate(sec):
+        path = f"trackers[{i}]"
+        entry = _mapping(ctx, entry, sec, None, path)
+        _check_keys(ctx, entry, ("topic", "link", "xyz", "sigma"), path, required=("topic", "link"))
+        topic = entry["topic"]
+        if not isinstance(topic, str) or not (topic == TOPIC_GT_POINT or (
+                topic.startswith(TOPIC_GT_POINT + "/") and len(topic) > len(TOPIC_GT_POINT) + 1)):
+            raise ctx.error(entry, "topic", path + ".topic",
+                            f"must be {TOPIC_GT_POINT} or {TOPIC_GT_POINT}/<name>, got {topic!r}")
+        if topic in seen:
+            raise ctx.error(entry, "topic", path + ".topic", f"topic {topic} is also {seen[topic]}")
+        seen[topic] = path
+        out.append(_tracker_entry(ctx, robot, entry, path, ("topic", "link", "xyz", "sigma"), topic))
+    return tuple(out)
 
 
 def _imus(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, ImuConfig]:
@@ -323,6 +355,7 @@ _SECTIONS = {
     "tags": _tags,
     "contact": _contact,
     "tracker": _tracker,
+    "trackers": _trackers,
     "imus": _imus,
     "naive": _naive,
     "effects": _effects,
@@ -369,6 +402,10 @@ def load_model_config(
         raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {_kind(data)}")
     _check_keys(ctx, data, tuple(_SECTIONS), "model")
     kwargs: dict[str, Any] = {name: fn(ctx, robot, data.get(name), data) for name, fn in _SECTIONS.items()}
+    if kwargs["tracker"] is not None:
+        kwargs["trackers"] = (kwargs["tracker"],)
+    elif len(kwargs["trackers"]) == 1:
+        kwargs["tracker"] = kwargs["trackers"][0]
     return ModelConfig(source=where, effect_wheres=list(ctx.effect_wheres), **kwargs)
 
 

@@ -122,16 +122,22 @@ class ContactConfig:
     release_threshold: float = 2.0
 
 
+#: topic of a single tracker's points (CONTRACT.md sec. 3); several reflectors use ``<this>/<name>``
+TOPIC_GT_POINT = "/ground_truth/point"
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
-    """``tracker``: point reflector on a link, measured by an external tracker.
+    """A point reflector on a link, measured by an external tracker (``tracker`` or one ``trackers`` entry).
 
-    ``xyz`` [m] in ``link`` coordinates, ``sigma`` 1-sigma per axis [m] (default 0.0005).
+    ``xyz`` [m] in ``link`` coordinates, ``sigma`` 1-sigma per axis [m] (default 0.0005), ``topic`` the
+    ``PointStamped`` topic of its measurements (``/ground_truth/point`` or ``/ground_truth/point/<name>``).
     """
 
     link: str
     xyz: np.ndarray
     sigma: float = 0.0005
+    topic: str = TOPIC_GT_POINT
 
 
 @dataclass(frozen=True)
@@ -162,7 +168,11 @@ class ModelConfig:
         1-sigma joint-value noise along the joint axis [rad or m] (paper IV-D, ``xi = zeta``);
         movable joints only.
     frames : Frames
-    camera, tags, contact, tracker, naive : optional sections (None if absent)
+    camera, tags, contact, tracker, naive : optional sections (None if absent); ``tracker`` is also
+        set when ``trackers`` has exactly one entry
+    trackers : tuple[TrackerConfig, ...]
+        Every reflector (CONTRACT.md sec. 5); a ``tracker`` section gives one entry with topic
+        ``/ground_truth/point``.
     imus : dict[str, ImuConfig]
     effects : list[dict]
         ``{"name", "location", "parameters"[, "ci", "variable", "reference"]}``, names from
@@ -180,6 +190,7 @@ class ModelConfig:
     tags: TagsConfig | None = None
     contact: ContactConfig | None = None
     tracker: TrackerConfig | None = None
+    trackers: tuple[TrackerConfig, ...] = ()
     imus: dict[str, ImuConfig] = field(default_factory=dict)
     naive: NaiveConfig | None = None
     effects: list[dict] = field(default_factory=list)

@@ -147,9 +147,13 @@ class _SimConfig:
         self.gt_pose: Any = None
         if gt.get("pose") is not None:
             self.gt_pose = self._parse_gt_pose(gt["pose"])
-        self.gt_point: Any = None
+        self.gt_point: Any = None  # the first reflector (its registration goes into the truth)
+        self.gt_points: list[dict[str, Any]] = []  # every reflector: ``point`` is one mapping or a list
         if gt.get("point") is not None:
-            self.gt_point = self._parse_gt_point(gt["point"])
+            raw_points = gt["point"] if isinstance(gt["point"], list) else [gt["point"]]
+            self.gt_points = [self._parse_gt_point(r, f"ground_truth.point[{i}]" if isinstance(gt["point"], list)
+                                                   else "ground_truth.point") for i, r in enumerate(raw_points)]
+            self.gt_point = self.gt_points[0]
         self.imu: Any = None
         if raw.get("imus") is not None:
             self.imu = self._parse_imus(raw["imus"])
@@ -229,23 +233,26 @@ class _SimConfig:
             "rate": _num(g, "rate", 0.0, P, "ground_truth.pose", minimum=0.0),
         }
 
-    def _parse_gt_point(self, raw_gt: Any) -> dict[str, Any]:
-        """Scenario ``ground_truth.point``: reflector link and position, noise, tracker frame and pose."""
+    def _parse_gt_point(self, raw_gt: Any, where: str = "ground_truth.point") -> dict[str, Any]:
+        """Scenario ``ground_truth.point`` (or one entry of its list): reflector topic, link and position,
+        noise, tracker frame and pose; link, position and noise default to the model's tracker of that topic."""
         P, m = self.path, self.model
-        g = _check_keys(raw_gt, ("link", "xyz", "sigma", "frame", "T_tracker_base", "rate"), P, "ground_truth.point")
-        tr = m.tracker
+        g = _check_keys(raw_gt, ("topic", "link", "xyz", "sigma", "frame", "T_tracker_base", "rate"), P, where)
+        topic = str(g.get("topic", "/ground_truth/point"))
+        tr = next((t for t in m.trackers if t.topic == topic), m.tracker)
         link = g.get("link") or (tr.link if tr else None)
         if link not in self.robot.links:
-            raise ScenarioError(f"{_where(P, 'ground_truth.point.link')}: {link!r} is not a link")
+            raise ScenarioError(f"{_where(P, where + '.link')}: {link!r} is not a link")
         xyz = np.asarray(g.get("xyz", tr.xyz if tr else [0, 0, 0]), dtype=float).reshape(3)
         return {
             "link": link,
             "xyz": xyz,
-            "sigma": _num(g, "sigma", tr.sigma if tr else 2e-4, P, "ground_truth.point", minimum=0.0),
+            "sigma": _num(g, "sigma", tr.sigma if tr else 2e-4, P, where, minimum=0.0),
             "frame": str(g.get("frame", "tracker")),
-            "T_tracker_base": _pose_cfg(g.get("T_tracker_base"), P, "ground_truth.point.T_tracker_base"),
+            "T_tracker_base": _pose_cfg(g.get("T_tracker_base"), P, where + ".T_tracker_base"),
             "T_cfg": g.get("T_tracker_base") or {},
-            "rate": _num(g, "rate", 0.0, P, "ground_truth.point", minimum=0.0),
+            "rate": _num(g, "rate", 0.0, P, where, minimum=0.0),
+            "topic": topic,
         }
 
     def _parse_imus(self, raw_imus: Any) -> dict[str, Any]:

@@ -440,15 +440,14 @@ class _Sim(_SimConfig):
             events.append((float(t), 2, "gtpose", (T[i],)))
 
     def _gt_point_events(self, events: list[tuple[float, int, str, tuple]]) -> None:
-        """Tracker measurements of the reflector in the tracker frame, with noise."""
-        g = self.gt_point
-        ts = self.sensor_times(g["rate"])
-        Q, S, G = self.state_at(ts)
-        poses = self.truth_poses(Q, S, G, ts)
-        p = (g["T_tracker_base"] @ poses[g["link"]] @ np.append(g["xyz"], 1.0))[:, :3]
-        p = p + g["sigma"] * self.rng.standard_normal(p.shape)
-        for i, t in enumerate(ts):
-            events.append((float(t), 3, "gtpoint", (p[i],)))
+        """Tracker measurements of each reflector in its tracker frame, with noise."""
+        for k, g in enumerate(self.gt_points):
+            ts = self.sensor_times(g["rate"])
+            Q, S, G = self.state_at(ts)
+            poses = self.truth_poses(Q, S, G, ts)
+            p = (g["T_tracker_base"] @ poses[g["link"]] @ np.append(g["xyz"], 1.0))[:, :3]
+            p = p + g["sigma"] * self.rng.standard_normal(p.shape)
+            events.extend((float(t), 3, "gtpoint", (p[i], k)) for i, t in enumerate(ts))
 
     def _imu_events(self, events: list[tuple[float, int, str, tuple]]) -> None:
         """Accelerometer readings (gravity at rest in each IMU's link), with noise."""
@@ -498,7 +497,8 @@ class _Sim(_SimConfig):
                 elif kind == "gtpose":
                     bag.write_ground_truth_pose(t, self.gt_pose["frame"], pl[0])
                 elif kind == "gtpoint":
-                    bag.write_ground_truth_point(t, self.gt_point["frame"], pl[0])
+                    gp = self.gt_points[pl[1]]
+                    bag.write_ground_truth_point(t, gp["frame"], pl[0], topic=gp["topic"])
                 elif kind == "imu":
                     bag.write_imu(pl[0], t, pl[1], pl[2], accel_sigma=pl[3])
                 elif kind == "wrench":

@@ -62,7 +62,7 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
     is always estimated per session.
     """
     robot = tree.robot
-    path = robot.path_from_root(stops.link)
+    path = stops.chain_joints(robot)
     if stops.kind == "pose" and stops.base and stops.base != robot.root:
         base_path = set(robot.path_from_root(stops.base))
         path = [j for j in path if j not in base_path]
@@ -95,11 +95,48 @@ def predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect
     """Nominal prediction with the declared effects; returns x0 (N,3), R0, poses, dq, dxi."""
     dq, dxi = sum_effect_corrections(declared, stops.q, stops.context)
     poses = tree.link_poses(stops.q, dq, dxi)
-    T = poses[stops.link]
+    T = measured_link_poses(stops, poses)
     if stops.kind == "pose" and stops.base and stops.base != tree.root:
         T = lie.inverse(poses[stops.base]) @ T
-    x0 = (T @ np.append(stops.point, 1.0))[..., :3]
+    x0 = np.einsum("nij,nj->ni", T[:, :3, :3], stops.point_rows()) + T[:, :3, 3]
     return x0, (T[..., :3, :3] if stops.kind == "pose" else None), poses, dq, dxi
+
+
+def measured_link_poses(stops: Stops, poses: Mapping[str, np.ndarray]) -> np.ndarray:
+    """``T_root_link`` of each row's measured link, (N, 4, 4) (several reflectors: per row)."""
+    T = np.broadcast_to(poses[stops.link], (len(stops), 4, 4))
+    if stops.links is None:
+        return T
+    rows = stops.row_links()
+    for ln in stops.chain_links():
+        T = np.where((rows == ln)[:, None, None], np.broadcast_to(poses[ln], T.shape), T)
+    return T
+
+
+def chain_jacobians(tree: KinematicTree, stops: Stops, poses: Mapping[str, np.ndarray], dq: Mapping,
+                    dxi: Mapping) -> tuple[dict, dict, dict, dict]:
+    """Jacobians of each row's measured point and link frame w.r.t. the eq. 16 insertions.
+
+    Returns ``(Jq, Jx, Fq, Fx)`` as :meth:`KinematicTree.point_jacobian` (root-frame position, (N, 3)
+    and (N, 3, 6)) and :meth:`KinematicTree.frame_jacobian` (tangent at the link, (N, 6) and
+    (N, 6, 6)); with several reflectors, each row takes its own link's Jacobian (zero for joints off
+    that link's path).
+    """
+    point = stops.point_rows()
+    if stops.links is None:
+        return (*tree.point_jacobian(stops.q, stops.link, point, poses, dq, dxi),
+                *tree.frame_jacobian(stops.q, stops.link, poses, dq, dxi))
+    rows, n = stops.row_links(), len(stops)
+    out: tuple[dict, dict, dict, dict] = ({}, {}, {}, {})
+    for ln in stops.chain_links():
+        m = rows == ln
+        parts = (*tree.point_jacobian(stops.q, ln, point, poses, dq, dxi),
+                 *tree.frame_jacobian(stops.q, ln, poses, dq, dxi))
+        for acc, part, tail in zip(out, parts, ((3,), (3, 6), (6,), (6, 6))):
+            for k, v in part.items():
+                masked = np.where(m.reshape((n,) + (1,) * len(tail)), np.broadcast_to(v, (n, *tail)), 0.0)
+                acc[k] = acc[k] + masked if k in acc else masked
+    return out
 
 
 def measurement_jacobian(tree: KinematicTree, stops: Stops, eff: Effect, nominal: Mapping,

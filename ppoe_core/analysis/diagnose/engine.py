@@ -9,7 +9,13 @@ from typing import Any
 
 import numpy as np
 
-from ppoe_core.analysis.diagnose.candidates import Candidate, candidate_effects, measurement_jacobian, predict_nominal
+from ppoe_core.analysis.diagnose.candidates import (
+    Candidate,
+    candidate_effects,
+    chain_jacobians,
+    measurement_jacobian,
+    predict_nominal,
+)
 from ppoe_core.analysis.diagnose.imu import _imu_cost, diagnose_imu, imu_tilt_residuals
 from ppoe_core.analysis.diagnose.linear import FitResult, LinearProblem, _identifiable_subset, _ssr, _stack, make_folds
 from ppoe_core.analysis.diagnose.results import DiagnoseOptions, DiagnoseResult
@@ -106,7 +112,7 @@ def _check_finite(robot: Robot, stops: Stops) -> None:
         raise PpoeError(f"diagnose: only {n} stops with measurements; need at least 6")
     bad = ~np.all(np.isfinite(stops.p_meas), axis=1)
     for jn, v in stops.q.items():
-        if jn in robot.path_from_root(stops.link):
+        if jn in stops.chain_joints(robot):
             bad |= ~np.isfinite(v)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
@@ -138,13 +144,12 @@ def _linearise(tree: KinematicTree, stops: Stops, declared: Sequence[Effect], pe
     """Prediction, Jacobians and whitening at the declared model (see :class:`_Linearisation`)."""
     x0, R0, poses, dq0, dxi0 = predict_nominal(tree, stops, declared)
     base_R = None
-    Jq, Jx = tree.point_jacobian(stops.q, stops.link, stops.point, poses, dq0, dxi0)
-    Fq, Fx = tree.frame_jacobian(stops.q, stops.link, poses, dq0, dxi0)
+    Jq, Jx, Fq, Fx = chain_jacobians(tree, stops, poses, dq0, dxi0)
     if stops.kind == "pose" and stops.base and stops.base != tree.root:
         base_R = poses[stops.base][..., :3, :3]
     nominal = tree.link_poses(stops.q)
     C_exp = _point_covariance(tree, stops, poses, dq0, dxi0, pert, jnoise)
-    C_exp = C_exp + stops.sigma ** 2 * np.eye(3)
+    C_exp = C_exp + stops.sigma_rows()[:, None, None] ** 2 * np.eye(3)
     W_base = np.linalg.inv(np.linalg.cholesky(C_exp))
     W_rot = None
     if stops.kind == "pose":
@@ -256,8 +261,7 @@ def _final_fit(tree: KinematicTree, stops: Stops, declared: Sequence[Effect], ch
     for _ in range(3 if chosen else 0):
         current = _with_thetas(chosen, theta)
         xk, Rk, pk, dqk, dxik = predict_nominal(tree, stops, list(declared) + current)
-        chain = (*tree.point_jacobian(stops.q, stops.link, stops.point, pk, dqk, dxik),
-                 *tree.frame_jacobian(stops.q, stops.link, pk, dqk, dxik))
+        chain = chain_jacobians(tree, stops, pk, dqk, dxik)
         Gk = np.concatenate([measurement_jacobian(tree, stops, c.effect, lin.nominal, chain, lin.base_R)
                              for c in chosen], axis=-1)
         pk_problem = LinearProblem(stops, xk, Rk, lin.W_base, lin.W_rot)
@@ -387,6 +391,17 @@ def _summary(res: DiagnoseResult) -> str:
     return head + "; " + tail
 
 
+def append_test_summary(res: DiagnoseResult) -> None:
+    """One summary line per ``--test`` bag (``res.extra["test"]``): RMS and p95 before -> after [mm]."""
+    for name, t in res.extra.get("test", {}).items():
+        b = t["before"]
+        if t["n"] and b["n"]:
+            res.summary += (f"\ntest {name} ({t['n']} stops; {t['protocol']}): RMS {1e3 * b['rms']:.3f} -> "
+                            f"{1e3 * t['rms']:.3f} mm, p95 {1e3 * b['p95']:.3f} -> {1e3 * t['p95']:.3f} mm")
+        else:
+            res.summary += f"\ntest {name}: no stop could be scored ({t['unscored']} without a registration)"
+
+
 def _scores(R: np.ndarray) -> dict[str, float]:
     """Error statistics of residuals (n, 3) [m] in a z-up frame: RMS 3D, max 3D, r95 xy, r95 z."""
     R = R[np.all(np.isfinite(R), axis=1)]
@@ -423,12 +438,12 @@ def _refit_sigma(
     if pert or jnoise:
         C_model = _point_covariance(tree, stops, poses, dq, dxi, pert, jnoise)
     else:
-        unit = {j: 1.0 for j in tree.robot.path_from_root(stops.link) if tree.robot.joints[j].independent}
+        unit = {j: 1.0 for j in stops.chain_joints(tree.robot) if tree.robot.joints[j].independent}
         C_model = _point_covariance(tree, stops, poses, dq, dxi, {}, unit)
     ok = np.all(np.isfinite(Rb), axis=1)
     if not ok.any():
         return float("nan"), float("nan"), 1.0, None
-    S0 = stops.sigma**2 * np.eye(3)
+    S0 = stops.sigma_rows()[ok, None, None] ** 2 * np.eye(3)
 
     def nees(k: float) -> float:
         C = k * k * C_model[ok] + S0
@@ -446,7 +461,7 @@ def _refit_sigma(
             lo, hi = (mid, hi) if nees(mid) > 3.0 else (lo, mid)
         k = math.sqrt(lo * hi)
     if not (pert or jnoise):
-        fitted = {j: float(k) for j in tree.robot.path_from_root(stops.link) if tree.robot.joints[j].independent}
+        fitted = {j: float(k) for j in stops.chain_joints(tree.robot) if tree.robot.joints[j].independent}
     return n1, nees(k), k, fitted
 
 

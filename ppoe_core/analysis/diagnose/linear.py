@@ -54,7 +54,7 @@ class LinearProblem:
         self.x0 = x0
         self.R0 = R0
         self.register = stops.kind == "point"
-        self.W = (np.broadcast_to(np.eye(3) / stops.sigma, (len(stops), 3, 3)) if W_base is None
+        self.W = (np.eye(3) / stops.sigma_rows()[:, None, None] if W_base is None
                   else W_base)
         self.W_rot = (np.broadcast_to(np.eye(3) / stops.sigma_rot, (len(stops), 3, 3)) if W_rot is None
                       else W_rot)

@@ -73,8 +73,8 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
     out.mkdir(parents=True, exist_ok=True)
     paths = {"json": out / "diagnose.json", "md": out / "diagnose.md", "png": out / "diagnose.png"}
     paths["json"].write_text(json.dumps(result.to_json(), indent=2), encoding="utf-8")
-    lines = (_md_effects(result, title) + _md_imu_tilt(result) + _md_imu_fit(result) + _md_pixels(result)
-             + _md_steps(result))
+    lines = (_md_effects(result, title) + _md_test(result) + _md_imu_tilt(result) + _md_imu_fit(result)
+             + _md_pixels(result) + _md_steps(result))
     paths["md"].write_text("\n".join(lines) + "\n", encoding="utf-8")
     if not _plot(result, paths["png"]):
         paths.pop("png")
@@ -104,6 +104,22 @@ def _md_effects(result: DiagnoseResult, title: str) -> list[str]:
                          f"{v:.6g} | [{lo:.6g}, {hi:.6g}] | {share} |")
     if not result.effects:
         lines.append("| (none) | | | | | |")
+    return lines
+
+
+def _md_test(result: DiagnoseResult) -> list[str]:
+    """``--test``: the fitted model scored, unchanged, on each test bag (mm), before -> after."""
+    test = result.extra.get("test")
+    if not test:
+        return []
+    lines = ["", "## Test bags (fitted model unchanged; only tracker registrations fitted)", "",
+             "| bag | n | RMS | mean | median | p95 | max | r95 xy | protocol |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for name, t in test.items():
+        b = t["before"]
+        cells = [f"{1e3 * b[k]:.3f} -> {1e3 * t[k]:.3f}" if k in t and k in b else "-"
+                 for k in ("rms", "mean", "median", "p95", "max", "r95_xy")]
+        lines.append(f"| {name} | {t['n']} | " + " | ".join(cells) + f" | {t['protocol']} |")
     return lines
 
 

@@ -7,6 +7,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from ppoe_core.analysis.diagnose.candidates import chain_jacobians
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.robot.tree import KinematicTree
 
@@ -64,7 +65,7 @@ def _point_covariance(tree: KinematicTree, stops: Stops, poses: Mapping, dq: Map
                       pert: Mapping[str, np.ndarray], jnoise: Mapping[str, float]) -> np.ndarray:
     """First-order PPOE covariance (N, 3, 3) of the measured point in the base/root frame axes,
     from the perturbation covariances (tangent right after each joint's origin) and joint noise."""
-    Jq, Jx = tree.point_jacobian(stops.q, stops.link, stops.point, poses, dq, dxi)
+    Jq, Jx, _, _ = chain_jacobians(tree, stops, poses, dq, dxi)
     C = np.zeros((len(stops), 3, 3))
     for jn, J in Jx.items():
         if jn in pert:

@@ -35,11 +35,15 @@ class Stops:
     kind : str
         ``"point"`` (tracker point, registration per session) or ``"pose"``.
     link : str
-        Link that carries the reflector (``point``) or the tool frame (``pose``).
-    point : ndarray (3,)
-        Reflector position in ``link`` [m] (zeros for ``pose``).
-    sigma : float
-        1-sigma per axis of the position measurement [m].
+        Link that carries the reflector (``point``) or the tool frame (``pose``); with several
+        reflectors (``links`` set) the first one.
+    point : ndarray (3,) or (N, 3)
+        Reflector position in its link [m] (zeros for ``pose``), or one per row.
+    sigma : float or ndarray (N,)
+        1-sigma per axis of the position measurement [m], or one per row.
+    links : ndarray (N,) of str or None
+        Several reflectors (the model's ``trackers``): the link of each row's reflector.  Rows of
+        reflectors measured in the same tracker frame share a session (one registration).
     sigma_rot : float
         1-sigma per axis of the orientation measurement [rad] (``pose`` only).
     session : ndarray (N,) int
@@ -64,7 +68,7 @@ class Stops:
     kind: str
     link: str
     point: np.ndarray
-    sigma: float
+    sigma: float | np.ndarray
     session: np.ndarray
     session_names: list[str]
     group: np.ndarray
@@ -76,9 +80,30 @@ class Stops:
     sigma_rot: float = 1e-3
     base: str = ""
     imus: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
+    links: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.p_meas.shape[0])
+
+    def row_links(self) -> np.ndarray:
+        """The link of each row's measured point / frame, (N,) of str."""
+        return self.links if self.links is not None else np.full(len(self), self.link, dtype=object)
+
+    def chain_links(self) -> list[str]:
+        """The measured links, in first-seen order (one unless several reflectors)."""
+        return list(dict.fromkeys(self.row_links().tolist())) if self.links is not None else [self.link]
+
+    def point_rows(self) -> np.ndarray:
+        """Reflector position of each row in its link, (N, 3) [m]."""
+        return np.broadcast_to(np.asarray(self.point, dtype=float), (len(self), 3))
+
+    def sigma_rows(self) -> np.ndarray:
+        """1-sigma per axis of each row's position measurement, (N,) [m]."""
+        return np.broadcast_to(np.asarray(self.sigma, dtype=float), (len(self),))
+
+    def chain_joints(self, robot: Robot) -> list[str]:
+        """Joints on the path from the root to any measured link (root first, no repeats)."""
+        return list(dict.fromkeys(j for ln in self.chain_links() for j in robot.path_from_root(ln)))
 
     @property
     def dim(self) -> int:
@@ -92,9 +117,13 @@ class Stops:
             raise BagError("no stops to diagnose")
         first = parts[0]
         for p in parts[1:]:
-            if (p.kind, p.link) != (first.kind, first.link):
+            if p.kind != first.kind or (p.kind == "pose" and p.link != first.link):
                 raise BagError(f"cannot mix measurements: {first.kind} on {first.link} and "
                                f"{p.kind} on {p.link} ({p.group_names})")
+        several = (first.links is not None or np.ndim(first.point) == 2 or np.ndim(first.sigma) == 1
+                   or any(p.links is not None or p.link != first.link or np.ndim(p.point) == 2
+                          or np.ndim(p.sigma) == 1 or not np.allclose(p.point, first.point)
+                          or p.sigma != first.sigma for p in parts[1:]))
         so = np.cumsum([0] + [len(p.session_names) for p in parts])
         go = np.cumsum([0] + [len(p.group_names) for p in parts])
         joints = set.intersection(*[set(p.q) for p in parts])
@@ -110,7 +139,10 @@ class Stops:
             q={j: np.concatenate([p.q[j] for p in parts]) for j in joints},
             p_meas=np.concatenate([p.p_meas for p in parts]),
             R_meas=None if first.R_meas is None else np.concatenate([p.R_meas for p in parts]),
-            kind=first.kind, link=first.link, point=first.point, sigma=first.sigma,
+            kind=first.kind, link=first.link,
+            point=np.concatenate([p.point_rows() for p in parts]) if several else first.point,
+            sigma=np.concatenate([p.sigma_rows() for p in parts]) if several else first.sigma,
+            links=np.concatenate([p.row_links() for p in parts]) if several else None,
             sigma_rot=first.sigma_rot, base=first.base,
             session=np.concatenate([p.session + o for p, o in zip(parts, so)]),
             session_names=[n for p in parts for n in p.session_names],
@@ -129,7 +161,9 @@ class Stops:
             return {k: a[rows] for k, a in v.items()} if isinstance(v, dict) else v[rows]
         return Stops(q={k: v[rows] for k, v in self.q.items()}, p_meas=self.p_meas[rows],
                      R_meas=None if self.R_meas is None else self.R_meas[rows], kind=self.kind,
-                     link=self.link, point=self.point, sigma=self.sigma, sigma_rot=self.sigma_rot,
+                     link=self.link, point=self.point if np.ndim(self.point) == 1 else self.point[rows],
+                     sigma=self.sigma if np.ndim(self.sigma) == 0 else np.asarray(self.sigma)[rows],
+                     links=None if self.links is None else self.links[rows], sigma_rot=self.sigma_rot,
                      base=self.base, session=self.session[rows], session_names=self.session_names,
                      group=self.group[rows], group_names=self.group_names,
                      reg_mask=self.reg_mask[rows], score_mask=self.score_mask[rows],
@@ -199,14 +233,21 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
                    base: str | None = None, tool: str | None = None, pose_sigma: float = 5e-4,
                    pose_sigma_rot: float = 1e-3, stationing_set: str | None = "cross",
                    group_name: str | None = None, measurement: str = "auto",
-                   accept_partial: bool = False) -> Stops:
+                   accept_partial: bool = False, trackers: Sequence[Any] = ()) -> Stops:
     """Measurements of a contract bag as :class:`Stops`.
 
-    ``/ground_truth/point`` (preferred by ``measurement="auto"``) or ``/ground_truth/pose``
+    Tracker points (preferred by ``measurement="auto"``) or ``/ground_truth/pose``
     (``measurement="point"`` / ``"pose"`` forces one); joint values are interpolated
     at each measurement stamp; context ``time``, ``motion_sign`` and ``joint_velocity`` come
-    from ``/joint_states``, ``gravity`` (direction in the root frame) from the first ``/imu/<name>``
-    on a link rigidly fixed to the root, if any.  One registration session per bag unless the bag carries importer
+    from ``/joint_states``, ``temperature`` from ``/temperature`` (the first such topic) if the bag has
+    it, ``gravity`` (direction in the root frame) from the first ``/imu/<name>`` on a link rigidly
+    fixed to the root, if any.
+
+    Tracker points: with ``trackers`` (the model's ``trackers`` entries: topic, link, xyz, sigma)
+    every reflector topic becomes rows on its link, and reflectors measured in the same
+    ``header.frame_id`` share a registration session; else ``/ground_truth/point`` on
+    ``tracker_link`` at ``tracker_xyz``.  A reflector topic of the bag that no entry declares is an
+    error.  One registration session per bag (and tracker frame) unless the bag carries importer
     metadata ``/dataset/stop`` (``station``, ``role``, ``point_sets``): then one session per
     station, stationing stops (of ``stationing_set`` if given) define the registration and
     evaluation stops are scored.  ``accept_partial``: use what can be read of a damaged bag
@@ -221,41 +262,120 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
     name = group_name or Path(path).name
     if measurement not in ("auto", "point", "pose"):
         raise PpoeError(f"diagnose: measurement must be auto, point or pose, not {measurement!r}")
-    use_point = len(data.ground_truth_point) > 0 and measurement in ("auto", "point")
-    use_pose = len(data.ground_truth_pose) > 0 and measurement in ("auto", "pose")
-    if use_point:
-        kind, meas, stamps = "point", data.ground_truth_point.p, data.ground_truth_point.stamps
-        link = tracker_link
-        if link is None:
-            raise ModelConfigError(f"bag {path} has /ground_truth/point but neither --tool nor the "
-                                   f"model's tracker.link names the link carrying the reflector")
-        point = np.asarray(tracker_xyz, dtype=float)
-        sigma, R_meas = tracker_sigma, None
-    elif use_pose:
-        kind, stamps = "pose", data.ground_truth_pose.stamps
-        frame_ids = set(data.ground_truth_pose.frame_ids)
-        if base is not None and frame_ids - {base}:
-            raise BagError(f"bag {path}: /ground_truth/pose is in frame(s) {sorted(frame_ids)}, "
-                           f"not the base frame {base!r} given by --base/frames.base")
-        base = base or next(iter(frame_ids))
-        meas, R_meas = data.ground_truth_pose.T[:, :3, 3], data.ground_truth_pose.T[:, :3, :3]
-        link = tool
-        if link is None:
-            raise ModelConfigError(f"bag {path} has /ground_truth/pose but no --tool/frames.tool")
-        point, sigma = np.zeros(3), pose_sigma
+    has_points = len(data.ground_truth_point) > 0 or bool(data.ground_truth_points)
+    if has_points and measurement in ("auto", "point"):
+        if not trackers and tracker_link is None:
+            raise ModelConfigError(f"bag {path} has tracker points but neither --tool nor the model's "
+                                   "tracker.link / trackers names the link carrying the reflector")
+        rows = _point_rows(path, data, robot, trackers or [_Reflector(tracker_link, tracker_xyz, tracker_sigma)])
+        kind, R_meas = "point", None
+    elif len(data.ground_truth_pose) > 0 and measurement in ("auto", "pose"):
+        rows, R_meas, base = _pose_rows(path, data, robot, base, tool, pose_sigma)
+        kind = "pose"
     else:
         raise BagError(f"bag {path}: no /ground_truth/point or /ground_truth/pose "
                        f"(measurement={measurement}): nothing to diagnose against")
-    robot.check_link(link)
-    q, ctx = _joint_context(js, robot, link, stamps, path)
+    stamps, links = rows.stamps, rows.links
+    q, ctx = _joint_context(js, robot, sorted(set(links)), stamps, path)
     _gravity_context(data, robot, stamps, ctx)
+    _temperature_context(data, stamps, ctx)
     imus = _imu_samples(data, robot, stamps)
     n = len(stamps)
     session, session_names, reg, score = _sessions(path, data, name, stamps, stationing_set)
-    return Stops(q=q, p_meas=np.asarray(meas, dtype=float), R_meas=R_meas, kind=kind, link=link, point=point,
-                 sigma=float(sigma), sigma_rot=pose_sigma_rot, base=base or robot.root, session=session,
+    session, session_names = _split_by_frame(session, session_names, rows.frames)
+    several = len(set(links)) > 1 or len(rows.trackers) > 1
+    return Stops(q=q, p_meas=rows.meas, R_meas=R_meas, kind=kind, link=links[0],
+                 point=rows.points if several else rows.points[0],
+                 sigma=rows.sigmas if several else float(rows.sigmas[0]), links=np.array(links, dtype=object)
+                 if several else None, sigma_rot=pose_sigma_rot, base=base or robot.root, session=session,
                  session_names=session_names, group=np.zeros(n, dtype=int), group_names=[name],
                  reg_mask=reg, score_mask=score, context=ctx, imus=imus)
+
+
+@dataclass
+class _Reflector:
+    """A reflector given by ``--tool`` / ``tracker``: on ``/ground_truth/point``."""
+
+    link: str | None
+    xyz: Sequence[float]
+    sigma: float
+    topic: str = "/ground_truth/point"
+
+
+@dataclass
+class _Rows:
+    """Measurement rows of one bag: values, stamps, link / point / sigma / frame of each row."""
+
+    meas: np.ndarray
+    stamps: np.ndarray
+    links: list[str]
+    points: np.ndarray
+    sigmas: np.ndarray
+    frames: list[str]
+    trackers: list[str]
+
+
+def _point_rows(path: str | Path, data: Any, robot: Robot, trackers: Sequence[Any]) -> _Rows:
+    """Rows of every declared reflector topic; an undeclared reflector topic of the bag is an error."""
+    declared = {t.topic for t in trackers}
+    undeclared = sorted(set(data.ground_truth_points) - declared)
+    if len(data.ground_truth_point) and "/ground_truth/point" not in declared:
+        undeclared.insert(0, "/ground_truth/point")
+    if undeclared:
+        raise ModelConfigError(f"bag {path}: {', '.join(undeclared)} carry reflector points, but the model's "
+                               f"trackers list has no entry for them (declared: {sorted(declared)}); add "
+                               "{topic, link, xyz, sigma} entries")
+    parts = []
+    for t in trackers:
+        series = data.ground_truth_point if t.topic == "/ground_truth/point" else data.ground_truth_points.get(t.topic)
+        if series is None or len(series) == 0:
+            continue
+        robot.check_link(t.link)
+        m = len(series)
+        parts.append((series.p, series.stamps, [t.link] * m, np.tile(np.asarray(t.xyz, float), (m, 1)),
+                      np.full(m, float(t.sigma)), list(series.frame_ids), t.topic))
+    if not parts:
+        raise BagError(f"bag {path}: none of the model's tracker topics {sorted(declared)} has messages")
+    return _Rows(np.concatenate([p[0] for p in parts]).astype(float), np.concatenate([p[1] for p in parts]),
+                 [x for p in parts for x in p[2]], np.concatenate([p[3] for p in parts]),
+                 np.concatenate([p[4] for p in parts]), [x for p in parts for x in p[5]], [p[6] for p in parts])
+
+
+def _pose_rows(path: str | Path, data: Any, robot: Robot, base: str | None, tool: str | None,
+               sigma: float) -> tuple[_Rows, np.ndarray, str]:
+    """Rows of ``/ground_truth/pose`` (tool ``tool`` in frame ``base``), their rotations and the base."""
+    gt = data.ground_truth_pose
+    frame_ids = set(gt.frame_ids)
+    if base is not None and frame_ids - {base}:
+        raise BagError(f"bag {path}: /ground_truth/pose is in frame(s) {sorted(frame_ids)}, "
+                       f"not the base frame {base!r} given by --base/frames.base")
+    base = base or next(iter(frame_ids))
+    if tool is None:
+        raise ModelConfigError(f"bag {path} has /ground_truth/pose but no --tool/frames.tool")
+    robot.check_link(tool)
+    n = len(gt)
+    rows = _Rows(np.asarray(gt.T[:, :3, 3], dtype=float), gt.stamps, [tool] * n, np.zeros((n, 3)),
+                 np.full(n, float(sigma)), [""] * n, ["/ground_truth/pose"])
+    return rows, gt.T[:, :3, :3], base
+
+
+def _split_by_frame(session: np.ndarray, names: list[str], frames: list[str]) -> tuple[np.ndarray, list[str]]:
+    """One registration per session and tracker frame: sessions split by the rows' ``header.frame_id``."""
+    if len(set(frames)) <= 1:
+        return session, names
+    keys = [(names[s], f) for s, f in zip(session.tolist(), frames)]
+    uniq = list(dict.fromkeys(keys))
+    return np.array([uniq.index(k) for k in keys]), [f"{s}@{f}" for s, f in uniq]
+
+
+def _temperature_context(data: Any, stamps: np.ndarray, ctx: dict[str, Any]) -> None:
+    """``ctx["temperature"]``: the first ``/temperature[/<name>]`` topic at the stamps (none: no key)."""
+    for _topic, series in sorted(data.temperatures.items()):
+        good = np.isfinite(series.temperature)
+        if good.any():
+            order = np.argsort(series.stamps[good], kind="stable")
+            ctx["temperature"] = _sample_joint(series.stamps[good][order], series.temperature[good][order], stamps)
+            return
 
 
 def _check_joint_samples(path: str | Path, jn: str, t: np.ndarray, n_messages: int) -> None:
@@ -277,7 +397,7 @@ def _check_joint_samples(path: str | Path, jn: str, t: np.ndarray, n_messages: i
                        "running clock")
 
 
-def _joint_context(js: Any, robot: Robot, link: str, stamps: np.ndarray,
+def _joint_context(js: Any, robot: Robot, links: Sequence[str], stamps: np.ndarray,
                    path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Joint values at the measurement stamps and the context (time, motion sign, joint velocity)."""
     order = np.argsort(js.stamps, kind="stable")
@@ -286,9 +406,10 @@ def _joint_context(js: Any, robot: Robot, link: str, stamps: np.ndarray,
     vel: dict[str, np.ndarray] = {}
     pos_cols = []
     jnames = [j for j in robot.independent_joints if j in js.names]
-    missing = [j for j in robot.path_from_root(link) if robot.joints[j].independent and j not in js.names]
-    if missing:
-        raise BagError(f"bag {path}: /joint_states never carries {missing} (needed for link {link})")
+    for link in links:
+        missing = [j for j in robot.path_from_root(link) if robot.joints[j].independent and j not in js.names]
+        if missing:
+            raise BagError(f"bag {path}: /joint_states never carries {missing} (needed for link {link})")
     for jn in jnames:
         col = js.positions[order, js.names.index(jn)]
         good = np.isfinite(col)

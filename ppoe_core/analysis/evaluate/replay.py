@@ -340,7 +340,8 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     if kind == "pose":
         score_poses(summary, samples, run, data.ground_truth_pose, have, methods, bag)
     else:
-        score_points(summary, samples, run, data.ground_truth_point, have, methods, model, tool, opt.fit_set, bag)
+        score_points(summary, samples, run, data.ground_truth_point, have, methods, model, tool, opt.fit_set, bag,
+                     tracker=pick_reflector(model.config, data, tool, bag))
     _measurement_summary(summary, run, pipes, updaters, methods)
     if data.notes:
         summary["bag_notes"] = list(data.notes)
@@ -359,6 +360,7 @@ def _check_inputs(data: Any, model: Any, model_yaml: str | Path, opt: EvaluateOp
         raise ModelConfigError(f"{model_yaml}: no frames.base/frames.tool and no --base/--tool given")
     if len(data.joint_states) == 0:
         raise BagError(f"bag {bag}: no /joint_states messages")
+    tracker = pick_reflector(cfg, data, tool, bag)
     gt_pose, gt_point = data.ground_truth_pose, data.ground_truth_point
     if len(gt_pose) == 0 and len(gt_point) == 0:
         raise BagError(f"bag {bag}: neither /ground_truth/pose nor /ground_truth/point: nothing to score against")
@@ -373,11 +375,43 @@ def _check_inputs(data: Any, model: Any, model_yaml: str | Path, opt: EvaluateOp
             raise BagError(
                 f"bag {bag}: topic /ground_truth/pose has frame_id {bad[0]!r}, expected the base frame {base!r}"
             )
-    elif cfg.tracker is None:
+    elif tracker is None:
         raise ModelConfigError(
             f"{model_yaml}: the bag has /ground_truth/point but the model YAML has no 'tracker' section"
         )
     return base, tool, kind
+
+
+def pick_reflector(cfg: Any, data: Any, tool: str, bag: str) -> Any:
+    """The reflector ``ppoe evaluate`` scores (a ``TrackerConfig`` or None) and, as a side effect, its points
+    in ``data.ground_truth_point``: the only declared reflector with messages, else the one on the tool link.
+
+    Raises
+    ------
+    ModelConfigError
+        A reflector topic of the bag that the model does not declare, or several reflectors none (or more
+        than one) of which is on the tool link.
+    """
+    named = data.ground_truth_points
+    declared = {t.topic for t in cfg.trackers}
+    undeclared = sorted(set(named) - declared)
+    if undeclared:
+        raise ModelConfigError(f"bag {bag}: {', '.join(undeclared)} carry reflector points, but the model's "
+                               f"trackers list has no entry for them (declared: {sorted(declared)})")
+
+    def series(t: Any) -> Any:
+        return data.ground_truth_point if t.topic == "/ground_truth/point" else named.get(t.topic)
+
+    present = [t for t in cfg.trackers if series(t) is not None and len(series(t)) > 0]
+    if len(present) > 1:
+        present = [t for t in present if t.link == tool]
+        if len(present) != 1:
+            raise ModelConfigError(f"bag {bag}: several reflectors ({sorted(declared)}); evaluate scores the one on "
+                                   f"the tool link {tool!r}: pass --tool with the link of the one to score")
+    if not present:
+        return cfg.tracker
+    data.ground_truth_point = series(present[0])
+    return present[0]
 
 
 @dataclass

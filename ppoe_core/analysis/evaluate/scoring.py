@@ -136,9 +136,11 @@ def _register(run: ReplayRun, gt_point: Any, usable: np.ndarray, p_fk: np.ndarra
 
 
 def score_points(summary: dict[str, Any], samples: dict[str, np.ndarray], run: ReplayRun, gt_point: Any,
-                 have: np.ndarray, methods: list[str], model: Any, tool: str, fit_set: str, bag: str) -> None:
-    """Reflector position errors (3D, lateral) and NEES of every method against ``/ground_truth/point``."""
-    tr = model.config.tracker
+                 have: np.ndarray, methods: list[str], model: Any, tool: str, fit_set: str, bag: str,
+                 tracker: Any = None) -> None:
+    """Reflector position errors (3D, lateral) and NEES of every method against the points of ``tracker``
+    (default: the model's ``tracker``; ``/ground_truth/point`` or ``/ground_truth/point/<name>``)."""
+    tr = tracker if tracker is not None else model.config.tracker
     gt_stamps = gt_point.stamps
     n_gt = len(gt_stamps)
     roles = _stop_roles(bag, gt_stamps)
@@ -155,6 +157,8 @@ def score_points(summary: dict[str, Any], samples: dict[str, np.ndarray], run: R
     p_gt_base, scored, reg, unscored = _register(run, gt_point, usable, p_fk, groups, unscored)
     sel = np.array(sorted(scored), int)
     summary["ground_truth"]["registration"] = {"method": desc, "groups": reg, "unscored": int(unscored)}
+    if tr.topic != "/ground_truth/point":
+        summary["ground_truth"]["topic"] = tr.topic
     samples["stamp"] = gt_stamps[sel]
     cov_gt = np.eye(3) * tr.sigma**2
     z_axis = Tfk[sel, :3, 2]

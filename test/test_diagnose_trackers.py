@@ -1,0 +1,203 @@
+"""Several reflectors in one fit (contract ``trackers``, ``/ground_truth/point/<name>``) and
+``ppoe diagnose --test`` (fit on some bags, score the fitted model unchanged on others).
+
+The bags are simulated here from a scenario of our own (arm7 with a reflector on the flange and one
+on the forearm, an encoder offset at joint_4), with a different seed, registration and stop count
+for the fit and the test bag; none is a shipped bag.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from conftest import CONFIG
+
+from ppoe_core.errors import BagError, ModelConfigError
+
+TRUE_OFFSET = 0.03  # rad, joint_4 (the tools are never told)
+TRACKERS = [
+    {"topic": "/ground_truth/point/flange", "link": "tool0", "xyz": [0.0, 0.0, 0.02], "sigma": 0.0002},
+    {"topic": "/ground_truth/point/elbow", "link": "arm_link_4", "xyz": [0.06, 0.0, 0.0], "sigma": 0.0002},
+]
+
+
+def _model(tmp: Path, trackers=TRACKERS) -> Path:
+    model = yaml.safe_load((CONFIG / "robots" / "arm7_model.yaml").read_text())
+    model.pop("tracker")
+    model["trackers"] = trackers
+    path = tmp / "model_two_reflectors.yaml"
+    path.write_text(yaml.safe_dump(model))
+    return path
+
+
+def _bag(tmp: Path, name: str, model: Path, *, seed: int, stops: int, T_tracker_base: dict,
+         effects=({"name": "joint_offset", "location": "joint_4", "parameters": {"offset": TRUE_OFFSET}},),
+         reflectors=TRACKERS) -> Path:
+    from ppoe_core.sim.simulate import simulate
+
+    sc = {
+        "robot": {"urdf": str(CONFIG / "robots" / "arm7.urdf"), "model": str(model)},
+        "seed": seed, "start_time": 50.0,
+        "truth": {"perturbations": "per_stop", "joint_noise": True, "effects": [dict(e) for e in effects]},
+        "trajectory": {"joint_rate": 100.0, "dwell": 0.4, "settle": 0.1, "move_time": 0.5,
+                       "start": {"joint_1": 0.3, "joint_2": 0.6, "joint_3": 0.0, "joint_4": -1.2, "joint_5": 0.0,
+                                 "joint_6": 0.9, "joint_7": 0.0, "finger_left_joint": 0.02},
+                       "random_stops": {"count": stops,
+                                        "around": {"joint_1": 0.0, "joint_2": 0.0, "joint_3": 0.0, "joint_4": -1.0,
+                                                   "joint_5": 0.0, "joint_6": 0.5, "joint_7": 0.0},
+                                        "spread": {"joint_1": 1.5, "joint_2": 1.2, "joint_3": 1.2, "joint_4": 0.9,
+                                                   "joint_5": 1.2, "joint_6": 1.0, "joint_7": 1.5},
+                                        "min_link_z": {"tool0": 0.15, "arm_link_4": 0.15}}},
+        "ground_truth": {"point": [{"topic": r["topic"], "frame": "tracker", "T_tracker_base": T_tracker_base,
+                                    "rate": 0.0} for r in reflectors]},
+    }
+    (tmp / f"{name}.yaml").write_text(yaml.safe_dump(sc))
+    simulate(tmp / f"{name}.yaml", tmp / name)
+    return tmp / name
+
+
+@pytest.fixture(scope="module")
+def two_reflector_bags(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("trackers")
+    model = _model(tmp)
+    fit = _bag(tmp, "fit", model, seed=71, stops=60, T_tracker_base={"xyz": [2.5, -0.8, 0.3], "rpy": [0, 0, 2.0]})
+    test = _bag(tmp, "test", model, seed=72, stops=20, T_tracker_base={"xyz": [-1.0, 3.0, 0.1], "rpy": [0, 0.01, -0.7]})
+    return model, fit, test
+
+
+def test_trackers_section_is_read_and_checked():
+    from ppoe_core.robot.config import load_model_config
+    from ppoe_core.robot.urdf import parse_urdf
+
+    robot = parse_urdf(CONFIG / "robots" / "arm7.urdf")
+    cfg = load_model_config({"trackers": TRACKERS}, robot)
+    assert [(t.topic, t.link) for t in cfg.trackers] == [(t["topic"], t["link"]) for t in TRACKERS]
+    assert cfg.tracker is None  # two reflectors: no single one
+    single = load_model_config(CONFIG / "robots" / "arm7_model.yaml", robot)
+    assert single.trackers == (single.tracker,) and single.tracker.topic == "/ground_truth/point"
+    bad = [("trackers:\n  - {topic: /ground_truth/point/a, link: no_such_link}\n", "trackers[0].link"),
+           ("trackers:\n  - {topic: /tracker, link: tool0}\n", "trackers[0].topic: must be /ground_truth/point"),
+           ("trackers:\n  - {topic: /ground_truth/point/a, link: tool0}\n"
+            "  - {topic: /ground_truth/point/a, link: tool0}\n",
+            "trackers[1].topic: topic /ground_truth/point/a is also trackers[0]"),
+           ("trackers:\n  - {topic: /ground_truth/point/a, link: tool0, colour: red}\n", "colour")]
+    for text, needle in bad:
+        with pytest.raises((ModelConfigError, Exception)) as err:
+            load_model_config(text, robot, is_text=True)
+        assert needle in str(err.value) and "<string>:" in str(err.value)
+
+
+def test_two_reflectors_on_two_links_are_diagnosed_in_one_fit_and_scored_on_a_test_bag(two_reflector_bags, capsys):
+    from ppoe_ros.cli import main
+
+    model, fit, test = two_reflector_bags
+    assert main(["diagnose", str(fit), "--model", str(model), "--test", str(test), "--json", "--pixels", "off"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    named = [(e["name"], e["location"]) for e in doc["effects"]]
+    assert named == [("joint_offset", "joint_4")], named
+    lo, hi = doc["effects"][0]["ci"]["offset"]
+    assert lo <= TRUE_OFFSET <= hi
+    assert doc["residual_after"] < doc["residual_before"] and doc["residual_after"] < 1.1 * doc["noise_floor"]
+    assert doc["n_sessions"] == 1  # both reflectors in the frame 'tracker': one registration
+    t = doc["test"]["test"]
+    n_rows = 2 * 20  # two reflectors per stop
+    assert t["n"] == n_rows and t["protocol"].startswith("one rigid registration per session")
+    for key in ("rms", "mean", "median", "p95", "max"):
+        assert 0.0 < t[key] < t["before"][key], key
+    assert t["mean"] <= t["rms"] <= t["max"] and t["median"] <= t["p95"] <= t["max"]
+
+
+def test_test_scores_equal_a_direct_computation(two_reflector_bags):
+    """The ``test`` numbers: after a Kabsch registration of all stops, the distances measured-predicted."""
+    from ppoe_core import lie
+    from ppoe_core.analysis.diagnose import load_model, stops_from_bag
+    from ppoe_core.analysis.diagnose.testing import score_stops
+    from ppoe_core.io.bagio import read_bag
+    from ppoe_core.model.effects import make_effect
+    from ppoe_core.robot.tree import KinematicTree
+    from ppoe_core.robot.urdf import parse_urdf
+
+    model, _, test = two_reflector_bags
+    robot = parse_urdf(read_bag(test, topics=["/robot_description"]).robot_description)
+    cfg, declared, _, _ = load_model(model, robot)
+    stops = stops_from_bag(test, robot, trackers=cfg.trackers)
+    tree = KinematicTree(robot)
+    eff = make_effect("joint_offset", "joint_4", tree).with_params(np.array([0.01]))
+    got = score_stops(robot, stops, declared, [eff])
+    q = dict(stops.q)
+    q["joint_4"] = q["joint_4"] + 0.01
+    poses = tree.link_poses(q)
+    links, pts = stops.row_links(), stops.point_rows()
+    x = np.stack([(poses[ln][i] @ np.append(pts[i], 1.0))[:3] for i, ln in enumerate(links)])
+    T = lie.fit_rigid(x, stops.p_meas)
+    d = np.linalg.norm(stops.p_meas - (x @ T[:3, :3].T + T[:3, 3]), axis=1)
+    assert got["n"] == len(d)
+    np.testing.assert_allclose([got["rms"], got["mean"], got["median"], got["p95"], got["max"]],
+                               [np.sqrt(np.mean(d ** 2)), d.mean(), np.median(d), np.percentile(d, 95), d.max()],
+                               rtol=1e-9)
+
+
+def test_a_reflector_topic_the_model_does_not_declare_is_named(two_reflector_bags, tmp_path, capsys):
+    from ppoe_ros.cli import main
+
+    _, fit, _ = two_reflector_bags
+    only_flange = _model(tmp_path, TRACKERS[:1])
+    assert main(["diagnose", str(fit), "--model", str(only_flange), "--pixels", "off"]) == 2
+    err = capsys.readouterr().err
+    assert "/ground_truth/point/elbow carry reflector points, but the model's trackers list has no entry" in err
+    assert "Traceback" not in err
+
+
+def test_a_test_bag_of_another_robot_is_refused(two_reflector_bags, tmp_path, capsys):
+    from ppoe_ros.cli import main
+
+    model, fit, _ = two_reflector_bags
+    other = tmp_path / "other"
+    from ppoe_core.io.bagio import BagWriter
+
+    with BagWriter(other) as bag:
+        bag.write_robot_description((CONFIG / "robots" / "planar3.urdf").read_text())
+        bag.write_joint_state(1.0, ["joint_1"], [0.0])
+    assert main(["diagnose", str(fit), "--model", str(model), "--test", str(other), "--pixels", "off"]) == 2
+    err = capsys.readouterr().err
+    assert f"bag {other}: /robot_description is another robot than bag {fit}'s" in err
+    assert "joints only in the fitted robot" in err and "Traceback" not in err
+    with pytest.raises(BagError):  # and through the library
+        from ppoe_core.analysis.diagnose.testing import check_same_robot
+        from ppoe_core.robot.urdf import parse_urdf
+
+        check_same_robot(parse_urdf(CONFIG / "robots" / "arm7.urdf"), parse_urdf(CONFIG / "robots" / "planar3.urdf"),
+                         "a", "b")
+
+
+def test_named_points_and_temperature_are_read(tmp_path):
+    from ppoe_core.io.bagio import BagWriter, read_bag
+
+    with BagWriter(tmp_path / "b") as bag:
+        for k in range(4):
+            bag.write_ground_truth_point(k, "trk", [k, 1.0, 2.0], topic="/ground_truth/point/left")
+            bag.write_temperature(k + 0.5, "base_link", 20.0 + k, 0.01, topic="/temperature/motor")
+    data = read_bag(tmp_path / "b")
+    assert data.ground_truth_points["/ground_truth/point/left"].p[:, 0].tolist() == [0.0, 1.0, 2.0, 3.0]
+    temp = data.temperatures["/temperature/motor"]
+    assert temp.temperature.tolist() == [20.0, 21.0, 22.0, 23.0] and temp.variance.tolist() == [0.01] * 4
+    assert data.unknown_topics == {}
+
+
+def test_evaluate_scores_the_reflector_on_the_tool_link(two_reflector_bags, tmp_path, capsys):
+    """Two reflectors: ``ppoe evaluate`` scores the one on the tool link (frames.tool = tool0) and says which;
+    with ``--tool`` on a link that carries none of them it says what to do."""
+    from ppoe_ros.cli import main
+
+    model, _, test = two_reflector_bags
+    assert main(["evaluate", str(test), "--model", str(model), "--json", "--no-progress"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["ground_truth"]["topic"] == "/ground_truth/point/flange"
+    assert doc["ground_truth"]["samples"] == 20
+    assert main(["evaluate", str(test), "--model", str(model), "--tool", "arm_link_6", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "several reflectors" in err and "pass --tool with the link" in err and "Traceback" not in err
