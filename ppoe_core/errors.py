@@ -19,6 +19,7 @@ __all__ = [
     "BagError",
     "ScenarioError",
     "DatasetError",
+    "PpoeWarning",
 ]
 
 
@@ -70,3 +71,7 @@ class ScenarioError(PpoeError):
 
 class DatasetError(PpoeError):
     """A measured dataset file (Hilti, Motoman) that cannot be imported."""
+
+
+class PpoeWarning(UserWarning):
+    """Input that was used only in part (counted in the message); the CLI prints it as one line."""

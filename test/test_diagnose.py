@@ -693,8 +693,9 @@ def _rewrite_no_effect(tmp_path, stamp_js, value_js):
 
 
 def test_stamps_that_do_not_advance_or_a_nan_joint_are_refused(tmp_path, capsys):
-    """Joint-state stamps all 0 (or repeated), or a chain joint NaN in every message: one line naming the bag
-    and the joint, exit 2 (no 'nan mm', no numpy traceback)."""
+    """Joint-state stamps all 0 (or repeated) or running backwards, or a chain joint NaN in every message: one
+    line naming the bag and the joint, exit 2 (no 'nan mm', no numpy traceback); measurements stamped before
+    the first joint state are left out with a warning that counts them."""
     from ppoe_ros.cli import main
 
     model = str(CONFIG / "robots" / "arm7_model.yaml")
@@ -708,6 +709,18 @@ def test_stamps_that_do_not_advance_or_a_nan_joint_are_refused(tmp_path, capsys)
         q = np.array(q, dtype=float)
         q[list(names).index("joint_2")] = np.nan
         return q
+
+    back = _rewrite_no_effect(tmp_path / "back", lambda i, t: 1000.0 - t, lambda names, q: q)  # runs backwards
+    assert main(["diagnose", str(back), "--model", model]) == 2
+    err = capsys.readouterr().err
+    assert f"bag {back}: 60 of 60 measurements are stamped before the first /joint_states message" in err
+    assert "nan mm" not in err and "Traceback" not in err
+
+    late = _rewrite_no_effect(tmp_path / "late", lambda i, t: t + 5.0, lambda names, q: q)  # first stops unjointed
+    assert main(["diagnose", str(late), "--model", model]) == 0
+    err = capsys.readouterr().err
+    assert f"ppoe diagnose: warning: bag {late}: " in err and "of 60 measurements are stamped before" in err
+    assert "those measurements are left out" in err
 
     nan_bag = _rewrite_no_effect(tmp_path / "nan", lambda i, t: t, nan_joint_2)
     assert main(["diagnose", str(nan_bag), "--model", model]) == 2

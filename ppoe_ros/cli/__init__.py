@@ -69,9 +69,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _report_warnings(command: str, caught: list[warnings.WarningMessage]) -> None:
     """Numerical RuntimeWarnings as one line on stderr (not numpy's raw lines); others as usual."""
+    from ppoe_core.errors import PpoeWarning
+
     numeric = [w for w in caught if issubclass(w.category, RuntimeWarning)]
     for w in caught:
-        if not issubclass(w.category, RuntimeWarning):
+        if issubclass(w.category, PpoeWarning):
+            print(f"ppoe {command}: warning: {w.message}", file=sys.stderr)
+        elif not issubclass(w.category, RuntimeWarning):
             warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     if numeric:
         first = numeric[0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -10,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from ppoe_core.errors import BagError, ModelConfigError, PpoeError
+from ppoe_core.errors import BagError, ModelConfigError, PpoeError, PpoeWarning
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
@@ -275,6 +276,7 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
     else:
         raise BagError(f"bag {path}: no /ground_truth/point or /ground_truth/pose "
                        f"(measurement={measurement}): nothing to diagnose against")
+    rows, R_meas = _within_joint_states(path, js, rows, R_meas)
     stamps, links = rows.stamps, rows.links
     q, ctx = _joint_context(js, robot, sorted(set(links)), stamps, path)
     _gravity_context(data, robot, stamps, ctx)
@@ -339,6 +341,30 @@ def _point_rows(path: str | Path, data: Any, robot: Robot, trackers: Sequence[An
     return _Rows(np.concatenate([p[0] for p in parts]).astype(float), np.concatenate([p[1] for p in parts]),
                  [x for p in parts for x in p[2]], np.concatenate([p[3] for p in parts]),
                  np.concatenate([p[4] for p in parts]), [x for p in parts for x in p[5]], [p[6] for p in parts])
+
+
+def _within_joint_states(path: str | Path, js: Any, rows: _Rows,
+                         R_meas: np.ndarray | None) -> tuple[_Rows, np.ndarray | None]:
+    """Drop measurements stamped before the first joint state (no joint values known there: stamps from
+    another clock, or running backwards), with a warning that counts them; none left is an error."""
+    t = np.sort(js.stamps[np.isfinite(js.stamps)])
+    dt = np.diff(t)
+    tol = 5.0 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 0.0
+    keep = rows.stamps >= (t[0] - tol if t.size else np.inf)
+    if keep.all():
+        return rows, R_meas
+    n_bad = int((~keep).sum())
+    first = float(rows.stamps[~keep][0])
+    what = (f"{n_bad} of {keep.size} measurements are stamped before the first /joint_states message "
+            f"({first:.9g} s < {t[0]:.9g} s): no joint values are known there (stamps from another clock, or "
+            "running backwards?)")
+    if not keep.any():
+        raise BagError(f"bag {path}: {what}; nothing to diagnose")
+    warnings.warn(f"bag {path}: {what}; those measurements are left out", PpoeWarning, stacklevel=3)
+    idx = np.flatnonzero(keep)
+    sub = _Rows(rows.meas[idx], rows.stamps[idx], [rows.links[i] for i in idx], rows.points[idx], rows.sigmas[idx],
+                [rows.frames[i] for i in idx], rows.trackers)
+    return sub, None if R_meas is None else R_meas[idx]
 
 
 def _pose_rows(path: str | Path, data: Any, robot: Robot, base: str | None, tool: str | None,
