@@ -1,4 +1,4 @@
-"""Several reflectors in one fit (contract ``trackers``, ``/ground_truth/point/<name>``) and
+"""Several reflectors in one fit (contract ``trackers``, ``/ground_truth/point/<name>``), lateral compliance, and
 ``ppoe diagnose --test`` (fit on some bags, score the fitted model unchanged on others).
 
 The bags are simulated here from a scenario of our own (arm7 with a reflector on the flange and one
@@ -201,3 +201,21 @@ def test_evaluate_scores_the_reflector_on_the_tool_link(two_reflector_bags, tmp_
     assert main(["evaluate", str(test), "--model", str(model), "--tool", "arm_link_6", "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "several reflectors" in err and "pass --tool with the link" in err and "Traceback" not in err
+
+
+def test_lateral_compliance_alone_is_named_with_the_truth_in_its_cis(tmp_path, capsys):
+    """A bag whose only undeclared effect is lateral compliance at the upper-arm roll joint (bending about both
+    axes perpendicular to it, 3e-4 rad/(N m) each): named at that joint, each axis's CI covers the truth."""
+    from ppoe_ros.cli import main
+
+    model = _model(tmp_path)
+    truth = {"compliance_u": 3e-4, "compliance_v": 3e-4}
+    bag = _bag(tmp_path, "lateral", model, seed=81, stops=60, T_tracker_base={"xyz": [1.5, 0.5, 0.2], "rpy": [0, 0, 1]},
+               effects=({"name": "lateral_compliance", "location": "joint_3", "parameters": truth},))
+    assert main(["diagnose", str(bag), "--model", str(model), "--json", "--pixels", "off"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [(e["name"], e["location"]) for e in doc["effects"]] == [("lateral_compliance", "joint_3")]
+    for k, v in truth.items():
+        lo, hi = doc["effects"][0]["ci"][k]
+        assert lo <= v <= hi, (k, lo, hi)
+    assert doc["unexplained_significant"] is False

@@ -70,6 +70,8 @@ CASES = [
     ("gravity_compliance", "joint_2", {}),
     ("gravity_compliance", "joint_4", {}),
     ("mount_bending", "mount_joint", {}),
+    ("lateral_compliance", "joint_2", {}),
+    ("lateral_compliance", "joint_5", {}),
     ("base_tilt", "base_link", {}),
     ("backlash", "joint_1", {}),
     ("thermal_growth", "joint_4", {"variable": "temperature", "reference": 20.0}),
@@ -86,7 +88,7 @@ def test_effect_point_jacobian_matches_finite_differences(tree, name, location, 
     eff = make_effect(name, location, tree, **opts)
     link = "camera_optical_frame" if name == "camera_extrinsics" else "tool0"
     p = np.array([0.01, -0.02, 0.05])
-    scale = {"gravity_compliance": 1e-4, "mount_bending": 1e-4, "thermal_growth": 1e-4,
+    scale = {"gravity_compliance": 1e-4, "mount_bending": 1e-4, "lateral_compliance": 1e-4, "thermal_growth": 1e-4,
              "time_offset": 1e-2}.get(name, 1e-3)
     theta = rng.normal(0.0, scale, eff.n_params)
     J = eff.with_params(theta).point_jacobian(q, link, p, ctx)
@@ -122,6 +124,35 @@ def test_gravity_torque_matches_virtual_work(tree):
     qm = dict(q, joint_2=q["joint_2"] - h)
     np.testing.assert_allclose(eff.torque(q), -(potential(qp) - potential(qm)) / (2 * h), rtol=1e-6)
     assert np.all(np.abs(eff.torque(q)) > 0.1)
+
+
+def test_lateral_compliance_bends_perpendicular_to_the_axis_along_the_moment(tree):
+    """The rotation of lateral_compliance (in the child frame) is perpendicular to the joint axis and, with
+    positive compliances, has a non-negative projection on the gravity moment (the link yields along the
+    load); each axis is its own parameter, and a subset of them is an effect of its own."""
+    from ppoe_core.model.effects import perpendicular_axes
+
+    for axis in ([0, 0, 1], [0, 1, 0], [0.6, 0.0, 0.8], [1, 1, 1]):
+        uv = perpendicular_axes(np.array(axis, float))
+        a = np.array(axis, float) / np.linalg.norm(axis)
+        np.testing.assert_allclose(uv @ uv.T, np.eye(2), atol=1e-12)
+        np.testing.assert_allclose(np.cross(uv[0], uv[1]), a, atol=1e-12)
+    rng = np.random.default_rng(4)
+    q = _random_q(tree, rng, 5)
+    eff = make_effect("lateral_compliance", "joint_2", tree).with_params([1e-4, 3e-4])
+    poses = tree.link_poses(q)
+    theta_a = eff.corrections(q, {}, poses)[1]["joint_2"][..., 3:]
+    T_a, T_c = tree.joint_frames(poses, "joint_2")
+    R_ac = np.swapaxes(T_a[..., :3, :3], -1, -2) @ T_c[..., :3, :3]
+    theta_c = np.einsum("nji,nj->ni", R_ac, theta_a)
+    axis = tree.robot.joints["joint_2"].axis
+    np.testing.assert_allclose(theta_c @ axis, 0.0, atol=1e-15)
+    M_c = tree.gravity_wrench(poses, "joint_2", about="c")[1]
+    assert np.all(np.einsum("ni,ni->n", theta_c, M_c) >= 0.0) and np.abs(theta_c).max() > 1e-5
+    only_v = make_effect("lateral_compliance", "joint_2", tree, components=["compliance_v"]).with_params([3e-4])
+    uv = perpendicular_axes(axis)
+    np.testing.assert_allclose(only_v.corrections(q, {}, poses)[1]["joint_2"][..., 3:],
+                               np.einsum("nij,j->ni", R_ac, uv[1]) * (M_c @ uv[1])[:, None] * 3e-4, atol=1e-15)
 
 
 def test_mount_bending_is_zero_without_lever(tree):

@@ -22,6 +22,7 @@ Vocabulary (``name``: location, parameters, unit):
 ``link_error``              any joint            subset of ``x y z rx ry rz`` [m, rad]
 ``gravity_compliance``      movable joint        ``compliance`` [rad/(N m) or m/N]
 ``mount_bending``           any joint            ``compliance_x``, ``compliance_y`` [rad/(N m)]
+``lateral_compliance``      revolute joint       ``compliance_u``, ``compliance_v`` [rad/(N m)]
 ``base_tilt``               root link            ``tilt_x``, ``tilt_y`` [rad]
 ``backlash``                movable joint        ``play`` [rad or m] (half the dead band)
 ``thermal_growth``          any joint            ``alpha`` [1/K or 1/s]
@@ -62,6 +63,8 @@ __all__ = [
     "LinkError",
     "GravityCompliance",
     "MountBending",
+    "LateralCompliance",
+    "perpendicular_axes",
     "BaseTilt",
     "Backlash",
     "ThermalGrowth",
@@ -271,7 +274,41 @@ class GravityCompliance(Effect):
         return {self.location: self.torque(q, context, poses)[..., None]}, {}
 
 
-class MountBending(Effect):
+class _TwoAxisBending(Effect):
+    """A rotation at a joint proportional, per axis, to the gravity moment about it: ``theta_k = c_k M_k``.
+
+    Each of the two axes has its own compliance and sign check; ``components`` keeps a subset of them
+    (an axis whose fitted compliance is negative is dropped, not the whole effect).
+    """
+
+    axis_names: tuple[str, str] = ("compliance_x", "compliance_y")
+
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None,
+                 components: Sequence[str] | None = None) -> None:
+        comps = tuple(components) if components is not None else self.axis_names
+        if not comps or any(c not in self.axis_names for c in comps):
+            raise ModelConfigError(f"effect {self.name} at '{location}': components {list(comps)} must be a "
+                                   f"non-empty subset of {list(self.axis_names)}")
+        self.components = comps
+        self.units = tuple("rad/(N m)" for _ in comps)
+        self.nonnegative = comps
+        super().__init__(tree, location, comps, params)
+
+    def axes_and_moment(self, q: Mapping[str, Any], context: Mapping[str, Any] | None,
+                        poses: Mapping[str, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+        """Rotation axes in the dxi frame (..., 2, 3) and the moment about each of them (..., 2) [N m]."""
+        raise NotImplementedError
+
+    def basis(self, q, context=None, poses=None):
+        axes, m = self.axes_and_moment(q, context or {}, poses)
+        B = np.zeros(m.shape[:-1] + (6, len(self.components)))
+        for i, c in enumerate(self.components):
+            k = self.axis_names.index(c)
+            B[..., 3:, i] = axes[..., k, :] * m[..., k, None]
+        return {}, {self.location: B}
+
+
+class MountBending(_TwoAxisBending):
     """Rotation at a (typically fixed) joint proportional to the gravity moment about it.
 
     ``theta = [c_x M_x, c_y M_y, 0]`` in the joint frame, ``M`` the moment [N m] of the weight of
@@ -282,9 +319,10 @@ class MountBending(Effect):
     units = ("rad/(N m)", "rad/(N m)")
     nonnegative = ("compliance_x", "compliance_y")
 
-    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None,
+                 components: Sequence[str] | None = None) -> None:
         _check_joint(tree, location, self.name)
-        super().__init__(tree, location, ("compliance_x", "compliance_y"), params)
+        super().__init__(tree, location, params, components)
 
     def moment(self, q, context=None, poses=None) -> np.ndarray:
         """Gravity moment [N m] about the mount, joint-frame axes, shape (..., 3)."""
@@ -292,12 +330,52 @@ class MountBending(Effect):
         poses = poses if poses is not None else self.tree.link_poses(q)
         return self.tree.gravity_wrench(poses, self.location, context.get("gravity", (0.0, 0.0, -1.0)))[1]
 
-    def basis(self, q, context=None, poses=None):
+    def axes_and_moment(self, q, context, poses):
         M = self.moment(q, context, poses)
-        B = np.zeros(M.shape[:-1] + (6, 2))
-        B[..., 3, 0] = M[..., 0]
-        B[..., 4, 1] = M[..., 1]
-        return {}, {self.location: B}
+        return np.broadcast_to(np.eye(3)[:2], M.shape[:-1] + (2, 3)), M[..., :2]
+
+
+def perpendicular_axes(axis: np.ndarray) -> np.ndarray:
+    """Two unit axes ``(u, v)`` perpendicular to ``axis`` with ``u x v = axis``, (2, 3): ``u`` is the coordinate
+    axis least parallel to ``axis`` (first on ties) with its ``axis`` component removed."""
+    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    e = np.eye(3)[int(np.argmin(np.abs(a)))]
+    u = e - (e @ a) * a
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(a, u)])
+
+
+class LateralCompliance(_TwoAxisBending):
+    """A revolute joint's link bending about the two axes perpendicular to the joint axis under the
+    gravity moment it carries (Tenhumberg & Bäuml, Humanoids 2021).
+
+    In the child frame (after the joint motion), ``theta_c = c_u (M.u) u + c_v (M.v) v`` with ``M`` the
+    gravity moment [N m] of everything the joint carries about the joint origin and ``(u, v)``
+    :func:`perpendicular_axes` of the joint axis; it is inserted at the joint's ``dxi`` (before the
+    motion) as ``R_ac theta_c`` (the joint rotates about an axis through its origin).
+    """
+
+    name = "lateral_compliance"
+    axis_names = ("compliance_u", "compliance_v")
+    units = ("rad/(N m)", "rad/(N m)")
+    nonnegative = ("compliance_u", "compliance_v")
+
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None,
+                 components: Sequence[str] | None = None) -> None:
+        _check_joint(tree, location, self.name, movable=True)
+        if tree.robot.joints[location].type == "prismatic":
+            raise ModelConfigError(f"effect {self.name} at '{location}': needs a revolute joint, not prismatic")
+        super().__init__(tree, location, params, components)
+        self.uv = perpendicular_axes(tree.robot.joints[location].axis)
+
+    def axes_and_moment(self, q, context, poses):
+        poses = poses if poses is not None else self.tree.link_poses(q)
+        M_c = self.tree.gravity_wrench(poses, self.location, context.get("gravity", (0.0, 0.0, -1.0)),
+                                       about="c")[1]
+        T_a, T_c = self.tree.joint_frames(poses, self.location)
+        R_ac = np.swapaxes(T_a[..., :3, :3], -1, -2) @ T_c[..., :3, :3]
+        axes = np.einsum("...ij,kj->...ki", R_ac, self.uv)
+        return np.broadcast_to(axes, M_c.shape[:-1] + (2, 3)), np.einsum("...j,kj->...k", M_c, self.uv)
 
 
 class BaseTilt(Effect):
@@ -421,6 +499,7 @@ _CLASSES: dict[str, type] = {
     "link_error": LinkError,
     "gravity_compliance": GravityCompliance,
     "mount_bending": MountBending,
+    "lateral_compliance": LateralCompliance,
     "base_tilt": BaseTilt,
     "backlash": Backlash,
     "thermal_growth": ThermalGrowth,
@@ -477,6 +556,9 @@ def effect_from_config(entry: Mapping[str, Any], robot: Robot | KinematicTree,
     options: dict[str, Any] = {}
     if name in ("link_error", "camera_extrinsics"):
         options["components"] = tuple(k for k in _TWIST_KEYS if k in params)
+    if name in ("mount_bending", "lateral_compliance"):
+        axes = LateralCompliance.axis_names if name == "lateral_compliance" else MountBending.axis_names
+        options["components"] = tuple(k for k in axes if k in params) or axes
     if name == "thermal_growth":
         options["variable"] = entry.get("variable", "temperature")
         options["reference"] = float(entry.get("reference", 0.0))

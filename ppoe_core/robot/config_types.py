@@ -13,6 +13,7 @@ EFFECT_NAMES = (
     "link_error",
     "gravity_compliance",
     "mount_bending",
+    "lateral_compliance",
     "base_tilt",
     "backlash",
     "thermal_growth",

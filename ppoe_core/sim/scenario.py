@@ -25,6 +25,7 @@ TRUTH_EFFECTS: dict[str, tuple[str, ...]] = {
     "camera_extrinsics": ("x", "y", "z", "rx", "ry", "rz"),
     "gravity_compliance": ("compliance",),
     "mount_bending": ("compliance_x", "compliance_y"),
+    "lateral_compliance": ("compliance_u", "compliance_v"),
     "base_tilt": ("tilt_x", "tilt_y"),
     "backlash": ("play",),
     "thermal_growth": ("alpha",),

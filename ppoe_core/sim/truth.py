@@ -160,7 +160,7 @@ class TrueRobot:
 
         # gravity-dependent effects: loads evaluated on the chain without them (first order in the
         # deflection); gravity is -z of the root link
-        grav = [e for e in self.effects if e["name"] in ("gravity_compliance", "mount_bending")]
+        grav = [e for e in self.effects if e["name"] in ("gravity_compliance", "mount_bending", "lateral_compliance")]
         if grav:
             base = build(dq, fx)
             for e in grav:
@@ -170,6 +170,8 @@ class TrueRobot:
                     F, M = self.gravity_moment(base, loc, after_motion=True)
                     tau = (F if j.type == "prismatic" else M) @ j.axis
                     add_dq(loc, p["compliance"] * tau)
+                elif e["name"] == "lateral_compliance":
+                    add_fx(loc, self._lateral(base, loc, p))
                 else:
                     _, M = self.gravity_moment(base, loc, after_motion=False)
                     v = np.zeros((n, 6))
@@ -177,6 +179,23 @@ class TrueRobot:
                     v[:, 4] = p["compliance_y"] * M[:, 1]
                     add_fx(loc, v)
         return build(dq, fx)
+
+    def _lateral(self, poses: Mapping[str, np.ndarray], joint: str, p: Mapping[str, float]) -> np.ndarray:
+        """Twist (n, 6) at ``joint``'s origin of lateral compliance: in the child frame the link turns by
+        ``c_u (M.u) u + c_v (M.v) v`` (``M`` the gravity moment there, ``u, v`` perpendicular to the axis); moved
+        to the frame before the motion by the joint's rotation, which fixes the origin."""
+        from ppoe_core.model.effects import perpendicular_axes
+
+        j = self.robot.joints[joint]
+        uv = perpendicular_axes(j.axis)
+        _, M = self.gravity_moment(poses, joint, after_motion=True)
+        theta_c = ((p["compliance_u"] * (M @ uv[0]))[:, None] * uv[0]
+                   + (p["compliance_v"] * (M @ uv[1]))[:, None] * uv[1])
+        T_a = poses[j.parent] @ j.origin
+        R_ac = np.swapaxes(T_a[:, :3, :3], 1, 2) @ poses[j.child][:, :3, :3]
+        v = np.zeros((theta_c.shape[0], 6))
+        v[:, 3:] = np.einsum("nij,nj->ni", R_ac, theta_c)
+        return v
 
     def _static_corrections(
         self,

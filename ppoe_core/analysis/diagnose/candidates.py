@@ -48,6 +48,8 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
 
     * ``joint_offset``: every movable joint on the path to the measured link;
     * ``gravity_compliance``: movable joints carrying mass (URDF inertials);
+    * ``lateral_compliance``: revolute joints carrying mass (bending about the two axes
+      perpendicular to the joint axis; each axis its own sign check);
     * ``mount_bending``: fixed and prismatic joints carrying mass (a telescopic segment bends
       at its overlap);
     * ``link_error`` (6 components; unidentifiable ones are pruned during selection): every
@@ -78,6 +80,8 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
         mass = _carried_mass(tree, jn)
         if j.movable and mass > 0.0:
             out.append(make_effect("gravity_compliance", jn, tree))
+        if j.movable and j.type != "prismatic" and mass > 0.0:
+            out.append(make_effect("lateral_compliance", jn, tree))
         if (not j.movable or j.type == "prismatic") and mass > 0.0:
             out.append(make_effect("mount_bending", jn, tree))
         if j.independent and jn in signs and np.ptp(signs[jn]) > 0:

@@ -329,6 +329,14 @@ def _identifiable_subset(
     ok, why, ssr = check(cand.G, cand.effect.param_names)
     if ok:
         return cand, "", ssr
+    if "unphysical" in why and len(cand.effect.nonnegative) > 1:  # two-axis bending: drop only the negative axis
+        names = cand.effect.param_names
+        signed = [i for i, n in enumerate(names) if n not in why.split(":")[0]]
+        if signed and len(signed) < len(names):
+            ok_k, _, ssr_k = check(cand.G[..., signed], [names[i] for i in signed])
+            if ok_k:
+                return _restrict(cand, signed, tree), "", ssr_k
+        return None, why, math.inf
     if cand.effect.name != "link_error" or "unphysical" in why:
         return None, why, math.inf
     keep: list[int] = []
