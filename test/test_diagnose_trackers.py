@@ -219,3 +219,24 @@ def test_lateral_compliance_alone_is_named_with_the_truth_in_its_cis(tmp_path, c
         lo, hi = doc["effects"][0]["ci"][k]
         assert lo <= v <= hi, (k, lo, hi)
     assert doc["unexplained_significant"] is False
+
+
+def test_two_encoder_offsets_are_two_joint_offsets_not_one_link_error(tmp_path, capsys):
+    """Two effects at once: encoder offsets at joint_2 and joint_3.  One link_error at joint_3 explains both
+    (an upstream offset turns the downstream frame); the parsimony rule names the two one-parameter
+    joint_offsets instead, each with the truth in its CI."""
+    from ppoe_ros.cli import main
+
+    model = _model(tmp_path)
+    truth = {"joint_2": 0.02, "joint_3": -0.03}
+    bag = _bag(tmp_path, "two", model, seed=5, stops=60, T_tracker_base={"xyz": [1.5, 0.5, 0.2], "rpy": [0, 0, 1]},
+               effects=tuple({"name": "joint_offset", "location": j, "parameters": {"offset": v}}
+                             for j, v in truth.items()))
+    assert main(["diagnose", str(bag), "--model", str(model), "--json", "--pixels", "off"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert sorted((e["name"], e["location"]) for e in doc["effects"]) == [("joint_offset", "joint_2"),
+                                                                            ("joint_offset", "joint_3")]
+    for e in doc["effects"]:
+        lo, hi = e["ci"]["offset"]
+        assert lo <= truth[e["location"]] <= hi, e
+    assert doc["simplified"][0]["replaced"].startswith("link_error@joint_3")

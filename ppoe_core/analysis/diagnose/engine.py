@@ -18,6 +18,7 @@ from ppoe_core.analysis.diagnose.candidates import (
 )
 from ppoe_core.analysis.diagnose.imu import _imu_cost, diagnose_imu, imu_tilt_residuals
 from ppoe_core.analysis.diagnose.linear import FitResult, LinearProblem, _identifiable_subset, _ssr, _stack, make_folds
+from ppoe_core.analysis.diagnose.parsimony import simplify
 from ppoe_core.analysis.diagnose.results import DiagnoseOptions, DiagnoseResult
 from ppoe_core.analysis.diagnose.stats import (
     _paired_t,
@@ -64,11 +65,14 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     mode, folds = make_folds(stops, options)
     all_rows = np.arange(len(stops))
     sel = _forward_selection(tree, problem, stops, cands, folds, options, all_rows)
-    chosen = sel.chosen
+    chosen, simplified = simplify(tree, problem, cands, sel.chosen, folds, options, all_rows, sel.e2)
+    share_steps = sel.steps
+    if simplified:
+        sel, share_steps = _rescore(problem, stops, chosen, folds, sel)
     # locations the tracker cannot tell apart: let the accelerometers decide (not fitted to them)
     relocated = _relocate_by_imu(tree, problem, stops, declared, chosen, cands, all_rows) if stops.imus else []
     fit, ins_before, ins_after, lin_err = _final_fit(tree, stops, declared, chosen, problem, lin, all_rows)
-    effects_out, found = _effect_entries(chosen, fit, sel.steps, _rms_m(sel.R_before) ** 2)
+    effects_out, found = _effect_entries(chosen, fit, share_steps, _rms_m(sel.R_before) ** 2)
 
     # sigma refit (NEES on held-out stops)
     ok = np.isfinite(sel.e2)
@@ -91,6 +95,8 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
                               for g in np.unique(stops.group)}
     if fitted_jn:
         res.extra["fitted_joint_noise"] = fitted_jn
+    if simplified:
+        res.extra["simplified"] = simplified
     if relocated:
         res.extra["relocated_by_imu"] = relocated
     if stops.imus:
@@ -210,6 +216,19 @@ def _forward_selection(tree: KinematicTree, problem: LinearProblem, stops: Stops
     return _Selection(chosen, steps, rejected, R_before, R_after, Rb_after, e2)
 
 
+def _rescore(problem: LinearProblem, stops: Stops, chosen: list[Candidate], folds: Any,
+             sel: _Selection) -> tuple[_Selection, list[dict[str, Any]]]:
+    """After a simplification: held-out residuals of the new chosen set, and its cumulative held-out RMS per
+    effect (the shares of the report)."""
+    n = len(stops)
+    cumulative = []
+    for k in range(1, len(chosen) + 1):
+        Rc, Rbc, e2c = problem.heldout(_stack(chosen[:k], n, stops.dim), folds)
+        cumulative.append({"candidate": chosen[k - 1].key, "heldout_rms": _rms_m(Rc)})
+    new = _Selection(chosen, sel.steps, sel.rejected, sel.R_before, Rc, Rbc, e2c) if chosen else sel
+    return new, cumulative
+
+
 def _best_candidate(tree: KinematicTree, problem: LinearProblem, stops: Stops, cands: list[Candidate],
                     chosen: list[Candidate], rejected: dict[str, str], folds: Any, options: DiagnoseOptions,
                     all_rows: np.ndarray, e2: np.ndarray) -> tuple | None:
@@ -230,6 +249,7 @@ def _best_candidate(tree: KinematicTree, problem: LinearProblem, stops: Stops, c
             continue
         screened.append((1.0 - ssr / ssr_now, c, c2))
     screened.sort(key=lambda z: -z[0])
+    tried = []
     for _, c, c2 in screened[:options.screen]:
         Rc, Rbc, e2c = problem.heldout(_stack(chosen + [c2], n, stops.dim), folds)
         ok = np.isfinite(e2) & np.isfinite(e2c)
@@ -240,9 +260,30 @@ def _best_candidate(tree: KinematicTree, problem: LinearProblem, stops: Stops, c
         t = _paired_t(d)
         z = _signed_rank_z(d)
         gain = 1.0 - mse1 / mse0
+        tried.append((c2, mse1, gain, (t, z), e2c, c.key, Rc, Rbc))
         if best is None or mse1 < best[1]:
-            best = (c2, mse1, gain, (t, z), e2c, c.key, Rc, Rbc)
-    return best
+            best = tried[-1]
+    return _simplest_as_good(best, tried, options)
+
+
+def _simplest_as_good(best: tuple | None, tried: list[tuple], options: DiagnoseOptions) -> tuple | None:
+    """The parsimony rule (CONTRACT sec. 6): of the candidates that would be accepted, the one with the fewest
+    parameters whose held-out error is not significantly worse than the best's (paired t below 2); among those,
+    the lowest held-out error.  A zero offset is then a ``joint_offset``, not a ``link_error``."""
+    if best is None:
+        return None
+    ok_best = np.isfinite(best[4])
+    good = []
+    for cand in tried:
+        if (cand[0].effect.n_params >= best[0].effect.n_params or cand[2] < options.min_gain
+                or cand[3][0] < options.min_t):
+            continue
+        ok = ok_best & np.isfinite(cand[4])
+        if ok.sum() >= 3 and _paired_t(cand[4][ok] - best[4][ok]) < 2.0:
+            good.append(cand)
+    if not good:
+        return best
+    return min(good, key=lambda c: (c[0].effect.n_params, c[1]))
 
 
 def _final_fit(tree: KinematicTree, stops: Stops, declared: Sequence[Effect], chosen: list[Candidate],
