@@ -240,3 +240,59 @@ def test_two_encoder_offsets_are_two_joint_offsets_not_one_link_error(tmp_path, 
         lo, hi = e["ci"]["offset"]
         assert lo <= truth[e["location"]] <= hi, e
     assert doc["simplified"][0]["replaced"].startswith("link_error@joint_3")
+
+
+def test_calibrated_urdf_reproduces_the_corrected_fk_and_loads_everywhere(two_reflector_bags, tmp_path, capsys):
+    """``--out`` writes robot_calibrated.urdf (static effects folded into the joint origins) and
+    model_calibrated.yaml (the model without them): the calibrated URDF's nominal FK equals the original URDF
+    corrected by the found effects to 1e-9 m; ``ppoe fk``, ``ppoe evaluate --urdf`` and the library load them."""
+    from ppoe_core.analysis.diagnose.calibrated_urdf import calibrated_urdf
+    from ppoe_core.model.effects import effect_from_config, make_effect, sum_effect_corrections
+    from ppoe_core.model.ppoe import PPOEModel
+    from ppoe_core.robot.tree import KinematicTree
+    from ppoe_core.robot.urdf import parse_urdf
+    from ppoe_ros.cli import main
+
+    model, fit, test = two_reflector_bags
+    out = tmp_path / "cal"
+    assert main(["diagnose", str(fit), "--model", str(model), "--out", str(out), "--pixels", "off"]) == 0
+    capsys.readouterr()
+    urdf0 = parse_urdf(CONFIG / "robots" / "arm7.urdf")
+    urdf1 = parse_urdf(out / "robot_calibrated.urdf")
+    doc = json.loads((out / "diagnose.json").read_text())
+    found = [effect_from_config(e, urdf0) for e in doc["effects"]]
+    assert [e.describe() for e in found] == ["joint_offset@joint_4"]
+    rng = np.random.default_rng(9)
+    q = {j: rng.uniform(-2, 2, 40) for j in urdf0.independent_joints}
+    dq, dxi = sum_effect_corrections(found, q, {})
+    P0, P1 = KinematicTree(urdf0).link_poses(q, dq, dxi), KinematicTree(urdf1).link_poses(q)
+    assert max(float(np.abs(P0[ln] - P1[ln]).max()) for ln in P0) < 1e-9
+    cal_model = yaml.safe_load((out / "model_calibrated.yaml").read_text())
+    assert not any(e["name"] == "joint_offset" for e in cal_model.get("effects") or [])
+    PPOEModel.from_files(out / "robot_calibrated.urdf", out / "model_calibrated.yaml")  # the library loads it
+    q1 = {f"joint_{k}": 0.1 * k for k in range(1, 8)}
+    assert main(["fk", "--urdf", str(out / "robot_calibrated.urdf"), "--model", str(out / "model_calibrated.yaml"),
+                 "--from", "base_link", "--to", "tool0", "--joints", *[f"{k}={v}" for k, v in q1.items()],
+                 "--json"]) == 0
+    fk = json.loads(capsys.readouterr().out)
+    T0 = KinematicTree(urdf0).link_poses({k: np.array(v) for k, v in q1.items()},
+                                         {"joint_4": found[0].params[0]}, links=["tool0"])["tool0"]
+    np.testing.assert_allclose(fk["T"], T0, atol=1e-9)
+    assert main(["evaluate", str(test), "--model", str(out / "model_calibrated.yaml"), "--urdf",
+                 str(out / "robot_calibrated.urdf"), "--json", "--no-progress"]) == 0
+    cal = json.loads(capsys.readouterr().out)["methods"]["fk"]["position_3d"]["rms"]
+    assert main(["evaluate", str(test), "--model", str(model), "--json", "--no-progress"]) == 0
+    nominal = json.loads(capsys.readouterr().out)["methods"]["fk"]["position_3d"]["rms"]
+    assert cal < nominal
+    # mimic joints follow a corrected master; comments of the URDF are kept
+    tree = KinematicTree(urdf0)
+    text, rest = calibrated_urdf((CONFIG / "robots" / "arm7.urdf").read_text(), urdf0,
+                                 [make_effect("link_error", "camera_joint", tree).with_params(np.full(6, 0.01)),
+                                  make_effect("gravity_compliance", "joint_2", tree).with_params([1e-4])])
+    assert [e.describe() for e in rest] == ["gravity_compliance@joint_2"] and "calibrated by ppoe diagnose" in text
+    fingers = [make_effect("joint_offset", "finger_left_joint", tree).with_params([0.004])]
+    text, _ = calibrated_urdf((CONFIG / "robots" / "arm7.urdf").read_text(), urdf0, fingers)
+    dq, dxi = sum_effect_corrections(fingers, q, {})
+    P0, P1 = tree.link_poses(q, dq, dxi), KinematicTree(parse_urdf(text)).link_poses(q)
+    assert np.abs(P0["finger_right"] - P1["finger_right"]).max() < 1e-12  # the mimic follower moved too
+    assert np.abs(P0["finger_right"] - tree.link_poses(q)["finger_right"]).max() > 1e-3

@@ -109,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))
         model_out = write_model_yaml(args.model, res, Path(args.out) / "model_diagnosed.yaml")
-        print("wrote " + ", ".join(str(p) for p in [*paths.values(), model_out]), file=sys.stderr)
+        calibrated = _write_calibrated(args, res, urdf, robot, declared)
+        print("wrote " + ", ".join(str(p) for p in [*paths.values(), model_out, *calibrated]), file=sys.stderr)
     if args.json:
         json.dump(res.to_json(), sys.stdout)
         sys.stdout.write("\n")
@@ -134,6 +135,21 @@ def _stops(args: argparse.Namespace, i: int, bag: str, robot: Any, cfg: Any) -> 
         stationing_set=None if args.stationing_set == "all" else args.stationing_set,
         group_name=f"{i}:{Path(bag).name}", measurement=args.measurement, accept_partial=args.accept_partial,
         trackers=() if args.tool else tuple(getattr(cfg, "trackers", ()) or ()))
+
+
+def _write_calibrated(args: argparse.Namespace, res: Any, urdf: str, robot: Any, declared: Any) -> list[Path]:
+    """``robot_calibrated.urdf`` (declared and found static effects folded into the joint origins) and
+    ``model_calibrated.yaml`` (the model without them) in ``--out``."""
+    from ppoe_core.analysis.diagnose import write_model_yaml
+    from ppoe_core.analysis.diagnose.calibrated_urdf import STATIC_EFFECTS, calibrated_urdf
+    from ppoe_core.model.effects import effect_from_config
+
+    found = [effect_from_config(e, robot, where=f"diagnose effect {e['name']}@{e['location']}") for e in res.effects]
+    text, _ = calibrated_urdf(urdf, robot, [*declared, *found])
+    urdf_out = Path(args.out) / "robot_calibrated.urdf"
+    urdf_out.write_text(text, encoding="utf-8")
+    model_out = write_model_yaml(args.model, res, Path(args.out) / "model_calibrated.yaml", drop=STATIC_EFFECTS)
+    return [urdf_out, model_out]
 
 
 def _test_stage(args: argparse.Namespace, res: Any, robot: Any, cfg: Any, declared: Any) -> None:

@@ -29,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tool", default=None, help="tool frame (default: model YAML frames.tool)")
     parser.add_argument("--out", default=None, metavar="DIR", help="write evaluation.md/.json and errors.png here")
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    parser.add_argument("--urdf", default=None, metavar="URDF",
+                        help="use this URDF instead of the bag's /robot_description (e.g. robot_calibrated.urdf "
+                             "from ppoe diagnose --out)")
     parser.add_argument("--accept-partial", action="store_true",
                         help="use what can be read of a damaged bag (default: refuse it, naming per topic "
                              "what was lost)")
@@ -88,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
         fusion[key.strip()] = yaml.safe_load(text)
     opts = EvaluateOptions(
         base=args.base, tool=args.tool, order=args.order, fit_set=args.fit_set, fusion=fusion,
-        ground_truth=args.ground_truth, progress=progress, accept_partial=args.accept_partial,
+        ground_truth=args.ground_truth, progress=progress, accept_partial=args.accept_partial, urdf=args.urdf,
     )
     ev = evaluate_bag(args.bag, args.model, opts)
     for note in ev.summary.get("bag_notes", []):

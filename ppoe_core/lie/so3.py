@@ -271,7 +271,7 @@ def matrix_from_rpy(rpy: ArrayLike) -> Array:
 def rpy_from_matrix(R: ArrayLike) -> Array:
     """Inverse of :func:`matrix_from_rpy` (pitch in ``[-pi/2, pi/2]``): ``(..., 3, 3) -> (..., 3)``."""
     R = _f(R)
-    pitch = np.arcsin(np.clip(-R[..., 2, 0], -1.0, 1.0))
+    pitch = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 0, 0], R[..., 1, 0]))  # accurate near +-pi/2 too
     gimbal = np.abs(R[..., 2, 0]) > 1.0 - 1e-12
     roll = np.where(gimbal, 0.0, np.arctan2(R[..., 2, 1], R[..., 2, 2]))
     yaw = np.where(

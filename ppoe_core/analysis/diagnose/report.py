@@ -5,7 +5,7 @@ from __future__ import annotations
 import io
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -18,11 +18,12 @@ from ppoe_core.robot.urdf import Robot
 
 
 def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseResult, out_path: str | Path,
-                     scale_sigmas: bool = True) -> Path:
+                     scale_sigmas: bool = True, drop: Sequence[str] = ()) -> Path:
     """Updated model YAML: the input plus the found ``effects`` (with ``ci``) and, if
     ``scale_sigmas``, perturbation sigmas / covariances and joint noise scaled by the NEES fit.
     The input file is edited as a round trip (ruamel.yaml): its comments and key order are kept; a header
-    says what changed."""
+    says what changed.  Effects named in ``drop`` (declared or found) are left out: those folded into a
+    calibrated URDF (:func:`~ppoe_core.analysis.diagnose.calibrated_urdf.calibrated_urdf`)."""
     from ruamel.yaml import YAML
 
     rt = YAML()
@@ -34,8 +35,10 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
     else:
         with open(model_yaml, encoding="utf-8") as fh:
             doc = rt.load(fh) or {}
-    effects = list(doc.get("effects") or [])
+    effects = [e for e in (doc.get("effects") or []) if e.get("name") not in drop]
     for e in result.effects:
+        if e["name"] in drop:
+            continue
         entry = {"name": e["name"], "location": e["location"], "parameters": e["parameters"]}
         for key in ("variable", "reference"):
             if key in e:
@@ -60,7 +63,9 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     header = ("# Model updated by `ppoe diagnose`: effects found (with 95 % CIs) appended to `effects`,\n"
-              f"# perturbation sigmas scaled by {k:.4g} for held-out NEES = 3.\n")
+              f"# perturbation sigmas scaled by {k:.4g} for held-out NEES = 3.\n"
+              + (f"# For robot_calibrated.urdf: the effects {list(drop)} are folded into its joint origins.\n"
+                 if drop else ""))
     buf = io.StringIO()
     rt.dump(doc, buf)
     out_path.write_text(header + buf.getvalue(), encoding="utf-8")

@@ -93,6 +93,9 @@ class EvaluateOptions:
         (default: the pose if the bag has one, else the point).
     progress : bool
         Draw a progress bar on stderr.
+    urdf : str or None
+        A URDF file used instead of the bag's ``/robot_description`` (e.g. the ``robot_calibrated.urdf``
+        of ``ppoe diagnose --out``).
     accept_partial : bool
         Score what can be read of a damaged bag (``read_bag(accept_partial=True)``); the summary's
         ``bag_notes`` then say per topic what was lost.
@@ -106,6 +109,7 @@ class EvaluateOptions:
     ground_truth: str = "auto"
     progress: bool = False
     accept_partial: bool = False
+    urdf: str | None = None
 
     def fusion_settings(self) -> dict[str, Any]:
         """:data:`EVALUATE_SETTINGS` updated with :attr:`fusion`.

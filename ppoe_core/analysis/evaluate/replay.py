@@ -76,13 +76,19 @@ class ProgressBar:
 # ----------------------------------------------------------------------------
 
 
-def _load_model(urdf_xml: str, model_yaml: str | Path, bag: str) -> Any:
-    """The bag's URDF with the model YAML; errors name the YAML file and line, or the bag's URDF."""
+def _load_model(urdf_xml: str, model_yaml: str | Path, bag: str, urdf_file: str | None = None) -> Any:
+    """The bag's URDF (or ``urdf_file``) with the model YAML; errors name the YAML file and line, or the URDF."""
     from ppoe_core.model.ppoe import PPOEModel
 
     path = Path(model_yaml)
     if not path.is_file():
         raise ModelConfigError(f"{path}: cannot read model YAML: no such file")
+    if urdf_file is not None:
+        try:
+            urdf_xml = Path(urdf_file).read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ModelConfigError(f"{urdf_file}: cannot read URDF: {exc.strerror}") from None
+        return PPOEModel.from_strings(urdf_xml, path, urdf_source=str(urdf_file))
     return PPOEModel.from_strings(urdf_xml, path, urdf_source=f"bag {bag} /robot_description")
 
 
@@ -297,7 +303,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     bag = str(bag)
     t_start = time.perf_counter()
     data = read_bag(bag, accept_partial=opt.accept_partial)
-    model = _load_model(data.require_robot_description(), model_yaml, bag)
+    model = _load_model(data.require_robot_description(), model_yaml, bag, opt.urdf)
     base, tool, kind = _check_inputs(data, model, model_yaml, opt, bag)
     pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml)
     fs = opt.fusion_settings()
