@@ -296,3 +296,36 @@ def test_calibrated_urdf_reproduces_the_corrected_fk_and_loads_everywhere(two_re
     P0, P1 = tree.link_poses(q, dq, dxi), KinematicTree(parse_urdf(text)).link_poses(q)
     assert np.abs(P0["finger_right"] - P1["finger_right"]).max() < 1e-12  # the mimic follower moved too
     assert np.abs(P0["finger_right"] - tree.link_poses(q)["finger_right"]).max() > 1e-3
+
+
+def test_temperature_becomes_the_thermal_growth_variable(tmp_path):
+    """A bag with /temperature varying by more than 1 K: the stops carry it as context and thermal_growth is
+    proposed against it (not against time); without it, a short bag gets no thermal candidate."""
+    from ppoe_core.analysis.diagnose import candidate_effects, stops_from_bag
+    from ppoe_core.io.bagio import BagWriter
+    from ppoe_core.robot.tree import KinematicTree
+    from ppoe_core.robot.urdf import parse_urdf
+
+    urdf = (CONFIG / "robots" / "planar3.urdf").read_text()
+    robot = parse_urdf(urdf)
+    rng = np.random.default_rng(2)
+    for with_temp in (True, False):
+        path = tmp_path / f"t{with_temp}"
+        with BagWriter(path) as bag:
+            bag.write_robot_description(urdf)
+            for k in range(12):
+                t = 10.0 + 5.0 * k
+                q = rng.uniform(-1, 1, 3)
+                for m in range(5):
+                    bag.write_joint_state(t + 0.01 * m, ["joint1", "joint2", "joint3"], q)
+                bag.write_ground_truth_point(t + 0.1, "tracker", rng.normal(size=3))
+                if with_temp:
+                    bag.write_temperature(t + 0.05, "base_link", 20.0 + 0.5 * k)
+        stops = stops_from_bag(path, robot, tracker_link="link3")
+        thermal = [e for e in candidate_effects(KinematicTree(robot), stops) if e.name == "thermal_growth"]
+        if with_temp:
+            np.testing.assert_allclose(stops.context["temperature"], 20.0 + 0.5 * np.arange(12), atol=0.03)
+            assert thermal and all(e.variable == "temperature" and e.reference == pytest.approx(20.0, abs=0.03)
+                                   for e in thermal)
+        else:
+            assert "temperature" not in stops.context and not thermal

@@ -79,7 +79,8 @@ def dh_to_urdf(source: str | os.PathLike[str]) -> str:
     if len(set(names)) != len(names):
         raise ctx.error(top, "joints", "joints", f"joint and link names must be unique, got {names}")
     out = [f"<robot name={quoteattr(str(top.get('name', 'dh_robot')))}>",
-           f"  <!-- from the {convention} DH table {where} by ppoe urdf from-dh -->", f"  <link name={quoteattr(base)}/>"]
+           f"  <!-- from the {convention} DH table {where} by ppoe urdf from-dh -->",
+           f"  <link name={quoteattr(base)}/>"]
     parent, prev = base, None
     for p in parsed:
         if convention == "standard":

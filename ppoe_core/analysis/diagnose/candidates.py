@@ -55,8 +55,9 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
     * ``link_error`` (6 components; unidentifiable ones are pruned during selection): every
       joint on the path;
     * ``backlash``: independent movable joints whose last-motion sign changes (context);
-    * ``thermal_growth`` over time: joints with an origin offset above 5 cm, if the data span
-      more than 10 minutes;
+    * ``thermal_growth``: joints with an origin offset above 5 cm, against the measured
+      ``temperature`` (``/temperature``) if it varies by more than 1 K, else against time if the
+      data span more than 10 minutes (the effect's ``variable`` says which);
     * ``time_offset``: if the joints move at the measurement times (context ``joint_velocity``).
 
     ``base_tilt`` is fitted by the accelerometer stage (:func:`diagnose_imu`) and
@@ -70,7 +71,6 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
         path = [j for j in path if j not in base_path]
     out: list[Effect] = []
     signs = stops.context.get("motion_sign", {})
-    t = stops.context.get("time")
     vel = stops.context.get("joint_velocity", {})
     for jn in path:
         j = robot.joints[jn]
@@ -86,12 +86,23 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
             out.append(make_effect("mount_bending", jn, tree))
         if j.independent and jn in signs and np.ptp(signs[jn]) > 0:
             out.append(make_effect("backlash", jn, tree))
-        if t is not None and np.ptp(t) > 600.0 and np.linalg.norm(j.origin[:3, 3]) > 0.05:
-            out.append(make_effect("thermal_growth", jn, tree, variable="time",
-                                   reference=float(np.min(t))))
+        if np.linalg.norm(j.origin[:3, 3]) > 0.05:
+            out.extend(_thermal(tree, jn, stops.context))
     if vel and max(float(np.max(np.abs(v))) for v in vel.values()) > 1e-6:
         out.append(make_effect("time_offset", "/joint_states", tree))
     return out
+
+
+def _thermal(tree: KinematicTree, joint: str, context: Mapping) -> list[Effect]:
+    """``thermal_growth`` at ``joint`` against the temperature (if it varies by > 1 K), else against time
+    (if the data span > 10 min), else none."""
+    temp, t = context.get("temperature"), context.get("time")
+    if temp is not None and np.all(np.isfinite(temp)) and np.ptp(temp) > 1.0:
+        return [make_effect("thermal_growth", joint, tree, variable="temperature",
+                            reference=float(np.min(temp)))]
+    if t is not None and np.ptp(t) > 600.0:
+        return [make_effect("thermal_growth", joint, tree, variable="time", reference=float(np.min(t)))]
+    return []
 
 
 def predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect]
