@@ -1,4 +1,4 @@
-"""``ppoe import hilti|motoman``: turn measured datasets into contract bags.
+"""``ppoe import hilti|motoman|csv``: turn measured datasets into contract bags.
 
 ::
 
@@ -6,6 +6,7 @@
                       [--allow-incomplete]
     ppoe import motoman FILE.mat --model-yaml MODEL.yaml --out BAG [--urdf URDF]
                         [--ppoe-model OUT.yaml] [--force] [--json]
+    ppoe import csv STOPS.csv --mapping MAP.yaml --urdf URDF --out BAG [--force] [--json]
 
 The bag layouts are documented in :mod:`ppoe_core.io.importers.hilti` and
 :mod:`ppoe_core.io.importers.motoman`.  Both also write a ppoe model YAML next to the bag
@@ -43,13 +44,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     m.add_argument(
         "--ppoe-model", default=None, metavar="OUT.yaml", help="where to write the ppoe model (default: BAG.model.yaml)"
     )
-    for p in (h, m):
+    c = sub.add_parser("csv", help="any robot: one CSV row per stop + a mapping YAML -> contract bag")
+    c.add_argument("file", metavar="STOPS.csv", help="CSV with a header row, one stop per row")
+    c.add_argument("--mapping", required=True, metavar="MAP.yaml",
+                   help="which columns are joints, points, pose, time, station, role "
+                        "(ppoe_core/io/importers/csv_stops.py)")
+    c.add_argument("--urdf", required=True, help="the robot's URDF (written on /robot_description)")
+    c.add_argument("--out", required=True, metavar="BAG", help="output bag directory")
+    for p in (h, m, c):
         p.add_argument("--force", action="store_true", help="overwrite an existing output bag")
         p.add_argument("--json", action="store_true", help="print the message counts as one JSON document")
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the import; prints a summary (or JSON with ``--json``) and returns 0."""
+    if args.dataset == "csv":
+        from ppoe_core.io.importers.csv_stops import import_csv
+
+        res = import_csv(args.file, args.mapping, args.urdf, args.out, overwrite=args.force)
+        for topic, n in res["skipped"].items():
+            print(f"ppoe import: warning: {args.file}: {n} stops without {topic} (empty cells)", file=sys.stderr)
+        if args.json:
+            print(json.dumps({"bag": args.out, **res}))
+        else:
+            counts = ", ".join(f"{t}: {n}" for t, n in sorted(res["counts"].items()))
+            print(f"ppoe import: wrote {args.out} ({res['stops']} stops; {counts})", file=sys.stderr)
+        return 0
     if args.dataset == "hilti":
         from ppoe_core.io.importers.hilti import import_hilti
 

@@ -445,6 +445,11 @@ def _joint_context(js: Any, robot: Robot, links: Sequence[str], stamps: np.ndarr
         pos_cols.append(np.interp(t_js, tg, cg))
         v = np.gradient(cg, tg) if good.sum() > 1 else np.zeros(good.sum())
         vel[jn] = _sample_joint(tg, v, stamps)
+    absent = [j for j in robot.independent_joints if j not in q]  # off every measured chain (checked above)
+    if absent:
+        warnings.warn(f"bag {path}: /joint_states never carries {absent}; they are off the measured chains and "
+                      "held at 0 (they only move the masses the gravity effects see)", PpoeWarning, stacklevel=3)
+        q.update({j: np.zeros(len(stamps)) for j in absent})
     signs = motion_signs(t_js, np.column_stack(pos_cols), stamps) if pos_cols else np.zeros((len(stamps), 0))
     ctx = {"time": stamps - t_js[0], "motion_sign": {j: signs[:, i] for i, j in enumerate(jnames)},
            "joint_velocity": vel}
@@ -493,8 +498,8 @@ def _sessions(path: str | Path, data: Any, name: str, stamps: np.ndarray,
         session_names = [f"{name}:{s}" for s in dict.fromkeys(stations)]
         session = np.array([session_names.index(f"{name}:{s}") for s in stations])
         roles = [info[i][1].get("role", "") for i in k]
-        sets = [info[i][1].get("point_sets", []) for i in k]
-        reg = np.array([r == "stationing" and (stationing_set is None or stationing_set in s)
-                        for r, s in zip(roles, sets)])
-        score = np.array([r == "evaluation" for r in roles])
+        sets = [info[i][1].get("point_sets") for i in k]  # None: the stop is in every set
+        reg = np.array([(r == "stationing" and (stationing_set is None or s is None or stationing_set in s))
+                        or r not in ("stationing", "evaluation") for r, s in zip(roles, sets)])
+        score = np.array([r != "stationing" for r in roles])  # a stop without a role registers and is scored
     return session, session_names, reg, score

@@ -51,7 +51,8 @@ def registration_split(
         for i, r in enumerate(roles):
             assert r is not None
             g = groups.setdefault(str(r["station"]), ([], []))
-            if r["role"] == "stationing" and (fit_set == "all" or fit_set in r.get("point_sets", [])):
+            sets = r.get("point_sets")  # absent: the stop is in every set (``ppoe import csv``)
+            if r["role"] == "stationing" and (fit_set == "all" or sets is None or fit_set in sets):
                 g[0].append(i)
             elif r["role"] == "evaluation":
                 g[1].append(i)
