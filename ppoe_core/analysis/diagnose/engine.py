@@ -102,9 +102,10 @@ def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
     if stops.imus:
         _accelerometer_extras(res, robot, tree, stops, declared, found, options, perturbation_cov, joint_noise)
     # a systematic residual remains if the held-out mean squared Mahalanobis distance under the
-    # declared covariance exceeds its expectation 3 by more than 3 standard errors (chi^2_3 mean)
+    # declared covariance exceeds its expectation 3 by more than 3 standard errors (chi^2_3 mean); the rows of
+    # several reflectors at one stop share its perturbation draw: count stops (distinct configurations)
     m2 = float(np.nanmean(sel.e2))
-    n_ok = int(np.isfinite(sel.e2).sum())
+    n_ok = _independent_rows(stops, np.isfinite(sel.e2))
     res.extra["heldout_mahalanobis2"] = m2
     res.extra["unexplained_significant"] = bool(m2 > 3.0 + 3.0 * math.sqrt(6.0 / max(n_ok, 1)))
     res.summary = _summary(res)
@@ -214,6 +215,14 @@ def _forward_selection(tree: KinematicTree, problem: LinearProblem, stops: Stops
         e2 = e2c
         R_after, Rb_after = Rc, Rbc
     return _Selection(chosen, steps, rejected, R_before, R_after, Rb_after, e2)
+
+
+def _independent_rows(stops: Stops, ok: np.ndarray) -> int:
+    """Rows ``ok`` counted once per stop: distinct joint configurations (one row per reflector of a stop)."""
+    if stops.links is None:
+        return int(ok.sum())
+    Q = np.column_stack([stops.q[j][ok] for j in sorted(stops.q)]) if stops.q else np.zeros((int(ok.sum()), 0))
+    return int(np.unique(np.round(Q, 9), axis=0).shape[0]) if Q.size else int(ok.sum())
 
 
 def _rescore(problem: LinearProblem, stops: Stops, chosen: list[Candidate], folds: Any,
