@@ -85,11 +85,6 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out:  # checked before the run, not after it
         prepare_out_dir(args.out)
-    from ppoe_core.io.bagio import check_bag
-
-    for bag in [*args.bags, *args.test]:  # a damaged bag is refused (or, accepted, announced) before the run
-        for note in check_bag(bag, accept_partial=args.accept_partial)[0]:
-            print(f"ppoe diagnose: warning: {note}", file=sys.stderr)
     urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description
     if not urdf:
         raise BagError(f"bag {args.bags[0]}: no /robot_description")

@@ -55,6 +55,16 @@ def imu_tilt_residuals(tree: KinematicTree, stops: Stops, effects: Sequence[Effe
 # =============================================================================
 
 
+def nominal_poses(tree: KinematicTree, stops: Stops) -> dict[str, np.ndarray]:
+    """``tree.link_poses(stops.q)`` (every link, nominal chain), computed once per ``stops`` object: the
+    gravity effects evaluate their loads on it, and the accelerometer fit evaluates them hundreds of times."""
+    cache = stops.__dict__.setdefault("_nominal_poses", {})
+    if id(tree) not in cache:
+        cache.clear()
+        cache[id(tree)] = tree.link_poses(stops.q)
+    return cache[id(tree)]
+
+
 def imu_tilt_raw(tree: KinematicTree, stops: Stops, effects: Sequence[Effect],
                   tilt_group: np.ndarray | None = None) -> np.ndarray:
     """Tilt residuals (measured minus predicted) of every accelerometer, shape (N, K, 2) [rad].
@@ -64,7 +74,7 @@ def imu_tilt_raw(tree: KinematicTree, stops: Stops, effects: Sequence[Effect],
     axes: the root is rotated by ``Exp(w_g)`` w.r.t. gravity, the ``base_tilt`` effect); measured:
     the normalised specific force.  Components: small rotations about the link's x and y axes.
     """
-    dq, dxi = sum_effect_corrections(list(effects), stops.q, stops.context)
+    dq, dxi = sum_effect_corrections(list(effects), stops.q, stops.context, nominal_poses(tree, stops))
     links = [ln for ln, _ in stops.imus.values()]
     poses = tree.link_poses(stops.q, dq, dxi, links=links)
     up = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (len(stops), 3))

@@ -7,7 +7,8 @@ upstream turns the downstream frame).  After the selection, each chosen effect w
 parameters is tried against every single and every pair of simpler candidates (fewer parameters in
 total), with the other chosen effects kept: the replacement with the fewest parameters (then the lowest
 held-out error) whose held-out error is not significantly worse (paired t below 2 against the chosen set)
-is taken.  Only the few replacements with the best in-sample fit are scored held-out.
+is taken.  Only the few replacements that best reproduce what the chosen effect adds to the predictions
+(a small least-squares screen) are scored held-out.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.analysis.diagnose.candidates import Candidate
-from ppoe_core.analysis.diagnose.linear import LinearProblem, _identifiable_subset, _ssr, _stack
+from ppoe_core.analysis.diagnose.linear import LinearProblem, _identifiable_subset, _stack
 from ppoe_core.analysis.diagnose.results import DiagnoseOptions
 from ppoe_core.analysis.diagnose.stats import _paired_t
 from ppoe_core.robot.tree import KinematicTree
@@ -49,11 +50,8 @@ def simplify(tree: KinematicTree, problem: LinearProblem, cands: Sequence[Candid
         combos = [(a,) for a in simple] + [(a, b) for a, b in itertools.combinations(simple, 2)
                                            if a.effect.n_params + b.effect.n_params < c.effect.n_params
                                            and a.effect.location != b.effect.location]
-        scored = []
-        for combo in combos:
-            G = _stack(others + list(combo), n, dim)
-            scored.append((_ssr(problem, G, all_rows), combo))
-        scored.sort(key=lambda z: z[0])
+        v = _contribution(problem, chosen, i, all_rows)
+        scored = sorted(((_unexplained(v, combo), combo) for combo in combos), key=lambda z: z[0])
         best = None
         for _, combo in scored[:SCREEN]:
             if not _identifiable(tree, problem, others, combo, options, all_rows):
@@ -71,6 +69,23 @@ def simplify(tree: KinematicTree, problem: LinearProblem, cands: Sequence[Candid
             chosen = others[:i] + list(best[1]) + others[i:]
             e2 = best[2]
     return chosen, done
+
+
+def _contribution(problem: LinearProblem, chosen: list[Candidate], i: int, rows: np.ndarray) -> np.ndarray:
+    """What chosen effect ``i`` adds to the predictions in the fit of the chosen set, flattened (N * dim,)."""
+    n, dim = len(problem.stops), problem.stops.dim
+    fit = problem.fit(_stack(chosen, n, dim), rows)
+    start = sum(c.effect.n_params for c in chosen[:i])
+    P = chosen[i].effect.n_params
+    return (chosen[i].G @ fit.theta[start:start + P]).reshape(-1)
+
+
+def _unexplained(v: np.ndarray, combo: Sequence[Candidate]) -> float:
+    """Screening: the part of ``v`` the columns of ``combo`` cannot reproduce (relative least-squares residual).
+    Cheap (no registration refit); only the best few combinations are then fitted and scored held out."""
+    A = np.concatenate([k.G.reshape(v.size, -1) for k in combo], axis=1)
+    coef, *_ = np.linalg.lstsq(A, v, rcond=None)
+    return float(np.linalg.norm(v - A @ coef) / max(float(np.linalg.norm(v)), 1e-300))
 
 
 def _identifiable(tree: KinematicTree, problem: LinearProblem, others: list[Candidate],

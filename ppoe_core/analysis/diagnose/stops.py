@@ -257,6 +257,8 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
     from ppoe_core.io import bagio
 
     data = bagio.read_bag(path, load_images=False, accept_partial=accept_partial)
+    for note in data.notes:  # a recovered or (accepted) partial bag: the user is told
+        warnings.warn(note, PpoeWarning, stacklevel=2)
     js = data.joint_states
     if len(js) == 0:
         raise BagError(f"bag {path}: no /joint_states")
