@@ -17,6 +17,7 @@ import scipy.io
 import yaml
 from conftest import DATASETS
 
+from ppoe_core import lie
 from ppoe_core.errors import DatasetError
 from ppoe_core.io.bagio import read_bag
 from ppoe_core.io.importers import hilti as hi
@@ -360,3 +361,81 @@ def test_hilti_incomplete_station_refused_then_counted(tmp_path, capsys, state):
     station["stationing_measurements"] = []  # an explicit empty list (the data's space 4) is accepted
     f.write_text(yaml.safe_dump(doc))
     assert [s.role for s in hi.load_hilti(f).stops] == ["evaluation"]
+
+
+# ----------------------------------------------------------------------------- the left arm (arm number 2)
+
+
+def _dh_product(rows, q):
+    """Standard DH (model.yaml conventions) product of ``rows`` with joint values ``q`` (independent of the URDF)."""
+    T = np.eye(4)
+    for row, qi in zip(rows, q):
+        th, d, a, al = row.get("offset", 0.0) + qi, row["d"], row["a"], row["alpha"]
+        ct, st, ca, sa = np.cos(th), np.sin(th), np.cos(al), np.sin(al)
+        T = T @ np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0, sa, ca, d],
+                          [0, 0, 0, 1.0]])
+    return T
+
+
+def _left_arm_file(tmp_path, offset_L=0.0, n=40, seed=5):
+    """An arm-2 .mat file in the right-arm files' format: left-arm joints in columns 14-19, Leica points of LR2
+    from model.yaml's left-arm DH (plus an encoder offset at L if given), one marker row per pose."""
+    import yaml as _yaml
+
+    doc = _yaml.safe_load((MOTOMAN / "model.yaml").read_text())
+    rows, lr2 = doc["left_arm"]["dh"], doc["left_arm"]["tools"]["LR2"]["dh"]
+    rng = np.random.default_rng(seed)
+    T_leica_base = lie.from_xyz_rpy([3.0, -1.0, 0.5], [0.0, 0.0, 0.8])
+    D = np.full((n, 26), np.nan)
+    for k in range(n):
+        q = np.concatenate([[rng.uniform(-0.5, 0.5)], rng.uniform(-1.0, 1.0, 6)])
+        dq = np.array([0, 0, offset_L, 0, 0, 0, 0])
+        p = (_dh_product([*rows, lr2], [*(q + dq), 0.0]) @ [0, 0, 0, 1.0])
+        D[k, :6] = [k + 1, 1 + k % 20, 2, 1 + k % 2, 2000 + k, 3000 - k]
+        D[k, 6], D[k, 7:13], D[k, 13:19] = q[0], 0.0, q[1:]
+        D[k, 19:22] = (T_leica_base @ p)[:3] + rng.normal(0, 1e-4, 3)
+        D[k, 22:26] = 0.0
+    f = tmp_path / "leica_left_synthetic.mat"
+    scipy.io.savemat(f, {"dataset": D})
+    return f, rows, lr2
+
+
+def test_left_arm_urdf_matches_the_model_yaml_dh(tmp_path):
+    from ppoe_core.robot.tree import KinematicTree
+    from ppoe_core.robot.urdf import parse_urdf
+
+    urdf = mo.left_arm_urdf((MOTOMAN / "motoman_right.urdf").read_text(), MOTOMAN / "model.yaml")
+    robot = parse_urdf(urdf)
+    tree = KinematicTree(robot)
+    import yaml as _yaml
+
+    doc = _yaml.safe_load((MOTOMAN / "model.yaml").read_text())
+    rows, tools = doc["left_arm"]["dh"], doc["left_arm"]["tools"]
+    rng = np.random.default_rng(1)
+    names = mo.ARM_JOINTS[2]
+    for _ in range(10):
+        q = rng.uniform(-2, 2, 7)
+        qd = {n: np.array(v) for n, v in zip(names, q)}
+        qd.update({j: np.array(0.0) for j in robot.independent_joints if j not in qd})
+        poses = tree.link_poses(qd)
+        for link, extra in (("T2", []), ("EE2", [tools["EE2"]["dh"]]), ("LR2", [tools["LR2"]["dh"]])):
+            want = _dh_product([*rows, *extra], [*q, *([0.0] * len(extra))])
+            np.testing.assert_allclose(poses[link], want, atol=1e-12, err_msg=link)
+    assert "joint_S1" in robot.joints and "MK220" in robot.links  # the right arm is kept, markers on EE2
+
+
+def test_left_arm_file_imports_and_its_encoder_offset_is_diagnosed(tmp_path, capsys):
+    from ppoe_ros.cli import main
+
+    f, _, _ = _left_arm_file(tmp_path, offset_L=0.01)
+    res = mo.import_motoman(f, MOTOMAN / "model.yaml", tmp_path / "bag")
+    assert res["arm"] == 2 and res["counts"]["/ground_truth/point"] == 40
+    model = yaml.safe_load(Path(res["model"]).read_text())
+    assert model["tracker"]["link"] == "LR2" and model["frames"]["tool"] == "EE2"
+    assert {t["link"] for t in model["tags"]["items"]} == {"EE2"} and "joint_L2" in model["joint_noise"]
+    assert main(["diagnose", str(tmp_path / "bag"), "--model", res["model"], "--json", "--pixels", "off"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    found = [(e["name"], e["location"]) for e in doc["effects"]]
+    assert found[:1] == [("joint_offset", "joint_L2")], doc["summary"]
+    lo, hi = doc["effects"][0]["ci"]["offset"]
+    assert lo <= 0.01 <= hi

@@ -33,6 +33,12 @@ topic                           type                              content
 
 The CameraInfo image size is unknown in the source and written as 0 x 0.
 
+Either arm: the arm-number column (3) of a file is 1 (right: joints ``joint_E, joint_S1 .. joint_T1`` from
+columns 7-13, markers on ``EE1``, reflector ``LR1``, URDF ``motoman_right.urdf``) or 2 (left: ``joint_E,
+joint_S2 .. joint_T2`` from columns 7 and 14-19, markers on ``EE2``, reflector ``LR2``, URDF
+``motoman_right.urdf`` plus the left arm built from ``model.yaml``'s ``left_arm`` DH by
+:func:`left_arm_urdf`); a file mixing arms is refused naming the row.
+
 :func:`motoman_model_dict` builds the matching ppoe model YAML (markers as ``tags`` on
 ``EE1``, the Leica reflector as ``tracker`` on ``LR1``); ``import_motoman`` writes it next
 to the bag.
@@ -62,6 +68,8 @@ __all__ = [
     "write_motoman_bag",
     "import_motoman",
     "JOINT_NAMES",
+    "ARM_JOINTS",
+    "left_arm_urdf",
     "CAMERA_FRAMES",
     "CAMERA_INFO_TOPIC",
     "TRACKER_FRAME",
@@ -71,8 +79,12 @@ __all__ = [
     "STOP_PERIOD_S",
 ]
 
-#: URDF joint names of the data columns 7..13 (1-based): E, S, L, U, R, B, T
+#: URDF joint names of the data columns 7..13 (1-based): E, S, L, U, R, B, T (right arm, arm number 1)
 JOINT_NAMES = ["joint_E", "joint_S1", "joint_L1", "joint_U1", "joint_R1", "joint_B1", "joint_T1"]
+#: the same for each arm number: the left arm (2) uses columns 7 and 14..19
+ARM_JOINTS = {1: JOINT_NAMES, 2: ["joint_E", "joint_S2", "joint_L2", "joint_U2", "joint_R2", "joint_B2", "joint_T2"]}
+#: data columns (0-based) of each arm's joint values, in ARM_JOINTS order
+ARM_COLUMNS = {1: list(range(6, 13)), 2: [6, *range(13, 19)]}
 #: camera number (column 4) -> optical frame in motoman_right.urdf
 CAMERA_FRAMES = {1: "camera_1_optical_frame", 2: "camera_2_optical_frame"}
 #: both cameras' CameraInfo go to this topic, told apart by ``header.frame_id``
@@ -128,7 +140,7 @@ class MotomanDataset:
     pose_ids : ndarray, shape (P,)
         Pose IDs in increasing order.
     joints : ndarray, shape (P, 7)
-        Joint values in :data:`JOINT_NAMES` order [rad].
+        Joint values in ``ARM_JOINTS[arm]`` order [rad].
     leica : ndarray, shape (P, 3)
         Reflector position in the tracker frame [m]; NaN rows = not logged.
     obs_pose : ndarray, shape (M,)
@@ -137,6 +149,8 @@ class MotomanDataset:
         Marker face (1..20) and camera number (1, 2).
     obs_uv : ndarray, shape (M, 2)
         Detected marker centre [px, raw/distorted].
+    arm : int
+        Arm number of the file (column 3): 1 = right, 2 = left.
     """
 
     path: Path
@@ -147,6 +161,7 @@ class MotomanDataset:
     obs_face: np.ndarray
     obs_camera: np.ndarray
     obs_uv: np.ndarray
+    arm: int = 1
 
     @property
     def has_tracker(self) -> np.ndarray:
@@ -176,13 +191,16 @@ def load_motoman(path: str | Path) -> MotomanDataset:
     data = np.asarray(mat["dataset"], dtype=float)
     if data.ndim != 2 or data.shape[1] != _N_COLUMNS or data.shape[0] == 0:
         raise DatasetError(f"{path}: 'dataset' must be N x {_N_COLUMNS}, got {data.shape}")
-    bad = ~np.all(np.isfinite(data[:, :13]), axis=1)
+    arm = int(data[0, 2]) if data[0, 2] in (1, 2) else 0
+    if arm == 0 or np.any(data[:, 2] != arm):
+        row = int(np.flatnonzero(data[:, 2] != (arm or data[0, 2]))[0]) + 1 if arm else 1
+        raise DatasetError(f"{path}: row {row}: arm number {data[row - 1, 2]:g}; a file holds one arm, 1 (right) "
+                           f"or 2 (left){f', and row 1 says {arm}' if arm else ''}")
+    jcols = ARM_COLUMNS[arm]
+    bad = ~np.all(np.isfinite(data[:, [0, 1, 2, 3, 4, 5, *jcols]]), axis=1)
     if np.any(bad):
         row = int(np.flatnonzero(bad)[0]) + 1
-        raise DatasetError(f"{path}: row {row}: NaN/inf in columns 1-13 (ids, pixels or joints)")
-    if np.any(data[:, 2] != 1):
-        row = int(np.flatnonzero(data[:, 2] != 1)[0]) + 1
-        raise DatasetError(f"{path}: row {row}: arm number {data[row - 1, 2]:g}; only the right arm (1) is supported")
+        raise DatasetError(f"{path}: row {row}: NaN/inf in the ids, pixels or arm {arm}'s joint columns")
     cams = data[:, 3]
     if not np.all(np.isin(cams, (1, 2))):
         row = int(np.flatnonzero(~np.isin(cams, (1, 2)))[0]) + 1
@@ -194,7 +212,7 @@ def load_motoman(path: str | Path) -> MotomanDataset:
     pose_ids, first, inverse = np.unique(data[:, 0], return_index=True, return_inverse=True)
     per_pose = data[first]
     # the joint and Leica values repeat on every row of a pose: check it
-    cols = list(range(6, 13)) + [19, 20, 21]
+    cols = jcols + [19, 20, 21]
     diff = np.abs(np.nan_to_num(data[:, cols] - per_pose[inverse][:, cols], nan=0.0))
     if np.any(diff > 1e-12):
         row = int(np.flatnonzero(np.any(diff > 1e-12, axis=1))[0]) + 1
@@ -204,12 +222,13 @@ def load_motoman(path: str | Path) -> MotomanDataset:
     return MotomanDataset(
         path=path,
         pose_ids=pose_ids.astype(int),
-        joints=per_pose[:, 6:13].copy(),
+        joints=per_pose[:, jcols].copy(),
         leica=per_pose[:, 19:22].copy(),
         obs_pose=inverse.astype(int),
         obs_face=faces.astype(int),
         obs_camera=cams.astype(int),
         obs_uv=data[:, 4:6].copy(),
+        arm=arm,
     )
 
 
@@ -273,8 +292,56 @@ def undistort(uv: np.ndarray, camera: MotomanCamera) -> np.ndarray:
     return undistort_pixels(np.asarray(uv, float).reshape(-1, 2), camera.K, camera.D)
 
 
-def motoman_model_dict(model_yaml: str | Path) -> dict[str, Any]:
-    """A ppoe model YAML (as a dict) for ``motoman_right.urdf`` built from the dataset's model.yaml.
+def _dh(row: dict[str, Any]) -> np.ndarray:
+    """One standard DH row at q = 0: ``Rz(offset) Tz(d) Tx(a) Rx(alpha)`` (model.yaml conventions)."""
+    th, al = float(row.get("offset", 0.0)), float(row["alpha"])
+    R = lie.matrix_from_rpy([al, 0.0, th])
+    return lie.from_rt(R, np.array([float(row["a"]) * np.cos(th), float(row["a"]) * np.sin(th), float(row["d"])]))
+
+
+def left_arm_urdf(right_urdf_xml: str, model_yaml: str | Path) -> str:
+    """``motoman_right.urdf`` with the left arm of ``model.yaml`` added (arm number 2): ``torso_to_TT2`` (its E row
+    at E = 0; ``joint_E`` turns the torso), revolute ``joint_S2 .. joint_T2`` each followed by a fixed ``*_dh``
+    joint (the right arm's pattern), ``EE2``, ``LR2`` and the marker links ``MK201 .. MK220`` on ``EE2``."""
+    import xml.etree.ElementTree as ET
+
+    doc = _read_model_yaml(model_yaml)
+    try:
+        rows, tools = doc["left_arm"]["dh"], doc["left_arm"]["tools"]
+        markers = load_marker_poses(model_yaml)
+        root = ET.fromstring(right_urdf_xml)
+    except (KeyError, TypeError, ET.ParseError) as exc:
+        raise DatasetError(f"{model_yaml}: cannot build the left arm (left_arm dh/tools, markers): {exc}") from None
+
+    def add(name: str, jtype: str, parent: str, child: str, T: np.ndarray) -> None:
+        ET.SubElement(root, "link", name=child)
+        j = ET.SubElement(root, "joint", name=name, type=jtype)
+        ET.SubElement(j, "parent", link=parent)
+        ET.SubElement(j, "child", link=child)
+        ET.SubElement(j, "origin", xyz=" ".join(repr(float(v)) for v in T[:3, 3]),
+                      rpy=" ".join(repr(float(v)) for v in lie.rpy_from_matrix(T[:3, :3])))
+        if jtype == "revolute":
+            ET.SubElement(j, "axis", xyz="0 0 1")
+            ET.SubElement(j, "limit", lower="-3.2", upper="3.2", effort="100", velocity="1")
+
+    root.append(ET.Comment(" left arm (arm number 2) added from model.yaml by ppoe import motoman "))
+    add("torso_to_" + rows[0]["frame"], "fixed", "torso", rows[0]["frame"], _dh(rows[0]))
+    parent = rows[0]["frame"]
+    for row in rows[1:]:
+        frame = row["frame"]
+        add(f"joint_{frame}", "revolute", parent, f"{frame}_rot", np.eye(4))
+        add(f"{frame}_dh", "fixed", f"{frame}_rot", frame, _dh(row))
+        parent = frame
+    for tool, spec in tools.items():
+        add(f"{spec['parent']}_to_{tool}", "fixed", spec["parent"], tool, _dh(spec["dh"]))
+    for face, T in sorted(markers.items()):
+        add(f"EE2_to_MK2{face:02d}", "fixed", "EE2", f"MK2{face:02d}", T)
+    return ET.tostring(root, encoding="unicode") + "\n"
+
+
+def motoman_model_dict(model_yaml: str | Path, arm: int = 1) -> dict[str, Any]:
+    """A ppoe model YAML (as a dict) for ``motoman_right.urdf`` (arm 1) or :func:`left_arm_urdf` (arm 2) built
+    from the dataset's model.yaml.
 
     Markers become ``tags`` on ``EE1`` (id = face, centre only: ``size`` is not known
     from the source and only matters for corners, which these data do not have), the
@@ -291,22 +358,22 @@ def motoman_model_dict(model_yaml: str | Path) -> dict[str, Any]:
         items.append(
             {
                 "id": face,
-                "link": "EE1",
+                "link": f"EE{arm}",
                 "size": 0.03,
                 "xyz": [float(v) for v in T[:3, 3]],
                 "rpy": [float(v) for v in rpy],
             }
         )
     return {
-        "joint_noise": {j: 0.0005 for j in JOINT_NAMES},
+        "joint_noise": {j: 0.0005 for j in ARM_JOINTS[arm]},
         "perturbations": {
             "torso_to_rightHead": {"sigma": list(CAMERA_MOUNT_SIGMA)},
             "torso_to_leftHead": {"sigma": list(CAMERA_MOUNT_SIGMA)},
         },
-        "frames": {"base": "base", "tool": "EE1"},
+        "frames": {"base": "base", "tool": f"EE{arm}"},
         "camera": {"frame": CAMERA_FRAMES[1], "pixel_sigma": 2.0},
         "tags": {"family": "aruco_centre", "items": items},
-        "tracker": {"link": "LR1", "xyz": [0.0, 0.0, 0.0], "sigma": LEICA_SIGMA_M},
+        "tracker": {"link": f"LR{arm}", "xyz": [0.0, 0.0, 0.0], "sigma": LEICA_SIGMA_M},
         "naive": {"sigma": [0.002, 0.002, 0.002, 0.0035, 0.0035, 0.0035]},
     }
 
@@ -344,7 +411,7 @@ def write_motoman_bag(
             info = {"stop": k, "pose_id": int(pose_id), "has_tracker": bool(has_tracker[k]), "observations": n_obs}
             w.write_message(STOP_TOPIC, String(data=json.dumps(info)), t)
             for b in range(BURST_COUNT):
-                w.write_joint_state(t + b * BURST_PERIOD_S, JOINT_NAMES, dataset.joints[k])
+                w.write_joint_state(t + b * BURST_PERIOD_S, ARM_JOINTS[dataset.arm], dataset.joints[k])
             t_meas = t + MEASUREMENT_DELAY_S
             if has_tracker[k]:
                 w.write_ground_truth_point(t_meas, TRACKER_FRAME, dataset.leica[k])
@@ -399,6 +466,8 @@ def import_motoman(
         urdf_xml = urdf_path.read_text()
     except OSError as exc:
         raise DatasetError(f"{urdf_path}: cannot read the URDF (use --urdf): {exc}") from None
+    if dataset.arm == 2:
+        urdf_xml = left_arm_urdf(urdf_xml, model_yaml)
     counts = write_motoman_bag(dataset, cameras, urdf_xml, out, overwrite=overwrite)
     model_out = Path(ppoe_model_out) if ppoe_model_out is not None else out.with_name(out.name + ".model.yaml")
     header = (
@@ -411,5 +480,8 @@ def import_motoman(
         "# tracker: Leica reflector on LR1, 1-sigma [m], our assumption.\n"
         "# naive: diagonal tool covariance [m, rad] for the naive baseline, our assumption.\n"
     )
-    model_out.write_text(header + yaml.safe_dump(motoman_model_dict(model_yaml), sort_keys=False))
-    return {"counts": counts, "model": str(model_out)}
+    if dataset.arm == 2:
+        header = header.replace("motoman_right.urdf", "motoman_right.urdf + the left arm").replace("EE1", "EE2")
+        header = header.replace("LR1", "LR2")
+    model_out.write_text(header + yaml.safe_dump(motoman_model_dict(model_yaml, dataset.arm), sort_keys=False))
+    return {"counts": counts, "model": str(model_out), "arm": dataset.arm}
