@@ -368,3 +368,30 @@ def test_nothing_is_forced_onto_the_catalogue(tmp_path, capsys, effects, signifi
     assert main(["diagnose", str(bag), "--model", str(model), "--json", "--pixels", "off"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["effects"] == [] and doc["unexplained_significant"] is significant, doc["summary"]
+
+
+def test_a_camera_stamped_late_gets_a_time_offset_within_ten_percent(tmp_path, capsys):
+    """Images stamped 40 ms after their exposure while the arm moves (8 Hz images during the whole bag, no other
+    error): the pixel stage names a time_offset of that camera with dt = -40 ms within 10 % (dt is the exposure
+    time minus the stamp), not camera extrinsics."""
+    from ppoe_core.sim.simulate import simulate
+    from ppoe_ros.cli import main
+
+    sc = yaml.safe_load((CONFIG.parent / "bags" / "effect_camera_extrinsics.yaml").read_text())
+    sc["robot"] = {"urdf": str(CONFIG / "robots" / "arm7.urdf"), "model": str(CONFIG / "robots" / "arm7_model.yaml")}
+    sc["seed"] = 404
+    sc["truth"].update(effects=[], perturbations="none", joint_noise=False)
+    sc["trajectory"].update(dwell=0.3, move_time=1.0)
+    sc["trajectory"]["random_stops"]["count"] = 20
+    sc["camera"].update(rate=8.0, during="always", time_offset=0.04)
+    sc["ground_truth"].pop("pose")
+    (tmp_path / "sc.yaml").write_text(yaml.safe_dump(sc))
+    simulate(tmp_path / "sc.yaml", tmp_path / "bag")
+    assert main(["diagnose", str(tmp_path / "bag"), "--model", str(CONFIG / "robots" / "arm7_model.yaml"),
+                 "--json", "--pixels", "on"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    pix = [e for e in doc["effects"] if e["name"] in ("time_offset", "camera_extrinsics")]
+    assert [(e["name"], e["location"]) for e in pix] == [("time_offset", "camera_optical_frame")], doc["summary"]
+    assert abs(pix[0]["parameters"]["dt"] - (-0.04)) < 0.004
+    before, after = doc["pixels"]["pixel_rms_before"], doc["pixels"]["pixel_rms_after"]
+    assert after["camera_optical_frame"] < 0.3 * before["camera_optical_frame"]

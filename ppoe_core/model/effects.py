@@ -456,7 +456,11 @@ class ThermalGrowth(Effect):
 
 
 class TimeOffset(Effect):
-    """Time offset of the joint states w.r.t. a sensor: ``dq_j = dt * qdot_j`` for every joint."""
+    """Time offset of the joint states w.r.t. a sensor: ``dq_j = dt * qdot_j`` for every joint.
+
+    With context ``sensor`` (the sensor of each row, e.g. a camera frame), only the rows of the sensor named
+    by ``location`` are shifted: each camera or tracker stream has its own offset.
+    """
 
     name = "time_offset"
     units = ("s",)
@@ -469,7 +473,9 @@ class TimeOffset(Effect):
         if vel is None:
             raise ModelConfigError(f"effect {self.name} at '{self.location}' needs context 'joint_velocity'")
         b = _batch(q)
-        return {k: np.broadcast_to(np.asarray(v, dtype=float), b)[..., None]
+        sensor = (context or {}).get("sensor")
+        mask = 1.0 if sensor is None else (np.asarray(sensor) == self.location).astype(float)
+        return {k: np.broadcast_to(np.asarray(v, dtype=float) * mask, b)[..., None]
                 for k, v in vel.items() if k in q}, {}
 
 

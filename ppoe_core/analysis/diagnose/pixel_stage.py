@@ -308,6 +308,7 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
         if f not in robot.links:
             raise BagError(f"bag {path}: camera frame {f!r} is not a link of URDF {robot.source}")
     q, ctx = _joints_at(data.joint_states, robot, np.asarray(stamps)[msg], path)
+    ctx["sensor"] = np.array([frames[k] for k in msg])  # the camera of each row (a camera's time_offset)
     return PixelObs(q=q, context=ctx, link=links[0], point=point, camera=np.array([cams.index(frames[k]) for k in msg]),
                     cameras=cams, K=[intr[f][0] for f in cams], D=[intr[f][1] for f in cams], uv=rows[:, 3:5].copy(),
                     pose=msg, sigma_px=float(sigma_px), name=Path(path).name)

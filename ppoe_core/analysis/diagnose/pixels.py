@@ -244,12 +244,18 @@ def camera_mount_joint(robot: Robot, frame: str) -> str:
 
 def pixel_candidates(robot: Robot, obs: PixelObs) -> list[Effect]:
     """Candidate effects of the pixel residual: ``camera_extrinsics`` (6-DoF) at the mount joint
-    of every camera that has observations (:func:`camera_mount_joint`)."""
+    of every camera that has observations (:func:`camera_mount_joint`), and a ``time_offset`` of every
+    camera that saw the robot move (joint speed above 1 mrad/s at some of its images: motion makes a
+    stamp offset visible; context ``sensor`` gives each row's camera)."""
     tree = KinematicTree(robot)
     out: list[Effect] = []
+    vel = obs.context.get("joint_velocity") or {}
+    speed = np.max(np.abs(np.stack(list(vel.values()))), axis=0) if vel else np.zeros(len(obs))
     for c, frame in enumerate(obs.cameras):
         if np.any(obs.camera == c):
             out.append(make_effect("camera_extrinsics", camera_mount_joint(robot, frame), tree))
+            if "sensor" in obs.context and np.any(speed[obs.camera == c] > 1e-3):
+                out.append(make_effect("time_offset", frame, tree))
     return out
 
 

@@ -3,8 +3,9 @@
 A candidate ``i`` joins the chosen set when the design of ``chosen + [i]`` is identifiable (condition number of the
 column-scaled normal matrix below ``max_condition``; optional extra ``check``, e.g. no negative compliance) and it
 gives the largest held-out gain ``1 - sum(new) / sum(base)`` of the held-out squared whitened errors; it is accepted
-when that gain is at least ``min_gain`` with a paired t statistic >= ``min_t`` over the held-out units (poses or
-stops).  The tracker/pose stage (:func:`ppoe_core.analysis.diagnose.engine.diagnose`) screens in-sample first and
+when that gain is at least ``min_gain`` with a paired t statistic or a one-sided signed-rank z >= ``min_t`` over the
+held-out units (poses or stops): the rank test sees an improvement confined to some units (images in motion, for
+a camera's time offset) that the t statistic, dominated by their spread, misses.  The tracker/pose stage (:func:`ppoe_core.analysis.diagnose.engine.diagnose`) screens in-sample first and
 picks by held-out Mahalanobis error; it shares :func:`~ppoe_core.analysis.diagnose.stats._paired_t` with this loop.
 """
 
@@ -16,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ppoe_core.analysis.diagnose.stats import _lstsq, _paired_t
+from ppoe_core.analysis.diagnose.stats import _lstsq, _paired_t, _signed_rank_z
 
 __all__ = ["GainSelection", "select_by_heldout_gain"]
 
@@ -59,10 +60,11 @@ def select_by_heldout_gain(n_candidates: int, name: Callable[[int], str],
         if best is None:
             break
         i, gain, t, new, cond = best
-        step = {"effect": name(i), "heldout_gain": gain, "t": t, "condition": cond}
-        if gain < min_gain or t < min_t:
-            sel.rejected.append({**step,
-                                 "reason": f"held-out gain {gain:.3f} (min {min_gain}), t {t:.2f} (min {min_t})"})
+        z = _signed_rank_z(sel.base - new)
+        step = {"effect": name(i), "heldout_gain": gain, "t": t, "z": z, "condition": cond}
+        if gain < min_gain or max(t, z) < min_t:
+            sel.rejected.append({**step, "reason": f"held-out gain {gain:.3f} (min {min_gain}), t {t:.2f} and "
+                                                   f"signed-rank z {z:.2f} (min {min_t})"})
             break
         sel.steps.append(step)
         sel.chosen.append(i)
