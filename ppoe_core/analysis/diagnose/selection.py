@@ -5,8 +5,9 @@ column-scaled normal matrix below ``max_condition``; optional extra ``check``, e
 gives the largest held-out gain ``1 - sum(new) / sum(base)`` of the held-out squared whitened errors; it is accepted
 when that gain is at least ``min_gain`` with a paired t statistic or a one-sided signed-rank z >= ``min_t`` over the
 held-out units (poses or stops): the rank test sees an improvement confined to some units (images in motion, for
-a camera's time offset) that the t statistic, dominated by their spread, misses.  The tracker/pose stage (:func:`ppoe_core.analysis.diagnose.engine.diagnose`) screens in-sample first and
-picks by held-out Mahalanobis error; it shares :func:`~ppoe_core.analysis.diagnose.stats._paired_t` with this loop.
+a camera's time offset) that the t statistic, dominated by their spread, misses.  The tracker/pose stage
+(:func:`ppoe_core.analysis.diagnose.engine.diagnose`) screens in-sample first and picks by held-out Mahalanobis
+error; it shares :func:`~ppoe_core.analysis.diagnose.stats._paired_t` with this loop.
 """
 
 from __future__ import annotations
