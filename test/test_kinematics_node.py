@@ -141,31 +141,45 @@ def test_output_equals_ppoe_fk_cli(live) -> None:
     np.testing.assert_allclose(cov_ros, np.array(ref["cov_ros"]), rtol=1e-9, atol=1e-18)
 
 
-def test_bad_messages_logged_counted_and_node_survives(live) -> None:
+def test_bad_messages_logged_counted_and_node_survives(live, model) -> None:
+    """Bad messages are counted and logged, the node survives; split joint states (a message lacking a chain
+    joint) are merged with the latest value of that joint while it is at most joint_max_age (0.5 s) old."""
     probe, proc = live["probe"], live["proc"]
     n0 = len(live["poses"])
-    bad0 = _last_counts(live).get("bad", 0)
+    c0 = _last_counts(live)
     good_q = [0.1] * 7
     s1 = _send(live, ARM, good_q)
-    _send(live, ARM[:2] + ARM[3:], [0.1] * 6)                       # joint_3 missing
-    _send(live, ["not_a_urdf_joint"], [0.2])                        # only an unknown name
-    _send(live, ARM, [0.1, 0.1, float("nan"), 0.1, 0.1, 0.1, 0.1])  # NaN in a chain joint
-    _send(live, ARM, [0.1] * 6)                                     # 7 names, 6 positions
-    _send_at(live, s1 - 5_000_000, ARM, good_q)                     # stamp 5 ms before an earlier one
+    s_split = _send(live, ARM[:2] + ARM[3:], [0.2] * 6)              # joint_3 from s1 (10 ms old): merged
+    _send(live, ["not_a_urdf_joint"], [0.2])                          # no chain joint: ignored, no output
+    _send(live, ARM, [0.1, 0.1, float("nan"), 0.1, 0.1, 0.1, 0.1])   # NaN in a chain joint
+    _send(live, ARM, [0.1] * 6)                                       # 7 names, 6 positions
+    _send_at(live, s1 - 5_000_000, ARM, good_q)                       # stamp 5 ms before an earlier one
+    live["clock"][0] += 1.0
+    _send(live, ARM[:2] + ARM[3:], [0.1] * 6)                         # joint_3 now 1 s old: incomplete
     s_ok = _send(live, ARM + ["finger_left_joint"], good_q + [float("nan")])  # NaN in an unused joint: fine
     s_ok2 = _send(live, ARM, good_q)
-    _wait_count(live, live["poses"], n0 + 3, "the good poses after the bad messages")
+    _wait_count(live, live["poses"], n0 + 4, "the good poses after the bad messages")
     probe.spin_for(0.3)
     got = [stamp_to_ns(m.header.stamp) for m in live["poses"][n0:]]
-    assert got == [s1, s_ok, s_ok2], "only the valid joint states are published, in order"
-    probe.spin_until(lambda: _last_counts(live).get("bad", 0) >= bad0 + 5, 5, proc, "bad == +5 on /diagnostics")
-    assert _last_counts(live)["bad"] == bad0 + 5
+    assert got == [s1, s_split, s_ok, s_ok2], "only the valid (or merged) joint states are published, in order"
+    q_split = {j: 0.2 for j in ARM} | {"joint_3": 0.1}
+    T, _ = model.fk({**q_split, "finger_left_joint": 0.0}, "base_link", "tool0")
+    p = live["poses"][n0 + 1].pose.pose.position
+    np.testing.assert_allclose([p.x, p.y, p.z], T[:3, 3], atol=1e-9)
+
+    def counts_reached() -> bool:
+        c = _last_counts(live)
+        return (c.get("bad", 0) >= c0.get("bad", 0) + 3 and c.get("ignored", 0) >= c0.get("ignored", 0) + 1
+                and c.get("incomplete", 0) >= c0.get("incomplete", 0) + 1)
+
+    probe.spin_until(counts_reached, 5, proc, "bad +3, ignored +1, incomplete +1 on /diagnostics")
+    assert _last_counts(live)["bad"] == c0.get("bad", 0) + 3
     log = proc.output()
-    assert "bad message on /joint_states: missing value for joint(s) 'joint_3' needed by" in log
-    assert "missing value for joint(s) 'joint_1', 'joint_2'" in log
+    assert "ignored message on /joint_states: carries none of the chain's joints" in log
+    assert "incomplete message on /joint_states: needed joint(s) older than 0.5 s: joint_3" in log
     assert "NaN or infinite value for joint(s) 'joint_3'" in log
     assert "7 names but 6 positions" in log
-    assert "jumped back by 0.005" in log
+    assert "jumped back by 0.015" in log
     assert "finger_left_joint" not in log.split("NaN or infinite")[-1], "unused joints are not checked"
     assert proc.alive()
 

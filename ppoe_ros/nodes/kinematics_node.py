@@ -12,9 +12,13 @@ Publications
     ``/ppoe/<frame>/pose`` (same type) for each of ``extra_target_frames``.
     ``/diagnostics``: counters ``received``, ``published``, ``bad``, ``dropped``.
 
-Bad input never stops the node: a message with a missing joint the chain needs,
-a NaN/inf position, mismatched ``name``/``position`` lengths, or a stamp older
-than the previous one is logged (throttled), counted as ``bad`` and dropped.
+Split joint states (arm, mast and gripper on separate publishers, as with ros2_control) are merged per
+joint: each output uses the latest value of every chain joint, at most ``joint_max_age`` old; a message
+carrying none of the chain's joints is counted as ``ignored``, one arriving while a chain joint is not
+yet known or too old as ``incomplete`` (both logged, throttled, no output).
+
+Bad input never stops the node: a NaN/inf position, mismatched ``name``/``position`` lengths, or a
+stamp older than the previous one is logged (throttled), counted as ``bad`` and dropped.
 A backward jump larger than ``stamp_reset_threshold`` (a replayed bag looping,
 a simulator reset) is logged and counted too, but taken as the start of a new
 timeline: that message is published.  Joint states that arrive before the URDF
@@ -46,8 +50,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
 from ppoe_core import lie
-from ppoe_core.errors import JointValueError, ModelConfigError, PpoeError
+from ppoe_core.errors import ModelConfigError, PpoeError
 from ppoe_core.estimation.batch_worker import BatchWorker
+from ppoe_core.estimation.joint_merge import JointMerger
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_ros.common import (
@@ -95,6 +100,9 @@ PARAMS: tuple[ParamSpec, ...] = (
               min_value=1, max_value=100000),
     ParamSpec("output_qos_depth", 1000, "history depth of the pose publishers (reliable): a subscriber "
               "that falls behind by more loses poses; 1000 = 1 s at 1 kHz", min_value=1, max_value=100000),
+    ParamSpec("joint_max_age", 0.5, "joint states may come split over several publishers (arm, mast, gripper): a "
+              "needed joint's latest value is used while at most this old; 0 = no limit", unit="s", min_value=0.0,
+              max_value=3600.0),
     ParamSpec("stamp_reset_threshold", 1.0, "a stamp this much older than the last one starts a new timeline",
               unit="s", min_value=0.0),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
@@ -137,10 +145,10 @@ class KinematicsNode(Node):
         self.model: Any = None
         self._urdf: str | None = None
         self._last_ns: int | None = None
-        self._cached_names: list[str] | None = None
+        self._merger = JointMerger([], 0)
         self._needed: list[str] = []
         self._model_joints: list[str] = []
-        self._src = self._dst = np.zeros(0, dtype=np.intp)
+        self._dst = np.zeros(0, dtype=np.intp)
         self._worker: BatchWorker | None = None
 
         out_qos = reliable_qos(p["output_qos_depth"])
@@ -186,7 +194,7 @@ class KinematicsNode(Node):
         self._model_joints = list(model.joint_names)
         self._needed = needed
         self._dst = np.array([self._model_joints.index(n) for n in needed], dtype=np.intp)
-        self._cached_names = None
+        self._merger = JointMerger(needed, int(round(self.params["joint_max_age"] * 1e9)))
         self.reference = reference
         self.model = model
         self._urdf = urdf_xml
@@ -241,6 +249,8 @@ class KinematicsNode(Node):
             stats.bad(self.params["joint_states_topic"],
                       f"stamp jumped back by {jump:.3f} s (> stamp_reset_threshold): new timeline")
         q = self._joint_vector(msg)  # raises JointValueError / ValueError naming the joint
+        if q is None:
+            return
         self._last_ns = stamp_ns
         item = (msg.header.stamp, q, model)
         if self._worker is None:
@@ -248,26 +258,15 @@ class KinematicsNode(Node):
         else:
             self._worker.put(item)
 
-    def _joint_vector(self, msg: JointState) -> np.ndarray:
-        """Joint values in ``model.joint_names`` order; the needed ones checked present and finite."""
-        names = msg.name
-        pos = msg.position
-        if len(names) != len(pos):
-            raise ValueError(f"{len(names)} names but {len(pos)} positions")
-        if names != self._cached_names:  # name layout changed: rebuild the index maps
-            where = {n: i for i, n in enumerate(names)}
-            missing = [n for n in self._needed if n not in where]
-            if missing:
-                raise JointValueError(
-                    f"missing value for joint(s) {', '.join(repr(m) for m in missing)} needed by "
-                    f"{self.reference} -> {', '.join(t.frame for t in self.targets)} "
-                    f"(got {', '.join(names) or 'none'})")
-            self._src = np.array([where[n] for n in self._needed], dtype=np.intp)
-            self._cached_names = list(names)
-        values = np.asarray(pos, dtype=float)[self._src]
-        if not np.all(np.isfinite(values)):
-            bad = [n for n, v in zip(self._needed, values) if not np.isfinite(v)]
-            raise JointValueError(f"NaN or infinite value for joint(s) {', '.join(repr(b) for b in bad)}")
+    def _joint_vector(self, msg: JointState) -> np.ndarray | None:
+        """Joint values in ``model.joint_names`` order, merged per joint from split joint-state messages
+        (:class:`~ppoe_core.estimation.joint_merge.JointMerger`); None (counted, logged) while the chain's
+        joints are not all known and fresh, or when the message carries none of them."""
+        values, why = self._merger.update(msg.name, msg.position, stamp_to_ns(msg.header.stamp))
+        if values is None:
+            self.stats.bad(self.params["joint_states_topic"], why,
+                           kind="ignored" if why.startswith("carries none") else "incomplete")
+            return None
         q = np.zeros(len(self._model_joints))
         q[self._dst] = values
         return q
