@@ -602,3 +602,30 @@ def test_out_path_checked_before_the_run(tmp_path, capsys, monkeypatch, command)
     assert main([*argv, "--out", "/proc/ppoe_cannot_create_this"]) == 2
     err = capsys.readouterr().err
     assert "--out /proc/ppoe_cannot_create_this: cannot write there" in err
+
+
+def test_split_joint_states_are_merged_like_the_kinematics_node(small_table1_bag, tmp_path):
+    """The same bag with every joint-state message split in two (the first joints, then the rest 1 ms later, as
+    two publishers would): evaluate merges per joint (values at most 0.5 s old), skips only what cannot be
+    completed (the very first message) and scores as on the original bag."""
+    from ppoe_core.io.bagio import BagWriter, iter_raw, read_bag
+
+    data = read_bag(small_table1_bag)
+    js = data.joint_states
+    split = tmp_path / "split"
+    k = len(js.names) // 2
+    with BagWriter(split) as w:
+        for m in iter_raw(small_table1_bag):
+            if m.topic != "/joint_states":
+                w.write_raw(m.topic, m.msgtype, m.stamp_ns, m.data)
+        for i in range(len(js)):
+            w.write_joint_state(float(js.stamps[i]), js.names[:k], js.positions[i, :k])
+            w.write_joint_state(float(js.stamps[i]) + 0.001, js.names[k:], js.positions[i, k:])
+    model = REPO / "config" / "robots" / "rover_model.yaml"
+    a = evaluate_bag(small_table1_bag, model).summary
+    b = evaluate_bag(split, model).summary
+    assert a["joint_states_incomplete"] == 0 and b["joint_states_incomplete"] == 1
+    assert b["joint_states"] == 2 * a["joint_states"] and b["joint_values_held"] > 0
+    for method in ("fk", "ppoe"):
+        ra, rb = a["methods"][method]["position_3d"]["rms"], b["methods"][method]["position_3d"]["rms"]
+        assert rb == pytest.approx(ra, rel=0.05), (method, ra, rb)

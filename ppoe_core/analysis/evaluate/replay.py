@@ -76,6 +76,11 @@ class ProgressBar:
 # ----------------------------------------------------------------------------
 
 
+#: a joint value a split joint-state message lacks is taken from an earlier message at most this old [s]
+#: (the kinematics node's ``joint_max_age`` default)
+JOINT_MAX_AGE_S = 0.5
+
+
 def _load_model(urdf_xml: str, model_yaml: str | Path, bag: str, urdf_file: str | None = None) -> Any:
     """The bag's URDF (or ``urdf_file``) with the model YAML; errors name the YAML file and line, or the URDF."""
     from ppoe_core.model.ppoe import PPOEModel
@@ -92,15 +97,19 @@ def _load_model(urdf_xml: str, model_yaml: str | Path, bag: str, urdf_file: str 
     return PPOEModel.from_strings(urdf_xml, path, urdf_source=f"bag {bag} /robot_description")
 
 
-def joint_matrix(js: Any, joint_names: Sequence[str], bag: str) -> tuple[np.ndarray, int]:
-    """Joint states -> (N, n) in ``joint_names`` order; gaps filled from the previous message.
+def joint_matrix(js: Any, joint_names: Sequence[str], bag: str,
+                 max_age_s: float = JOINT_MAX_AGE_S) -> tuple[np.ndarray, int]:
+    """Joint states -> (N, n) in ``joint_names`` order, merged per joint as the kinematics node does
+    (:class:`~ppoe_core.estimation.joint_merge.JointMerger`): a joint a message lacks takes its latest earlier
+    value while that is at most ``max_age_s`` old (0: no limit); rows that cannot be completed are NaN.
 
-    Returns the matrix and the number of values held from a previous message.  A joint the
-    model needs that the bag never carries, or lacks in its first message, is a BagError.
+    Returns the matrix and the number of values held from a previous message.  A joint the model needs that
+    the bag never carries (or never with a finite value) is a BagError.
     """
     N = len(js)
     Q = np.empty((N, len(joint_names)))
     held = 0
+    stamps = np.asarray(js.stamps, dtype=float)
     for j, name in enumerate(joint_names):
         if name not in js.names:
             raise BagError(
@@ -110,18 +119,14 @@ def joint_matrix(js: Any, joint_names: Sequence[str], bag: str) -> tuple[np.ndar
         col = js.positions[:, js.names.index(name)].copy()
         bad = ~np.isfinite(col)
         if bad.any():
-            first = int(np.flatnonzero(bad)[0])
-            if first == 0 and bad.all():
+            if bad.all():
                 raise BagError(f"bag {bag}: topic /joint_states: joint {name!r} has no finite value")
-            idx = np.where(bad, 0, np.arange(N))
+            idx = np.where(bad, -1, np.arange(N))
             np.maximum.accumulate(idx, out=idx)
-            if bad[0]:
-                raise BagError(
-                    f"bag {bag}: topic /joint_states message 0 (stamp {js.stamps[0]:.6f}): joint {name!r} "
-                    "missing or not finite and no earlier value to hold"
-                )
-            col = col[idx]
-            held += int(bad.sum())
+            fresh = (idx >= 0) & ((max_age_s <= 0) | (stamps - stamps[np.maximum(idx, 0)] <= max_age_s))
+            fill = bad & fresh
+            col[fill] = col[idx[fill]]
+            held += int(fill.sum())
         Q[:, j] = col
     return Q, held
 
@@ -324,6 +329,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         "units": {"length": "m", "angle": "rad"},
         "joint_states": int(len(data.joint_states)),
         "joint_values_held": int(pri.held),
+        "joint_states_incomplete": int(pri.incomplete),
         "bag_duration_s": float(pri.stamps[-1] - pri.stamps[0]) if len(pri.stamps) > 1 else 0.0,
         "ground_truth": {
             "topic": f"/ground_truth/{kind}",
@@ -430,14 +436,19 @@ class _Priors:
     T_all: np.ndarray
     cov_all: np.ndarray
     cov_naive: np.ndarray | None
+    incomplete: int = 0
 
 
 def _fk_priors(js: Any, model: Any, base: str, tool: str, order: int, bag: str,
                model_yaml: str | Path) -> _Priors:
     """PPOE mean and covariance of the tool for every joint state (the kinematics node's output)."""
-    idx = np.argsort(js.stamps, kind="stable")
-    stamps = js.stamps[idx]
     Q, held = joint_matrix(js, model.joint_names, bag)
+    complete = np.all(np.isfinite(Q), axis=1)  # split joint states: rows before every joint is known (or fresh)
+    if not complete.any():
+        raise BagError(f"bag {bag}: topic /joint_states: no message gives (with values at most "
+                       f"{JOINT_MAX_AGE_S:g} s old from earlier ones) every joint the model needs")
+    idx = np.flatnonzero(complete)[np.argsort(js.stamps[complete], kind="stable")]
+    stamps = js.stamps[idx]
     Q = Q[idx]
     joints = {n: Q[:, j] for j, n in enumerate(model.joint_names)}
     try:
@@ -451,7 +462,7 @@ def _fk_priors(js: Any, model: Any, base: str, tool: str, order: int, bag: str,
     lie.check_covariance(cov_all, name=f"bag {bag}: forward-kinematics covariance of {tool} in {base}", size=6)
     if cov_naive is not None:
         lie.check_covariance(cov_naive, name=f"{model_yaml}: naive covariance", size=6)
-    return _Priors(stamps, Q, held, T_all, cov_all, cov_naive)
+    return _Priors(stamps, Q, held, T_all, cov_all, cov_naive, int((~complete).sum()))
 
 
 def _pipelines(model: Any, base: str, tool: str, fs: dict[str, Any],

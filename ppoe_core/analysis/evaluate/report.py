@@ -40,7 +40,9 @@ def markdown_report(ev: Evaluation) -> str:
         "",
         f"- model: `{s['model']}`, state `T_{s['base']}_{s['tool']}`",
         f"- joint states: {s['joint_states']} over {s['bag_duration_s']:.1f} s; "
-        f"values held from the previous message: {s['joint_values_held']}",
+        f"values held from the previous message: {s['joint_values_held']}; joint states that could not be "
+        "completed (split publishers, a joint not yet seen or older than 0.5 s): "
+        f"{s.get('joint_states_incomplete', 0)}",
         f"- ground truth: `{gt['topic']}`, {gt['samples']} samples, {gt['without_prior']} without a prior",
     ]
     if "registration" in gt:
