@@ -191,6 +191,8 @@ def declare_parameters(
             raise ModelConfigError(f"node {node_name}: parameter '{spec.name}' {reason}")
         values[spec.name] = value
 
+    _report_unknown_overrides(node, by_name)
+
     def _on_set(params: list[Parameter]) -> SetParametersResult:
         changed: dict[str, Any] = {}
         for p in params:
@@ -222,3 +224,25 @@ def mapping_get(d: Mapping[str, Any] | None, *keys: str, default: Any = None) ->
             return default
         cur = cur[k]
     return cur
+
+
+#: parameters every rclpy node has (not in a node's specs)
+_BUILTIN_PARAMETERS = ("use_sim_time", "start_type_description_service")
+
+
+def _report_unknown_overrides(node: Node, by_name: Mapping[str, Any]) -> list[str]:
+    """Log (warning) every value given for this node (``--params-file`` / ``-p``) that is not one of its
+    parameters, with the closest valid name: a misspelled key must not be silently ignored.  Returns the
+    warnings."""
+    import difflib
+
+    overrides = getattr(node, "_parameter_overrides", {}) or {}  # rclpy: the node's overrides by name
+    out = []
+    for name in sorted(overrides):
+        if name in by_name or name in _BUILTIN_PARAMETERS or name.startswith("qos_overrides."):
+            continue
+        close = difflib.get_close_matches(name, list(by_name), n=1, cutoff=0.6)
+        out.append(f"node {node.get_fully_qualified_name()}: unknown parameter '{name}' ignored"
+                   + (f" (did you mean '{close[0]}'?)" if close else f" (valid: {', '.join(sorted(by_name))})"))
+        node.get_logger().warning(out[-1])
+    return out
