@@ -494,3 +494,45 @@ def test_unknown_frame_or_model_file_refused_at_startup(tmp_path: Path) -> None:
             assert node._needed == ARM
         finally:
             node.destroy_node()
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_diagnostics_error_without_model_and_warn_when_the_input_is_silent(tmp_path: Path) -> None:
+    """/diagnostics: ERROR 'no model' until the URDF arrives; OK while joint states flow; WARN 'no /joint_states
+    for X s' once they stop for longer than input_timeout; OK again when they resume."""
+    from std_msgs.msg import String
+
+    env = ros_env(tmp_path)
+    pf = write_params_file(tmp_path / "p.yaml", {"model_file": str(MODEL), "input_timeout": 0.6,
+                                                 "diagnostics_period": 0.2})
+    with Probe(env) as probe, NodeProcess.node("kinematics_node", env, tmp_path, params_file=pf) as proc:
+        diags = probe.collect("/diagnostics", DiagnosticArray)
+        js = probe.publisher("/joint_states", JointState, 100)
+
+        def last() -> DiagnosticStatus | None:
+            st = [s for d in diags for s in d.status if s.name == "kinematics_node"]
+            return st[-1] if st else None
+
+        probe.spin_until(lambda: last() is not None, 15, proc, "/diagnostics")
+        assert last().level == DiagnosticStatus.ERROR and "no model" in last().message
+        desc = probe.publisher("/robot_description", String, LATCHED_QOS)
+        desc.publish(String(data=URDF.read_text()))
+        probe.wait_for_subscribers(js, proc)
+        t = [1.0]
+
+        def feed(seconds: float) -> None:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                t[0] += 0.02
+                msg = JointState(name=ARM, position=[0.1] * 7)
+                msg.header.stamp = ns_to_stamp(int(t[0] * 1e9))
+                js.publish(msg)
+                probe.spin_for(0.02)
+
+        feed(1.0)
+        assert last().level == DiagnosticStatus.OK, last().message
+        probe.spin_until(lambda: last().level == DiagnosticStatus.WARN and "no /joint_states for" in last().message,
+                         10, proc, "WARN: the input went silent")
+        feed(0.6)
+        assert last().level == DiagnosticStatus.OK, last().message

@@ -109,7 +109,7 @@ class DiagnosticsPublisher:
     """Publish a node's :class:`NodeStats` on ``/diagnostics`` every ``period`` seconds.
 
     Level WARN while bad messages, errors or losses (counters in ``NodeStats.warn_keys``)
-    arrived in the last period, else OK
+    arrived in the last period, or while a watched input is silent (:meth:`watch_input`), else OK
     (or the level set by :meth:`set_status`).  The timer runs on the steady clock.
     """
 
@@ -124,6 +124,7 @@ class DiagnosticsPublisher:
         self._level: bytes | None = None
         self._message = ""
         self._extra: dict[str, str] = {}
+        self._watched: list[list[Any]] = []  # [topic, counter key, timeout s, last count, steady time of growth]
         self._timer = node.create_timer(
             float(period), self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME)
         )
@@ -133,6 +134,22 @@ class DiagnosticsPublisher:
         self._level = level
         self._message = message
         self._extra.update({k: str(v) for k, v in extra.items()})
+
+    def watch_input(self, topic: str, key: str, timeout: float) -> None:
+        """WARN while counter ``key`` (messages of ``topic``) has not grown for ``timeout`` seconds (0: off)."""
+        if timeout > 0:
+            self._watched.append([topic, key, float(timeout), self._stats.counts.get(key, 0), time.monotonic()])
+
+    def _silent_inputs(self) -> list[str]:
+        """Messages for the watched inputs that are silent beyond their timeout."""
+        now, out = time.monotonic(), []
+        for w in self._watched:
+            n = self._stats.counts.get(w[1], 0)
+            if n != w[3]:
+                w[3], w[4] = n, now
+            elif now - w[4] >= w[2]:
+                out.append(f"no {w[0]} for {now - w[4]:.1f} s (input_timeout {w[2]:g} s)")
+        return out
 
     def _refresh_gap_counters(self) -> list[str]:
         """Give every sequence-gap counter its topic's publisher count; returns the paused topics."""
@@ -146,6 +163,7 @@ class DiagnosticsPublisher:
     def publish(self) -> None:
         """Publish one ``DiagnosticArray`` now."""
         paused = self._refresh_gap_counters()
+        silent = self._silent_inputs()
         counts = self._stats.counts
         n_bad = sum(counts.get(k, 0) for k in self._stats.warn_keys)
         status = DiagnosticStatus()
@@ -157,6 +175,9 @@ class DiagnosticsPublisher:
         elif n_bad > self._last_bad:
             status.level = DiagnosticStatus.WARN
             status.message = f"{n_bad - self._last_bad} bad or lost messages; last: {self._stats.last_reason}"
+        elif silent:
+            status.level = DiagnosticStatus.WARN
+            status.message = "; ".join(silent)
         else:
             status.level = DiagnosticStatus.OK
             status.message = self._message or "ok"

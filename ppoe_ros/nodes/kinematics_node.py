@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
@@ -100,6 +101,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               min_value=1, max_value=100000),
     ParamSpec("output_qos_depth", 1000, "history depth of the pose publishers (reliable): a subscriber "
               "that falls behind by more loses poses; 1000 = 1 s at 1 kHz", min_value=1, max_value=100000),
+    ParamSpec("input_timeout", 1.0, "/diagnostics says WARN when no joint state arrived for this long; 0 = off",
+              unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("joint_max_age", 0.5, "joint states may come split over several publishers (arm, mast, gripper): a "
               "needed joint's latest value is used while at most this old; 0 = no limit", unit="s", min_value=0.0,
               max_value=3600.0),
@@ -169,7 +172,9 @@ class KinematicsNode(Node):
                                                            self._on_joint_state_burst, sensor_qos(p["qos_depth"]))
 
         take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
-        self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
+        self.diagnostics.watch_input(js_topic, "received", p["input_timeout"])
+        self.diagnostics.set_status(None if self.model else DiagnosticStatus.ERROR,
+                                    "" if self.model else "no model: waiting for robot_description")
         if p["max_batch"] > 1:  # last: nothing after it can fail and leave the thread behind
             self._worker = BatchWorker(self._process, p["max_batch"], p["max_queue"],
                                        on_dropped=lambda why: self.stats.bad(js_topic, why, kind="dropped"),
