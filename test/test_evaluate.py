@@ -629,3 +629,13 @@ def test_split_joint_states_are_merged_like_the_kinematics_node(small_table1_bag
     for method in ("fk", "ppoe"):
         ra, rb = a["methods"][method]["position_3d"]["rms"], b["methods"][method]["position_3d"]["rms"]
         assert rb == pytest.approx(ra, rel=0.05), (method, ra, rb)
+
+
+def test_error_stats_give_median_and_p95_beside_mean_and_rms():
+    from ppoe_core.analysis.evaluate.metrics import error_stats
+
+    v = np.arange(1.0, 101.0)  # 1..100
+    st = error_stats(np.append(v, np.nan))
+    assert st["n"] == 100 and st["median"] == 50.5 and st["p95"] == pytest.approx(95.05)
+    assert st["mean"] == 50.5 and st["max"] == 100.0 and st["rms"] == pytest.approx(np.sqrt(np.mean(v ** 2)))
+    assert np.isnan(error_stats(np.array([np.nan]))["p95"])

@@ -20,16 +20,19 @@ _NEES_JITTER = 1e-12
 
 
 def error_stats(values: np.ndarray) -> dict[str, float]:
-    """``mean``, ``std`` (population), ``rms``, ``max`` and ``n`` of non-NaN values (NaN if none)."""
+    """``mean``, ``std`` (population), ``rms``, ``median``, ``p95``, ``max`` and ``n`` of non-NaN values (NaN if
+    none)."""
     v = np.asarray(values, dtype=float).reshape(-1)
     v = v[np.isfinite(v)]
     if v.size == 0:
         nan = float("nan")
-        return {"mean": nan, "std": nan, "rms": nan, "max": nan, "n": 0}
+        return {"mean": nan, "std": nan, "rms": nan, "median": nan, "p95": nan, "max": nan, "n": 0}
     return {
         "mean": float(np.mean(v)),
         "std": float(np.std(v)),
         "rms": float(np.sqrt(np.mean(v * v))),
+        "median": float(np.median(v)),
+        "p95": float(np.percentile(v, 95)),
         "max": float(np.max(v)),
         "n": int(v.size),
     }

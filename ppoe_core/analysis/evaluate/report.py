@@ -22,7 +22,9 @@ _LABELS = {"fk": "forward kinematics", "ppoe": "fused, PPOE covariance", "naive"
 def _fmt_mm(st: dict[str, Any]) -> str:
     if not st or st.get("n", 0) == 0:
         return "-"
-    return f"{1e3 * st['mean']:.2f} ± {1e3 * st['std']:.2f} (rms {1e3 * st['rms']:.2f}, max {1e3 * st['max']:.2f})"
+    extra = (f", median {1e3 * st['median']:.2f}, p95 {1e3 * st['p95']:.2f}" if "median" in st else "")
+    return (f"{1e3 * st['mean']:.2f} ± {1e3 * st['std']:.2f} (rms {1e3 * st['rms']:.2f}{extra}, "
+            f"max {1e3 * st['max']:.2f})")
 
 
 def _fmt_deg(st: dict[str, Any] | None) -> str:
@@ -57,7 +59,7 @@ def markdown_report(ev: Evaluation) -> str:
         lines.append(f"- {s['fusion']}")
     lines += [
         "",
-        "Errors in mm (mean ± std, rms, max) and degrees; lateral = perpendicular to the tool z axis.",
+        "Errors in mm (mean ± std, rms, median, p95, max) and degrees; lateral = perpendicular to the tool z axis.",
         "",
         "| method | n | 3D position [mm] | lateral [mm] | rotation [deg] | NEES mean (dof, 95% bounds) |",
         "|---|---|---|---|---|---|",
