@@ -182,6 +182,14 @@ def test_cli_evaluate_json_and_out(small_table1_bag, tmp_path, capsys):
     for name in ("evaluation.md", "evaluation.json", "errors.png"):
         assert (out / name).stat().st_size > 0
     assert json.loads((out / "evaluation.json").read_text())["base"] == "base_link"
+    # TUM trajectories for evo: the ground truth and each method at the scored samples; their position
+    # differences are the reported errors
+    gt = np.loadtxt(out / "trajectory_ground_truth.tum")
+    fk = np.loadtxt(out / "trajectory_fk.tum")
+    assert gt.shape == fk.shape == (5, 8) and np.allclose(gt[:, 0], fk[:, 0])
+    np.testing.assert_allclose(np.linalg.norm(gt[:, 4:], axis=1), 1.0, atol=1e-6)
+    rms = np.sqrt(np.mean(np.sum((fk[:, 1:4] - gt[:, 1:4]) ** 2, axis=1)))
+    assert rms == pytest.approx(doc["methods"]["fk"]["position_3d"]["rms"], rel=1e-6)
 
 
 # ----------------------------------------------------------------------------- bad bags

@@ -88,8 +88,29 @@ def markdown_report(ev: Evaluation) -> str:
     return "\n".join(lines)
 
 
+def write_tum(ev: Evaluation, out: Path) -> list[Path]:
+    """``trajectory_ground_truth.tum`` and ``trajectory_<method>.tum`` (TUM format for evo: ``stamp x y z qx qy qz
+    qw`` per scored sample, base frame; with tracker points the positions of the reflector and identity rotations)."""
+    from ppoe_core import lie
+
+    written = []
+    stamps = ev.samples.get("stamp")
+    names = [("ground_truth", "gt_T")] + [(m, f"{m}_T") for m in METHODS]
+    for name, key in names:
+        T = ev.samples.get(key)
+        if stamps is None or T is None or len(T) == 0:
+            continue
+        q = lie.quat_from_matrix(T[:, :3, :3])
+        rows = np.column_stack([stamps, T[:, :3, 3], q])
+        path = out / f"trajectory_{name}.tum"
+        np.savetxt(path, rows, fmt="%.9f", header="timestamp tx ty tz qx qy qz qw")
+        written.append(path)
+    return written
+
+
 def write_report(ev: Evaluation, out_dir: str | Path) -> list[Path]:
-    """Write ``evaluation.md``, ``evaluation.json`` and ``errors.png`` into ``out_dir``.
+    """Write ``evaluation.md``, ``evaluation.json``, ``errors.png`` and the TUM trajectories (:func:`write_tum`)
+    into ``out_dir``.
 
     Returns the written paths.
     """
@@ -98,6 +119,7 @@ def write_report(ev: Evaluation, out_dir: str | Path) -> list[Path]:
     paths = [out / "evaluation.md", out / "evaluation.json", out / "errors.png"]
     paths[0].write_text(markdown_report(ev))
     paths[1].write_text(json.dumps(ev.to_dict(), indent=2, allow_nan=False) + "\n")
+    paths += write_tum(ev, out)
     import matplotlib
 
     matplotlib.use("Agg")

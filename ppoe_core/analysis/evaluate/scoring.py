@@ -71,6 +71,13 @@ def registration_split(
     return [("all", idx[0::2], idx[1::2])], "one registration: fitted on even-numbered samples, scored on odd", 0
 
 
+def _at(p: np.ndarray) -> np.ndarray:
+    """Poses (N, 4, 4) with positions ``p`` and no rotation (a tracker measures only the point)."""
+    T = np.broadcast_to(np.eye(4), (len(p), 4, 4)).copy()
+    T[:, :3, 3] = p
+    return T
+
+
 def score_poses(summary: dict[str, Any], samples: dict[str, np.ndarray], run: ReplayRun, gt_pose: Any,
                 have: np.ndarray, methods: list[str], bag: str) -> None:
     """Position (3D, lateral), rotation and pose NEES of every method against ``/ground_truth/pose``."""
@@ -95,8 +102,10 @@ def score_poses(summary: dict[str, Any], samples: dict[str, np.ndarray], run: Re
                 f"{m}_rotation": rot,
                 f"{m}_nees": ne,
                 f"{m}_position_error": Te[:, :3, 3] - p_gt,
+                f"{m}_T": Te,
             }
         )
+        samples["gt_T"] = T_gt
         summary["methods"][m] = {
             "position_3d": error_stats(e3),
             "lateral": error_stats(el),
@@ -180,8 +189,10 @@ def score_points(summary: dict[str, Any], samples: dict[str, np.ndarray], run: R
                 f"{m}_lateral": el,
                 f"{m}_nees": ne,
                 f"{m}_position_error": p_e - p_gt_base[sel],
+                f"{m}_T": _at(p_e),
             }
         )
+        samples["gt_T"] = _at(p_gt_base[sel])
         summary["methods"][m] = {
             "position_3d": error_stats(e3),
             "lateral": error_stats(el),
