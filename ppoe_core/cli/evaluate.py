@@ -29,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tool", default=None, help="tool frame (default: model YAML frames.tool)")
     parser.add_argument("--out", default=None, metavar="DIR", help="write evaluation.md/.json and errors.png here")
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout")
+    parser.add_argument("--estimate", default=None, metavar="TOPIC",
+                        help="also score this recorded PoseWithCovarianceStamped topic of the bag (base frame), e.g. "
+                             "/ppoe/fused_pose of a live run (method 'recorded')")
     parser.add_argument("--urdf", default=None, metavar="URDF",
                         help="use this URDF instead of the bag's /robot_description (e.g. robot_calibrated.urdf "
                              "from ppoe diagnose --out)")
@@ -92,6 +95,7 @@ def run(args: argparse.Namespace) -> int:
     opts = EvaluateOptions(
         base=args.base, tool=args.tool, order=args.order, fit_set=args.fit_set, fusion=fusion,
         ground_truth=args.ground_truth, progress=progress, accept_partial=args.accept_partial, urdf=args.urdf,
+        estimate=args.estimate,
     )
     ev = evaluate_bag(args.bag, args.model, opts)
     for note in ev.summary.get("bag_notes", []):

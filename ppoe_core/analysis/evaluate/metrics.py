@@ -13,7 +13,7 @@ from ppoe_core import lie
 from ppoe_core.errors import CovarianceError
 
 #: scored methods, in report order
-METHODS = ("fk", "ppoe", "naive")
+METHODS = ("fk", "ppoe", "naive", "recorded")
 #: diagonal regularisation [m^2 / rad^2] of covariances before NEES: a model with exact joints
 #: gives a singular FK covariance (a direction it is certain of), still scored
 _NEES_JITTER = 1e-12

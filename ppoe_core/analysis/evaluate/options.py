@@ -93,6 +93,9 @@ class EvaluateOptions:
         (default: the pose if the bag has one, else the point).
     progress : bool
         Draw a progress bar on stderr.
+    estimate : str or None
+        Also score this recorded ``PoseWithCovarianceStamped`` topic of the bag (method ``recorded``: the
+        latest estimate at or before each ground-truth stamp), e.g. ``/ppoe/fused_pose`` of a live run.
     urdf : str or None
         A URDF file used instead of the bag's ``/robot_description`` (e.g. the ``robot_calibrated.urdf``
         of ``ppoe diagnose --out``).
@@ -110,6 +113,7 @@ class EvaluateOptions:
     progress: bool = False
     accept_partial: bool = False
     urdf: str | None = None
+    estimate: str | None = None
 
     def fusion_settings(self) -> dict[str, Any]:
         """:data:`EVALUATE_SETTINGS` updated with :attr:`fusion`.

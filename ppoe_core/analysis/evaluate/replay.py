@@ -17,6 +17,7 @@ from ppoe_core.analysis.evaluate.metrics import (
     METHODS,
 )
 from ppoe_core.analysis.evaluate.options import EvaluateOptions, Evaluation
+from ppoe_core.analysis.evaluate.inputs import JOINT_MAX_AGE_S, joint_matrix, recorded_estimate
 from ppoe_core.analysis.evaluate.scoring import score_points, score_poses
 from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
@@ -76,11 +77,6 @@ class ProgressBar:
 # ----------------------------------------------------------------------------
 
 
-#: a joint value a split joint-state message lacks is taken from an earlier message at most this old [s]
-#: (the kinematics node's ``joint_max_age`` default)
-JOINT_MAX_AGE_S = 0.5
-
-
 def _load_model(urdf_xml: str, model_yaml: str | Path, bag: str, urdf_file: str | None = None) -> Any:
     """The bag's URDF (or ``urdf_file``) with the model YAML; errors name the YAML file and line, or the URDF."""
     from ppoe_core.model.ppoe import PPOEModel
@@ -95,40 +91,6 @@ def _load_model(urdf_xml: str, model_yaml: str | Path, bag: str, urdf_file: str 
             raise ModelConfigError(f"{urdf_file}: cannot read URDF: {exc.strerror}") from None
         return PPOEModel.from_strings(urdf_xml, path, urdf_source=str(urdf_file))
     return PPOEModel.from_strings(urdf_xml, path, urdf_source=f"bag {bag} /robot_description")
-
-
-def joint_matrix(js: Any, joint_names: Sequence[str], bag: str,
-                 max_age_s: float = JOINT_MAX_AGE_S) -> tuple[np.ndarray, int]:
-    """Joint states -> (N, n) in ``joint_names`` order, merged per joint as the kinematics node does
-    (:class:`~ppoe_core.estimation.joint_merge.JointMerger`): a joint a message lacks takes its latest earlier
-    value while that is at most ``max_age_s`` old (0: no limit); rows that cannot be completed are NaN.
-
-    Returns the matrix and the number of values held from a previous message.  A joint the model needs that
-    the bag never carries (or never with a finite value) is a BagError.
-    """
-    N = len(js)
-    Q = np.empty((N, len(joint_names)))
-    held = 0
-    stamps = np.asarray(js.stamps, dtype=float)
-    for j, name in enumerate(joint_names):
-        if name not in js.names:
-            raise BagError(
-                f"bag {bag}: topic /joint_states never carries joint {name!r} that the model chain needs "
-                f"(carries {js.names})"
-            )
-        col = js.positions[:, js.names.index(name)].copy()
-        bad = ~np.isfinite(col)
-        if bad.any():
-            if bad.all():
-                raise BagError(f"bag {bag}: topic /joint_states: joint {name!r} has no finite value")
-            idx = np.where(bad, -1, np.arange(N))
-            np.maximum.accumulate(idx, out=idx)
-            fresh = (idx >= 0) & ((max_age_s <= 0) | (stamps - stamps[np.maximum(idx, 0)] <= max_age_s))
-            fill = bad & fresh
-            col[fill] = col[idx[fill]]
-            held += int(fill.sum())
-        Q[:, j] = col
-    return Q, held
 
 
 def _camera_lookup(data: Any) -> Callable[[str, float], tuple[np.ndarray, np.ndarray] | None]:
@@ -349,6 +311,10 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
             "no tag observations, images, contact planes or wrenches in contact in the bag: only "
             "forward kinematics scored"
         )
+    if opt.estimate:
+        recorded_estimate(run.est_T, run.est_cov, data, opt.estimate, base, gt_stamps, bag)
+        methods.append("recorded")
+        summary["recorded_estimate"] = opt.estimate
     if kind == "pose":
         score_poses(summary, samples, run, data.ground_truth_pose, have, methods, bag)
     else:

@@ -16,7 +16,8 @@ from ppoe_core.analysis.evaluate.options import Evaluation
 # Report
 # ----------------------------------------------------------------------------
 
-_LABELS = {"fk": "forward kinematics", "ppoe": "fused, PPOE covariance", "naive": "fused, naive covariance"}
+_LABELS = {"fk": "forward kinematics", "ppoe": "fused, PPOE covariance", "naive": "fused, naive covariance",
+           "recorded": "recorded estimate (--estimate)"}
 
 
 def _fmt_mm(st: dict[str, Any]) -> str:

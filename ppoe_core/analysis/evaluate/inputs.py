@@ -1,0 +1,75 @@
+"""Inputs of the replay besides the fusion pipeline: the joint matrix of a bag's (possibly split) joint states and
+a recorded estimate topic to score beside the replayed methods."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ppoe_core import lie
+from ppoe_core.errors import BagError
+
+__all__ = ["JOINT_MAX_AGE_S", "joint_matrix", "recorded_estimate"]
+
+#: a joint value a split joint-state message lacks is taken from an earlier message at most this old [s]
+#: (the kinematics node's ``joint_max_age`` default)
+JOINT_MAX_AGE_S = 0.5
+
+
+def joint_matrix(js: Any, joint_names: Sequence[str], bag: str,
+                 max_age_s: float = JOINT_MAX_AGE_S) -> tuple[np.ndarray, int]:
+    """Joint states -> (N, n) in ``joint_names`` order, merged per joint as the kinematics node does
+    (:class:`~ppoe_core.estimation.joint_merge.JointMerger`): a joint a message lacks takes its latest earlier
+    value while that is at most ``max_age_s`` old (0: no limit); rows that cannot be completed are NaN.
+
+    Returns the matrix and the number of values held from a previous message.  A joint the model needs that
+    the bag never carries (or never with a finite value) is a BagError.
+    """
+    N = len(js)
+    Q = np.empty((N, len(joint_names)))
+    held = 0
+    stamps = np.asarray(js.stamps, dtype=float)
+    for j, name in enumerate(joint_names):
+        if name not in js.names:
+            raise BagError(
+                f"bag {bag}: topic /joint_states never carries joint {name!r} that the model chain needs "
+                f"(carries {js.names})"
+            )
+        col = js.positions[:, js.names.index(name)].copy()
+        bad = ~np.isfinite(col)
+        if bad.any():
+            if bad.all():
+                raise BagError(f"bag {bag}: topic /joint_states: joint {name!r} has no finite value")
+            idx = np.where(bad, -1, np.arange(N))
+            np.maximum.accumulate(idx, out=idx)
+            fresh = (idx >= 0) & ((max_age_s <= 0) | (stamps - stamps[np.maximum(idx, 0)] <= max_age_s))
+            fill = bad & fresh
+            col[fill] = col[idx[fill]]
+            held += int(fill.sum())
+        Q[:, j] = col
+    return Q, held
+
+
+def recorded_estimate(est_T: dict[str, np.ndarray], est_cov: dict[str, np.ndarray], data: Any, topic: str,
+                      base: str, gt_stamps: np.ndarray, bag: str) -> None:
+    """``est_T/est_cov["recorded"]``: the latest pose of ``topic`` (``PoseWithCovarianceStamped`` in the base
+    frame, e.g. what ``ppoe record`` took of ``/ppoe/fused_pose``) at or before each ground-truth stamp (NaN before
+    the first); its ROS covariance converted to the tool-frame tangent space."""
+    series = data.poses_with_covariance.get(topic)
+    if series is None or len(series) == 0:
+        raise BagError(f"bag {bag}: --estimate {topic}: no PoseWithCovarianceStamped messages on it (has "
+                       f"{sorted(data.poses_with_covariance)})")
+    frames = sorted(set(series.frame_ids) - {base})
+    if frames:
+        raise BagError(f"bag {bag}: --estimate {topic}: frame_id {frames[0]!r}, expected the base frame {base!r}")
+    order = np.argsort(series.stamps, kind="stable")
+    st = series.stamps[order]
+    j = np.searchsorted(st, gt_stamps, side="right") - 1
+    ok = j >= 0
+    T = np.full((len(gt_stamps), 4, 4), np.nan)
+    C = np.full((len(gt_stamps), 6, 6), np.nan)
+    T[ok] = series.T[order][j[ok]]
+    C[ok] = lie.cov_ros_to_local(T[ok], series.cov_ros[order][j[ok]])
+    est_T["recorded"], est_cov["recorded"] = T, C
