@@ -323,8 +323,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     _measurement_summary(summary, run, pipes, updaters, methods)
     if data.notes:
         summary["bag_notes"] = list(data.notes)
-    summary["wall_time_s"] = float(time.perf_counter() - t_start)
-    return Evaluation(summary, samples)
+    return Evaluation({**summary, "wall_time_s": float(time.perf_counter() - t_start)}, samples)
 
 
 def _check_inputs(data: Any, model: Any, model_yaml: str | Path, opt: EvaluateOptions,
