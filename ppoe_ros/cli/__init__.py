@@ -22,7 +22,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("ppoe_core.cli.evaluate", "replay a bag offline: FK vs PPOE-fused vs naive-fused error"),
     "diagnose": ("ppoe_core.cli.diagnose", "find systematic effects the model lacks and add them"),
     "urdf": ("ppoe_core.cli.urdf", "make a URDF (from-dh: from a Denavit-Hartenberg table)"),
-    "import": ("ppoe_core.cli.importer", "turn measured datasets (hilti, motoman) into contract bags"),
+    "import": ("ppoe_core.cli.importer", "turn measured datasets (hilti, motoman, csv) into contract bags"),
     "play": ("ppoe_ros.cli.play", "publish a recorded bag onto live ROS 2 topics"),
     "record": ("ppoe_ros.cli.record", "record live ROS 2 topics into a new bag"),
 }
