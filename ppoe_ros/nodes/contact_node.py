@@ -93,6 +93,9 @@ PARAMS: tuple[ParamSpec, ...] = (
               min_value=1, max_value=100000),
     ParamSpec("stamp_reset_threshold", 1.0, "a wrench stamp this much older than the last one starts a new "
               "timeline (bag loop, simulator restart): counted, the contact state reset", unit="s", min_value=0.0),
+    ParamSpec("input_timeout", 1.0, "/diagnostics says WARN when no wrench (or contact flag) arrived for this "
+              "long; 0 = off",
+              unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
     ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
               min_value=0.0),
@@ -124,6 +127,7 @@ class ContactNode(Node):
         self._out = pose_cov_stamped_msg(self.plane.T_frame_plane, self.plane.cov_ros, 0, self.plane.frame)
         self._pub = self.create_publisher(PoseWithCovarianceStamped, p["plane_topic"], reliable_qos(100))
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
+        self.diagnostics.watch_input(p["contact_flag_topic"] or p["wrench_topic"], "received", p["input_timeout"])
         qos = sensor_qos(p["qos_depth"])
         if p["contact_flag_topic"]:
             t = p["contact_flag_topic"]

@@ -241,6 +241,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     ),
     ParamSpec("output_qos_depth", 1000, "history depth of the fused-pose publisher (reliable): a subscriber "
               "that falls behind by more loses poses; 1000 = 1 s at 1 kHz", min_value=1, max_value=100000),
+    ParamSpec("input_timeout", 1.0, "/diagnostics says WARN when no input (prior or measurement) arrived for "
+              "this long; 0 = off",
+              unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
     ParamSpec(
         "log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s", min_value=0.0
@@ -342,6 +345,7 @@ class FusionNode(Node):
         self.pub = self.create_publisher(PoseWithCovarianceStamped, p["fused_topic"],
                                           reliable_qos(p["output_qos_depth"]))
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
+        self.diagnostics.watch_input("input (prior or measurement)", "received", p["input_timeout"])
         qos = sensor_qos(p["qos_depth"])
         rel = reliable_qos(p["qos_depth"])
 

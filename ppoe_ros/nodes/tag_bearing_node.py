@@ -94,6 +94,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               "decoding) are refused", min_value=1),
     ParamSpec("qos_depth", 10, "history depth of the image and camera_info subscriptions", min_value=1,
               max_value=1000),
+    ParamSpec("input_timeout", 5.0, "/diagnostics says WARN when no image arrived for this long; 0 = off",
+              unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
     ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
               min_value=0.0),
@@ -261,6 +263,7 @@ class TagBearingNode(Node):
         self.debug_pub = (self.create_publisher(Image, p["debug_image_topic"], reliable_qos(5))
                           if p["publish_debug_image"] else None)
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
+        self.diagnostics.watch_input(p["image_topic"], "received", p["input_timeout"])
         qos = sensor_qos(p["qos_depth"])
         it, ct = p["image_topic"], p["camera_info_topic"]
         self.create_subscription(CameraInfo, ct, guarded(self.stats, ct)(self._camera_info), qos)
