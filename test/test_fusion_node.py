@@ -373,3 +373,30 @@ def test_evaluate_refuses_what_the_node_refuses(tmp_path, capsys):
         rc = main(["evaluate", str(bag), "--model", str(CONFIG / "robots" / "rover_model.yaml"), "--set", setting])
         err = capsys.readouterr().err
         assert rc == 2 and f"fusion setting {setting.replace('=', ' = ')} is outside" in err, err
+
+
+def test_diagnostics_error_until_the_model_arrives_and_warn_when_inputs_stop(tmp_path):
+    """Without a URDF the fusion node says ERROR 'no model' on /diagnostics; once the URDF arrives on the topic
+    and no input follows for input_timeout, it says WARN 'no input ... for X s'."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from ros_helpers import NodeProcess, Probe, ros_env, write_params_file
+    from std_msgs.msg import String
+
+    from ppoe_ros.common import LATCHED_QOS
+
+    env = ros_env(tmp_path)
+    pf = write_params_file(tmp_path / "fusion.yaml", {
+        "model_file": str(CONFIG / "robots" / "rover_model.yaml"), "diagnostics_period": 0.2, "input_timeout": 0.5})
+    with Probe(env) as probe, NodeProcess.node("fusion_node", env, tmp_path, params_file=pf) as proc:
+        diags = probe.collect("/diagnostics", DiagnosticArray)
+
+        def last():
+            return diags[-1].status[0] if diags else None
+
+        probe.spin_until(lambda: last() is not None, 15, proc, "/diagnostics")
+        assert last().level == DiagnosticStatus.ERROR and "no model" in last().message
+        desc = probe.publisher("/robot_description", String, LATCHED_QOS)
+        desc.publish(String(data=(CONFIG / "robots" / "rover.urdf").read_text()))
+        probe.spin_until(lambda: last().level == DiagnosticStatus.WARN and "no input" in last().message, 15, proc,
+                         "WARN: no input")
+        assert proc.alive()

@@ -366,7 +366,10 @@ class FusionNode(Node):
         )
 
         take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
-        self.diagnostics.set_status(None, "" if self.model else "waiting for robot_description")
+        if self.model is None:
+            from diagnostic_msgs.msg import DiagnosticStatus
+
+            self.diagnostics.set_status(DiagnosticStatus.ERROR, "no model: waiting for robot_description")
 
     # ------------------------------------------------------------------ model
     def _set_model(self, urdf_xml: str, where: str) -> None:
