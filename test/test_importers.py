@@ -439,3 +439,43 @@ def test_left_arm_file_imports_and_its_encoder_offset_is_diagnosed(tmp_path, cap
     assert found[:1] == [("joint_offset", "joint_L2")], doc["summary"]
     lo, hi = doc["effects"][0]["ci"]["offset"]
     assert lo <= 0.01 <= hi
+
+
+def test_left_arm_marker_pixels_go_through_the_pixel_stage(tmp_path, capsys):
+    """An arm-2 file whose marker pixels are projections of the MK2xx markers (model.yaml cameras, true
+    intrinsics): the bag goes through diagnose's tracker and pixel stages (markers on EE2, both cameras), and
+    the pixels of the nominal model reproject to well under a pixel (no camera effect is invented)."""
+    from ppoe_core.estimation.camera import project_points
+    from ppoe_core.robot.tree import KinematicTree
+    from ppoe_core.robot.urdf import parse_urdf
+    from ppoe_ros.cli import main
+
+    f, _, _ = _left_arm_file(tmp_path, n=60, seed=9)
+    D = scipy.io.loadmat(f)["dataset"]
+    robot = parse_urdf(mo.left_arm_urdf((MOTOMAN / "motoman_right.urdf").read_text(), MOTOMAN / "model.yaml"))
+    tree = KinematicTree(robot)
+    cams = mo.load_motoman_cameras(MOTOMAN / "model.yaml")
+    rows = []
+    for r in D:
+        q = {n: np.array(v) for n, v in zip(mo.ARM_JOINTS[2], [r[6], *r[13:19]])}
+        q.update({j: np.array(0.0) for j in robot.independent_joints if j not in q})
+        poses = tree.link_poses(q)
+        for cam_n, cam in cams.items():
+            for face in range(1, 21):
+                T_cam_mk = np.linalg.inv(poses[cam.frame]) @ poses[f"MK2{face:02d}"]
+                p, z = T_cam_mk[:3, 3], T_cam_mk[:3, 2]
+                if p[2] > 0.3 and z @ (-p / np.linalg.norm(p)) > 0.5:  # in front, facing the camera
+                    uv = project_points(p[None], cam.K, cam.D)[0]
+                    if 0 < uv[0] < 6000 and 0 < uv[1] < 4000:
+                        row = r.copy()
+                        row[1], row[3], row[4:6] = face, cam_n, uv
+                        rows.append(row)
+    assert len(rows) > 40
+    scipy.io.savemat(f, {"dataset": np.array(rows)})
+    res = mo.import_motoman(f, MOTOMAN / "model.yaml", tmp_path / "bag")
+    assert main(["diagnose", str(tmp_path / "bag"), "--model", res["model"], "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    pix = doc["pixels"]
+    assert set(pix["pixel_rms_before"]) <= {"camera_1_optical_frame", "camera_2_optical_frame"}
+    assert all(v < 0.5 for v in pix["pixel_rms_declared_only"].values()), pix["pixel_rms_declared_only"]
+    assert not [e for e in doc["effects"] if e["name"] == "camera_extrinsics"]

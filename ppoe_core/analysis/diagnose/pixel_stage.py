@@ -307,7 +307,7 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
     for f in cams:
         if f not in robot.links:
             raise BagError(f"bag {path}: camera frame {f!r} is not a link of URDF {robot.source}")
-    q, ctx = _joints_at(data.joint_states, robot, np.asarray(stamps)[msg], path)
+    q, ctx = _joints_at(data.joint_states, robot, np.asarray(stamps)[msg], path, [*links, *cams])
     ctx["sensor"] = np.array([frames[k] for k in msg])  # the camera of each row (a camera's time_offset)
     return PixelObs(q=q, context=ctx, link=links[0], point=point, camera=np.array([cams.index(frames[k]) for k in msg]),
                     cameras=cams, K=[intr[f][0] for f in cams], D=[intr[f][1] for f in cams], uv=rows[:, 3:5].copy(),
@@ -411,14 +411,23 @@ def _pixel_rows(data: Any, path: str | Path, intr: dict[str, tuple[np.ndarray, n
     return rows_all, frames, stamps
 
 
-def _joints_at(js: Any, robot: Robot, at: np.ndarray, path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
-    """Joint values at the observation stamps ``at`` and the context (time, joint velocity, motion sign)."""
+def _joints_at(js: Any, robot: Robot, at: np.ndarray, path: str | Path,
+               links: Sequence[str] = ()) -> tuple[dict[str, np.ndarray], dict]:
+    """Joint values at the observation stamps ``at`` and the context (time, joint velocity, motion sign).
+
+    A joint the bag never carries is held at 0 when it is off the chains of ``links`` (markers, cameras: e.g.
+    the other arm of a dual-arm robot), else an error naming it."""
     order = np.argsort(js.stamps, kind="stable")
     t_js = js.stamps[order]
     q: dict[str, np.ndarray] = {}
     vel: dict[str, np.ndarray] = {}
     cols = []
+    needed = {j for ln in links for j in robot.path_from_root(ln)}
     for j in KinematicTree(robot).joint_names:
+        if j not in js.names and links and j not in needed:
+            q[j], vel[j] = np.zeros(len(at)), np.zeros(len(at))
+            cols.append(np.zeros(len(t_js)))
+            continue
         col = js.column(j)[order]
         good = np.isfinite(col)
         if not np.any(good):
