@@ -11,27 +11,31 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.errors import BagError
 
-__all__ = ["JOINT_MAX_AGE_S", "joint_matrix", "recorded_estimate"]
+__all__ = ["JOINT_MAX_AGE_S", "joint_matrix", "recorded_estimate", "required_joints"]
 
 #: a joint value a split joint-state message lacks is taken from an earlier message at most this old [s]
 #: (the kinematics node's ``joint_max_age`` default)
 JOINT_MAX_AGE_S = 0.5
 
 
-def joint_matrix(js: Any, joint_names: Sequence[str], bag: str,
-                 max_age_s: float = JOINT_MAX_AGE_S) -> tuple[np.ndarray, int]:
+def joint_matrix(js: Any, joint_names: Sequence[str], bag: str, max_age_s: float = JOINT_MAX_AGE_S,
+                 required: set[str] | None = None) -> tuple[np.ndarray, int]:
     """Joint states -> (N, n) in ``joint_names`` order, merged per joint as the kinematics node does
     (:class:`~ppoe_core.estimation.joint_merge.JointMerger`): a joint a message lacks takes its latest earlier
     value while that is at most ``max_age_s`` old (0: no limit); rows that cannot be completed are NaN.
 
-    Returns the matrix and the number of values held from a previous message.  A joint the model needs that
-    the bag never carries (or never with a finite value) is a BagError.
+    Returns the matrix and the number of values held from a previous message.  A joint of ``required`` (default:
+    every joint) that the bag never carries (or never with a finite value) is a BagError; another one is held at
+    0 (a joint off every chain the evaluation uses, e.g. the other arm of a dual-arm robot).
     """
     N = len(js)
     Q = np.empty((N, len(joint_names)))
     held = 0
     stamps = np.asarray(js.stamps, dtype=float)
     for j, name in enumerate(joint_names):
+        if name not in js.names and required is not None and name not in required:
+            Q[:, j] = 0.0
+            continue
         if name not in js.names:
             raise BagError(
                 f"bag {bag}: topic /joint_states never carries joint {name!r} that the model chain needs "
@@ -73,3 +77,17 @@ def recorded_estimate(est_T: dict[str, np.ndarray], est_cov: dict[str, np.ndarra
     T[ok] = series.T[order][j[ok]]
     C[ok] = lie.cov_ros_to_local(T[ok], series.cov_ros[order][j[ok]])
     est_T["recorded"], est_cov["recorded"] = T, C
+
+
+def required_joints(model: Any, links: set[str]) -> set[str]:
+    """Joints on the chains from the root to ``links`` and to every link the model YAML's sensors hang on
+    (trackers, tags, camera, contact, IMUs); links not in the URDF are skipped."""
+    cfg, robot = model.config, model.robot
+    links = set(links) | {t.link for t in cfg.trackers} | {i.link for i in cfg.imus.values()}
+    if cfg.tags is not None:
+        links |= {it.link for it in cfg.tags.items}
+    if cfg.camera is not None:
+        links.add(cfg.camera.frame)
+    if cfg.contact is not None:
+        links |= {cfg.contact.plane_frame, cfg.contact.tool_link}
+    return {j for ln in links if ln in robot.links for j in robot.path_from_root(ln)}

@@ -17,7 +17,7 @@ from ppoe_core.analysis.evaluate.metrics import (
     METHODS,
 )
 from ppoe_core.analysis.evaluate.options import EvaluateOptions, Evaluation
-from ppoe_core.analysis.evaluate.inputs import JOINT_MAX_AGE_S, joint_matrix, recorded_estimate
+from ppoe_core.analysis.evaluate.inputs import JOINT_MAX_AGE_S, joint_matrix, recorded_estimate, required_joints
 from ppoe_core.analysis.evaluate.scoring import score_points, score_poses
 from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
@@ -272,7 +272,9 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     data = read_bag(bag, accept_partial=opt.accept_partial)
     model = _load_model(data.require_robot_description(), model_yaml, bag, opt.urdf)
     base, tool, kind = _check_inputs(data, model, model_yaml, opt, bag)
-    pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml)
+    sensors = {base, tool, *data.camera_info.frame_ids, *data.tag_observations.frame_ids}
+    pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml,
+                     required_joints(model, sensors))
     fs = opt.fusion_settings()
     tag_meas, tag_counts = tag_measurements(data, model, bag, refine=str(fs["corner_refinement"]))
     contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
@@ -405,9 +407,9 @@ class _Priors:
 
 
 def _fk_priors(js: Any, model: Any, base: str, tool: str, order: int, bag: str,
-               model_yaml: str | Path) -> _Priors:
+               model_yaml: str | Path, required: set[str] | None = None) -> _Priors:
     """PPOE mean and covariance of the tool for every joint state (the kinematics node's output)."""
-    Q, held = joint_matrix(js, model.joint_names, bag)
+    Q, held = joint_matrix(js, model.joint_names, bag, required=required)
     complete = np.all(np.isfinite(Q), axis=1)  # split joint states: rows before every joint is known (or fresh)
     if not complete.any():
         raise BagError(f"bag {bag}: topic /joint_states: no message gives (with values at most "
