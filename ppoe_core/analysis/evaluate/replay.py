@@ -242,6 +242,10 @@ def contact_measurements(
     return out, counts
 
 
+_NO_MEASUREMENTS = (
+    "no tag observations, images, contact planes or wrenches in contact in the bag: only forward kinematics scored"
+)
+
 def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptions | None = None) -> Evaluation:
     """Replay ``bag`` through the core pipeline and score FK, PPOE-fused and naive-fused poses.
 
@@ -309,10 +313,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     # without any measurement the fused estimates are the priors: only FK is scored
     methods = ["fk"] + (list(pipes) if meas else [])
     if not meas:
-        summary["fusion"] = (
-            "no tag observations, images, contact planes or wrenches in contact in the bag: only "
-            "forward kinematics scored"
-        )
+        summary["fusion"] = _NO_MEASUREMENTS
     if opt.estimate:
         recorded_estimate(run.est_T, run.est_cov, data, opt.estimate, base, gt_stamps, bag)
         methods.append("recorded")
