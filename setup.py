@@ -34,6 +34,7 @@ setup(
         "rosbags>=0.10",
         "matplotlib>=3.7",
         "ruamel.yaml>=0.18",
+        "numba>=0.59",
     ],
     extras_require={
         "ros": [

@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from ppoe_core import lie
 
@@ -54,3 +55,14 @@ def random_pose_quat(rng: np.random.Generator) -> np.ndarray:
     T[:3, :3] = lie.matrix_from_quat(q)
     T[:3, 3] = rng.normal(size=3)
     return T
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _compiled_kernels() -> None:
+    """Compile the numba chain kernel once (or load it from numba's cache) before any test, so that node
+    processes started by the tests load it from the cache instead of all compiling it at once."""
+    from ppoe_core.model.ppoe import PPOEModel
+
+    model = PPOEModel.from_files(str(CONFIG_ROBOTS / "arm7.urdf"), str(CONFIG_ROBOTS / "arm7_model.yaml"))
+    model.fk(np.zeros(len(model.joint_names)))
+

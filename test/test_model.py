@@ -235,10 +235,12 @@ def test_batched_equals_looped_single(edge, order):
 
 def test_batched_over_chunks_and_dict_broadcast(edge):
     rng = np.random.default_rng(4)
-    n = 2600  # more than one internal chunk
+    from ppoe_core.model.chain_kernel import CHUNK
+
+    n = 3 * CHUNK + 5  # several chunks of the compiled kernel, the last one partial
     Q = _random_q(edge, rng, (n,))
     T, cov = edge.fk(Q, "base_link", "tool0")
-    for i in (0, 2047, 2048, 2599):
+    for i in (0, CHUNK - 1, CHUNK, 2 * CHUNK + 1, n - 1):
         Ti, ci = edge.fk(Q[i], "base_link", "tool0")
         np.testing.assert_allclose(T[i], Ti, atol=1e-13)
         np.testing.assert_allclose(cov[i], ci, rtol=1e-9, atol=1e-20)
@@ -541,15 +543,34 @@ def test_random_trees_against_reference(tree, data):
     np.testing.assert_allclose(covb[0], cov_ref, rtol=1e-8, atol=1e-17)
 
 
-def test_fourth_order_batch_last_matches_reference_form():
-    from ppoe_core.model.fourth_order import compound_fourth_order_batch_last
+def test_fourth_order_compounding_over_chunks_equals_one_by_one():
+    from ppoe_core.model.fourth_order import CHUNK
 
     rng = np.random.default_rng(7)
-    A = rng.normal(size=(5, 6, 6)) * 0.1
-    B = rng.normal(size=(5, 6, 6)) * 0.1
+    n = 2 * CHUNK + 3  # the compiled compounding runs in chunks; the last one partial
+    A = rng.normal(size=(n, 6, 6)) * 0.1
+    B = rng.normal(size=(n, 6, 6)) * 0.1
     c1, c2 = A @ A.transpose(0, 2, 1), B @ B.transpose(0, 2, 1)
-    out = compound_fourth_order_batch_last(np.moveaxis(c1, 0, -1), np.moveaxis(c2, 0, -1))
-    np.testing.assert_allclose(np.moveaxis(out, -1, 0), compound_fourth_order(c1, c2), rtol=1e-12, atol=1e-16)
+    out = compound_fourth_order(c1, c2)
+    for i in (0, CHUNK - 1, CHUNK, n - 1):
+        np.testing.assert_allclose(out[i], compound_fourth_order(c1[i], c2[i]), rtol=1e-14, atol=1e-18)
+    np.testing.assert_allclose(out, out.transpose(0, 2, 1), rtol=1e-13, atol=1e-18)
+
+
+@pytest.mark.parametrize("frm, to", [("base_link", "tool0"), ("tool0", "base_link"),
+                                     ("finger", "camera_optical_frame")])
+def test_fourth_order_chain_matches_sequential_reference(edge, frm, to):
+    """Order 4 = the local site covariances (explicit adjoints) compounded in chain order."""
+    rng = np.random.default_rng(8)
+    for q in _random_q(edge, rng, (2,)):
+        items = reference_chain(edge, dict(zip(edge.joint_names, q)), frm, to)
+        cov_ref = np.zeros((6, 6))
+        for J, S in reference_transport(items).values():
+            cov_ref = compound_fourth_order(cov_ref, J @ S @ J.T)
+        T, cov = edge.fk(q, frm, to, order=4)
+        np.testing.assert_allclose(cov, cov_ref, rtol=1e-9, atol=1e-18)
+        _, cov2 = edge.fk(q, frm, to, order=2)
+        assert np.linalg.norm(cov - cov2) > 1e-6 * np.linalg.norm(cov2)  # the fourth-order terms are there
 
 
 def test_core_never_imports_ros() -> None:

@@ -55,9 +55,6 @@ _EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = 1.0
 # Compiled chain
 # ----------------------------------------------------------------------------
 
-#: batch chunk size of the batched path (working set stays in cache)
-_CHUNK = 2048
-
 # program op codes
 _S, _RZ, _TZ, _D, _SITE = 0, 1, 2, 3, 4
 
@@ -110,6 +107,8 @@ class _Chain:
     f_tz: tuple  # (motion indices, factor indices) of the prismatic motions
     f_d_idx: Array  # factor index of each D op
     site_pos: Array  # (n_sites,) number of factors before each site
+    program: tuple  # arrays of the compiled evaluation (ppoe_core.model.chain_kernel: F, kind, arg, col_pos, X,
+    #                 mot_pos, mot_kind, site_start)
 
 
 def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects: bool) -> _Chain:
@@ -323,4 +322,24 @@ class _ChainBuilder:
                   np.array([f_motion_idx[i] for i, k in enumerate(motion_kind) if k == _TZ], dtype=int)),
             f_d_idx=np.array(f_d_idx, dtype=int),
             site_pos=site_pos,
+            program=_program(factors, f_motion_idx, f_d_idx, motion_kind, site_pos[col_site], L_all,
+                             [c[4] for c in site_cols] + [L_all.shape[0]]),
         )
+
+
+def _program(factors: list, f_motion_idx: list, f_d_idx: list, motion_kind: list, col_pos: Array,
+             L_all: Array, site_start: list) -> tuple:
+    """The chain's arrays for :func:`ppoe_core.model.chain_kernel.eval_chain` (contiguous, fixed dtypes)."""
+    kind = np.zeros(len(factors), dtype=np.int64)
+    arg = np.zeros(len(factors), dtype=np.int64)
+    for i, (f, k) in enumerate(zip(f_motion_idx, motion_kind)):
+        kind[f] = 1 if k == _RZ else 2
+        arg[f] = i
+    for i, f in enumerate(f_d_idx):
+        kind[f] = 3
+        arg[f] = i
+    return (
+        np.ascontiguousarray(np.array(factors, dtype=float)), kind, arg, np.asarray(col_pos, dtype=np.int64),
+        np.ascontiguousarray(L_all.reshape(-1, 2, 3), dtype=float), np.array(f_motion_idx, dtype=np.int64),
+        np.array([1 if k == _RZ else 2 for k in motion_kind], dtype=np.int64), np.array(site_start, dtype=np.int64),
+    )

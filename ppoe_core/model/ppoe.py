@@ -31,9 +31,8 @@ program of constant 4x4 factors and joint motions about the local z axis (each
 joint frame is rotated by a constant ``Q`` with ``Q e_z = axis``, so a revolute
 motion only mixes two columns).  The chain is evaluated from its END: the running
 product ``B`` is exactly the paper's "everything after perturbation k", so no
-inverse is needed.  The batched path keeps poses as ``(3, 4, N)`` (batch last,
-structure of arrays, chunks of ``_CHUNK`` configurations), the single-configuration
-path uses a log-depth suffix product over stacked ``(K, 4, 4)`` factors.
+inverse is needed.  One compiled kernel (numba, :mod:`ppoe_core.model.chain_kernel`)
+evaluates one or many configurations, in chunks with the batch axis innermost (SIMD).
 Covariances use the low-rank factors ``Sigma_k = L_k L_k^T`` (only the non-zero
 sigmas): ``Sigma = G^T G`` with rows ``G = [Ad_{B_k^-1} L_k]_k``.
 
@@ -51,16 +50,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
-from ppoe_core.model.chain import _CHUNK, Array, _Chain, _compile
-from ppoe_core.model.chain_eval import (
-    _eval_backward,
-    _eval_forward,
-    _eval_single,
-    _exp_batch_last,
-    _local_columns_single,
-    _rows_to_T,
-)
-from ppoe_core.model.fourth_order import _fourth_order, _fourth_order_batch_last
+from ppoe_core.model.chain import Array, _Chain, _compile
+from ppoe_core.model.chain_eval import _eval_forward, _exp_batch_last, _rows_to_T, evaluate
 from ppoe_core.robot.config import ModelConfig, load_model_config
 from ppoe_core.robot.urdf import Robot, parse_urdf
 
@@ -348,17 +339,9 @@ class PPOEModel:
         ch = self._lookup(frm, to)
         th = self._single_theta(joints, ch)
         if th is not None:
-            return _eval_single(ch, th, None)[0]
+            return evaluate(ch, th[:, None], None, order=0)[0][0]
         ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
-        if N == 1:
-            T, _ = _eval_single(ch, theta[:, 0], None if D is None else D[..., 0])
-            return T.reshape(shape + (4, 4))
-        T = np.zeros((N, 4, 4))
-        T[:, 3, 3] = 1.0
-        for a in range(0, N, _CHUNK):
-            b = min(N, a + _CHUNK)
-            B, _, _ = _eval_backward(ch, theta[:, a:b], None if D is None else D[..., a:b], False, False)
-            T[a:b, :3, :] = np.moveaxis(B, 2, 0)
+        T = evaluate(ch, theta, D, order=0)[0]
         return T.reshape(shape + (4, 4))
 
     def fk(
@@ -396,46 +379,14 @@ class PPOEModel:
         if order != 2 and order != 4:
             raise ModelConfigError(f"fk: order must be 2 or 4, got {order!r}")
         ch = self._lookup(frm, to)
-        m = ch.L_all.shape[0]
         th = self._single_theta(joints, ch)
-        if th is not None and order == 2:
-            T, S = _eval_single(ch, th, None)
-            if m == 0:
-                return T, np.zeros((6, 6))
-            G = _local_columns_single(ch, S)
-            return T, G.T @ G
+        if th is not None:
+            T, cov, _, _ = evaluate(ch, th[:, None], None, order=order)
+            assert cov is not None
+            return T[0], cov[0]
         ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
-        if N == 1:
-            T, S = _eval_single(ch, theta[:, 0], None if D is None else D[..., 0])
-            if m == 0:
-                return T.reshape(shape + (4, 4)), np.zeros(shape + (6, 6))
-            G = _local_columns_single(ch, S)  # (m, 6)
-            cov = G.T @ G if order == 2 else _fourth_order(ch, G[:, None, :])[0]
-            return T.reshape(shape + (4, 4)), cov.reshape(shape + (6, 6))
-        T = np.zeros((N, 4, 4))
-        T[:, 3, 3] = 1.0
-        cov = np.zeros((N, 6, 6))
-        # chunks keep the (3, 4, n) working set in cache
-        for a in range(0, N, _CHUNK):
-            b = min(N, a + _CHUNK)
-            Dc = None if D is None else D[..., a:b]
-            B, G_chunk, _ = _eval_backward(ch, theta[:, a:b], Dc, m > 0, False)
-            T[a:b, :3, :] = np.moveaxis(B, 2, 0)
-            if m == 0:
-                continue
-            assert G_chunk is not None
-            G = G_chunk
-            if order == 2:
-                cc = np.empty((6, 6, b - a))
-                for i in range(6):
-                    Gi = G[:, i]
-                    for j in range(i, 6):
-                        cc[i, j] = np.einsum("mn,mn->n", Gi, G[:, j])
-                        if j != i:
-                            cc[j, i] = cc[i, j]
-                cov[a:b] = cc.transpose(2, 0, 1)
-            else:
-                cov[a:b] = _fourth_order_batch_last(ch, G).transpose(2, 0, 1)
+        T, cov, _, _ = evaluate(ch, theta, D, order=order)
+        assert cov is not None
         return T.reshape(shape + (4, 4)), cov.reshape(shape + (6, 6))
 
     def fk_multi(
@@ -472,8 +423,8 @@ class PPOEModel:
         N = 1
         for to in tos:
             ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
-            B, G, _ = _eval_backward(ch, theta, D, ch.L_all.shape[0] > 0, False)
-            Ts.append(_rows_to_T(B))
+            T_to, _, G, _ = evaluate(ch, theta, D, order=0, want_cols=ch.L_all.shape[0] > 0)
+            Ts.append(T_to)
             Gs.append(G)
             ids.append(ch.col_ids)
         index: dict = {}
@@ -537,7 +488,7 @@ class PPOEModel:
             space at ``T_frm_to`` (frame ``to``).
         """
         ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
-        _, _, Jm = _eval_backward(ch, theta, D, False, True)
+        _, _, _, Jm = evaluate(ch, theta, D, order=0, want_jac=True)
         J = np.zeros((6, len(self.joint_names), N))
         if Jm is not None:
             for i in range(len(ch.motion_joint)):
