@@ -1,31 +1,35 @@
 #!/usr/bin/env python3
-"""Benchmark: kinematics_node fed 1 kHz joint states of the 7-DOF arm (config/arm7*).
+"""Benchmark: kinematics_node fed 1 kHz joint states of the 7-DOF arm (config/arm7*), beside a bare relay.
 
-The node runs as a separate process (isolated DDS domain, URDF by parameter,
-config/robots/arm7_model.yaml) and publishes ``base_link -> tool0``.  A feeder process
-publishes ``/joint_states`` at ``--rate`` Hz for ``--warmup + --seconds`` seconds,
-stamped with the wall clock at publication; this process receives ``/ppoe/pose``.
+Each mode runs one node process (isolated DDS domain); a feeder process publishes ``/joint_states`` at ``--rate``
+Hz for ``--warmup + --seconds`` seconds, stamped with the wall clock at publication; this process receives
+``/ppoe/pose`` (raw) and measures, for the joint states stamped in the ``--seconds`` after the warm-up:
 
-Per node mode it prints ``name: value unit`` lines:
+* latency = receipt time here minus the joint-state stamp: median, p99, max;
+* CPU share of the node process over that window (user + system time / wall time, 1.0 = one core);
+* messages sent / received and published by the node (its /diagnostics counters) / received here.
 
-* messages sent (whole run) / received and published by the node (its final
-  /diagnostics counters) / received here,
-* latency = receipt time here minus the joint-state stamp: median, p99, max over
-  the outputs of joint states stamped in the ``--seconds`` after the warm-up,
-* CPU share of the node process over that window (user + system time / wall time,
-  1.0 = one core).
+Modes:
 
-The ``bench_nodes.load_avg_1min`` line tells how busy the machine was.  Modes: ``batched`` (the node's
-defaults: waiting joint states drained per executor wake-up, validated in the
-callback, FK on a worker thread over whatever queued up) and ``sync``
-(``max_batch: 1``, ``drain_max: 0``: one message per wake-up, FK in the callback)
-as the in-run baseline; the ratio lines compare them.  ``fk_call`` is one ``PPOEModel.fk`` + ROS covariance
-conversion in this process, for scale.
+``relay``
+    The floor, measured in the same run: a bare rclpy relay on the same executor and path as the node
+    (``EventsExecutor``, raw bytes in and out, sensor-data QoS in, reliable out): one fixed
+    ``PoseWithCovarianceStamped`` (the input's stamp copied in) per joint state, no math.
+``node``
+    ``kinematics_node`` with its defaults (``config/nodes/kinematics_node.yaml``): FK in the callback.
+``batched``
+    ``max_batch: 100``, ``drain_max: 200`` (FK on a worker thread over what queued up), for comparison.
+
+Summary lines: ``relay_floor_cpu_share``, ``relay_floor_latency_p99``, ``kinematics_node_cpu_share``,
+``kinematics_node_latency_p99`` and their ratios (node over relay).  Targets (issue "fast enough"):
+node <= 0.25 cores, p99 <= 2 ms, every message out, within about 1.5x of the relay.
+``bench_nodes.load_avg_1min`` tells how busy the machine was.  ``fk_call`` is one ``PPOEModel.fk`` + ROS
+covariance conversion in this process, for scale.
 
 Usage::
 
-    python bench/bench_nodes.py                 # 30 s per mode
-    python bench/bench_nodes.py --seconds 10 --modes batched
+    python bench/bench_nodes.py                 # 30 s per mode: relay, node
+    python bench/bench_nodes.py --seconds 10 --modes relay,node,batched
 """
 
 from __future__ import annotations
@@ -49,7 +53,7 @@ URDF = REPO / "config" / "robots" / "arm7.urdf"
 MODEL = REPO / "config" / "robots" / "arm7_model.yaml"
 ARM = [f"joint_{i}" for i in range(1, 8)] + ["finger_left_joint"]
 
-__all__ = ["feed", "run_mode", "fk_call_us", "main"]
+__all__ = ["feed", "relay", "run_mode", "fk_call_us", "main"]
 
 
 def _env(domain: int) -> dict[str, str]:
@@ -98,6 +102,30 @@ def feed(rate: float, seconds: float) -> int:
     return 0
 
 
+def relay() -> int:
+    """Relay process (the floor): raw joint states in, one fixed raw pose (the input's stamp) out per message."""
+    import rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+
+    from ppoe_ros.common import reliable_qos, run_node, sensor_qos
+
+    def factory() -> object:
+        node = rclpy.create_node("bench_relay")
+        pub = node.create_publisher(PoseWithCovarianceStamped, "/ppoe/pose", reliable_qos(1000))
+        template = bytearray(serialize_message(PoseWithCovarianceStamped()))
+
+        def on_joint_state(raw: bytes) -> None:
+            template[4:12] = raw[4:12]  # header.stamp
+            pub.publish(bytes(template))
+
+        node.create_subscription(JointState, "/joint_states", on_joint_state, sensor_qos(1000), raw=True)
+        return node
+
+    return run_node(factory, [], executor="events")
+
+
 def _cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
@@ -117,12 +145,13 @@ def run_mode(mode: str, rate: float, seconds: float, warmup: float) -> dict[str,
     params_file = Path(f"/tmp/bench_nodes_{os.getpid()}_{mode}.yaml")
     import yaml
 
-    params_file.write_text(yaml.safe_dump({"/**": {"ros__parameters": {
-        "robot_description": URDF.read_text(), "model_file": str(MODEL),
-        "max_batch": 1 if mode == "sync" else 100, "drain_max": 0 if mode == "sync" else 200,
-        "qos_depth": 1000}}}))
-    node_proc = subprocess.Popen([sys.executable, "-m", "ppoe_ros.nodes.kinematics_node", "--ros-args", "--params-file",
-                                  str(params_file)], env=env, cwd=REPO, start_new_session=True,
+    params: dict[str, object] = {"robot_description": URDF.read_text(), "model_file": str(MODEL), "qos_depth": 1000}
+    if mode == "batched":
+        params.update(max_batch=100, drain_max=200)
+    params_file.write_text(yaml.safe_dump({"/**": {"ros__parameters": params}}))
+    cmd = [sys.executable, __file__, "--role", "relay"] if mode == "relay" else [
+        sys.executable, "-m", "ppoe_ros.nodes.kinematics_node", "--ros-args", "--params-file", str(params_file)]
+    node_proc = subprocess.Popen(cmd, env=env, cwd=REPO, start_new_session=True,
                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     feeder = None
     ctx = Context()
@@ -171,7 +200,7 @@ def run_mode(mode: str, rate: float, seconds: float, warmup: float) -> dict[str,
                                    str(warmup + seconds)], env=env, cwd=REPO, start_new_session=True,
                                   stdout=subprocess.PIPE, text=True)
         # wait for the first output, then the warm-up, then measure
-        while not diag.get("published") and feeder.poll() is None:
+        while not n_out[0] and feeder.poll() is None:
             ex.spin_once(timeout_sec=0.05)
         t_end_warm = time.monotonic() + warmup
         while time.monotonic() < t_end_warm:
@@ -191,7 +220,7 @@ def run_mode(mode: str, rate: float, seconds: float, warmup: float) -> dict[str,
             t_next = time.monotonic() + 1.0
             while time.monotonic() < t_next:
                 ex.spin_once(timeout_sec=0.01)
-            cur = (diag.get("received"), diag.get("published"), n_out[0])
+            cur = (diag.get("received"), diag.get("published"), n_out[0]) if mode != "relay" else n_out[0]
             still = still + 1 if cur == last else 0
             last = cur
         out = feeder.stdout.read().split()
@@ -228,7 +257,7 @@ def fk_call_us(n: int = 500) -> float:
     from ppoe_core.model.ppoe import PPOEModel
 
     model = PPOEModel.from_files(URDF, MODEL)
-    q = np.full((1, len(model.joint_names)), 0.3)
+    q = np.full(len(model.joint_names), 0.3)
     times = []
     for _ in range(n):
         t = time.perf_counter()
@@ -243,11 +272,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=30.0, help="measured seconds per mode (default 30)")
     ap.add_argument("--warmup", type=float, default=2.0, help="seconds fed before measuring (default 2)")
     ap.add_argument("--rate", type=float, default=1000.0, help="joint-state rate [Hz] (default 1000)")
-    ap.add_argument("--modes", default="batched,sync", help="comma list of batched, sync (default both)")
-    ap.add_argument("--role", default="bench", choices=("bench", "feed"), help=argparse.SUPPRESS)
+    ap.add_argument("--modes", default="relay,node", help="comma list of relay, node, batched (default relay,node)")
+    ap.add_argument("--role", default="bench", choices=("bench", "feed", "relay"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.role == "feed":
         return feed(args.rate, args.seconds)
+    if args.role == "relay":
+        return relay()
     print(f"bench_nodes.cpus: {os.cpu_count()} cores")
     print(f"bench_nodes.load_avg_1min: {os.getloadavg()[0]:.2f}")
     print(f"fk_call: {fk_call_us():.1f} us")
@@ -255,7 +286,10 @@ def main(argv: list[str] | None = None) -> int:
     for mode in [m.strip() for m in args.modes.split(",") if m.strip()]:
         r = run_mode(mode, args.rate, args.seconds, args.warmup)
         results[mode] = r
-        p = f"kinematics_node.{mode}"
+        if not r["out_received"]:
+            print(f"error: mode {mode}: no output received (the node process failed?)", file=sys.stderr)
+            return 1
+        p = f"bench_nodes.{mode}"
         print(f"{p}.feed_rate: {r['feed_rate']:.1f} Hz")
         print(f"{p}.feeder_late_over_5ms: {r['feeder_late']} msgs")
         print(f"{p}.measured_window: {r['window']:.2f} s")
@@ -273,11 +307,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{p}.latency_max: {r['lat_max']:.3f} ms")
         print(f"{p}.cpu_share: {r['cpu_share']:.3f} cores")
         sys.stdout.flush()
-    if "batched" in results and "sync" in results:
-        b, s = results["batched"], results["sync"]
-        print(f"ratio.cpu_share_batched_over_sync: {b['cpu_share'] / max(s['cpu_share'], 1e-9):.3f} ratio")
-        print(f"ratio.latency_p99_batched_over_sync: {b['lat_p99'] / s['lat_p99']:.3f} ratio")
-        print(f"ratio.messages_in_batched_over_sync: {b['node_received'] / max(s['node_received'], 1):.3f} ratio")
+    for key, mode in (("relay_floor", "relay"), ("kinematics_node", "node"), ("kinematics_node_batched", "batched")):
+        if mode in results:
+            print(f"{key}_cpu_share: {results[mode]['cpu_share']:.3f} cores")
+            print(f"{key}_latency_p99: {results[mode]['lat_p99']:.3f} ms")
+    if "relay" in results and "node" in results:
+        r, n = results["relay"], results["node"]
+        print(f"ratio.kinematics_node_over_relay_cpu_share: {n['cpu_share'] / max(r['cpu_share'], 1e-9):.2f} x")
+        print(f"ratio.kinematics_node_over_relay_latency_p99: {n['lat_p99'] / r['lat_p99']:.2f} x")
     return 0
 
 

@@ -33,7 +33,7 @@ class JointMerger:
         self._index = {n: i for i, n in enumerate(self.needed)}
         self.values = np.full(len(self.needed), np.nan)
         self.stamps = np.full(len(self.needed), np.iinfo(np.int64).min, dtype=np.int64)
-        self._names: list[str] | None = None
+        self._names: tuple[str, ...] | None = None
         self._src = np.zeros(0, dtype=np.intp)
         self._dst = np.zeros(0, dtype=np.intp)
 
@@ -49,11 +49,12 @@ class JointMerger:
         """
         if len(names) != len(positions):
             raise ValueError(f"{len(names)} names but {len(positions)} positions")
+        names = tuple(names)  # no copy for a tuple (the CDR parser's cached names)
         if names != self._names:  # name layout changed: rebuild the index maps
             where = [(i, self._index[n]) for i, n in enumerate(names) if n in self._index]
             self._src = np.array([w[0] for w in where], dtype=np.intp)
             self._dst = np.array([w[1] for w in where], dtype=np.intp)
-            self._names = list(names)
+            self._names = names
         if self._src.size == 0:
             return None, "carries none of the chain's joints"
         values = np.asarray(positions, dtype=float)[self._src]

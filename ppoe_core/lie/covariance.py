@@ -7,6 +7,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ppoe_core.errors import CovarianceError
+from ppoe_core.lie.kernels import rotate_covariance_kernel
 from ppoe_core.lie.so3 import Array, _f
 
 # ----------------------------------------------------------------------------
@@ -14,12 +15,20 @@ from ppoe_core.lie.so3 import Array, _f
 # ----------------------------------------------------------------------------
 
 
-def _ros_block(T: Array) -> Array:
-    R = T[..., :3, :3]
-    B = np.zeros(T.shape[:-2] + (6, 6))
-    B[..., :3, :3] = R
-    B[..., 3:, 3:] = R
-    return B
+def _rotate(T: ArrayLike, cov: ArrayLike, inverse: bool) -> Array:
+    """``B cov B^T`` (``B^T cov B`` with ``inverse``), ``B = blockdiag(R, R)``, broadcast over leading axes."""
+    T_a, cov_a = _f(T), _f(cov)
+    if T_a.shape[:-2] == cov_a.shape[:-2]:
+        shape = cov_a.shape[:-2]
+        T_flat = np.ascontiguousarray(T_a.reshape(-1, 4, 4))
+        cov_flat = np.ascontiguousarray(cov_a.reshape(-1, 6, 6))
+    else:
+        shape = np.broadcast_shapes(T_a.shape[:-2], cov_a.shape[:-2])
+        T_flat = np.ascontiguousarray(np.broadcast_to(T_a, shape + T_a.shape[-2:]).reshape(-1, 4, 4))
+        cov_flat = np.ascontiguousarray(np.broadcast_to(cov_a, shape + (6, 6)).reshape(-1, 6, 6))
+    out = np.empty_like(cov_flat)
+    rotate_covariance_kernel(T_flat, cov_flat, inverse, out)
+    return out.reshape(shape + (6, 6))
 
 
 def cov_local_to_ros(T: ArrayLike, cov: ArrayLike) -> Array:
@@ -38,8 +47,7 @@ def cov_local_to_ros(T: ArrayLike, cov: ArrayLike) -> Array:
         ``B cov B^T`` with ``B = blockdiag(R, R)``: translation and small rotations both in
         the axes of the parent frame (``header.frame_id``), order ``(x, y, z, rx, ry, rz)``.
     """
-    B = _ros_block(_f(T))
-    return B @ _f(cov) @ np.swapaxes(B, -1, -2)
+    return _rotate(T, cov, False)
 
 
 def cov_ros_to_local(T: ArrayLike, cov_ros: ArrayLike) -> Array:
@@ -59,9 +67,7 @@ def cov_ros_to_local(T: ArrayLike, cov_ros: ArrayLike) -> Array:
         ``B^T cov_ros B`` with ``B = blockdiag(R, R)``: the covariance in the tangent space at
         ``T`` (child frame, right perturbation, ``[rho; theta]``).
     """
-    B = _ros_block(_f(T))
-    Bt = np.swapaxes(B, -1, -2)
-    return Bt @ _f(cov_ros) @ B
+    return _rotate(T, cov_ros, True)
 
 
 def check_covariance(

@@ -4,10 +4,11 @@ Batched over leading axes; small angles with vectorised ``np.where`` (docs/conve
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from ppoe_core.lie.kernels import quat_from_matrix_kernel
 
 Array = NDArray[np.float64]
 
@@ -84,7 +85,8 @@ def so3_exp(w: ArrayLike) -> Array:
 
 
 def quat_from_matrix(R: ArrayLike) -> Array:
-    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix (Shepperd).
+    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix (Shepperd; compiled loop,
+    :func:`ppoe_core.lie.kernels.quat_from_matrix_kernel`).
 
     Parameters
     ----------
@@ -95,73 +97,11 @@ def quat_from_matrix(R: ArrayLike) -> Array:
     ndarray, shape (..., 4)
     """
     R = _f(R)
-    if R.shape == (3, 3):
-        return _quat_from_matrix_single(R)
-    r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
-    tr = r00 + r11 + r22
-    # Four candidate formulas, each well conditioned when its pivot is largest.
-    cand = np.stack(
-        [
-            np.stack(
-                [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1], 1.0 + tr], -1
-            ),
-            np.stack(
-                [
-                    1.0 + r00 - r11 - r22,
-                    R[..., 0, 1] + R[..., 1, 0],
-                    R[..., 0, 2] + R[..., 2, 0],
-                    R[..., 2, 1] - R[..., 1, 2],
-                ],
-                -1,
-            ),
-            np.stack(
-                [
-                    R[..., 0, 1] + R[..., 1, 0],
-                    1.0 - r00 + r11 - r22,
-                    R[..., 1, 2] + R[..., 2, 1],
-                    R[..., 0, 2] - R[..., 2, 0],
-                ],
-                -1,
-            ),
-            np.stack(
-                [
-                    R[..., 0, 2] + R[..., 2, 0],
-                    R[..., 1, 2] + R[..., 2, 1],
-                    1.0 - r00 - r11 + r22,
-                    R[..., 1, 0] - R[..., 0, 1],
-                ],
-                -1,
-            ),
-        ],
-        axis=-2,
-    )
-    pivot = np.argmax(np.stack([tr, r00, r11, r22], -1), axis=-1)
-    q = np.take_along_axis(cand, pivot[..., None, None], axis=-2)[..., 0, :]
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., 3:4] < 0.0, -q, q)
-
-
-def _quat_from_matrix_single(R: Array) -> Array:
-    """:func:`quat_from_matrix` of one ``(3, 3)`` matrix with Python floats (the fusion node
-    converts one pose per message).  The same operations in the same order as the batched
-    code, so the result is bit-identical (tested); non-finite input takes the batched code."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
-    tr = r00 + r11 + r22
-    if not math.isfinite(tr + r01 + r02 + r10 + r12 + r20 + r21):
-        return quat_from_matrix(R[None])[0]
-    pivots = [tr, r00, r11, r22]
-    k = pivots.index(max(pivots))  # first maximum, as np.argmax
-    if k == 0:
-        q = (r21 - r12, r02 - r20, r10 - r01, 1.0 + tr)
-    elif k == 1:
-        q = (1.0 + r00 - r11 - r22, r01 + r10, r02 + r20, r21 - r12)
-    elif k == 2:
-        q = (r01 + r10, 1.0 - r00 + r11 - r22, r12 + r21, r02 - r20)
-    else:
-        q = (r02 + r20, r12 + r21, 1.0 - r00 - r11 + r22, r10 - r01)
-    qa = np.array(q)
-    out = qa / np.linalg.norm(qa, axis=-1, keepdims=True)  # the batched code's reduction order
-    return -out if out[3] < 0.0 else out
+    shape = R.shape[:-2]
+    flat = np.ascontiguousarray(R.reshape(-1, 3, 3))
+    out = np.empty((flat.shape[0], 4))
+    quat_from_matrix_kernel(flat, out)
+    return out.reshape(shape + (4,))
 
 
 def matrix_from_quat(q: ArrayLike) -> Array:

@@ -63,12 +63,14 @@ class SequenceGaps:
 
 
 def counted_subscription(node: Any, stats: NodeStats, msg_type: Any, topic: str,
-                         callback: Callable[[Any], Any], qos: Any) -> tuple[Any, SequenceGaps]:
+                         callback: Callable[[Any], Any], qos: Any, raw: bool = False) -> tuple[Any, SequenceGaps]:
     """Subscribe ``callback`` (guarded: a bad message is counted, never fatal) with loss counting.
 
     Returns the subscription and its :class:`SequenceGaps` (also registered on ``stats`` so
     that :class:`~ppoe_ros.common.diagnostics.DiagnosticsPublisher` refreshes its publisher
-    count once per period).
+    count once per period).  ``raw``: the callback gets the serialised bytes.  Works on both executors of
+    :func:`~ppoe_ros.common.runner.run_node`: the ``SingleThreadedExecutor`` calls ``(msg, info)``, the
+    ``EventsExecutor`` one ``(msg, info)`` tuple.
     """
     from rclpy.event_handler import SubscriptionEventCallbacks
 
@@ -79,7 +81,8 @@ def counted_subscription(node: Any, stats: NodeStats, msg_type: Any, topic: str,
         stats.counts.setdefault(key, 0)
     safe = guarded(stats, topic)(callback)
 
-    def on_message(msg: Any, info: Any) -> None:  # two arguments: rclpy passes the message info
+    def on_message(*args: Any) -> None:
+        msg, info = args if len(args) == 2 else args[0]
         gaps.observe(info)
         safe(msg)
 
@@ -90,7 +93,9 @@ def counted_subscription(node: Any, stats: NodeStats, msg_type: Any, topic: str,
 
     try:
         events = SubscriptionEventCallbacks(message_lost=on_lost)
-        sub = node.create_subscription(msg_type, topic, on_message, qos, event_callbacks=events)
+        sub = node.create_subscription(msg_type, topic, on_message, qos, event_callbacks=events, raw=raw)
     except Exception:  # noqa: BLE001 - an rmw without the message-lost event: count the gaps only
-        sub = node.create_subscription(msg_type, topic, on_message, qos)
+        sub = node.create_subscription(msg_type, topic, on_message, qos, raw=raw)
+    # ``(*args)`` binds one argument, so rclpy would call it without the message info
+    sub._callback_type = sub.CallbackType.WithMessageInfo
     return sub, gaps

@@ -64,7 +64,7 @@ def check_params_files(argv: Sequence[str]) -> None:
                                        f"{type(data).__name__}")
 
 
-def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, executor: str = "single") -> int:
     """The standard ``main()`` of a node: init, build, spin, shut down; returns the exit code.
 
     Parameters
@@ -74,11 +74,11 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
         parameter, unreadable model file) is printed as one line and gives exit code 2.
     args : sequence of str or None
         Command line (``sys.argv`` when None), including ``--ros-args``.
-
-    Notes
-    -----
-    A ``SingleThreadedExecutor``: rclpy's experimental ``EventsExecutor`` (Jazzy) received
-    no messages and spun at 100 % CPU after SIGTERM in a trial here, so it is not offered.
+    executor : {"single", "events"}
+        ``SingleThreadedExecutor``, or rclpy's ``EventsExecutor`` (Jazzy, experimental): about a third of the CPU
+        per message at 1 kHz (``bench/bench_nodes.py``).  Its ``spin()`` (and ``spin_until_future_complete``
+        without a timeout) spins at a full core without running callbacks and ignores SIGINT here, so it is
+        spun in 1 s slices until the context shuts down (SIGINT / SIGTERM).
     """
     argv = list(sys.argv if args is None else args)
     name = getattr(factory, "__name__", "node")
@@ -95,9 +95,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     code = 0
     try:
         node = factory()
-        ex = rclpy.executors.SingleThreadedExecutor()
-        ex.add_node(node)
-        ex.spin()
+        _spin(node, executor)
     except PpoeError as exc:
         print(f"[FATAL] {exc}", file=sys.stderr, flush=True)
         code = 2
@@ -111,3 +109,20 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
                 pass
         rclpy.try_shutdown()
     return code
+
+
+def _spin(node: Node, executor: str) -> None:
+    """Spin ``node`` until shutdown on the chosen executor (see :func:`run_node`)."""
+    if executor == "events":
+        from rclpy.experimental import EventsExecutor
+        from rclpy.task import Future
+
+        ex: Any = EventsExecutor(context=node.context)
+        ex.add_node(node)
+        never = Future()
+        while node.context.ok():
+            ex.spin_until_future_complete(never, timeout_sec=1.0)
+        return
+    ex = rclpy.executors.SingleThreadedExecutor()
+    ex.add_node(node)
+    ex.spin()

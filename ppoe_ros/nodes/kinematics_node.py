@@ -54,6 +54,7 @@ from ppoe_core import lie
 from ppoe_core.errors import ModelConfigError, PpoeError
 from ppoe_core.estimation.batch_worker import BatchWorker
 from ppoe_core.estimation.joint_merge import JointMerger
+from ppoe_core.io.cdr import PoseCovarianceWriter, parse_joint_state
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_ros.common import (
@@ -67,7 +68,6 @@ from ppoe_ros.common import (
     mapping_get,
     reliable_qos,
     sensor_qos,
-    stamp_to_ns,
     take_robot_description,
 )
 
@@ -90,7 +90,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               ptype=_STRING_ARRAY),
     ParamSpec("order", 2, "covariance propagation order (paper eq. 15/18: 2; 4 = fourth order)",
               check=lambda v: None if v in (2, 4) else f"must be 2 or 4, got {v}"),
-    ParamSpec("max_batch", 100, "largest batch of queued joint states per FK call; 1 = compute in the "
+    ParamSpec("max_batch", 1, "largest batch of queued joint states per FK call; 1 = compute in the "
               "subscription callback (no worker thread)", min_value=1, max_value=100000),
     ParamSpec("max_queue", 2000, "joint states waiting for the FK worker beyond this are dropped (oldest first)",
               min_value=1, max_value=1000000),
@@ -120,14 +120,14 @@ def output_topic(frame: str) -> str:
 
 
 class _Target:
-    """One output: a target frame, its publisher and a reused message object."""
+    """One output: a target frame, its publisher and the serialiser of its messages (raw CDR)."""
 
-    __slots__ = ("frame", "pub", "msg")
+    __slots__ = ("frame", "pub", "writer")
 
     def __init__(self, frame: str, pub: Any) -> None:
         self.frame = frame
         self.pub = pub
-        self.msg = PoseWithCovarianceStamped()
+        self.writer = PoseCovarianceWriter("")
 
 
 class KinematicsNode(Node):
@@ -169,7 +169,8 @@ class KinematicsNode(Node):
         self._on_joint_state = guarded(self.stats, js_topic)(self._joint_state)
         self._drain_max = int(p["drain_max"])
         self._js_sub, self._js_gaps = counted_subscription(self, self.stats, JointState, js_topic,
-                                                           self._on_joint_state_burst, sensor_qos(p["qos_depth"]))
+                                                           self._on_joint_state_burst, sensor_qos(p["qos_depth"]),
+                                                           raw=True)
 
         take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
         self.diagnostics.watch_input(js_topic, "received", p["input_timeout"])
@@ -190,7 +191,8 @@ class KinematicsNode(Node):
             model.robot.check_link(reference)  # check the frames now, not at the first joint state
             for t in self.targets:
                 model.robot.check_link(t.frame)
-                t.msg.header.frame_id = reference
+                model.fk(np.zeros(len(model.joint_names)), reference, t.frame, order=self.order)  # compile / load
+                t.writer = PoseCovarianceWriter(reference)
         except PpoeError as exc:
             raise type(exc)(f"{where}: {exc}") from None
         needed: list[str] = []
@@ -214,7 +216,7 @@ class KinematicsNode(Node):
         self.diagnostics.set_status(None, "")
 
     # --------------------------------------------------------------- callback
-    def _on_joint_state_burst(self, msg: JointState) -> None:
+    def _on_joint_state_burst(self, msg: bytes) -> None:
         """Subscription callback: this message, then up to ``drain_max`` more that already wait.
 
         rclpy's executor rebuilds its wait set for every message, which costs more than
@@ -226,7 +228,7 @@ class KinematicsNode(Node):
         for _ in range(self._drain_max):
             try:
                 with handle:
-                    taken = handle.take_message(JointState, False)
+                    taken = handle.take_message(JointState, True)
             except Exception as exc:  # noqa: BLE001 - rclpy internals changed: fall back to the executor
                 self._drain_max = 0
                 self.get_logger().warning(f"draining /joint_states disabled: {type(exc).__name__}: {exc}")
@@ -236,8 +238,8 @@ class KinematicsNode(Node):
             self._js_gaps.observe(taken[1])
             self._on_joint_state(taken[0])
 
-    def _joint_state(self, msg: JointState) -> None:
-        """Validate one joint state (in arrival order) and process it, or queue it for the worker."""
+    def _joint_state(self, data: bytes) -> None:
+        """Validate one serialised joint state (in arrival order) and process it, or queue it for the worker."""
         stats = self.stats
         stats.counts["received"] += 1
         model = self.model
@@ -245,7 +247,8 @@ class KinematicsNode(Node):
             stats.bad(self.params["joint_states_topic"], "no URDF yet (waiting for robot_description)",
                       kind="dropped")
             return
-        stamp_ns = stamp_to_ns(msg.header.stamp)
+        msg = parse_joint_state(data)  # MeasurementError naming the field of a malformed message
+        stamp_ns = msg.stamp_ns
         last = self._last_ns
         if last is not None and stamp_ns < last:
             jump = (last - stamp_ns) * 1e-9
@@ -257,17 +260,16 @@ class KinematicsNode(Node):
         if q is None:
             return
         self._last_ns = stamp_ns
-        item = (msg.header.stamp, q, model)
         if self._worker is None:
-            self._process([item])
+            self._publish_one(stamp_ns, q, model)
         else:
-            self._worker.put(item)
+            self._worker.put((stamp_ns, q, model))
 
-    def _joint_vector(self, msg: JointState) -> np.ndarray | None:
+    def _joint_vector(self, msg: Any) -> np.ndarray | None:
         """Joint values in ``model.joint_names`` order, merged per joint from split joint-state messages
         (:class:`~ppoe_core.estimation.joint_merge.JointMerger`); None (counted, logged) while the chain's
         joints are not all known and fresh, or when the message carries none of them."""
-        values, why = self._merger.update(msg.name, msg.position, stamp_to_ns(msg.header.stamp))
+        values, why = self._merger.update(msg.names, msg.positions, msg.stamp_ns)
         if values is None:
             self.stats.bad(self.params["joint_states_topic"], why,
                            kind="ignored" if why.startswith("carries none") else "incomplete")
@@ -284,29 +286,32 @@ class KinematicsNode(Node):
             self._process(items[:cut])
             self._process(items[cut:])
             return
+        if len(items) == 1:
+            self._publish_one(*items[0])
+            return
         q = np.stack([it[1] for it in items])
         try:
             results = []
             for t in self.targets:
                 T, cov_local = model.fk(q, self.reference, t.frame, order=self.order)
-                cov_ros = lie.cov_local_to_ros(T, cov_local)
-                quat = lie.quat_from_matrix(T[:, :3, :3])
-                results.append((t, T[:, :3, 3].tolist(), quat.tolist(), cov_ros.reshape(len(items), 36)))
+                results.append((t, T[:, :3, 3], lie.quat_from_matrix(T[:, :3, :3]), lie.cov_local_to_ros(T, cov_local)))
         except PpoeError as exc:
             for _ in items:
                 self.stats.bad(self.params["joint_states_topic"], str(exc))
             return
-        for k, (stamp, _, _) in enumerate(items):
+        for k, (stamp_ns, _, _) in enumerate(items):
             for t, xyz, quat, cov in results:
-                out = t.msg
-                out.header.stamp = stamp
-                pose = out.pose.pose
-                pose.position.x, pose.position.y, pose.position.z = xyz[k]
-                o = pose.orientation
-                o.x, o.y, o.z, o.w = quat[k]
-                out.pose.covariance = cov[k]
-                t.pub.publish(out)
+                t.pub.publish(t.writer.serialize(stamp_ns, xyz[k], quat[k], cov[k]))
             self.stats.counts["published"] += 1
+
+    def _publish_one(self, stamp_ns: int, q: np.ndarray, model: Any) -> None:
+        """FK of one validated joint state (the lean one-configuration path of ``model.fk``) and publish it;
+        a :class:`PpoeError` is counted as a bad message by the caller's guard."""
+        for t in self.targets:
+            T, cov_local = model.fk(q, self.reference, t.frame, order=self.order)
+            t.pub.publish(t.writer.serialize(stamp_ns, T[:3, 3], lie.quat_from_matrix(T[:3, :3]),
+                                             lie.cov_local_to_ros(T, cov_local)))
+        self.stats.counts["published"] += 1
 
     def destroy_node(self) -> None:
         """Stop the worker thread, then destroy the node."""
@@ -319,7 +324,7 @@ def main(args: Sequence[str] | None = None) -> int:
     """Console entry point ``kinematics_node`` (``--ros-args`` accepted)."""
     from ppoe_ros.common import run_node
 
-    return run_node(KinematicsNode, args)
+    return run_node(KinematicsNode, args, executor="events")
 
 
 if __name__ == "__main__":
