@@ -24,12 +24,13 @@ a simulator reset) is logged and counted too, but taken as the start of a new
 timeline: that message is published.  Joint states that arrive before the URDF
 are counted as ``dropped``.  Joints the chain does not use are ignored.
 
-Throughput: the subscription callback only validates a message and queues its
-joint vector; a worker thread runs the FK on everything queued since its last
-call as one vectorised batch (``model.fk`` broadcasts over a batch axis) and
-publishes one output per message, in order.  At low rates batches hold one
-message; when the FK falls behind they grow, so the node keeps up with 1 kHz joint
-states (``bench/bench_nodes.py``).  ``max_batch: 1`` computes in the callback.
+Throughput (``bench/bench_nodes.py``, docs/performance.md): the node spins rclpy's ``EventsExecutor``
+(:func:`~ppoe_ros.common.runner.run_node`), takes ``/joint_states`` as raw CDR bytes and parses them itself
+(:mod:`ppoe_core.io.cdr`), runs the one-configuration FK (a compiled kernel) in the callback and publishes
+the pose as bytes it serialises itself: no typed ROS message is built on the hot path.  ``max_batch`` > 1
+moves the FK to a worker thread that takes whatever queued up as one vectorised batch (``model.fk``
+broadcasts over a batch axis); ``drain_max`` takes waiting messages in one callback, which also picks up
+messages the events executor was not told about after a history overflow.
 
 Parameters: see ``config/nodes/kinematics_node.yaml`` (every key documented there) and
 :data:`PARAMS`.
