@@ -63,6 +63,13 @@ def _compiled_kernels() -> None:
     processes started by the tests load it from the cache instead of all compiling it at once."""
     from ppoe_core.model.ppoe import PPOEModel
 
+    from ppoe_core.model.fourth_order import compound_fourth_order
+
     model = PPOEModel.from_files(str(CONFIG_ROBOTS / "arm7.urdf"), str(CONFIG_ROBOTS / "arm7_model.yaml"))
-    model.fk(np.zeros(len(model.joint_names)))
+    T, cov = model.fk(np.zeros(len(model.joint_names)))
+    model.fk(np.zeros((2, len(model.joint_names))), order=4)
+    model.jacobian_joints(np.zeros(len(model.joint_names)))
+    compound_fourth_order(cov, cov)
+    lie.cov_ros_to_local(T, lie.cov_local_to_ros(T, cov))
+    lie.quat_from_matrix(T[:3, :3])
 

@@ -7,7 +7,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ppoe_core.errors import CovarianceError
-from ppoe_core.lie.kernels import rotate_covariance_kernel
 from ppoe_core.lie.so3 import Array, _f
 
 # ----------------------------------------------------------------------------
@@ -27,6 +26,8 @@ def _rotate(T: ArrayLike, cov: ArrayLike, inverse: bool) -> Array:
         T_flat = np.ascontiguousarray(np.broadcast_to(T_a, shape + T_a.shape[-2:]).reshape(-1, 4, 4))
         cov_flat = np.ascontiguousarray(np.broadcast_to(cov_a, shape + (6, 6)).reshape(-1, 6, 6))
     out = np.empty_like(cov_flat)
+    from ppoe_core.lie.kernels import rotate_covariance_kernel  # numba only when used: `ppoe record` starts fast
+
     rotate_covariance_kernel(T_flat, cov_flat, inverse, out)
     return out.reshape(shape + (6, 6))
 

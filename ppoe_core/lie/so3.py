@@ -8,7 +8,6 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ppoe_core.lie.kernels import quat_from_matrix_kernel
 
 Array = NDArray[np.float64]
 
@@ -100,6 +99,8 @@ def quat_from_matrix(R: ArrayLike) -> Array:
     shape = R.shape[:-2]
     flat = np.ascontiguousarray(R.reshape(-1, 3, 3))
     out = np.empty((flat.shape[0], 4))
+    from ppoe_core.lie.kernels import quat_from_matrix_kernel  # numba only when used: `ppoe record` starts fast
+
     quat_from_matrix_kernel(flat, out)
     return out.reshape(shape + (4,))
 

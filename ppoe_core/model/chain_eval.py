@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 
 from ppoe_core.model.chain import _D, _RZ, _S, _TZ, Array, _Chain
-from ppoe_core.model.chain_kernel import eval_chain
 
 # ----------------------------------------------------------------------------
 # Chain evaluation
@@ -46,6 +45,8 @@ def evaluate(ch: _Chain, theta: Array, D: Array | None, order: int = 2, want_col
     J : ndarray, shape (n_motion, 6, N), or None
         Local columns of unit joint motions (before the joint's sign / multiplier).
     """
+    from ppoe_core.model.chain_kernel import eval_chain  # numba loaded on first use, not by `import ppoe_core`
+
     N = theta.shape[1]
     F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start = ch.program
     m = col_pos.shape[0]

@@ -94,6 +94,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, exe
     node: Node | None = None
     code = 0
     try:
+        _compile_kernels()
         node = factory()
         _spin(node, executor)
     except PpoeError as exc:
@@ -109,6 +110,17 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, exe
                 pass
         rclpy.try_shutdown()
     return code
+
+
+def _compile_kernels() -> None:
+    """Compile (or load from numba's cache) the per-message pose conversions before the node subscribes: on a
+    fresh install the first call compiles for a few seconds, which must not fall on the first message."""
+    import numpy as np
+
+    from ppoe_core import lie
+
+    lie.quat_from_matrix(np.eye(3))
+    lie.cov_ros_to_local(np.eye(4), lie.cov_local_to_ros(np.eye(4), np.eye(6)))
 
 
 def _spin(node: Node, executor: str) -> None:

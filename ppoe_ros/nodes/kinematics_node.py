@@ -192,7 +192,9 @@ class KinematicsNode(Node):
             model.robot.check_link(reference)  # check the frames now, not at the first joint state
             for t in self.targets:
                 model.robot.check_link(t.frame)
-                model.fk(np.zeros(len(model.joint_names)), reference, t.frame, order=self.order)  # compile / load
+                # compile (or load from numba's cache) the kernels now, not at the first joint state
+                T, cov = model.fk(np.zeros(len(model.joint_names)), reference, t.frame, order=self.order)
+                lie.cov_local_to_ros(T, cov)
                 t.writer = PoseCovarianceWriter(reference)
         except PpoeError as exc:
             raise type(exc)(f"{where}: {exc}") from None
