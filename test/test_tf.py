@@ -125,6 +125,28 @@ def test_calibrated_camera_frame_carries_the_diagnosed_extrinsic():
     assert urdf_collision(calibrated.robot, "tool_link_corrected") is None
 
 
+@needs_tf2_msgs
+def test_tf_message_cdr_equals_rclpy_serialisation():
+    from builtin_interfaces.msg import Time
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    from ppoe_ros.common.tf_broadcast import tf_message_cdr, tf_message_class, transform_msg
+    from ppoe_ros.common.tf_frames import TfFrame
+
+    TFMessage = tf_message_class()
+    rng = np.random.default_rng(7)
+    for names in ([], [("base_link", "a")], [("base_link", "tool_link_corrected"), ("ab", "c_d"), ("xyz", "w")]):
+        frames = [TfFrame(p, c, lie.exp(rng.normal(size=6))) for p, c in names]
+        stamp_ns = 1_700_000_123_456_789_012
+        ref = TFMessage(transforms=[transform_msg(f, Time(sec=1_700_000_123, nanosec=456_789_012)) for f in frames])
+        data = tf_message_cdr(frames, stamp_ns)
+        assert len(data) == len(serialize_message(ref)), names  # same layout (rclpy leaves padding unset)
+        back = deserialize_message(data, TFMessage)
+        assert back == ref, names
+        for f, tr in zip(frames, back.transforms):
+            np.testing.assert_allclose(_T(tr), f.T_parent_child, atol=1e-12)
+
+
 def test_kinematics_node_hot_path_untouched_without_publish_tf(tmp_path):
     """publish_tf false (the default): the per-message joint-vector step is the class's own, no /tf publisher;
     true: the step also publishes TF."""
@@ -295,6 +317,7 @@ def test_kinematics_node_tf_equals_model_fk_with_split_joint_states(tmp_path):
         pub_arm = probe.publisher("/joint_states", JointState)
         pub_grip = probe.publisher("/joint_states", JointState)
         probe.wait_for_subscribers(pub_arm, proc)
+        probe.wait_for_subscribers(pub_grip, proc)
         static = probe.collect("/tf_static", TFMessage, TF_STATIC_QOS)
         t0 = probe.node.get_clock().now().nanoseconds
         sent = []

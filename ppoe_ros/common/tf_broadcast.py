@@ -17,6 +17,7 @@ install where ``scripts/build_tf2_msgs.py`` was not run) TF is off with one log 
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
@@ -27,7 +28,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ppoe_core import lie
-from ppoe_ros.common.conversions import ns_to_stamp
+from ppoe_ros.common.conversions import stamp_to_ns
 from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats
 from ppoe_ros.common.tf_frames import JointFrames, TfFrame, calibrated_camera_frames, urdf_collision
 
@@ -37,6 +38,7 @@ __all__ = [
     "TF2_MSGS_HINT",
     "tf_message_class",
     "transform_msg",
+    "tf_message_cdr",
     "TfBroadcaster",
     "FusionTf",
     "KinematicsTf",
@@ -80,6 +82,42 @@ def transform_msg(frame: TfFrame, stamp: TimeMsg) -> TransformStamped:
     return msg
 
 
+_U32 = struct.Struct("<I")
+_STAMP = struct.Struct("<iI")
+_POSE = struct.Struct("<7d")
+_names: dict[str, bytes] = {}
+
+
+def _cdr_string(text: str) -> bytes:
+    """A CDR string: length (with the terminating NUL), UTF-8 bytes, NUL (cached per frame name)."""
+    b = _names.get(text)
+    if b is None:
+        raw = text.encode("utf-8") + b"\x00"
+        b = _names[text] = _U32.pack(len(raw)) + raw
+    return b
+
+
+def tf_message_cdr(frames: Sequence[TfFrame], stamp_ns: int) -> bytes:
+    """``tf2_msgs/TFMessage`` of ``frames``, all at ``stamp_ns``, as CDR bytes (little endian, what rclpy's
+    ``serialize_message`` gives; ``test/test_tf.py`` checks it): the per-joint-state path of the kinematics node
+    builds no typed message."""
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    stamp = _STAMP.pack(sec, nsec)
+    T = np.stack([f.T_parent_child for f in frames]) if frames else np.zeros((0, 4, 4))
+    pose = np.concatenate([T[:, :3, 3], lie.quat_from_matrix(T[:, :3, :3])], axis=1).tolist()
+    buf = bytearray(b"\x00\x01\x00\x00")  # CDR little endian; alignment counts from the end of this
+    buf += _U32.pack(len(frames))
+    for k, f in enumerate(frames):
+        buf += bytes(-len(buf) % 4)
+        buf += stamp
+        buf += _cdr_string(f.parent)
+        buf += bytes(-len(buf) % 4)
+        buf += _cdr_string(f.child)
+        buf += bytes(-(len(buf) - 4) % 8)
+        buf += _POSE.pack(*pose[k])
+    return bytes(buf)
+
+
 class TfBroadcaster:
     """The ``/tf`` and ``/tf_static`` publishers of a node (tf2_ros' QoS, see the module docstring).
 
@@ -104,9 +142,9 @@ class TfBroadcaster:
             return None
         return cls(node, msg_class)
 
-    def send(self, frames: Iterable[TfFrame], stamp: TimeMsg) -> None:
-        """Publish ``frames`` on ``/tf``, all at ``stamp``, in one message."""
-        self.pub.publish(self.msg_class(transforms=[transform_msg(f, stamp) for f in frames]))
+    def send(self, frames: Sequence[TfFrame], stamp_ns: int) -> None:
+        """Publish ``frames`` on ``/tf``, all at ``stamp_ns`` [ns], in one message (serialised here)."""
+        self.pub.publish(tf_message_cdr(frames, stamp_ns))
 
     def set_static(self, frames: Iterable[TfFrame]) -> None:
         """Replace the node's static transforms by ``frames`` (stamped now) and publish them all on ``/tf_static``
@@ -159,14 +197,14 @@ class FusionTf:
         problems += notes
         self.broadcaster.set_static(cameras)
         self.diagnostics.set_problem("tf", "; ".join(problems) if problems else None)
-        log.info("TF: " + ", ".join(
+        log.info("TF: " + (", ".join(
             ([f"{base} -> {child} on {TF_TOPIC} (corrected tool)"] if self.child else [])
-            + [f"{c.parent} -> {c.child} on {TF_STATIC_TOPIC} (calibrated camera)" for c in cameras]) or "TF: none")
+            + [f"{c.parent} -> {c.child} on {TF_STATIC_TOPIC} (calibrated camera)" for c in cameras]) or "none"))
 
     def publish(self, T_base_tool: np.ndarray, stamp: TimeMsg) -> None:
         """The corrected tool frame on ``/tf`` at ``stamp`` (the fused pose's), unless it is off."""
         if self.child is not None and self.broadcaster is not None:
-            self.broadcaster.send([TfFrame(self.base, self.child, T_base_tool)], stamp)
+            self.broadcaster.send([TfFrame(self.base, self.child, T_base_tool)], stamp_to_ns(stamp))
 
 
 class KinematicsTf:
@@ -208,7 +246,7 @@ class KinematicsTf:
         try:
             frames = self.frames.frames(names, positions)
             if frames:
-                self.broadcaster.send(frames, ns_to_stamp(stamp_ns))
+                self.broadcaster.send(frames, stamp_ns)
         except Exception as exc:  # noqa: BLE001 - TF must not stop the pose output
             self.stats.error(TF_TOPIC, exc)
 

@@ -149,7 +149,11 @@ class JointFrames:
         self._row = {j.name: i for i, j in enumerate(self.movable)}
         self._origins = np.stack([j.origin @ lie.exp(self.dxi0.get(j.name, np.zeros(6))) for j in self.movable]) \
             if self.movable else np.zeros((0, 4, 4))
-        self._twists = np.stack([j.twist for j in self.movable]) if self.movable else np.zeros((0, 6))
+        axes = np.array([j.axis for j in self.movable], dtype=float).reshape(-1, 3)
+        self._axes = axes  # unit axes: the motion Exp(zeta v) is Rodrigues' rotation or a slide along them
+        self._K = lie.hat3(axes) if len(axes) else np.zeros((0, 3, 3))
+        self._K2 = self._K @ self._K
+        self._prismatic = np.array([j.type == "prismatic" for j in self.movable], dtype=bool)
         # independent joint -> rows of the movable joints its value moves (itself and its mimic followers)
         self._driven: dict[str, list[int]] = {n: [] for n in self.independent}
         for j in self.movable:
@@ -231,5 +235,12 @@ class JointFrames:
             if j.name in dxi:
                 origins[k] = j.origin @ lie.exp(self.dxi0.get(j.name, np.zeros(6)) + np.asarray(dxi[j.name]))
         ok = np.isfinite(values)
-        T = origins[ok] @ lie.exp(values[ok, None] * self._twists[rows[ok]])
-        return [TfFrame(self.movable[r].parent, self.movable[r].child, T[k]) for k, r in enumerate(rows[ok])]
+        rows, v = rows[ok], values[ok]
+        M = np.zeros((len(rows), 4, 4))  # Exp(zeta v) of a unit joint twist (paper eq. 3), without the series
+        slide = self._prismatic[rows]
+        M[:, :3, :3] = np.eye(3) + (np.where(slide, 0.0, np.sin(v))[:, None, None] * self._K[rows]
+                                    + np.where(slide, 0.0, 1.0 - np.cos(v))[:, None, None] * self._K2[rows])
+        M[:, :3, 3] = np.where(slide, v, 0.0)[:, None] * self._axes[rows]
+        M[:, 3, 3] = 1.0
+        T = origins[ok] @ M
+        return [TfFrame(self.movable[r].parent, self.movable[r].child, T[k]) for k, r in enumerate(rows)]
