@@ -110,7 +110,9 @@ class DiagnosticsPublisher:
 
     Level WARN while bad messages, errors or losses (counters in ``NodeStats.warn_keys``)
     arrived in the last period, or while a watched input is silent (:meth:`watch_input`), else OK
-    (or the level set by :meth:`set_status`).  The timer runs on the steady clock.
+    (or the level set by :meth:`set_status`).  A standing problem (:meth:`set_problem`: a part of the
+    node that is off by configuration) raises the level to at least its own and leads the message.
+    The timer runs on the steady clock.
     """
 
     def __init__(self, node: Node, stats: NodeStats, period: float = 1.0,
@@ -124,6 +126,7 @@ class DiagnosticsPublisher:
         self._level: bytes | None = None
         self._message = ""
         self._extra: dict[str, str] = {}
+        self._problems: dict[str, tuple[bytes, str]] = {}
         self._watched: list[list[Any]] = []  # [topic, counter key, timeout s, last count, steady time of growth]
         self._timer = node.create_timer(
             float(period), self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME)
@@ -134,6 +137,15 @@ class DiagnosticsPublisher:
         self._level = level
         self._message = message
         self._extra.update({k: str(v) for k, v in extra.items()})
+
+    def set_problem(self, key: str, message: str | None, level: bytes = DiagnosticStatus.WARN) -> None:
+        """Report (or with ``message`` None clear) a standing problem ``key``; also a value ``key`` = message."""
+        if message is None:
+            self._problems.pop(key, None)
+            self._extra.pop(key, None)
+        else:
+            self._problems[key] = (level, message)
+            self._extra[key] = message
 
     def watch_input(self, topic: str, key: str, timeout: float) -> None:
         """WARN while counter ``key`` (messages of ``topic``) has not grown for ``timeout`` seconds (0: off)."""
@@ -181,6 +193,12 @@ class DiagnosticsPublisher:
         else:
             status.level = DiagnosticStatus.OK
             status.message = self._message or "ok"
+        if self._problems:
+            worst = max(level for level, _ in self._problems.values())
+            if status.level < worst:
+                status.level = worst
+            ok = status.message in ("ok", "")
+            status.message = "; ".join(m for _, m in self._problems.values()) + ("" if ok else "; " + status.message)
         self._last_bad = n_bad
         status.values = [KeyValue(key=k, value=str(v)) for k, v in counts.items()]
         status.values += [KeyValue(key=k, value=v) for k, v in self._extra.items()]

@@ -22,6 +22,10 @@ Publications
     prior, the prior with the carried correction applied (the prior itself when there is
     none), same stamp and frame; after each accepted measurement once more for the newest
     prior (``publish_on_update``).
+    ``/tf`` (``publish_tf``): the fused pose as the transform ``base_frame`` -> ``tf_child_frame`` (default
+    ``<tool>_corrected``) at the fused pose's stamp, each time one is published; ``/tf_static``: the
+    calibrated camera frame(s) of the model YAML (``<camera frame><tf_camera_suffix>``) relative to the
+    link their fixed mount hangs on (:mod:`ppoe_ros.common.tf_broadcast`).
     ``/diagnostics``: counters ``priors``, ``measurements``, ``accepted``, ``rejected``,
     ``dropped`` (= ``dropped_stale`` + ``dropped_no_prior``), ``corrections_dropped``,
     ``bad``, ``published`` ...
@@ -84,6 +88,7 @@ from ppoe_ros.common import (
     take_robot_description,
 )
 from ppoe_ros.common.tag_cloud import observations_from_cloud
+from ppoe_ros.common.tf_broadcast import FusionTf
 
 __all__ = ["FusionNode", "PARAMS", "main"]
 
@@ -230,6 +235,11 @@ PARAMS: tuple[ParamSpec, ...] = (
         min_value=0.0,
         max_value=1e3,
     ),
+    ParamSpec("publish_tf", True, "publish the fused pose on /tf and the calibrated cameras on /tf_static"),
+    ParamSpec("tf_child_frame", "", "child frame of the fused pose on /tf; empty = '<tool_frame>_corrected'; "
+              "a URDF link is refused (TF of the tool off, the node keeps running)"),
+    ParamSpec("tf_camera_suffix", "_calibrated", "the calibrated camera frame on /tf_static is the model YAML's "
+              "camera frame + this suffix", check=check_nonempty),
     ParamSpec("publish_on_update", True, "publish the newest fused pose right after an accepted measurement"),
     ParamSpec(
         "qos_depth",
@@ -346,6 +356,7 @@ class FusionNode(Node):
                                           reliable_qos(p["output_qos_depth"]))
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         self.diagnostics.watch_input("input (prior or measurement)", "received", p["input_timeout"])
+        self.tf = FusionTf(self, p, self.diagnostics)
         qos = sensor_qos(p["qos_depth"])
         rel = reliable_qos(p["qos_depth"])
 
@@ -388,6 +399,7 @@ class FusionNode(Node):
 
         self.model, self.updater, self._urdf = model, updater, urdf_xml
         self.joints.set_names(model.joint_names)
+        self.tf.set_model(model, self.base_frame, self.tool_frame)
         self.get_logger().info(
             f"model from {where}: fusing into {self.base_frame} -> {self.tool_frame}; tags "
             f"{sorted(updater.tags)}; contact {'yes' if updater.contact is not None else 'no'}"
@@ -505,6 +517,7 @@ class FusionNode(Node):
 
     def _publish(self, T: np.ndarray, cov_tool: np.ndarray, stamp: Any) -> None:
         self.pub.publish(pose_cov_stamped_msg(T, lie.cov_local_to_ros(T, cov_tool), stamp, self.base_frame))
+        self.tf.publish(T, stamp)
         self.stats.counts["published"] += 1
 
     def _sync_counts(self) -> None:

@@ -11,6 +11,10 @@ Publications
     eq. 8-9/18) converted to the ROS convention of docs/conventions.md sec. 2.
     ``/ppoe/<frame>/pose`` (same type) for each of ``extra_target_frames``.
     ``/diagnostics``: counters ``received``, ``published``, ``bad``, ``dropped``.
+    ``/tf`` and ``/tf_static`` (``publish_tf``, off by default): the model's frames like
+    robot_state_publisher, each movable joint's child link in its parent link at the joint-state
+    stamp, the fixed joints once (:class:`~ppoe_ros.common.tf_broadcast.KinematicsTf`).  With
+    ``publish_tf: false`` nothing of it is on the per-message path.
 
 Split joint states (arm, mast and gripper on separate publishers, as with ros2_control) are merged per
 joint: each output uses the latest value of every chain joint, at most ``joint_max_age`` old; a message
@@ -71,6 +75,7 @@ from ppoe_ros.common import (
     sensor_qos,
     take_robot_description,
 )
+from ppoe_ros.common.tf_broadcast import KinematicsTf
 
 __all__ = ["KinematicsNode", "PARAMS", "main", "output_topic"]
 
@@ -109,6 +114,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               max_value=3600.0),
     ParamSpec("stamp_reset_threshold", 1.0, "a stamp this much older than the last one starts a new timeline",
               unit="s", min_value=0.0),
+    ParamSpec("publish_tf", False, "publish the model's frames on /tf (movable joints, at each joint state) and "
+              "/tf_static (fixed joints) like robot_state_publisher"),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
     ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
               min_value=0.0),
@@ -166,6 +173,9 @@ class KinematicsNode(Node):
                 PoseWithCovarianceStamped, output_topic(frame), out_qos)))
 
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
+        self._tf = KinematicsTf.create(self, self.stats, self.diagnostics) if p["publish_tf"] else None
+        if self._tf is not None:  # TF rides on the joint-vector step; with publish_tf off the hot path is as it was
+            self._joint_vector = self._tf.wrap(self._joint_vector)  # type: ignore[method-assign]
         js_topic = p["joint_states_topic"]
         self._on_joint_state = guarded(self.stats, js_topic)(self._joint_state)
         self._drain_max = int(p["drain_max"])
@@ -208,6 +218,8 @@ class KinematicsNode(Node):
         self.reference = reference
         self.model = model
         self._urdf = urdf_xml
+        if self._tf is not None:
+            self._tf.set_model(model)
         self.get_logger().info(
             f"model from {where}: {len(model.joint_names)} joints; publishing "
             + ", ".join(f"{self.reference}->{t.frame} on {t.pub.topic_name}" for t in self.targets))

@@ -1,0 +1,246 @@
+"""The transforms the nodes offer on ``/tf`` and ``/tf_static``, computed from a PPOE model (numpy only, no rclpy).
+
+* :class:`JointFrames`: what robot_state_publisher publishes, from the model: for every movable joint the
+  child link in its parent link at a joint state (``/tf``), for every fixed joint the same once
+  (``/tf_static``).  The model's effects (``ppoe diagnose``) are applied as in :meth:`PPOEModel.fk_mean`,
+  so composing the transforms from link ``a`` to link ``b`` gives ``model.fk_mean(q, a, b)``.
+* :func:`calibrated_camera_frames`: the calibrated camera frame(s) of the model YAML relative to the link
+  their fixed mount hangs on, with the model's static effects (e.g. ``camera_extrinsics``) applied.
+* :func:`urdf_collision`: a child frame name that is already a URDF link (it would fight
+  robot_state_publisher over that frame).
+
+Frame names in variables as in docs/conventions.md sec. 7: ``T_parent_child`` maps child to parent
+coordinates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ppoe_core import lie
+
+__all__ = [
+    "STATIC_EFFECTS",
+    "TfFrame",
+    "JointFrames",
+    "camera_mount_parent",
+    "calibrated_camera_frames",
+    "urdf_collision",
+]
+
+#: effects that do not depend on the configuration (as ``ppoe diagnose`` folds into ``robot_calibrated.urdf``);
+#: the others (compliances, backlash, thermal growth ...) are evaluated at every joint state
+STATIC_EFFECTS = ("joint_offset", "link_error", "camera_extrinsics")
+
+
+@dataclass(frozen=True)
+class TfFrame:
+    """One transform of TF: ``child`` in ``parent`` (``T_parent_child``, shape (4, 4))."""
+
+    parent: str
+    child: str
+    T_parent_child: np.ndarray
+
+
+def urdf_collision(robot: Any, frame: str) -> str | None:
+    """Why ``frame`` may not be a TF child frame we publish (it is a link of the URDF), or None if it may."""
+    if frame in robot.links:
+        return (f"'{frame}' is a link of the URDF ({robot.source}): publishing it would fight "
+                "robot_state_publisher over that frame")
+    return None
+
+
+# ------------------------------------------------------------------------- cameras
+
+
+def camera_mount_parent(robot: Any, frame: str) -> str | None:
+    """The link a camera ``frame`` is mounted on: the parent of the first fixed joint after the last movable
+    joint on the path from the root (where ``ppoe diagnose`` puts ``camera_extrinsics``); None when ``frame``
+    is the root link or hangs directly on a movable joint (then it is not static)."""
+    path = robot.path_from_root(frame)
+    k = len(path)
+    while k > 0 and not robot.joints[path[k - 1]].movable:
+        k -= 1
+    if k == len(path):
+        return None
+    return str(robot.joints[path[k]].parent)
+
+
+def calibrated_camera_frames(model: Any, suffix: str) -> tuple[list[TfFrame], list[str]]:
+    """Calibrated camera frames of ``model`` for ``/tf_static``, and notes on cameras left out.
+
+    The cameras are the model YAML's ``camera.frame`` and the camera frame of every ``camera_extrinsics``
+    effect located at a camera link.  Each is published as ``<camera frame><suffix>`` relative to the link
+    its fixed mount hangs on (:func:`camera_mount_parent`), with ``T_mount_camera`` the mean pose of the model
+    with its static effects (:data:`STATIC_EFFECTS`) applied: the calibrated extrinsic.
+
+    Parameters
+    ----------
+    model : PPOEModel
+    suffix : str
+        Appended to the camera frame's name for the child frame (so the URDF's own frame stays intact).
+
+    Returns
+    -------
+    frames : list of TfFrame
+    notes : list of str
+        One per camera that cannot be published (not static, or its child name is a URDF link).
+    """
+    robot = model.robot
+    cameras: list[str] = []
+    if model.config.camera is not None:
+        cameras.append(model.config.camera.frame)
+    for eff in model.effects:
+        frame = getattr(eff, "frame", None)
+        if eff.name == "camera_extrinsics" and frame and frame not in cameras:
+            cameras.append(frame)
+    static = model.with_effects([e for e in model.effects if e.name in STATIC_EFFECTS])
+    zeros = {n: 0.0 for n in model.joint_names}
+    frames, notes = [], []
+    for cam in cameras:
+        parent = camera_mount_parent(robot, cam)
+        child = f"{cam}{suffix}"
+        collision = urdf_collision(robot, child)
+        if parent is None:
+            notes.append(f"camera frame '{cam}' is not on a fixed mount (root link, or it hangs on a movable "
+                         "joint): no static frame")
+        elif collision:
+            notes.append(f"parameter tf_camera_suffix = '{suffix}': calibrated camera frame {collision}; "
+                         f"/tf_static for camera '{cam}' is off")
+        else:
+            frames.append(TfFrame(parent, child, np.asarray(static.fk_mean(zeros, parent, cam))))
+    return frames, notes
+
+
+# -------------------------------------------------------------------------- joints
+
+
+class JointFrames:
+    """robot_state_publisher's transforms from a PPOE model (module docstring).
+
+    Parameters
+    ----------
+    model : PPOEModel
+        Its URDF joints and its effects: static ones are folded into the joint origins once, the
+        others are evaluated at every joint state on the latest value of every joint.
+    """
+
+    def __init__(self, model: Any) -> None:
+        from ppoe_core.model.effects import sum_effect_corrections
+
+        robot = self.robot = model.robot
+        self._sum = sum_effect_corrections
+        self.independent = list(robot.independent_joints)
+        zeros = {n: np.zeros(()) for n in self.independent}
+        static = [e for e in model.effects if e.name in STATIC_EFFECTS]
+        self.dynamic = [e for e in model.effects if e.name not in STATIC_EFFECTS]
+        dq0, dxi0 = sum_effect_corrections(static, self._with_mimic(zeros), {})
+        self.dq0 = {k: float(np.asarray(v)) for k, v in dq0.items()}
+        self.dxi0 = {k: np.asarray(v, dtype=float).reshape(6) for k, v in dxi0.items()}
+        dq_dyn, dxi_dyn = sum_effect_corrections(self.dynamic, self._with_mimic(zeros), {})
+        #: joints whose transform a configuration-dependent effect changes: published only once the whole
+        #: configuration is known, at every joint state
+        self.dynamic_joints = set(dq_dyn) | set(dxi_dyn)
+        self.movable = [j for j in robot.joints.values() if j.movable]
+        self._row = {j.name: i for i, j in enumerate(self.movable)}
+        self._origins = np.stack([j.origin @ lie.exp(self.dxi0.get(j.name, np.zeros(6))) for j in self.movable]) \
+            if self.movable else np.zeros((0, 4, 4))
+        axes = np.array([j.axis for j in self.movable], dtype=float).reshape(-1, 3)
+        self._axes = axes  # unit axes: the motion Exp(zeta v) is Rodrigues' rotation or a slide along them
+        self._K = lie.hat3(axes) if len(axes) else np.zeros((0, 3, 3))
+        self._K2 = self._K @ self._K
+        self._prismatic = np.array([j.type == "prismatic" for j in self.movable], dtype=bool)
+        # independent joint -> rows of the movable joints its value moves (itself and its mimic followers)
+        self._driven: dict[str, list[int]] = {n: [] for n in self.independent}
+        for j in self.movable:
+            master = j.mimic_root[0] if j.mimic_root is not None else j.name
+            self._driven.setdefault(master, []).append(self._row[j.name])
+        self.latest: dict[str, float] = {}
+        self._layout: tuple[tuple[str, ...], np.ndarray, np.ndarray] | None = None
+
+    def _with_mimic(self, q: Mapping[str, Any]) -> dict[str, Any]:
+        """Joint values with the mimic joints' values added (as :class:`PPOEModel` hands them to effects)."""
+        out = dict(q)
+        for j in self.robot.joints.values():
+            if j.mimic_root is not None and j.mimic_root[0] in q:
+                m, mult, off = j.mimic_root
+                out[j.name] = mult * np.asarray(q[m]) + off
+        return out
+
+    def static_frames(self) -> list[TfFrame]:
+        """Every fixed joint that no configuration-dependent effect touches: child in parent (``/tf_static``)."""
+        return [TfFrame(j.parent, j.child, j.origin @ lie.exp(self.dxi0.get(j.name, np.zeros(6))))
+                for j in self.robot.joints.values() if not j.movable and j.name not in self.dynamic_joints]
+
+    def _rows_of(self, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """Indices into ``names`` of the independent joints, and the rows of the joints they drive (cached)."""
+        key = tuple(names)
+        if self._layout is None or self._layout[0] != key:
+            src = [i for i, n in enumerate(key) if n in self._driven]
+            rows = sorted({r for i in src for r in self._driven[key[i]]})
+            self._layout = (key, np.array(src, dtype=np.intp), np.array(rows, dtype=np.intp))
+        return self._layout[1], self._layout[2]
+
+    def frames(self, names: Sequence[str], positions: Sequence[float]) -> list[TfFrame]:
+        """The transforms a joint state changes: the movable joints it carries values for (and their mimic
+        followers), and, once every joint has a value, every joint a configuration-dependent effect moves.
+
+        Joints the model does not know and non-finite values are ignored (the pose path reports them).
+        """
+        src, rows = self._rows_of(names)
+        pos = np.asarray(positions, dtype=float)
+        finite = np.isfinite(pos[src])
+        if not finite.all():  # a joint without a value in this message: none of the joints it drives
+            src = src[finite]
+            rows = np.array(sorted({r for i in src for r in self._driven[names[i]]}), dtype=np.intp)
+        for i in src:
+            self.latest[names[i]] = float(pos[i])
+        dq: dict[str, Any] = {}
+        dxi: dict[str, Any] = {}
+        complete = len(self.latest) == len(self.independent)
+        if self.dynamic and complete:
+            dq, dxi = self._sum(self.dynamic, self._with_mimic(self.latest), {})
+            rows = np.union1d(rows, [self._row[n] for n in self.dynamic_joints if n in self._row]).astype(np.intp)
+        elif self.dynamic:
+            rows = np.array([r for r in rows if self.movable[r].name not in self.dynamic_joints], dtype=np.intp)
+        out = self._movable_frames(rows, dq, dxi)
+        if dxi and complete:
+            for jn in sorted(self.dynamic_joints):
+                j = self.robot.joints[jn]
+                if not j.movable:
+                    xi = self.dxi0.get(jn, np.zeros(6)) + np.asarray(dxi.get(jn, np.zeros(6)), dtype=float)
+                    out.append(TfFrame(j.parent, j.child, j.origin @ lie.exp(xi)))
+        return out
+
+    def _movable_frames(self, rows: np.ndarray, dq: Mapping[str, Any], dxi: Mapping[str, Any]) -> list[TfFrame]:
+        """``T_parent_child = origin Exp(dxi) Exp(zeta (q + dq))`` of the movable joints ``rows`` (paper eq. 16)."""
+        values = np.empty(len(rows))
+        origins = self._origins[rows]
+        for k, r in enumerate(rows):
+            j = self.movable[r]
+            if j.mimic_root is not None:
+                m, mult, off = j.mimic_root
+                if m not in self.latest:
+                    values[k] = np.nan
+                    continue
+                v = mult * (self.latest[m] + self.dq0.get(m, 0.0) + float(np.asarray(dq.get(m, 0.0)))) + off
+                v += self.dq0.get(j.name, 0.0) + float(np.asarray(dq.get(j.name, 0.0)))
+            else:
+                v = self.latest.get(j.name, np.nan) + self.dq0.get(j.name, 0.0) + float(np.asarray(dq.get(j.name, 0.0)))
+            values[k] = v
+            if j.name in dxi:
+                origins[k] = j.origin @ lie.exp(self.dxi0.get(j.name, np.zeros(6)) + np.asarray(dxi[j.name]))
+        ok = np.isfinite(values)
+        rows, v = rows[ok], values[ok]
+        M = np.zeros((len(rows), 4, 4))  # Exp(zeta v) of a unit joint twist (paper eq. 3), without the series
+        slide = self._prismatic[rows]
+        M[:, :3, :3] = np.eye(3) + (np.where(slide, 0.0, np.sin(v))[:, None, None] * self._K[rows]
+                                    + np.where(slide, 0.0, 1.0 - np.cos(v))[:, None, None] * self._K2[rows])
+        M[:, :3, 3] = np.where(slide, v, 0.0)[:, None] * self._axes[rows]
+        M[:, 3, 3] = 1.0
+        T = origins[ok] @ M
+        return [TfFrame(self.movable[r].parent, self.movable[r].child, T[k]) for k, r in enumerate(rows)]
