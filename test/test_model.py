@@ -343,6 +343,29 @@ def test_effect_hook_mean_and_covariance(edge):
     np.testing.assert_allclose(covb[1], cov1, rtol=1e-9, atol=1e-20)
 
 
+class _MasterOffset:
+    """A joint offset on j4, the master of the mimic finger_joint, and one on the mimic itself."""
+
+    def corrections(self, q, context):
+        shape = np.shape(q["j1"])
+        return {"j4": np.full(shape, 0.05), "finger_joint": np.full(shape, 0.01)}, {}
+
+
+def test_joint_offset_on_a_mimic_master_moves_the_mimic_as_the_kinematic_tree(edge):
+    from ppoe_core.robot.tree import KinematicTree
+
+    model = edge.with_effects([_MasterOffset()])
+    q = np.array([0.3, -0.2, 0.1, 0.8])
+    T = model.fk_mean(q, "link4", "finger")
+    mimic = -0.5 * (0.8 + 0.05) + 0.1 + 0.01  # the master's true value, then the mimic's own offset
+    expected = edge.robot.joints["finger_joint"].origin @ lie.exp(np.array([0, 0, 0, 0, 1.0, 0]) * mimic)
+    np.testing.assert_allclose(T, expected, atol=1e-14)
+    poses = KinematicTree(edge.robot).link_poses(dict(zip(edge.joint_names, q)), {"j4": 0.05, "finger_joint": 0.01})
+    np.testing.assert_allclose(model.fk_mean(q, "base_link", "finger"), poses["finger"], atol=1e-13)
+    Tb = model.fk_mean(np.stack([q, q]), "base_link", "finger")  # batched path
+    np.testing.assert_allclose(Tb[1], poses["finger"], atol=1e-13)
+
+
 def test_effects_from_config_are_built_lazily(monkeypatch):
     """config.effects -> ppoe_core.model.effects.effect_from_config(entry, robot, where=...)."""
     import sys

@@ -36,8 +36,9 @@ evaluates one or many configurations, in chunks with the batch axis innermost (S
 Covariances use the low-rank factors ``Sigma_k = L_k L_k^T`` (only the non-zero
 sigmas): ``Sigma = G^T G`` with rows ``G = [Ad_{B_k^-1} L_k]_k``.
 
-Effects: ``dq`` of a joint shifts that joint's own motion (a mimic joint does not
-inherit its master's ``dq``); ``dxi`` sits right before the joint's ``xi``.
+Effects: ``dq`` of an independent joint shifts its motion and, times the multiplier, its mimic joints'
+(they follow the master's true value, as :class:`~ppoe_core.robot.tree.KinematicTree` and the calibrated
+URDF); ``dq`` of a mimic joint shifts that joint only; ``dxi`` sits right before the joint's ``xi``.
 """
 
 from __future__ import annotations
@@ -306,10 +307,7 @@ class PPOEModel:
                 if k not in self.robot.joints:
                     raise UnknownJointError(f"an effect returned a correction for unknown joint '{k}'")
             if dq_tot:
-                theta = theta.copy()
-                for i, jn in enumerate(ch.motion_joint):
-                    if jn in dq_tot:
-                        theta[i] += ch.motion_sign[i] * dq_tot[jn]
+                theta = _shift_motions(ch, theta, dq_tot)
             if len(ch.d_joint):
                 D = np.empty((len(ch.d_joint), 4, 4, N))
                 for k, jn in enumerate(ch.d_joint):
@@ -499,6 +497,19 @@ class PPOEModel:
         """Perturbation sites on the chain (``"xi:<joint>"``, ``"noise:<joint>"``), chain order."""
         frm, to = self._frames(frm, to)
         return list(self._chain(frm, to, False).site_label)
+
+
+def _shift_motions(ch: _Chain, theta: Array, dq: Mapping[str, Array]) -> Array:
+    """Motion values ``theta`` (n_motion, N) plus the joint offsets ``dq``: a mimic joint follows its master's true
+    value (``dq`` of the master times the multiplier) and adds its own ``dq``."""
+    theta = theta.copy()
+    for i, jn in enumerate(ch.motion_joint):
+        master = ch.motion_master[i]
+        if master != jn and master in dq:
+            theta[i] += ch.motion_mult[i] * dq[master]
+        if jn in dq:
+            theta[i] += ch.motion_sign[i] * dq[jn]
+    return theta
 
 
 def _batch_over_all_joints(theta: Array, shape: tuple, joints: Mapping[str, Any]) -> tuple[Array, tuple, int]:
