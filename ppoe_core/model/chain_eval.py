@@ -51,7 +51,7 @@ def evaluate(ch: _Chain, theta: Array, D: Array | None, order: int = 2, want_col
     F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start = ch.program
     m = col_pos.shape[0]
     T = np.empty((N, 4, 4))
-    cov = np.zeros((N, 6, 6))
+    cov = np.zeros((N if order else 0, 6, 6))  # zeros stay when the chain has no perturbation
     G = np.empty((m, 6, N if want_cols else 0))
     J = np.empty((mot_pos.shape[0], 6, N if want_jac else 0))
     Dc = _NO_D if D is None or D.shape[0] == 0 else np.ascontiguousarray(D, dtype=float)

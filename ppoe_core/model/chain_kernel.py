@@ -96,45 +96,35 @@ def _suffixes(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, theta: np.ndarra
             _general(D[arg[k]], n0, S[k + 1], S[k], C)
 
 
+@njit(cache=True, inline="always")
+def _column(B: np.ndarray, n: int, X: np.ndarray, c: int) -> tuple[float, float, float, float, float, float]:
+    """Local covariance column ``c`` of configuration ``n``: ``Ad_{B^-1} [v; w] = [R^T (v + w x t); R^T w]`` for
+    the suffix ``B = [R t]`` (rows ``(3, 4, C)``) and the factor column ``X[c]`` = rows ``[v^T; w^T]``."""
+    w0, w1, w2 = X[c, 1, 0], X[c, 1, 1], X[c, 1, 2]
+    a0 = X[c, 0, 0] + w1 * B[2, 3, n] - w2 * B[1, 3, n]
+    a1 = X[c, 0, 1] + w2 * B[0, 3, n] - w0 * B[2, 3, n]
+    a2 = X[c, 0, 2] + w0 * B[1, 3, n] - w1 * B[0, 3, n]
+    return (a0 * B[0, 0, n] + a1 * B[1, 0, n] + a2 * B[2, 0, n],
+            a0 * B[0, 1, n] + a1 * B[1, 1, n] + a2 * B[2, 1, n],
+            a0 * B[0, 2, n] + a1 * B[1, 2, n] + a2 * B[2, 2, n],
+            w0 * B[0, 0, n] + w1 * B[1, 0, n] + w2 * B[2, 0, n],
+            w0 * B[0, 1, n] + w1 * B[1, 1, n] + w2 * B[2, 1, n],
+            w0 * B[0, 2, n] + w1 * B[1, 2, n] + w2 * B[2, 2, n])
+
+
 @njit(cache=True)
 def _cov_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, C: int, acc: np.ndarray) -> None:
-    """Upper triangle of ``G^T G`` (21 entries per configuration) into ``acc`` (21, C)."""
+    """Upper triangle of ``G^T G`` (21 entries per configuration, row by row) into ``acc`` (21, C)."""
     acc[:, :C] = 0.0
     for c in range(col_pos.shape[0]):
         B = S[col_pos[c]]
-        v0, v1, v2 = X[c, 0, 0], X[c, 0, 1], X[c, 0, 2]
-        w0, w1, w2 = X[c, 1, 0], X[c, 1, 1], X[c, 1, 2]
         for n in range(C):
-            a0 = v0 + w1 * B[2, 3, n] - w2 * B[1, 3, n]
-            a1 = v1 + w2 * B[0, 3, n] - w0 * B[2, 3, n]
-            a2 = v2 + w0 * B[1, 3, n] - w1 * B[0, 3, n]
-            g0 = a0 * B[0, 0, n] + a1 * B[1, 0, n] + a2 * B[2, 0, n]
-            g1 = a0 * B[0, 1, n] + a1 * B[1, 1, n] + a2 * B[2, 1, n]
-            g2 = a0 * B[0, 2, n] + a1 * B[1, 2, n] + a2 * B[2, 2, n]
-            g3 = w0 * B[0, 0, n] + w1 * B[1, 0, n] + w2 * B[2, 0, n]
-            g4 = w0 * B[0, 1, n] + w1 * B[1, 1, n] + w2 * B[2, 1, n]
-            g5 = w0 * B[0, 2, n] + w1 * B[1, 2, n] + w2 * B[2, 2, n]
-            acc[0, n] += g0 * g0
-            acc[1, n] += g0 * g1
-            acc[2, n] += g0 * g2
-            acc[3, n] += g0 * g3
-            acc[4, n] += g0 * g4
-            acc[5, n] += g0 * g5
-            acc[6, n] += g1 * g1
-            acc[7, n] += g1 * g2
-            acc[8, n] += g1 * g3
-            acc[9, n] += g1 * g4
-            acc[10, n] += g1 * g5
-            acc[11, n] += g2 * g2
-            acc[12, n] += g2 * g3
-            acc[13, n] += g2 * g4
-            acc[14, n] += g2 * g5
-            acc[15, n] += g3 * g3
-            acc[16, n] += g3 * g4
-            acc[17, n] += g3 * g5
-            acc[18, n] += g4 * g4
-            acc[19, n] += g4 * g5
-            acc[20, n] += g5 * g5
+            g = _column(B, n, X, c)
+            k = 0
+            for i in range(6):
+                for j in range(i, 6):
+                    acc[k, n] += g[i] * g[j]
+                    k += 1
 
 
 @njit(cache=True)
@@ -142,15 +132,10 @@ def _columns_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, n0: int, C
     """Local covariance columns ``Ad_{B_k^-1} L_k`` into ``G`` (m, 6, N)."""
     for c in range(col_pos.shape[0]):
         B = S[col_pos[c]]
-        v0, v1, v2 = X[c, 0, 0], X[c, 0, 1], X[c, 0, 2]
-        w0, w1, w2 = X[c, 1, 0], X[c, 1, 1], X[c, 1, 2]
         for n in range(C):
-            a0 = v0 + w1 * B[2, 3, n] - w2 * B[1, 3, n]
-            a1 = v1 + w2 * B[0, 3, n] - w0 * B[2, 3, n]
-            a2 = v2 + w0 * B[1, 3, n] - w1 * B[0, 3, n]
-            for j in range(3):
-                G[c, j, n0 + n] = a0 * B[0, j, n] + a1 * B[1, j, n] + a2 * B[2, j, n]
-                G[c, 3 + j, n0 + n] = w0 * B[0, j, n] + w1 * B[1, j, n] + w2 * B[2, j, n]
+            g = _column(B, n, X, c)
+            for i in range(6):
+                G[c, i, n0 + n] = g[i]
 
 
 @njit(cache=True)

@@ -232,12 +232,9 @@ class KinematicsNode(Node):
 
     # --------------------------------------------------------------- callback
     def _on_joint_state_burst(self, msg: bytes) -> None:
-        """Subscription callback: this message, then up to ``drain_max`` more that already wait.
-
-        rclpy's executor rebuilds its wait set for every message, which costs more than
-        the message itself at 1 kHz; taking the waiting messages here (the same
-        ``take_message`` call the executor makes) pays that once per burst.
-        """
+        """Subscription callback: this message, then up to ``drain_max`` more that already wait (one callback
+        per burst; with the events executor also the messages it was not told about after a history overflow,
+        which would otherwise wait uncounted until the next message)."""
         self._on_joint_state(msg)
         handle = self._js_sub.handle
         for _ in range(self._drain_max):
