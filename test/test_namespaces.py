@@ -151,3 +151,65 @@ def test_two_robots_in_one_graph_outputs_do_not_cross(tmp_path):
         np.testing.assert_allclose(_T_tf(corrected), fk[r][0], atol=1e-9)
     unprefixed = [tr.child_frame_id for m in tf for tr in m.transforms if not tr.child_frame_id.startswith("robot")]
     assert not unprefixed, unprefixed
+
+
+def test_in_process_nodes_follow_namespace_and_prefix(tmp_path):
+    """Contact and fusion node built in /robot1 with frame_prefix robot1/: resolved topics, prefixed output frames,
+    inputs of another robot (or without the prefix) refused, sensor-block frames checked with the prefix."""
+    from ros_helpers import Probe, ros_env
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import Imu
+    from std_msgs.msg import Header
+
+    from ppoe_ros.common import pose_cov_stamped_msg
+    from ppoe_ros.nodes.contact_node import ContactNode
+    from ppoe_ros.nodes.fusion_node import FusionNode
+
+    model = PPOEModel.from_files(ARM7_URDF, ARM7_MODEL)
+    T, P = model.fk(dict(zip(JOINTS, Q["robot1"])), "base_link", "tool0")
+    with Probe(ros_env(tmp_path)) as probe:
+        contact = ContactNode(context=probe.context, namespace="/robot1", parameter_overrides=[
+            Parameter("frame_prefix", value="robot1/"), Parameter("plane_frame", value="base_link"),
+            Parameter("plane_xyz", value=[0.0, 0.0, 0.1]), Parameter("plane_rpy", value=[0.0, 0.0, 0.0]),
+            Parameter("plane_sigma", value=[0.1, 0.1, 0.001, 0.01, 0.01, 0.1])])
+        try:
+            assert contact._pub.topic_name == "/robot1/contact/plane"
+            assert contact._out.header.frame_id == "robot1/base_link"
+        finally:
+            contact.destroy_node()
+        fusion = FusionNode(context=probe.context, namespace="/robot1", parameter_overrides=[
+            Parameter("model_file", value=str(ARM7_MODEL)), Parameter("robot_description", value=ARM7_URDF.read_text()),
+            Parameter("frame_prefix", value="robot1/"), Parameter("publish_tf", value=False),
+            Parameter("sources", value=["tool_imu"]), Parameter("tool_imu.type", value="imu"),
+            Parameter("tool_imu.topic", value="imu/tool")])
+        try:
+            sent = []
+            fusion.pub.publish = sent.append
+            assert fusion.pub.topic_name == "/robot1/ppoe/fused_pose"
+            topics = {s.topic_name for s in fusion.subscriptions}
+            assert {"/robot1/ppoe/pose", "/robot1/joint_states", "/robot1/imu/tool", "/robot1/contact/plane",
+                    "/robot1/tag_bearing/observations", "/robot1/camera/camera_info"} <= topics
+            cov_ros = lie.cov_local_to_ros(T, P)
+            with pytest.raises(MeasurementError, match="prior frame 'base_link' is not base_frame 'robot1/base_link'"):
+                fusion._prior(pose_cov_stamped_msg(T, cov_ros, 0, "base_link"))
+            fusion._prior(pose_cov_stamped_msg(T, cov_ros, 1_000_000_000, "robot1/base_link"))
+            assert [m.header.frame_id for m in sent] == ["robot1/base_link"]
+            src = fusion.sources.sources[0]
+            assert src.topic == "/robot1/imu/tool"
+
+            def imu(frame: str, accel) -> Imu:
+                msg = Imu(header=Header(frame_id=frame))
+                msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = accel
+                msg.linear_acceleration_covariance = [1e-6, 0, 0, 0, 1e-6, 0, 0, 0, 1e-6]
+                return msg
+
+            with pytest.raises(MeasurementError, match="'robot2/tool0' lacks the frame_prefix 'robot1/'"):
+                fusion.sources._on_message(src, imu("robot2/tool0", (0.0, 0.0, 9.8)))
+            counts = fusion.stats.counts
+            fusion.sources._on_message(src, imu("robot1/ghost", (0.0, 0.0, 9.8)))
+            fusion.sources._on_message(src, imu("robot1/tool0", (0.0, 0.0, 5.0)))  # accelerating: skipped
+            assert (counts["unknown_link"], counts["not_at_rest"], counts["measurements"]) == (1, 1, 0)
+            fusion.sources._on_message(src, imu("robot1/tool0", (0.0, 0.0, 9.8)))
+            assert fusion.pipeline.counts["measurements"] == 1  # the prefixed one reached the pipeline
+        finally:
+            fusion.destroy_node()
