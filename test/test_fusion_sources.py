@@ -250,3 +250,33 @@ def test_fusion_node_fuses_each_kind_live_and_survives_unknown_links(tmp_path, a
 
 def _values(status_array) -> dict[str, str]:
     return {kv.key: kv.value for kv in status_array.status[0].values}
+
+
+def test_misspelled_block_key_is_reported_with_the_closest_name(tmp_path):
+    """A typo inside a sensor block is an unknown parameter like any other: reported with the closest valid name,
+    and the node still starts."""
+    pytest.importorskip("rclpy")
+    from rclpy.parameter import Parameter
+    from ros_helpers import Probe, ros_env
+
+    from ppoe_ros.common.fusion_sources import source_specs
+    from ppoe_ros.common.params import _report_unknown_overrides
+    from ppoe_ros.nodes.fusion_node import PARAMS, FusionNode
+
+    with Probe(ros_env(tmp_path)) as probe:
+        node = FusionNode(context=probe.context, parameter_overrides=[
+            Parameter("model_file", value=str(ARM7_MODEL)), Parameter("robot_description", value=ARM7_URDF.read_text()),
+            Parameter("publish_tf", value=False), Parameter("sources", value=["tracker"]),
+            Parameter("tracker.type", value="point"), Parameter("tracker.topic", value="ground_truth/point"),
+            Parameter("tracker.sigm", value=[0.001]), Parameter("mocap.type", value="pose")])
+        try:
+            by_name = {s.name: s for s in PARAMS + source_specs(["tracker"])}
+            lines = _report_unknown_overrides(node, by_name)
+            (src,) = node.sources.sources
+            # completed from the model YAML's tracker entry (arm7: tool0, xyz [0, 0, 0.02], sigma 0.5 mm)
+            assert (src.link, src.xyz.tolist(), src.sigma.tolist(), src.off) == ("tool0", [0.0, 0.0, 0.02],
+                                                                                 [0.0005], "")
+        finally:
+            node.destroy_node()
+    assert any("unknown parameter 'tracker.sigm' ignored (did you mean 'tracker.sigma'?)" in line for line in lines)
+    assert any("unknown parameter 'mocap.type'" in line for line in lines)  # a block not listed in sources

@@ -181,6 +181,8 @@ class SourceUpdater(ModelUpdater):
     covariance enters as noise when non-zero); a tracker or pose frame that is a model frame is placed with
     ``model.fk_mean(joints, base, frame)``, else the payload carries ``T_base_frame``.  A link or frame the model
     does not know is a :class:`MeasurementError` naming it (the pipeline counts the measurement as bad).
+    ``GravityObservation`` takes one isotropic sigma: the largest of the accelerometer covariance's diagonal
+    (conservative for a per-axis covariance).
     """
 
     def build(self, measurement: Measurement, prior: PriorSample | None) -> tuple[Any, Array]:
