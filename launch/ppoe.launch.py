@@ -30,11 +30,16 @@ Examples::
 
 from pathlib import Path
 
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
-from launch.substitutions import LaunchConfiguration
-from launch_ros.actions import Node
+try:
+    from launch.actions import DeclareLaunchArgument, OpaqueFunction
+    from launch.substitutions import LaunchConfiguration
+    from launch_ros.actions import Node
 
-from launch import LaunchDescription
+    from launch import LaunchDescription
+except ImportError as _exc:  # a pip install has no launch / launch_ros: the file still imports (tests, tools)
+    _MISSING: ImportError | None = _exc
+else:
+    _MISSING = None
 
 __all__ = ["ARGUMENTS", "NODE_OVERRIDES", "generate_launch_description", "launch_nodes"]
 
@@ -67,7 +72,7 @@ def _true(text: str) -> bool:
     return text.strip().lower() in ("true", "1", "yes", "on")
 
 
-def launch_nodes(context, *args, **kwargs) -> list:
+def launch_nodes(context: object, *args: object, **kwargs: object) -> list:
     """The nodes, built once the argument values are known (``OpaqueFunction``: the URDF file is read here)."""
     from ament_index_python.packages import get_package_share_directory
 
@@ -100,8 +105,11 @@ def launch_nodes(context, *args, **kwargs) -> list:
     return nodes
 
 
-def generate_launch_description() -> LaunchDescription:
+def generate_launch_description() -> "LaunchDescription":
     """The arguments of :data:`ARGUMENTS` and the nodes (:func:`launch_nodes`)."""
+    if _MISSING is not None:
+        raise RuntimeError(f"ppoe.launch.py needs the ROS 2 packages launch and launch_ros (ROS 2 Jazzy from apt, "
+                           f"source /opt/ros/jazzy/setup.bash): {_MISSING}")
     arguments = [DeclareLaunchArgument(name, default_value=default, description=text)
                  for name, (default, text) in ARGUMENTS.items()]
     return LaunchDescription(arguments + [OpaqueFunction(function=launch_nodes)])

@@ -186,3 +186,15 @@ def test_every_config_key_has_a_comment(node_name: str) -> None:
                 j -= 1
                 comment = lines[j].lower() + comment
             assert "default" in comment, f"{node_name}.yaml:{i + 1}: comment of '{key}' names no default"
+
+
+def test_launch_file_imports_without_launch_ros_and_says_what_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without launch_ros (a pip install) the file still imports; building the description names what is missing."""
+    monkeypatch.setitem(sys.modules, "launch_ros", None)  # import launch_ros -> ImportError
+    monkeypatch.setitem(sys.modules, "launch_ros.actions", None)
+    spec = importlib.util.spec_from_file_location("ppoe_launch_plain", LAUNCH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert {"namespace", "urdf", "model", "frame_prefix"} <= set(module.ARGUMENTS)
+    with pytest.raises(RuntimeError, match="needs the ROS 2 packages launch and launch_ros"):
+        module.generate_launch_description()
