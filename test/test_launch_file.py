@@ -1,9 +1,9 @@
 """launch/ppoe.launch.py and the node parameter files, checked without launch_ros.
 
-launch / launch_ros are not installable here, so the launch file is (1) read with
-``ast`` for the executables and config files it names, and (2) executed against
-small recording stand-ins of the launch classes to check the structure of what
-``generate_launch_description()`` returns.  The node config files are checked
+launch / launch_ros are not installable here, so the launch file is executed against small recording
+stand-ins of the launch classes: the arguments it declares (namespace, urdf, model, frame_prefix ...),
+the nodes :func:`launch_nodes` builds from their values, and that every parameter it sets is one the
+node declares.  The node config files are checked
 against the parameters the nodes declare, and for a comment on every key.
 """
 
@@ -13,6 +13,7 @@ import ast
 import importlib.util
 import sys
 import types
+from pathlib import Path
 
 import pytest
 import yaml
@@ -31,37 +32,14 @@ def _console_scripts() -> dict[str, str]:
     raise AssertionError("setup.py has no entry_points")
 
 
-def _launch_calls() -> list[ast.Call]:
-    tree = ast.parse(LAUNCH.read_text(), filename=str(LAUNCH))
-    return [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "Node"]
-
-
-def test_every_executable_exists_in_setup_py() -> None:
-    scripts = _console_scripts()
-    calls = _launch_calls()
-    executables = []
-    for call in calls:
-        kw = {k.arg: k.value for k in call.keywords}
-        assert isinstance(kw.get("executable"), ast.Constant), f"line {call.lineno}: executable must be a literal"
-        executables.append(kw["executable"].value)
-    missing = [e for e in executables if e not in scripts]
-    assert not missing, f"launch file starts executables missing from setup.py: {missing}"
-    node_scripts = sorted(s for s in scripts if s.endswith("_node"))
-    assert sorted(executables) == node_scripts, "launch file must start every node exactly once"
-    # each entry point's module exists in the package
-    for name in executables:
-        module = scripts[name].split(":")[0]
-        path = REPO / module.replace(".", "/")
-        assert path.with_suffix(".py").is_file() or (path / "__init__.py").is_file(), f"{name}: module {module} missing"
-
-
-def test_every_config_file_named_exists() -> None:
-    tree = ast.parse(LAUNCH.read_text())
-    named = sorted({n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)
-                    and isinstance(n.value, str) and n.value.endswith((".yaml", ".yml"))})
-    assert len(named) == 4, named
-    missing = [f for f in named if not (REPO / "config" / "nodes" / f).is_file()]
-    assert not missing, f"launch file names config files that do not exist in config/: {missing}"
+def _load_launch(monkeypatch: pytest.MonkeyPatch, share: Path):
+    """The launch file executed against recording stand-ins of launch / launch_ros / ament_index_python."""
+    for name, mod in _stub_modules(share).items():
+        monkeypatch.setitem(sys.modules, name, mod)
+    spec = importlib.util.spec_from_file_location("ppoe_launch_under_test", LAUNCH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 class _Rec:
@@ -72,16 +50,19 @@ class _Rec:
         self.kwargs = kwargs
 
 
-def _stub_modules() -> dict[str, types.ModuleType]:
+class _LaunchConfiguration(_Rec):
+    def perform(self, context):
+        return context[self.args[0]]
+
+
+def _stub_modules(share: Path) -> dict[str, types.ModuleType]:
     names = {
         "launch": ["LaunchDescription"],
-        "launch.actions": ["DeclareLaunchArgument"],
-        "launch.conditions": ["IfCondition"],
-        "launch.substitutions": ["LaunchConfiguration", "PathJoinSubstitution"],
+        "launch.actions": ["DeclareLaunchArgument", "OpaqueFunction"],
+        "launch.substitutions": [],
         "launch_ros": [],
         "launch_ros.actions": ["Node"],
-        "launch_ros.parameter_descriptions": ["ParameterValue"],
-        "launch_ros.substitutions": ["FindPackageShare"],
+        "ament_index_python": [],
     }
     mods = {}
     for mod_name, classes in names.items():
@@ -89,34 +70,83 @@ def _stub_modules() -> dict[str, types.ModuleType]:
         for cls in classes:
             setattr(mod, cls, type(cls, (_Rec,), {}))
         mods[mod_name] = mod
+    mods["launch.substitutions"].LaunchConfiguration = _LaunchConfiguration
+    packages = types.ModuleType("ament_index_python.packages")
+    packages.get_package_share_directory = lambda name: str(share) if name == "ppoe_ros" else 1 / 0
+    mods["ament_index_python.packages"] = packages
     return mods
 
 
-def test_generate_launch_description_structure(monkeypatch: pytest.MonkeyPatch) -> None:
-    for name, mod in _stub_modules().items():
-        monkeypatch.setitem(sys.modules, name, mod)
-    spec = importlib.util.spec_from_file_location("ppoe_launch_under_test", LAUNCH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+def _context(module, **values) -> dict[str, str]:
+    """Launch argument values: the declared defaults, overridden by ``values``."""
+    return {**{k: d for k, (d, _) in module.ARGUMENTS.items()}, **values}
+
+
+def test_every_executable_exists_in_setup_py(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    module = _load_launch(monkeypatch, tmp_path)
+    scripts = _console_scripts()
+    executables = [exe for exe, _, _ in module.NODE_OVERRIDES]
+    missing = [e for e in executables if e not in scripts]
+    assert not missing, f"launch file starts executables missing from setup.py: {missing}"
+    node_scripts = sorted(s for s in scripts if s.endswith("_node"))
+    assert sorted(executables) == node_scripts, "launch file must start every node exactly once"
+    for name in executables:
+        module_name = scripts[name].split(":")[0]
+        path = REPO / module_name.replace(".", "/")
+        assert path.with_suffix(".py").is_file() or (path / "__init__.py").is_file(), f"{name}: {module_name} missing"
+
+
+def test_launch_arguments_set_real_node_parameters(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Every parameter a launch argument sets is declared by that node (else the node would report it as an
+    unknown key), and the arguments the issue asks for exist."""
+    module = _load_launch(monkeypatch, tmp_path)
     ld = module.generate_launch_description()
     entities = ld.args[0]
-    declared = {e.args[0] for e in entities if type(e).__name__ == "DeclareLaunchArgument"}
-    nodes = [e for e in entities if type(e).__name__ == "Node"]
-    assert {"model_file", "use_sim_time"} <= declared
-    model_arg = next(e for e in entities if type(e).__name__ == "DeclareLaunchArgument" and e.args[0] == "model_file")
-    assert "default_value" not in model_arg.kwargs, "model_file must be required"
-    assert len(nodes) == 4
+    declared = {e.kwargs.get("name", e.args[0] if e.args else None) for e in entities
+                if type(e).__name__ == "DeclareLaunchArgument"}
+    assert {"namespace", "urdf", "model", "frame_prefix", "use_sim_time"} <= declared
+    assert declared == set(module.ARGUMENTS)
+    (opaque,) = [e for e in entities if type(e).__name__ == "OpaqueFunction"]
+    assert opaque.kwargs["function"] is module.launch_nodes
+    for exe, switch, keys in module.NODE_OVERRIDES:
+        assert switch in declared
+        names = {s.name for s in importlib.import_module(f"ppoe_ros.nodes.{exe}").PARAMS}
+        unknown = [k for k in keys if k not in names and k != "use_sim_time"]
+        assert not unknown, f"{exe}: the launch file sets parameters the node does not have: {unknown}"
+        if "frame_prefix" in names:
+            assert "frame_prefix" in keys, f"{exe}: frame_prefix argument not passed on"
+
+
+def test_launch_nodes_namespace_urdf_model_prefix(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    module = _load_launch(monkeypatch, tmp_path)
+    urdf = tmp_path / "robot.urdf"
+    urdf.write_text("<robot name='r'/>")
+    ctx = _context(module, model="/m.yaml", urdf=str(urdf), namespace="robot1", frame_prefix="robot1/",
+                   use_sim_time="true", contact="false")
+    nodes = module.launch_nodes(ctx)
+    assert [n.kwargs["executable"] for n in nodes] == ["kinematics_node", "tag_bearing_node", "fusion_node"]
     for node in nodes:
         kw = node.kwargs
         exe = kw["executable"]
-        assert kw["package"] == "ppoe_ros" and kw["name"] == exe
+        assert kw["package"] == "ppoe_ros" and kw["name"] == exe and kw["namespace"] == "robot1"
         params_file, overrides = kw["parameters"]
-        assert params_file.args[0][1:] == ["config", "nodes", f"{exe}.yaml"]
-        assert params_file.args[0][0].args == ("ppoe_ros",)
-        assert overrides["model_file"].args == ("model_file",)
-        assert overrides["use_sim_time"].kwargs["value_type"] is bool
-        cond_arg = kw["condition"].args[0].args[0]
-        assert cond_arg in declared, f"{exe}: condition on undeclared launch argument {cond_arg}"
+        assert params_file == str(tmp_path / "config" / "nodes" / f"{exe}.yaml")
+        assert overrides["model_file"] == "/m.yaml" and overrides["use_sim_time"] is True
+        if exe != "tag_bearing_node":
+            assert overrides["robot_description"] == "<robot name='r'/>"
+            assert overrides["frame_prefix"] == "robot1/"
+    # defaults: root namespace, URDF from the topic, no prefix; the old argument name still works
+    nodes = module.launch_nodes(_context(module, model_file="/old.yaml"))
+    assert len(nodes) == 4 and all(n.kwargs["namespace"] == "" for n in nodes)
+    fusion = nodes[-1].kwargs["parameters"][1]
+    assert fusion == {"model_file": "/old.yaml", "robot_description": "", "frame_prefix": "", "use_sim_time": False}
+    with pytest.raises(RuntimeError, match="model:=MODEL.yaml is required"):
+        module.launch_nodes(_context(module))
+
+
+def test_config_files_exist_for_every_node() -> None:
+    missing = [f"{n}.yaml" for n in NODES if not (REPO / "config" / "nodes" / f"{n}.yaml").is_file()]
+    assert not missing, missing
 
 
 NODES = ["kinematics_node", "contact_node", "tag_bearing_node", "fusion_node"]
@@ -156,3 +186,15 @@ def test_every_config_key_has_a_comment(node_name: str) -> None:
                 j -= 1
                 comment = lines[j].lower() + comment
             assert "default" in comment, f"{node_name}.yaml:{i + 1}: comment of '{key}' names no default"
+
+
+def test_launch_file_imports_without_launch_ros_and_says_what_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without launch_ros (a pip install) the file still imports; building the description names what is missing."""
+    monkeypatch.setitem(sys.modules, "launch_ros", None)  # import launch_ros -> ImportError
+    monkeypatch.setitem(sys.modules, "launch_ros.actions", None)
+    spec = importlib.util.spec_from_file_location("ppoe_launch_plain", LAUNCH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert {"namespace", "urdf", "model", "frame_prefix"} <= set(module.ARGUMENTS)
+    with pytest.raises(RuntimeError, match="needs the ROS 2 packages launch and launch_ros"):
+        module.generate_launch_description()

@@ -368,10 +368,12 @@ FUSION_RANGES: dict[str, tuple[float, float]] = {
 }
 
 
-def make_updater(model: Any, base_frame: str, tool_frame: str, settings: dict[str, Any] | None = None) -> ModelUpdater:
-    """The :class:`ModelUpdater` of ``settings`` (keys of :data:`FUSION_SETTINGS`)."""
+def make_updater(model: Any, base_frame: str, tool_frame: str, settings: dict[str, Any] | None = None,
+                 cls: type[ModelUpdater] | None = None) -> ModelUpdater:
+    """The :class:`ModelUpdater` of ``settings`` (keys of :data:`FUSION_SETTINGS`); ``cls``: a subclass to build
+    instead (the fusion node's :class:`~ppoe_core.estimation.source_updater.SourceUpdater`)."""
     s = {**FUSION_SETTINGS, **(settings or {})}
-    return ModelUpdater(
+    return (cls or ModelUpdater)(
         model,
         base_frame,
         tool_frame,

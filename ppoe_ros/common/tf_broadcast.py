@@ -124,33 +124,40 @@ class TfBroadcaster:
     Build it with :meth:`create`, which gives None (and logs :data:`TF2_MSGS_HINT`) without tf2_msgs.
     """
 
-    def __init__(self, node: Node, msg_class: Any) -> None:
+    def __init__(self, node: Node, msg_class: Any, prefix: str = "") -> None:
         self.node = node
         self.msg_class = msg_class
+        self.prefix = prefix  # frame_prefix, prepended to every parent and child (ppoe_ros.common.frame_prefix)
         self.pub = node.create_publisher(msg_class, TF_TOPIC, TF_QOS)
         self.static_pub = node.create_publisher(msg_class, TF_STATIC_TOPIC, TF_STATIC_QOS)
         self.static: list[TransformStamped] = []
 
     @classmethod
-    def create(cls, node: Node, diagnostics: DiagnosticsPublisher | None = None) -> TfBroadcaster | None:
-        """The broadcaster; None with :data:`TF2_MSGS_HINT` logged (and on ``/diagnostics``) without tf2_msgs."""
+    def create(cls, node: Node, diagnostics: DiagnosticsPublisher | None = None,
+               prefix: str = "") -> TfBroadcaster | None:
+        """The broadcaster (``prefix``: the node's ``frame_prefix``); None with :data:`TF2_MSGS_HINT` logged (and on
+        ``/diagnostics``) without tf2_msgs."""
         msg_class = tf_message_class()
         if msg_class is None:
             node.get_logger().warning(TF2_MSGS_HINT)
             if diagnostics is not None:
                 diagnostics.set_problem("tf", "TF off: tf2_msgs not importable (build it: scripts/build_tf2_msgs.py)")
             return None
-        return cls(node, msg_class)
+        return cls(node, msg_class, prefix)
+
+    def _prefixed(self, frames: Iterable[TfFrame]) -> list[TfFrame]:
+        p = self.prefix
+        return [TfFrame(p + f.parent, p + f.child, f.T_parent_child) for f in frames]
 
     def send(self, frames: Sequence[TfFrame], stamp_ns: int) -> None:
         """Publish ``frames`` on ``/tf``, all at ``stamp_ns`` [ns], in one message (serialised here)."""
-        self.pub.publish(tf_message_cdr(frames, stamp_ns))
+        self.pub.publish(tf_message_cdr(self._prefixed(frames) if self.prefix else frames, stamp_ns))
 
     def set_static(self, frames: Iterable[TfFrame]) -> None:
         """Replace the node's static transforms by ``frames`` (stamped now) and publish them all on ``/tf_static``
         (nothing while there are none)."""
         stamp = self.node.get_clock().now().to_msg()
-        static = [transform_msg(f, stamp) for f in frames]
+        static = [transform_msg(f, stamp) for f in self._prefixed(frames)]
         if not static and not self.static:
             return
         self.static = static
@@ -164,7 +171,7 @@ class FusionTf:
     ----------
     node : rclpy.node.Node
     params : mapping
-        The node's parameters ``publish_tf``, ``tf_child_frame``, ``tf_camera_suffix``.
+        The node's parameters ``publish_tf``, ``tf_child_frame``, ``tf_camera_suffix``, ``frame_prefix``.
     diagnostics : DiagnosticsPublisher
         Where a frame that is off is reported (value ``tf``, level WARN).
     """
@@ -174,7 +181,8 @@ class FusionTf:
         self.diagnostics = diagnostics
         self.child_param = str(params["tf_child_frame"])
         self.camera_suffix = str(params["tf_camera_suffix"])
-        self.broadcaster = TfBroadcaster.create(node, diagnostics) if params["publish_tf"] else None
+        prefix = str(params.get("frame_prefix", ""))
+        self.broadcaster = TfBroadcaster.create(node, diagnostics, prefix) if params["publish_tf"] else None
         self.base = ""
         self.child: str | None = None  # None: no /tf for the corrected tool
 
@@ -197,9 +205,10 @@ class FusionTf:
         problems += notes
         self.broadcaster.set_static(cameras)
         self.diagnostics.set_problem("tf", "; ".join(problems) if problems else None)
+        p = self.broadcaster.prefix
         log.info("TF: " + (", ".join(
-            ([f"{base} -> {child} on {TF_TOPIC} (corrected tool)"] if self.child else [])
-            + [f"{c.parent} -> {c.child} on {TF_STATIC_TOPIC} (calibrated camera)" for c in cameras]) or "none"))
+            ([f"{p}{base} -> {p}{child} on {TF_TOPIC} (corrected tool)"] if self.child else [])
+            + [f"{p}{c.parent} -> {p}{c.child} on {TF_STATIC_TOPIC} (calibrated camera)" for c in cameras]) or "none"))
 
     def publish(self, T_base_tool: np.ndarray, stamp: TimeMsg) -> None:
         """The corrected tool frame on ``/tf`` at ``stamp`` (the fused pose's), unless it is off."""
@@ -223,9 +232,10 @@ class KinematicsTf:
         self.frames: JointFrames | None = None
 
     @classmethod
-    def create(cls, node: Node, stats: NodeStats, diagnostics: DiagnosticsPublisher) -> KinematicsTf | None:
-        """None (logged, on ``/diagnostics``) when tf2_msgs is missing."""
-        broadcaster = TfBroadcaster.create(node, diagnostics)
+    def create(cls, node: Node, stats: NodeStats, diagnostics: DiagnosticsPublisher,
+               prefix: str = "") -> KinematicsTf | None:
+        """None (logged, on ``/diagnostics``) when tf2_msgs is missing; ``prefix``: the node's ``frame_prefix``."""
+        broadcaster = TfBroadcaster.create(node, diagnostics, prefix)
         return None if broadcaster is None else cls(broadcaster, stats)
 
     def set_model(self, model: Any) -> None:

@@ -1,15 +1,16 @@
 """Contact node: force/torque (or a contact flag) -> the contact plane while in contact.
 
 Subscriptions
-    ``/wrench`` (``geometry_msgs/WrenchStamped``, sensor-data QoS), or, when
+    ``wrench`` (``geometry_msgs/WrenchStamped``, sensor-data QoS), or, when
     ``contact_flag_topic`` is set, that ``std_msgs/Bool`` topic instead.
 Publications
-    ``/contact/plane`` (``geometry_msgs/PoseWithCovarianceStamped``), one per input
+    ``contact/plane`` (``geometry_msgs/PoseWithCovarianceStamped``), one per input
     message while in contact: the configured plane pose ``T_frame_plane`` (normal =
-    plane z axis) with ``header.frame_id`` = the plane's frame, and its Sigma_v
+    plane z axis) with ``header.frame_id`` = ``frame_prefix`` + the plane's frame, and its Sigma_v
     (paper sec. V, given in the plane frame, i.e. local / right perturbation)
     converted to the ROS convention of docs/conventions.md sec. 2.  Stamp = the wrench
     stamp (a ``Bool`` has no header: the node clock, so ``use_sim_time`` applies).
+    Topics are relative (they follow the node's namespace, :mod:`ppoe_ros.common.frame_prefix`).
     ``/diagnostics``: ``received``, ``published``, ``bad``, ``contacts`` (number of
     contact onsets), ``in_contact`` (0/1).
 
@@ -63,6 +64,7 @@ from ppoe_ros.common import (
     stamp_to_ns,
     wrench_to_numpy,
 )
+from ppoe_ros.common.frame_prefix import FRAME_PREFIX_PARAM, prefixed, resolve_topics
 
 __all__ = ["ContactNode", "PARAMS", "main"]
 
@@ -72,9 +74,9 @@ _COMPONENTS = FORCE_COMPONENTS
 #: Parameters of the node (defaults; documented in config/nodes/contact_node.yaml).
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("model_file", "", "model YAML whose 'contact' section gives plane, Sigma_v and thresholds"),
-    ParamSpec("wrench_topic", "/wrench", "geometry_msgs/WrenchStamped input", check=check_nonempty),
+    ParamSpec("wrench_topic", "wrench", "geometry_msgs/WrenchStamped input", check=check_nonempty),
     ParamSpec("contact_flag_topic", "", "std_msgs/Bool contact flag used instead of the wrench when set"),
-    ParamSpec("plane_topic", "/contact/plane", "output topic", check=check_nonempty),
+    ParamSpec("plane_topic", "contact/plane", "output topic", check=check_nonempty),
     ParamSpec("plane_frame", "", "frame of the plane pose; empty = model YAML contact.plane.frame, else "
               "frames.base"),
     ParamSpec("plane_xyz", [], "plane origin in plane_frame; empty = model YAML", unit="m",
@@ -97,6 +99,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               "long; 0 = off",
               unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
+    FRAME_PREFIX_PARAM,
     ParamSpec("log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s",
               min_value=0.0),
 )
@@ -108,6 +111,7 @@ class ContactNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("contact_node", **kwargs)
         p = declare_parameters(self, PARAMS, on_change=self._on_change)
+        resolve_topics(self, p, ("wrench_topic", "contact_flag_topic", "plane_topic"))
         self.params = p
         self.stats = NodeStats(self, ("received", "published", "bad", "contacts", "in_contact"), p["log_throttle"])
         where = f"node {self.get_name()}" + (f", model file {p['model_file']}" if p["model_file"] else "")
@@ -124,7 +128,8 @@ class ContactNode(Node):
             raise ModelConfigError(f"{where}: {exc}") from None
         self._component = p["force_component"]
         self._last_ns: int | None = None
-        self._out = pose_cov_stamped_msg(self.plane.T_frame_plane, self.plane.cov_ros, 0, self.plane.frame)
+        self._out = pose_cov_stamped_msg(self.plane.T_frame_plane, self.plane.cov_ros, 0,
+                                         prefixed(p["frame_prefix"], self.plane.frame))
         self._pub = self.create_publisher(PoseWithCovarianceStamped, p["plane_topic"], reliable_qos(100))
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         self.diagnostics.watch_input(p["contact_flag_topic"] or p["wrench_topic"], "received", p["input_timeout"])
@@ -136,7 +141,8 @@ class ContactNode(Node):
             t = p["wrench_topic"]
             counted_subscription(self, self.stats, WrenchStamped, t, self._wrench, qos)
         self.get_logger().info(
-            f"plane in {self.plane.frame} at {self.plane.T_frame_plane[:3, 3].tolist()}, contact on {t} "
+            f"plane in {prefixed(p['frame_prefix'], self.plane.frame)} at {self.plane.T_frame_plane[:3, 3].tolist()}, "
+            f"contact on {t} "
             f"(enter {self.detector.enter} N, release {self.detector.release} N) -> {p['plane_topic']}")
 
     def _on_change(self, changed: dict[str, Any]) -> None:

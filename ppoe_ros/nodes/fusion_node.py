@@ -1,24 +1,29 @@
-"""Fusion node: kinematics prior + tag / contact measurements -> corrected tool pose.
+"""Fusion node: kinematics prior + tag / contact / tracker / pose / accelerometer measurements -> corrected tool pose.
 
 Thin ROS wrapper around :class:`ppoe_core.estimation.pipeline.FusionPipeline` (the same code
 ``ppoe evaluate`` replays offline); the design (prior buffer, how a correction is carried
 while the arm moves on and when it is dropped) is in ``docs/fusion_node.md``.
 
 Subscriptions
-    ``prior_topic`` (default ``/ppoe/pose``, ``PoseWithCovarianceStamped`` from the
+    Topics are relative (they follow the node's namespace; in the root namespace ``prior_topic`` is
+    ``/ppoe/pose``), ``frame_prefix`` goes in front of every frame of the robot published or expected
+    (:mod:`ppoe_ros.common.frame_prefix`).
+    ``prior_topic`` (default ``ppoe/pose``, ``PoseWithCovarianceStamped`` from the
     kinematics node: ``T_base_tool``, ROS-convention covariance); ``header.frame_id`` must be
-    ``base_frame``.
-    ``observations_topic`` (default ``/tag_bearing/observations``, ``PointCloud2``, fields
+    ``frame_prefix + base_frame``.
+    ``observations_topic`` (default ``tag_bearing/observations``, ``PointCloud2``, fields
     ``id``, ``corner``, ``u``, ``v``, ``x``, ``y``; ``header.frame_id`` = camera optical frame).
-    ``contact_topic`` (default ``/contact/plane``, ``PoseWithCovarianceStamped``: plane pose
+    ``contact_topic`` (default ``contact/plane``, ``PoseWithCovarianceStamped``: plane pose
     and ``Sigma_v`` in the ROS convention, while in contact).
-    ``camera_info_topic`` (default ``/camera/camera_info``): focal lengths that turn the pixel
+    ``camera_info_topic`` (default ``camera/camera_info``): focal lengths that turn the pixel
     noise into normalised units (without it they are fitted from ``u, v`` vs ``x, y``).
-    ``joint_states_topic`` (default ``/joint_states``): joint positions at the prior stamps
+    ``joint_states_topic`` (default ``joint_states``): joint positions at the prior stamps
     (camera on a pan-tilt mast, tag mounts behind joints, the joint-motion limit).
-    ``/robot_description`` (transient local) unless the ``robot_description`` parameter is set.
+    ``robot_description`` (transient local) unless the ``robot_description`` parameter is set.
+    The sensor blocks of ``sources`` (robot_localization style, :mod:`ppoe_ros.common.fusion_sources`): tracker
+    points (``PointStamped``), 6D poses of a link (``PoseWithCovarianceStamped``), accelerometers (``Imu``).
 Publications
-    ``fused_topic`` (default ``/ppoe/fused_pose``, ``PoseWithCovarianceStamped``): for every
+    ``fused_topic`` (default ``ppoe/fused_pose``, ``PoseWithCovarianceStamped``): for every
     prior, the prior with the carried correction applied (the prior itself when there is
     none), same stamp and frame; after each accepted measurement once more for the newest
     prior (``publish_on_update``).
@@ -31,14 +36,14 @@ Publications
     ``bad``, ``published`` ...
 
 A bad message (NaN pose, non-PSD covariance, wrong frame, unknown tag ids or camera frame,
-corrupt point cloud) is logged (throttled), counted and dropped; the node keeps running.
+corrupt point cloud, a tracker or IMU frame the URDF lacks) is logged (throttled), counted and dropped; the node
+keeps running.  Every measurement enters the pipeline in one place, :meth:`FusionNode._measure`.
 
 Parameters: :data:`PARAMS`, documented in ``config/nodes/fusion_node.yaml``.
 """
 
 from __future__ import annotations
 
-import bisect
 import math
 import sys
 import time
@@ -68,6 +73,7 @@ from ppoe_core.estimation.pipeline import (
     make_updater,
     source_key,
 )
+from ppoe_core.estimation.source_updater import SourceUpdater
 from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_ros.common import (
     DiagnosticsPublisher,
@@ -87,6 +93,9 @@ from ppoe_ros.common import (
     stamp_to_ns,
     take_robot_description,
 )
+from ppoe_ros.common.frame_prefix import FRAME_PREFIX_PARAM, resolve_topics, unprefixed
+from ppoe_ros.common.fusion_sources import SOURCES_PARAM, LiveSources, parse_sources, source_names, source_specs
+from ppoe_ros.common.joint_buffer import JointBuffer as _JointBuffer
 from ppoe_ros.common.tag_cloud import observations_from_cloud
 from ppoe_ros.common.tf_broadcast import FusionTf
 
@@ -100,18 +109,18 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("robot_description", "", "URDF XML; empty = take it from robot_description_topic"),
     ParamSpec(
         "robot_description_topic",
-        "/robot_description",
+        "robot_description",
         "latched std_msgs/String topic carrying the URDF",
         check=check_nonempty,
     ),
     ParamSpec("base_frame", "", "frame of the prior (its header.frame_id); empty = model YAML frames.base"),
     ParamSpec("tool_frame", "", "frame whose pose the prior is; empty = model YAML frames.tool"),
-    ParamSpec("prior_topic", "/ppoe/pose", "kinematics prior (PoseWithCovarianceStamped)", check=check_nonempty),
-    ParamSpec("observations_topic", "/tag_bearing/observations", "tag observations (PointCloud2); empty = off"),
-    ParamSpec("contact_topic", "/contact/plane", "contact plane (PoseWithCovarianceStamped); empty = off"),
-    ParamSpec("camera_info_topic", "/camera/camera_info", "CameraInfo for the focal lengths; empty = fit from u,v"),
-    ParamSpec("joint_states_topic", "/joint_states", "JointState for joint positions at the prior stamps; empty = off"),
-    ParamSpec("fused_topic", "/ppoe/fused_pose", "output topic (PoseWithCovarianceStamped)", check=check_nonempty),
+    ParamSpec("prior_topic", "ppoe/pose", "kinematics prior (PoseWithCovarianceStamped)", check=check_nonempty),
+    ParamSpec("observations_topic", "tag_bearing/observations", "tag observations (PointCloud2); empty = off"),
+    ParamSpec("contact_topic", "contact/plane", "contact plane (PoseWithCovarianceStamped); empty = off"),
+    ParamSpec("camera_info_topic", "camera/camera_info", "CameraInfo for the focal lengths; empty = fit from u,v"),
+    ParamSpec("joint_states_topic", "joint_states", "JointState for joint positions at the prior stamps; empty = off"),
+    ParamSpec("fused_topic", "ppoe/fused_pose", "output topic (PoseWithCovarianceStamped)", check=check_nonempty),
     ParamSpec(
         "buffer_duration",
         _D["buffer_duration"],
@@ -235,6 +244,8 @@ PARAMS: tuple[ParamSpec, ...] = (
         min_value=0.0,
         max_value=1e3,
     ),
+    SOURCES_PARAM,
+    FRAME_PREFIX_PARAM,
     ParamSpec("publish_tf", True, "publish the fused pose on /tf and the calibrated cameras on /tf_static"),
     ParamSpec("tf_child_frame", "", "child frame of the fused pose on /tf; empty = '<tool_frame>_corrected'; "
               "a URDF link is refused (TF of the tool off, the node keeps running)"),
@@ -282,57 +293,17 @@ _STAT_KEYS = (
 )
 
 
-class _JointBuffer:
-    """Joint positions (``model.joint_names`` order, NaN = unknown) by stamp, last ``duration`` s."""
-
-    def __init__(self, duration_ns: int) -> None:
-        self.duration_ns = duration_ns
-        self.names: list[str] = []
-        self.index: dict[str, int] = {}
-        self.current: np.ndarray = np.zeros(0)
-        self.stamps: list[int] = []
-        self.values: list[np.ndarray] = []
-
-    def set_names(self, names: Sequence[str]) -> None:
-        self.names = list(names)
-        self.index = {n: i for i, n in enumerate(self.names)}
-        self.current = np.full(len(self.names), np.nan)
-        self.stamps.clear()
-        self.values.clear()
-
-    def add(self, stamp_ns: int, joints: dict[str, float]) -> None:
-        cur = self.current.copy()
-        for n, v in joints.items():
-            i = self.index.get(n)
-            if i is not None:
-                cur[i] = v if math.isfinite(v) else np.nan
-        self.current = cur
-        if self.stamps and stamp_ns < self.stamps[-1]:
-            self.stamps.clear()  # time went backwards: new timeline
-            self.values.clear()
-        self.stamps.append(stamp_ns)
-        self.values.append(cur)
-        cut = bisect.bisect_left(self.stamps, stamp_ns - self.duration_ns)
-        if cut:
-            del self.stamps[:cut]
-            del self.values[:cut]
-
-    def at(self, stamp_ns: int) -> np.ndarray | None:
-        """The latest joint positions at or before ``stamp_ns``; the oldest kept ones if all are
-        newer (the prior overtook its joint state); None if there are none."""
-        if not self.stamps:
-            return None
-        i = bisect.bisect_right(self.stamps, stamp_ns)
-        return self.values[max(i - 1, 0)]
-
-
 class FusionNode(Node):
     """Kinematics prior + measurements -> ``/ppoe/fused_pose`` through :class:`FusionPipeline`."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("fusion_node", **kwargs)
-        p = declare_parameters(self, PARAMS)
+        names = source_names(self)
+        p = declare_parameters(self, PARAMS + source_specs(names))
+        resolve_topics(self, p, ("robot_description_topic", "prior_topic", "observations_topic", "contact_topic",
+                                 "camera_info_topic", "joint_states_topic", "fused_topic"))
         self.params = p
+        self.prefix = p["frame_prefix"]
         self.stats = NodeStats(self, _STAT_KEYS, p["log_throttle"])
         self.stats.warn_keys |= {"priors_late", "priors_out_of_order"}
         self._converging: bool | None = None  # no measurement fused since start / the last reset
@@ -369,6 +340,9 @@ class FusionNode(Node):
         sub(PoseWithCovarianceStamped, p["contact_topic"], self._contact, rel)
         sub(CameraInfo, p["camera_info_topic"], self._camera_info, qos)
         sub(JointState, p["joint_states_topic"], self._joint_state, qos)
+        self.sources = LiveSources(self, parse_sources(p, names, self.get_fully_qualified_name()), self.stats,
+                                   self.prefix, self._measure)
+        self.sources.subscribe(qos)
         self._last_prior_wall = time.monotonic()
         self.create_timer(
             0.1,
@@ -390,7 +364,7 @@ class FusionNode(Node):
             model = PPOEModel.from_strings(urdf_xml, Path(self.params["model_file"]), urdf_source=where)
             model.robot.check_link(self.base_frame)
             model.robot.check_link(self.tool_frame)
-            updater = make_updater(model, self.base_frame, self.tool_frame, self.settings)
+            updater = make_updater(model, self.base_frame, self.tool_frame, self.settings, cls=SourceUpdater)
         except PpoeError as exc:
             raise type(exc)(f"{where}: {exc}") from None
         # import the update code now (scipy.stats ...), not while the first measurement waits
@@ -400,9 +374,14 @@ class FusionNode(Node):
         self.model, self.updater, self._urdf = model, updater, urdf_xml
         self.joints.set_names(model.joint_names)
         self.tf.set_model(model, self.base_frame, self.tool_frame)
+        problems = self.sources.set_model(model)
+        for line in problems:
+            self.get_logger().error(f"{line} (the node keeps running)")
+        self.diagnostics.set_problem("sources", "; ".join(problems) if problems else None)
         self.get_logger().info(
             f"model from {where}: fusing into {self.base_frame} -> {self.tool_frame}; tags "
-            f"{sorted(updater.tags)}; contact {'yes' if updater.contact is not None else 'no'}"
+            f"{sorted(updater.tags)}; contact {'yes' if updater.contact is not None else 'no'}; sources "
+            + (", ".join(f"{s.name} ({s.kind} on {s.topic})" for s in self.sources.sources if not s.off) or "none")
         )
 
     def _robot_description(self, msg: String) -> None:
@@ -432,8 +411,8 @@ class FusionNode(Node):
     def _prior(self, msg: PoseWithCovarianceStamped) -> None:
         self.stats.counts["received"] += 1
         T, cov_ros, stamp_ns, frame = pose_cov_from_msg(msg)
-        if frame != self.base_frame:
-            raise MeasurementError(f"prior frame '{frame}' is not base_frame '{self.base_frame}'")
+        if frame != self.prefix + self.base_frame:
+            raise MeasurementError(f"prior frame '{frame}' is not base_frame '{self.prefix}{self.base_frame}'")
         cov_tool = lie.cov_ros_to_local(T, cov_ros)
         newest, topic = self.pipeline.buffer.newest, self.params["prior_topic"]
         est, outcomes = self.pipeline.add_prior(stamp_ns * 1e-9, T, cov_tool, self.joints.at(stamp_ns))
@@ -460,7 +439,7 @@ class FusionNode(Node):
         frame = msg.header.frame_id
         fx, fy = self.focal.get(frame, (None, None))
         payload = TagMeasurement(
-            frame,
+            unprefixed(self.prefix, frame, self.params["observations_topic"]),
             d["id"].astype(int),
             d["corner"].astype(int),
             np.column_stack([d["x"], d["y"]]),
@@ -478,9 +457,11 @@ class FusionNode(Node):
             lie.cov_ros_to_local(T, cov_ros), name=f"{self.params['contact_topic']} covariance", size=6
         )
         source = source_key(self.params["contact_topic"], frame)
-        self._measure(Measurement(stamp_ns * 1e-9, source, ContactMeasurement(frame, T, cov_plane)))
+        plane_frame = unprefixed(self.prefix, frame, self.params["contact_topic"])
+        self._measure(Measurement(stamp_ns * 1e-9, source, ContactMeasurement(plane_frame, T, cov_plane)))
 
     def _measure(self, m: Measurement) -> None:
+        """The one place where a measurement (any kind, any source) is handed to the pipeline."""
         if self.updater is None:
             self.stats.bad(m.source, "no robot model yet (waiting for robot_description)", kind="dropped_no_model")
             return
@@ -516,7 +497,8 @@ class FusionNode(Node):
                 self._publish(est.T_base_tool, est.cov_tool, ns_to_stamp(int(round(est.stamp * 1e9))))
 
     def _publish(self, T: np.ndarray, cov_tool: np.ndarray, stamp: Any) -> None:
-        self.pub.publish(pose_cov_stamped_msg(T, lie.cov_local_to_ros(T, cov_tool), stamp, self.base_frame))
+        self.pub.publish(pose_cov_stamped_msg(T, lie.cov_local_to_ros(T, cov_tool), stamp,
+                                              self.prefix + self.base_frame))
         self.tf.publish(T, stamp)
         self.stats.counts["published"] += 1
 

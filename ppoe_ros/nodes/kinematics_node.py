@@ -1,15 +1,19 @@
 """Kinematics node: joint states -> PPOE pose with covariance (``/ppoe/pose``).
 
 Subscriptions
-    ``/joint_states`` (``sensor_msgs/JointState``, sensor-data QoS): one output per message.
-    ``/robot_description`` (``std_msgs/String``, transient local) unless the
+    ``joint_states`` (``sensor_msgs/JointState``, sensor-data QoS): one output per message.
+    ``robot_description`` (``std_msgs/String``, transient local) unless the
     ``robot_description`` parameter holds the URDF.
 Publications
-    ``/ppoe/pose`` (``geometry_msgs/PoseWithCovarianceStamped``): ``T_reference_target``
-    with ``header.frame_id = reference_frame`` and ``header.stamp`` = the joint-state
+    ``ppoe/pose`` (``geometry_msgs/PoseWithCovarianceStamped``): ``T_reference_target``
+    with ``header.frame_id = frame_prefix + reference_frame`` and ``header.stamp`` = the joint-state
     stamp; the covariance is ``cov_target`` (local, right perturbation, paper
     eq. 8-9/18) converted to the ROS convention of docs/conventions.md sec. 2.
-    ``/ppoe/<frame>/pose`` (same type) for each of ``extra_target_frames``.
+    ``ppoe/<frame>/pose`` (same type) for each of ``extra_target_frames``.
+    Topics are relative (robot_state_publisher's convention): in the root namespace they are ``/joint_states``,
+    ``/ppoe/pose`` ..., under ``--ros-args -r __ns:=/robot1`` ``/robot1/joint_states`` ...; ``/tf``, ``/tf_static``
+    and ``/diagnostics`` stay absolute, and ``frame_prefix`` goes in front of every frame published
+    (:mod:`ppoe_ros.common.frame_prefix`).
     ``/diagnostics``: counters ``received``, ``published``, ``bad``, ``dropped``.
     ``/tf`` and ``/tf_static`` (``publish_tf``, off by default): the model's frames like
     robot_state_publisher, each movable joint's child link in its parent link at the joint-state
@@ -75,6 +79,7 @@ from ppoe_ros.common import (
     sensor_qos,
     take_robot_description,
 )
+from ppoe_ros.common.frame_prefix import FRAME_PREFIX_PARAM, resolve_topics
 from ppoe_ros.common.tf_broadcast import KinematicsTf
 
 __all__ = ["KinematicsNode", "PARAMS", "main", "output_topic"]
@@ -85,14 +90,15 @@ _STRING_ARRAY = ParameterType.PARAMETER_STRING_ARRAY
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("model_file", "", "model YAML (perturbations, frames, ...); empty = exact URDF, zero covariance"),
     ParamSpec("robot_description", "", "URDF XML; empty = take it from the robot_description topic"),
-    ParamSpec("robot_description_topic", "/robot_description", "latched std_msgs/String topic carrying the URDF",
+    ParamSpec("robot_description_topic", "robot_description", "latched std_msgs/String topic carrying the URDF",
               check=check_nonempty),
-    ParamSpec("joint_states_topic", "/joint_states", "sensor_msgs/JointState input", check=check_nonempty),
+    ParamSpec("joint_states_topic", "joint_states", "sensor_msgs/JointState input (relative: follows the node's "
+              "namespace)", check=check_nonempty),
     ParamSpec("reference_frame", "", "frame the pose is expressed in; empty = model YAML frames.base, "
               "else the URDF root link"),
     ParamSpec("target_frame", "", "frame whose pose is published; empty = model YAML frames.tool, else tool0"),
-    ParamSpec("pose_topic", "/ppoe/pose", "output topic of the target frame", check=check_nonempty),
-    ParamSpec("extra_target_frames", [], "more target frames, published on /ppoe/<frame>/pose",
+    ParamSpec("pose_topic", "ppoe/pose", "output topic of the target frame", check=check_nonempty),
+    ParamSpec("extra_target_frames", [], "more target frames, published on ppoe/<frame>/pose",
               ptype=_STRING_ARRAY),
     ParamSpec("order", 2, "covariance propagation order (paper eq. 15/18: 2; 4 = fourth order)",
               check=lambda v: None if v in (2, 4) else f"must be 2 or 4, got {v}"),
@@ -114,6 +120,7 @@ PARAMS: tuple[ParamSpec, ...] = (
               max_value=3600.0),
     ParamSpec("stamp_reset_threshold", 1.0, "a stamp this much older than the last one starts a new timeline",
               unit="s", min_value=0.0),
+    FRAME_PREFIX_PARAM,
     ParamSpec("publish_tf", False, "publish the model's frames on /tf (movable joints, at each joint state) and "
               "/tf_static (fixed joints) like robot_state_publisher"),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
@@ -123,8 +130,8 @@ PARAMS: tuple[ParamSpec, ...] = (
 
 
 def output_topic(frame: str) -> str:
-    """Topic of an extra target frame: ``/ppoe/<frame>/pose``."""
-    return f"/ppoe/{frame.strip('/')}/pose"
+    """Topic of an extra target frame: ``ppoe/<frame>/pose`` (relative, in the node's namespace)."""
+    return f"ppoe/{frame.strip('/')}/pose"
 
 
 class _Target:
@@ -144,6 +151,7 @@ class KinematicsNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("kinematics_node", **kwargs)
         p = declare_parameters(self, PARAMS)
+        resolve_topics(self, p, ("robot_description_topic", "joint_states_topic", "pose_topic"))
         self.params = p
         self.stats = NodeStats(self, ("received", "published", "bad", "dropped"), p["log_throttle"])
         self.model_yaml = read_yaml_mapping(p["model_file"], "model file")
@@ -173,7 +181,8 @@ class KinematicsNode(Node):
                 PoseWithCovarianceStamped, output_topic(frame), out_qos)))
 
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
-        self._tf = KinematicsTf.create(self, self.stats, self.diagnostics) if p["publish_tf"] else None
+        self._tf = (KinematicsTf.create(self, self.stats, self.diagnostics, p["frame_prefix"]) if p["publish_tf"]
+                    else None)
         if self._tf is not None:  # TF rides on the joint-vector step; with publish_tf off the hot path is as it was
             self._joint_vector = self._tf.wrap(self._joint_vector)  # type: ignore[method-assign]
         js_topic = p["joint_states_topic"]
@@ -205,7 +214,7 @@ class KinematicsNode(Node):
                 # compile (or load from numba's cache) the kernels now, not at the first joint state
                 T, cov = model.fk(np.zeros(len(model.joint_names)), reference, t.frame, order=self.order)
                 lie.cov_local_to_ros(T, cov)
-                t.writer = PoseCovarianceWriter(reference)
+                t.writer = PoseCovarianceWriter(self.params["frame_prefix"] + reference)
         except PpoeError as exc:
             raise type(exc)(f"{where}: {exc}") from None
         needed: list[str] = []
@@ -222,7 +231,8 @@ class KinematicsNode(Node):
             self._tf.set_model(model)
         self.get_logger().info(
             f"model from {where}: {len(model.joint_names)} joints; publishing "
-            + ", ".join(f"{self.reference}->{t.frame} on {t.pub.topic_name}" for t in self.targets))
+            + ", ".join(f"{self.params['frame_prefix']}{self.reference}->{t.frame} on {t.pub.topic_name}"
+                        for t in self.targets))
 
     def _robot_description(self, msg: String) -> None:
         if msg.data == self._urdf:

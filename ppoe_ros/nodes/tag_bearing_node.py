@@ -1,19 +1,21 @@
 """Tag bearing node: camera images -> tag centre and corner observations.
 
 Subscriptions
-    ``image_topic`` (default ``/camera/image_raw/compressed``, ``sensor_msgs/CompressedImage``
+    ``image_topic`` (default ``camera/image_raw/compressed``, ``sensor_msgs/CompressedImage``
     when ``compressed`` is true, else ``sensor_msgs/Image``; sensor-data QoS).
-    ``camera_info_topic`` (default ``/camera/camera_info``, ``sensor_msgs/CameraInfo``): ``K``
+    ``camera_info_topic`` (default ``camera/camera_info``, ``sensor_msgs/CameraInfo``): ``K``
     and ``D`` (``plumb_bob`` or ``rational_polynomial``) of the latest valid message are used.
 Publications
-    ``/tag_bearing/observations`` (``sensor_msgs/PointCloud2``), one message per image, as in
+    ``tag_bearing/observations`` (``sensor_msgs/PointCloud2``), one message per image, as in
     the topic table of ``docs/ARCHITECTURE.md``: header = image header (stamp, camera optical
     frame); one point per observed tag point with FLOAT64 fields ``id``, ``corner`` (0 =
     centre, 1..4 = corners in the order of :mod:`ppoe_core.sensing.tags`), ``u``, ``v`` (raw distorted
     pixels) and ``x``, ``y`` (undistorted normalised coordinates ``X/Z``, ``Y/Z`` from ``K``,
     ``D``).  An image without configured tags gives a message with zero points.
-    ``/tag_bearing/debug_image`` (``sensor_msgs/Image``, bgr8) with the detections drawn,
+    ``tag_bearing/debug_image`` (``sensor_msgs/Image``, bgr8) with the detections drawn,
     when ``publish_debug_image`` is true.
+    Topics are relative (they follow the node's namespace, :mod:`ppoe_ros.common.frame_prefix`); the
+    observations keep the image's ``header.frame_id`` (the camera driver's, prefixed by it if at all).
     ``/diagnostics``: counters ``received``, ``published``, ``bad``, ``dropped``,
     ``detections``, ``camera_info``.
 
@@ -58,6 +60,7 @@ from ppoe_ros.common import (
     sensor_qos,
 )
 from ppoe_core.io.series import decode_compressed
+from ppoe_ros.common.frame_prefix import resolve_topics
 from ppoe_ros.common.tag_cloud import cloud_from_observations
 
 __all__ = [
@@ -75,10 +78,10 @@ __all__ = [
 _REFINE = ("subpix", "contour", "apriltag", "none")
 
 PARAMS: tuple[ParamSpec, ...] = (
-    ParamSpec("image_topic", "/camera/image_raw/compressed", "image input topic", check=check_nonempty),
+    ParamSpec("image_topic", "camera/image_raw/compressed", "image input topic", check=check_nonempty),
     ParamSpec("compressed", True, "true: image_topic is sensor_msgs/CompressedImage (png/jpeg); "
               "false: sensor_msgs/Image"),
-    ParamSpec("camera_info_topic", "/camera/camera_info", "sensor_msgs/CameraInfo of the camera", check=check_nonempty),
+    ParamSpec("camera_info_topic", "camera/camera_info", "sensor_msgs/CameraInfo of the camera", check=check_nonempty),
     ParamSpec("model_file", "", "model YAML whose 'tags' section gives the family and ids; empty = none"),
     ParamSpec("dictionary", "", "tag family: tag36h11, tag36h10, tag25h9, tag16h5, aruco_original, "
               "4x4_50 ... 7x7_1000; empty = model YAML tags.family, else tag36h11"),
@@ -86,9 +89,9 @@ PARAMS: tuple[ParamSpec, ...] = (
               ptype=ParameterType.PARAMETER_INTEGER_ARRAY),
     ParamSpec("corner_refinement", DEFAULT_CORNER_REFINEMENT, "corner refinement: subpix, contour, apriltag or none",
               check=lambda v: None if v in _REFINE else f"must be one of {_REFINE}, got {v!r}"),
-    ParamSpec("observations_topic", "/tag_bearing/observations", "output PointCloud2 topic", check=check_nonempty),
+    ParamSpec("observations_topic", "tag_bearing/observations", "output PointCloud2 topic", check=check_nonempty),
     ParamSpec("publish_debug_image", False, "publish an image with the detections drawn"),
-    ParamSpec("debug_image_topic", "/tag_bearing/debug_image", "debug image topic (sensor_msgs/Image bgr8)",
+    ParamSpec("debug_image_topic", "tag_bearing/debug_image", "debug image topic (sensor_msgs/Image bgr8)",
               check=check_nonempty),
     ParamSpec("max_image_pixels", 4096 * 4096, "images with more pixels (read from the PNG/JPEG header before "
               "decoding) are refused", min_value=1),
@@ -237,6 +240,7 @@ class TagBearingNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("tag_bearing_node", **kwargs)
         p = declare_parameters(self, PARAMS)
+        resolve_topics(self, p, ("image_topic", "camera_info_topic", "observations_topic", "debug_image_topic"))
         self.params = p
         self.stats = NodeStats(self, ("received", "published", "bad", "dropped", "detections", "camera_info"),
                                p["log_throttle"])
