@@ -313,6 +313,13 @@ class OnlineEffects:
     def tool_pose(self, q: Mapping[str, float], base: str, tool: str) -> tuple[np.ndarray, np.ndarray]:
         """Fused ``T_base_tool`` (4, 4) at the current estimate and its covariance (6, 6) in the tool's tangent
         space: the PPOE covariance plus ``J P J^T`` of the parameters' uncertainty."""
+        T, J = self.tool_jacobian(q, base, tool)
+        _, cov = self.static_model.fk(q, base, tool, context=self.context)
+        return T, cov + J @ self.P @ J.T
+
+    def tool_jacobian(self, q: Mapping[str, float], base: str, tool: str) -> tuple[np.ndarray, np.ndarray]:
+        """``T_base_tool`` (4, 4) at the current estimate and ``d xi_tool / d theta`` (6, P), right tangent at the
+        tool (``xi_rel = xi_tool - Ad(T_base_tool^-1) xi_base`` when the base is not the root)."""
         dq, dxi, poses, nominal = self._chain(q)
         T = lie.inverse(poses[base]) @ poses[tool]
         Jq, Jx = self.tree.frame_jacobian(q, tool, poses, dq, dxi)
@@ -320,8 +327,7 @@ class OnlineEffects:
         if base != self.model.robot.root:
             Jqb, Jxb = self.tree.frame_jacobian(q, base, poses, dq, dxi)
             J = J - lie.adjoint(lie.inverse(T)) @ self._param_jacobian(q, Jqb, Jxb, nominal)
-        _, cov = self.static_model.fk(q, base, tool, context=self.context)
-        return T, cov + J @ self.P @ J.T
+        return T, J
 
     def sigmas(self) -> np.ndarray:
         """1-sigma of each tracked parameter (P,)."""
