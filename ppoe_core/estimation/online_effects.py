@@ -46,6 +46,7 @@ __all__ = [
     "OnlineEffects",
     "PointUpdate",
     "TrackedEffect",
+    "entries_from_flat",
     "parse_online_config",
 ]
 
@@ -146,6 +147,37 @@ def parse_online_config(raw: Any, model: Any, where: str = "online_effects") -> 
         out.append(TrackedEffect(
             eff, _vector(entry.get("process_noise"), eff.n_params, DEFAULT_PROCESS_NOISE[name], w + ".process_noise"),
             _vector(entry.get("initial_sigma"), eff.n_params, DEFAULT_INITIAL_SIGMA[name], w + ".initial_sigma")))
+    return out
+
+
+def entries_from_flat(names: Sequence[str], process_noise: Sequence[float], initial_sigma: Sequence[float],
+                      thermal_reference: float, where: str = "online_effects") -> list[dict[str, Any]] | None:
+    """The flat form of a node parameter file -> ``online_effects`` entries for :func:`parse_online_config`.
+
+    ``names`` are ``"<name>:<location>"`` (empty: None, the default set); ``process_noise`` [parameter unit /
+    sqrt(s)] and ``initial_sigma`` [parameter unit] hold one number per effect (or are empty: defaults);
+    a ``thermal_growth`` uses the temperature with ``thermal_reference`` [deg C] as its variable.
+
+    Raises
+    ------
+    ModelConfigError
+        A name without ``:``, or a list whose length is not the number of effects.
+    """
+    if not names:
+        return None
+    out: list[dict[str, Any]] = []
+    for i, nl in enumerate(names):
+        name, sep, loc = str(nl).partition(":")
+        if not sep or not name or not loc:
+            raise ModelConfigError(f"{where}[{i}]: expected '<effect name>:<location>', got {nl!r}")
+        out.append({"name": name, "location": loc})
+        if name == "thermal_growth":
+            out[-1].update(variable="temperature", reference=float(thermal_reference))
+    for key, vals in (("process_noise", process_noise), ("initial_sigma", initial_sigma)):
+        if len(vals) and len(vals) != len(out):
+            raise ModelConfigError(f"online_{key}: one number per entry of {where} ({len(out)}), got {len(vals)}")
+        for e, v in zip(out, vals):
+            e[key] = float(v)
     return out
 
 
