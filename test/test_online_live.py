@@ -81,8 +81,62 @@ def test_live_estimates_equal_offline(tmp_path):
         assert stamp == pytest.approx(offline.stamps[k], abs=1e-6)
         np.testing.assert_allclose(theta, offline.theta[k], rtol=1e-6, atol=1e-12)
         np.testing.assert_allclose(np.sqrt(np.diag(P)), offline.sigma[k], rtol=1e-6)
+    # the live tool pose: the same core function of the live estimate (the newest one before each ground truth)
+    # gives the offline "online" tool error
+    from ppoe_core.estimation.online_effects import OnlineEffects, parse_online_config
+    from ppoe_core.io.bagio import read_bag
+
+    model = PPOEModel.from_files(REPO / "config" / "robots" / "arm7.urdf", MODEL)
+    filt = OnlineEffects(model, parse_online_config(cfg, model), jump)
+    live = [estimates_from_msg(m) for m in got]
+    data = read_bag(bag, load_images=False)
+    js, gt = data.joint_states, data.ground_truth_pose
+    err = []
+    for t, T_gt in zip(gt.stamps, gt.T):
+        before = [e for e in live if e[0] < t - 1e-9]
+        if before:
+            filt.theta, filt.P = before[-1][2], before[-1][3]
+        q = js.as_dict(int(np.searchsorted(js.stamps, t, side="right")) - 1)
+        err.append(np.linalg.norm(filt.tool_pose(q, "base_link", "tool0")[0][:3, 3] - T_gt[:3, 3]))
+    np.testing.assert_allclose(err, offline.position_error["online"], rtol=1e-6, atol=1e-9)
     # write-back at shutdown: the model YAML with the last estimate, loadable as a model
     written = PPOEModel.from_files(REPO / "config" / "robots" / "arm7.urdf", model_out)
     tilt = next(e for e in written.effects if e.name == "base_tilt")
     np.testing.assert_allclose(tilt.params, offline.theta[-1][:2], rtol=1e-6)
     assert yaml.safe_load(model_out.read_text())["effects"][-1]["ci"]["compliance"] > 0
+
+
+def test_correct_prior_moves_the_static_pose_to_the_estimate():
+    """The fusion node's call: a static-model prior becomes the online pose (mean and added covariance)."""
+    import rclpy
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import JointState
+
+    from ppoe_ros.common import ns_to_stamp
+    from ppoe_ros.common.online_effects import OnlineEffectsNode
+
+    urdf = (REPO / "config" / "robots" / "arm7.urdf").read_text()
+    rclpy.init()
+    try:
+        node = OnlineEffectsNode(parameter_overrides=[Parameter("model_file", value=str(MODEL)),
+                                                      Parameter("robot_description", value=urdf)])
+        hook = node.hook
+        q = {"joint_1": 0.3, "joint_2": 0.6, "joint_3": -0.2, "joint_4": -1.2, "joint_5": 0.4, "joint_6": 0.9,
+             "joint_7": 0.1, "finger_left_joint": 0.02}
+        T0, C0 = np.eye(4), np.eye(6) * 1e-8
+        assert hook.correct_prior(5, T0, C0, "base_link", "tool0")[0] is T0  # no joint state yet: unchanged
+        msg = JointState()
+        msg.header.stamp = ns_to_stamp(1_000_000_000)
+        msg.name, msg.position = list(q), list(q.values())
+        hook._joint_state(msg)
+        filt = hook.filter
+        filt.theta = filt.theta + np.array([0.004, -0.002, 1e-4])
+        T_static, C_static = filt.static_model.fk(q, "base_link", "tool0")
+        T, C = hook.correct_prior(1_000_000_000, T_static, C_static, "base_link", "tool0")
+        T_on, C_on = filt.tool_pose(q, "base_link", "tool0")
+        np.testing.assert_allclose(T, T_on, atol=1e-12)
+        np.testing.assert_allclose(C, C_on, rtol=1e-9, atol=1e-15)
+        assert np.linalg.norm(T[:3, 3] - T_static[:3, 3]) > 1e-3
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
