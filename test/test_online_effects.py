@@ -40,10 +40,10 @@ def _scenario(name: str, tmp: Path, **changes) -> Path:
 
 @pytest.fixture(scope="module")
 def drift_bags(tmp_path_factory) -> dict[str, tuple[Path, dict]]:
-    """The three drift bags of bags/online and their truth."""
+    """The drift bags of bags/online and their truth (tilt_imu: an accelerometer instead of the tracker)."""
     tmp = tmp_path_factory.mktemp("drift")
     out = {}
-    for name in ("tilt", "thermal", "load"):
+    for name in ("tilt", "thermal", "load", "tilt_imu"):
         res = simulate(_scenario(name, tmp), tmp / name)
         out[name] = (tmp / name, res.truth)
     return out
@@ -154,6 +154,29 @@ def test_jacobians_match_finite_differences():
     assert np.abs(J).max() > 0.1  # not a trivially zero Jacobian
 
 
+def test_gravity_update_jacobian_and_information():
+    """An accelerometer update: its H (GravityObservation's state Jacobian times the link's parameter Jacobian)
+    matches finite differences of the predicted specific force, and it informs the tilt but not the root's yaw."""
+    from ppoe_core.estimation.direct_measurements import GravityObservation
+
+    f = _filter([{"name": "base_tilt", "location": "base_link"}])
+    obs = GravityObservation(4e-4)
+    T, J = f.tool_jacobian(Q0, "base_link", "arm_link_4")
+    H = obs.jacobian_state(T) @ J
+    for i in range(2):
+        th0 = f.theta.copy()
+        f.theta[i] += 1e-6
+        a1 = obs.h(f.tool_jacobian(Q0, "base_link", "arm_link_4")[0])
+        f.theta[i] -= 2e-6
+        a2 = obs.h(f.tool_jacobian(Q0, "base_link", "arm_link_4")[0])
+        f.theta = th0
+        np.testing.assert_allclose((a1 - a2) / 2e-6, H[:, i], atol=1e-5)
+    P0 = f.P.copy()
+    f.update_gravity(1.0, Q0, "arm_link_4", obs.h(T), 4e-4)
+    assert np.all(np.diag(f.P) < 0.1 * np.diag(P0))
+    assert f.counts.gravity == 1
+
+
 def test_mean_equals_the_model_with_the_estimate():
     """The filter's chain at its estimate is the PPOE model's mean with those effects (one effect math)."""
     f = _filter()
@@ -200,7 +223,8 @@ def test_constant_effects_converge_within_ci(evaluations):
 
 @pytest.mark.parametrize("name,label", [("tilt", "base_tilt@base_link/tilt_x"),
                                         ("load", "gravity_compliance@joint_2/compliance"),
-                                        ("thermal", "thermal_growth@joint_4/alpha")])
+                                        ("thermal", "thermal_growth@joint_4/alpha"),
+                                        ("tilt_imu", "base_tilt@base_link/tilt_x")])
 def test_drift_is_followed_with_coverage(evaluations, name, label):
     ev = evaluations[name]
     i = ev.labels.index(label)
@@ -210,7 +234,7 @@ def test_drift_is_followed_with_coverage(evaluations, name, label):
     assert err[-10:].max() <= 3 * ev.sigma[-10:, i].max()
 
 
-@pytest.mark.parametrize("name", ["tilt", "load", "thermal"])
+@pytest.mark.parametrize("name", ["tilt", "load", "thermal", "tilt_imu"])
 def test_online_tool_error_stays_fresh_while_static_drifts(evaluations, name):
     d = evaluations[name].to_dict()["tool_error"]
     second = {m: d[m]["position_second_half"]["mean"] for m in d}

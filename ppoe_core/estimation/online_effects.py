@@ -11,6 +11,8 @@ registration ``T_tracker_base`` known from the diagnosed model's ``tracker_regis
     z = T_tracker_root p_root(q; theta) + v,   H = R_tracker_root dp_root/dtheta,
     S = H P H^T + R_tracker_root (Sigma_ppoe + sigma^2 I) R_tracker_root^T,   K = P H^T S^-1
 
+(an accelerometer at rest on a link updates it through the same step with the existing gravity model,
+:meth:`OnlineEffects.update_gravity`: it sees a tilt without any registration)
 where ``p_root`` is the reflector on the chain of eq. 16 with the effects' corrections
 (``Exp(p_i) Exp(dxi_i) Exp(xi_i) Exp(zeta_i (q_i + dq_i))``, :meth:`KinematicTree.link_poses`),
 ``dp_root/dtheta`` the chain Jacobian (:meth:`KinematicTree.point_jacobian`) times the effects' exact bases
@@ -36,6 +38,7 @@ from scipy.stats import chi2
 
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, ModelConfigError
+from ppoe_core.estimation.direct_measurements import GravityObservation
 from ppoe_core.model.effects import Effect, effect_from_config, sum_effect_corrections
 from ppoe_core.robot.tree import KinematicTree
 
@@ -90,7 +93,7 @@ class TrackedEffect:
 
 @dataclass
 class PointUpdate:
-    """Outcome of one tracker point: innovation (3,) [m], NIS, whether a jump re-opened the covariance."""
+    """Outcome of one update: innovation (3,) [m or m/s^2], NIS, whether a jump re-opened the covariance."""
 
     innovation: np.ndarray
     nis: float
@@ -184,6 +187,7 @@ def entries_from_flat(names: Sequence[str], process_noise: Sequence[float], init
 @dataclass
 class _Counts:
     points: int = 0
+    gravity: int = 0
     jumps: int = 0
     waiting_for_temperature: int = 0
     temperatures: int = 0
@@ -324,9 +328,33 @@ class OnlineEffects:
         self.predict(stamp)
         p_root, J = self.point(q, link, xyz)
         R_tr = T_tracker_root[:3, :3]
-        H = R_tr @ J
         nu = z - (R_tr @ p_root + T_tracker_root[:3, 3])
         Rm = R_tr @ (self._point_cov_ppoe(q, link, xyz) + sigma ** 2 * np.eye(3)) @ R_tr.T
+        self.counts.points += 1
+        return self._kalman(nu, R_tr @ J, Rm)
+
+    def update_gravity(self, stamp: float, q: Mapping[str, float], link: str, accel_link: Any,
+                       sigma: float) -> PointUpdate | None:
+        """One accelerometer at rest on ``link`` (specific force (3,) [m/s^2] in the link axes, noise ``sigma``
+        [m/s^2]): the link's tilt, through :class:`~ppoe_core.estimation.direct_measurements.GravityObservation`
+        (gravity is -z of the root); needs no registration.  None while waiting for a temperature."""
+        z = np.asarray(accel_link, dtype=float).reshape(3)
+        if not np.all(np.isfinite(z)):
+            raise MeasurementError(f"online effects: acceleration {z} at {stamp} on {link} is not finite")
+        if self.needs_temperature():
+            self.counts.waiting_for_temperature += 1
+            return None
+        self.predict(stamp)
+        root = self.model.robot.root
+        T_link, J = self.tool_jacobian(q, root, link)
+        obs = GravityObservation(sigma)
+        Hs = obs.jacobian_state(T_link)
+        _, cov_link = self.static_model.fk(q, root, link, context=self.context)
+        self.counts.gravity += 1
+        return self._kalman(z - obs.h(T_link), Hs @ J, obs.noise_cov + Hs @ cov_link @ Hs.T)
+
+    def _kalman(self, nu: np.ndarray, H: np.ndarray, Rm: np.ndarray) -> PointUpdate:
+        """EKF update with innovation ``nu`` (3,), ``H`` (3, P), noise ``Rm`` (3, 3); the jump rule first."""
         S = H @ self.P @ H.T + Rm
         nis = float(nu @ np.linalg.solve(S, nu))
         jump = self.jump_nis is not None and nis > self.jump_nis
@@ -338,7 +366,6 @@ class OnlineEffects:
         self.theta = self.theta + K @ nu
         IKH = np.eye(self.theta.shape[0]) - K @ H
         self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T  # Joseph form
-        self.counts.points += 1
         return PointUpdate(nu, nis, bool(jump))
 
     # -- outputs -------------------------------------------------------------------------

@@ -2,9 +2,10 @@
 
 :class:`OnlineEffectsHook` runs the core filter inside a node (meant for the fusion node; see docs/online.md for
 the lines that call it): it subscribes the model's tracker topics (``PointStamped``, ``trackers`` of the model
-YAML), ``online_temperature_topic`` (``sensor_msgs/Temperature``) and ``online_joint_states_topic`` (merged per
-joint, as the kinematics node does), updates the tracked effects with every tracker point and publishes the
-estimate after each update on ``online_estimates_topic`` as a ``std_msgs/Float64MultiArray``:
+YAML) and accelerometers (``/imu/<name>``, ``sensor_msgs/Imu``, its ``imus``), ``online_temperature_topic``
+(``sensor_msgs/Temperature``) and ``online_joint_states_topic`` (merged per joint, as the kinematics node does),
+updates the tracked effects with every tracker point or acceleration and publishes the estimate after each update
+on ``online_estimates_topic`` as a ``std_msgs/Float64MultiArray``:
 
 * ``layout.data_offset = 1``; ``data[0]`` is the stamp of the update [s] (the tracker point's ``header.stamp``);
 * then a P x (P + 1) row-major array, ``layout.dim[0]`` (label = the parameter labels
@@ -15,8 +16,8 @@ estimate after each update on ``online_estimates_topic`` as a ``std_msgs/Float64
 :meth:`OnlineEffectsHook.correct_prior` moves a kinematics prior (the static model's ``T_base_tool``) to the
 online estimate, with the parameters' covariance added; :meth:`OnlineEffectsHook.write_model` writes the model
 YAML with the current estimate (``online_model_out``, at every ``online_write_period`` and at shutdown).
-A tracker point whose frame has no registration in the model, of an unknown link, or with NaN is counted as bad
-and logged (throttled); the node keeps running.
+A tracker point whose frame has no registration in the model, an IMU message whose frame is not its link, or NaN
+is counted as bad and logged (throttled); the node keeps running.
 
 ``python -m ppoe_ros.common.online_effects --ros-args -p model_file:=MODEL.yaml ...`` runs the hook alone
 (:class:`OnlineEffectsNode`), e.g. beside a fusion node that does not call it yet.
@@ -34,7 +35,7 @@ import yaml
 from geometry_msgs.msg import PointStamped
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
-from sensor_msgs.msg import JointState, Temperature
+from sensor_msgs.msg import Imu, JointState, Temperature
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
 from ppoe_core import lie
@@ -149,7 +150,7 @@ class OnlineEffectsHook:
         self.merger: JointMerger | None = None
         self.joints = _History()
         self.temps = _History()
-        self.pending: list[tuple[int, PointStamped, str]] = []
+        self.pending: list[tuple[int, Any, str]] = []
         self._uses_temperature = False
         self._subscribed: set[str] = set()
         self.pub = node.create_publisher(Float64MultiArray, self.p["online_estimates_topic"], reliable_qos(1000))
@@ -164,6 +165,9 @@ class OnlineEffectsHook:
                 self._subscribed.add(topic)
                 counted_subscription(node, stats, PointStamped, topic,
                                      lambda msg, topic=topic: self._point(msg, topic), qos)
+        for name in raw.get("imus") or {}:
+            counted_subscription(node, stats, Imu, f"/imu/{name}",
+                                 lambda msg, name=str(name): self._point(msg, f"/imu/{name}"), qos)
         if self.p["online_write_period"] > 0 and self.p["online_model_out"]:
             node.create_timer(self.p["online_write_period"], self.write_model)
 
@@ -210,14 +214,23 @@ class OnlineEffectsHook:
         self.temps.add(stamp_to_ns(msg.header.stamp), float(msg.temperature))
         self._drain()
 
-    def _point(self, msg: PointStamped, topic: str) -> None:
+    def _point(self, msg: Any, topic: str) -> None:
+        """A tracker point (``PointStamped``) or an accelerometer message (``Imu``, topic ``/imu/<name>``)."""
         if self.filter is None:
             self.stats.inc("online_no_model")
             return
         st = stamp_to_ns(msg.header.stamp)
-        self.filter.registration(msg.header.frame_id, topic)  # a bad frame is refused now, not when due
-        if not np.all(np.isfinite([msg.point.x, msg.point.y, msg.point.z])):
-            raise MeasurementError(f"tracker point ({msg.point.x}, {msg.point.y}, {msg.point.z}) is not finite")
+        if isinstance(msg, Imu):
+            imu = self.model.config.imus[topic[len("/imu/"):]]
+            if msg.header.frame_id != imu.link:
+                raise MeasurementError(f"header.frame_id {msg.header.frame_id!r} is not the IMU's link {imu.link!r} "
+                                       f"of the model")
+            v = msg.linear_acceleration
+        else:
+            self.filter.registration(msg.header.frame_id, topic)  # a bad frame is refused now, not when due
+            v = msg.point
+        if not np.all(np.isfinite([v.x, v.y, v.z])):
+            raise MeasurementError(f"measurement ({v.x}, {v.y}, {v.z}) is not finite")
         if self.pending or not self._ready(st):
             self.pending.append((st, msg, topic))
             if len(self.pending) > _MAX_PENDING:
@@ -226,7 +239,7 @@ class OnlineEffectsHook:
             return
         self._process_point(st, msg, topic)
 
-    def _process_point(self, st: int, msg: PointStamped, topic: str) -> None:
+    def _process_point(self, st: int, msg: Any, topic: str) -> None:
         filt = self.filter
         assert filt is not None
         q = self.joints.at(st)
@@ -236,11 +249,16 @@ class OnlineEffectsHook:
         temp = self.temps.at(st)
         if temp is not None and filt.context.get("temperature") != temp:
             filt.set_temperature(st * 1e-9, temp)
-        tr = next(t for t in self.model.config.trackers if t.topic == topic)
-        T_tr = filt.registration(msg.header.frame_id, topic)
-        p = [msg.point.x, msg.point.y, msg.point.z]
         jumps = filt.counts.jumps
-        up = filt.update_point(st * 1e-9, q, tr.link, tr.xyz, p, T_tr, tr.sigma)
+        if isinstance(msg, Imu):
+            imu = self.model.config.imus[topic[len("/imu/"):]]
+            a = msg.linear_acceleration
+            up = filt.update_gravity(st * 1e-9, q, imu.link, [a.x, a.y, a.z], imu.sigma)
+        else:
+            tr = next(t for t in self.model.config.trackers if t.topic == topic)
+            T_tr = filt.registration(msg.header.frame_id, topic)
+            p = [msg.point.x, msg.point.y, msg.point.z]
+            up = filt.update_point(st * 1e-9, q, tr.link, tr.xyz, p, T_tr, tr.sigma)
         if up is None:
             self.stats.inc("online_waiting")
             return

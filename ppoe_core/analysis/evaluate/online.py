@@ -2,12 +2,14 @@
 
 The bag is replayed in stamp order through :class:`~ppoe_core.estimation.online_effects.OnlineEffects`, the
 object the fusion node runs live (``ppoe_ros.common.online_effects``): each ``/temperature`` message sets the
-thermal variable, each tracker point (``/ground_truth/point[/<name>]``, the model's ``trackers``) updates the
-tracked effects, and at each ``/ground_truth/pose`` the tool pose is scored by
+thermal variable, each tracker point (``/ground_truth/point[/<name>]``, the model's ``trackers``) and each
+accelerometer message (``/imu/<name>``, the model's ``imus``) updates the tracked effects, and at each
+``/ground_truth/pose`` the tool pose is scored by
 
 * ``before``: the nominal model (no effects),
 * ``static``: the diagnosed model, its effects fixed,
-* ``online``: the current estimate (every message with a stamp up to the ground truth's included),
+* ``online``: the current estimate (from every tracker point / accelerometer message stamped before the ground
+  truth),
 * ``fresh`` (with ``--truth``): the true effects at that moment, i.e. a robot calibrated just then.
 
 Joint values of a measurement are those of the latest ``/joint_states`` at or before its stamp (merged per joint
@@ -48,7 +50,7 @@ class OnlineEvaluation:
 
     bag: str
     labels: list[str]
-    stamps: np.ndarray                      # (K,) stamps of the parameter trace [s] (after each tracker point)
+    stamps: np.ndarray                      # (K,) stamps of the parameter trace [s] (after each update)
     theta: np.ndarray                       # (K, P) estimate
     sigma: np.ndarray                       # (K, P) 1-sigma
     truth: dict[str, np.ndarray] | None     # label -> (K,) true value at the trace stamps
@@ -120,13 +122,18 @@ def _events(data: Any, model: PPOEModel, base: str, tool: str, temperature_topic
         s = series.get(tr.topic)
         if s is not None:
             ev += [(float(t), 2, "point", (tr, s.frame_ids[i], s.p[i])) for i, t in enumerate(s.stamps)]
+    for name, imu in model.config.imus.items():
+        s = data.imus.get(name)
+        if s is not None:
+            ev += [(float(t), 2, "imu", (imu, s.linear_acceleration[i])) for i, t in enumerate(s.stamps)]
     gt = data.ground_truth_pose
     if len(gt) == 0:
         raise BagError(f"bag {data.path}: --online needs /ground_truth/pose to score the tool")
     ev += [(float(t), 1, "gt", (gt.frame_ids[i], gt.T[i])) for i, t in enumerate(gt.stamps)]
-    if not any(e[2] == "point" for e in ev):
+    if not any(e[2] in ("point", "imu") for e in ev):
         raise BagError(f"bag {data.path}: --online needs tracker points of the model's trackers "
-                       f"({[t.topic for t in model.config.trackers]}); the bag has none")
+                       f"({[t.topic for t in model.config.trackers]}) or accelerometers of its imus "
+                       f"({['/imu/' + n for n in model.config.imus]}); the bag has none")
     return sorted(ev, key=lambda e: (e[0], e[1]))
 
 
@@ -169,9 +176,13 @@ def evaluate_online(bag: str | Path, model_path: str | Path, online_effects: Any
             rec["skipped_no_joints"] += 1
             continue
         q = dict(zip(names, Q[i]))
-        if kind == "point":
-            tr, frame_id, p = pl
-            up = filt.update_point(stamp, q, tr.link, tr.xyz, p, filt.registration(frame_id, tr.topic), tr.sigma)
+        if kind in ("point", "imu"):
+            if kind == "point":
+                tr, frame_id, p = pl
+                up = filt.update_point(stamp, q, tr.link, tr.xyz, p, filt.registration(frame_id, tr.topic),
+                                       tr.sigma)
+            else:
+                up = filt.update_gravity(stamp, q, pl[0].link, pl[1], pl[0].sigma)
             if up is not None:
                 rec["st"].append(stamp)
                 rec["th"].append(filt.theta.copy())
@@ -213,7 +224,7 @@ def _result(bag: str, filt: OnlineEffects, rec: dict, truth: Mapping | None) -> 
     if truth is not None:
         allv = truth_values(truth, st)
         tv = {lab: allv.get(lab, np.zeros_like(st)) for lab in filt.labels}
-    counts = {"tracker_points": filt.counts.points, "jumps": filt.counts.jumps,
+    counts = {"tracker_points": filt.counts.points, "accelerations": filt.counts.gravity, "jumps": filt.counts.jumps,
               "temperatures": filt.counts.temperatures, "ground_truth_poses": int(len(Tgt)),
               "skipped_waiting_for_temperature": filt.counts.waiting_for_temperature,
               "skipped_no_joint_state": int(rec["skipped_no_joints"])}
