@@ -257,6 +257,31 @@ def test_cli_online_json_equals_api(drift_bags, evaluations, tmp_path):
     assert got["tool_error"] == want["tool_error"]
     assert got["parameters"] == want["parameters"]
     assert (tmp_path / "o" / "online_parameters.png").stat().st_size > 10_000
+    # written back: the diagnosed model with the final estimate, loadable as a model
+    written = PPOEModel.from_files(URDF, tmp_path / "o" / "model_online.yaml")
+    tilt = next(e for e in written.effects if e.name == "base_tilt")
+    np.testing.assert_allclose(tilt.params, evaluations["tilt"].theta[-1][:2])
+    assert [e.name for e in written.effects].count("base_tilt") == 1
+
+
+def test_node_parameter_file_is_the_same_config(tmp_path):
+    """``--online-config`` also reads a node parameter file (the live configuration, flat form)."""
+    pf = tmp_path / "node.yaml"
+    pf.write_text(yaml.safe_dump({"/**": {"ros__parameters": {
+        "online_effects": ["base_tilt:base_link", "gravity_compliance:joint_2", "thermal_growth:joint_4"],
+        "online_process_noise": [1.0e-5, 1.0e-6, 1.0e-7], "online_initial_sigma": [0.005, 5.0e-4, 3.0e-4],
+        "online_thermal_reference": 20.0, "online_jump_probability": 1.0e-6}}}))
+    flat, jump = load_online_config(pf)
+    listed, jump2 = load_online_config(ONLINE / "online_thermal.yaml")
+    assert jump == jump2 == 1e-6
+    model = PPOEModel.from_files(URDF, MODEL)
+    a, b = parse_online_config(flat, model), parse_online_config(listed, model)
+    assert [(t.effect.describe(), list(t.process_noise), list(t.initial_sigma)) for t in a] == \
+        [(t.effect.describe(), list(t.process_noise), list(t.initial_sigma)) for t in b]
+    assert a[2].effect.variable == "temperature" and a[2].effect.reference == 20.0
+    pf.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"online_effects": ["base_tilt"]}}}))
+    with pytest.raises(ModelConfigError, match="expected '<effect name>:<location>'"):
+        load_online_config(pf)
 
 
 def test_cli_online_bad_input_is_one_line(drift_bags):

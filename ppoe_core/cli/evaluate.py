@@ -138,7 +138,7 @@ def _run_online(args: argparse.Namespace) -> int:
     truth = read_yaml_file(args.truth, "truth file", ModelConfigError)[0] if args.truth else None
     ev = evaluate_online(args.bag, args.model, entries, jump, truth=truth, base=args.base, tool=args.tool)
     if args.out:
-        paths = write_online_report(ev, args.out)
+        paths = write_online_report(ev, args.out, args.model)
         if not args.json:
             print("wrote " + ", ".join(str(p) for p in paths), file=sys.stderr)
     if args.json:

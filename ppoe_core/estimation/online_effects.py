@@ -51,6 +51,7 @@ __all__ = [
     "TrackedEffect",
     "entries_from_flat",
     "parse_online_config",
+    "replace_effects",
 ]
 
 #: process noise per parameter of each trackable effect [parameter unit / sqrt(s)]
@@ -404,8 +405,14 @@ class OnlineEffects:
         return out
 
     def model_yaml(self, model_raw: Mapping[str, Any]) -> dict[str, Any]:
-        """``model_raw`` (the diagnosed model YAML as a mapping) with its ``effects`` list updated: tracked effects
-        replaced by (or added as) their current estimate; everything else unchanged."""
-        keys = {(t.effect.name, t.effect.location) for t in self.tracked}
-        kept = [e for e in (model_raw.get("effects") or []) if (e.get("name"), str(e.get("location"))) not in keys]
-        return {**dict(model_raw), "effects": kept + self.effect_entries()}
+        """``model_raw`` (the diagnosed model YAML as a mapping) with the tracked effects at their current estimate
+        (:func:`replace_effects`)."""
+        return replace_effects(model_raw, self.effect_entries())
+
+
+def replace_effects(model_raw: Mapping[str, Any], entries: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """``model_raw`` with its ``effects`` entries of the same name and location as ``entries`` replaced by them
+    (others added at the end); everything else unchanged."""
+    keys = {(e["name"], str(e["location"])) for e in entries}
+    kept = [e for e in (model_raw.get("effects") or []) if (e.get("name"), str(e.get("location"))) not in keys]
+    return {**dict(model_raw), "effects": kept + [dict(e) for e in entries]}

@@ -31,7 +31,12 @@ import numpy as np
 from ppoe_core.analysis.evaluate.inputs import joint_matrix, required_joints
 from ppoe_core.analysis.evaluate.metrics import error_stats, rotation_errors
 from ppoe_core.errors import BagError, ModelConfigError
-from ppoe_core.estimation.online_effects import OnlineEffects, parse_online_config
+from ppoe_core.estimation.online_effects import (
+    OnlineEffects,
+    entries_from_flat,
+    parse_online_config,
+    replace_effects,
+)
 from ppoe_core.io.bagio import read_bag
 from ppoe_core.model.effects import effect_from_config
 from ppoe_core.model.ppoe import PPOEModel
@@ -85,17 +90,34 @@ def load_online_config(path: str | Path | None) -> tuple[Any, float | None]:
 
     The file holds ``online_effects:`` (list of ``{name, location, process_noise, initial_sigma}``,
     :func:`~ppoe_core.estimation.online_effects.parse_online_config`) and optionally ``jump_probability``
-    (0 = off, default 1e-6).
+    (0 = off, default 1e-6); or it is a node parameter file whose ``online_*`` parameters are read (the same
+    configuration offline and live).
     """
     if path is None:
         return None, 1e-6
     raw, _ = read_yaml_file(Path(path), "online config", ModelConfigError)
+    if isinstance(raw, Mapping) and len(raw) == 1:  # a node parameter file (``/**: ros__parameters: online_*``)
+        node = next(iter(raw.values()))
+        if isinstance(node, Mapping) and isinstance(node.get("ros__parameters"), Mapping):
+            return _from_node_params(node["ros__parameters"], path)
     if not isinstance(raw, Mapping) or set(raw) - {"online_effects", "jump_probability"}:
         raise ModelConfigError(f"online config {path}: a mapping with keys online_effects, jump_probability")
     jp = raw.get("jump_probability", 1e-6)
     if not isinstance(jp, (int, float)) or not 0 <= jp < 1:
         raise ModelConfigError(f"online config {path}: jump_probability must be in [0, 1), got {jp!r}")
     return raw.get("online_effects"), (float(jp) or None)
+
+
+def _from_node_params(p: Mapping[str, Any], path: str | Path) -> tuple[Any, float | None]:
+    """The ``online_*`` parameters of a node parameter file (docs/online.md) -> (entries, jump probability)."""
+    try:
+        entries = entries_from_flat(list(p.get("online_effects") or []), list(p.get("online_process_noise") or []),
+                                    list(p.get("online_initial_sigma") or []),
+                                    float(p.get("online_thermal_reference", 20.0)), where=f"{path}: online_effects")
+        jp = float(p.get("online_jump_probability", 1e-6))
+    except (TypeError, ValueError) as exc:
+        raise ModelConfigError(f"online config {path}: {exc}") from None
+    return entries, (jp or None)
 
 
 def _fresh_model(model: PPOEModel, truth: Mapping[str, Any], stamp: float) -> PPOEModel:
@@ -235,9 +257,11 @@ def _result(bag: str, filt: OnlineEffects, rec: dict, truth: Mapping | None) -> 
                             counts, filt.effect_entries())
 
 
-def write_online_report(ev: OnlineEvaluation, out_dir: str | Path) -> list[Path]:
+def write_online_report(ev: OnlineEvaluation, out_dir: str | Path, model_yaml: str | Path | None = None
+                        ) -> list[Path]:
     """``online.json`` and ``online_parameters.png`` (estimate with 3-sigma band vs truth over time, and the
-    tool position error per method) in ``out_dir``."""
+    tool position error per method) in ``out_dir``; with ``model_yaml`` (the diagnosed model) also
+    ``model_online.yaml``: that model with the tracked effects at their final estimate (with ``ci``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -247,6 +271,8 @@ def write_online_report(ev: OnlineEvaluation, out_dir: str | Path) -> list[Path]
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / "online.json", out / "online_parameters.png"]
     paths[0].write_text(json.dumps(ev.to_dict(), indent=1, allow_nan=False))
+    if model_yaml is not None:
+        paths.append(_write_model(ev, Path(model_yaml), out / "model_online.yaml"))
     P = len(ev.labels)
     fig, axes = plt.subplots(P + 1, 1, figsize=(8, 2.2 * (P + 1)), squeeze=False, sharex=True)
     t0 = ev.gt_stamps[0] if len(ev.gt_stamps) else 0.0
@@ -268,6 +294,17 @@ def write_online_report(ev: OnlineEvaluation, out_dir: str | Path) -> list[Path]
     fig.savefig(paths[1], dpi=110)
     plt.close(fig)
     return paths
+
+
+def _write_model(ev: OnlineEvaluation, model_yaml: Path, out: Path) -> Path:
+    """The diagnosed model YAML with its tracked effects replaced by (or added as) the final estimate."""
+    import yaml
+
+    raw, _ = read_yaml_file(model_yaml, "model file", ModelConfigError)
+    doc = replace_effects(raw, ev.model_effects)
+    out.write_text(f"# {model_yaml.name} with the online estimate at the end of {ev.bag} (ppoe evaluate --online)\n"
+                   + yaml.safe_dump(json.loads(json.dumps(doc)), sort_keys=False, default_flow_style=None))
+    return out
 
 
 def markdown_online(ev: OnlineEvaluation) -> str:
