@@ -1,7 +1,7 @@
 """Online effects live through topics: ``ppoe play`` of a drift bag into the online effects hook (run alone as
 ``python -m ppoe_ros.common.online_effects``); the published estimates equal ``ppoe evaluate --online``'s, the
-model YAML written back at shutdown holds the last estimate, and a bad tracker message is counted while the node
-keeps running."""
+model YAML written back at shutdown holds the last estimate, and a bad tracker or IMU message is counted while the
+node keeps running."""
 
 from __future__ import annotations
 
@@ -26,6 +26,7 @@ MODEL = ONLINE / "arm7_drift_model.yaml"
 def test_live_estimates_equal_offline(tmp_path):
     from geometry_msgs.msg import PointStamped
     from ros_helpers import NodeProcess, Probe, ros_env, write_params_file
+    from sensor_msgs.msg import Imu
     from std_msgs.msg import Float64MultiArray
 
     from ppoe_ros.common.online_effects import estimates_from_msg
@@ -66,10 +67,18 @@ def test_live_estimates_equal_offline(tmp_path):
             bad.header.frame_id = "laser"
             bad.header.stamp.sec = int(offline.stamps[-1])
             pub.publish(bad)
+            imu_pub = probe.publisher("/imu/forearm", Imu)
+            probe.wait_for_subscribers(imu_pub, node)
+            bad_imu = Imu()
+            bad_imu.header.frame_id = "gripper_link"
+            bad_imu.header.stamp = bad.header.stamp
+            imu_pub.publish(bad_imu)
             deadline = time.monotonic() + 20
-            while "no tracker_registration effect for tracker frame 'laser'" not in node.output():
-                assert time.monotonic() < deadline, node.output()[-3000:]
-                probe.spin_for(0.2)
+            for text in ("no tracker_registration effect for tracker frame 'laser'",
+                         "header.frame_id 'gripper_link' is not the IMU's link 'arm_link_4'"):
+                while text not in node.output():
+                    assert time.monotonic() < deadline, node.output()[-3000:]
+                    probe.spin_for(0.2)
             assert node.alive()
         node.stop(timeout=10)  # SIGINT: the node writes online_model_out on its way down
     finally:
