@@ -26,7 +26,8 @@ import numpy as np
 
 from ppoe_core.errors import ScenarioError
 
-__all__ = ["Schedule", "parse_value", "parse_temperature", "temperature_events", "truth_values", "TEMPERATURE_DOC"]
+__all__ = ["Schedule", "parse_value", "parse_temperature", "temperature_events", "truth_entries", "truth_values",
+           "TEMPERATURE_DOC"]
 
 TEMPERATURE_DOC = """\
 temperature:               # /temperature (sensor_msgs/Temperature), optional [none]
@@ -151,6 +152,22 @@ def temperature_events(sim: Any, events: list[tuple[float, int, str, tuple]]) ->
     ts = sim.sensor_times(cfg["rate"], "always" if cfg["rate"] > 0 else "stops")
     vals = cfg["value"](ts - sim.sc.start_time) + cfg["sigma"] * sim.rng.standard_normal(len(ts))
     events.extend((float(t), 6, "temp", (float(v),)) for t, v in zip(ts, vals))
+
+
+def truth_entries(effects: Sequence[Mapping[str, Any]], start_time: float,
+                  temperature: Mapping[str, Any] | None) -> dict[str, Any]:
+    """``effects`` (and ``temperature``) of the truth file: the true effects with their schedules in plain YAML;
+    a thermal growth over time gets its reference on the bag clock (``start_time`` + the scenario's)."""
+    out: list[dict[str, Any]] = []
+    for e in effects:
+        d = dict(e, parameters={k: v.to_config() if isinstance(v, Schedule) else v
+                                for k, v in e["parameters"].items()})
+        if d["name"] == "thermal_growth" and d.get("variable", "time") == "time":
+            d["variable"], d["reference"] = "time", start_time + d.get("reference", 0.0)
+        out.append(d)
+    if temperature is None:
+        return {"effects": out}
+    return {"effects": out, "temperature": {"topic": temperature["topic"], "value": temperature["value"].to_config()}}
 
 
 def truth_values(truth: Mapping[str, Any], stamps: Any) -> dict[str, np.ndarray]:

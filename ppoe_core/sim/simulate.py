@@ -52,7 +52,7 @@ from ppoe_core.sim.scenario import (
     _where,
     load_scenario,
 )
-from ppoe_core.sim.schedule import Schedule, parse_temperature, temperature_events
+from ppoe_core.sim.schedule import parse_temperature, temperature_events, truth_entries
 from ppoe_core.sim.sim_config import _min_jerk, _SimConfig, _Stop
 from ppoe_core.sim.truth import TrueRobot
 
@@ -511,15 +511,8 @@ class _Sim(_SimConfig):
             "seed": self.seed,
             "start_time": self.sc.start_time,
             "perturbations": self.draw,
-            "effects": [dict(e, parameters={k: v.to_config() if isinstance(v, Schedule) else v
-                                            for k, v in e["parameters"].items()}) for e in self.true.effects],
+            **truth_entries(self.true.effects, self.sc.start_time, self.temperature),
         }
-        for e in d["effects"]:
-            if e["name"] == "thermal_growth" and e.get("variable", "time") == "time":
-                e["variable"] = "time"  # the catalogue's reference is on the bag clock
-                e["reference"] = self.sc.start_time + e.get("reference", 0.0)
-        if self.temperature is not None:
-            d["temperature"] = {"topic": self.temperature["topic"], "value": self.temperature["value"].to_config()}
         if self.draw == "once" and self.xi_sets:
             d["xi"] = {k: [float(x) for x in v] for k, v in self.xi_sets[0].items()}
         if self.gt_point is not None:
