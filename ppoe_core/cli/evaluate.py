@@ -1,4 +1,4 @@
-"""``ppoe evaluate BAG --model MODEL.yaml [--base FRAME] [--tool FRAME] [--out DIR] [--json]``.
+"""``ppoe evaluate BAG --model MODEL.yaml [--base FRAME] [--tool FRAME] [--out DIR] [--json] [--online ...]``.
 
 Replays a contract bag offline through the core code of the nodes (tag observations from images,
 contact planes from ``/wrench``, the fusion node's pipeline) and scores forward
@@ -62,6 +62,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iterations", type=int, default=None, help="override max_iterations of the LG-EKF update")
     parser.add_argument("--gate", type=float, default=None, help="override gate_probability (>= 1 = no gate)")
     parser.add_argument("--pixel-sigma", type=float, default=None, help="override pixel_sigma [px]")
+    parser.add_argument("--online", action="store_true",
+                        help="track drifting effects online (docs/online.md): tool error before / static / online, "
+                             "online.json and online_parameters.png in --out")
+    parser.add_argument("--online-config", default=None, metavar="ONLINE.yaml",
+                        help="with --online: online_effects list (process noise per parameter [unit/sqrt(s)]) and "
+                             "jump_probability; default: base tilt and the model's trackable effects")
+    parser.add_argument("--truth", default=None, metavar="BAG.truth.yaml",
+                        help="with --online: the simulation truth (ppoe simulate) to compare the estimate with")
     bar = parser.add_mutually_exclusive_group()
     bar.add_argument("--progress", dest="progress", action="store_true", default=None,
                      help="progress bar on stderr (default: only when stderr is a terminal)")
@@ -81,6 +89,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out:  # checked before the run, not after it
         prepare_out_dir(args.out)
+    if args.online or args.online_config or args.truth:
+        return _run_online(args)
     progress = sys.stderr.isatty() if args.progress is None else bool(args.progress)
     fusion = load_fusion_params(args.fusion_params) if args.fusion_params else {}
     for key, value in (("max_iterations", args.iterations), ("gate_probability", args.gate),
@@ -109,4 +119,31 @@ def run(args: argparse.Namespace) -> int:
         sys.stdout.write("\n")
     else:
         print(markdown_report(ev))
+    return 0
+
+
+def _run_online(args: argparse.Namespace) -> int:
+    """``--online``: replay with the online effect filter, print the before / static / online table (or JSON)."""
+    from ppoe_core.analysis.evaluate.online import (
+        evaluate_online,
+        load_online_config,
+        markdown_online,
+        write_online_report,
+    )
+    from ppoe_core.robot.yaml_io import read_yaml_file
+
+    if not args.online:
+        raise ModelConfigError("--online-config and --truth need --online")
+    entries, jump = load_online_config(args.online_config)
+    truth = read_yaml_file(args.truth, "truth file", ModelConfigError)[0] if args.truth else None
+    ev = evaluate_online(args.bag, args.model, entries, jump, truth=truth, base=args.base, tool=args.tool)
+    if args.out:
+        paths = write_online_report(ev, args.out, args.model)
+        if not args.json:
+            print("wrote " + ", ".join(str(p) for p in paths), file=sys.stderr)
+    if args.json:
+        json.dump(ev.to_dict(), sys.stdout, allow_nan=False)
+        sys.stdout.write("\n")
+    else:
+        print(markdown_online(ev))
     return 0

@@ -17,6 +17,7 @@ from ppoe_core.errors import ModelConfigError, ScenarioError, UnknownFrameError,
 from ppoe_core.robot.config import ModelConfig, load_model_config
 from ppoe_core.robot.urdf import Robot, parse_urdf
 from ppoe_core.robot.yaml_io import read_yaml_file
+from ppoe_core.sim.schedule import TEMPERATURE_DOC
 
 #: effects the simulator can put into the true robot, with their parameters
 TRUTH_EFFECTS: dict[str, tuple[str, ...]] = {
@@ -125,9 +126,10 @@ contact:                   # /wrench, optional [none]
   force_sigma: 0.1         # wrench noise 1-sigma per axis [N] [0.1]
   frame: fingertip         # wrench header.frame_id (force in its axes) [tool_point.link]
   rate: null               # [Hz] [trajectory.joint_rate]
-"""
+""" + TEMPERATURE_DOC
 
-_TOP_KEYS = ("robot", "seed", "start_time", "truth", "trajectory", "camera", "ground_truth", "imus", "contact")
+_TOP_KEYS = ("robot", "seed", "start_time", "truth", "trajectory", "camera", "ground_truth", "imus", "contact",
+             "temperature")
 
 
 # =============================================================================

@@ -52,18 +52,11 @@ from ppoe_core.sim.scenario import (
     _where,
     load_scenario,
 )
+from ppoe_core.sim.schedule import parse_temperature, temperature_events, truth_entries
 from ppoe_core.sim.sim_config import _min_jerk, _SimConfig, _Stop
 from ppoe_core.sim.truth import TrueRobot
 
-__all__ = [
-    "SCENARIO_DOC",
-    "TRUTH_EFFECTS",
-    "Scenario",
-    "TrueRobot",
-    "SimulationResult",
-    "load_scenario",
-    "simulate",
-]
+__all__ = ["SCENARIO_DOC", "TRUTH_EFFECTS", "Scenario", "TrueRobot", "SimulationResult", "load_scenario", "simulate"]
 
 
 # =============================================================================
@@ -103,7 +96,9 @@ class _Sim(_SimConfig):
         self.pscale = _num(truth, "perturbation_scale", 1.0, self.path, "truth", minimum=0.0)
         self.use_joint_noise = bool(truth.get("joint_noise", True))
         self.record_draws = bool(truth.get("record_draws", False))
-        self.true = TrueRobot(self.robot, truth.get("effects") or [], where=f"scenario {self.path}: truth.effects")
+        self.temperature = parse_temperature(raw.get("temperature"), self.path, self.robot.root)
+        self.true = TrueRobot(self.robot, truth.get("effects") or [], where=f"scenario {self.path}: truth.effects",
+                              temperature=self.temperature["value"] if self.temperature else None)
         self.dt_js = self.true.effect_param("time_offset", "dt")
         self.joints = self.robot.independent_joints
         self._parse_trajectory(_check_keys(raw.get("trajectory"), (
@@ -391,6 +386,8 @@ class _Sim(_SimConfig):
             self._imu_events(events)
         if self.contact is not None:
             self._wrench_events(events)
+        if self.temperature is not None:
+            temperature_events(self, events)
         events.sort(key=lambda e: (e[0], e[1]))
         counts = self._write(out, storage, overwrite, events)
         return SimulationResult(
@@ -503,6 +500,9 @@ class _Sim(_SimConfig):
                     bag.write_imu(pl[0], t, pl[1], pl[2], accel_sigma=pl[3])
                 elif kind == "wrench":
                     bag.write_wrench(t, self.contact["wframe"], pl[0], pl[1])
+                elif kind == "temp":
+                    tc: Any = self.temperature
+                    bag.write_temperature(t, tc["frame"], pl[0], tc["sigma"] ** 2, topic=tc["topic"])
             return dict(bag.counts)
 
     def truth_dict(self) -> dict[str, Any]:
@@ -511,12 +511,8 @@ class _Sim(_SimConfig):
             "seed": self.seed,
             "start_time": self.sc.start_time,
             "perturbations": self.draw,
-            "effects": [dict(e, parameters=dict(e["parameters"])) for e in self.true.effects],
+            **truth_entries(self.true.effects, self.sc.start_time, self.temperature),
         }
-        for e in d["effects"]:
-            if e["name"] == "thermal_growth":
-                e["variable"] = "time"
-                e["reference"] = self.sc.start_time
         if self.draw == "once" and self.xi_sets:
             d["xi"] = {k: [float(x) for x in v] for k, v in self.xi_sets[0].items()}
         if self.gt_point is not None:

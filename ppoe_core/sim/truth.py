@@ -16,6 +16,7 @@ from ppoe_core.errors import ScenarioError
 from ppoe_core.robot.tree import GRAVITY, KinematicTree
 from ppoe_core.robot.urdf import Robot
 from ppoe_core.sim.scenario import TRUTH_EFFECTS
+from ppoe_core.sim.schedule import Schedule, parse_value
 
 # =============================================================================
 # true robot
@@ -32,10 +33,17 @@ class TrueRobot:
         ``{name, location, parameters}`` entries (validated here).
     where : str
         Used in error messages (scenario file).
+    temperature : Schedule, optional
+        Temperature [deg C] over time (s since start) for ``thermal_growth`` with ``variable: temperature``.
+
+    A parameter is a float, or a :class:`~ppoe_core.sim.schedule.Schedule` when it changes during the recording
+    (:mod:`ppoe_core.sim.schedule`); :meth:`poses` evaluates it at each sample's elapsed time.
     """
 
-    def __init__(self, robot: Robot, effects: Sequence[Mapping[str, Any]], where: str = "truth.effects") -> None:
+    def __init__(self, robot: Robot, effects: Sequence[Mapping[str, Any]], where: str = "truth.effects",
+                 temperature: Schedule | None = None) -> None:
         self.robot = robot
+        self.temperature = temperature
         self.tree = KinematicTree(robot)
         self.order = self.tree.order
         self.effects: list[dict[str, Any]] = []
@@ -43,7 +51,8 @@ class TrueRobot:
             self.effects.append(self._validate(e, f"{where}[{i}]"))
 
     def _validate(self, e: Any, where: str) -> dict[str, Any]:
-        if not isinstance(e, Mapping) or set(e) - {"name", "location", "parameters"} or "name" not in e:
+        if (not isinstance(e, Mapping) or set(e) - {"name", "location", "parameters", "variable", "reference"}
+                or "name" not in e):
             raise ScenarioError(f"{where}: an effect is {{name, location, parameters}}, got {e!r}")
         name = e["name"]
         if name not in TRUTH_EFFECTS:
@@ -64,11 +73,27 @@ class TrueRobot:
                 and not self.robot.joints[loc].movable
             ):
                 raise ScenarioError(f"{where}: {name} needs a movable joint, '{loc}' is {self.robot.joints[loc].type}")
-        return {
-            "name": name,
-            "location": loc,
-            "parameters": {k: float(params.get(k, 0.0)) for k in TRUTH_EFFECTS[name]},
-        }
+        out: dict[str, Any] = {"name": name, "location": loc, "parameters": {}}
+        for k in TRUTH_EFFECTS[name]:
+            s = parse_value(params.get(k, 0.0), f"{where}.parameters.{k}")
+            out["parameters"][k] = s.values[0] if len(s.values) == 1 else s
+            if name == "time_offset" and isinstance(out["parameters"][k], Schedule):
+                raise ScenarioError(f"{where}: time_offset dt cannot change during the recording")
+        if set(e) & {"variable", "reference"}:
+            if name != "thermal_growth":
+                raise ScenarioError(f"{where}: only thermal_growth takes 'variable' and 'reference'")
+            out["variable"] = str(e.get("variable", "time"))
+            if out["variable"] not in ("time", "temperature"):
+                raise ScenarioError(f"{where}.variable must be time or temperature, got {out['variable']!r}")
+            if out["variable"] == "temperature" and self.temperature is None:
+                raise ScenarioError(f"{where}: variable temperature needs the scenario's temperature section")
+            out["reference"] = parse_value(e.get("reference", 0.0), f"{where}.reference").values[0]
+        return out
+
+    @staticmethod
+    def params_at(e: Mapping[str, Any], elapsed: np.ndarray) -> dict[str, Any]:
+        """Parameters of effect ``e`` at ``elapsed`` (n,) [s since start]: floats, or (n,) for schedules."""
+        return {k: v(elapsed) if isinstance(v, Schedule) else v for k, v in e["parameters"].items()}
 
     def effect_param(self, name: str, key: str) -> float:
         """Sum of parameter ``key`` over the true effects called ``name`` (0 if none)."""
@@ -164,7 +189,7 @@ class TrueRobot:
         if grav:
             base = build(dq, fx)
             for e in grav:
-                loc, p = e["location"], e["parameters"]
+                loc, p = e["location"], self.params_at(e, np.asarray(elapsed, float))
                 if e["name"] == "gravity_compliance":
                     j = self.robot.joints[loc]
                     F, M = self.gravity_moment(base, loc, after_motion=True)
@@ -217,8 +242,9 @@ class TrueRobot:
         def add_fx(j: str, v: np.ndarray) -> None:
             fx[j] = fx.get(j, np.zeros((n, 6))) + v
 
+        el = np.broadcast_to(np.asarray(elapsed, float), (n,))
         for e in self.effects:
-            nm, loc, p = e["name"], e["location"], e["parameters"]
+            nm, loc, p = e["name"], e["location"], self.params_at(e, el)
             if nm == "joint_offset":
                 add_dq(loc, p["offset"])
             elif nm == "transmission_error":
@@ -226,18 +252,25 @@ class TrueRobot:
             elif nm == "backlash":
                 add_dq(loc, p["play"] * np.asarray(motion_sign.get(loc, np.zeros(n)), float))
             elif nm in ("link_error", "camera_extrinsics"):
-                add_fx(loc, np.broadcast_to([p[k] for k in TRUTH_EFFECTS[nm]], (n, 6)))
+                add_fx(loc, np.stack([np.broadcast_to(p[k], (n,)) for k in TRUTH_EFFECTS[nm]], axis=-1))
             elif nm == "thermal_growth":
                 o = self.robot.joints[loc].origin
                 d = o[:3, :3].T @ o[:3, 3]
+                u = el
+                if e.get("variable") == "temperature":
+                    assert self.temperature is not None  # checked in _validate
+                    u = self.temperature(el) - e["reference"]
+                elif "reference" in e:
+                    u = el - e["reference"]
                 v = np.zeros((n, 6))
-                v[:, :3] = p["alpha"] * np.asarray(elapsed)[:, None] * d
+                v[:, :3] = (p["alpha"] * u)[:, None] * d
                 add_fx(loc, v)
             elif nm == "base_tilt":
                 # everything hanging on the root rotates about the root's x and y axes:
                 # Exp(w) Exp(p_j) = Exp(p_j) Exp(Ad(Exp(p_j)^-1) w) for each child joint j of the root
-                w = np.array([0, 0, 0, p["tilt_x"], p["tilt_y"], 0.0])
+                w = np.zeros((n, 6))
+                w[:, 3], w[:, 4] = p["tilt_x"], p["tilt_y"]
                 for jn in self.robot.children(self.robot.root):
                     Ad = lie.adjoint(lie.inverse(self.robot.joints[jn].origin))
-                    add_fx(jn, np.broadcast_to(Ad @ w, (n, 6)))
+                    add_fx(jn, w @ Ad.T)
         return dq, fx

@@ -1,0 +1,351 @@
+"""Online effects live: the ROS side of :class:`ppoe_core.estimation.online_effects.OnlineEffects` (docs/online.md).
+
+:class:`OnlineEffectsHook` runs the core filter inside a node (meant for the fusion node; see docs/online.md for
+the lines that call it): it subscribes the model's tracker topics (``PointStamped``, ``trackers`` of the model
+YAML) and accelerometers (``/imu/<name>``, ``sensor_msgs/Imu``, its ``imus``), ``online_temperature_topic``
+(``sensor_msgs/Temperature``) and ``online_joint_states_topic`` (merged per joint, as the kinematics node does),
+updates the tracked effects with every tracker point or acceleration and publishes the estimate after each update
+on ``online_estimates_topic`` as a ``std_msgs/Float64MultiArray``:
+
+* ``layout.data_offset = 1``; ``data[0]`` is the stamp of the update [s] (the tracker point's ``header.stamp``);
+* then a P x (P + 1) row-major array, ``layout.dim[0]`` (label = the parameter labels
+  ``<name>@<location>/<parameter>`` joined by ``,``; size P; stride P (P + 1)) and ``layout.dim[1]`` (label
+  ``mean,covariance``; size P + 1; stride P + 1): row ``i`` is ``[theta_i, P_i0 ... P_i(P-1)]`` in the
+  parameters' units (rad, 1/K, rad/(N m), m).
+
+:meth:`OnlineEffectsHook.correct_prior` moves a kinematics prior (the static model's ``T_base_tool``) to the
+online estimate, with the parameters' covariance added; :meth:`OnlineEffectsHook.write_model` writes the model
+YAML with the current estimate (``online_model_out``, at every ``online_write_period`` and at shutdown).
+A tracker point whose frame has no registration in the model, an IMU message whose frame is not its link, or NaN
+is counted as bad and logged (throttled); the node keeps running.
+
+``python -m ppoe_ros.common.online_effects --ros-args -p model_file:=MODEL.yaml ...`` runs the hook alone
+(:class:`OnlineEffectsNode`), e.g. beside a fusion node that does not call it yet.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from geometry_msgs.msg import PointStamped
+from rcl_interfaces.msg import ParameterType
+from rclpy.node import Node
+from sensor_msgs.msg import Imu, JointState, Temperature
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
+
+from ppoe_core import lie
+from ppoe_core.errors import MeasurementError, ModelConfigError
+from ppoe_core.estimation.joint_merge import JointMerger
+from ppoe_core.estimation.online_effects import OnlineEffects, entries_from_flat, parse_online_config
+from ppoe_core.robot.yaml_io import read_yaml_mapping
+from ppoe_ros.common import (
+    DiagnosticsPublisher,
+    NodeStats,
+    ParamSpec,
+    check_nonempty,
+    counted_subscription,
+    declare_parameters,
+    reliable_qos,
+    run_node,
+    stamp_to_ns,
+    take_robot_description,
+)
+
+__all__ = ["ONLINE_PARAMS", "OnlineEffectsHook", "OnlineEffectsNode", "estimates_msg", "estimates_from_msg", "main"]
+
+ONLINE_PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("online_enable", False, "track drifting effects online (docs/online.md)"),
+    ParamSpec("online_effects", [], "tracked effects '<name>:<location>' (base_tilt, thermal_growth, "
+              "gravity_compliance, mount_bending, camera_extrinsics, joint_offset, link_error); empty = base tilt and "
+              "the model's trackable effects", ptype=ParameterType.PARAMETER_STRING_ARRAY),
+    ParamSpec("online_process_noise", [], "random-walk intensity, one per online_effects entry, in the parameter's "
+              "unit per sqrt(s) (base_tilt rad, thermal_growth 1/K, gravity_compliance rad/(N m), camera_extrinsics "
+              "m and rad); empty = defaults", unit="unit/sqrt(s)", ptype=ParameterType.PARAMETER_DOUBLE_ARRAY),
+    ParamSpec("online_initial_sigma", [], "prior 1-sigma of a parameter the model does not hold (and after a jump), "
+              "one per entry; empty = defaults", unit="parameter unit", ptype=ParameterType.PARAMETER_DOUBLE_ARRAY),
+    ParamSpec("online_thermal_reference", 20.0, "temperature at which a tracked thermal_growth is zero", unit="degC"),
+    ParamSpec("online_jump_probability", 1e-6, "NIS tail probability above which a tracker point re-opens the "
+              "parameters' covariance (a placement change); 0 = off", min_value=0.0, max_value=0.5),
+    ParamSpec("online_temperature_topic", "/temperature", "sensor_msgs/Temperature for thermal_growth"),
+    ParamSpec("online_joint_states_topic", "/joint_states", "joint states of the tracker points", check=check_nonempty),
+    ParamSpec("online_joint_max_age", 0.5, "a joint value a split message lacks is held this long; 0 = no limit",
+              unit="s", min_value=0.0, max_value=3600.0),
+    ParamSpec("online_estimates_topic", "/ppoe/online_effects", "estimates out (std_msgs/Float64MultiArray, layout "
+              "in docs/online.md)", check=check_nonempty),
+    ParamSpec("online_model_out", "", "write the model YAML with the current estimate here; empty = never"),
+    ParamSpec("online_write_period", 0.0, "write online_model_out this often; 0 = only at shutdown", unit="s",
+              min_value=0.0, max_value=1e6),
+)
+
+_HISTORY_NS = 10_000_000_000  # joint states / temperatures kept for the lookup at a point's stamp
+_TEMPERATURE_WAIT_NS = 2_000_000_000  # a point waits at most this long (joint-state time) for a newer temperature
+_MAX_PENDING = 1000  # points waiting for their joint state; older ones are dropped (counted)
+
+
+def estimates_msg(filt: OnlineEffects, stamp_s: float) -> Float64MultiArray:
+    """The estimate as ``Float64MultiArray`` (module docstring: stamp in the padding, P x (P + 1))."""
+    P = len(filt.labels)
+    msg = Float64MultiArray()
+    msg.layout.data_offset = 1
+    msg.layout.dim = [MultiArrayDimension(label=",".join(filt.labels), size=P, stride=P * (P + 1)),
+                      MultiArrayDimension(label="mean,covariance", size=P + 1, stride=P + 1)]
+    msg.data = [float(stamp_s)] + np.concatenate([filt.theta[:, None], filt.P], axis=1).ravel().tolist()
+    return msg
+
+
+def estimates_from_msg(msg: Any) -> tuple[float, list[str], np.ndarray, np.ndarray]:
+    """Inverse of :func:`estimates_msg`: ``(stamp [s], labels, theta (P,), P (P, P))``."""
+    P = int(msg.layout.dim[0].size)
+    arr = np.asarray(msg.data[msg.layout.data_offset:], dtype=float).reshape(P, P + 1)
+    return float(msg.data[0]), msg.layout.dim[0].label.split(","), arr[:, 0].copy(), arr[:, 1:].copy()
+
+
+class _History:
+    """Values by stamp [ns] (last ``_HISTORY_NS``): the latest at or before a stamp."""
+
+    def __init__(self) -> None:
+        self.stamps: list[int] = []
+        self.values: list[Any] = []
+
+    def add(self, stamp_ns: int, value: Any) -> None:
+        if self.stamps and stamp_ns < self.stamps[-1]:
+            self.stamps.clear()  # time went backwards (a bag replayed again): new timeline
+            self.values.clear()
+        self.stamps.append(stamp_ns)
+        self.values.append(value)
+        cut = bisect.bisect_left(self.stamps, stamp_ns - _HISTORY_NS)
+        if cut:
+            del self.stamps[:cut], self.values[:cut]
+
+    def at(self, stamp_ns: int) -> Any:
+        i = bisect.bisect_right(self.stamps, stamp_ns) - 1
+        return self.values[i] if i >= 0 else None
+
+
+class OnlineEffectsHook:
+    """The online filter inside ``node`` (module docstring).
+
+    Parameters
+    ----------
+    node : rclpy Node
+    params : mapping
+        The node's values of :data:`ONLINE_PARAMS` (declared by the node with its own parameters).
+    stats : NodeStats
+        The node's counters; the hook adds ``online_points``, ``online_jumps``, ``online_waiting``.
+    model_file : str
+        The model YAML (written back with the estimate by :meth:`write_model`).
+    """
+
+    def __init__(self, node: Node, params: Mapping[str, Any], stats: NodeStats, model_file: str) -> None:
+        self.node, self.p, self.stats, self.model_file = node, dict(params), stats, model_file
+        for k in ("online_points", "online_jumps", "online_waiting", "online_no_joints", "online_dropped_pending",
+                  "online_no_model"):
+            stats.counts.setdefault(k, 0)
+        self.filter: OnlineEffects | None = None
+        self.merger: JointMerger | None = None
+        self.joints = _History()
+        self.temps = _History()
+        self.pending: list[tuple[int, Any, str]] = []
+        self._uses_temperature = False
+        self._subscribed: set[str] = set()
+        self.pub = node.create_publisher(Float64MultiArray, self.p["online_estimates_topic"], reliable_qos(1000))
+        qos = reliable_qos(1000)
+        counted_subscription(node, stats, JointState, self.p["online_joint_states_topic"], self._joint_state, qos)
+        if self.p["online_temperature_topic"]:
+            counted_subscription(node, stats, Temperature, self.p["online_temperature_topic"], self._temperature, qos)
+        raw = read_yaml_mapping(model_file, "model file")  # tracker topics now: inputs are subscribed at start-up
+        topics = [str(t.get("topic", "/ground_truth/point")) for t in (raw.get("trackers") or [])]
+        for topic in topics + (["/ground_truth/point"] if raw.get("tracker") else []):
+            if topic not in self._subscribed:
+                self._subscribed.add(topic)
+                counted_subscription(node, stats, PointStamped, topic,
+                                     lambda msg, topic=topic: self._point(msg, topic), qos)
+        for name in raw.get("imus") or {}:
+            counted_subscription(node, stats, Imu, f"/imu/{name}",
+                                 lambda msg, name=str(name): self._point(msg, f"/imu/{name}"), qos)
+        if self.p["online_write_period"] > 0 and self.p["online_model_out"]:
+            node.create_timer(self.p["online_write_period"], self.write_model)
+
+    def set_model(self, model: Any) -> None:
+        """Build the filter for ``model`` (the diagnosed PPOEModel) and subscribe its tracker topics."""
+        entries = entries_from_flat(self.p["online_effects"], self.p["online_process_noise"],
+                                    self.p["online_initial_sigma"], self.p["online_thermal_reference"])
+        self.filter = OnlineEffects(model, parse_online_config(entries, model),
+                                    self.p["online_jump_probability"] or None)
+        self.model = model
+        self._uses_temperature = any(getattr(e, "variable", None) == "temperature" for e in self.filter.effects())
+        self.merger = JointMerger(model.joint_names, int(self.p["online_joint_max_age"] * 1e9))
+        self.node.get_logger().info(f"online effects: tracking {self.filter.labels} from "
+                                    f"{sorted(self._subscribed)}")
+
+    # ---------------------------------------------------------------- callbacks
+    def _joint_state(self, msg: JointState) -> None:
+        if self.merger is None:
+            return
+        q, _ = self.merger.update(list(msg.name), list(msg.position), stamp_to_ns(msg.header.stamp))
+        if q is not None:  # else not every joint seen yet / too old: a point then counts in online_no_joints
+            self.joints.add(stamp_to_ns(msg.header.stamp), dict(zip(self.merger.needed, q.tolist())))
+        self._drain()
+
+    def _ready(self, stamp_ns: int) -> bool:
+        """A point at ``stamp_ns`` is processed once a joint state (and, for a thermal effect, a temperature) at or
+        after it arrived, so that the values at its stamp are known as they are offline (inputs lag on their own
+        queues); a temperature is waited for at most ``_TEMPERATURE_WAIT_NS`` of joint-state time."""
+        j = self.joints.stamps[-1] if self.joints.stamps else None
+        if j is None or j < stamp_ns:
+            return False
+        if not self._uses_temperature or (self.temps.stamps and self.temps.stamps[-1] >= stamp_ns):
+            return True
+        return j - stamp_ns > _TEMPERATURE_WAIT_NS
+
+    def _drain(self) -> None:
+        while self.pending and self._ready(self.pending[0][0]):
+            st, msg, topic = self.pending.pop(0)
+            self._process_point(st, msg, topic)
+
+    def _temperature(self, msg: Temperature) -> None:
+        if not np.isfinite(msg.temperature):
+            raise MeasurementError(f"temperature {msg.temperature!r} is not finite")
+        self.temps.add(stamp_to_ns(msg.header.stamp), float(msg.temperature))
+        self._drain()
+
+    def _point(self, msg: Any, topic: str) -> None:
+        """A tracker point (``PointStamped``) or an accelerometer message (``Imu``, topic ``/imu/<name>``)."""
+        if self.filter is None:
+            self.stats.inc("online_no_model")
+            return
+        st = stamp_to_ns(msg.header.stamp)
+        if isinstance(msg, Imu):
+            imu = self.model.config.imus[topic[len("/imu/"):]]
+            if msg.header.frame_id != imu.link:
+                raise MeasurementError(f"header.frame_id {msg.header.frame_id!r} is not the IMU's link {imu.link!r} "
+                                       f"of the model")
+            v = msg.linear_acceleration
+        else:
+            self.filter.registration(msg.header.frame_id, topic)  # a bad frame is refused now, not when due
+            v = msg.point
+        if not np.all(np.isfinite([v.x, v.y, v.z])):
+            raise MeasurementError(f"measurement ({v.x}, {v.y}, {v.z}) is not finite")
+        if self.pending or not self._ready(st):
+            self.pending.append((st, msg, topic))
+            if len(self.pending) > _MAX_PENDING:
+                self.pending.pop(0)
+                self.stats.inc("online_dropped_pending")
+            return
+        self._process_point(st, msg, topic)
+
+    def _process_point(self, st: int, msg: Any, topic: str) -> None:
+        filt = self.filter
+        assert filt is not None
+        q = self.joints.at(st)
+        if q is None:
+            self.stats.inc("online_no_joints")
+            return
+        temp = self.temps.at(st)
+        if temp is not None and filt.context.get("temperature") != temp:
+            filt.set_temperature(st * 1e-9, temp)
+        jumps = filt.counts.jumps
+        if isinstance(msg, Imu):
+            imu = self.model.config.imus[topic[len("/imu/"):]]
+            a = msg.linear_acceleration
+            up = filt.update_gravity(st * 1e-9, q, imu.link, [a.x, a.y, a.z], imu.sigma)
+        else:
+            tr = next(t for t in self.model.config.trackers if t.topic == topic)
+            T_tr = filt.registration(msg.header.frame_id, topic)
+            p = [msg.point.x, msg.point.y, msg.point.z]
+            up = filt.update_point(st * 1e-9, q, tr.link, tr.xyz, p, T_tr, tr.sigma)
+        if up is None:
+            self.stats.inc("online_waiting")
+            return
+        self.stats.inc("online_points")
+        self.stats.inc("online_jumps", filt.counts.jumps - jumps)
+        self.pub.publish(estimates_msg(filt, st * 1e-9))
+        self.stats.inc("published")
+
+    # ---------------------------------------------------------------- outputs
+    def correct_prior(self, stamp_ns: int, T_base_tool: np.ndarray, cov_tool: np.ndarray, base: str,
+                      tool: str) -> tuple[np.ndarray, np.ndarray]:
+        """A kinematics prior of the static model moved to the online estimate: ``T_static Exp(d)`` with
+        ``Exp(d) = T_static(q)^-1 T_online(q)`` at the joints of ``stamp_ns``, covariance ``+ J P J^T``; the prior
+        unchanged while there is no model or no joint state."""
+        filt = self.filter
+        q = self.joints.at(stamp_ns) if filt is not None else None
+        if filt is None or q is None or filt.needs_temperature():
+            return T_base_tool, cov_tool
+        T_on, J = filt.tool_jacobian(q, base, tool)
+        T_st = filt.static_model.fk_mean(q, base, tool, context=filt.context)
+        return T_base_tool @ lie.inverse(T_st) @ T_on, cov_tool + J @ filt.P @ J.T
+
+    def write_model(self) -> Path | None:
+        """Write the model YAML with the current estimate to ``online_model_out`` (None when off or no model)."""
+        out = self.p["online_model_out"]
+        if not out or self.filter is None:
+            return None
+        raw = read_yaml_mapping(self.model_file, "model file")
+        text = ("# written by the online effects of " + self.node.get_fully_qualified_name() + " (docs/online.md)\n"
+                + yaml.safe_dump(self.filter.model_yaml(_plain(raw)), sort_keys=False, default_flow_style=None))
+        Path(out).write_text(text)
+        return Path(out)
+
+
+def _plain(x: Any) -> Any:
+    """Plain dict/list copy of a YAML mapping that remembers line numbers (for ``yaml.safe_dump``)."""
+    if isinstance(x, Mapping):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    return x
+
+
+_NODE_PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec("model_file", "", "the diagnosed model YAML (required)", check=check_nonempty),
+    ParamSpec("robot_description", "", "URDF XML; empty = take it from robot_description_topic"),
+    ParamSpec("robot_description_topic", "/robot_description", "latched std_msgs/String with the URDF",
+              check=check_nonempty),
+    ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
+) + tuple(s for s in ONLINE_PARAMS if s.name != "online_enable")
+
+
+class OnlineEffectsNode(Node):
+    """The hook alone in a node (``online_effects_node``): tracker points + joints + temperature -> estimates."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("online_effects_node", **kwargs)
+        p = declare_parameters(self, _NODE_PARAMS)
+        self.stats = NodeStats(self, ("received", "published", "bad"))
+        self.hook = OnlineEffectsHook(self, p, self.stats, p["model_file"])
+        self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
+        self._urdf: str | None = None
+        take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
+
+    def _set_model(self, urdf_xml: str, where: str) -> None:
+        from ppoe_core.model.ppoe import PPOEModel
+
+        try:
+            model = PPOEModel.from_strings(urdf_xml, Path(self.hook.model_file), urdf_source=where)
+            self.hook.set_model(model)
+        except ModelConfigError as exc:
+            raise ModelConfigError(f"{where}: {exc}") from None
+        self._urdf = urdf_xml
+
+    def _robot_description(self, msg: String) -> None:
+        if msg.data != self._urdf:
+            self._set_model(msg.data, "topic /robot_description")
+
+    def destroy_node(self) -> None:
+        self.hook.write_model()
+        super().destroy_node()
+
+
+def main(args: Any = None) -> int:
+    """``python -m ppoe_ros.common.online_effects --ros-args -p model_file:=... [-p online_effects:=[...]]``."""
+    return run_node(OnlineEffectsNode, args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
