@@ -149,3 +149,67 @@ def test_correct_prior_moves_the_static_pose_to_the_estimate():
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
+
+
+def test_fusion_node_moves_its_priors_to_the_online_estimate(tmp_path):
+    """The fusion node with ``online_enable``: ``ppoe play`` of a drift bag feeds the hook inside the node; a prior of
+    the static model published afterwards comes out as the online tool pose of the last published estimate."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from ros_helpers import NodeProcess, Probe, ros_env, write_params_file
+    from std_msgs.msg import Float64MultiArray
+
+    from ppoe_core import lie
+    from ppoe_core.estimation.online_effects import OnlineEffects, parse_online_config
+    from ppoe_core.io.bagio import read_bag
+    from ppoe_ros.common import matrix_from_pose_msg, ns_to_stamp, pose_cov_stamped_msg
+    from ppoe_ros.common.online_effects import estimates_from_msg
+
+    raw = yaml.safe_load((ONLINE / "tilt.yaml").read_text())
+    raw["robot"] = {"urdf": str(REPO / "config" / "robots" / "arm7.urdf"), "model": str(MODEL)}
+    raw["trajectory"]["random_stops"]["count"] = 12
+    raw["truth"]["effects"][0]["parameters"]["tilt_x"]["step"]["at"] = 5.0
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(raw))
+    bag = tmp_path / "tilt"
+    simulate(tmp_path / "s.yaml", bag)
+    env = ros_env(tmp_path)
+    pf = write_params_file(tmp_path / "fusion.yaml", {
+        "model_file": str(MODEL), "robot_description": (REPO / "config" / "robots" / "arm7.urdf").read_text(),
+        "observations_topic": "", "contact_topic": "", "online_enable": True,
+        "online_effects": ["base_tilt:base_link"], "online_process_noise": [1.0e-5], "online_initial_sigma": [0.005],
+        "online_model_out": str(tmp_path / "online_model.yaml")})
+    node = NodeProcess.node("fusion_node", env, tmp_path, params_file=pf)
+    model = PPOEModel.from_files(REPO / "config" / "robots" / "arm7.urdf", MODEL)
+    data = read_bag(bag, load_images=False)
+    js = data.joint_states
+    q = js.as_dict(len(js.stamps) - 1)
+    stamp_ns = int(round(js.stamps[-1] * 1e9))
+    T_static, C_static = model.fk(q, "base_link", "tool0")
+    try:
+        with Probe(env) as probe:
+            got = probe.collect("/ppoe/online_effects", Float64MultiArray)
+            fused = probe.collect("/ppoe/fused_pose", PoseWithCovarianceStamped)
+            probe.wait_for_publishers("/ppoe/online_effects", node, timeout=60)
+            play = NodeProcess.ppoe(["play", str(bag), "--rate", "4", "--wait-for-subscribers", "30", "--topics",
+                                     "/joint_states", "/ground_truth/point"], env, tmp_path, "play")
+            assert play.wait(timeout=120) == 0, play.output()[-2000:]
+            n_points = len(data.ground_truth_point.stamps)
+            probe.spin_until(lambda: len(got) >= n_points, 60, node, "an estimate per tracker point")
+            pub = probe.publisher("/ppoe/pose", PoseWithCovarianceStamped)
+            probe.wait_for_subscribers(pub, node)
+            pub.publish(pose_cov_stamped_msg(T_static, lie.cov_local_to_ros(T_static, C_static),
+                                             ns_to_stamp(stamp_ns), "base_link"))
+            probe.spin_until(lambda: len(fused) >= 1, 30, node, "the fused pose")
+            assert node.alive()
+        node.stop(timeout=10)
+    finally:
+        node.stop()
+    _, labels, theta, P = estimates_from_msg(got[-1])
+    filt = OnlineEffects(model, parse_online_config(
+        [{"name": "base_tilt", "location": "base_link", "process_noise": 1.0e-5, "initial_sigma": 0.005}], model))
+    assert labels == filt.labels
+    filt.theta, filt.P = theta, P
+    T_online = filt.tool_pose(q, "base_link", "tool0")[0]
+    T_fused = matrix_from_pose_msg(fused[-1].pose.pose)
+    np.testing.assert_allclose(T_fused, T_online, atol=1e-9)
+    assert np.linalg.norm(T_fused[:3, 3] - T_static[:3, 3]) > 1e-3  # the 3 mrad tilt moved the tool
+    assert (tmp_path / "online_model.yaml").exists()  # written at shutdown

@@ -71,11 +71,11 @@ ONLINE_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("online_thermal_reference", 20.0, "temperature at which a tracked thermal_growth is zero", unit="degC"),
     ParamSpec("online_jump_probability", 1e-6, "NIS tail probability above which a tracker point re-opens the "
               "parameters' covariance (a placement change); 0 = off", min_value=0.0, max_value=0.5),
-    ParamSpec("online_temperature_topic", "/temperature", "sensor_msgs/Temperature for thermal_growth"),
-    ParamSpec("online_joint_states_topic", "/joint_states", "joint states of the tracker points", check=check_nonempty),
+    ParamSpec("online_temperature_topic", "temperature", "sensor_msgs/Temperature for thermal_growth"),
+    ParamSpec("online_joint_states_topic", "joint_states", "joint states of the tracker points", check=check_nonempty),
     ParamSpec("online_joint_max_age", 0.5, "a joint value a split message lacks is held this long; 0 = no limit",
               unit="s", min_value=0.0, max_value=3600.0),
-    ParamSpec("online_estimates_topic", "/ppoe/online_effects", "estimates out (std_msgs/Float64MultiArray, layout "
+    ParamSpec("online_estimates_topic", "ppoe/online_effects", "estimates out (std_msgs/Float64MultiArray, layout "
               "in docs/online.md)", check=check_nonempty),
     ParamSpec("online_model_out", "", "write the model YAML with the current estimate here; empty = never"),
     ParamSpec("online_write_period", 0.0, "write online_model_out this often; 0 = only at shutdown", unit="s",
@@ -144,7 +144,7 @@ class OnlineEffectsHook:
     def __init__(self, node: Node, params: Mapping[str, Any], stats: NodeStats, model_file: str) -> None:
         self.node, self.p, self.stats, self.model_file = node, dict(params), stats, model_file
         for k in ("online_points", "online_jumps", "online_waiting", "online_no_joints", "online_dropped_pending",
-                  "online_no_model"):
+                  "online_no_model", "online_published"):
             stats.counts.setdefault(k, 0)
         self.filter: OnlineEffects | None = None
         self.merger: JointMerger | None = None
@@ -265,7 +265,7 @@ class OnlineEffectsHook:
         self.stats.inc("online_points")
         self.stats.inc("online_jumps", filt.counts.jumps - jumps)
         self.pub.publish(estimates_msg(filt, st * 1e-9))
-        self.stats.inc("published")
+        self.stats.inc("online_published")
 
     # ---------------------------------------------------------------- outputs
     def correct_prior(self, stamp_ns: int, T_base_tool: np.ndarray, cov_tool: np.ndarray, base: str,
@@ -305,7 +305,7 @@ def _plain(x: Any) -> Any:
 _NODE_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("model_file", "", "the diagnosed model YAML (required)", check=check_nonempty),
     ParamSpec("robot_description", "", "URDF XML; empty = take it from robot_description_topic"),
-    ParamSpec("robot_description_topic", "/robot_description", "latched std_msgs/String with the URDF",
+    ParamSpec("robot_description_topic", "robot_description", "latched std_msgs/String with the URDF",
               check=check_nonempty),
     ParamSpec("diagnostics_period", 1.0, "period of /diagnostics", unit="s", min_value=0.01, max_value=3600.0),
 ) + tuple(s for s in ONLINE_PARAMS if s.name != "online_enable")
@@ -317,6 +317,7 @@ class OnlineEffectsNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("online_effects_node", **kwargs)
         p = declare_parameters(self, _NODE_PARAMS)
+        self.p_topic = p["robot_description_topic"]
         self.stats = NodeStats(self, ("received", "published", "bad"))
         self.hook = OnlineEffectsHook(self, p, self.stats, p["model_file"])
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
@@ -335,7 +336,7 @@ class OnlineEffectsNode(Node):
 
     def _robot_description(self, msg: String) -> None:
         if msg.data != self._urdf:
-            self._set_model(msg.data, "topic /robot_description")
+            self._set_model(msg.data, f"topic {self.p_topic}")
 
     def destroy_node(self) -> None:
         self.hook.write_model()

@@ -97,6 +97,7 @@ from ppoe_ros.common.frame_prefix import FRAME_PREFIX_PARAM, resolve_topics, unp
 from ppoe_ros.common.fusion_sources import SOURCES_PARAM, LiveSources, parse_sources, source_names, source_specs
 from ppoe_ros.common.joint_buffer import JointBuffer as _JointBuffer
 from ppoe_ros.common.tag_cloud import observations_from_cloud
+from ppoe_ros.common.online_effects import ONLINE_PARAMS, OnlineEffectsHook
 from ppoe_ros.common.tf_broadcast import FusionTf
 
 __all__ = ["FusionNode", "PARAMS", "main"]
@@ -269,7 +270,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec(
         "log_throttle", 2.0, "at most one log line per kind of bad message per this period", unit="s", min_value=0.0
     ),
-)
+) + ONLINE_PARAMS  # online effects (docs/online.md)
 
 _STAT_KEYS = (
     "received",
@@ -328,6 +329,7 @@ class FusionNode(Node):
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         self.diagnostics.watch_input("input (prior or measurement)", "received", p["input_timeout"])
         self.tf = FusionTf(self, p, self.diagnostics)
+        self.online = OnlineEffectsHook(self, p, self.stats, p["model_file"]) if p["online_enable"] else None
         qos = sensor_qos(p["qos_depth"])
         rel = reliable_qos(p["qos_depth"])
 
@@ -374,6 +376,8 @@ class FusionNode(Node):
         self.model, self.updater, self._urdf = model, updater, urdf_xml
         self.joints.set_names(model.joint_names)
         self.tf.set_model(model, self.base_frame, self.tool_frame)
+        if self.online is not None:
+            self.online.set_model(model)
         problems = self.sources.set_model(model)
         for line in problems:
             self.get_logger().error(f"{line} (the node keeps running)")
@@ -414,6 +418,8 @@ class FusionNode(Node):
         if frame != self.prefix + self.base_frame:
             raise MeasurementError(f"prior frame '{frame}' is not base_frame '{self.prefix}{self.base_frame}'")
         cov_tool = lie.cov_ros_to_local(T, cov_ros)
+        if self.online is not None:  # the static model's prior moved to the online effect estimate
+            T, cov_tool = self.online.correct_prior(stamp_ns, T, cov_tool, self.base_frame, self.tool_frame)
         newest, topic = self.pipeline.buffer.newest, self.params["prior_topic"]
         est, outcomes = self.pipeline.add_prior(stamp_ns * 1e-9, T, cov_tool, self.joints.at(stamp_ns))
         if est is None:
@@ -535,6 +541,12 @@ class FusionNode(Node):
                 "the output is the uncorrected prior", converging=True)
         else:
             self.diagnostics.set_status(None, "", converging=False)
+
+    def destroy_node(self) -> None:
+        """Write the online effect estimate as a model YAML (``online_model_out``) before the node goes."""
+        if self.online is not None:
+            self.online.write_model()
+        super().destroy_node()
 
 
 def main(args: Sequence[str] | None = None) -> int:
