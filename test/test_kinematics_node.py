@@ -413,8 +413,23 @@ def test_param_spec_validation_and_descriptor() -> None:
     assert all(s.descriptor().description for s in PARAMS)
 
 
-def test_bag_play_node_record_equals_fk(tmp_path: Path, model) -> None:
-    """ppoe play (with /clock) -> kinematics_node (use_sim_time) -> ppoe record; the recorded poses equal fk."""
+def _split_expectation(q_all: np.ndarray) -> tuple[list[float], list[np.ndarray]]:
+    """Stamps and merged joint values of the outputs for a bag whose arm (joint_1..6) and wrist + gripper
+    (joint_7, finger) come in separate messages 2 ms apart: the first arm message cannot be completed."""
+    stamps, qs = [], []
+    for k, q in enumerate(q_all):
+        if k > 0:
+            stamps.append(1.0 + 0.01 * k)
+            qs.append(np.r_[q[:6], q_all[k - 1][6]])  # joint_7 held from the previous wrist message
+        stamps.append(1.0 + 0.01 * k + 0.002)
+        qs.append(q)
+    return stamps, qs
+
+
+@pytest.mark.parametrize("split", [False, True], ids=["one_publisher", "arm_and_gripper_split"])
+def test_bag_play_node_record_equals_fk(tmp_path: Path, model, split: bool) -> None:
+    """ppoe play (with /clock) -> kinematics_node (use_sim_time) -> ppoe record; the recorded poses equal fk.
+    Split: arm and wrist + gripper on separate joint-state messages, merged per joint by the node."""
     from ppoe_core.io.bagio import BagWriter, read_bag
 
     rng = np.random.default_rng(5)
@@ -423,7 +438,12 @@ def test_bag_play_node_record_equals_fk(tmp_path: Path, model) -> None:
     with BagWriter(src) as bag:
         bag.write_robot_description(URDF.read_text(), 0.0)
         for k, q in enumerate(q_all):  # extra, unused joint in every message
-            bag.write_joint_state(1.0 + 0.01 * k, ARM + ["finger_left_joint"], list(q) + [0.01])
+            if split:
+                bag.write_joint_state(1.0 + 0.01 * k, ARM[:6], list(q[:6]))
+                bag.write_joint_state(1.0 + 0.01 * k + 0.002, ARM[6:] + ["finger_left_joint"], [q[6], 0.01])
+            else:
+                bag.write_joint_state(1.0 + 0.01 * k, ARM + ["finger_left_joint"], list(q) + [0.01])
+    stamps, qs = _split_expectation(q_all) if split else (list(1.0 + 0.01 * np.arange(len(q_all))), list(q_all))
     env = ros_env(tmp_path)
     node = NodeProcess.node("kinematics_node", env, tmp_path, params={"model_file": str(MODEL),
                                                                        "use_sim_time": True})
@@ -449,9 +469,9 @@ def test_bag_play_node_record_equals_fk(tmp_path: Path, model) -> None:
         recorder.stop()
         node.stop()
     poses = read_bag(rec).poses_with_covariance["/ppoe/pose"]
-    assert len(poses) == len(q_all), f"{len(poses)} poses recorded\n{node.output()[-2000:]}"
-    np.testing.assert_allclose(poses.stamps, 1.0 + 0.01 * np.arange(len(q_all)), atol=1e-9)
-    for k, q in enumerate(q_all):
+    assert len(poses) == len(qs), f"{len(poses)} poses recorded\n{node.output()[-2000:]}"
+    np.testing.assert_allclose(poses.stamps, stamps, atol=1e-9)
+    for k, q in enumerate(qs):
         T_ref, cov_ref = model.fk(dict(zip(ARM, q)), "base_link", "tool0")
         np.testing.assert_allclose(poses.T[k], T_ref, atol=1e-12)
         np.testing.assert_allclose(poses.cov_ros[k], lie.cov_local_to_ros(T_ref, cov_ref), rtol=1e-10, atol=1e-18)
