@@ -5,7 +5,6 @@ errors for its status codes and builds the :class:`~ppoe_core.estimation.fusion.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -34,22 +33,22 @@ def compiled_update(X0: Any, P0: Any, z: np.ndarray, model: Any, R: np.ndarray, 
         None when the prior fails a check: the caller's Python path then raises the exact error.
     """
     from ppoe_core.estimation.fusion import UpdateResult
-    from ppoe_core.estimation.update_kernels import update_kernel
+    from ppoe_core.estimation.update_kernels import buffer_size, output_views, update_kernel
 
     X0 = np.ascontiguousarray(X0, dtype=np.float64)
     P0 = np.ascontiguousarray(P0, dtype=np.float64)
     if X0.shape != (4, 4) or P0.shape != (6, 6):
         return None
     m = int(model.dim)
-    T, cov, y0, S0 = np.empty((4, 4)), np.empty((6, 6)), np.empty(m), np.empty((m, m))
-    res, gain, H, corr = np.empty(m), np.zeros((6, m)), np.empty((m, 6)), np.zeros(6)
-    steps, fout, iout = np.empty(max_iterations), np.full(3, math.nan), np.zeros(3, dtype=np.int64)
+    buf, iout = np.zeros(buffer_size(m, max_iterations)), np.zeros(3, dtype=np.int64)
     kind, G, pts, K, D, pixel, extra, min_depth = model.compiled_args()
     status = update_kernel(kind, X0, P0, z, R, G, pts, K, D, pixel, extra, min_depth, max_iterations,
-                           step_tolerance, gate, transport, want_cost, T, cov, y0, S0, res, gain, H, corr, steps,
-                           fout, iout)
+                           step_tolerance, gate, transport, want_cost, buf, iout)
+    T, cov, y0, S0, res, gain, H, corr, steps, fout = output_views(buf, m, max_iterations)
     if status == 4:
         return None
+    if status == 5:
+        model.validate(z)  # raises the model's message
     if status == 2:
         i = int(iout[2])
         raise MeasurementError(f"{model.name}: {model.labels[i]} is behind the camera or too close "

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ppoe_core.lie.kernels import se3_exp_one, se3_mul
+from ppoe_core.lie.kernels import mat_mul, mat_mul_t, sandwich, se3_exp_one, se3_mul
 
 __all__ = ["apply_corrections_kernel"]
 
@@ -23,12 +23,12 @@ def apply_corrections_kernel(T: np.ndarray, P_in: np.ndarray, H: np.ndarray, Rw:
     Rm = np.zeros((r, r))
     for i in range(r):
         Rm[i, i] = Rw[i]
-    HP = H @ P
-    S = HP @ H.T + Rm
-    K = np.linalg.solve(S, HP).T
-    m = K @ z
-    IKH = np.eye(6) - K @ H
-    cov = IKH @ P @ IKH.T + K @ Rm @ K.T
+    HP = mat_mul(H, P)
+    S = mat_mul_t(HP, H) + Rm
+    K = np.linalg.solve(S, HP).T.copy()
+    m = mat_mul(K, z.reshape(-1, 1))[:, 0]
+    IKH = np.eye(6) - mat_mul(K, H)
+    cov = sandwich(IKH, P) + sandwich(K, Rm)
     cov_out[:, :] = 0.5 * (cov + cov.T)
     E = np.empty((4, 4))
     se3_exp_one(np.ascontiguousarray(m), E)

@@ -129,8 +129,9 @@ class CorrectionPolicy:
         if max(self.timeout, self.joint_motion, self.tool_translation, self.tool_rotation) <= 0.0:
             raise PpoeError("CorrectionPolicy: every limit is disabled; a correction would never be dropped")
 
-    def ratio(self, anchor: PriorSample, prior: PriorSample) -> float:
-        """Largest change ratio between the correction's anchor prior and ``prior``."""
+    def ratio(self, anchor: PriorSample, prior: PriorSample, T_anchor_inv: Array | None = None) -> float:
+        """Largest change ratio between the correction's anchor prior and ``prior`` (``T_anchor_inv``: the
+        anchor pose's inverse when the caller has it, :attr:`CarriedCorrection.T_anchor_inv`)."""
         r = 0.0
         if self.timeout > 0.0:
             r = max(r, abs(prior.stamp - anchor.stamp) / self.timeout)
@@ -142,7 +143,8 @@ class CorrectionPolicy:
         if self.tool_translation > 0.0 or self.tool_rotation > 0.0:
             # numpy's product on purpose: the angle from the trace is ill-conditioned near 0 (d acos / dc ~
             # 1 / angle), a product summed in another order moves a small angle in its 8th digit
-            T_rel = (lie.inverse(anchor.T_base_tool) @ prior.T_base_tool).tolist()
+            T_inv = lie.inverse(anchor.T_base_tool) if T_anchor_inv is None else T_anchor_inv
+            T_rel = (T_inv @ prior.T_base_tool).tolist()
             if self.tool_translation > 0.0:
                 x, y, z = T_rel[0][3], T_rel[1][3], T_rel[2][3]
                 r = max(r, math.sqrt(x * x + y * y + z * z) / self.tool_translation)
@@ -151,9 +153,9 @@ class CorrectionPolicy:
                 r = max(r, math.acos(c) / self.tool_rotation)
         return r
 
-    def weight(self, anchor: PriorSample, prior: PriorSample) -> float:
+    def weight(self, anchor: PriorSample, prior: PriorSample, T_anchor_inv: Array | None = None) -> float:
         """Weight in [0, 1] of the correction made at ``anchor`` when applied to ``prior``."""
-        r = self.ratio(anchor, prior)
+        r = self.ratio(anchor, prior, T_anchor_inv)
         if r >= 1.0:
             return 0.0
         return 1.0 - r if self.decay == "linear" else 1.0
@@ -173,12 +175,19 @@ class CarriedCorrection:
         Variances of the equivalent measurement along those directions.
     z : ndarray, shape (r,)
         Equivalent measurement of the tool-frame error of the prior.
+    T_anchor_inv : ndarray, shape (4, 4)
+        ``anchor.T_base_tool^-1`` (computed once: every later prior's weight needs it).
     """
 
     anchor: PriorSample
     H: Array
     R: Array
     z: Array
+    T_anchor_inv: Array = None  # type: ignore[assignment]  # set in __post_init__
+
+    def __post_init__(self) -> None:
+        if self.T_anchor_inv is None:
+            object.__setattr__(self, "T_anchor_inv", lie.inverse(self.anchor.T_base_tool))
 
     @staticmethod
     def from_update(

@@ -418,7 +418,12 @@ def _compiled(T_prior: Any, cov_prior: Any, z: Any, model: Any, max_iterations: 
     R = checked_noise_covariance(model)
     if R is None:
         R = check_noise_covariance(model.noise_cov, model.noise_dim, f"{model.name}: noise covariance")
-    zv = np.ascontiguousarray(model.validate(z), dtype=np.float64)
+    try:
+        zv = np.ascontiguousarray(z, dtype=np.float64)  # finiteness is checked in the kernel
+    except (TypeError, ValueError):
+        zv = None
+    if zv is None or zv.shape != (model.dim,):
+        zv = np.ascontiguousarray(model.validate(z), dtype=np.float64)  # raises the model's message
     gate = float("inf") if gate_probability is None else chi2_gate(int(model.dim), float(gate_probability))
     return compiled_update(T_prior, cov_prior, zv, model, np.ascontiguousarray(R), int(max_iterations),
                            float(step_tolerance), gate, bool(transport), bool(with_cost))

@@ -11,7 +11,7 @@ the Python path (which raises the exact message) for a prior that fails a check 
 Status codes returned by :func:`update_kernel`:
 ``0`` accepted, ``1`` rejected by the gate, ``2`` point ``ierr`` behind the camera (its depth in ``ferr``),
 ``3`` innovation covariance not positive definite (leading minor ``ierr``), ``4`` the prior pose or covariance
-fails its check.
+fails its check, ``5`` the measurement has NaN/inf.
 """
 
 from __future__ import annotations
@@ -22,6 +22,9 @@ import numpy as np
 from numba import njit
 
 from ppoe_core.lie.kernels import (
+    mat_mul,
+    mat_mul_t,
+    sandwich,
     se3_exp_one,
     se3_inverse_one,
     se3_log_one,
@@ -30,7 +33,7 @@ from ppoe_core.lie.kernels import (
     se3_right_jacobian_one,
 )
 
-__all__ = ["KIND_TAG", "KIND_CONTACT", "update_kernel"]
+__all__ = ["KIND_TAG", "KIND_CONTACT", "update_kernel", "buffer_size", "output_views"]
 
 #: model kinds
 KIND_TAG = 0
@@ -260,14 +263,16 @@ def _prior_ok(X0: np.ndarray, P0: np.ndarray) -> bool:
     """The checks of ``fusion.check_pose`` and ``fusion.check_noise_covariance`` (6x6), without messages."""
     if not (np.all(np.isfinite(X0)) and np.all(np.isfinite(P0))):
         return False
-    R = X0[:3, :3]
-    RtR = R.T @ R
+    R = np.ascontiguousarray(X0[:3, :3])
+    RtR = mat_mul(R.T.copy(), R)
     for i in range(3):
         for j in range(3):
             e = 1.0 if i == j else 0.0
             if not abs(RtR[i, j] - e) <= 1e-6 + 1e-5 * e:
                 return False
-    if np.linalg.det(R) < 0:
+    det = R[0, 0] * (R[1, 1] * R[2, 2] - R[1, 2] * R[2, 1]) - R[0, 1] * (R[1, 0] * R[2, 2] - R[1, 2] * R[2, 0]) \
+        + R[0, 2] * (R[1, 0] * R[2, 1] - R[1, 1] * R[2, 0])
+    if det < 0:
         return False
     for j in range(4):
         e = 1.0 if j == 3 else 0.0
@@ -315,19 +320,19 @@ def _prior_at(Xi: np.ndarray, X0: np.ndarray, P0: np.ndarray, first: bool, e: np
     se3_log_one(D, e)
     J = np.empty((6, 6))
     se3_right_jacobian_inv_one(e, J)
-    return J @ P0 @ J.T
+    return sandwich(J, P0)
 
 
 @njit(cache=True)
 def _posterior(K: np.ndarray, H: np.ndarray, Pi: np.ndarray, MRM: np.ndarray, d: np.ndarray,
                transport: bool) -> np.ndarray:
     """Joseph form ``(I-KH) P (I-KH)^T + K MRM K^T``, moved with ``Jr(d)``, as ``fusion._posterior_covariance``."""
-    A = np.eye(6) - K @ H
-    P = A @ Pi @ A.T + K @ MRM @ K.T
+    A = np.eye(6) - mat_mul(K, H)
+    P = sandwich(A, Pi) + sandwich(K, MRM)
     if transport:
         J = np.empty((6, 6))
         se3_right_jacobian_one(d, J)
-        P = J @ P @ J.T
+        P = sandwich(J, P)
     return _spd(P)
 
 
@@ -379,23 +384,45 @@ def _finish(kind: int, Xi: np.ndarray, X0: np.ndarray, P0: np.ndarray, z: np.nda
     return 0
 
 
+def buffer_size(m: int, max_it: int) -> int:
+    """Length of the float output buffer of :func:`update_kernel` (see :func:`output_views`)."""
+    return 16 + 36 + m + m * m + m + 12 * m + 6 + max_it + 3
+
+
+@njit(cache=True)
+def output_views(buf: np.ndarray, m: int, max_it: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                              np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                              np.ndarray, np.ndarray]:
+    """The outputs in the float buffer: ``T (4, 4), cov (6, 6), y0 (m,), S0 (m, m), residual (m,), gain (6, m),
+    H (m, 6), correction (6,), steps (max_it,), fout = [nis, posterior cost, error value]``."""
+    sizes = (16, 36, m, m * m, m, 6 * m, 6 * m, 6, max_it, 3)
+    o = np.zeros(11, dtype=np.int64)
+    for i in range(10):
+        o[i + 1] = o[i] + sizes[i]
+    return (buf[o[0]:o[1]].reshape(4, 4), buf[o[1]:o[2]].reshape(6, 6), buf[o[2]:o[3]],
+            buf[o[3]:o[4]].reshape(m, m), buf[o[4]:o[5]], buf[o[5]:o[6]].reshape(6, m), buf[o[6]:o[7]].reshape(m, 6),
+            buf[o[7]:o[8]], buf[o[8]:o[9]], buf[o[9]:o[10]])
+
+
 @njit(cache=True)
 def update_kernel(kind: int, X0: np.ndarray, P0_in: np.ndarray, z: np.ndarray, R: np.ndarray, G: np.ndarray,
                   pts: np.ndarray, K: np.ndarray, D: np.ndarray, pixel: bool, extra: bool, min_depth: float,
-                  max_it: int, step_tol: float, gate: float, transport: bool, want_cost: bool, T_out: np.ndarray,
-                  cov_out: np.ndarray, y0: np.ndarray, S0: np.ndarray, res: np.ndarray, gain: np.ndarray,
-                  H_last: np.ndarray, corr: np.ndarray, steps: np.ndarray, fout: np.ndarray,
+                  max_it: int, step_tol: float, gate: float, transport: bool, want_cost: bool, buf: np.ndarray,
                   iout: np.ndarray) -> int:
     """The iterated update of ``fusion.iterated_update`` for one tag / contact measurement (module docstring).
 
     ``R`` is the checked noise covariance, ``G`` the model's ``T_camera_ref`` / ``T_plane_ref``, ``pts`` its points
-    (n, 3), ``gate`` the NIS threshold (``inf``: no gating).  Outputs are written into the arrays given:
-    ``fout = [nis, posterior cost, error value]``, ``iout = [iterations, converged, error index]``.
+    (n, 3), ``gate`` the NIS threshold (``inf``: no gating).  Outputs are written into ``buf`` (zeros of
+    :func:`buffer_size`, laid out by :func:`output_views`) and ``iout = [iterations, converged, error index]``.
     """
+    m = z.shape[0]
+    T_out, cov_out, y0, S0, res, gain, H_last, corr, steps, fout = output_views(buf, m, max_it)
+    fout[:] = np.nan
     if not _prior_ok(X0, P0_in):
         return 4
+    if not np.all(np.isfinite(z)):
+        return 5
     P0 = 0.5 * (P0_in + P0_in.T)
-    m = z.shape[0]
     h = np.empty(m)
     H = np.empty((m, 6))
     M = np.empty((m, R.shape[0]))
@@ -412,7 +439,8 @@ def update_kernel(kind: int, X0: np.ndarray, P0_in: np.ndarray, z: np.ndarray, R
         r = z - h
         Pi = _prior_at(Xi, X0, P0, it == 1, e)
         MRM = _mrm(M, R)
-        S = H @ Pi @ H.T + MRM
+        HP = mat_mul(H, Pi)
+        S = mat_mul_t(HP, H) + MRM
         S = 0.5 * (S + S.T)
         minor = _cholesky(S, L)
         if minor:
@@ -423,8 +451,8 @@ def update_kernel(kind: int, X0: np.ndarray, P0_in: np.ndarray, z: np.ndarray, R
             fout[0] = np.sum(r * _cho_solve(L, r.reshape(-1, 1))[:, 0])
             if not fout[0] <= gate:
                 return 1
-        Kg = _cho_solve(L, H @ Pi).T  # P H^T S^-1
-        d = e + Kg @ (r - H @ e)
+        Kg = _cho_solve(L, HP).T.copy()  # P H^T S^-1
+        d = e + mat_mul(Kg, (r - mat_mul(H, e.reshape(6, 1))[:, 0]).reshape(-1, 1))[:, 0]
         se3_exp_one(d, E)
         se3_mul(Xi, E, Xn)
         steps[it - 1] = math.sqrt(np.sum(d * d))

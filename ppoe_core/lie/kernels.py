@@ -13,7 +13,7 @@ from numba import njit
 __all__ = [
     "quat_from_matrix_kernel", "rotate_covariance_kernel", "se3_exp_one", "se3_log_one", "so3_log_one",
     "se3_right_jacobian_one", "se3_right_jacobian_inv_one", "se3_inverse_one", "se3_mul",
-    "covariance_passes_kernel",
+    "covariance_passes_kernel", "mat_mul", "mat_mul_t", "sandwich",
 ]
 
 
@@ -308,3 +308,45 @@ def covariance_passes_kernel(C: np.ndarray, tol: float, eig_tol: float) -> bool:
                 t -= A[i, k] * A[j, k]
             A[i, j] = t / d
     return True
+
+
+# ----------------------------------------------------------------------------
+# Small dense products without a BLAS call (the sizes of the measurement updates: 6x6, m x 6; a BLAS call and its
+# result allocation cost more than the arithmetic here)
+# ----------------------------------------------------------------------------
+
+
+@njit(cache=True)
+def mat_mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A @ B`` (n, k) x (k, m)."""
+    n, k = A.shape
+    m = B.shape[1]
+    out = np.empty((n, m))
+    for i in range(n):
+        for j in range(m):
+            s = 0.0
+            for q in range(k):
+                s += A[i, q] * B[q, j]
+            out[i, j] = s
+    return out
+
+
+@njit(cache=True)
+def mat_mul_t(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A @ B^T`` (n, k) x (m, k)^T."""
+    n, k = A.shape
+    m = B.shape[0]
+    out = np.empty((n, m))
+    for i in range(n):
+        for j in range(m):
+            s = 0.0
+            for q in range(k):
+                s += A[i, q] * B[j, q]
+            out[i, j] = s
+    return out
+
+
+@njit(cache=True)
+def sandwich(A: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """``A @ P @ A^T``."""
+    return mat_mul_t(mat_mul(A, P), A)
