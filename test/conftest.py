@@ -72,4 +72,7 @@ def _compiled_kernels() -> None:
     compound_fourth_order(cov, cov)
     lie.cov_ros_to_local(T, lie.cov_local_to_ros(T, cov))
     lie.quat_from_matrix(T[:3, :3])
+    from ppoe_core.estimation.compiled_update import warm_kernels
+
+    warm_kernels()
 

@@ -613,3 +613,31 @@ def test_add_prior_validated_skips_only_the_covariance_check():
 
     with pytest.raises(CovarianceError, match="prior at stamp"):
         pipe.add_prior(1.0, T_prior, -np.eye(6))
+
+
+def test_add_prior_without_estimate_drops_and_counts_as_fuse():
+    """``add_prior(estimate=False)`` (the offline replay) expires corrections exactly as ``fuse`` does: the same
+    drops, counts and later estimates as a pipeline that fuses every prior."""
+    rng = np.random.default_rng(21)
+    policy = CorrectionPolicy(timeout=0.0, joint_motion=0.05, tool_translation=0.0, tool_rotation=0.0)
+    pipes = [FusionPipeline(LinearUpdater(), policy=policy) for _ in range(2)]
+    T = _random_pose(rng)
+    out = {0: [], 1: []}
+    for k in range(400):
+        t = 0.01 * k
+        T = T @ lie.exp(rng.normal(size=6) * 1e-3)
+        q = np.array([0.1 * np.sin(2.0 * np.pi * k / 20.0), 0.0])  # out of the limit and back, every 20 priors
+        cov = _random_cov(rng)
+        m = Measurement(t, f"src{k % 2}", (T @ lie.exp(rng.normal(size=6) * 1e-3), np.eye(6)[:3], 1e-6 * np.eye(3)))
+        for i, pipe in enumerate(pipes):
+            est, _ = pipe.add_prior(t, T, cov, q, estimate=i == 0)
+            assert (est is None) == (i == 1)
+            if k % 40 == 0:
+                pipe.add_measurement(m)
+            if k % 20 == 19:  # back where the corrections were made
+                out[i].append(pipe.fused_at(t))
+    assert pipes[0].counts == pipes[1].counts
+    assert pipes[0].counts["corrections_dropped"] > 0
+    assert sorted(pipes[0].corrections) == sorted(pipes[1].corrections)
+    for a, b in zip(out[0], out[1]):
+        assert a.weight == b.weight

@@ -129,29 +129,33 @@ class CorrectionPolicy:
         if max(self.timeout, self.joint_motion, self.tool_translation, self.tool_rotation) <= 0.0:
             raise PpoeError("CorrectionPolicy: every limit is disabled; a correction would never be dropped")
 
-    def ratio(self, anchor: PriorSample, prior: PriorSample) -> float:
-        """Largest change ratio between the correction's anchor prior and ``prior``."""
+    def ratio(self, anchor: PriorSample, prior: PriorSample, T_anchor_inv: Array | None = None) -> float:
+        """Largest change ratio between the correction's anchor prior and ``prior`` (``T_anchor_inv``: the
+        anchor pose's inverse when the caller has it, :attr:`CarriedCorrection.T_anchor_inv`)."""
         r = 0.0
         if self.timeout > 0.0:
             r = max(r, abs(prior.stamp - anchor.stamp) / self.timeout)
-        if self.joint_motion > 0.0 and anchor.joints is not None and prior.joints is not None:
-            if anchor.joints.shape == prior.joints.shape:
-                dq = np.abs(prior.joints - anchor.joints)
-                dq = dq[np.isfinite(dq)]  # NaN = joint not (yet) known
-                if dq.size:
-                    r = max(r, float(dq.max()) / self.joint_motion)
+        qa, qp = anchor.joints, prior.joints
+        if self.joint_motion > 0.0 and qa is not None and qp is not None and qa.shape == qp.shape:
+            dq = [d for d in np.abs(qp - qa).tolist() if math.isfinite(d)]  # NaN = joint not (yet) known
+            if dq:
+                r = max(r, max(dq) / self.joint_motion)
         if self.tool_translation > 0.0 or self.tool_rotation > 0.0:
-            T_rel = lie.inverse(anchor.T_base_tool) @ prior.T_base_tool
+            # numpy's product on purpose: the angle from the trace is ill-conditioned near 0 (d acos / dc ~
+            # 1 / angle), a product summed in another order moves a small angle in its 8th digit
+            T_inv = lie.inverse(anchor.T_base_tool) if T_anchor_inv is None else T_anchor_inv
+            T_rel = (T_inv @ prior.T_base_tool).tolist()
             if self.tool_translation > 0.0:
-                r = max(r, float(np.linalg.norm(T_rel[:3, 3])) / self.tool_translation)
+                x, y, z = T_rel[0][3], T_rel[1][3], T_rel[2][3]
+                r = max(r, math.sqrt(x * x + y * y + z * z) / self.tool_translation)
             if self.tool_rotation > 0.0:
-                c = min(max((float(np.trace(T_rel[:3, :3])) - 1.0) / 2.0, -1.0), 1.0)  # np.clip, scalar
-                r = max(r, float(np.arccos(c)) / self.tool_rotation)
+                c = min(max((T_rel[0][0] + T_rel[1][1] + T_rel[2][2] - 1.0) / 2.0, -1.0), 1.0)
+                r = max(r, math.acos(c) / self.tool_rotation)
         return r
 
-    def weight(self, anchor: PriorSample, prior: PriorSample) -> float:
+    def weight(self, anchor: PriorSample, prior: PriorSample, T_anchor_inv: Array | None = None) -> float:
         """Weight in [0, 1] of the correction made at ``anchor`` when applied to ``prior``."""
-        r = self.ratio(anchor, prior)
+        r = self.ratio(anchor, prior, T_anchor_inv)
         if r >= 1.0:
             return 0.0
         return 1.0 - r if self.decay == "linear" else 1.0
@@ -171,12 +175,19 @@ class CarriedCorrection:
         Variances of the equivalent measurement along those directions.
     z : ndarray, shape (r,)
         Equivalent measurement of the tool-frame error of the prior.
+    T_anchor_inv : ndarray, shape (4, 4)
+        ``anchor.T_base_tool^-1`` (computed once: every later prior's weight needs it).
     """
 
     anchor: PriorSample
     H: Array
     R: Array
     z: Array
+    T_anchor_inv: Array = None  # type: ignore[assignment]  # set in __post_init__
+
+    def __post_init__(self) -> None:
+        if self.T_anchor_inv is None:
+            object.__setattr__(self, "T_anchor_inv", lie.inverse(self.anchor.T_base_tool))
 
     @staticmethod
     def from_update(
@@ -251,17 +262,18 @@ def apply_carried_corrections(
         return prior.T_base_tool, P
     if len(active) == 1:  # the common case: no stacking copies (same values)
         c, w = active[0]
-        H, Rw, z = c.H, np.diag(c.R / w), c.z
+        H, Rw, z = c.H, c.R / w, c.z
     else:
         H = np.concatenate([c.H for c, _ in active])
-        Rw = np.diag(np.concatenate([c.R / w for c, w in active]))
+        Rw = np.concatenate([c.R / w for c, w in active])
         z = np.concatenate([c.z for c, _ in active])
-    S = H @ P @ H.T + Rw
-    K = np.linalg.solve(S, H @ P).T  # P H^T S^-1
-    m = K @ z
-    IKH = _EYE6 - K @ H
-    cov = _sym(IKH @ P @ IKH.T + K @ Rw @ K.T)
-    return prior.T_base_tool @ lie.exp(m), cov
+    from ppoe_core.estimation.correction_kernels import apply_corrections_kernel
+
+    T_out, cov = np.empty((4, 4)), np.empty((6, 6))
+    apply_corrections_kernel(np.ascontiguousarray(prior.T_base_tool, dtype=np.float64), np.ascontiguousarray(P),
+                             np.ascontiguousarray(H, dtype=np.float64), np.ascontiguousarray(Rw, dtype=np.float64),
+                             np.ascontiguousarray(z, dtype=np.float64), T_out, cov)
+    return T_out, cov
 
 
 def _sym(A: Array) -> Array:

@@ -138,6 +138,9 @@ class UpdateResult:
         ``Log(X_0^-1 T)``: total correction in the tangent space at the prior.
     steps : tuple of float
         Norm of each iteration's step ``|d_i|``.
+    cost : float
+        ``with_cost``: the cost of the solution, ``r+^T (M R M^T)^-1 r+ + d^T P^+ d`` (see
+        :func:`ppoe_core.estimation.updater.posterior_cost`); NaN when not computed.
     """
 
     T: np.ndarray
@@ -154,6 +157,7 @@ class UpdateResult:
     H: np.ndarray
     correction: np.ndarray
     steps: tuple[float, ...] = field(default_factory=tuple)
+    cost: float = float("nan")
 
 
 # --------------------------------------------------------------------------- checks
@@ -302,6 +306,7 @@ def iterated_update(
     gate_probability: float | None = 0.9973,
     transport_covariance: bool = True,
     jacobians: str = "auto",
+    with_cost: bool = False,
 ) -> UpdateResult:
     """Iterated LG-EKF measurement update on SE(3) (eq. 19-24, gain of docs/conventions.md sec. 1).
 
@@ -326,7 +331,11 @@ def iterated_update(
         Move the posterior covariance to the tangent space at the returned estimate with the
         right Jacobian of the last step (see the module docstring).
     jacobians : {"auto", "analytic", "numerical"}
-        "auto" uses the model's analytic Jacobians when it has them.
+        "auto" uses the model's analytic Jacobians when it has them.  A model with ``compiled_args()``
+        (tag bearing, contact plane) runs the whole update compiled
+        (:mod:`ppoe_core.estimation.compiled_update`) unless ``"numerical"``.
+    with_cost : bool
+        Also compute ``UpdateResult.cost`` (compiled path only; NaN otherwise).
 
     Returns
     -------
@@ -345,6 +354,11 @@ def iterated_update(
         raise PpoeError(f"iterated_update: jacobians must be auto, analytic or numerical, not {jacobians!r}")
     if max_iterations < 1:
         raise PpoeError(f"iterated_update: max_iterations must be >= 1, got {max_iterations}")
+    if jacobians != "numerical" and hasattr(model, "compiled_args"):
+        compiled = _compiled(T_prior, cov_prior, z, model, max_iterations, step_tolerance, gate_probability,
+                             transport_covariance, with_cost)
+        if compiled is not None:
+            return compiled
     X0 = check_pose(T_prior, f"{model.name}: prior pose")
     P0 = check_noise_covariance(cov_prior, 6, f"{model.name}: prior covariance")
     R = check_noise_covariance(model.noise_cov, model.noise_dim, f"{model.name}: noise covariance")
@@ -393,6 +407,26 @@ def iterated_update(
         converged=converged, innovation=y0, S=S0, residual=res, gain=K, H=H,
         correction=lie.log(lie.inverse(X0) @ Xi), steps=tuple(steps),
     )
+
+
+def _compiled(T_prior: Any, cov_prior: Any, z: Any, model: Any, max_iterations: int, step_tolerance: float,
+              gate_probability: float | None, transport: bool, with_cost: bool) -> UpdateResult | None:
+    """The compiled update of a model with ``compiled_args()`` (None: a prior check failed, the Python path
+    raises its error)."""
+    from ppoe_core.estimation.compiled_update import checked_noise_covariance, compiled_update
+
+    R = checked_noise_covariance(model)
+    if R is None:
+        R = check_noise_covariance(model.noise_cov, model.noise_dim, f"{model.name}: noise covariance")
+    try:
+        zv = np.ascontiguousarray(z, dtype=np.float64)  # finiteness is checked in the kernel
+    except (TypeError, ValueError):
+        zv = None
+    if zv is None or zv.shape != (model.dim,):
+        zv = np.ascontiguousarray(model.validate(z), dtype=np.float64)  # raises the model's message
+    gate = float("inf") if gate_probability is None else chi2_gate(int(model.dim), float(gate_probability))
+    return compiled_update(T_prior, cov_prior, zv, model, np.ascontiguousarray(R), int(max_iterations),
+                           float(step_tolerance), gate, bool(transport), bool(with_cost))
 
 
 def _prior_at(Xi: np.ndarray, X0: np.ndarray, P0: np.ndarray, first: bool) -> tuple[np.ndarray, np.ndarray]:

@@ -200,7 +200,21 @@ class TagBearingModel(MeasurementModel):
         if self.has_camera_noise:
             blocks.append(_check_cov(cov_camera, 6, f"{name}: cov_camera"))
         self.noise_cov = _block_diag(*blocks)
+        self._checked_noise_cov = self.noise_cov  # built from checked blocks (compiled_update)
+        self._kernel_args: tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, bool, float] | None = None
         self.noise_dim = self.noise_cov.shape[0]
+
+    def compiled_args(self) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, bool, float]:
+        """The model for :func:`ppoe_core.estimation.update_kernels.update_kernel`: kind, ``T_camera_ref``,
+        points, ``K``, ``D``, pixel mode, camera noise, ``min_depth``."""
+        from ppoe_core.estimation.update_kernels import KIND_TAG
+
+        if self._kernel_args is None:  # built once: the model does not change after construction
+            self._kernel_args = (
+                KIND_TAG, np.ascontiguousarray(self.T_camera_ref), np.ascontiguousarray(self.points_tool),
+                np.ascontiguousarray(self.K), np.ascontiguousarray(self.D, dtype=np.float64), self.mode == "pixel",
+                self.has_camera_noise, self.min_depth)
+        return self._kernel_args
 
     def points_camera(self, T_state: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Points in the camera frame (n, 3) for state ``T_ref_tool`` and camera noise ``w``."""
@@ -303,8 +317,20 @@ class ContactPlaneModel(MeasurementModel):
         if self.distance_sigma > 0:
             blocks.append(np.array([[self.distance_sigma**2]]))
         self.noise_cov = _block_diag(*blocks)
+        self._checked_noise_cov = self.noise_cov  # built from checked blocks (compiled_update)
+        self._kernel_args: tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, bool, float] | None = None
         self.noise_dim = self.noise_cov.shape[0]
         self.dim = 1
+
+    def compiled_args(self) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, bool, float]:
+        """The model for :func:`ppoe_core.estimation.update_kernels.update_kernel`: kind, ``T_plane_ref``, the
+        tool point (1, 3), unused ``K`` and ``D``, distance noise."""
+        from ppoe_core.estimation.update_kernels import KIND_CONTACT
+
+        if self._kernel_args is None:  # built once: the model does not change after construction
+            self._kernel_args = (KIND_CONTACT, np.ascontiguousarray(self.T_plane_ref), self.point_tool.reshape(1, 3),
+                                 np.eye(3), np.zeros(5), False, self.distance_sigma > 0, 0.0)
+        return self._kernel_args
 
     def point_plane(self, T_state: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Tool point in the (perturbed) plane frame, shape (3,)."""

@@ -172,6 +172,7 @@ class FusionPipeline:
         cov_tool: Array,
         joints: Array | None = None,
         validated: bool = False,
+        estimate: bool = True,
     ) -> tuple[FusedEstimate | None, list[MeasurementOutcome]]:
         """Add a kinematics prior; process pending measurements it covers.
 
@@ -189,6 +190,10 @@ class FusionPipeline:
             (e.g. a whole batch of forward-kinematics covariances at once, as ``ppoe evaluate``
             does): only its shape is checked here.  Default False: checked here (a message's
             covariance).
+        estimate : bool
+            Return the fused estimate at ``stamp``.  False (an offline replay that reads estimates only at
+            ground-truth stamps): the corrections are only checked for expiry, exactly as :meth:`fuse` does
+            (the same drops and counts), and None is returned in its place.
 
         Returns
         -------
@@ -197,7 +202,7 @@ class FusionPipeline:
             outcomes of the pending measurements processed now.
         """
         T = np.asarray(T_base_tool, dtype=np.float64)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        if T.shape != (4, 4) or not np.isfinite(T).all():
             raise MeasurementError(f"prior at stamp {stamp}: T_base_tool must be a finite 4x4, got shape {T.shape}")
         if validated:
             cov = np.asarray(cov_tool, dtype=np.float64)
@@ -223,6 +228,9 @@ class FusionPipeline:
             self.pending = [m for m in self.pending if m.stamp > sample.stamp]
             for m in ready:
                 outcomes.append(self._process(m, hold=False))
+        if not estimate:
+            self._active_corrections(sample, None)
+            return None, outcomes
         return self.fuse(sample), outcomes
 
     def reset(self) -> None:
@@ -287,10 +295,19 @@ class FusionPipeline:
         not older than their anchor (a late query must not erase a correction that is still
         valid now).  ``weight`` of the result is the largest weight applied.
         """
+        applied = self._active_corrections(prior, exclude)
+        if not applied:
+            return FusedEstimate(prior.stamp, prior.T_base_tool, prior.cov_tool, 0.0, prior)
+        T, cov = apply_carried_corrections(prior, applied)
+        return FusedEstimate(prior.stamp, T, cov, max(w for _, w in applied), prior)
+
+    def _active_corrections(self, prior: PriorSample, exclude: str | None) -> list[tuple[CarriedCorrection, float]]:
+        """The corrections to apply to ``prior`` with their weights (all sources but ``exclude``); expired ones are
+        dropped and counted (see :meth:`fuse`)."""
         applied: list[tuple[CarriedCorrection, float]] = []
         for source in list(self.corrections):
             corr = self.corrections[source]
-            w = self.policy.weight(corr.anchor, prior)
+            w = self.policy.weight(corr.anchor, prior, corr.T_anchor_inv)
             if w <= 0.0:
                 if prior.stamp >= corr.anchor.stamp:
                     del self.corrections[source]
@@ -298,10 +315,7 @@ class FusionPipeline:
                 continue
             if source != exclude:
                 applied.append((corr, w))
-        if not applied:
-            return FusedEstimate(prior.stamp, prior.T_base_tool, prior.cov_tool, 0.0, prior)
-        T, cov = apply_carried_corrections(prior, applied)
-        return FusedEstimate(prior.stamp, T, cov, max(w for _, w in applied), prior)
+        return applied
 
     def fused_at(self, stamp: float) -> FusedEstimate | None:
         """Fused estimate at any stamp inside the buffer (None if no prior there)."""

@@ -278,6 +278,7 @@ class ModelUpdater:
 
         obs, z = self.build(measurement, prior)
         prior_gate = self.gate_probability if self.gating == "prior" else None
+        posterior = self.gating == "posterior" and self.gate_probability is not None
         res = iterated_update(
             T_base_tool,
             cov_tool,
@@ -285,11 +286,14 @@ class ModelUpdater:
             obs,
             max_iterations=self.max_iterations,
             gate_probability=prior_gate,
+            with_cost=posterior,
         )
         self.last_result = res
-        if self.gating == "prior" or self.gate_probability is None:
+        if not posterior:
             return ToolUpdate(res.T, res.cov, bool(res.accepted), float(res.nis))
-        cost = posterior_cost(obs, res.T, res.residual, res.correction, cov_tool)
+        cost = res.cost  # computed by the compiled update; else here
+        if math.isnan(cost):
+            cost = posterior_cost(obs, res.T, res.residual, res.correction, cov_tool)
         gate = chi2_gate(obs.dim, self.gate_probability)
         if not cost <= gate:
             return ToolUpdate(np.asarray(T_base_tool, float), np.asarray(cov_tool, float), False, cost)

@@ -4,6 +4,7 @@ Batched over leading axes; small angles with vectorised ``np.where`` (docs/conve
 
 from __future__ import annotations
 
+import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -108,9 +109,12 @@ def quat_from_matrix(R: ArrayLike) -> Array:
 def matrix_from_quat(q: ArrayLike) -> Array:
     """Rotation matrix of a quaternion ``(x, y, z, w)`` (normalised here): ``(..., 4) -> (..., 3, 3)``."""
     q_arr = _f(q)
-    q_arr = q_arr / np.linalg.norm(q_arr, axis=-1, keepdims=True)
     if q_arr.shape == (4,):  # one quaternion (one message): Python floats, the same operations
         x, y, z, w = q_arr.tolist()
+        n = math.sqrt(x * x + y * y + z * z + w * w)  # np.linalg.norm's sum order
+        if not 0.0 < n < math.inf:  # zero / non-finite: numpy's NaN semantics of the batched code
+            return matrix_from_quat(q_arr[None])[0]
+        x, y, z, w = x / n, y / n, z / n, w / n
         return np.array(
             [
                 [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -118,6 +122,7 @@ def matrix_from_quat(q: ArrayLike) -> Array:
                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
             ]
         )
+    q_arr = q_arr / np.linalg.norm(q_arr, axis=-1, keepdims=True)
     x, y, z, w = q_arr[..., 0], q_arr[..., 1], q_arr[..., 2], q_arr[..., 3]
     R = np.empty(q_arr.shape[:-1] + (3, 3))
     R[..., 0, 0] = 1 - 2 * (y * y + z * z)

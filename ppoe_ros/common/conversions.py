@@ -4,6 +4,7 @@ wrenches, joint states, message classes."""
 from __future__ import annotations
 
 import importlib
+import math
 from typing import Any
 
 import numpy as np
@@ -30,23 +31,27 @@ def ns_to_stamp(ns: int) -> TimeMsg:
 def pose_msg_from_matrix(T: np.ndarray, out: Pose | None = None) -> Pose:
     """Homogeneous ``(4, 4)`` -> ``geometry_msgs/Pose`` (quaternion x, y, z, w)."""
     pose = Pose() if out is None else out
-    q = lie.quat_from_matrix(np.asarray(T, dtype=float)[:3, :3])
+    T = np.asarray(T, dtype=float)
+    q = lie.quat_from_matrix(T[:3, :3]).tolist()
     p = pose.position
-    p.x, p.y, p.z = (float(v) for v in T[:3, 3])
+    p.x, p.y, p.z = T[:3, 3].tolist()
     o = pose.orientation
-    o.x, o.y, o.z, o.w = (float(v) for v in q)
+    o.x, o.y, o.z, o.w = q
     return pose
 
 
 def matrix_from_pose_msg(pose: Pose) -> np.ndarray:
     """``geometry_msgs/Pose`` -> homogeneous ``(4, 4)``; the quaternion is normalised."""
-    q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
-    nq = np.linalg.norm(q)
-    if not np.isfinite(nq) or nq < 1e-9:
-        raise ValueError(f"pose quaternion {q.tolist()} is not a rotation")
-    T = np.eye(4)
-    T[:3, :3] = lie.matrix_from_quat(q / nq)
-    T[:3, 3] = (pose.position.x, pose.position.y, pose.position.z)
+    o = pose.orientation
+    x, y, z, w = float(o.x), float(o.y), float(o.z), float(o.w)
+    nq = math.sqrt(x * x + y * y + z * z + w * w)
+    if not math.isfinite(nq) or nq < 1e-9:
+        raise ValueError(f"pose quaternion {[x, y, z, w]} is not a rotation")
+    T = np.empty((4, 4))
+    T[:3, :3] = lie.matrix_from_quat(np.array([x / nq, y / nq, z / nq, w / nq]))
+    p = pose.position
+    T[:3, 3] = (p.x, p.y, p.z)
+    T[3] = (0.0, 0.0, 0.0, 1.0)
     return T
 
 
@@ -80,7 +85,10 @@ def pose_cov_stamped_msg(T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp:
     msg.header.stamp = ns_to_stamp(stamp) if isinstance(stamp, (int, np.integer)) else stamp
     msg.header.frame_id = frame_id
     pose_msg_from_matrix(T_parent_child, msg.pose.pose)
-    msg.pose.covariance = cov_ros_to_msg_array(cov_ros)
+    cov = np.asarray(cov_ros, dtype=np.float64)
+    if cov.shape != (6, 6):
+        raise ValueError(f"covariance must be 6x6, got shape {cov.shape}")
+    msg.pose.covariance = cov.reshape(36).copy()  # the field's own type (float64[36]): no per-element check
     return msg
 
 
@@ -90,7 +98,7 @@ def pose_cov_from_msg(msg: PoseWithCovarianceStamped) -> tuple[np.ndarray, np.nd
     ``cov_ros`` is in the ROS convention (docs/conventions.md sec. 2, axes of ``frame_id``).
     """
     T = matrix_from_pose_msg(msg.pose.pose)
-    cov_ros = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)
+    cov_ros = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)  # a copy: the message keeps its array
     return T, cov_ros, stamp_to_ns(msg.header.stamp), msg.header.frame_id
 
 

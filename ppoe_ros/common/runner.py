@@ -121,6 +121,9 @@ def _compile_kernels() -> None:
 
     lie.quat_from_matrix(np.eye(3))
     lie.cov_ros_to_local(np.eye(4), lie.cov_local_to_ros(np.eye(4), np.eye(6)))
+    from ppoe_core.estimation.compiled_update import warm_kernels
+
+    warm_kernels()
 
 
 def _spin(node: Node, executor: str) -> None:

@@ -496,7 +496,8 @@ def _replay(pri: _Priors, meas: list[Any], gt_stamps: np.ndarray, pipes: dict[st
         if k == 0:
             for name, pipe in pipes.items():
                 cov = pri.cov_all[i] if name == "ppoe" else pri.cov_naive
-                _, outs = pipe.add_prior(float(pri.stamps[i]), pri.T_all[i], cov, pri.Q[i], validated=True)
+                _, outs = pipe.add_prior(float(pri.stamps[i]), pri.T_all[i], cov, pri.Q[i], validated=True,
+                                         estimate=False)  # estimates are read at ground-truth stamps only
                 run.record(name, outs, updaters[name].tags)
         elif k == 1:
             for name, pipe in pipes.items():
