@@ -400,6 +400,8 @@ def _left_arm_file(tmp_path, offset_L=0.0, n=40, seed=5):
     return f, rows, lr2
 
 
+@pytest.mark.datasets
+@needs_data
 def test_left_arm_urdf_matches_the_model_yaml_dh(tmp_path):
     from ppoe_core.robot.tree import KinematicTree
     from ppoe_core.robot.urdf import parse_urdf
@@ -424,6 +426,8 @@ def test_left_arm_urdf_matches_the_model_yaml_dh(tmp_path):
     assert "joint_S1" in robot.joints and "MK220" in robot.links  # the right arm is kept, markers on EE2
 
 
+@pytest.mark.datasets
+@needs_data
 def test_left_arm_file_imports_and_its_encoder_offset_is_diagnosed(tmp_path, capsys):
     from ppoe_ros.cli import main
 
@@ -441,6 +445,8 @@ def test_left_arm_file_imports_and_its_encoder_offset_is_diagnosed(tmp_path, cap
     assert lo <= 0.01 <= hi
 
 
+@pytest.mark.datasets
+@needs_data
 def test_left_arm_marker_pixels_go_through_the_pixel_stage(tmp_path, capsys):
     """An arm-2 file whose marker pixels are projections of the MK2xx markers (model.yaml cameras, true
     intrinsics): the bag goes through diagnose's tracker and pixel stages (markers on EE2, both cameras), and

@@ -447,7 +447,8 @@ def test_bag_play_node_record_equals_fk(tmp_path: Path, model, split: bool) -> N
     env = ros_env(tmp_path)
     node = NodeProcess.node("kinematics_node", env, tmp_path, params={"model_file": str(MODEL),
                                                                        "use_sim_time": True})
-    recorder = NodeProcess.ppoe(["record", "--out", str(rec), "/ppoe/pose"], env, tmp_path, "record")
+    recorder = NodeProcess.ppoe(["record", "--out", str(rec), "--max-messages", str(len(qs)), "/ppoe/pose"], env,
+                                tmp_path, "record")
     player = None
     try:
         # node and recorder up: the recorder subscribes /ppoe/pose once it sees the node's publisher
@@ -461,7 +462,8 @@ def test_bag_play_node_record_equals_fk(tmp_path: Path, model, split: bool) -> N
         player = NodeProcess.ppoe(["play", str(src), "--clock", "--wait-for-subscribers", "15"], env, tmp_path,
                                   "play")
         assert player.wait(40) == 0, player.output()
-        time.sleep(1.0)
+        # the recorder exits by itself after len(qs) poses (a fixed sleep lost the last one under load)
+        assert recorder.wait(30) == 0, f"recorder did not get {len(qs)} poses\n{recorder.output()[-2000:]}"
         assert node.alive(), node.output()
     finally:
         if player is not None:

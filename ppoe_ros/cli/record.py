@@ -41,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="storage plugin (default mcap)")
     parser.add_argument("--duration", type=float, default=0.0, metavar="SECONDS",
                         help="stop after this many seconds (default: until interrupted)")
+    parser.add_argument("--max-messages", type=int, default=0, metavar="N",
+                        help="stop once N messages (all topics together) are written (default 0: no limit)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing bag directory")
     parser.add_argument("--use-sim-time", action="store_true", help="log times from /clock")
     parser.add_argument("--flush-period", type=float, default=0.5, metavar="SECONDS",
@@ -140,7 +142,10 @@ def run(args: argparse.Namespace) -> int:
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         end = time.monotonic() + args.duration if args.duration > 0 else None
+        limit = args.max_messages if args.max_messages > 0 else None
         while not stop.raised and rclpy.ok() and (end is None or time.monotonic() < end):
+            if limit is not None and sum(writer.counts.values()) >= limit:
+                break
             executor.spin_once(timeout_sec=0.05)
             writer.flush_if_due()
     finally:
