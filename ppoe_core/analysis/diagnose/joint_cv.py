@@ -20,9 +20,11 @@ import numpy as np
 from ppoe_core.analysis.diagnose.joint_fit import JointFit, joint_fit, subset_stops, tracker_points
 from ppoe_core.analysis.diagnose.linear import LinearProblem
 from ppoe_core.analysis.diagnose.pixels import PixelObs, predict_pixels
+from ppoe_core.analysis.diagnose.results import DiagnoseResult
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.model.effects import Effect
 from ppoe_core.robot.tree import KinematicTree
+from ppoe_core.robot.urdf import Robot
 
 PROTOCOL = "cross-validated over poses"
 
@@ -115,3 +117,44 @@ def _per_camera_rms(pixels: PixelObs | None, e: np.ndarray) -> dict[str, float]:
     if pixels is None:
         return {}
     return {f: _rms(e[pixels.camera == c]) for c, f in enumerate(pixels.cameras) if np.any(pixels.camera == c)}
+
+
+def joint_effect_set(robot: Robot, result: DiagnoseResult, pixels: PixelObs) -> list[Effect]:
+    """Effects of the final joint fit: those the stages found (``result.effects``, tracker and pixel stage),
+    plus ``camera_extrinsics`` at the mount joint of every observing camera; zero start, no repeats."""
+    from ppoe_core.analysis.diagnose.pixels import pixel_candidates
+    from ppoe_core.model.effects import effect_from_config
+
+    tree = KinematicTree(robot)
+    keys = ("name", "location", "parameters", "variable", "reference")
+    found = [effect_from_config({k: e[k] for k in keys if k in e}, tree, where=f"diagnose effect {e['name']}@"
+                                f"{e['location']}") for e in result.effects]
+    cams = [e for e in pixel_candidates(robot, pixels) if e.name == "camera_extrinsics"]
+    out: dict[tuple[str, str], Effect] = {}
+    for e in [*found, *cams]:
+        out.setdefault((e.name, e.location), e.with_params(np.zeros(e.n_params)))
+    return list(out.values())
+
+
+def add_joint_fit(result: DiagnoseResult, robot: Robot, stops: Stops, pixels: PixelObs,
+                  declared: Sequence[Effect] = (), folds: int = 5, seed: int = 0) -> dict[str, Any]:
+    """The joint tracker + pixel fit as the final fit of a diagnosis: :func:`joint_effect_set`, fitted on all
+    data (:func:`joint_fit`) and scored by :func:`joint_heldout`; ``result.extra["joint"]`` gets ``effects``
+    (values and 95 % CIs), ``pixel_rms_heldout`` per camera [px], ``tracker_rms_heldout`` [m], the in-sample
+    values, ``sensor_sigma``, ``iterations``, ``cost``, ``protocol``; one summary line.  The stages' keys are
+    left as they are."""
+    tree = KinematicTree(robot)
+    effects = joint_effect_set(robot, result, pixels)
+    pose_t, _ = joint_pose_ids(stops, pixels)
+    fit = joint_fit(tree, effects, stops, pixels, declared, pose_t=pose_t)
+    held = joint_heldout(tree, effects, stops, pixels, declared, folds=folds, seed=seed)
+    block = {"effects": fit.effects, "pixel_rms_heldout": held["pixel_rms"], "tracker_rms_heldout": held["tracker_rms"],
+             "pixel_rms_insample": fit.pixel_rms, "tracker_rms_insample": fit.tracker_rms,
+             "sensor_sigma": fit.sensor_sigma, "iterations": fit.iterations, "cost": fit.cost,
+             "solver": "scipy.optimize.least_squares trf, soft_l1", "folds": folds, "protocol": PROTOCOL}
+    result.extra["joint"] = block
+    per = ", ".join(f"{f} {v:.2f} px" for f, v in held["pixel_rms"].items())
+    names = ", ".join(f"{e['name']}@{e['location']}" for e in fit.effects) or "none"
+    result.summary += (f"\nJoint tracker + pixel fit ({len(stops)} stops, {len(pixels)} points; {names}): held-out "
+                       f"({PROTOCOL}) tracker {1e3 * held['tracker_rms']:.3f} mm, pixels {per}.")
+    return block

@@ -298,8 +298,9 @@ def joint_covariance(J: np.ndarray, r: np.ndarray, w: np.ndarray, clusters: np.n
 
 def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | None = None,
               pixels: PixelObs | None = None, declared: Sequence[Effect] = (), *, loss: str = "soft_l1",
-              robust_scale: float = 3.0, rescale: bool = True, clustered: bool = True,
-              pose_t: np.ndarray | None = None, max_nfev: int = 200) -> JointFit:
+              robust_scale: float = 3.0, rescale: int = 1, clustered: bool = True,
+              pose_t: np.ndarray | None = None, max_nfev: int = 200, sigma_tracker: float | None = None,
+              sigma_px: float | None = None) -> JointFit:
     """Fit ``effects`` to the tracker points and tag pixels at once (module docstring).
 
     Parameters
@@ -311,11 +312,12 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
     declared : fixed effects of the model
     loss : ``soft_l1`` (default), ``huber`` or ``linear`` (scipy ``least_squares`` losses)
     robust_scale : the loss turns robust beyond this many sensor sigmas
-    rescale : re-estimate each sensor's noise from the first solution and solve again
+    rescale : rounds of re-estimating each sensor's noise from the solution and solving again (0: none)
     clustered : pose-clustered sandwich covariance (else ``s^2 H^-1``)
     pose_t : (N,) robot pose of each tracker row, shared with ``pixels.pose`` for the clusters (see
         :func:`ppoe_core.analysis.diagnose.joint_cv.joint_pose_ids`); None: every stop its own cluster
     max_nfev : function evaluations per solve
+    sigma_tracker, sigma_px : noise of the first solve (1-sigma per axis, [m] / [px]); None: the data's
 
     Returns
     -------
@@ -325,11 +327,11 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
 
     if stops is None and pixels is None:
         raise MeasurementError("joint fit: neither tracker points nor pixels given")
-    prob = JointProblem(tree, effects, stops, pixels, declared)
+    prob = JointProblem(tree, effects, stops, pixels, declared, sigma_tracker, sigma_px)
     x = prob.x0()
     nfev = 0
     sol = None
-    for rnd in range(2 if rescale else 1):
+    for rnd in range(1 + int(rescale)):
         if rnd:  # variance components: each sensor's noise from its whitened residuals
             r = prob.residuals(x)
             nt = 3 * prob.n_tracker
