@@ -537,7 +537,7 @@ def test_pixel_covariance_matches_monte_carlo(robot):
 @pytest.mark.datasets
 def test_motoman_imported_bag_cli_pixels(tmp_path):
     """ppoe import motoman -> ppoe diagnose: /tag_bearing/observations (marker centres) are
-    diagnosed after the tracker; both cameras get camera_extrinsics."""
+    diagnosed after the tracker; both cameras get camera_extrinsics; the joint fit adds its block."""
     d = DATASETS / "motoman_leica"
     if not (d / "leica_right_hand_6x6x6_dataset.mat").exists():
         pytest.fail(f"Motoman dataset not found in {d} (set PPOE_DATASETS)")
@@ -562,6 +562,13 @@ def test_motoman_imported_bag_cli_pixels(tmp_path):
     assert pix == ["camera_1_optical_frame", "camera_2_optical_frame"]
     for cam in pix:
         assert px["pixel_rms_after"][cam] < 0.6 * px["pixel_rms_before"][cam]
+    # the joint tracker + pixel fit runs as the final fit (--joint auto): the stage's effect plus both cameras
+    joint = doc["joint"]
+    assert joint["protocol"] == "cross-validated over poses"
+    assert sorted(e["location"] for e in joint["effects"] if e["name"] == "camera_extrinsics") == [
+        "torso_to_leftHead", "torso_to_rightHead"]
+    assert all(joint["pixel_rms_heldout"][cam] < 0.6 * px["pixel_rms_before"][cam] for cam in pix)
+    assert joint["tracker_rms_heldout"] < 0.3e-3
 
 
 def test_cli_pixels_off_and_on_without_tags(tmp_path):

@@ -110,15 +110,18 @@ def test_joint_jacobian_matches_finite_differences(robot):
 
 
 def test_joint_ci_coverage_monte_carlo(robot):
-    """Seeded Monte-Carlo: 30 data sets x 10 parameters, 95 % CIs (pose-clustered sandwich, re-estimated noise)."""
+    """Seeded Monte-Carlo: 30 data sets x 10 parameters, 95 % CIs (pose-clustered sandwich, robust weights; one
+    solve with the declared noise, which is right here: the noise re-estimation and pre-fits only set weights)."""
     tree = KinematicTree(robot)
     truth = arm7_truth(robot)
     hits = []
     for s in range(30):
-        stops, obs = arm7_joint_data(robot, truth, n=30, seed=100 + s)
+        stops, obs = arm7_joint_data(robot, truth, n=25, seed=100 + s)
         pose_t, _ = joint_pose_ids(stops, obs)
-        hits.append(np.abs(_z(joint_fit(tree, _zero(truth), stops, obs, pose_t=pose_t), truth)) < 1.96)
+        fit = joint_fit(tree, _zero(truth), stops, obs, pose_t=pose_t, presolve=False, rescale=0)
+        hits.append(np.abs(_z(fit, truth)) < 1.96)
     cover = float(np.mean(hits))
+    print(f"joint CI coverage {cover:.3f}")
     # 300 intervals (correlated within a data set): 0.95 expected; clustered sandwich with 30 clusters runs low
     assert 0.85 <= cover <= 0.99, cover
 

@@ -300,7 +300,7 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
               pixels: PixelObs | None = None, declared: Sequence[Effect] = (), *, loss: str = "soft_l1",
               robust_scale: float = 3.0, rescale: int = 1, clustered: bool = True,
               pose_t: np.ndarray | None = None, max_nfev: int = 200, sigma_tracker: float | None = None,
-              sigma_px: float | None = None) -> JointFit:
+              sigma_px: float | None = None, presolve: bool = True) -> JointFit:
     """Fit ``effects`` to the tracker points and tag pixels at once (module docstring).
 
     Parameters
@@ -317,7 +317,9 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
     pose_t : (N,) robot pose of each tracker row, shared with ``pixels.pose`` for the clusters (see
         :func:`ppoe_core.analysis.diagnose.joint_cv.joint_pose_ids`); None: every stop its own cluster
     max_nfev : function evaluations per solve
-    sigma_tracker, sigma_px : noise of the first solve (1-sigma per axis, [m] / [px]); None: the data's
+    sigma_tracker, sigma_px : noise of the first solve (1-sigma per axis, [m] / [px]); None: from
+        :func:`sensor_noise` (``presolve``, both sensors present), else the data's declared ones
+    presolve : estimate the first solve's noise per sensor from that sensor's own fit (:func:`sensor_noise`)
 
     Returns
     -------
@@ -327,6 +329,9 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
 
     if stops is None and pixels is None:
         raise MeasurementError("joint fit: neither tracker points nor pixels given")
+    if presolve and stops is not None and pixels is not None and sigma_tracker is None and sigma_px is None:
+        sigma_tracker, sigma_px = sensor_noise(tree, effects, stops, pixels, declared, loss=loss,
+                                               robust_scale=robust_scale, max_nfev=max_nfev)
     prob = JointProblem(tree, effects, stops, pixels, declared, sigma_tracker, sigma_px)
     x = prob.x0()
     nfev = 0
@@ -358,6 +363,24 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
                     sensor_sigma={"tracker": float(np.median(prob.sigma_t)) if prob.n_tracker else float("nan"),
                                   "pixels": prob.sigma_px if pixels is not None else float("nan")},
                     message=str(sol.message) if sol is not None else "nothing to fit", x=x)
+
+
+def sensor_noise(tree: KinematicTree, effects: Sequence[Effect], stops: Stops, pixels: PixelObs,
+                 declared: Sequence[Effect] = (), **options: Any) -> tuple[float, float]:
+    """Noise of each sensor from its own fit of ``effects``: ``(sigma_tracker [m], sigma_px [px])`` = the declared
+    sigma times the robust scale (1.4826 MAD) of the whitened residual of a tracker-only / pixel-only
+    :func:`joint_fit` (no rescale).  The start of the joint solve: with the declared noise, a sensor whose
+    residual is far above its declared noise (model error, not sensor noise; Motoman pixels: 10 px at 1 px
+    declared) would outweigh the other one and bend the shared effects towards it."""
+    out = []
+    for st, px in ((stops, None), (None, pixels)):
+        fit = joint_fit(tree, effects, st, px, declared, rescale=0, clustered=False, presolve=False, **options)
+        prob = JointProblem(tree, fit.fitted, st, px, declared)
+        r = prob.residuals(np.concatenate([np.concatenate([e.params for e in fit.fitted]) if fit.fitted
+                                           else np.zeros(0), np.zeros(6 * len(prob.sessions))]))
+        base = float(np.median(prob.sigma_t)) if st is not None else prob.sigma_px
+        out.append(base * max(_robust_sd(r), 1e-6))
+    return out[0], out[1]
 
 
 def _effect_entries(fitted: Sequence[Effect], cov: np.ndarray) -> list[dict[str, Any]]:
