@@ -101,10 +101,11 @@ def solve_gtsam(prob: JointProblem, x0: np.ndarray | None = None, max_iterations
     marg = gtsam.Marginals(graph, result)
     cov = np.zeros((prob.P, prob.P))
     offs = np.concatenate([[0], np.cumsum(prob.sizes)])
-    cov_blocks = marg.jointMarginalCovariance(gtsam.KeyVector(keys_e)) if keys_e else None
-    for i, ki in enumerate(keys_e):
-        for j, kj in enumerate(keys_e):
-            cov[offs[i]:offs[i + 1], offs[j]:offs[j + 1]] = cov_blocks.at(ki, kj)
+    if keys_e:
+        cov_blocks = marg.jointMarginalCovariance(gtsam.KeyVector(keys_e))
+        for i, ki in enumerate(keys_e):
+            for j, kj in enumerate(keys_e):
+                cov[offs[i]:offs[i + 1], offs[j]:offs[j + 1]] = cov_blocks.at(ki, kj)
     x = np.frombuffer(cache.x_key, dtype=float).copy()
     return {"x": x, "cost": float(graph.error(result)), "iterations": int(opt.iterations()), "cov_theta": cov}
 

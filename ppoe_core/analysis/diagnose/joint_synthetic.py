@@ -45,7 +45,8 @@ def arm7_joint_data(robot: Robot, effects: Sequence[Effect], n: int = 40, seed: 
     q.update({j: np.full(n, 0.01) for j in names if j not in q})
     t = np.arange(n) * 5.0
     sg = motion_signs(t, np.column_stack([q[j] for j in names]), t)
-    ctx = {"time": t, "motion_sign": {j: sg[:, i] for i, j in enumerate(names)}}
+    signs = {j: sg[:, i] for i, j in enumerate(names)}
+    ctx = {"time": t, "motion_sign": signs}
     dq, dxi = sum_effect_corrections(list(effects), q, ctx)
     x = (tree.link_poses(q, dq, dxi)["tool0"] @ np.append(REFLECTOR_SYN, 1.0))[:, :3]
     T = lie.from_xyz_rpy(rng.uniform(-3, 3, 3), [0.0, 0.0, rng.uniform(-np.pi, np.pi)])
@@ -59,6 +60,6 @@ def arm7_joint_data(robot: Robot, effects: Sequence[Effect], n: int = 40, seed: 
     obs = PixelObs(q={j: v[pose] for j, v in q.items()}, link="tool0", links=np.tile(links, n),
                    point=np.tile(pts, (n, 1)), camera=np.zeros(len(pose), int), cameras=["camera_optical_frame"],
                    K=[K_SYN], D=[D_SYN], uv=np.zeros((len(pose), 2)), pose=pose, sigma_px=sigma_px, name="synthetic",
-                   context={"time": t[pose], "motion_sign": {j: v[pose] for j, v in ctx["motion_sign"].items()}})
+                   context={"time": t[pose], "motion_sign": {j: v[pose] for j, v in signs.items()}})
     obs.uv = predict_pixels(tree, obs, list(effects)) + rng.normal(0.0, sigma_px, (len(pose), 2))
     return stops, obs.subset(np.all((obs.uv > 0) & (obs.uv < [640, 480]), axis=1))
