@@ -11,7 +11,8 @@
    even poses -> score odd poses, fit on 6x6x6 -> score the table/wall files, the same with arm
    candidates added, and ``ppoe diagnose`` on an imported 6x6x6 bag (temporary directory).
 2b. Motoman joint tracker + pixel fit (right arm, 6x6x6; ``joint_fit`` / ``joint_heldout``): held-out pixel RMS
-   per camera and tracker RMS (5-fold over poses) of effect sets: registration only, cameras only (pixels),
+   per camera and tracker RMS (5-fold over poses) of effect sets: registration only, tracker only (the tracker
+   stage's effects refitted on the tracker points), cameras only (pixels),
    staged (tracker-stage effects fixed, cameras fitted), joint A (tracker-stage effects + cameras), joint B
    (A + joint offsets S1..T1), joint A with the declared noise (0.2 mm / 1 px); each fitted on all of 6x6x6 and
    scored on the higher / lower / wall files.
@@ -272,14 +273,14 @@ def motoman_joint() -> None:
     def fmt(r: dict) -> str:
         return " / ".join(f"{v:.2f}" for v in r.values())
 
-    sets = [("registration_only", [], st, (), {}), ("cameras_only", cams, None, (), {}),
-            ("staged", cams, None, res.chosen, {}), ("joint_A", trk + cams, st, (), {}),
-            ("joint_B", trk + cams + offsets, st, (), {}),
-            ("joint_A_declared_noise", trk + cams, st, (), {"presolve": False})]
-    for label, effs, stops, declared, kw in sets:
+    sets = [("registration_only", [], st, ob, (), {}), ("tracker_only", trk, st, None, (), {}),
+            ("cameras_only", cams, None, ob, (), {}), ("staged", cams, None, ob, res.chosen, {}),
+            ("joint_A", trk + cams, st, ob, (), {}), ("joint_B", trk + cams + offsets, st, ob, (), {}),
+            ("joint_A_declared_noise", trk + cams, st, ob, (), {"presolve": False})]
+    for label, effs, stops, pixels, declared, kw in sets:
         t0 = time.perf_counter()
-        h = joint_heldout(tree, effs, stops, ob, declared, **kw)
-        fit = joint_fit(tree, effs, stops, ob, declared, pose_t=None if stops is None else pose_t, **kw)
+        h = joint_heldout(tree, effs, stops, pixels, declared, **kw)
+        fit = joint_fit(tree, effs, stops, pixels, declared, pose_t=None if stops is None else pose_t, **kw)
         print(f"motoman_joint_{label}: held-out pixels {fmt(h['pixel_rms'])} px, tracker "
               f"{1e3 * h['tracker_rms']:.3f} mm; in-sample {fmt(fit.pixel_rms)} px, {1e3 * fit.tracker_rms:.3f} mm; "
               f"noise {fit.sensor_sigma}; nfev {fit.iterations}; {time.perf_counter() - t0:.1f} s")

@@ -153,8 +153,10 @@ def test_motoman_joint_fit_beats_cameras_only():
     stops = stops_from_motoman(d / "leica_right_hand_6x6x6_dataset.mat", robot)
     obs = pixels_from_motoman(d / "leica_right_hand_6x6x6_dataset.mat", robot, d / "model.yaml")
     cams = [e for e in pixel_candidates(robot, obs) if e.name == "camera_extrinsics"]
-    cam_only = joint_heldout(tree, cams, None, obs, folds=5)
-    joint = joint_heldout(tree, [make_effect("link_error", "joint_U1", tree), *cams], stops, obs, folds=5)
+    # 3 folds and no noise re-estimation round (the per-sensor pre-fits set the weights) keep it short
+    cam_only = joint_heldout(tree, cams, None, obs, folds=3, rescale=0)
+    joint = joint_heldout(tree, [make_effect("link_error", "U1_dh", tree), *cams], stops, obs, folds=3, rescale=0)
+    print(cam_only["pixel_rms"], joint["pixel_rms"], joint["tracker_rms"])
     for f, v in cam_only["pixel_rms"].items():
         assert joint["pixel_rms"][f] < v, (joint["pixel_rms"], cam_only["pixel_rms"])
     assert joint["tracker_rms"] < 0.2e-3
