@@ -69,7 +69,7 @@ def main() -> None:
     times = []
     for _ in range(args.repeat):
         t0 = time.perf_counter()
-        sol = least_squares(prob.residuals, x0, jac=prob.jacobian, method="trf", x_scale="jac", xtol=1e-12,
+        sol = least_squares(prob.residuals, x0, jac=prob.jacobian, method="trf", x_scale=1.0, xtol=1e-12,
                             ftol=1e-12, gtol=1e-12, max_nfev=200)
         times.append(time.perf_counter() - t0)
     J = prob.jacobian(sol.x)

@@ -186,7 +186,7 @@ def test_gtsam_and_scipy_agree(robot):
     truth = arm7_truth(robot)
     stops, obs = arm7_joint_data(robot, truth, n=15, seed=11)
     prob = JointProblem(KinematicTree(robot), _zero(truth), stops, obs)
-    sol = least_squares(prob.residuals, prob.x0(), jac=prob.jacobian, method="trf", x_scale="jac", xtol=1e-12,
+    sol = least_squares(prob.residuals, prob.x0(), jac=prob.jacobian, method="trf", x_scale=1.0, xtol=1e-12,
                         ftol=1e-12, gtol=1e-12)
     g = solve_gtsam(prob)
     J = prob.jacobian(sol.x)

@@ -348,7 +348,7 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
         if x.size == 0:
             break
         sol = least_squares(prob.residuals, x, jac=prob.jacobian, method="trf", loss=loss, f_scale=robust_scale,
-                            x_scale="jac", max_nfev=max_nfev, xtol=1e-10, ftol=1e-10, gtol=1e-10)
+                            x_scale=1.0, max_nfev=max_nfev, xtol=1e-10, ftol=1e-10, gtol=1e-10)
         x, nfev = sol.x, nfev + int(sol.nfev)
     r, J = prob.evaluate(x, jac=True)
     assert J is not None
