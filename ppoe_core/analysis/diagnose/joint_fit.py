@@ -127,13 +127,16 @@ class JointProblem:
     sigma_tracker, sigma_px : float or None
         Override of the sensor noise (1-sigma per axis, [m] / [px]); None: ``stops.sigma_rows()`` /
         ``pixels.sigma_px``.
+    scale_t, scale_px : float
+        Factors on that noise (noise re-estimation; per-row tracker sigmas keep their ratios).
 
     Unknowns ``x = [theta (P), d_s (6 per session)]``; residuals: tracker rows (3 each) then pixel rows (2 each).
     """
 
     def __init__(self, tree: KinematicTree, effects: Sequence[Effect], stops: Stops | None = None,
                  pixels: PixelObs | None = None, declared: Sequence[Effect] = (),
-                 sigma_tracker: float | None = None, sigma_px: float | None = None) -> None:
+                 sigma_tracker: float | None = None, sigma_px: float | None = None, scale_t: float = 1.0,
+                 scale_px: float = 1.0) -> None:
         if stops is not None and stops.kind != "point":
             raise MeasurementError(f"joint fit: {stops.group_names}: only tracker points (kind 'point') are "
                                    f"supported, not {stops.kind!r}")
@@ -142,10 +145,10 @@ class JointProblem:
         self.sizes = [e.n_params for e in self.effects]
         self.P = int(sum(self.sizes))
         self.pixels = pixels
-        self.sigma_px = float(pixels.sigma_px if sigma_px is None else sigma_px) if pixels is not None else 1.0
+        self.sigma_px = 1.0 if pixels is None else float(pixels.sigma_px if sigma_px is None else sigma_px) * scale_px
         self.stops, self.sessions, self.T0 = self._registrations(stops)
-        self.sigma_t = (np.full(len(self.stops), float(sigma_tracker)) if sigma_tracker is not None
-                        else self.stops.sigma_rows().astype(float)) if self.stops is not None else np.zeros(0)
+        self.sigma_t = scale_t * (np.full(len(self.stops), float(sigma_tracker)) if sigma_tracker is not None
+                                  else self.stops.sigma_rows().astype(float)) if self.stops is not None else np.zeros(0)
         self.nom_t = tree.link_poses(self.stops.q) if self.stops is not None else {}
         self.nom_p = tree.link_poses(pixels.q) if pixels is not None else {}
 
@@ -317,9 +320,9 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
     pose_t : (N,) robot pose of each tracker row, shared with ``pixels.pose`` for the clusters (see
         :func:`ppoe_core.analysis.diagnose.joint_cv.joint_pose_ids`); None: every stop its own cluster
     max_nfev : function evaluations per solve
-    sigma_tracker, sigma_px : noise of the first solve (1-sigma per axis, [m] / [px]); None: from
-        :func:`sensor_noise` (``presolve``, both sensors present), else the data's declared ones
-    presolve : estimate the first solve's noise per sensor from that sensor's own fit (:func:`sensor_noise`)
+    sigma_tracker, sigma_px : declared noise (1-sigma per axis, [m] / [px]); None: the data's
+    presolve : with both sensors, scale the declared noise of the first joint solve per sensor by that sensor's
+        own fit (:func:`sensor_noise`)
 
     Returns
     -------
@@ -329,10 +332,11 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
 
     if stops is None and pixels is None:
         raise MeasurementError("joint fit: neither tracker points nor pixels given")
-    if presolve and stops is not None and pixels is not None and sigma_tracker is None and sigma_px is None:
-        sigma_tracker, sigma_px = sensor_noise(tree, effects, stops, pixels, declared, loss=loss,
-                                               robust_scale=robust_scale, max_nfev=max_nfev)
-    prob = JointProblem(tree, effects, stops, pixels, declared, sigma_tracker, sigma_px)
+    scale_t = scale_px = 1.0
+    if presolve and stops is not None and pixels is not None:
+        scale_t, scale_px = sensor_noise(tree, effects, stops, pixels, declared, loss=loss, robust_scale=robust_scale,
+                                         max_nfev=max_nfev, sigma_tracker=sigma_tracker, sigma_px=sigma_px)
+    prob = JointProblem(tree, effects, stops, pixels, declared, sigma_tracker, sigma_px, scale_t, scale_px)
     x = prob.x0()
     nfev = 0
     sol = None
@@ -340,10 +344,10 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
         if rnd:  # variance components: each sensor's noise from its whitened residuals
             r = prob.residuals(x)
             nt = 3 * prob.n_tracker
-            sd_t, sd_p = _robust_sd(r[:nt]), _robust_sd(r[nt:])
-            prob = JointProblem(tree, prob.split(x)[0], stops, pixels, declared,
-                                sigma_tracker=None if stops is None else float(np.median(prob.sigma_t)) * sd_t,
-                                sigma_px=None if pixels is None else prob.sigma_px * sd_p)
+            scale_t *= _robust_sd(r[:nt]) if nt else 1.0
+            scale_px *= _robust_sd(r[nt:]) if r.size > nt else 1.0
+            prob = JointProblem(tree, prob.split(x)[0], stops, pixels, declared, sigma_tracker, sigma_px, scale_t,
+                                scale_px)
             x = np.concatenate([x[:prob.P], np.zeros(6 * len(prob.sessions))])  # T0 re-registered
         if x.size == 0:
             break
@@ -367,19 +371,18 @@ def joint_fit(tree: KinematicTree, effects: Sequence[Effect], stops: Stops | Non
 
 def sensor_noise(tree: KinematicTree, effects: Sequence[Effect], stops: Stops, pixels: PixelObs,
                  declared: Sequence[Effect] = (), **options: Any) -> tuple[float, float]:
-    """Noise of each sensor from its own fit of ``effects``: ``(sigma_tracker [m], sigma_px [px])`` = the declared
-    sigma times the robust scale (1.4826 MAD) of the whitened residual of a tracker-only / pixel-only
-    :func:`joint_fit` (no rescale).  The start of the joint solve: with the declared noise, a sensor whose
-    residual is far above its declared noise (model error, not sensor noise; Motoman pixels: 10 px at 1 px
+    """Noise of each sensor from its own fit of ``effects``, as factors ``(scale_t, scale_px)`` on its declared
+    noise: the robust scale (1.4826 MAD) of the whitened residual of a tracker-only / pixel-only
+    :func:`joint_fit` (no rescale; ``options`` go to it).  The start of the joint solve: with the declared noise,
+    a sensor whose residual is far above it (model error, not sensor noise; Motoman pixels: 10 px at 1 px
     declared) would outweigh the other one and bend the shared effects towards it."""
     out = []
+    sig = {"sigma_tracker": options.pop("sigma_tracker", None), "sigma_px": options.pop("sigma_px", None)}
     for st, px in ((stops, None), (None, pixels)):
-        fit = joint_fit(tree, effects, st, px, declared, rescale=0, clustered=False, presolve=False, **options)
-        prob = JointProblem(tree, fit.fitted, st, px, declared)
-        r = prob.residuals(np.concatenate([np.concatenate([e.params for e in fit.fitted]) if fit.fitted
-                                           else np.zeros(0), np.zeros(6 * len(prob.sessions))]))
-        base = float(np.median(prob.sigma_t)) if st is not None else prob.sigma_px
-        out.append(base * max(_robust_sd(r), 1e-6))
+        fit = joint_fit(tree, effects, st, px, declared, rescale=0, clustered=False, presolve=False, **sig, **options)
+        prob = JointProblem(tree, fit.fitted, st, px, declared, **sig)
+        th = np.concatenate([e.params for e in fit.fitted]) if fit.fitted else np.zeros(0)
+        out.append(max(_robust_sd(prob.residuals(np.concatenate([th, np.zeros(6 * len(prob.sessions))]))), 1e-6))
     return out[0], out[1]
 
 
