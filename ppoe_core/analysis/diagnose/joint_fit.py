@@ -10,7 +10,7 @@ other: a rigid part of the arm error that the tracker registration absorbs is th
 * pixel rows (:class:`PixelObs`, tags on any links, any cameras): ``(uv - predict_pixels(theta)) / sigma_px``.
 
 Solved with :func:`scipy.optimize.least_squares` (``trf``, analytic dense Jacobian blocks from
-:func:`chain_jacobians` / :func:`measurement_jacobian` and :func:`pixel_chain_jacobians` /
+:func:`chain_jacobians` / :func:`measurement_jacobian` and :func:`predict_pixels_with_jacobians` /
 :func:`effect_jacobian`, robust ``soft_l1`` loss at ``robust_scale`` whitened units).  With
 ``rescale`` the noise of each sensor is re-estimated from the solution (1.4826 MAD of its whitened
 residuals) and the problem solved again with those sigmas (variance components: a sensor whose residuals
@@ -36,8 +36,8 @@ from ppoe_core.analysis.diagnose.pixels import (
     PixelObs,
     _map_ctx,
     effect_jacobian,
-    pixel_chain_jacobians,
     predict_pixels,
+    predict_pixels_with_jacobians,
 )
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import MeasurementError
@@ -209,10 +209,12 @@ class JointProblem:
             parts_J.append(J)
         if self.pixels is not None:
             obs = self.pixels
-            r = ((obs.uv - predict_pixels(self.tree, obs, cur)) / self.sigma_px).reshape(-1)
-            parts_r.append(r)
             if jac:
-                Jq, Jx = pixel_chain_jacobians(self.tree, obs, cur)
+                uv, Jq, Jx = predict_pixels_with_jacobians(self.tree, obs, cur)
+            else:
+                uv = predict_pixels(self.tree, obs, cur)
+            parts_r.append(((obs.uv - uv) / self.sigma_px).reshape(-1))
+            if jac:
                 G = [effect_jacobian(Jq, Jx, e, obs.q, obs.context, self.nom_p, (len(obs), 2)) for e in fitted]
                 Jp = np.zeros((2 * len(obs), ncol))
                 if G:

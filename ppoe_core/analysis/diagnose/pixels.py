@@ -169,17 +169,22 @@ def predict_pixels(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
     from ppoe_core.estimation.camera import project_points
 
     P = _camera_points(tree, obs, effects)[0]
+    _check_in_front(obs, P)
+    uv = np.empty((len(obs), 2))
+    for c in range(len(obs.cameras)):
+        m = obs.camera == c
+        uv[m] = project_points(P[m], obs.K[c], obs.D[c])
+    return uv
+
+
+def _check_in_front(obs: PixelObs, P: np.ndarray) -> None:
+    """MeasurementError naming the source and row if a marker point ``P`` (M, 3) is behind its camera."""
     bad = P[:, 2] <= 1e-6
     if np.any(bad):
         raise MeasurementError(
             f"{obs.name}: observation {int(np.flatnonzero(bad)[0])}: marker is behind "
             f"camera '{obs.cameras[int(obs.camera[bad][0])]}' (z = {P[bad][0, 2]:.3g} m)"
         )
-    uv = np.empty((len(obs), 2))
-    for c in range(len(obs.cameras)):
-        m = obs.camera == c
-        uv[m] = project_points(P[m], obs.K[c], obs.D[c])
-    return uv
 
 
 def pixel_chain_jacobians(
@@ -200,8 +205,17 @@ def pixel_chain_jacobians(
     J_dxi : dict joint -> ndarray (M, 2, 6)
         ``d uv / d dxi_j`` (tangent right after joint ``j``'s origin, ``[rho; theta]``).
     """
+    return predict_pixels_with_jacobians(tree, obs, effects)[1:]
+
+
+def predict_pixels_with_jacobians(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()
+                                  ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """:func:`predict_pixels` and :func:`pixel_chain_jacobians` from one chain evaluation: ``(uv (M, 2), J_dq,
+    J_dxi)``."""
     P, poses, dq, dxi = _camera_points(tree, obs, effects)
+    _check_in_front(obs, P)
     n = len(obs)
+    uv = np.empty((n, 2))
     Jq_l, Jx_l = _tag_frame_jacobians(tree, obs, poses, dq, dxi)
     R_l = tag_link_poses(obs, poses)[:, :3, :3]
     B_l = np.concatenate([R_l, -R_l @ lie.hat3(obs.point)], axis=-1)  # (M, 3, 6): d p_root / d xi_l
@@ -215,7 +229,7 @@ def pixel_chain_jacobians(
             continue
         A[m] = np.swapaxes(poses[frame][m][:, :3, :3], -1, -2)
         B_c[m] = np.concatenate([-np.broadcast_to(np.eye(3), (int(m.sum()), 3, 3)), lie.hat3(P[m])], axis=-1)
-        Jproj[m] = project_points_jacobian(P[m], obs.K[c], obs.D[c])[1]
+        uv[m], Jproj[m] = project_points_jacobian(P[m], obs.K[c], obs.D[c])
         cam_jac.append((m, tree.frame_jacobian(obs.q, frame, poses, dq, dxi)))
     G_l = Jproj @ A @ B_l  # (M, 2, 6): d uv / d xi_l
     J_dq: dict[str, np.ndarray] = {k: np.einsum("mij,mj->mi", G_l, v) for k, v in Jq_l.items()}
@@ -228,7 +242,7 @@ def pixel_chain_jacobians(
         for k, v in Jx_c.items():
             J_dxi[k] = J_dxi[k].copy() if k in J_dxi else np.zeros((n, 2, 6))
             J_dxi[k][m] += G_c[m] @ v[m]
-    return J_dq, J_dxi
+    return uv, J_dq, J_dxi
 
 
 def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect, effects: Sequence[Effect] = ()) -> np.ndarray:
