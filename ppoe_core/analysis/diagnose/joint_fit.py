@@ -11,12 +11,13 @@ other: a rigid part of the arm error that the tracker registration absorbs is th
 
 Solved with :func:`scipy.optimize.least_squares` (``trf``, analytic dense Jacobian blocks from
 :func:`chain_jacobians` / :func:`measurement_jacobian` and :func:`predict_pixels_with_jacobians` /
-:func:`effect_jacobian`, robust ``soft_l1`` loss at ``robust_scale`` whitened units).  With
-``rescale`` the noise of each sensor is re-estimated from the solution (1.4826 MAD of its whitened
-residuals) and the problem solved again with those sigmas (variance components: a sensor whose residuals
-are 10 x its declared noise does not outweigh the other one ten-fold).  Covariance of all unknowns: the
-robust (IRLS-weighted) Gauss-Newton information ``H = J^T W J`` at the solution and, by default, the
-sandwich ``H^-1 (sum_pose g g^T) H^-1 G/(G-1)`` clustered by pose (tracker and pixel rows of one robot pose
+:func:`effect_jacobian`, robust ``soft_l1`` loss at ``robust_scale`` whitened units).  Noise weights: with
+both sensors, each sensor's declared noise is first scaled by the robust spread of its residual in its own
+fit (:func:`sensor_noise`), then ``rescale`` rounds re-estimate both from the joint solution (1.4826 MAD of
+the whitened residuals) and solve again (variance components: a sensor whose residuals are 10 x its declared
+noise must not outweigh the other one ten-fold).  Covariance of all unknowns: the robust (IRLS-weighted)
+Gauss-Newton information ``H = J^T W J`` at the solution and, by default, the sandwich
+``H^-1 (sum_pose g g^T) H^-1 G/(G-1)`` clustered by pose (tracker and pixel rows of one robot pose
 share its arm error), else ``s^2 H^-1``; effect CIs are the marginal (registrations not fixed) 95 % normal
 intervals.
 """
