@@ -194,3 +194,23 @@ def test_gtsam_and_scipy_agree(robot):
     assert g["cost"] == pytest.approx(sol.cost, rel=1e-6)
     np.testing.assert_allclose(g["x"][:prob.P], sol.x[:prob.P], atol=1e-3 * sig.min())
     np.testing.assert_allclose(np.sqrt(np.diag(g["cov_theta"])), sig, rtol=1e-4)
+
+
+def test_concat_pixel_obs_of_two_tag_links(robot):
+    """concat_pixel_obs of single-link observations on different links gives a per-row link array (it raised
+    before) and predicts every row as its source did."""
+    from ppoe_core.analysis.diagnose import concat_pixel_obs
+
+    tree = KinematicTree(robot)
+    _, obs = arm7_joint_data(robot, (), n=4, seed=12)
+    parts = []
+    for ln in TAGS_SYN:
+        part = obs.subset(obs.row_links() == ln)
+        part.links, part.link = None, ln
+        parts.append(part)
+    both = concat_pixel_obs(parts)
+    assert list(both.row_links()) == [p.link for p in parts for _ in range(len(p))]
+    np.testing.assert_allclose(predict_pixels(tree, both), np.concatenate([predict_pixels(tree, p) for p in parts]),
+                               atol=1e-9)
+    single = concat_pixel_obs(parts[:1])
+    assert single.links is None and single.link == parts[0].link
