@@ -14,7 +14,8 @@
    per camera and tracker RMS (5-fold over poses) of effect sets: registration only, tracker only (the tracker
    stage's effects refitted on the tracker points), cameras only (pixels),
    staged (tracker-stage effects fixed, cameras fitted), joint A (tracker-stage effects + cameras), joint B
-   (A + joint offsets S1..T1), joint A with the declared noise (0.2 mm / 1 px); each fitted on all of 6x6x6 and
+   (A + joint offsets S1..T1), joint C (A + the marker plate's ``link_error@T1_to_EE1``), joint A with the
+   declared noise (0.2 mm / 1 px); each fitted on all of 6x6x6 and
    scored on the higher / lower / wall files.
 3. A 10-minute simulated bag of the arm7 robot (100 Hz joint states, a static tracker stop every
    5 s, gravity compliance injected), written to a temporary directory: ``ppoe diagnose`` time.
@@ -276,6 +277,7 @@ def motoman_joint() -> None:
     sets = [("registration_only", [], st, ob, (), {}), ("tracker_only", trk, st, None, (), {}),
             ("cameras_only", cams, None, ob, (), {}), ("staged", cams, None, ob, res.chosen, {}),
             ("joint_A", trk + cams, st, ob, (), {}), ("joint_B", trk + cams + offsets, st, ob, (), {}),
+            ("joint_C", trk + cams + [make_effect("link_error", "T1_to_EE1", tree)], st, ob, (), {}),
             ("joint_A_declared_noise", trk + cams, st, ob, (), {"presolve": False})]
     for label, effs, stops, pixels, declared, kw in sets:
         t0 = time.perf_counter()
