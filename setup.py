@@ -47,6 +47,7 @@ setup(
             "hypothesis>=6",
             "pytest-timeout>=2",
             "pytransform3d>=3.6",
+            "gtsam>=4.3",         # test_diagnose_joint: GTSAM factor graph vs scipy (importorskip)
             "colcon-core",
             "colcon-ros",
             "colcon-python-setup-py",

@@ -10,11 +10,19 @@
    published chains, ``camera_extrinsics`` found on the 6x6x6 set (5-fold CV over poses), fit on
    even poses -> score odd poses, fit on 6x6x6 -> score the table/wall files, the same with arm
    candidates added, and ``ppoe diagnose`` on an imported 6x6x6 bag (temporary directory).
+2b. Motoman joint tracker + pixel fit (right arm, 6x6x6; ``joint_fit`` / ``joint_heldout``): held-out pixel RMS
+   per camera and tracker RMS (5-fold over poses) of effect sets: registration only, tracker only (the tracker
+   stage's effects refitted on the tracker points), cameras only (pixels),
+   staged (tracker-stage effects fixed, cameras fitted), joint A (tracker-stage effects + cameras), joint B
+   (A + joint offsets S1..T1), joint C (A + the marker plate's ``link_error@T1_to_EE1``), joint A with the
+   declared noise (0.2 mm / 1 px); each fitted on all of 6x6x6 and
+   scored on the higher / lower / wall files.
 3. A 10-minute simulated bag of the arm7 robot (100 Hz joint states, a static tracker stop every
    5 s, gravity compliance injected), written to a temporary directory: ``ppoe diagnose`` time.
 
 Prints ``name: value unit`` lines; ratios are against the nominal baseline measured in the same
-run.  Usage: ``python bench/bench_diagnose.py [--quick] [--skip-hilti] [--skip-bag] [--skip-motoman]``.
+run.  Usage: ``python bench/bench_diagnose.py [--quick] [--skip-hilti] [--skip-bag] [--skip-motoman]
+[--skip-joint]``.
 """
 
 from __future__ import annotations
@@ -239,13 +247,65 @@ def motoman() -> None:
             )
 
 
+def motoman_joint() -> None:
+    from ppoe_core.analysis.diagnose import pixel_candidates
+    from ppoe_core.analysis.diagnose.joint_cv import joint_heldout, joint_pose_ids, score_joint
+    from ppoe_core.analysis.diagnose.joint_fit import joint_fit
+    from ppoe_core.cli.datasets import pixels_from_motoman, stops_from_motoman
+    from ppoe_core.model.effects import make_effect
+    from ppoe_core.robot.tree import KinematicTree
+
+    d = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets")) / "motoman_leica"
+    robot = parse_urdf(d / "motoman_right.urdf")
+    tree = KinematicTree(robot)
+    files = ["right_hand_6x6x6", "higher_table1_5x5", "lower_table1_5x5", "wall_table1_5x5"]
+    S = {f: stops_from_motoman(d / f"leica_{f}_dataset.mat", robot) for f in files}
+    O = {f: pixels_from_motoman(d / f"leica_{f}_dataset.mat", robot, d / "model.yaml") for f in files}
+    st, ob = S[files[0]], O[files[0]]
+    pose_t, _ = joint_pose_ids(st, ob)
+    t0 = time.perf_counter()
+    res = diagnose(robot, st)
+    print(f"motoman_joint_tracker_stage: {[e.describe() for e in res.chosen]} ({time.perf_counter() - t0:.1f} s)")
+    cams = [e for e in pixel_candidates(robot, ob) if e.name == "camera_extrinsics"]
+    trk = [e.with_params(np.zeros(e.n_params)) for e in res.chosen]
+    offsets = [make_effect("joint_offset", j, tree) for j in ("joint_S1", "joint_L1", "joint_U1", "joint_R1",
+                                                               "joint_B1", "joint_T1")]
+
+    def fmt(r: dict) -> str:
+        return " / ".join(f"{v:.2f}" for v in r.values())
+
+    sets = [("registration_only", [], st, ob, (), {}), ("tracker_only", trk, st, None, (), {}),
+            ("cameras_only", cams, None, ob, (), {}), ("staged", cams, None, ob, res.chosen, {}),
+            ("joint_A", trk + cams, st, ob, (), {}), ("joint_B", trk + cams + offsets, st, ob, (), {}),
+            ("joint_C", trk + cams + [make_effect("link_error", "T1_to_EE1", tree)], st, ob, (), {}),
+            ("joint_A_declared_noise", trk + cams, st, ob, (), {"presolve": False})]
+    for label, effs, stops, pixels, declared, kw in sets:
+        t0 = time.perf_counter()
+        h = joint_heldout(tree, effs, stops, pixels, declared, **kw)
+        fit = joint_fit(tree, effs, stops, pixels, declared, pose_t=None if stops is None else pose_t, **kw)
+        print(f"motoman_joint_{label}: held-out pixels {fmt(h['pixel_rms'])} px, tracker "
+              f"{1e3 * h['tracker_rms']:.3f} mm; in-sample {fmt(fit.pixel_rms)} px, {1e3 * fit.tracker_rms:.3f} mm; "
+              f"noise {fit.sensor_sigma}; nfev {fit.iterations}; {time.perf_counter() - t0:.1f} s")
+        for f in files[1:]:
+            sc = score_joint(tree, fit, S[f], O[f], declared)
+            print(f"motoman_joint_{label}_to_{f}: pixels {fmt(sc['pixel_rms'])} px, tracker "
+                  f"{1e3 * sc['tracker_rms']:.3f} mm")
+        if label == "joint_A":
+            for e in fit.effects:
+                print(f"motoman_joint_A_effect: {e['name']}@{e['location']} " + ", ".join(
+                    f"{k} {v:.5f} +- {1.96 * e['sigma'][k]:.5f}" for k, v in e["parameters"].items()))
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="at most 4 effects, no nested leave-one-file-out")
     ap.add_argument("--skip-hilti", action="store_true")
     ap.add_argument("--skip-bag", action="store_true")
     ap.add_argument("--skip-motoman", action="store_true")
+    ap.add_argument("--skip-joint", action="store_true")
     args = ap.parse_args()
+    if not args.skip_joint:
+        motoman_joint()
     if not args.skip_motoman:
         motoman()
     if not args.skip_bag:

@@ -453,7 +453,8 @@ def test_shipped_bag_camera_extrinsics_from_tag_images(robot, tmp_path):
     """bags/effect_camera_extrinsics through the CLI: tags detected on its images, the tracker finds
     nothing (the camera is not on its chain), the pixels name camera_extrinsics at camera_joint
     with the truth inside the CI (per-stop camera-mount noise, declared 5 mm / 0.5 deg, makes the
-    pose-clustered CI necessary); the updated model carries the effect."""
+    pose-clustered CI necessary); the updated model carries the effect; the joint fit adds its block
+    with the truth inside its CIs too."""
     import contextlib
     import io
 
@@ -477,6 +478,13 @@ def test_shipped_bag_camera_extrinsics_from_tag_images(robot, tmp_path):
     model = yaml.safe_load((tmp_path / "model_diagnosed.yaml").read_text())
     assert [(e["name"], e["location"]) for e in model["effects"]] == [(truth["name"], truth["location"])]
     assert "Tag pixels" in (tmp_path / "diagnose.md").read_text()
+    # tracker points and tag pixels: the joint fit runs as the final fit (--joint auto), its own JSON block
+    joint = doc["joint"]
+    assert joint["protocol"] == "cross-validated over poses"
+    assert [(e["name"], e["location"]) for e in joint["effects"]] == [(truth["name"], truth["location"])]
+    assert _inside(joint["effects"][0], truth["parameters"]), joint["effects"][0]["ci"]
+    assert joint["pixel_rms_heldout"][cam] < 0.6 * px["pixel_rms_before"][cam]
+    assert np.isfinite(joint["tracker_rms_heldout"]) and "Joint tracker + pixel fit" in doc["summary"]
 
 
 def test_pixel_noise_beyond_the_declared_covariance_is_unexplained(robot):
@@ -553,7 +561,8 @@ def test_motoman_imported_bag_cli_pixels(tmp_path):
     model = next(iter(sorted(tmp_path.glob("*.yaml")) or sorted(bag.glob("*.yaml"))))
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        assert main(["diagnose", str(bag), "--model", str(model), "--json", "--max-effects", "1"]) == 0
+        assert main(["diagnose", str(bag), "--model", str(model), "--json", "--max-effects", "1", "--joint",
+                     "off"]) == 0
     doc = json.loads(out.getvalue())
     px = doc["pixels"]
     assert px["n"] == 1314
@@ -562,6 +571,7 @@ def test_motoman_imported_bag_cli_pixels(tmp_path):
     assert pix == ["camera_1_optical_frame", "camera_2_optical_frame"]
     for cam in pix:
         assert px["pixel_rms_after"][cam] < 0.6 * px["pixel_rms_before"][cam]
+    assert "joint" not in doc  # --joint off (the joint fit on this bag takes 1-2 min; tested on the shipped bag)
 
 
 def test_cli_pixels_off_and_on_without_tags(tmp_path):
@@ -589,6 +599,9 @@ def test_cli_pixels_off_and_on_without_tags(tmp_path):
     add_arguments(ap)
     with pytest.raises(BagError, match="--pixels on.*notags.yaml"):
         run(ap.parse_args([str(bag), "--model", str(tmp_path / "notags.yaml"), "--pixels", "on", "--json"]))
+    with pytest.raises(BagError, match="--joint on needs tracker points and tag pixels"):
+        run(ap.parse_args([str(bag), "--model", str(CONFIG / "robots" / "arm7_model.yaml"), "--pixels", "off",
+                           "--joint", "on", "--json"]))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -12,6 +12,11 @@ Tag pixels (``--pixels``, default ``auto``: when the model has ``tags`` and a ba
 effects: ``camera_extrinsics`` candidates per camera, JSON key ``pixels`` (held-out pixel RMS
 per camera before -> after), found effects appended to ``effects``.
 
+Joint fit (``--joint``, default ``auto``: when the bags carry tracker points and tag pixels): the effects the
+stages chose plus every camera's ``camera_extrinsics`` fitted to tracker points and pixels at once
+(:func:`ppoe_core.analysis.diagnose.joint_fit.joint_fit`), JSON key ``joint`` (effects with 95 % CIs,
+held-out pixel RMS per camera and tracker RMS, cross-validated over poses); the other keys are unchanged.
+
 ``--test TEST_BAG...`` scores the fitted model, unchanged, on other bags of the same robot (JSON key
 ``test``, one object per bag: ``rms``, ``mean``, ``median``, ``p95``, ``max`` [m], ``n``, the same
 ``before``, and the ``protocol``: a bag with stop roles is scored by them, else one registration
@@ -63,6 +68,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pixels", default="auto", choices=("auto", "on", "off"),
                         help="also diagnose tag pixels (auto: if the model has tags and a bag has tag "
                              "observations or images)")
+    parser.add_argument("--joint", default="auto", choices=("auto", "on", "off"),
+                        help="final joint tracker + pixel fit of the effects the stages chose plus every camera's "
+                             "camera_extrinsics (auto: when the bags carry tracker points and tag pixels); JSON "
+                             "key 'joint', held-out over poses")
     parser.add_argument("--pixel-sigma", type=float, default=None,
                         help="pixel noise 1-sigma per axis used to whiten tag residuals [px] "
                              "(default: the model's camera.pixel_sigma, else 1)")
@@ -96,8 +105,8 @@ def run(args: argparse.Namespace) -> int:
                            max_effects=args.max_effects,
                            imu_sigma={k: v.sigma for k, v in (getattr(cfg, "imus", None) or {}).items()} or None)
     res = diagnose(robot, stops, declared, pert, jnoise, opts)
-    if args.pixels != "off":
-        _pixel_stage(args, res, robot, cfg, declared, pert, jnoise)
+    pixels = _pixel_stage(args, res, robot, cfg, declared, pert, jnoise) if args.pixels != "off" else None
+    _joint_stage(args, res, robot, stops, pixels, declared)
     if args.test:
         _test_stage(args, res, robot, cfg, declared)
     paths = {}
@@ -168,9 +177,26 @@ def _test_stage(args: argparse.Namespace, res: Any, robot: Any, cfg: Any, declar
     append_test_summary(res)
 
 
+def _joint_stage(args: argparse.Namespace, res: Any, robot: Any, stops: Any, pixels: Any, declared: Any) -> None:
+    """``--joint auto|on``: the joint tracker + pixel fit into ``res`` (JSON key ``joint``) when there are tracker
+    points and tag pixels (``on`` without both is an error)."""
+    from ppoe_core.analysis.diagnose.joint_cv import add_joint_fit
+    from ppoe_core.errors import BagError
+
+    if args.joint == "off":
+        return
+    if pixels is None or stops.kind != "point":
+        if args.joint == "on":
+            raise BagError(f"--joint on needs tracker points and tag pixels; bags {args.bags} give "
+                           f"{'pose' if stops.kind != 'point' else 'tracker'} measurements and "
+                           f"{'no' if pixels is None else ''} tag pixels")
+        return
+    add_joint_fit(res, robot, stops, pixels, declared, folds=args.folds)
+
+
 def _pixel_stage(args: argparse.Namespace, res: Any, robot: Any, cfg: Any, declared: Any, pert: Any,
-                 jnoise: Any) -> None:
-    """Tag pixels of every bag with tags (``--pixels auto|on``) diagnosed into ``res``."""
+                 jnoise: Any) -> Any:
+    """Tag pixels of every bag with tags (``--pixels auto|on``) diagnosed into ``res``; returns them (or None)."""
     from ppoe_core.analysis.diagnose import add_pixel_diagnosis, concat_pixel_obs, pixels_from_bag
     from ppoe_core.errors import BagError
     from ppoe_core.io.bagio import bag_topics
@@ -189,6 +215,9 @@ def _pixel_stage(args: argparse.Namespace, res: Any, robot: Any, cfg: Any, decla
                                        accept_partial=args.accept_partial))
         elif args.pixels == "on":
             raise BagError(f"bag {bag}: --pixels on, but no tag observations/images or no 'tags' in {args.model}")
-    if pix:
-        add_pixel_diagnosis(res, robot, concat_pixel_obs(pix), declared, folds=args.folds,
-                            min_gain=args.min_gain, min_t=args.min_t, pert=pert, jnoise=jnoise)
+    if not pix:
+        return None
+    obs = concat_pixel_obs(pix)
+    add_pixel_diagnosis(res, robot, obs, declared, folds=args.folds, min_gain=args.min_gain, min_t=args.min_t,
+                        pert=pert, jnoise=jnoise)
+    return obs

@@ -35,6 +35,9 @@ Pipeline (issue 6, docs/conventions.md sec. 6):
    covariance propagated to the pixels; ``camera_extrinsics`` candidates at each camera's mount
    joint, selected by cross-validation over poses, CIs from a pose-clustered sandwich
    covariance; held-out pixel RMS, noise floor and NEES per camera.
+9. **Joint fit** (final fit, :func:`joint_fit`, :mod:`joint_cv`): the effects the stages chose plus every
+   camera's ``camera_extrinsics`` fitted to tracker points and tag pixels at once (robust nonlinear least
+   squares, per-sensor noise, pose-clustered CIs), scored by k-fold cross-validation over robot poses.
 """
 
 from __future__ import annotations
@@ -49,6 +52,8 @@ from ppoe_core.analysis.diagnose.imu import (
                                              imu_tilt_raw,
                                              imu_tilt_residuals,
 )
+from ppoe_core.analysis.diagnose.joint_cv import add_joint_fit, joint_heldout, joint_pose_ids, score_joint
+from ppoe_core.analysis.diagnose.joint_fit import JointFit, JointProblem, joint_fit
 from ppoe_core.analysis.diagnose.linear import FitResult, LinearProblem, make_folds
 from ppoe_core.analysis.diagnose.pixel_stage import (
                                              PixelDiagnosis,
@@ -110,4 +115,11 @@ __all__ = [
     "diagnose_imu",
     "imu_candidates",
     "imu_tilt_covariance",
+    "JointFit",
+    "JointProblem",
+    "joint_fit",
+    "joint_heldout",
+    "joint_pose_ids",
+    "score_joint",
+    "add_joint_fit",
 ]

@@ -272,7 +272,7 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
     ------
     BagError
         No tag observations or images, a camera frame without CameraInfo, an observed id the
-        model does not list, tags on more than one link.
+        model does not list.  Tags on several links give a per-row ``links`` array.
     """
     from ppoe_core.estimation.measurements import tag_points
     from ppoe_core.io import bagio
@@ -282,8 +282,6 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
         raise BagError(f"{model_yaml}: no 'tags' section: pixels of bag {path} cannot be attributed to links")
     by_id = cfg.tags.by_id()
     links = sorted({t.link for t in cfg.tags.items})
-    if len(links) != 1:
-        raise BagError(f"{model_yaml}: tags on several links {links}; pixel diagnosis supports one tag link")
     data = bagio.read_bag(path, load_images=True, accept_partial=accept_partial)
     ci = data.camera_info
     intr: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -309,19 +307,19 @@ def pixels_from_bag(path: str | Path, robot: Robot, model_yaml: str | Path, sigm
             raise BagError(f"bag {path}: camera frame {f!r} is not a link of URDF {robot.source}")
     q, ctx = _joints_at(data.joint_states, robot, np.asarray(stamps)[msg], path, [*links, *cams])
     ctx["sensor"] = np.array([frames[k] for k in msg])  # the camera of each row (a camera's time_offset)
-    return PixelObs(q=q, context=ctx, link=links[0], point=point, camera=np.array([cams.index(frames[k]) for k in msg]),
-                    cameras=cams, K=[intr[f][0] for f in cams], D=[intr[f][1] for f in cams], uv=rows[:, 3:5].copy(),
-                    pose=msg, sigma_px=float(sigma_px), name=Path(path).name)
+    row_links = np.array([by_id[t].link for t in ids], dtype=object)
+    return PixelObs(q=q, context=ctx, link=str(row_links[0]), point=point,
+                    camera=np.array([cams.index(frames[k]) for k in msg]), cameras=cams,
+                    K=[intr[f][0] for f in cams], D=[intr[f][1] for f in cams], uv=rows[:, 3:5].copy(),
+                    pose=msg, sigma_px=float(sigma_px), name=Path(path).name,
+                    links=row_links if len(set(row_links.tolist())) > 1 else None)
 
 
 def concat_pixel_obs(parts: Sequence[PixelObs]) -> PixelObs:
-    """Join :class:`PixelObs` of several sources (same marker link); poses and cameras renumbered."""
+    """Join :class:`PixelObs` of several sources (tags on any links); poses and cameras renumbered."""
     if not parts:
         raise MeasurementError("concat_pixel_obs: no pixel observations given")
-    links = {p.link for p in parts}
-    if len(links) != 1:
-        raise MeasurementError(f"concat_pixel_obs: markers on different links {sorted(links)} "
-                               f"({', '.join(p.name for p in parts)})")
+    several = any(p.links is not None for p in parts) or len({p.link for p in parts}) > 1
     cams: list[str] = []
     K: list[np.ndarray] = []
     D: list[np.ndarray] = []
@@ -339,7 +337,8 @@ def concat_pixel_obs(parts: Sequence[PixelObs]) -> PixelObs:
         pose.append(p.pose + off)
         off += int(p.pose.max()) + 1 if len(p) else 0
     names = set().union(*[p.q for p in parts])
-    return PixelObs(q={j: np.concatenate([p.q[j] for p in parts]) for j in names}, link=parts[0].link,
+    links = np.concatenate([p.row_links() for p in parts]) if several else None
+    return PixelObs(q={j: np.concatenate([p.q[j] for p in parts]) for j in names}, link=parts[0].link, links=links,
                     point=np.concatenate([p.point for p in parts]),
                     camera=np.concatenate([[cams.index(p.cameras[c]) for c in p.camera] for p in parts]).astype(int),
                     cameras=cams, K=K, D=D, uv=np.concatenate([p.uv for p in parts]), pose=np.concatenate(pose),

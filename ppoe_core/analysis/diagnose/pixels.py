@@ -30,9 +30,9 @@ class PixelObs:
     q : dict joint -> ndarray, shape (M,)
         Joint values of each observation [rad, m].
     link : str
-        Link that carries the markers (e.g. ``EE1`` or ``tool0``).
+        Link that carries the markers (e.g. ``EE1`` or ``tool0``); with ``links`` set, the first one.
     point : ndarray, shape (M, 3)
-        Marker origin (the point whose image is measured) in ``link`` coordinates [m].
+        Marker origin (the point whose image is measured) in its link's coordinates [m].
     camera : ndarray, shape (M,), int
         Index into ``cameras``.
     cameras : list[str]
@@ -50,6 +50,8 @@ class PixelObs:
     context : dict
         Effect context per observation (``motion_sign``: joint -> (M,), ``time`` (M,),
         ``joint_velocity``: joint -> (M,)), as in :class:`Stops`.
+    links : ndarray, shape (M,), of str, or None
+        Tags on several links: the link of each row's point (None: every row on ``link``).
     """
 
     q: dict[str, np.ndarray]
@@ -64,9 +66,18 @@ class PixelObs:
     sigma_px: float = 1.0
     name: str = ""
     context: dict[str, Any] = field(default_factory=dict)
+    links: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
+
+    def row_links(self) -> np.ndarray:
+        """The tag link of each row, (M,) of str."""
+        return self.links if self.links is not None else np.full(len(self), self.link, dtype=object)
+
+    def tag_links(self) -> list[str]:
+        """The tag links, in first-seen order (one unless ``links`` is set)."""
+        return list(dict.fromkeys(self.row_links().tolist())) if self.links is not None else [self.link]
 
     def subset(self, rows: np.ndarray) -> PixelObs:
         """The observations ``rows`` (index or boolean array)."""
@@ -83,6 +94,7 @@ class PixelObs:
             sigma_px=self.sigma_px,
             name=self.name,
             context=_map_ctx(lambda v: v[rows], [self.context]),
+            links=None if self.links is None else self.links[rows],
         )
 
 
@@ -103,14 +115,46 @@ def _camera_points(
 ) -> tuple[np.ndarray, dict, dict, dict]:
     """Marker points in their camera's optical frame, shape (M, 3) [m], with the chain used."""
     dq, dxi = sum_effect_corrections(list(effects), obs.q, obs.context)
-    poses = tree.link_poses(obs.q, dq, dxi, links=[obs.link, *obs.cameras])
-    p_root = np.einsum("mij,mj->mi", poses[obs.link][:, :3, :3], obs.point) + poses[obs.link][:, :3, 3]
+    links = obs.tag_links()
+    poses = tree.link_poses(obs.q, dq, dxi, links=[*links, *obs.cameras])
+    T_root_tag = tag_link_poses(obs, poses)
+    p_root = np.einsum("mij,mj->mi", T_root_tag[:, :3, :3], obs.point) + T_root_tag[:, :3, 3]
     P = np.empty_like(p_root)  # filled per camera
     for c, frame in enumerate(obs.cameras):
         m = obs.camera == c
         T = poses[frame][m]
         P[m] = np.einsum("mji,mj->mi", T[:, :3, :3], p_root[m] - T[:, :3, 3])
     return P, poses, dq, dxi
+
+
+def tag_link_poses(obs: PixelObs, poses: Mapping[str, np.ndarray]) -> np.ndarray:
+    """``T_root_link`` of each row's tag link, (M, 4, 4), from :meth:`KinematicTree.link_poses` output."""
+    T = np.broadcast_to(poses[obs.link], (len(obs), 4, 4))
+    if obs.links is None:
+        return T
+    rows = obs.row_links()
+    for ln in obs.tag_links():
+        T = np.where((rows == ln)[:, None, None], np.broadcast_to(poses[ln], T.shape), T)
+    return T
+
+
+def _tag_frame_jacobians(tree: KinematicTree, obs: PixelObs, poses: Mapping[str, np.ndarray], dq: Mapping,
+                         dxi: Mapping) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """:meth:`KinematicTree.frame_jacobian` of each row's tag link ((M, 6), (M, 6, 6); zero for joints off
+    that link's path)."""
+    if obs.links is None:
+        return tree.frame_jacobian(obs.q, obs.link, poses, dq, dxi)
+    rows, n = obs.row_links(), len(obs)
+    Jq: dict[str, np.ndarray] = {}
+    Jx: dict[str, np.ndarray] = {}
+    for ln in obs.tag_links():
+        m = rows == ln
+        jq, jx = tree.frame_jacobian(obs.q, ln, poses, dq, dxi)
+        for k, v in jq.items():
+            Jq[k] = Jq.get(k, np.zeros((n, 6))) + np.where(m[:, None], np.broadcast_to(v, (n, 6)), 0.0)
+        for k, v in jx.items():
+            Jx[k] = Jx.get(k, np.zeros((n, 6, 6))) + np.where(m[:, None, None], np.broadcast_to(v, (n, 6, 6)), 0.0)
+    return Jq, Jx
 
 
 def predict_pixels(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> np.ndarray:
@@ -125,17 +169,22 @@ def predict_pixels(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
     from ppoe_core.estimation.camera import project_points
 
     P = _camera_points(tree, obs, effects)[0]
+    _check_in_front(obs, P)
+    uv = np.empty((len(obs), 2))
+    for c in range(len(obs.cameras)):
+        m = obs.camera == c
+        uv[m] = project_points(P[m], obs.K[c], obs.D[c])
+    return uv
+
+
+def _check_in_front(obs: PixelObs, P: np.ndarray) -> None:
+    """MeasurementError naming the source and row if a marker point ``P`` (M, 3) is behind its camera."""
     bad = P[:, 2] <= 1e-6
     if np.any(bad):
         raise MeasurementError(
             f"{obs.name}: observation {int(np.flatnonzero(bad)[0])}: marker is behind "
             f"camera '{obs.cameras[int(obs.camera[bad][0])]}' (z = {P[bad][0, 2]:.3g} m)"
         )
-    uv = np.empty((len(obs), 2))
-    for c in range(len(obs.cameras)):
-        m = obs.camera == c
-        uv[m] = project_points(P[m], obs.K[c], obs.D[c])
-    return uv
 
 
 def pixel_chain_jacobians(
@@ -156,10 +205,19 @@ def pixel_chain_jacobians(
     J_dxi : dict joint -> ndarray (M, 2, 6)
         ``d uv / d dxi_j`` (tangent right after joint ``j``'s origin, ``[rho; theta]``).
     """
+    return predict_pixels_with_jacobians(tree, obs, effects)[1:]
+
+
+def predict_pixels_with_jacobians(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()
+                                  ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """:func:`predict_pixels` and :func:`pixel_chain_jacobians` from one chain evaluation: ``(uv (M, 2), J_dq,
+    J_dxi)``."""
     P, poses, dq, dxi = _camera_points(tree, obs, effects)
+    _check_in_front(obs, P)
     n = len(obs)
-    Jq_l, Jx_l = tree.frame_jacobian(obs.q, obs.link, poses, dq, dxi)
-    R_l = poses[obs.link][:, :3, :3]
+    uv = np.empty((n, 2))
+    Jq_l, Jx_l = _tag_frame_jacobians(tree, obs, poses, dq, dxi)
+    R_l = tag_link_poses(obs, poses)[:, :3, :3]
     B_l = np.concatenate([R_l, -R_l @ lie.hat3(obs.point)], axis=-1)  # (M, 3, 6): d p_root / d xi_l
     A = np.zeros((n, 3, 3))  # d P_cam / d p_root = R_cam^T
     B_c = np.zeros((n, 3, 6))  # d P_cam / d xi_cam
@@ -171,7 +229,7 @@ def pixel_chain_jacobians(
             continue
         A[m] = np.swapaxes(poses[frame][m][:, :3, :3], -1, -2)
         B_c[m] = np.concatenate([-np.broadcast_to(np.eye(3), (int(m.sum()), 3, 3)), lie.hat3(P[m])], axis=-1)
-        Jproj[m] = project_points_jacobian(P[m], obs.K[c], obs.D[c])[1]
+        uv[m], Jproj[m] = project_points_jacobian(P[m], obs.K[c], obs.D[c])
         cam_jac.append((m, tree.frame_jacobian(obs.q, frame, poses, dq, dxi)))
     G_l = Jproj @ A @ B_l  # (M, 2, 6): d uv / d xi_l
     J_dq: dict[str, np.ndarray] = {k: np.einsum("mij,mj->mi", G_l, v) for k, v in Jq_l.items()}
@@ -184,7 +242,7 @@ def pixel_chain_jacobians(
         for k, v in Jx_c.items():
             J_dxi[k] = J_dxi[k].copy() if k in J_dxi else np.zeros((n, 2, 6))
             J_dxi[k][m] += G_c[m] @ v[m]
-    return J_dq, J_dxi
+    return uv, J_dq, J_dxi
 
 
 def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect, effects: Sequence[Effect] = ()) -> np.ndarray:
@@ -192,8 +250,17 @@ def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect, effects: 
     evaluated on the chain corrected by ``effects``: :func:`pixel_chain_jacobians` times
     :meth:`Effect.basis` (evaluated on the nominal chain)."""
     Jq, Jx = pixel_chain_jacobians(tree, obs, effects)
-    Bq, Bx = effect.basis(obs.q, obs.context, tree.link_poses(obs.q))
-    out = np.zeros((len(obs), 2, effect.n_params))
+    return effect_jacobian(Jq, Jx, effect, obs.q, obs.context, tree.link_poses(obs.q), (len(obs), 2))
+
+
+def effect_jacobian(Jq: Mapping[str, np.ndarray], Jx: Mapping[str, np.ndarray], effect: Effect,
+                    q: Mapping[str, np.ndarray], context: Mapping[str, Any], nominal: Mapping[str, np.ndarray],
+                    shape: tuple[int, int]) -> np.ndarray:
+    """Chain Jacobians (``Jq``: joint -> (M, d), ``Jx``: joint -> (M, d, 6)) times ``effect``'s basis
+    (:meth:`Effect.basis` on the ``nominal`` link poses): the derivative (M, d, P) of a measurement of
+    shape ``shape`` = (M, d) w.r.t. the effect's parameters."""
+    Bq, Bx = effect.basis(q, context, nominal)
+    out = np.zeros((*shape, effect.n_params))
     for k, b in Bq.items():
         if k in Jq:
             out = out + Jq[k][:, :, None] * b[:, None, :]
