@@ -78,6 +78,12 @@ def _written_bag(path: Path) -> Path:
                                        "png")
             bag.write_pose_with_covariance("/ppoe/fused_pose", 0.01 * k + 0.005, "base" + "z" * (k % 2), T,
                                            np.diag(rng.uniform(1, 2, 6)))
+        # messages of one size whose layouts differ: velocities or efforts, other names of the same length
+        for k, (names, with_vel) in enumerate([(["a", "b"], True), (["a", "b"], False), (["a", "c"], True),
+                                               (["a", "c"], True), (["a", "b"], False)]):
+            two = rng.normal(size=2)
+            bag.write_joint_state(1.0 + 0.01 * k, names, rng.normal(size=2), velocities=two if with_vel else None,
+                                  efforts=None if with_vel else two)
     return path
 
 
