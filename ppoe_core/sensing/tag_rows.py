@@ -113,8 +113,9 @@ def detections_in_images(decode: Callable[[int], np.ndarray], n: int, dictionary
     """:func:`ppoe_core.sensing.tags.detect_tags` of images ``decode(0) .. decode(n - 1)``, in that order.
 
     With ``workers`` > 1, decoding and detection run on that many threads (OpenCV releases the GIL), a few
-    images ahead of the consumer; every image's detections, or the error its decoding or detection raised,
-    are still handed out in image order, and the threads stop when the consumer stops (``close()``).
+    images ahead of the consumer (OpenCV's own threads are set to one meanwhile); every image's detections,
+    or the error its decoding or detection raised, are still handed out in image order, and the threads stop
+    when the consumer stops (``close()``).
     The detections do not depend on the thread (``test/test_tags.py``).
     """
     def one(i: int) -> list[Any]:
@@ -123,6 +124,10 @@ def detections_in_images(decode: Callable[[int], np.ndarray], n: int, dictionary
     if workers <= 1 or n < 2:
         yield from (one(i) for i in range(n))
         return
+    import cv2
+
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # the pool is the parallelism; OpenCV's own threads would only compete for the cores
     ex = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="detect_tags")
     try:
         todo = iter(range(n))
@@ -135,6 +140,7 @@ def detections_in_images(decode: Callable[[int], np.ndarray], n: int, dictionary
             yield done.result()
     finally:
         ex.shutdown(wait=True, cancel_futures=True)
+        cv2.setNumThreads(cv_threads)
 
 
 def rows_from_detections(
