@@ -9,6 +9,7 @@ paths build the same rows through the same checks and error messages.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -73,12 +74,14 @@ def named(topic: str, prefix: str) -> bool:
 
 def _pose_to_T(v: tuple[float, ...]) -> np.ndarray:
     """``(px, py, pz, qx, qy, qz, qw)`` -> (4, 4); ValueError for a zero or non-finite quaternion."""
-    T = np.eye(4)
     q = np.array(v[3:7], dtype=float)
-    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+    if not (math.isfinite(v[3]) and math.isfinite(v[4]) and math.isfinite(v[5]) and math.isfinite(v[6])) \
+            or np.linalg.norm(q) < 1e-9:
         raise ValueError(f"invalid quaternion {q}")
+    T = np.empty((4, 4))
     T[:3, :3] = lie.matrix_from_quat(q)
     T[:3, 3] = v[:3]
+    T[3] = (0.0, 0.0, 0.0, 1.0)
     return T
 
 
@@ -125,15 +128,22 @@ def _js_fields(msg: Any) -> tuple:
             np.asarray(msg.velocity, dtype=float), np.asarray(msg.effort, dtype=float))
 
 
+#: the last joint-name tuple found free of duplicates (the raw parser hands out one tuple per publisher)
+_unique_names: list[tuple[str, ...]] = [()]
+
+
 def _js_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
     stamp, _, names, pos, vel, eff = f
-    if pos.shape[0] != len(names):
-        raise BagError(f"topic {topic}: message {k} has {len(names)} names but {pos.shape[0]} positions")
-    if len(set(names)) != len(names):
-        raise BagError(f"topic {topic}: message {k} lists a joint twice: {list(names)}")
-    for what, arr in (("velocities", vel), ("efforts", eff)):
-        if arr.shape[0] not in (0, len(names)):
-            raise BagError(f"topic {topic}: message {k} has {len(names)} names but {arr.shape[0]} {what}")
+    n = len(names)
+    if pos.shape[0] != n:
+        raise BagError(f"topic {topic}: message {k} has {n} names but {pos.shape[0]} positions")
+    if names is not _unique_names[0]:
+        if len(set(names)) != n:
+            raise BagError(f"topic {topic}: message {k} lists a joint twice: {list(names)}")
+        _unique_names[0] = names
+    for what, m in (("velocities", vel.shape[0]), ("efforts", eff.shape[0])):
+        if m and m != n:
+            raise BagError(f"topic {topic}: message {k} has {n} names but {m} {what}")
     return (stamp, names, pos, vel, eff)
 
 
