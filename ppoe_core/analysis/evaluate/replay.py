@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -113,8 +114,8 @@ def _camera_lookup(data: Any) -> Callable[[str, float], tuple[np.ndarray, np.nda
     return lookup
 
 
-#: threads decoding images and detecting tags in :func:`tag_measurements` (1: in the calling thread)
-IMAGE_WORKERS = 2
+#: threads decoding images and detecting tags in :func:`tag_measurements` (two, or one on a single core)
+IMAGE_WORKERS = min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
 def tag_measurements(
