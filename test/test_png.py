@@ -96,7 +96,7 @@ def test_damaged_bytes_never_decode_differently_from_opencv() -> None:
     cases = [data[:n] for n in range(len(data))]
     cases += [data + b"\x00", data + data]
     for i in range(len(data)):
-        for flip in (0x01, 0x80, 0xFF):
+        for flip in (0x01, 0xFF):
             cases.append(data[:i] + bytes([data[i] ^ flip]) + data[i + 1:])
     refused = 0
     for bad in cases:
