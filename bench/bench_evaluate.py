@@ -10,7 +10,8 @@ in the same run, only reading the bag (:func:`ppoe_core.io.bagio.read_bag`).
 
 Prints ``name: value unit`` lines, among them ``joint_states_per_s`` and
 ``bag_seconds_per_wall_second`` (wall clock), and the same per second of process CPU time
-(``*_per_cpu_s``), which is the fairer number on a shared machine.
+(``*_per_cpu_s``, all threads: the images are decoded and detected on ``image_threads`` threads), which is
+the fairer number on a shared machine.
 
 Run: ``cd /work/main && python bench/bench_evaluate.py [--duration 600] [--keep DIR]``
 """
@@ -35,6 +36,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from ppoe_core.analysis.evaluate import EvaluateOptions, evaluate_bag  # noqa: E402
+from ppoe_core.analysis.evaluate.replay import IMAGE_WORKERS  # noqa: E402
 from ppoe_core.io.bagio import read_bag  # noqa: E402
 from ppoe_core.sim.simulate import simulate  # noqa: E402
 
@@ -122,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"read_bag_cpu_time: {c_read:.2f} s")
         print(f"evaluate_time: {t_eval:.2f} s")
         print(f"evaluate_cpu_time: {c_eval:.2f} s")
+        print(f"image_threads: {IMAGE_WORKERS} threads")  # images decoded and detected on these (CPU time counts all)
         print(f"joint_states_per_s: {n_js / t_eval:.0f} 1/s")
         print(f"bag_seconds_per_wall_second: {span / t_eval:.1f} s/s")
         # the machine may be shared: the same rates per second of this process's CPU time

@@ -209,6 +209,11 @@ def test_bad_construction_inputs():
         PointObservation([0, 0, 0], 0.1, np.eye(4), np.eye(5))
     with pytest.raises(MeasurementError, match="rotation"):
         ContactPlaneModel(np.diag([1.0, 1.0, -1.0, 1.0]), SIGMA_PLANE)
+    # a camera pose from user input is checked (pose_checked=True only for the caller's own FK)
+    with pytest.raises(MeasurementError, match="T_ref_camera: rotation block is not a proper rotation"):
+        TagBearingModel(np.zeros((1, 3)) + [0, 0, 1], K, T_ref_camera=np.diag([1.0, 1.0, -1.0, 1.0]))
+    with pytest.raises(MeasurementError, match="T_ref_camera: pose contains NaN"):
+        TagBearingModel(np.zeros((1, 3)) + [0, 0, 1], K, T_ref_camera=np.full((4, 4), np.nan))
 
 
 def test_validate_rejects_nan_and_wrong_shape():

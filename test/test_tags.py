@@ -118,3 +118,56 @@ def test_undistort_inverts_project() -> None:
     uv = camera.project_points(P, K, D)
     xy = camera.undistort_pixels(uv, K, D)
     np.testing.assert_allclose(xy, P[:, :2] / P[:, 2:], atol=1e-8)
+
+
+def test_diagonal_intersection_is_the_cross_product_formula_bit_for_bit() -> None:
+    """The Python-float version gives the bits of the homogeneous ``np.cross`` construction it replaced."""
+    rng = np.random.default_rng(8)
+    for k in range(3000):
+        c = rng.uniform(0, 640, (4, 2)) if k % 2 else rng.normal(size=(4, 2)) * 10 ** rng.uniform(-6, 3)
+        if k % 97 == 0:
+            c[2] = c[0] + (c[0] - c[2])  # diagonals 1-3 and 2-4 on parallel lines through degenerate quads
+            c[3] = c[1] + (c[2] - c[0])
+        h = np.column_stack([c, np.ones(4)])
+        x = np.cross(np.cross(h[0], h[2]), np.cross(h[1], h[3]))
+        ref = c.mean(axis=0) if abs(x[2]) < 1e-12 else x[:2] / x[2]
+        assert np.array_equal(tags._diagonal_intersection(c), ref), c
+
+
+def _frames(n: int) -> list[np.ndarray]:
+    """Grey frames with a few tags each (some with none)."""
+    rng = np.random.default_rng(5)
+    out = []
+    for i in range(n):
+        poses = [_pose(*POSES[(i + j) % len(POSES)]) for j in range(i % 3)]
+        img, _ = tags.render_tags((320, 240), K * [[0.5], [0.5], [1]], D, poses, list(range(i % 3)), 0.06,
+                                  noise_sigma=2.0, rng=rng)
+        out.append(img)
+    return out
+
+
+def test_threaded_detection_equals_sequential_and_keeps_the_error_order() -> None:
+    from ppoe_core.errors import BagError
+    from ppoe_core.sensing.tag_rows import detections_in_images
+
+    frames = _frames(12)
+    seq = list(detections_in_images(frames.__getitem__, len(frames), "tag36h11", "subpix", workers=1))
+    assert sum(len(d) for d in seq) >= 8
+    for workers in (2, 3):
+        par = list(detections_in_images(frames.__getitem__, len(frames), "tag36h11", "subpix", workers=workers))
+        assert [[d.id for d in ds] for ds in par] == [[d.id for d in ds] for ds in seq]
+        for a, b in zip(par, seq):
+            for da, db in zip(a, b):
+                assert np.array_equal(da.corners, db.corners) and np.array_equal(da.centre, db.centre)
+
+    def decode(i: int) -> np.ndarray:
+        if i == 7:
+            raise BagError(f"topic /camera/image_raw/compressed: message {i} is not a decodable png image")
+        return frames[i]
+
+    got = []
+    gen = detections_in_images(decode, len(frames), "tag36h11", "subpix", workers=2)
+    with pytest.raises(BagError, match="message 7 "):
+        for ds in gen:
+            got.append(ds)
+    assert len(got) == 7  # images 0..6 first, then image 7's error, as in the sequential loop

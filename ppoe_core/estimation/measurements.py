@@ -148,6 +148,9 @@ class TagBearingModel(MeasurementModel):
         One label per point for error messages (e.g. ``"tag 3 corner 2"``).
     name : str
         Name for error messages.
+    pose_checked : bool
+        ``T_ref_camera`` is a rigid transform computed by the caller (e.g. the model's forward kinematics):
+        not checked again.  Leave False for poses from user input.
     """
 
     def __init__(
@@ -162,6 +165,8 @@ class TagBearingModel(MeasurementModel):
         min_depth: float = 1e-3,
         labels: Sequence[str] | None = None,
         name: str = "tag observation",
+        *,
+        pose_checked: bool = False,
     ) -> None:
         self.name = name
         pts = np.asarray(points_tool, dtype=float)
@@ -181,9 +186,12 @@ class TagBearingModel(MeasurementModel):
         self.D = distortion_coefficients(D, name)
         self.mode = mode
         self.pixel_sigma = float(pixel_sigma)
-        self.T_ref_camera = (
-            np.eye(4) if T_ref_camera is None else _check_pose(T_ref_camera, f"{name}: T_ref_camera")
-        )
+        if T_ref_camera is None:
+            self.T_ref_camera = np.eye(4)
+        elif pose_checked:
+            self.T_ref_camera = np.asarray(T_ref_camera, dtype=float)
+        else:
+            self.T_ref_camera = _check_pose(T_ref_camera, f"{name}: T_ref_camera")
         self.T_camera_ref = lie.inverse(self.T_ref_camera)
         self.min_depth = float(min_depth)
         n = pts.shape[0]

@@ -68,7 +68,7 @@ class ContactMeasurement:
 
 def _check_unique_rows(ids: Array, corners: Array, where: str) -> None:
     """Refuse an observation that lists a (tag id, corner) twice: it would count as two measurements."""
-    if ids.size == 0:
+    if ids.size == 0 or len(set(zip(ids.tolist(), corners.tolist()))) == ids.size:
         return
     pairs, counts = np.unique(np.column_stack([ids, corners]), axis=0, return_counts=True)
     if np.any(counts > 1):
@@ -221,6 +221,7 @@ class ModelUpdater:
             cov_camera=cov_cam,
             labels=labels,
             name=where,
+            pose_checked=True,  # T_base_cam: the model's own forward kinematics
         )
         return obs, xy[keep].reshape(-1)
 
@@ -232,8 +233,9 @@ class ModelUpdater:
 
         pts, keep, labels = [], [], []
         T_tool_link: dict[str, Array] = {}
-        for i, (tid, c) in enumerate(zip(ids, corners)):
-            item = self.tags.get(int(tid))
+        tag_pts: dict[int, Array] = {}  # centre and corners of each tag in the tool frame
+        for i, (tid, c) in enumerate(zip(ids.tolist(), corners.tolist())):
+            item = self.tags.get(tid)
             if item is None:
                 self.unknown_tag_points += 1
                 continue
@@ -241,9 +243,11 @@ class ModelUpdater:
                 raise MeasurementError(f"{where}: tag {tid} has corner index {c}, expected 0..4")
             if (c == 0 and not self.use_centre) or (c > 0 and not self.use_corners):
                 continue
-            if item.link not in T_tool_link:
-                T_tool_link[item.link] = self.model.fk_mean(joints, self.tool_frame, item.link)
-            pts.append(mm.tag_points(item.size, T_tool_link[item.link] @ item.T_link_tag)[c])
+            if tid not in tag_pts:
+                if item.link not in T_tool_link:
+                    T_tool_link[item.link] = self.model.fk_mean(joints, self.tool_frame, item.link)
+                tag_pts[tid] = mm.tag_points(item.size, T_tool_link[item.link] @ item.T_link_tag)
+            pts.append(tag_pts[tid][c])
             keep.append(i)
             labels.append(f"tag {tid} corner {c}")
         if not pts:

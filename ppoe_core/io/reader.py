@@ -2,51 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import numpy as np
-
-from ppoe_core import lie
 from ppoe_core.errors import BagError
-from ppoe_core.io.messages import (
-    CONTRACT_TYPES,
-    IMU_TOPIC_PREFIX,
-    T_IMU,
-    T_POINT,
-    T_POSE_COV,
-    T_TEMPERATURE,
-    TAG_OBSERVATION_FIELDS,
-    TOPIC_CAMERA_INFO,
-    TOPIC_COMPRESSED_IMAGE,
-    TOPIC_GT_POINT,
-    TOPIC_GT_POSE,
-    TOPIC_IMAGE,
-    TOPIC_JOINT_STATES,
-    TOPIC_ROBOT_DESCRIPTION,
-    TOPIC_TAG_OBSERVATIONS,
-    TOPIC_TEMPERATURE,
-    TOPIC_WRENCH,
-    _stamp_s,
-    deserialize,
-    typestore,
-)
+from ppoe_core.io.cdr_rows import PARSE_ERRORS, as_bytes
+from ppoe_core.io.messages import T_POSE_COV, TOPIC_ROBOT_DESCRIPTION, deserialize, typestore
 from ppoe_core.io.recovery import RecoveredMcap, ReadStatus, account, lost_messages, recording_in_progress
-from ppoe_core.io.series import (
-    BagData,
-    CameraInfos,
-    Images,
-    ImuSeries,
-    JointStates,
-    PointSeries,
-    PoseCovSeries,
-    PoseSeries,
-    RawMessage,
-    TagObservationRows,
-    TemperatureSeries,
-    Wrenches,
-)
+from ppoe_core.io.rows import RowKind, expected_type, finish, row_kind
+from ppoe_core.io.series import BagData, RawMessage
 
 
 def _open_reader(path: str | Path) -> Any:
@@ -167,65 +132,6 @@ def iter_raw(path: str | Path, topics: Iterable[str] | None = None, *, scanned: 
         reader.close()
 
 
-def _expected_type(topic: str) -> str | None:
-    if topic in CONTRACT_TYPES:
-        return CONTRACT_TYPES[topic]
-    if topic.startswith(IMU_TOPIC_PREFIX):
-        return T_IMU
-    if _named(topic, TOPIC_GT_POINT):
-        return T_POINT
-    if topic == TOPIC_TEMPERATURE or _named(topic, TOPIC_TEMPERATURE):
-        return T_TEMPERATURE
-    return None
-
-
-def _named(topic: str, prefix: str) -> bool:
-    """``topic`` is ``<prefix>/<name>`` (one of several sensors of a kind)."""
-    return topic.startswith(prefix + "/") and len(topic) > len(prefix) + 1
-
-
-def _pose_to_T(pose: Any) -> np.ndarray:
-    T = np.eye(4)
-    o = pose.orientation
-    q = np.array([o.x, o.y, o.z, o.w], dtype=float)
-    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
-        raise ValueError(f"invalid quaternion {q}")
-    T[:3, :3] = lie.matrix_from_quat(q)
-    T[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
-    return T
-
-
-def _v3(v: Any) -> list[float]:
-    return [float(v.x), float(v.y), float(v.z)]
-
-
-def _parse_cloud(msg: Any, topic: str, k: int) -> np.ndarray:
-    """PointCloud2 -> (P, 6) float array in TAG_OBSERVATION_FIELDS order."""
-    dt = {7: "f4", 8: "f8"}
-    offsets: dict[str, tuple[int, str]] = {}
-    for f in msg.fields:
-        if f.name in TAG_OBSERVATION_FIELDS:
-            if f.datatype not in dt:
-                raise BagError(f"topic {topic}: message {k} field {f.name!r} must be FLOAT32/FLOAT64")
-            offsets[f.name] = (int(f.offset), dt[f.datatype])
-    missing = [n for n in TAG_OBSERVATION_FIELDS if n not in offsets]
-    if missing:
-        raise BagError(f"topic {topic}: message {k} lacks PointCloud2 fields {missing}")
-    n = int(msg.width) * int(msg.height)
-    raw = np.asarray(msg.data, dtype=np.uint8).tobytes()
-    step = int(msg.point_step)
-    if len(raw) < n * step:
-        raise BagError(f"topic {topic}: message {k} has {len(raw)} data bytes for {n} points of {step}")
-    endian = ">" if msg.is_bigendian else "<"
-    out = np.empty((n, len(TAG_OBSERVATION_FIELDS)))
-    buf = np.frombuffer(raw[: n * step], dtype=np.uint8).reshape(n, step) if n else np.zeros((0, step), np.uint8)
-    for j, name in enumerate(TAG_OBSERVATION_FIELDS):
-        off, code = offsets[name]
-        size = int(code[1])
-        out[:, j] = np.ascontiguousarray(buf[:, off:off + size]).view(endian + code).reshape(-1)
-    return out
-
-
 def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_images: bool = True,
              accept_partial: bool = False) -> BagData:
     """Read a contract bag into numpy arrays.
@@ -284,7 +190,7 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None,
     wanted = set(topics) if topics is not None else None
     parse = []
     for c in conns:
-        exp = _expected_type(c.topic)
+        exp = expected_type(c.topic)
         if exp is not None and c.msgtype != exp:
             raise BagError(f"bag {path}: topic {c.topic} carries {c.msgtype}, the contract requires {exp}")
         if exp is None and c.msgtype != T_POSE_COV:
@@ -295,255 +201,44 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None,
         parse.append(c)
     acc: dict[str, list[Any]] = {}
     status = ReadStatus()
-    for conn, stamp_ns, raw in _messages(reader, parse, status):
+    kinds = {c.topic: row_kind(c.topic, c.msgtype) for c in parse if c.topic != TOPIC_ROBOT_DESCRIPTION}
+    for conn, _, raw in _messages(reader, parse, status):
         topic = conn.topic
         k = status.counts[topic] - 1
+        kind = kinds.get(topic)
+        fields = _raw_fields(kind, raw)
+        if fields is None:  # typed deserialisation: robot description, other topics, and what the raw parser left
+            try:
+                msg = deserialize(raw, conn.msgtype, topic=topic)
+            except BagError as exc:
+                status.reject(topic, k, exc)
+                continue
         try:
-            msg = deserialize(raw, conn.msgtype, topic=topic)
-        except BagError as exc:
-            status.reject(topic, k, exc)
-            continue
-        try:
-            _collect(data, acc, topic, conn.msgtype, msg, stamp_ns, k, load_images)
+            if kind is None:
+                _description(data, msg, topic, k)
+                continue
+            row = kind.build(kind.fields(msg) if fields is None else fields, topic, k, load_images)
         except BagError:
             raise
         except (ValueError, TypeError, AttributeError) as exc:
             raise BagError(f"bag {path}: topic {topic} message {k}: {exc}") from exc
-    _finish(data, acc)
+        acc.setdefault(topic, []).append(row)
+    finish(data, acc)
     return data, parse, status
 
 
-# -- per-topic parsers: message -> one row of the topic's accumulator --------------------------------------------
+def _raw_fields(kind: RowKind | None, raw: Any) -> tuple | None:
+    """The message's fields read from its raw bytes, or None where the typed deserialiser is needed."""
+    if kind is None or kind.parse is None:
+        return None
+    try:
+        return kind.parse(as_bytes(raw))
+    except PARSE_ERRORS:
+        return None
 
 
-def _row_joint_state(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    names = list(msg.name)
-    pos = np.asarray(msg.position, dtype=float)
-    if pos.shape[0] != len(names):
-        raise BagError(f"topic {topic}: message {k} has {len(names)} names but {pos.shape[0]} positions")
-    if len(set(names)) != len(names):
-        raise BagError(f"topic {topic}: message {k} lists a joint twice: {names}")
-    vel = np.asarray(msg.velocity, dtype=float)
-    eff = np.asarray(msg.effort, dtype=float)
-    for what, arr in (("velocities", vel), ("efforts", eff)):
-        if arr.shape[0] not in (0, len(names)):
-            raise BagError(f"topic {topic}: message {k} has {len(names)} names but {arr.shape[0]} {what}")
-    return (_stamp_s(msg.header), names, pos, vel, eff)
-
-
-def _row_camera_info(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    K = np.asarray(msg.k, dtype=float).reshape(3, 3)
-    return (_stamp_s(msg.header), msg.header.frame_id, K, np.asarray(msg.d, dtype=float),
-            int(msg.width), int(msg.height), msg.distortion_model)
-
-
-def _row_compressed_image(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    f = msg.format.lower()
-    fmt = "png" if "png" in f else "jpeg" if ("jpeg" in f or "jpg" in f) else None
-    if fmt is None:
-        raise BagError(f"topic {topic}: message {k} format {msg.format!r} is neither png nor jpeg")
-    return (_stamp_s(msg.header), msg.header.frame_id, fmt,
-            np.asarray(msg.data, dtype=np.uint8).tobytes() if load_images else b"", None)
-
-
-def _row_image(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    enc = msg.encoding
-    ch = {"mono8": 1, "bgr8": 3, "rgb8": 3}.get(enc)
-    if ch is None:
-        raise BagError(f"topic {topic}: message {k} encoding {enc!r} not supported (mono8, bgr8, rgb8)")
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    buf = np.asarray(msg.data, dtype=np.uint8)
-    if step < w * ch or buf.shape[0] < h * step:
-        raise BagError(f"topic {topic}: message {k} data size {buf.shape[0]} too small for {w}x{h} {enc}")
-    img = buf[: h * step].reshape(h, step)[:, : w * ch]
-    shape = (h, w) if ch == 1 else (h, w, 3)
-    return (_stamp_s(msg.header), msg.header.frame_id, enc,
-            np.ascontiguousarray(img).tobytes() if load_images else b"", shape)
-
-
-def _row_wrench(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, _v3(msg.wrench.force), _v3(msg.wrench.torque))
-
-
-def _row_pose(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, _pose_to_T(msg.pose))
-
-
-def _row_point(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    p = msg.point
-    return (_stamp_s(msg.header), msg.header.frame_id, [p.x, p.y, p.z])
-
-
-def _row_temperature(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, float(msg.temperature), float(msg.variance))
-
-
-def _row_imu(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, _v3(msg.linear_acceleration),
-            _v3(msg.angular_velocity), np.asarray(msg.linear_acceleration_covariance, float).reshape(3, 3))
-
-
-def _row_tag_cloud(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, _parse_cloud(msg, topic, k))
-
-
-def _row_pose_cov(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, _pose_to_T(msg.pose.pose),
-            np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6))
-
-
-_RowParser = Callable[[Any, str, int, bool], tuple]
-#: topic -> parser of one message into a row (``/imu/<name>`` and pose-with-covariance topics by prefix / type)
-_ROW_PARSERS: dict[str, _RowParser] = {
-    TOPIC_JOINT_STATES: _row_joint_state,
-    TOPIC_CAMERA_INFO: _row_camera_info,
-    TOPIC_COMPRESSED_IMAGE: _row_compressed_image,
-    TOPIC_IMAGE: _row_image,
-    TOPIC_WRENCH: _row_wrench,
-    TOPIC_GT_POSE: _row_pose,
-    TOPIC_GT_POINT: _row_point,
-    TOPIC_TAG_OBSERVATIONS: _row_tag_cloud,
-}
-
-
-def _row_parser(topic: str, msgtype: str) -> _RowParser:
-    if topic in _ROW_PARSERS:
-        return _ROW_PARSERS[topic]
-    if topic.startswith(IMU_TOPIC_PREFIX):
-        return _row_imu
-    if msgtype == T_POINT:
-        return _row_point
-    if msgtype == T_TEMPERATURE:
-        return _row_temperature
-    if msgtype == T_POSE_COV:
-        return _row_pose_cov
-    raise BagError(f"topic {topic}: no parser for {msgtype}")  # pragma: no cover - filtered before
-
-
-def _collect(data: BagData, acc: dict[str, list[Any]], topic: str, msgtype: str, msg: Any,
-             stamp_ns: int, k: int, load_images: bool) -> None:
-    lst = acc.setdefault(topic, [])
-    if topic == TOPIC_ROBOT_DESCRIPTION:
-        if data.robot_description is not None and msg.data != data.robot_description:
-            raise BagError(f"topic {topic}: message {k} differs from the first (contract: once)")
-        data.robot_description = msg.data
-        return
-    lst.append(_row_parser(topic, msgtype)(msg, topic, k, load_images))
-
-
-# -- per-topic finishers: accumulated rows -> the series of BagData ----------------------------------------------
-
-
-def _finish_joint_states(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    names: list[str] = []
-    index: dict[str, int] = {}
-    for e in lst:
-        for n in e[1]:
-            if n not in index:
-                index[n] = len(names)
-                names.append(n)
-    N, n = len(lst), len(names)
-    P = np.full((N, n), np.nan)
-    V = np.full((N, n), np.nan)
-    E = np.full((N, n), np.nan)
-    for i, (_, nm, pos, vel, eff) in enumerate(lst):
-        cols = np.fromiter((index[x] for x in nm), dtype=int, count=len(nm))
-        P[i, cols] = pos
-        if vel.shape[0]:
-            V[i, cols] = vel
-        if eff.shape[0]:
-            E[i, cols] = eff
-    data.joint_states = JointStates(stamps, names, P, V, E)
-
-
-def _finish_camera_info(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    Ds = [e[3] for e in lst]
-    width = max(d.shape[0] for d in Ds)
-    D = np.zeros((len(lst), width))
-    for i, d in enumerate(Ds):
-        D[i, : d.shape[0]] = d
-    data.camera_info = CameraInfos(stamps, frames, np.stack([e[2] for e in lst]), D,
-                                   np.array([e[4] for e in lst]), np.array([e[5] for e in lst]),
-                                   [e[6] for e in lst])
-
-
-def _finish_images(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    imgs = Images(topic, stamps, frames, [e[2] for e in lst], [e[3] for e in lst], [e[4] for e in lst])
-    if topic == TOPIC_IMAGE:
-        data.raw_images = imgs
-        if not len(data.images):
-            data.images = imgs
-    else:
-        data.images = imgs
-
-
-def _finish_wrench(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    data.wrench = Wrenches(stamps, frames, np.array([e[2] for e in lst]), np.array([e[3] for e in lst]))
-
-
-def _finish_pose(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    data.ground_truth_pose = PoseSeries(stamps, frames, np.stack([e[2] for e in lst]))
-
-
-def _finish_point(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    data.ground_truth_point = PointSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float))
-
-
-def _finish_named_point(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    data.ground_truth_points[topic] = PointSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float))
-
-
-def _finish_temperature(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    data.temperatures[topic] = TemperatureSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float),
-                                                 np.array([e[3] for e in lst], dtype=float))
-
-
-def _finish_imu(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    data.imus[topic[len(IMU_TOPIC_PREFIX):]] = ImuSeries(
-        stamps, frames, np.array([e[2] for e in lst]), np.array([e[3] for e in lst]),
-        np.stack([e[4] for e in lst]))
-
-
-def _finish_tag_cloud(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    clouds = [e[2] for e in lst]
-    idx = np.concatenate([np.full(c.shape[0], i, dtype=int) for i, c in enumerate(clouds)])
-    allp = np.concatenate(clouds, axis=0) if clouds else np.zeros((0, 6))
-    data.tag_observations = TagObservationRows(stamps, frames, idx, np.rint(allp[:, 0]).astype(int),
-                                               np.rint(allp[:, 1]).astype(int), allp[:, 2:4].copy(),
-                                               allp[:, 4:6].copy())
-
-
-def _finish_pose_cov(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
-    data.poses_with_covariance[topic] = PoseCovSeries(stamps, frames, np.stack([e[2] for e in lst]),
-                                                      np.stack([e[3] for e in lst]))
-
-
-_FINISHERS: dict[str, Callable[[BagData, str, np.ndarray, list, list], None]] = {
-    TOPIC_JOINT_STATES: _finish_joint_states,
-    TOPIC_CAMERA_INFO: _finish_camera_info,
-    TOPIC_COMPRESSED_IMAGE: _finish_images,
-    TOPIC_IMAGE: _finish_images,
-    TOPIC_WRENCH: _finish_wrench,
-    TOPIC_GT_POSE: _finish_pose,
-    TOPIC_GT_POINT: _finish_point,
-    TOPIC_TAG_OBSERVATIONS: _finish_tag_cloud,
-}
-
-
-def _finish(data: BagData, acc: dict[str, list[Any]]) -> None:
-    for topic, lst in acc.items():
-        if not lst:
-            continue
-        stamps = np.array([e[0] for e in lst], dtype=float)
-        frames = [e[1] for e in lst]
-        if topic in _FINISHERS:
-            finisher = _FINISHERS[topic]
-        elif topic.startswith(IMU_TOPIC_PREFIX):
-            finisher = _finish_imu
-        elif _named(topic, TOPIC_GT_POINT):
-            finisher = _finish_named_point
-        elif _expected_type(topic) == T_TEMPERATURE:
-            finisher = _finish_temperature
-        else:
-            finisher = _finish_pose_cov
-        finisher(data, topic, stamps, frames, lst)
+def _description(data: BagData, msg: Any, topic: str, k: int) -> None:
+    """``/robot_description``: the first message, and every later one must equal it."""
+    if data.robot_description is not None and msg.data != data.robot_description:
+        raise BagError(f"topic {topic}: message {k} differs from the first (contract: once)")
+    data.robot_description = msg.data

@@ -96,7 +96,12 @@ class Images:
 
         fmt = self.formats[i]
         if fmt in ("png", "jpeg"):
-            img = decode_compressed(self.data[i])
+            from ppoe_core.io.png import decode_png
+
+            # plain PNGs as OpenCV writes them without libpng (the same pixels, faster), the rest by OpenCV
+            img = decode_png(self.data[i]) if fmt == "png" else None
+            if img is None:
+                img = decode_compressed(self.data[i])
             if img is None:
                 raise BagError(f"topic {self.topic}: message {i} (stamp {self.stamps[i]:.6f} s) "
                                f"is not a decodable {fmt} image")

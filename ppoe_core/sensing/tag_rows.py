@@ -14,7 +14,10 @@ camera optical frame.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections import deque
+from collections.abc import Callable, Generator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from itertools import islice
 from typing import Any
 
 import numpy as np
@@ -22,7 +25,9 @@ import numpy as np
 from ppoe_core.estimation.camera import project_points, undistort_pixels
 from ppoe_core.sensing import tags as tagmod
 
-__all__ = ["OBSERVATION_FIELDS", "DEFAULT_CORNER_REFINEMENT", "observe_tags", "centre_from_corners"]
+__all__ = ["OBSERVATION_FIELDS", "DEFAULT_CORNER_REFINEMENT", "observe_tags", "rows_from_detections",
+           "detections_in_images",
+           "centre_from_corners"]
 
 #: fields of one observation row (and FLOAT64 fields of one ``/tag_bearing/observations`` point)
 OBSERVATION_FIELDS: tuple[str, ...] = ("id", "corner", "u", "v", "x", "y")
@@ -100,7 +105,56 @@ def observe_tags(
     MeasurementError
         Unknown dictionary or refinement (from :func:`ppoe_core.sensing.tags.detect_tags`).
     """
-    dets = tagmod.detect_tags(image, dictionary, refine)
+    return rows_from_detections(tagmod.detect_tags(image, dictionary, refine), K, D, tag_ids)
+
+
+def detections_in_images(decode: Callable[[int], np.ndarray], n: int, dictionary: str = "tag36h11",
+                         refine: str = DEFAULT_CORNER_REFINEMENT, workers: int = 1) -> Generator[list[Any], None, None]:
+    """:func:`ppoe_core.sensing.tags.detect_tags` of images ``decode(0) .. decode(n - 1)``, in that order.
+
+    With ``workers`` > 1, decoding and detection run on that many threads (OpenCV releases the GIL), a few
+    images ahead of the consumer (OpenCV's own threads are set to one meanwhile); every image's detections,
+    or the error its decoding or detection raised, are still handed out in image order, and the threads stop
+    when the consumer stops (``close()``).
+    The detections do not depend on the thread (``test/test_tags.py``).
+    """
+    def one(i: int) -> list[Any]:
+        return tagmod.detect_tags(decode(i), dictionary, refine)
+
+    if workers <= 1 or n < 2:
+        yield from (one(i) for i in range(n))
+        return
+    import cv2
+
+    cv_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # the pool is the parallelism; OpenCV's own threads would only compete for the cores
+    ex = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="detect_tags")
+    try:
+        todo = iter(range(n))
+        pending = deque(ex.submit(one, i) for i in islice(todo, 4 * workers))
+        while pending:
+            done = pending.popleft()
+            nxt = next(todo, None)
+            if nxt is not None:
+                pending.append(ex.submit(one, nxt))
+            yield done.result()
+    finally:
+        ex.shutdown(wait=True, cancel_futures=True)
+        cv2.setNumThreads(cv_threads)
+
+
+def rows_from_detections(
+    dets: list[Any], K: np.ndarray, D: np.ndarray, tag_ids: Sequence[int] = ()
+) -> tuple[np.ndarray, list[Any]]:
+    """The second half of :func:`observe_tags`: its rows (and kept detections) from the detections of one image.
+
+    Parameters
+    ----------
+    dets : list of ppoe_core.sensing.tags.TagDetection
+        :func:`ppoe_core.sensing.tags.detect_tags` of the image.
+    K, D, tag_ids
+        As :func:`observe_tags`.
+    """
     keep = {int(i) for i in tag_ids}
     if keep:
         dets = [d for d in dets if d.id in keep]

@@ -21,6 +21,7 @@ Pixel coordinates follow OpenCV: the centre of pixel (row r, column c) is (u, v)
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from functools import cache, lru_cache
 from typing import Any, NamedTuple
@@ -92,12 +93,19 @@ def tag_points_local(size: float) -> np.ndarray:
 
 
 def _diagonal_intersection(c: np.ndarray) -> np.ndarray:
-    """Intersection of the diagonals 1-3 and 2-4 of a quadrilateral (4,2)."""
-    p1, p2, p3, p4 = (np.append(c[i], 1.0) for i in range(4))
-    x = np.cross(np.cross(p1, p3), np.cross(p2, p4))
-    if abs(x[2]) < 1e-12:
+    """Intersection of the diagonals 1-3 and 2-4 of a quadrilateral (4,2).
+
+    Homogeneous lines and their crossing with ``np.cross``'s operations on Python floats (the same
+    products and differences, so the same bits, without numpy's overhead for 3-vectors).
+    """
+    (x1, y1), (x2, y2), (x3, y3), (x4, y4) = c.tolist()
+    # l = p1 x p3, m = p2 x p4 with p = (x, y, 1); multiplying by 1.0 is exact
+    l0, l1, l2 = y1 * 1.0 - 1.0 * y3, 1.0 * x3 - x1 * 1.0, x1 * y3 - y1 * x3
+    m0, m1, m2 = y2 * 1.0 - 1.0 * y4, 1.0 * x4 - x2 * 1.0, x2 * y4 - y2 * x4
+    w = l0 * m1 - l1 * m0
+    if abs(w) < 1e-12:
         return c.mean(axis=0)
-    return x[:2] / x[2]
+    return np.array([(l1 * m2 - l2 * m1) / w, (l2 * m0 - l0 * m2) / w])
 
 
 def _refine_edges(grey: np.ndarray, corners: np.ndarray, n_cells: int) -> np.ndarray:
@@ -168,6 +176,37 @@ def _refine_edges(grey: np.ndarray, corners: np.ndarray, n_cells: int) -> np.nda
     return out
 
 
+_per_thread = threading.local()
+
+
+def _detector(dictionary: str, refine: str) -> tuple[Any, Any]:
+    """The ``cv2.aruco.ArucoDetector`` of a dictionary and corner refinement, and the dictionary; made once per
+    thread (a detector is not shared between threads)."""
+    import cv2
+
+    cache = _per_thread.__dict__.setdefault("detectors", {})
+    hit = cache.get((dictionary, refine))
+    if hit is not None:
+        return hit
+    methods = {
+        "edges": cv2.aruco.CORNER_REFINE_SUBPIX,
+        "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+        "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+        "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
+        "none": cv2.aruco.CORNER_REFINE_NONE,
+    }
+    if refine not in methods:
+        raise MeasurementError(f"detect_tags: refine must be one of {sorted(methods)}, got {refine!r}")
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = methods[refine]
+    params.cornerRefinementWinSize = 3
+    params.cornerRefinementMinAccuracy = 0.01
+    params.cornerRefinementMaxIterations = 50
+    d = aruco_dictionary(dictionary)
+    hit = cache[(dictionary, refine)] = (cv2.aruco.ArucoDetector(d, params), d)
+    return hit
+
+
 def detect_tags(image: np.ndarray, dictionary: str = "tag36h11", refine: str = "edges") -> list[TagDetection]:
     """Detect tags in an image.
 
@@ -200,22 +239,7 @@ def detect_tags(image: np.ndarray, dictionary: str = "tag36h11", refine: str = "
                                f"got {img.dtype} {img.shape}")
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    params = cv2.aruco.DetectorParameters()
-    methods = {
-        "edges": cv2.aruco.CORNER_REFINE_SUBPIX,
-        "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
-        "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
-        "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
-        "none": cv2.aruco.CORNER_REFINE_NONE,
-    }
-    if refine not in methods:
-        raise MeasurementError(f"detect_tags: refine must be one of {sorted(methods)}, got {refine!r}")
-    params.cornerRefinementMethod = methods[refine]
-    params.cornerRefinementWinSize = 3
-    params.cornerRefinementMinAccuracy = 0.01
-    params.cornerRefinementMaxIterations = 50
-    d = aruco_dictionary(dictionary)
-    detector = cv2.aruco.ArucoDetector(d, params)
+    detector, d = _detector(dictionary, refine)
     corners, ids, _ = detector.detectMarkers(img)
     out: list[TagDetection] = []
     if ids is None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -113,13 +114,18 @@ def _camera_lookup(data: Any) -> Callable[[str, float], tuple[np.ndarray, np.nda
     return lookup
 
 
+#: threads decoding images and detecting tags in :func:`tag_measurements` (two, or one on a single core)
+IMAGE_WORKERS = min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+
+
 def tag_measurements(
-    data: Any, model: Any, bag: str, refine: str = "subpix"
+    data: Any, model: Any, bag: str, refine: str = "subpix", workers: int = IMAGE_WORKERS
 ) -> tuple[list[Any], dict[str, int]]:
     """Measurements of tag observations: recorded ``/tag_bearing/observations`` if present,
-    else detections on the camera images (``ppoe_core.sensing.tags.detect_tags``, as the tag node)."""
+    else detections on the camera images (``ppoe_core.sensing.tags.detect_tags``, as the tag node; decoded
+    and detected on ``workers`` threads, the results taken in image order, the same for any ``workers``)."""
     from ppoe_core.estimation.pipeline import Measurement, TagMeasurement, source_key
-    from ppoe_core.sensing.tag_rows import observe_tags
+    from ppoe_core.sensing.tag_rows import detections_in_images, rows_from_detections
 
     counts = {"tag_messages": 0, "tag_points": 0, "images": 0, "images_without_tags": 0}
     cams = _camera_lookup(data)
@@ -144,22 +150,26 @@ def tag_measurements(
         return out, counts
     family = model.config.tags.family
     topic = imgs.topic
-    for i in range(len(imgs)):
-        counts["images"] += 1
-        frame, stamp = imgs.frame_ids[i], float(imgs.stamps[i])
-        KD = cams(frame, stamp)
-        if KD is None:
-            raise BagError(f"bag {bag}: topic {topic} message {i}: no /camera/camera_info with frame_id {frame!r}")
-        K, D = KD
-        rows, _ = observe_tags(imgs.decode(i), K, D, family, (), refine)
-        counts["tag_messages"] += 1
-        if rows.shape[0] == 0:
-            counts["images_without_tags"] += 1
-            continue
-        counts["tag_points"] += int(rows.shape[0])
-        ids, corners = np.rint(rows[:, 0]).astype(int), np.rint(rows[:, 1]).astype(int)
-        payload = TagMeasurement(frame, ids, corners, rows[:, 4:6], rows[:, 2:4], float(K[0, 0]), float(K[1, 1]))
-        out.append(Measurement(stamp, source_key("/tag_bearing/observations", frame), payload))
+    dets = detections_in_images(imgs.decode, len(imgs), family, refine, workers)
+    try:
+        for i in range(len(imgs)):
+            counts["images"] += 1
+            frame, stamp = imgs.frame_ids[i], float(imgs.stamps[i])
+            KD = cams(frame, stamp)
+            if KD is None:
+                raise BagError(f"bag {bag}: topic {topic} message {i}: no /camera/camera_info with frame_id {frame!r}")
+            K, D = KD
+            rows, _ = rows_from_detections(next(dets), K, D)  # = observe_tags(imgs.decode(i), K, D, family, ...)
+            counts["tag_messages"] += 1
+            if rows.shape[0] == 0:
+                counts["images_without_tags"] += 1
+                continue
+            counts["tag_points"] += int(rows.shape[0])
+            ids, corners = np.rint(rows[:, 0]).astype(int), np.rint(rows[:, 1]).astype(int)
+            payload = TagMeasurement(frame, ids, corners, rows[:, 4:6], rows[:, 2:4], float(K[0, 0]), float(K[1, 1]))
+            out.append(Measurement(stamp, source_key("/tag_bearing/observations", frame), payload))
+    finally:
+        dets.close()
     return out, counts
 
 

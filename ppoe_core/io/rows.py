@@ -1,0 +1,400 @@
+"""Per-topic rows of :func:`ppoe_core.io.reader.read_bag`: message fields -> one row of the topic's accumulator
+(with the contract checks), and the finishers that turn the accumulated rows into the series of ``BagData``.
+
+Every topic has a :class:`RowKind`: ``fields`` takes a typed (rosbags) message apart, ``build`` checks the
+fields and makes the row.  The hot topics also have ``parse``, which reads the same fields from the raw
+CDR bytes (:mod:`ppoe_core.io.cdr_rows`); where it cannot, the reader deserialises the typed message, so both
+paths build the same rows through the same checks and error messages.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from ppoe_core import lie
+from ppoe_core.errors import BagError
+from ppoe_core.io import cdr_rows
+from ppoe_core.io.messages import (
+    IMU_TOPIC_PREFIX,
+    T_POINT,
+    T_POSE_COV,
+    T_TEMPERATURE,
+    TAG_OBSERVATION_FIELDS,
+    TOPIC_CAMERA_INFO,
+    TOPIC_COMPRESSED_IMAGE,
+    TOPIC_GT_POINT,
+    TOPIC_GT_POSE,
+    TOPIC_IMAGE,
+    TOPIC_JOINT_STATES,
+    TOPIC_TAG_OBSERVATIONS,
+    TOPIC_TEMPERATURE,
+    TOPIC_WRENCH,
+    _stamp_s,
+)
+from ppoe_core.io.series import (
+    BagData,
+    CameraInfos,
+    Images,
+    ImuSeries,
+    JointStates,
+    PointSeries,
+    PoseCovSeries,
+    PoseSeries,
+    TagObservationRows,
+    TemperatureSeries,
+    Wrenches,
+)
+
+__all__ = ["RowKind", "row_kind", "finish", "expected_type", "named"]
+
+
+def expected_type(topic: str) -> str | None:
+    """The message type the contract requires on ``topic`` (None: not a contract topic)."""
+    from ppoe_core.io.messages import CONTRACT_TYPES, T_IMU
+
+    if topic in CONTRACT_TYPES:
+        return CONTRACT_TYPES[topic]
+    if topic.startswith(IMU_TOPIC_PREFIX):
+        return T_IMU
+    if named(topic, TOPIC_GT_POINT):
+        return T_POINT
+    if topic == TOPIC_TEMPERATURE or named(topic, TOPIC_TEMPERATURE):
+        return T_TEMPERATURE
+    return None
+
+
+def named(topic: str, prefix: str) -> bool:
+    """``topic`` is ``<prefix>/<name>`` (one of several sensors of a kind)."""
+    return topic.startswith(prefix + "/") and len(topic) > len(prefix) + 1
+
+
+def _pose_to_T(v: tuple[float, ...]) -> np.ndarray:
+    """``(px, py, pz, qx, qy, qz, qw)`` -> (4, 4); ValueError for a zero or non-finite quaternion."""
+    q = np.array(v[3:7], dtype=float)
+    if not (math.isfinite(v[3]) and math.isfinite(v[4]) and math.isfinite(v[5]) and math.isfinite(v[6])) \
+            or np.linalg.norm(q) < 1e-9:
+        raise ValueError(f"invalid quaternion {q}")
+    T = np.empty((4, 4))
+    T[:3, :3] = lie.matrix_from_quat(q)
+    T[:3, 3] = v[:3]
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T
+
+
+def _pose_values(pose: Any) -> tuple[float, ...]:
+    p, o = pose.position, pose.orientation
+    return (p.x, p.y, p.z, o.x, o.y, o.z, o.w)
+
+
+def _v3(v: Any) -> list[float]:
+    return [float(v.x), float(v.y), float(v.z)]
+
+
+def _parse_cloud(msg: Any, topic: str, k: int) -> np.ndarray:
+    """PointCloud2 -> (P, 6) float array in TAG_OBSERVATION_FIELDS order."""
+    dt = {7: "f4", 8: "f8"}
+    offsets: dict[str, tuple[int, str]] = {}
+    for f in msg.fields:
+        if f.name in TAG_OBSERVATION_FIELDS:
+            if f.datatype not in dt:
+                raise BagError(f"topic {topic}: message {k} field {f.name!r} must be FLOAT32/FLOAT64")
+            offsets[f.name] = (int(f.offset), dt[f.datatype])
+    missing = [n for n in TAG_OBSERVATION_FIELDS if n not in offsets]
+    if missing:
+        raise BagError(f"topic {topic}: message {k} lacks PointCloud2 fields {missing}")
+    n = int(msg.width) * int(msg.height)
+    raw = np.asarray(msg.data, dtype=np.uint8).tobytes()
+    step = int(msg.point_step)
+    if len(raw) < n * step:
+        raise BagError(f"topic {topic}: message {k} has {len(raw)} data bytes for {n} points of {step}")
+    endian = ">" if msg.is_bigendian else "<"
+    out = np.empty((n, len(TAG_OBSERVATION_FIELDS)))
+    buf = np.frombuffer(raw[: n * step], dtype=np.uint8).reshape(n, step) if n else np.zeros((0, step), np.uint8)
+    for j, name in enumerate(TAG_OBSERVATION_FIELDS):
+        off, code = offsets[name]
+        size = int(code[1])
+        out[:, j] = np.ascontiguousarray(buf[:, off:off + size]).view(endian + code).reshape(-1)
+    return out
+
+# -- per-topic rows: fields of a typed message (``fields``) or of the raw bytes (``parse``) -> row (``build``) ---------
+
+
+def _js_fields(msg: Any) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, tuple(msg.name), np.asarray(msg.position, dtype=float),
+            np.asarray(msg.velocity, dtype=float), np.asarray(msg.effort, dtype=float))
+
+
+#: the last joint-name tuple found free of duplicates (the raw parser hands out one tuple per publisher)
+_unique_names: list[tuple[str, ...]] = [()]
+
+
+def _js_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
+    stamp, _, names, pos, vel, eff = f
+    n = len(names)
+    if pos.shape[0] != n:
+        raise BagError(f"topic {topic}: message {k} has {n} names but {pos.shape[0]} positions")
+    if names is not _unique_names[0]:
+        if len(set(names)) != n:
+            raise BagError(f"topic {topic}: message {k} lists a joint twice: {list(names)}")
+        _unique_names[0] = names
+    for what, m in (("velocities", vel.shape[0]), ("efforts", eff.shape[0])):
+        if m and m != n:
+            raise BagError(f"topic {topic}: message {k} has {n} names but {m} {what}")
+    return (stamp, names, pos, vel, eff)
+
+
+def _row_camera_info(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    K = np.asarray(msg.k, dtype=float).reshape(3, 3)
+    return (_stamp_s(msg.header), msg.header.frame_id, K, np.asarray(msg.d, dtype=float),
+            int(msg.width), int(msg.height), msg.distortion_model)
+
+
+def _compressed_fields(msg: Any) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, msg.format, np.asarray(msg.data, dtype=np.uint8))
+
+
+def _compressed_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
+    stamp, frame, format_, data = f
+    low = format_.lower()
+    fmt = "png" if "png" in low else "jpeg" if ("jpeg" in low or "jpg" in low) else None
+    if fmt is None:
+        raise BagError(f"topic {topic}: message {k} format {format_!r} is neither png nor jpeg")
+    return (stamp, frame, fmt, bytes(data) if load_images else b"", None)
+
+
+def _row_image(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    enc = msg.encoding
+    ch = {"mono8": 1, "bgr8": 3, "rgb8": 3}.get(enc)
+    if ch is None:
+        raise BagError(f"topic {topic}: message {k} encoding {enc!r} not supported (mono8, bgr8, rgb8)")
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    buf = np.asarray(msg.data, dtype=np.uint8)
+    if step < w * ch or buf.shape[0] < h * step:
+        raise BagError(f"topic {topic}: message {k} data size {buf.shape[0]} too small for {w}x{h} {enc}")
+    img = buf[: h * step].reshape(h, step)[:, : w * ch]
+    shape = (h, w) if ch == 1 else (h, w, 3)
+    return (_stamp_s(msg.header), msg.header.frame_id, enc,
+            np.ascontiguousarray(img).tobytes() if load_images else b"", shape)
+
+
+def _wrench_fields(msg: Any) -> tuple:
+    f, t = msg.wrench.force, msg.wrench.torque
+    return (_stamp_s(msg.header), msg.header.frame_id, (f.x, f.y, f.z, t.x, t.y, t.z))
+
+
+def _wrench_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
+    v = f[2]
+    return (f[0], f[1], [float(v[0]), float(v[1]), float(v[2])], [float(v[3]), float(v[4]), float(v[5])])
+
+
+def _pose_fields(msg: Any) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, _pose_values(msg.pose))
+
+
+def _pose_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
+    return (f[0], f[1], _pose_to_T(f[2]))
+
+
+def _point_fields(msg: Any) -> tuple:
+    p = msg.point
+    return (_stamp_s(msg.header), msg.header.frame_id, (p.x, p.y, p.z))
+
+
+def _point_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
+    return (f[0], f[1], list(f[2]))
+
+
+def _row_temperature(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, float(msg.temperature), float(msg.variance))
+
+
+def _row_imu(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, _v3(msg.linear_acceleration),
+            _v3(msg.angular_velocity), np.asarray(msg.linear_acceleration_covariance, float).reshape(3, 3))
+
+
+def _row_tag_cloud(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, _parse_cloud(msg, topic, k))
+
+
+def _pose_cov_fields(msg: Any) -> tuple:
+    return (_stamp_s(msg.header), msg.header.frame_id, _pose_values(msg.pose.pose), msg.pose.covariance)
+
+
+def _pose_cov_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
+    return (f[0], f[1], _pose_to_T(f[2]), np.asarray(f[3], dtype=float).reshape(6, 6))
+
+
+def _itself(msg: Any) -> Any:
+    return msg
+
+
+class RowKind(NamedTuple):
+    """How one topic's messages become rows: ``parse`` (raw CDR bytes -> fields, or None: typed only),
+    ``fields`` (typed message -> fields) and ``build`` (fields, topic, message index, load_images -> row)."""
+
+    parse: Callable[[bytes], tuple] | None
+    fields: Callable[[Any], Any]
+    build: Callable[[Any, str, int, bool], tuple]
+
+
+def _typed(build: Callable[[Any, str, int, bool], tuple]) -> RowKind:
+    return RowKind(None, _itself, build)
+
+
+_JOINT_STATE = RowKind(cdr_rows.parse_joint_state, _js_fields, _js_row)
+_POINT = RowKind(cdr_rows.parse_point, _point_fields, _point_row)
+_POSE_COV = RowKind(cdr_rows.parse_pose_cov, _pose_cov_fields, _pose_cov_row)
+_IMU = _typed(_row_imu)
+_TEMPERATURE = _typed(_row_temperature)
+#: topic -> its rows (``/imu/<name>``, point, temperature and pose-with-covariance topics by prefix / type)
+_KINDS: dict[str, RowKind] = {
+    TOPIC_JOINT_STATES: _JOINT_STATE,
+    TOPIC_CAMERA_INFO: _typed(_row_camera_info),
+    TOPIC_COMPRESSED_IMAGE: RowKind(cdr_rows.parse_compressed_image, _compressed_fields, _compressed_row),
+    TOPIC_IMAGE: _typed(_row_image),
+    TOPIC_WRENCH: RowKind(cdr_rows.parse_wrench, _wrench_fields, _wrench_row),
+    TOPIC_GT_POSE: RowKind(cdr_rows.parse_pose, _pose_fields, _pose_row),
+    TOPIC_GT_POINT: _POINT,
+    TOPIC_TAG_OBSERVATIONS: _typed(_row_tag_cloud),
+}
+
+
+def row_kind(topic: str, msgtype: str) -> RowKind:
+    """The :class:`RowKind` of a contract topic (or a pose-with-covariance topic) carrying ``msgtype``."""
+    if topic in _KINDS:
+        return _KINDS[topic]
+    if topic.startswith(IMU_TOPIC_PREFIX):
+        return _IMU
+    if msgtype == T_POINT:
+        return _POINT
+    if msgtype == T_TEMPERATURE:
+        return _TEMPERATURE
+    if msgtype == T_POSE_COV:
+        return _POSE_COV
+    raise BagError(f"topic {topic}: no parser for {msgtype}")  # pragma: no cover - filtered before
+
+
+# -- per-topic finishers: accumulated rows -> the series of BagData ----------------------------------------------
+
+
+def _finish_joint_states(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    """Rows aligned by name (union in first-seen order); the rows with the same names are written together."""
+    names: list[str] = []
+    index: dict[str, int] = {}
+    groups: dict[tuple[str, ...], list[int]] = {}
+    for i, e in enumerate(lst):
+        rows = groups.get(e[1])
+        if rows is None:
+            rows = groups[e[1]] = []
+            for n in e[1]:
+                if n not in index:
+                    index[n] = len(names)
+                    names.append(n)
+        rows.append(i)
+    N, n = len(lst), len(names)
+    out = [np.full((N, n), np.nan) for _ in range(3)]  # positions, velocities, efforts
+    for nm, rows in groups.items():
+        cols = np.array([index[x] for x in nm], dtype=int)
+        for j, A in enumerate(out):
+            have = rows if j == 0 else [i for i in rows if lst[i][2 + j].shape[0]]  # empty: NaN
+            if have:
+                A[np.ix_(np.asarray(have, dtype=int), cols)] = np.stack([lst[i][2 + j] for i in have])
+    data.joint_states = JointStates(stamps, names, out[0], out[1], out[2])
+
+
+def _finish_camera_info(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    Ds = [e[3] for e in lst]
+    width = max(d.shape[0] for d in Ds)
+    D = np.zeros((len(lst), width))
+    for i, d in enumerate(Ds):
+        D[i, : d.shape[0]] = d
+    data.camera_info = CameraInfos(stamps, frames, np.stack([e[2] for e in lst]), D,
+                                   np.array([e[4] for e in lst]), np.array([e[5] for e in lst]),
+                                   [e[6] for e in lst])
+
+
+def _finish_images(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    imgs = Images(topic, stamps, frames, [e[2] for e in lst], [e[3] for e in lst], [e[4] for e in lst])
+    if topic == TOPIC_IMAGE:
+        data.raw_images = imgs
+        if not len(data.images):
+            data.images = imgs
+    else:
+        data.images = imgs
+
+
+def _finish_wrench(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.wrench = Wrenches(stamps, frames, np.array([e[2] for e in lst]), np.array([e[3] for e in lst]))
+
+
+def _finish_pose(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.ground_truth_pose = PoseSeries(stamps, frames, np.stack([e[2] for e in lst]))
+
+
+def _finish_point(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.ground_truth_point = PointSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float))
+
+
+def _finish_named_point(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.ground_truth_points[topic] = PointSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float))
+
+
+def _finish_temperature(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.temperatures[topic] = TemperatureSeries(stamps, frames, np.array([e[2] for e in lst], dtype=float),
+                                                 np.array([e[3] for e in lst], dtype=float))
+
+
+def _finish_imu(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.imus[topic[len(IMU_TOPIC_PREFIX):]] = ImuSeries(
+        stamps, frames, np.array([e[2] for e in lst]), np.array([e[3] for e in lst]),
+        np.stack([e[4] for e in lst]))
+
+
+def _finish_tag_cloud(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    clouds = [e[2] for e in lst]
+    idx = np.concatenate([np.full(c.shape[0], i, dtype=int) for i, c in enumerate(clouds)])
+    allp = np.concatenate(clouds, axis=0) if clouds else np.zeros((0, 6))
+    data.tag_observations = TagObservationRows(stamps, frames, idx, np.rint(allp[:, 0]).astype(int),
+                                               np.rint(allp[:, 1]).astype(int), allp[:, 2:4].copy(),
+                                               allp[:, 4:6].copy())
+
+
+def _finish_pose_cov(data: BagData, topic: str, stamps: np.ndarray, frames: list, lst: list) -> None:
+    data.poses_with_covariance[topic] = PoseCovSeries(stamps, frames, np.stack([e[2] for e in lst]),
+                                                      np.stack([e[3] for e in lst]))
+
+
+_FINISHERS: dict[str, Callable[[BagData, str, np.ndarray, list, list], None]] = {
+    TOPIC_JOINT_STATES: _finish_joint_states,
+    TOPIC_CAMERA_INFO: _finish_camera_info,
+    TOPIC_COMPRESSED_IMAGE: _finish_images,
+    TOPIC_IMAGE: _finish_images,
+    TOPIC_WRENCH: _finish_wrench,
+    TOPIC_GT_POSE: _finish_pose,
+    TOPIC_GT_POINT: _finish_point,
+    TOPIC_TAG_OBSERVATIONS: _finish_tag_cloud,
+}
+
+
+def finish(data: BagData, acc: dict[str, list[Any]]) -> None:
+    for topic, lst in acc.items():
+        if not lst:
+            continue
+        stamps = np.array([e[0] for e in lst], dtype=float)
+        frames = [e[1] for e in lst]
+        if topic in _FINISHERS:
+            finisher = _FINISHERS[topic]
+        elif topic.startswith(IMU_TOPIC_PREFIX):
+            finisher = _finish_imu
+        elif named(topic, TOPIC_GT_POINT):
+            finisher = _finish_named_point
+        elif expected_type(topic) == T_TEMPERATURE:
+            finisher = _finish_temperature
+        else:
+            finisher = _finish_pose_cov
+        finisher(data, topic, stamps, frames, lst)
