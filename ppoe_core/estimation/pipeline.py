@@ -53,6 +53,7 @@ from ppoe_core.estimation.corrections import (
     MeasurementOutcome,
     MeasurementUpdater,
     ToolUpdate,
+    _correction_kernels,
     _sym,
     apply_carried_corrections,
 )
@@ -202,14 +203,10 @@ class FusionPipeline:
             outcomes of the pending measurements processed now.
         """
         T = np.asarray(T_base_tool, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise MeasurementError(f"prior at stamp {stamp}: T_base_tool must be a finite 4x4, got shape {T.shape}")
-        if validated:
-            cov = np.asarray(cov_tool, dtype=np.float64)
-            if cov.shape != (6, 6):
-                raise MeasurementError(f"prior at stamp {stamp}: cov_tool must be 6x6, got shape {cov.shape}")
-        else:
-            cov = lie.check_covariance(cov_tool, name=f"prior at stamp {stamp}", size=6)
+        cov = cov_tool
+        if not (T.shape == (4, 4) and type(cov) is np.ndarray and cov.dtype == np.float64 and cov.shape == (6, 6)
+                and _correction_kernels().prior_passes(T, cov, not validated)):
+            cov = self._checked_prior(float(stamp), T, cov_tool, validated)  # the full checks: error or pass
         q = None if joints is None else np.asarray(joints, dtype=np.float64).reshape(-1)
         sample = PriorSample(float(stamp), T, cov, q)
         newest = self.buffer.newest
@@ -232,6 +229,19 @@ class FusionPipeline:
             self._active_corrections(sample, None)
             return None, outcomes
         return self.fuse(sample), outcomes
+
+    @staticmethod
+    def _checked_prior(stamp: float, T: Array, cov_tool: Array, validated: bool) -> Array:
+        """The checks of a prior that failed the quick ones (or has unusual types): raise the error, or pass and
+        return the covariance as :meth:`add_prior` keeps it."""
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise MeasurementError(f"prior at stamp {stamp}: T_base_tool must be a finite 4x4, got shape {T.shape}")
+        if validated:
+            cov = np.asarray(cov_tool, dtype=np.float64)
+            if cov.shape != (6, 6):
+                raise MeasurementError(f"prior at stamp {stamp}: cov_tool must be 6x6, got shape {cov.shape}")
+            return cov
+        return lie.check_covariance(cov_tool, name=f"prior at stamp {stamp}", size=6)
 
     def reset(self) -> None:
         """Forget priors, pending measurements and the carried corrections (counts stay)."""
@@ -299,15 +309,18 @@ class FusionPipeline:
         if not applied:
             return FusedEstimate(prior.stamp, prior.T_base_tool, prior.cov_tool, 0.0, prior)
         T, cov = apply_carried_corrections(prior, applied)
-        return FusedEstimate(prior.stamp, T, cov, max(w for _, w in applied), prior)
+        return FusedEstimate(prior.stamp, T, cov, applied[0][1] if len(applied) == 1 else max(w for _, w in applied),
+                             prior)
 
     def _active_corrections(self, prior: PriorSample, exclude: str | None) -> list[tuple[CarriedCorrection, float]]:
         """The corrections to apply to ``prior`` with their weights (all sources but ``exclude``); expired ones are
         dropped and counted (see :meth:`fuse`)."""
         applied: list[tuple[CarriedCorrection, float]] = []
-        for source in list(self.corrections):
-            corr = self.corrections[source]
-            w = self.policy.weight(corr.anchor, prior, corr.T_anchor_inv)
+        if not self.corrections:
+            return applied
+        weight = self.policy.weight
+        for source, corr in list(self.corrections.items()):
+            w = weight(corr.anchor, prior, corr.T_anchor_inv)
             if w <= 0.0:
                 if prior.stamp >= corr.anchor.stamp:
                     del self.corrections[source]
