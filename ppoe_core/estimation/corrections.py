@@ -153,7 +153,7 @@ class CorrectionPolicy:
         :func:`ppoe_core.estimation.correction_kernels.correction_ratio`."""
         qa, qp = anchor.joints, prior.joints
         if self.joint_motion > 0.0 and qa is not None and qp is not None and qa.shape == qp.shape:
-            qa, qp = qa.reshape(-1), qp.reshape(-1)  # NaN = joint not (yet) known: skipped
+            qa, qp = np.asarray(qa, np.float64).reshape(-1), np.asarray(qp, np.float64).reshape(-1)  # NaN: skipped
         else:
             qa = qp = _NO_JOINTS
         if self.tool_translation > 0.0 or self.tool_rotation > 0.0:

@@ -230,6 +230,88 @@ class FusionPipeline:
             return None, outcomes
         return self.fuse(sample), outcomes
 
+    def add_priors(self, stamps: Array, T_base_tool: Array, cov_tool: Array, joints: Array | None = None,
+                   validated: bool = False) -> list[MeasurementOutcome]:
+        """A run of priors with no measurement added between them: exactly the calls ``add_prior(stamps[k],
+        T_base_tool[k], cov_tool[k], joints[k], validated, estimate=False)`` in order (the same buffer, expiry
+        drops at the same prior, counts and outcomes), vectorised where nothing but the expiry check happens.
+
+        Parameters
+        ----------
+        stamps : ndarray, shape (n,)
+            [s]
+        T_base_tool : ndarray, shape (n, 4, 4)
+        cov_tool : ndarray, shape (n, 6, 6) or (6, 6)
+            Tool-frame covariances (one for all priors: shape (6, 6)).
+        joints : ndarray, shape (n, m), optional
+        validated : bool
+            See :meth:`add_prior`.  Only validated priors (``ppoe evaluate`` checks the whole batch first) take the
+            vectorised path: otherwise each prior's covariance is checked as :meth:`add_prior` does, one at a time.
+
+        Returns
+        -------
+        list of MeasurementOutcome
+            The outcomes of the pending measurements the priors made ready, in order.
+        """
+        t = np.asarray(stamps, dtype=np.float64).reshape(-1)
+        n = t.shape[0]
+        T = np.asarray(T_base_tool, dtype=np.float64)
+        cov = np.asarray(cov_tool, dtype=np.float64)
+        Q = None if joints is None or n == 0 else np.asarray(joints, dtype=np.float64).reshape(n, -1)
+        if T.shape != (n, 4, 4) or cov.shape not in ((6, 6), (n, 6, 6)):
+            raise MeasurementError(f"add_priors: {n} stamps need T_base_tool (n, 4, 4) and cov_tool (n, 6, 6) or "
+                                   f"(6, 6), got shapes {T.shape} and {cov.shape}")
+        one_cov = cov.ndim == 2
+        outcomes: list[MeasurementOutcome] = []
+        fast = validated and type(self.policy) is CorrectionPolicy
+        # a run continues at k if its stamp is newer than the one before and its pose is finite
+        finite = np.isfinite(T).all(axis=(1, 2))
+        breaks = np.flatnonzero(~(np.concatenate([[False], t[1:] > t[:-1]]) & finite))
+        i = 0
+        while i < n:
+            newest = self.buffer.newest
+            if not fast or self.pending or not finite[i] or not (newest is None or t[i] > newest):
+                outcomes += self.add_prior(float(t[i]), T[i], cov if one_cov else cov[i], None if Q is None else Q[i],
+                                           validated=validated, estimate=False)[1]
+                i += 1
+                continue
+            b = int(np.searchsorted(breaks, i + 1))
+            j = int(breaks[b]) if b < len(breaks) else n
+            self._add_run(t[i:j], T[i:j], cov if one_cov else cov[i:j], None if Q is None else Q[i:j])
+            i = j
+        return outcomes
+
+    def _add_run(self, t: Array, T: Array, cov: Array, Q: Array | None) -> None:
+        """:meth:`add_priors` of priors with increasing stamps newer than the buffer, finite poses, checked
+        covariances and no pending measurement: only the expiry check and the buffer's appends happen."""
+        self.counts["priors"] += len(t)
+        for source, corr in list(self.corrections.items()):
+            if self._first_expiry(corr, t, T, Q) >= 0:
+                del self.corrections[source]
+                self.counts["corrections_dropped"] += 1
+        # what the appends leave in the buffer: the priors not older than the last one minus its duration
+        k = int(np.searchsorted(t, float(t[-1]) - self.buffer.duration, side="left"))
+        one_cov = cov.ndim == 2
+        samples = [PriorSample(tk, T[k + m], cov if one_cov else cov[k + m], None if Q is None else Q[k + m])
+                   for m, tk in enumerate(t[k:].tolist())]
+        self.buffer.append_run(samples)
+
+    def _first_expiry(self, corr: CarriedCorrection, t: Array, T: Array, Q: Array | None) -> int:
+        """Index of the first prior of a run at which ``corr`` expires (as :meth:`_active_corrections`), -1 if
+        none."""
+        pol = self.policy
+        qa = corr.anchor.joints
+        if pol.joint_motion > 0.0 and qa is not None and Q is not None and qa.shape == (Q.shape[1],):
+            Qr, qa_r = Q, qa
+        else:
+            Qr, qa_r = np.zeros((len(t), 0)), np.zeros(0)
+        if pol.tool_translation > 0.0 or pol.tool_rotation > 0.0:
+            T_rel = corr.T_anchor_inv @ T  # numpy's stacked product: the floats of one product per prior
+        else:
+            T_rel = np.zeros((len(t), 4, 4))
+        return int(_correction_kernels().first_expiry(t, corr.anchor.stamp, Qr, qa_r, T_rel, pol.timeout,
+                                                      pol.joint_motion, pol.tool_translation, pol.tool_rotation))
+
     @staticmethod
     def _checked_prior(stamp: float, T: Array, cov_tool: Array, validated: bool) -> Array:
         """The checks of a prior that failed the quick ones (or has unusual types): raise the error, or pass and

@@ -145,6 +145,20 @@ class PriorBuffer:
             del self._samples[:k]
         return True
 
+    def append_run(self, samples: list[PriorSample]) -> None:
+        """:meth:`add` of each of ``samples`` in turn, for samples with increasing stamps all newer than the buffer
+        (the caller checks): appended, then the priors older than the newest minus ``duration`` evicted (what the
+        single adds leave)."""
+        if not samples:
+            return
+        self._stamps.extend(float(s.stamp) for s in samples)
+        self._samples.extend(samples)
+        cutoff = self._stamps[-1] - self.duration
+        if self._stamps[0] < cutoff:
+            k = bisect.bisect_left(self._stamps, cutoff)
+            del self._stamps[:k]
+            del self._samples[:k]
+
     def lookup(self, stamp: float) -> tuple[str, PriorSample | None]:
         """Prior at ``stamp``: interpolated inside the buffer (see class notes).
 
