@@ -383,8 +383,20 @@ def test_one_pose_kernels_are_bit_identical_to_the_batched_kernels():
                 assert np.array_equal(one, out[0])
             q = np.empty((1, 4))
             kernels.quat_from_matrix_kernel(np.ascontiguousarray(T[None, :3, :3]), q)
-            assert np.array_equal(kernels.quat_from_matrix_one(T[:3, :3]), q[0])
+            assert np.array_equal(lie.quat_from_matrix(T[:3, :3]), q[0])
             qn = q[0] * rng.uniform(0.5, 2.0)
-            P = kernels.pose_from_quat_one(*qn.tolist(), *T[:3, 3].tolist())
+            P = np.empty((4, 4))
+            kernels.pose_from_quat_one(*qn.tolist(), *T[:3, 3].tolist(), P)
             assert np.array_equal(P[:3, :3], lie.matrix_from_quat(qn))
             assert np.array_equal(P[:3, 3], T[:3, 3]) and np.array_equal(P[3], [0.0, 0.0, 0.0, 1.0])
+
+
+def test_batched_log_rows_equal_single_logs():
+    """``CarriedCorrection.from_update`` takes two logarithms in one batched call: each row must be the single
+    call's floats, at every angle scale."""
+    rng = np.random.default_rng(33)
+    for _ in range(1000):
+        s = 10.0 ** rng.uniform(-9, 0.5)
+        A, B = lie.exp(rng.normal(size=6) * s), lie.exp(rng.normal(size=6) * 0.1 * s)
+        L = lie.log(np.stack([A, B]))
+        assert np.array_equal(L[0], lie.log(A)) and np.array_equal(L[1], lie.log(B))

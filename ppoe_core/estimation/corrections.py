@@ -241,7 +241,10 @@ class CarriedCorrection:
         P1 = U.T @ _sym(cov_post) @ U
         P1 = _sym(P1) + _INV_JITTER * np.eye(P1.shape[0])
         info1 = np.linalg.inv(P1)
-        delta = lie.log(lie.inverse(T_pre) @ T_post)
+        # both logarithms in one (batched) call: the floats of two single calls (tested), half the numpy calls
+        T_anchor_inv = lie.inverse(anchor.T_base_tool)
+        T_pre_inv = T_anchor_inv if T_pre is anchor.T_base_tool else lie.inverse(T_pre)
+        delta, pre = lie.log(np.stack([T_pre_inv @ T_post, T_anchor_inv @ T_pre]))
         y = info1 @ (U.T @ delta)
         lam, V = np.linalg.eigh(_sym(info1 - info0))
         keep = lam > 1e-9 * max(float(np.max(np.abs(lam))), 1e-300)
@@ -250,8 +253,8 @@ class CarriedCorrection:
         lam, V = lam[keep], V[:, keep]
         H = V.T @ U.T
         R = 1.0 / lam
-        z = R * (V.T @ y) + H @ lie.log(lie.inverse(anchor.T_base_tool) @ T_pre)
-        return CarriedCorrection(anchor, H, R, z)
+        z = R * (V.T @ y) + H @ pre
+        return CarriedCorrection(anchor, H, R, z, T_anchor_inv)
 
     def apply(self, prior: PriorSample, weight: float) -> tuple[Array, Array]:
         """Fused ``(T_base_tool, cov_tool)`` for ``prior`` with this correction at ``weight``.

@@ -19,7 +19,9 @@ def _rotate(T: ArrayLike, cov: ArrayLike, inverse: bool) -> Array:
     kernels = _kernels()
     T_a, cov_a = _f(T), _f(cov)
     if T_a.shape == (4, 4) and cov_a.shape == (6, 6):  # one message: no batch reshaping, the same operations
-        return kernels.rotate_covariance_one(T_a, cov_a, inverse)
+        out1 = np.empty((6, 6))
+        kernels.rotate_covariance_one(T_a, cov_a, inverse, out1)
+        return out1
     if T_a.shape[:-2] == cov_a.shape[:-2]:
         shape = cov_a.shape[:-2]
         T_flat = np.ascontiguousarray(T_a.reshape(-1, 4, 4))

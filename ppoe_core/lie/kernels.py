@@ -59,19 +59,18 @@ def quat_from_matrix_kernel(R: np.ndarray, out: np.ndarray) -> None:
 
 
 @njit(cache=True)
-def quat_from_matrix_one(R: np.ndarray) -> np.ndarray:
-    """:func:`quat_from_matrix_kernel` of one rotation ``R`` (3, 3) (any layout, e.g. ``T[:3, :3]``) -> (4,)."""
-    out = np.empty(4)
+def quat_from_matrix_one(R: np.ndarray, out: np.ndarray) -> None:
+    """:func:`quat_from_matrix_kernel` of one rotation ``R`` (3, 3) (any layout, e.g. ``T[:3, :3]``) into ``out``
+    (4,) (an output argument: a returned array costs more than the arithmetic)."""
     _quat_into(R, np.empty(4), out)
-    return out
 
 
 @njit(cache=True)
-def pose_from_quat_one(x: float, y: float, z: float, w: float, px: float, py: float, pz: float) -> np.ndarray:
+def pose_from_quat_one(x: float, y: float, z: float, w: float, px: float, py: float, pz: float,
+                       T: np.ndarray) -> None:
     """Homogeneous (4, 4) of the quaternion ``(x, y, z, w)`` (normalised here) and translation ``(px, py, pz)``;
     the operations of the one-quaternion path of :func:`ppoe_core.lie.so3.matrix_from_quat` (bit-identical,
-    tested).  A zero or non-finite norm gives NaN entries (the caller checks the norm first)."""
-    T = np.empty((4, 4))
+    tested), into ``T`` (4, 4).  A zero or non-finite norm gives NaN entries (the caller checks the norm first)."""
     n = math.sqrt(x * x + y * y + z * z + w * w)
     x, y, z, w = x / n, y / n, z / n, w / n
     T[0, 0], T[0, 1], T[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)
@@ -79,7 +78,6 @@ def pose_from_quat_one(x: float, y: float, z: float, w: float, px: float, py: fl
     T[2, 0], T[2, 1], T[2, 2] = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
     T[0, 3], T[1, 3], T[2, 3] = px, py, pz
     T[3, 0], T[3, 1], T[3, 2], T[3, 3] = 0.0, 0.0, 0.0, 1.0
-    return T
 
 
 @njit(cache=True, inline="always")
@@ -111,11 +109,10 @@ def rotate_covariance_kernel(T: np.ndarray, cov: np.ndarray, inverse: bool, out:
 
 
 @njit(cache=True)
-def rotate_covariance_one(T: np.ndarray, cov: np.ndarray, inverse: bool) -> np.ndarray:
-    """:func:`rotate_covariance_kernel` of one pose ``T`` (4, 4) and covariance ``cov`` (6, 6) -> (6, 6)."""
-    out = np.empty((6, 6))
+def rotate_covariance_one(T: np.ndarray, cov: np.ndarray, inverse: bool, out: np.ndarray) -> None:
+    """:func:`rotate_covariance_kernel` of one pose ``T`` (4, 4) and covariance ``cov`` (6, 6) into ``out``
+    (6, 6)."""
     _rotate_cov_into(T, cov, inverse, out, np.empty((3, 3)), np.empty((3, 3)))
-    return out
 
 
 # ----------------------------------------------------------------------------

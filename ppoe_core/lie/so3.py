@@ -114,7 +114,9 @@ def quat_from_matrix(R: ArrayLike) -> Array:
     R = _f(R)
     kernels = _kernels()
     if R.shape == (3, 3):  # one rotation (one message): no batch reshaping, the same operations
-        return kernels.quat_from_matrix_one(R)
+        q = np.empty(4)
+        kernels.quat_from_matrix_one(R, q)
+        return q
     shape = R.shape[:-2]
     flat = np.ascontiguousarray(R.reshape(-1, 3, 3))
     out = np.empty((flat.shape[0], 4))

@@ -79,7 +79,9 @@ def matrix_from_pose_msg(pose: Pose) -> np.ndarray:
         raise ValueError(f"pose quaternion {[x, y, z, w]} is not a rotation")
     p = pose.position
     # lie.matrix_from_quat's one-quaternion operations (normalising again) and the translation, compiled
-    return _kernels().pose_from_quat_one(x / nq, y / nq, z / nq, w / nq, float(p.x), float(p.y), float(p.z))
+    T = np.empty((4, 4))
+    _kernels().pose_from_quat_one(x / nq, y / nq, z / nq, w / nq, float(p.x), float(p.y), float(p.z), T)
+    return T
 
 
 def cov_ros_to_msg_array(cov_ros: np.ndarray) -> list[float]:
