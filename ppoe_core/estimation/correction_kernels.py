@@ -11,12 +11,19 @@ from numba import njit
 
 from ppoe_core.lie.kernels import covariance_passes_kernel, mat_mul, mat_mul_t, sandwich, se3_exp_one, se3_mul
 
-__all__ = ["apply_corrections_kernel", "correction_ratio", "first_expiry", "prior_passes"]
+__all__ = ["apply_corrections_kernel", "correction_ratio", "first_expiry", "fuse_one_kernel", "prior_passes"]
 
 
 @njit(cache=True)
 def apply_corrections_kernel(T: np.ndarray, P_in: np.ndarray, H: np.ndarray, Rw: np.ndarray, z: np.ndarray,
                              T_out: np.ndarray, cov_out: np.ndarray) -> None:
+    """:func:`_apply_into` (the compiled :func:`ppoe_core.estimation.corrections.apply_carried_corrections`)."""
+    _apply_into(T, P_in, H, Rw, z, T_out, cov_out)
+
+
+@njit(cache=True, inline="always")
+def _apply_into(T: np.ndarray, P_in: np.ndarray, H: np.ndarray, Rw: np.ndarray, z: np.ndarray,
+                T_out: np.ndarray, cov_out: np.ndarray) -> None:
     """Kalman update of the prior ``(T, P)`` with the equivalent measurement ``z = H e + n``, ``n ~ N(0,
     diag(Rw))``: ``T_out = T Exp(K z)``, ``cov_out = (I-KH) P (I-KH)^T + K diag(Rw) K^T`` (symmetrised), ``K = P
     H^T S^-1``, ``S = H P H^T + diag(Rw)``."""
@@ -133,3 +140,22 @@ def prior_passes(T: np.ndarray, cov: np.ndarray, check_cov: bool) -> bool:
             if not math.isfinite(T[i, j]):
                 return False
     return not check_cov or covariance_passes_kernel(cov, 1e-9, 1e-9)
+
+
+@njit(cache=True)
+def fuse_one_kernel(T: np.ndarray, P: np.ndarray, T_rel: np.ndarray, dt_abs: float, q: np.ndarray,
+                    q_anchor: np.ndarray, timeout: float, joint_motion: float, tool_translation: float,
+                    tool_rotation: float, linear: bool, H: np.ndarray, R: np.ndarray, z: np.ndarray,
+                    T_out: np.ndarray, cov_out: np.ndarray) -> float:
+    """One carried correction applied to a prior in one call: its weight (:meth:`CorrectionPolicy.weight`, ratio as
+    :func:`correction_ratio`) and, if positive, the update of :func:`apply_corrections_kernel` with ``Rw = R / w``
+    into ``T_out``, ``cov_out``.  Returns the weight (0: expired, outputs untouched)."""
+    r = _ratio(dt_abs, q, q_anchor, T_rel, timeout, joint_motion, tool_translation, tool_rotation)
+    if r >= 1.0:
+        return 0.0
+    w = 1.0 - r if linear else 1.0
+    Rw = np.empty(R.shape[0])
+    for i in range(R.shape[0]):
+        Rw[i] = R[i] / w
+    _apply_into(T, P, H, Rw, z, T_out, cov_out)
+    return w

@@ -151,20 +151,30 @@ class CorrectionPolicy:
         """Largest change ratio between the correction's anchor prior and ``prior`` (``T_anchor_inv``: the
         anchor pose's inverse when the caller has it, :attr:`CarriedCorrection.T_anchor_inv`); compiled,
         :func:`ppoe_core.estimation.correction_kernels.correction_ratio`."""
-        qa, qp = anchor.joints, prior.joints
-        if self.joint_motion > 0.0 and qa is not None and qp is not None and qa.shape == qp.shape:
-            qa, qp = np.asarray(qa, np.float64).reshape(-1), np.asarray(qp, np.float64).reshape(-1)  # NaN: skipped
-        else:
-            qa = qp = _NO_JOINTS
+        qp, qa = self.joint_args(prior.joints, anchor.joints)
+        T_inv = lie.inverse(anchor.T_base_tool) if T_anchor_inv is None else T_anchor_inv
+        return _correction_kernels().correction_ratio(
+            abs(prior.stamp - anchor.stamp), qp, qa, self.relative_pose(T_inv, prior.T_base_tool), self.timeout,
+            self.joint_motion, self.tool_translation, self.tool_rotation)
+
+    def joint_args(self, q: Array | None, q_anchor: Array | None) -> tuple[Array, Array]:
+        """The joint positions of a prior and of an anchor as the compiled ratio takes them: float (n,) each, or
+        both empty when the joint ratio does not apply (disabled, unknown joints, different lengths)."""
+        if self.joint_motion > 0.0 and q_anchor is not None and q is not None and q_anchor.shape == q.shape:
+            if q.dtype != np.float64 or q.ndim != 1:
+                q = np.asarray(q, dtype=np.float64).reshape(-1)
+            if q_anchor.dtype != np.float64 or q_anchor.ndim != 1:
+                q_anchor = np.asarray(q_anchor, dtype=np.float64).reshape(-1)
+            return q, q_anchor  # NaN = joint not (yet) known: skipped
+        return _NO_JOINTS, _NO_JOINTS
+
+    def relative_pose(self, T_anchor_inv: Array, T_prior: Array) -> Array:
+        """``T_anchor^-1 T_prior`` for the tool-motion ratios (identity when both are disabled).  numpy's product
+        on purpose: the angle from the trace is ill-conditioned near 0 (d acos / dc ~ 1 / angle), a product summed
+        in another order moves a small angle in its 8th digit."""
         if self.tool_translation > 0.0 or self.tool_rotation > 0.0:
-            # numpy's product on purpose: the angle from the trace is ill-conditioned near 0 (d acos / dc ~
-            # 1 / angle), a product summed in another order moves a small angle in its 8th digit
-            T_inv = lie.inverse(anchor.T_base_tool) if T_anchor_inv is None else T_anchor_inv
-            T_rel = T_inv @ prior.T_base_tool
-        else:
-            T_rel = _EYE4
-        return _correction_kernels().correction_ratio(abs(prior.stamp - anchor.stamp), qp, qa, T_rel, self.timeout,
-                                                      self.joint_motion, self.tool_translation, self.tool_rotation)
+            return T_anchor_inv @ T_prior
+        return _EYE4
 
     def weight(self, anchor: PriorSample, prior: PriorSample, T_anchor_inv: Array | None = None) -> float:
         """Weight in [0, 1] of the correction made at ``anchor`` when applied to ``prior``."""
