@@ -11,7 +11,7 @@ from numba import njit
 
 from ppoe_core.lie.kernels import covariance_passes_kernel, mat_mul, mat_mul_t, sandwich, se3_exp_one, se3_mul
 
-__all__ = ["apply_corrections_kernel", "correction_ratio", "first_expiry", "fuse_one_kernel", "prior_passes"]
+__all__ = ["apply_corrections_kernel", "correction_ratio", "first_expiry", "fuse_one_kernel", "prior_passes", "run_breaks"]
 
 
 @njit(cache=True)
@@ -159,3 +159,24 @@ def fuse_one_kernel(T: np.ndarray, P: np.ndarray, T_rel: np.ndarray, dt_abs: flo
         Rw[i] = R[i] / w
     _apply_into(T, P, H, Rw, z, T_out, cov_out)
     return w
+
+
+@njit(cache=True)
+def run_breaks(t: np.ndarray, T: np.ndarray, finite: np.ndarray) -> np.ndarray:
+    """Where a run of priors breaks (:meth:`FusionPipeline.add_priors`): ``finite[k]`` = every entry of ``T[k]``
+    (N, 4, 4) finite; returns the indices ``k >= 1`` at which the stamp ``t[k]`` is not newer than ``t[k-1]`` or
+    ``T[k]`` is not finite (increasing)."""
+    n = t.shape[0]
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    for k in range(n):
+        ok = True
+        for i in range(4):
+            for j in range(4):
+                if not math.isfinite(T[k, i, j]):
+                    ok = False
+        finite[k] = ok
+        if k >= 1 and not (ok and t[k] > t[k - 1]):
+            out[m] = k
+            m += 1
+    return out[:m]

@@ -37,6 +37,7 @@ offline replay configured alike behave alike.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Callable
 from typing import Any
 
@@ -265,8 +266,8 @@ class FusionPipeline:
         outcomes: list[MeasurementOutcome] = []
         fast = validated and type(self.policy) is CorrectionPolicy
         # a run continues at k if its stamp is newer than the one before and its pose is finite
-        finite = np.isfinite(T).all(axis=(1, 2))
-        breaks = np.flatnonzero(~(np.concatenate([[False], t[1:] > t[:-1]]) & finite))
+        finite = np.empty(n, dtype=np.bool_)
+        breaks = _correction_kernels().run_breaks(t, T, finite)
         i = 0
         while i < n:
             newest = self.buffer.newest
@@ -290,11 +291,12 @@ class FusionPipeline:
                 del self.corrections[source]
                 self.counts["corrections_dropped"] += 1
         # what the appends leave in the buffer: the priors not older than the last one minus its duration
-        k = int(np.searchsorted(t, float(t[-1]) - self.buffer.duration, side="left"))
+        ts = t.tolist()
+        k = bisect.bisect_left(ts, ts[-1] - self.buffer.duration)
         one_cov = cov.ndim == 2
-        samples = [PriorSample(tk, T[k + m], cov if one_cov else cov[k + m], None if Q is None else Q[k + m])
-                   for m, tk in enumerate(t[k:].tolist())]
-        self.buffer.append_run(samples)
+        samples = [PriorSample(ts[m], T[m], cov if one_cov else cov[m], None if Q is None else Q[m])
+                   for m in range(k, len(ts))]
+        self.buffer.append_run(ts[k:], samples)
 
     def _first_expiry(self, corr: CarriedCorrection, t: Array, T: Array, Q: Array | None) -> int:
         """Index of the first prior of a run at which ``corr`` expires (as :meth:`_active_corrections`), -1 if

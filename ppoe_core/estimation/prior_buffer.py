@@ -145,13 +145,13 @@ class PriorBuffer:
             del self._samples[:k]
         return True
 
-    def append_run(self, samples: list[PriorSample]) -> None:
-        """:meth:`add` of each of ``samples`` in turn, for samples with increasing stamps all newer than the buffer
-        (the caller checks): appended, then the priors older than the newest minus ``duration`` evicted (what the
-        single adds leave)."""
+    def append_run(self, stamps: list[float], samples: list[PriorSample]) -> None:
+        """:meth:`add` of each of ``samples`` (stamps ``stamps``) in turn, for increasing stamps all newer than the
+        buffer (the caller checks): appended, then the priors older than the newest minus ``duration`` evicted (what
+        the single adds leave)."""
         if not samples:
             return
-        self._stamps.extend(float(s.stamp) for s in samples)
+        self._stamps.extend(stamps)
         self._samples.extend(samples)
         cutoff = self._stamps[-1] - self.duration
         if self._stamps[0] < cutoff:

@@ -536,8 +536,8 @@ def _at_ground_truth(run: ReplayRun, pri: _Priors, t: float, i: int, pipes: dict
                      updaters: dict[str, Any]) -> None:
     """Estimates of every method at ground-truth sample ``i`` (stamp ``t``)."""
     for name, pipe in pipes.items():
-        # stamps near 1.7e9 s resolve ~0.24 us in float64: 1 us margin
-        run.record(name, pipe.flush(older_than=t + 1e-6), updaters[name].tags)
+        if pipe.pending:  # stamps near 1.7e9 s resolve ~0.24 us in float64: 1 us margin
+            run.record(name, pipe.flush(older_than=t + 1e-6), updaters[name].tags)
         status, prior = pipe.buffer.lookup_hold(t)
         if prior is None:
             continue
