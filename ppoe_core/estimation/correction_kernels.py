@@ -11,7 +11,9 @@ from numba import njit
 
 from ppoe_core.lie.kernels import covariance_passes_kernel, mat_mul, mat_mul_t, sandwich, se3_exp_one, se3_mul
 
-__all__ = ["apply_corrections_kernel", "correction_ratio", "first_expiry", "fuse_one_kernel", "prior_passes", "run_breaks"]
+__all__ = [
+    "apply_corrections_kernel", "correction_ratio", "first_expiry", "fuse_one_kernel", "prior_passes", "run_breaks",
+]
 
 
 @njit(cache=True)

@@ -297,8 +297,9 @@ def apply_carried_corrections(
     T_out, cov = np.empty((4, 4)), np.empty((6, 6))
     # the kernel symmetrises the covariance itself ((P + P^T) / 2 of a symmetric P is P: the same floats)
     _correction_kernels().apply_corrections_kernel(
-        np.ascontiguousarray(prior.T_base_tool, dtype=np.float64), np.ascontiguousarray(prior.cov_tool, dtype=np.float64),
-        np.ascontiguousarray(H, dtype=np.float64), Rw, np.ascontiguousarray(z, dtype=np.float64), T_out, cov)
+        np.ascontiguousarray(prior.T_base_tool, dtype=np.float64),
+        np.ascontiguousarray(prior.cov_tool, dtype=np.float64), np.ascontiguousarray(H, dtype=np.float64), Rw,
+        np.ascontiguousarray(z, dtype=np.float64), T_out, cov)
     return T_out, cov
 
 
