@@ -1,6 +1,7 @@
-"""Compiled (numba) per-prior step of the fusion pipeline: the Kalman update of a prior with the equivalent
-measurements of the carried corrections (:func:`ppoe_core.estimation.corrections.apply_carried_corrections`); pose
-(4, 4), covariance (6, 6) in the tool tangent space."""
+"""Compiled (numba) per-prior steps of the fusion pipeline: the Kalman update of a prior with the equivalent
+measurements of the carried corrections (:func:`ppoe_core.estimation.corrections.apply_carried_corrections`), a
+correction's weight (:meth:`CorrectionPolicy.ratio`), both in one call, the first prior of a run at which a correction
+expires and the quick checks of a prior; pose (4, 4), covariance (6, 6) in the tool tangent space."""
 
 from __future__ import annotations
 
