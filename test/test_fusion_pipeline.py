@@ -19,6 +19,7 @@ from ppoe_core.estimation.pipeline import (
     PriorBuffer,
     PriorSample,
     ToolUpdate,
+    apply_carried_corrections,
 )
 
 
@@ -748,3 +749,34 @@ def test_add_priors_equals_the_add_prior_sequence(seed):
         if a is not None:
             assert np.array_equal(a.T_base_tool, b.T_base_tool) and a.weight == b.weight
     assert n_drop > 0 and pipes[0].counts["resets"] == 1 and pipes[0].counts["accepted"] > 10
+
+
+def test_fuse_with_one_correction_equals_weight_and_apply():
+    """The one-correction path of ``fuse`` (weight, drop and update in one compiled call) gives the floats of
+    ``policy.weight`` + ``apply_carried_corrections``, drops an expired correction only at a prior not older than
+    its anchor, and counts the drop."""
+    rng = np.random.default_rng(45)
+    for decay in ("linear", "step"):
+        policy = CorrectionPolicy(timeout=1.0, joint_motion=0.05, tool_translation=0.05, tool_rotation=0.1,
+                                  decay=decay)
+        for k in range(200):
+            T = _random_pose(rng)
+            anchor = PriorSample(1.0, T, _random_cov(rng), rng.normal(size=3))
+            r = 1 + k % 6
+            corr = CarriedCorrection(anchor, np.linalg.qr(rng.normal(size=(6, r)))[0].T, rng.uniform(1e-7, 1e-5, r),
+                                     rng.normal(size=r) * 1e-3)
+            prior = PriorSample(1.0 + rng.uniform(-1.2, 1.2), T @ lie.exp(rng.normal(size=6) * 0.02),
+                                _random_cov(rng), anchor.joints + rng.normal(size=3) * 0.02)
+            pipe = FusionPipeline(LinearUpdater(), policy=policy)
+            pipe.corrections["cam"] = corr
+            est = pipe.fuse(prior)
+            w = policy.weight(anchor, prior, corr.T_anchor_inv)
+            assert est.weight == w
+            if w > 0.0:
+                T_ref, cov_ref = apply_carried_corrections(prior, [(corr, w)])
+                assert np.array_equal(est.T_base_tool, T_ref) and np.array_equal(est.cov_tool, cov_ref)
+                assert "cam" in pipe.corrections
+            else:
+                assert est.T_base_tool is prior.T_base_tool and est.cov_tool is prior.cov_tool
+                dropped = prior.stamp >= anchor.stamp
+                assert ("cam" in pipe.corrections) != dropped and pipe.counts["corrections_dropped"] == int(dropped)
