@@ -424,6 +424,11 @@ def test_pose_message_fast_build_equals_the_constructors_and_round_trips(monkeyp
         assert serialize_message(fast) == serialize_message(slow)
         assert ns_to_stamp(12_345_678_901) == conversions.TimeMsg(sec=12, nanosec=345_678_901)
         T_back, cov_back, ns, frame = pose_cov_from_msg(fast)
+        monkeypatch.setattr(conversions, "_FAST_MSG", False)  # the reading through the properties: the same floats
+        T_slow, cov_slow, ns_slow, frame_slow = pose_cov_from_msg(fast)
+        monkeypatch.setattr(conversions, "_FAST_MSG", True)
+        assert np.array_equal(T_back, T_slow) and np.array_equal(cov_back, cov_slow)
+        assert (ns, frame) == (ns_slow, frame_slow)
         np.testing.assert_allclose(T_back, T, atol=1e-12)
         assert np.array_equal(cov_back, cov) and frame == "base_link"
         assert ns == (stamp if isinstance(stamp, int) else k * 1_000_003)

@@ -17,7 +17,8 @@ from ppoe_core.lie.so3 import Array, _f, _kernels
 def _rotate(T: ArrayLike, cov: ArrayLike, inverse: bool) -> Array:
     """``B cov B^T`` (``B^T cov B`` with ``inverse``), ``B = blockdiag(R, R)``, broadcast over leading axes."""
     kernels = _kernels()
-    T_a, cov_a = _f(T), _f(cov)
+    T_a = T if type(T) is np.ndarray and T.dtype == np.float64 else _f(T)
+    cov_a = cov if type(cov) is np.ndarray and cov.dtype == np.float64 else _f(cov)
     if T_a.shape == (4, 4) and cov_a.shape == (6, 6):  # one message: no batch reshaping, the same operations
         out1 = np.empty((6, 6))
         kernels.rotate_covariance_one(T_a, cov_a, inverse, out1)

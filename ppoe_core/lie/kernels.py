@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "quat_from_matrix_kernel", "quat_from_matrix_one", "pose_from_quat_one", "rotate_covariance_kernel",
+    "quat_from_matrix_kernel", "quat_from_matrix_one", "pose_fields_one", "pose_from_quat_one", "rotate_covariance_kernel",
     "rotate_covariance_one", "se3_exp_one", "se3_log_one", "so3_log_one",
     "se3_right_jacobian_one", "se3_right_jacobian_inv_one", "se3_inverse_one", "se3_mul",
     "covariance_passes_kernel", "mat_mul", "mat_mul_t", "sandwich",
@@ -63,6 +63,14 @@ def quat_from_matrix_one(R: np.ndarray, out: np.ndarray) -> None:
     """:func:`quat_from_matrix_kernel` of one rotation ``R`` (3, 3) (any layout, e.g. ``T[:3, :3]``) into ``out``
     (4,) (an output argument: a returned array costs more than the arithmetic)."""
     _quat_into(R, np.empty(4), out)
+
+
+@njit(cache=True)
+def pose_fields_one(T: np.ndarray, out: np.ndarray) -> None:
+    """A pose message's fields of ``T`` (4, 4) into ``out`` (7,): the quaternion ``(x, y, z, w)`` of
+    :func:`quat_from_matrix_kernel` (the same floats) and the translation."""
+    _quat_into(T[:3, :3], np.empty(4), out[:4])
+    out[4], out[5], out[6] = T[0, 3], T[1, 3], T[2, 3]
 
 
 @njit(cache=True)

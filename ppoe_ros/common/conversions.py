@@ -72,15 +72,19 @@ def pose_msg_from_matrix(T: np.ndarray, out: Pose | None = None) -> Pose:
 
 def matrix_from_pose_msg(pose: Pose) -> np.ndarray:
     """``geometry_msgs/Pose`` -> homogeneous ``(4, 4)``; the quaternion is normalised."""
-    o = pose.orientation
-    x, y, z, w = float(o.x), float(o.y), float(o.z), float(o.w)
+    o, p = pose.orientation, pose.position
+    return _matrix_from_quat_xyz(float(o.x), float(o.y), float(o.z), float(o.w), p.x, p.y, p.z)
+
+
+def _matrix_from_quat_xyz(x: float, y: float, z: float, w: float, px: Any, py: Any, pz: Any) -> np.ndarray:
+    """Homogeneous ``(4, 4)`` of a message's quaternion (normalised) and position (see
+    :func:`matrix_from_pose_msg`)."""
     nq = math.sqrt(x * x + y * y + z * z + w * w)
     if not math.isfinite(nq) or nq < 1e-9:
         raise ValueError(f"pose quaternion {[x, y, z, w]} is not a rotation")
-    p = pose.position
     # lie.matrix_from_quat's one-quaternion operations (normalising again) and the translation, compiled
     T = np.empty((4, 4))
-    _kernels().pose_from_quat_one(x / nq, y / nq, z / nq, w / nq, float(p.x), float(p.y), float(p.z), T)
+    _kernels().pose_from_quat_one(x / nq, y / nq, z / nq, w / nq, float(px), float(py), float(pz), T)
     return T
 
 
@@ -121,9 +125,9 @@ def pose_cov_stamped_msg(T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp:
         pose_msg_from_matrix(T_parent_child, msg.pose.pose)
         msg.pose.covariance = cov.reshape(36).copy()  # the field's own type (float64[36]): no per-element check
         return msg
-    T = np.asarray(T_parent_child, dtype=float)
-    qx, qy, qz, qw = lie.quat_from_matrix(T[:3, :3]).tolist()
-    px, py, pz = T[:3, 3].tolist()
+    fields = np.empty(7)
+    _kernels().pose_fields_one(np.asarray(T_parent_child, dtype=np.float64), fields)  # lie.quat_from_matrix's floats
+    qx, qy, qz, qw, px, py, pz = fields.tolist()
     header, pwc, pose, point, quat = _bare(Header), _bare(PoseWithCovariance), _bare(Pose), _bare(Point), \
         _bare(Quaternion)
     header._stamp, header._frame_id = stamp_msg, frame_id
@@ -141,6 +145,13 @@ def pose_cov_from_msg(msg: PoseWithCovarianceStamped) -> tuple[np.ndarray, np.nd
 
     ``cov_ros`` is in the ROS convention (docs/conventions.md sec. 2, axes of ``frame_id``).
     """
+    if _FAST_MSG and type(msg) is PoseWithCovarianceStamped:  # the fields checked at import: no property calls
+        pwc, header = msg._pose, msg._header
+        pose, stamp = pwc._pose, header._stamp
+        o, p = pose._orientation, pose._position
+        T = _matrix_from_quat_xyz(float(o._x), float(o._y), float(o._z), float(o._w), p._x, p._y, p._z)
+        cov_ros = np.array(pwc._covariance, dtype=float).reshape(6, 6)  # a copy: the message keeps its array
+        return T, cov_ros, int(stamp._sec) * 1_000_000_000 + int(stamp._nanosec), header._frame_id
     T = matrix_from_pose_msg(msg.pose.pose)
     cov_ros = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)  # a copy: the message keeps its array
     return T, cov_ros, stamp_to_ns(msg.header.stamp), msg.header.frame_id
