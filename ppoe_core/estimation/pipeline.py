@@ -208,7 +208,9 @@ class FusionPipeline:
         if not (T.shape == (4, 4) and type(cov) is np.ndarray and cov.dtype == np.float64 and cov.shape == (6, 6)
                 and _correction_kernels().prior_passes(T, cov, not validated)):
             cov = self._checked_prior(float(stamp), T, cov_tool, validated)  # the full checks: error or pass
-        q = None if joints is None else np.asarray(joints, dtype=np.float64).reshape(-1)
+        q = joints
+        if q is not None and not (type(q) is np.ndarray and q.dtype == np.float64 and q.ndim == 1):
+            q = np.asarray(joints, dtype=np.float64).reshape(-1)
         sample = PriorSample(float(stamp), T, cov, q)
         newest = self.buffer.newest
         if newest is not None and sample.stamp < newest - self.reset_jump:
@@ -407,7 +409,7 @@ class FusionPipeline:
         T, P = prior.T_base_tool, prior.cov_tool
         T_out, cov_out = np.empty((4, 4)), np.empty((6, 6))
         w = _correction_kernels().fuse_one_kernel(
-            np.ascontiguousarray(T, dtype=np.float64), np.ascontiguousarray(P, dtype=np.float64),
+            np.asarray(T, dtype=np.float64), np.asarray(P, dtype=np.float64),  # any layout: the same arithmetic
             pol.relative_pose(corr.T_anchor_inv, T), abs(prior.stamp - corr.anchor.stamp), qp, qa, pol.timeout,
             pol.joint_motion, pol.tool_translation, pol.tool_rotation, pol.decay == "linear", corr.H, corr.R, corr.z,
             T_out, cov_out)

@@ -11,7 +11,8 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "quat_from_matrix_kernel", "quat_from_matrix_one", "pose_fields_one", "pose_from_quat_one", "rotate_covariance_kernel",
+    "quat_from_matrix_kernel", "quat_from_matrix_one", "pose_fields_one", "pose_from_quat_one",
+    "rotate_covariance_kernel",
     "rotate_covariance_one", "se3_exp_one", "se3_log_one", "so3_log_one",
     "se3_right_jacobian_one", "se3_right_jacobian_inv_one", "se3_inverse_one", "se3_mul",
     "covariance_passes_kernel", "mat_mul", "mat_mul_t", "sandwich",
