@@ -11,8 +11,8 @@ Baseline measured in the same run: the same replay with the single-input fast pa
 ``ppoe_core.lie`` (``quat_from_matrix``, ``matrix_from_quat``, ``exp``, ``inverse`` of one input) replaced by the
 batched code on a batch of one.  Both runs must give bit-identical fused poses (checked).  Since the per-prior
 path went compiled (one-pose kernels for the message's pose and covariance, one kernel for the carried
-correction's weight and update), only ``quat_from_matrix`` of these is still on it, so the two variants now
-differ little; the number to read is ``per_prior_fast_paths`` (target <= 50 us).
+correction's weight and update), of these only ``inverse`` (once per accepted measurement) is still on it, so the
+two variants now differ by noise; the number to read is ``per_prior_fast_paths`` (target <= 50 us).
 
 Prints ``name: value unit`` lines.
 Run: ``cd /work/main && python bench/bench_fusion_prior.py [--repeat N]``
