@@ -11,7 +11,7 @@ Baseline measured in the same run: the same replay with the single-input fast pa
 ``ppoe_core.lie`` (``quat_from_matrix``, ``matrix_from_quat``, ``exp``, ``inverse`` of one input) replaced by the
 batched code on a batch of one.  Both runs must give bit-identical fused poses (checked).  Since the per-prior
 path went compiled (one-pose kernels for the message's pose and covariance, one kernel for the carried
-correction's weight and update), of these only ``inverse`` (once per accepted measurement) is still on it, so the
+correction's weight and update), of these only ``inverse`` and ``exp`` (a few per measurement) are still on it, so the
 two variants now differ by noise; the number to read is ``per_prior_fast_paths`` (target <= 50 us).
 
 Prints ``name: value unit`` lines.
