@@ -400,3 +400,35 @@ def test_diagnostics_error_until_the_model_arrives_and_warn_when_inputs_stop(tmp
         probe.spin_until(lambda: last().level == DiagnosticStatus.WARN and "no input" in last().message, 15, proc,
                          "WARN: no input")
         assert proc.alive()
+
+
+def test_pose_message_fast_build_equals_the_constructors_and_round_trips(monkeypatch):
+    """``pose_cov_stamped_msg`` builds the message without the generated constructors: equal (``==`` and CDR bytes)
+    to the constructors' message, for int and ``Time`` stamps; ``pose_cov_from_msg`` gives the pose back."""
+    from rclpy.serialization import serialize_message
+
+    from ppoe_ros.common import conversions, pose_cov_from_msg
+
+    assert conversions._FAST_MSG  # the default environment takes the fast build
+    rng = np.random.default_rng(3)
+    for k in range(50):
+        T = lie.exp(rng.normal(size=6) * (0.1 if k % 2 else 3.0))
+        A = rng.normal(size=(6, 6))
+        cov = A @ A.T
+        stamp = 1_700_000_000_123_456_789 + k if k % 3 else ns_to_stamp(k * 1_000_003)
+        fast = pose_cov_stamped_msg(T, cov, stamp, "base_link")
+        monkeypatch.setattr(conversions, "_FAST_MSG", False)
+        slow = pose_cov_stamped_msg(T, cov, stamp, "base_link")
+        monkeypatch.setattr(conversions, "_FAST_MSG", True)
+        assert fast == slow and repr(fast) == repr(slow)
+        assert serialize_message(fast) == serialize_message(slow)
+        assert ns_to_stamp(12_345_678_901) == conversions.TimeMsg(sec=12, nanosec=345_678_901)
+        T_back, cov_back, ns, frame = pose_cov_from_msg(fast)
+        monkeypatch.setattr(conversions, "_FAST_MSG", False)  # the reading through the properties: the same floats
+        T_slow, cov_slow, ns_slow, frame_slow = pose_cov_from_msg(fast)
+        monkeypatch.setattr(conversions, "_FAST_MSG", True)
+        assert np.array_equal(T_back, T_slow) and np.array_equal(cov_back, cov_slow)
+        assert (ns, frame) == (ns_slow, frame_slow)
+        np.testing.assert_allclose(T_back, T, atol=1e-12)
+        assert np.array_equal(cov_back, cov) and frame == "base_link"
+        assert ns == (stamp if isinstance(stamp, int) else k * 1_000_003)

@@ -19,6 +19,7 @@ from ppoe_core.estimation.pipeline import (
     PriorBuffer,
     PriorSample,
     ToolUpdate,
+    apply_carried_corrections,
 )
 
 
@@ -641,3 +642,141 @@ def test_add_prior_without_estimate_drops_and_counts_as_fuse():
     assert sorted(pipes[0].corrections) == sorted(pipes[1].corrections)
     for a, b in zip(out[0], out[1]):
         assert a.weight == b.weight
+
+
+def _ratio_reference(pol: CorrectionPolicy, anchor: PriorSample, prior: PriorSample) -> float:
+    """The former Python ``CorrectionPolicy.ratio`` (the compiled one must give its floats)."""
+    import math
+
+    r = 0.0
+    if pol.timeout > 0.0:
+        r = max(r, abs(prior.stamp - anchor.stamp) / pol.timeout)
+    qa, qp = anchor.joints, prior.joints
+    if pol.joint_motion > 0.0 and qa is not None and qp is not None and qa.shape == qp.shape:
+        dq = [d for d in np.abs(qp - qa).tolist() if math.isfinite(d)]
+        if dq:
+            r = max(r, max(dq) / pol.joint_motion)
+    if pol.tool_translation > 0.0 or pol.tool_rotation > 0.0:
+        T_rel = (lie.inverse(anchor.T_base_tool) @ prior.T_base_tool).tolist()
+        if pol.tool_translation > 0.0:
+            x, y, z = T_rel[0][3], T_rel[1][3], T_rel[2][3]
+            r = max(r, math.sqrt(x * x + y * y + z * z) / pol.tool_translation)
+        if pol.tool_rotation > 0.0:
+            c = min(max((T_rel[0][0] + T_rel[1][1] + T_rel[2][2] - 1.0) / 2.0, -1.0), 1.0)
+            r = max(r, math.acos(c) / pol.tool_rotation)
+    return r
+
+
+def test_compiled_correction_ratio_equals_the_python_reference():
+    """Bit for bit, including tiny rotations (the ill-conditioned acos), NaN joints, joints of another length and
+    disabled limits."""
+    rng = np.random.default_rng(44)
+    pols = [CorrectionPolicy(), CorrectionPolicy(timeout=0.0, tool_rotation=0.0),
+            CorrectionPolicy(timeout=3.0, joint_motion=0.0, tool_translation=0.0, tool_rotation=0.02)]
+    for k in range(600):
+        Ta = _random_pose(rng)
+        qa = rng.normal(size=4)
+        qp = qa + rng.normal(size=4) * 0.03
+        if k % 5 == 0:
+            qp[rng.integers(4)] = np.nan
+        if k % 7 == 0:
+            qp = qp[:3]
+        anchor = PriorSample(float(rng.uniform(0, 5)), Ta, np.eye(6), qa)
+        prior = PriorSample(float(rng.uniform(0, 5)), Ta @ lie.exp(rng.normal(size=6) * 10.0 ** rng.uniform(-9, 0)),
+                            np.eye(6), None if k % 11 == 0 else qp)
+        for pol in pols:
+            assert pol.ratio(anchor, prior) == _ratio_reference(pol, anchor, prior)
+            assert pol.ratio(anchor, prior, lie.inverse(Ta)) == _ratio_reference(pol, anchor, prior)
+
+
+def _pipeline_state(pipe: FusionPipeline) -> tuple:
+    """Everything add_priors must leave as the add_prior calls do."""
+    buf = [(s.stamp, s.T_base_tool.tobytes(), s.cov_tool.tobytes(), None if s.joints is None else s.joints.tobytes())
+           for s in pipe.buffer._samples]
+    corr = [(src, c.anchor.stamp, c.H.tobytes(), c.z.tobytes()) for src, c in pipe.corrections.items()]
+    return dict(pipe.counts), list(pipe.buffer._stamps), buf, corr, [m.stamp for m in pipe.pending]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_add_priors_equals_the_add_prior_sequence(seed):
+    """Runs of priors through ``add_priors`` and through ``add_prior(estimate=False)`` one by one: the same buffer,
+    corrections (expiring inside runs), counts, pending measurements and outcomes after every run, with
+    measurements and queries between runs, pending measurements made ready inside a run, repeated and out-of-order
+    stamps, a time jump, one covariance for all priors and a non-finite pose (the same error at the same prior)."""
+    rng = np.random.default_rng(100 + seed)
+    policy = CorrectionPolicy(timeout=0.5 if seed % 2 else 0.0, joint_motion=0.05,
+                              tool_translation=0.0 if seed % 3 == 0 else 0.05, tool_rotation=0.1)
+    grid = seed >= 3  # stamps on a dyadic grid: repeated stamps, a prior exactly at the buffer's cut-off
+    pipes = [FusionPipeline(LinearUpdater(), policy=policy, buffer_duration=0.25 if grid else 0.3) for _ in range(2)]
+    T, t, n_drop = _random_pose(rng), 0.0, 0
+    cov_one = _random_cov(rng)
+    for r in range(60):
+        n = int(rng.integers(1, 40))
+        dt = rng.integers(0, 3, size=n) * 0.0625 if grid else rng.uniform(0.0, 0.02, size=n)
+        if r % 9 == 4:
+            dt[n // 2] = -0.05  # out of order inside the run
+        if r == 30:
+            dt[0] = -5.0  # time jump: reset
+        stamps = t + np.cumsum(dt)
+        t = float(stamps.max())
+        Ts = np.stack([T @ lie.exp(rng.normal(size=6) * 3e-3 * (k + 1)) for k in range(n)])
+        T = Ts[-1]
+        Q = 0.1 * np.sin(stamps[:, None] * np.array([3.0, 5.0]) + r)  # out of the joint limit and back
+        covs = cov_one if r % 4 == 0 else np.stack([_random_cov(rng) for _ in range(n)])
+        if r == 45:
+            Ts[n // 2, 0, 0] = np.nan
+        results = []
+        for i, pipe in enumerate(pipes):
+            try:
+                if i == 0:
+                    outs = pipe.add_priors(stamps, Ts, covs, Q, validated=True)
+                else:
+                    outs = []
+                    for k in range(n):
+                        outs += pipe.add_prior(float(stamps[k]), Ts[k], covs if covs.ndim == 2 else covs[k], Q[k],
+                                               validated=True, estimate=False)[1]
+                results.append(([(o.measurement.stamp, o.status) for o in outs], None))
+            except MeasurementError as exc:
+                results.append((None, str(exc)))
+        assert results[0] == results[1]
+        assert _pipeline_state(pipes[0]) == _pipeline_state(pipes[1])
+        n_drop = pipes[0].counts["corrections_dropped"]
+        m = Measurement(t + (0.01 if r % 3 == 0 else -0.005), f"src{r % 3}",
+                        (T @ lie.exp(rng.normal(size=6) * 1e-3), np.eye(6)[: 2 + r % 4], 1e-6 * np.eye(2 + r % 4)))
+        assert pipes[0].add_measurement(m).status == pipes[1].add_measurement(m).status
+        a, b = pipes[0].fused_at(t - 0.01), pipes[1].fused_at(t - 0.01)
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert np.array_equal(a.T_base_tool, b.T_base_tool) and a.weight == b.weight
+    assert n_drop > 0 and pipes[0].counts["resets"] == 1 and pipes[0].counts["accepted"] > 10
+
+
+def test_fuse_with_one_correction_equals_weight_and_apply():
+    """The one-correction path of ``fuse`` (weight, drop and update in one compiled call) gives the floats of
+    ``policy.weight`` + ``apply_carried_corrections``, drops an expired correction only at a prior not older than
+    its anchor, and counts the drop."""
+    rng = np.random.default_rng(45)
+    for decay in ("linear", "step"):
+        policy = CorrectionPolicy(timeout=1.0, joint_motion=0.05, tool_translation=0.05, tool_rotation=0.1,
+                                  decay=decay)
+        for k in range(200):
+            T = _random_pose(rng)
+            anchor = PriorSample(1.0, T, _random_cov(rng), rng.normal(size=3))
+            r = 1 + k % 6
+            corr = CarriedCorrection(anchor, np.linalg.qr(rng.normal(size=(6, r)))[0].T, rng.uniform(1e-7, 1e-5, r),
+                                     rng.normal(size=r) * 1e-3)
+            prior = PriorSample(1.0 + rng.uniform(-1.2, 1.2), T @ lie.exp(rng.normal(size=6) * 0.02),
+                                _random_cov(rng), anchor.joints + rng.normal(size=3) * 0.02)
+            pipe = FusionPipeline(LinearUpdater(), policy=policy)
+            pipe.corrections["cam"] = corr
+            est = pipe.fuse(prior)
+            w = policy.weight(anchor, prior, corr.T_anchor_inv)
+            assert est.weight == w
+            if w > 0.0:
+                T_ref, cov_ref = apply_carried_corrections(prior, [(corr, w)])
+                assert np.array_equal(est.T_base_tool, T_ref) and np.array_equal(est.cov_tool, cov_ref)
+                assert "cam" in pipe.corrections
+            else:
+                assert est.T_base_tool is prior.T_base_tool and est.cov_tool is prior.cov_tool
+                dropped = prior.stamp >= anchor.stamp
+                assert ("cam" in pipe.corrections) != dropped and pipe.counts["corrections_dropped"] == int(dropped)

@@ -363,3 +363,40 @@ def test_single_input_fast_paths_are_bit_identical_to_the_batched_code():
     # non-finite input behaves as the batched code (NaN out, no exception)
     assert np.all(np.isnan(lie.exp(np.full(6, np.nan))[:3]))
     assert np.all(np.isnan(lie.quat_from_matrix(np.full((3, 3), np.nan))))
+
+
+def test_one_pose_kernels_are_bit_identical_to_the_batched_kernels():
+    """The one-pose kernels of the message path (covariance rotation, quaternion of a strided ``T[:3, :3]``, pose
+    from a quaternion) give the floats of the batched code; mutating a kernel's arithmetic fails this."""
+    from ppoe_core.lie import kernels
+
+    rng = np.random.default_rng(32)
+    for s in (0.0, 1e-6, 1e-2, 1.0, 3.0):
+        for _ in range(200):
+            T = lie.exp(rng.normal(size=6) * s)
+            A = rng.normal(size=(6, 6))
+            cov = A @ A.T
+            for inverse in (False, True):
+                out = np.empty((1, 6, 6))
+                kernels.rotate_covariance_kernel(T[None], cov[None], inverse, out)
+                one = lie.cov_ros_to_local(T, cov) if inverse else lie.cov_local_to_ros(T, cov)
+                assert np.array_equal(one, out[0])
+            q = np.empty((1, 4))
+            kernels.quat_from_matrix_kernel(np.ascontiguousarray(T[None, :3, :3]), q)
+            assert np.array_equal(lie.quat_from_matrix(T[:3, :3]), q[0])
+            qn = q[0] * rng.uniform(0.5, 2.0)
+            P = np.empty((4, 4))
+            kernels.pose_from_quat_one(*qn.tolist(), *T[:3, 3].tolist(), P)
+            assert np.array_equal(P[:3, :3], lie.matrix_from_quat(qn))
+            assert np.array_equal(P[:3, 3], T[:3, 3]) and np.array_equal(P[3], [0.0, 0.0, 0.0, 1.0])
+
+
+def test_batched_log_rows_equal_single_logs():
+    """``CarriedCorrection.from_update`` takes two logarithms in one batched call: each row must be the single
+    call's floats, at every angle scale."""
+    rng = np.random.default_rng(33)
+    for _ in range(1000):
+        s = 10.0 ** rng.uniform(-9, 0.5)
+        A, B = lie.exp(rng.normal(size=6) * s), lie.exp(rng.normal(size=6) * 0.1 * s)
+        L = lie.log(np.stack([A, B]))
+        assert np.array_equal(L[0], lie.log(A)) and np.array_equal(L[1], lie.log(B))

@@ -1,20 +1,32 @@
-"""Compiled (numba) per-prior step of the fusion pipeline: the Kalman update of a prior with the equivalent
-measurements of the carried corrections (:func:`ppoe_core.estimation.corrections.apply_carried_corrections`); pose
-(4, 4), covariance (6, 6) in the tool tangent space."""
+"""Compiled (numba) per-prior steps of the fusion pipeline: the Kalman update of a prior with the equivalent
+measurements of the carried corrections (:func:`ppoe_core.estimation.corrections.apply_carried_corrections`), a
+correction's weight (:meth:`CorrectionPolicy.ratio`), both in one call, the first prior of a run at which a correction
+expires and the quick checks of a prior; pose (4, 4), covariance (6, 6) in the tool tangent space."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
 
-from ppoe_core.lie.kernels import mat_mul, mat_mul_t, sandwich, se3_exp_one, se3_mul
+from ppoe_core.lie.kernels import covariance_passes_kernel, mat_mul, mat_mul_t, sandwich, se3_exp_one, se3_mul
 
-__all__ = ["apply_corrections_kernel"]
+__all__ = [
+    "apply_corrections_kernel", "correction_ratio", "first_expiry", "fuse_one_kernel", "prior_passes", "run_breaks",
+]
 
 
 @njit(cache=True)
 def apply_corrections_kernel(T: np.ndarray, P_in: np.ndarray, H: np.ndarray, Rw: np.ndarray, z: np.ndarray,
                              T_out: np.ndarray, cov_out: np.ndarray) -> None:
+    """:func:`_apply_into` (the compiled :func:`ppoe_core.estimation.corrections.apply_carried_corrections`)."""
+    _apply_into(T, P_in, H, Rw, z, T_out, cov_out)
+
+
+@njit(cache=True, inline="always")
+def _apply_into(T: np.ndarray, P_in: np.ndarray, H: np.ndarray, Rw: np.ndarray, z: np.ndarray,
+                T_out: np.ndarray, cov_out: np.ndarray) -> None:
     """Kalman update of the prior ``(T, P)`` with the equivalent measurement ``z = H e + n``, ``n ~ N(0,
     diag(Rw))``: ``T_out = T Exp(K z)``, ``cov_out = (I-KH) P (I-KH)^T + K diag(Rw) K^T`` (symmetrised), ``K = P
     H^T S^-1``, ``S = H P H^T + diag(Rw)``."""
@@ -33,3 +45,141 @@ def apply_corrections_kernel(T: np.ndarray, P_in: np.ndarray, H: np.ndarray, Rw:
     E = np.empty((4, 4))
     se3_exp_one(np.ascontiguousarray(m), E)
     se3_mul(T, E, T_out)
+
+
+# ----------------------------------------------------------------------------
+# When a carried correction fades (CorrectionPolicy.ratio): the ratio of one prior, and the first prior of a run at
+# which a correction expires.  The operations (and their order) of the former Python code: the same floats.
+# ----------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _ratio(dt_abs: float, q: np.ndarray, q_anchor: np.ndarray, T_rel: np.ndarray, timeout: float,
+           joint_motion: float, tool_translation: float, tool_rotation: float) -> float:
+    """Largest change ratio (see :func:`correction_ratio`); ``r = max(r, v)`` as Python's ``max`` (a NaN ``v``
+    leaves ``r``)."""
+    r = 0.0
+    if timeout > 0.0:
+        v = dt_abs / timeout
+        if v > r:
+            r = v
+    if joint_motion > 0.0:
+        found = False
+        m = 0.0
+        for k in range(q.shape[0]):
+            d = abs(q[k] - q_anchor[k])
+            if math.isfinite(d) and (not found or d > m):  # NaN = joint not (yet) known
+                m = d
+                found = True
+        if found:
+            v = m / joint_motion
+            if v > r:
+                r = v
+    if tool_translation > 0.0:
+        x, y, z = T_rel[0, 3], T_rel[1, 3], T_rel[2, 3]
+        v = math.sqrt(x * x + y * y + z * z) / tool_translation
+        if v > r:
+            r = v
+    if tool_rotation > 0.0:
+        c = (T_rel[0, 0] + T_rel[1, 1] + T_rel[2, 2] - 1.0) / 2.0
+        if -1.0 > c:
+            c = -1.0
+        if 1.0 < c:
+            c = 1.0
+        v = math.acos(c) / tool_rotation
+        if v > r:
+            r = v
+    return r
+
+
+@njit(cache=True)
+def correction_ratio(dt_abs: float, q: np.ndarray, q_anchor: np.ndarray, T_rel: np.ndarray, timeout: float,
+                     joint_motion: float, tool_translation: float, tool_rotation: float) -> float:
+    """Largest change ratio of a correction for one prior (:meth:`CorrectionPolicy.ratio`).
+
+    Parameters
+    ----------
+    dt_abs : float
+        ``|t_prior - t_anchor|`` [s].
+    q, q_anchor : ndarray, shape (n,)
+        Joint positions of the prior and of the anchor (n = 0: no joint ratio); NaN entries are skipped.
+    T_rel : ndarray, shape (4, 4)
+        ``T_anchor^-1 T_prior`` (numpy's product: the angle from the trace is ill-conditioned near 0).
+    timeout, joint_motion, tool_translation, tool_rotation : float
+        The policy's limits; ``<= 0`` disables that ratio.
+    """
+    return _ratio(dt_abs, q, q_anchor, T_rel, timeout, joint_motion, tool_translation, tool_rotation)
+
+
+@njit(cache=True)
+def first_expiry(stamps: np.ndarray, anchor_stamp: float, Q: np.ndarray, q_anchor: np.ndarray, T_rel: np.ndarray,
+                 timeout: float, joint_motion: float, tool_translation: float, tool_rotation: float) -> int:
+    """First prior of a run at which a correction expires: ratio ``>= 1`` at a stamp not older than the anchor
+    (:meth:`FusionPipeline.fuse`); -1 if none.
+
+    Parameters
+    ----------
+    stamps : ndarray, shape (N,)
+        [s]
+    Q : ndarray, shape (N, n)
+        Joint positions of the priors (n = 0: no joint ratio).
+    T_rel : ndarray, shape (N, 4, 4)
+        ``T_anchor^-1 T_prior`` of every prior (numpy's stacked product: the same floats as one at a time).
+    """
+    for i in range(stamps.shape[0]):
+        if stamps[i] >= anchor_stamp and _ratio(abs(stamps[i] - anchor_stamp), Q[i], q_anchor, T_rel[i], timeout,
+                                                joint_motion, tool_translation, tool_rotation) >= 1.0:
+            return i
+    return -1
+
+
+@njit(cache=True)
+def prior_passes(T: np.ndarray, cov: np.ndarray, check_cov: bool) -> bool:
+    """Quick checks of a prior: ``T`` (4, 4) finite and, with ``check_cov``, ``cov`` (6, 6) passes the quick pass
+    of :func:`ppoe_core.lie.check_covariance` (default tolerances).  False means "run the full checks" (they raise
+    the error, or pass)."""
+    for i in range(4):
+        for j in range(4):
+            if not math.isfinite(T[i, j]):
+                return False
+    return not check_cov or covariance_passes_kernel(cov, 1e-9, 1e-9)
+
+
+@njit(cache=True)
+def fuse_one_kernel(T: np.ndarray, P: np.ndarray, T_rel: np.ndarray, dt_abs: float, q: np.ndarray,
+                    q_anchor: np.ndarray, timeout: float, joint_motion: float, tool_translation: float,
+                    tool_rotation: float, linear: bool, H: np.ndarray, R: np.ndarray, z: np.ndarray,
+                    T_out: np.ndarray, cov_out: np.ndarray) -> float:
+    """One carried correction applied to a prior in one call: its weight (:meth:`CorrectionPolicy.weight`, ratio as
+    :func:`correction_ratio`) and, if positive, the update of :func:`apply_corrections_kernel` with ``Rw = R / w``
+    into ``T_out``, ``cov_out``.  Returns the weight (0: expired, outputs untouched)."""
+    r = _ratio(dt_abs, q, q_anchor, T_rel, timeout, joint_motion, tool_translation, tool_rotation)
+    if r >= 1.0:
+        return 0.0
+    w = 1.0 - r if linear else 1.0
+    Rw = np.empty(R.shape[0])
+    for i in range(R.shape[0]):
+        Rw[i] = R[i] / w
+    _apply_into(T, P, H, Rw, z, T_out, cov_out)
+    return w
+
+
+@njit(cache=True)
+def run_breaks(t: np.ndarray, T: np.ndarray, finite: np.ndarray) -> np.ndarray:
+    """Where a run of priors breaks (:meth:`FusionPipeline.add_priors`): ``finite[k]`` = every entry of ``T[k]``
+    (N, 4, 4) finite; returns the indices ``k >= 1`` at which the stamp ``t[k]`` is not newer than ``t[k-1]`` or
+    ``T[k]`` is not finite (increasing)."""
+    n = t.shape[0]
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    for k in range(n):
+        ok = True
+        for i in range(4):
+            for j in range(4):
+                if not math.isfinite(T[k, i, j]):
+                    ok = False
+        finite[k] = ok
+        if k >= 1 and not (ok and t[k] > t[k - 1]):
+            out[m] = k
+            m += 1
+    return out[:m]

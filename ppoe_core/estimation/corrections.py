@@ -16,6 +16,24 @@ from ppoe_core.estimation.prior_buffer import _INV_JITTER, Array, PriorSample
 #: 6x6 identity (read-only; built once instead of per prior)
 _EYE6 = np.eye(6)
 _EYE6.setflags(write=False)
+_EYE4 = np.eye(4)
+_EYE4.setflags(write=False)
+#: no joint positions (the joint ratio is skipped)
+_NO_JOINTS = np.zeros(0)
+_NO_JOINTS.setflags(write=False)
+
+_KERNELS: Any = None
+
+
+def _correction_kernels() -> Any:
+    """:mod:`ppoe_core.estimation.correction_kernels`, imported on first use (numba) and kept: an import
+    statement per prior costs more than the kernel call."""
+    global _KERNELS
+    if _KERNELS is None:
+        from ppoe_core.estimation import correction_kernels
+
+        _KERNELS = correction_kernels
+    return _KERNELS
 
 
 # ----------------------------------------------------------------------------
@@ -131,27 +149,32 @@ class CorrectionPolicy:
 
     def ratio(self, anchor: PriorSample, prior: PriorSample, T_anchor_inv: Array | None = None) -> float:
         """Largest change ratio between the correction's anchor prior and ``prior`` (``T_anchor_inv``: the
-        anchor pose's inverse when the caller has it, :attr:`CarriedCorrection.T_anchor_inv`)."""
-        r = 0.0
-        if self.timeout > 0.0:
-            r = max(r, abs(prior.stamp - anchor.stamp) / self.timeout)
-        qa, qp = anchor.joints, prior.joints
-        if self.joint_motion > 0.0 and qa is not None and qp is not None and qa.shape == qp.shape:
-            dq = [d for d in np.abs(qp - qa).tolist() if math.isfinite(d)]  # NaN = joint not (yet) known
-            if dq:
-                r = max(r, max(dq) / self.joint_motion)
+        anchor pose's inverse when the caller has it, :attr:`CarriedCorrection.T_anchor_inv`); compiled,
+        :func:`ppoe_core.estimation.correction_kernels.correction_ratio`."""
+        qp, qa = self.joint_args(prior.joints, anchor.joints)
+        T_inv = lie.inverse(anchor.T_base_tool) if T_anchor_inv is None else T_anchor_inv
+        return _correction_kernels().correction_ratio(
+            abs(prior.stamp - anchor.stamp), qp, qa, self.relative_pose(T_inv, prior.T_base_tool), self.timeout,
+            self.joint_motion, self.tool_translation, self.tool_rotation)
+
+    def joint_args(self, q: Array | None, q_anchor: Array | None) -> tuple[Array, Array]:
+        """The joint positions of a prior and of an anchor as the compiled ratio takes them: float (n,) each, or
+        both empty when the joint ratio does not apply (disabled, unknown joints, different lengths)."""
+        if self.joint_motion > 0.0 and q_anchor is not None and q is not None and q_anchor.shape == q.shape:
+            if q.dtype != np.float64 or q.ndim != 1:
+                q = np.asarray(q, dtype=np.float64).reshape(-1)
+            if q_anchor.dtype != np.float64 or q_anchor.ndim != 1:
+                q_anchor = np.asarray(q_anchor, dtype=np.float64).reshape(-1)
+            return q, q_anchor  # NaN = joint not (yet) known: skipped
+        return _NO_JOINTS, _NO_JOINTS
+
+    def relative_pose(self, T_anchor_inv: Array, T_prior: Array) -> Array:
+        """``T_anchor^-1 T_prior`` for the tool-motion ratios (identity when both are disabled).  numpy's product
+        on purpose: the angle from the trace is ill-conditioned near 0 (d acos / dc ~ 1 / angle), a product summed
+        in another order moves a small angle in its 8th digit."""
         if self.tool_translation > 0.0 or self.tool_rotation > 0.0:
-            # numpy's product on purpose: the angle from the trace is ill-conditioned near 0 (d acos / dc ~
-            # 1 / angle), a product summed in another order moves a small angle in its 8th digit
-            T_inv = lie.inverse(anchor.T_base_tool) if T_anchor_inv is None else T_anchor_inv
-            T_rel = (T_inv @ prior.T_base_tool).tolist()
-            if self.tool_translation > 0.0:
-                x, y, z = T_rel[0][3], T_rel[1][3], T_rel[2][3]
-                r = max(r, math.sqrt(x * x + y * y + z * z) / self.tool_translation)
-            if self.tool_rotation > 0.0:
-                c = min(max((T_rel[0][0] + T_rel[1][1] + T_rel[2][2] - 1.0) / 2.0, -1.0), 1.0)
-                r = max(r, math.acos(c) / self.tool_rotation)
-        return r
+            return T_anchor_inv @ T_prior
+        return _EYE4
 
     def weight(self, anchor: PriorSample, prior: PriorSample, T_anchor_inv: Array | None = None) -> float:
         """Weight in [0, 1] of the correction made at ``anchor`` when applied to ``prior``."""
@@ -188,6 +211,8 @@ class CarriedCorrection:
     def __post_init__(self) -> None:
         if self.T_anchor_inv is None:
             object.__setattr__(self, "T_anchor_inv", lie.inverse(self.anchor.T_base_tool))
+        for name in ("H", "R", "z"):  # contiguous float64 once here, not per prior in the compiled update
+            object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), dtype=np.float64))
 
     @staticmethod
     def from_update(
@@ -226,7 +251,10 @@ class CarriedCorrection:
         P1 = U.T @ _sym(cov_post) @ U
         P1 = _sym(P1) + _INV_JITTER * np.eye(P1.shape[0])
         info1 = np.linalg.inv(P1)
-        delta = lie.log(lie.inverse(T_pre) @ T_post)
+        # both logarithms in one (batched) call: the floats of two single calls (tested), half the numpy calls
+        T_anchor_inv = lie.inverse(anchor.T_base_tool)
+        T_pre_inv = T_anchor_inv if T_pre is anchor.T_base_tool else lie.inverse(T_pre)
+        delta, pre = lie.log(np.stack([T_pre_inv @ T_post, T_anchor_inv @ T_pre]))
         y = info1 @ (U.T @ delta)
         lam, V = np.linalg.eigh(_sym(info1 - info0))
         keep = lam > 1e-9 * max(float(np.max(np.abs(lam))), 1e-300)
@@ -235,8 +263,8 @@ class CarriedCorrection:
         lam, V = lam[keep], V[:, keep]
         H = V.T @ U.T
         R = 1.0 / lam
-        z = R * (V.T @ y) + H @ lie.log(lie.inverse(anchor.T_base_tool) @ T_pre)
-        return CarriedCorrection(anchor, H, R, z)
+        z = R * (V.T @ y) + H @ pre
+        return CarriedCorrection(anchor, H, R, z, T_anchor_inv)
 
     def apply(self, prior: PriorSample, weight: float) -> tuple[Array, Array]:
         """Fused ``(T_base_tool, cov_tool)`` for ``prior`` with this correction at ``weight``.
@@ -256,23 +284,22 @@ def apply_carried_corrections(
     One linear Kalman update of the raw prior ``(T, P)`` with the stacked ``H``, ``z`` and
     ``diag(R / w)``; returns ``(T Exp(K z), (I-KH) P (I-KH)^T + K R K^T)`` (tool frame).
     """
-    P = _sym(prior.cov_tool)
-    active = [(c, w) for c, w in corrections if w > 0.0]
-    if not active:
-        return prior.T_base_tool, P
-    if len(active) == 1:  # the common case: no stacking copies (same values)
-        c, w = active[0]
+    if len(corrections) == 1 and corrections[0][1] > 0.0:  # the common case: no stacking copies (same values)
+        c, w = corrections[0]
         H, Rw, z = c.H, c.R / w, c.z
     else:
+        active = [(c, w) for c, w in corrections if w > 0.0]
+        if not active:
+            return prior.T_base_tool, _sym(prior.cov_tool)
         H = np.concatenate([c.H for c, _ in active])
         Rw = np.concatenate([c.R / w for c, w in active])
         z = np.concatenate([c.z for c, _ in active])
-    from ppoe_core.estimation.correction_kernels import apply_corrections_kernel
-
     T_out, cov = np.empty((4, 4)), np.empty((6, 6))
-    apply_corrections_kernel(np.ascontiguousarray(prior.T_base_tool, dtype=np.float64), np.ascontiguousarray(P),
-                             np.ascontiguousarray(H, dtype=np.float64), np.ascontiguousarray(Rw, dtype=np.float64),
-                             np.ascontiguousarray(z, dtype=np.float64), T_out, cov)
+    # the kernel symmetrises the covariance itself ((P + P^T) / 2 of a symmetric P is P: the same floats)
+    _correction_kernels().apply_corrections_kernel(
+        np.ascontiguousarray(prior.T_base_tool, dtype=np.float64),
+        np.ascontiguousarray(prior.cov_tool, dtype=np.float64), np.ascontiguousarray(H, dtype=np.float64), Rw,
+        np.ascontiguousarray(z, dtype=np.float64), T_out, cov)
     return T_out, cov
 
 

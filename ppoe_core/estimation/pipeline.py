@@ -37,6 +37,7 @@ offline replay configured alike behave alike.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Callable
 from typing import Any
 
@@ -53,6 +54,7 @@ from ppoe_core.estimation.corrections import (
     MeasurementOutcome,
     MeasurementUpdater,
     ToolUpdate,
+    _correction_kernels,
     _sym,
     apply_carried_corrections,
 )
@@ -202,15 +204,13 @@ class FusionPipeline:
             outcomes of the pending measurements processed now.
         """
         T = np.asarray(T_base_tool, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise MeasurementError(f"prior at stamp {stamp}: T_base_tool must be a finite 4x4, got shape {T.shape}")
-        if validated:
-            cov = np.asarray(cov_tool, dtype=np.float64)
-            if cov.shape != (6, 6):
-                raise MeasurementError(f"prior at stamp {stamp}: cov_tool must be 6x6, got shape {cov.shape}")
-        else:
-            cov = lie.check_covariance(cov_tool, name=f"prior at stamp {stamp}", size=6)
-        q = None if joints is None else np.asarray(joints, dtype=np.float64).reshape(-1)
+        cov = cov_tool
+        if not (T.shape == (4, 4) and type(cov) is np.ndarray and cov.dtype == np.float64 and cov.shape == (6, 6)
+                and _correction_kernels().prior_passes(T, cov, not validated)):
+            cov = self._checked_prior(float(stamp), T, cov_tool, validated)  # the full checks: error or pass
+        q = joints
+        if q is not None and not (type(q) is np.ndarray and q.dtype == np.float64 and q.ndim == 1):
+            q = np.asarray(joints, dtype=np.float64).reshape(-1)
         sample = PriorSample(float(stamp), T, cov, q)
         newest = self.buffer.newest
         if newest is not None and sample.stamp < newest - self.reset_jump:
@@ -232,6 +232,102 @@ class FusionPipeline:
             self._active_corrections(sample, None)
             return None, outcomes
         return self.fuse(sample), outcomes
+
+    def add_priors(self, stamps: Array, T_base_tool: Array, cov_tool: Array, joints: Array | None = None,
+                   validated: bool = False) -> list[MeasurementOutcome]:
+        """A run of priors with no measurement added between them: exactly the calls ``add_prior(stamps[k],
+        T_base_tool[k], cov_tool[k], joints[k], validated, estimate=False)`` in order (the same buffer, expiry
+        drops at the same prior, counts and outcomes), vectorised where nothing but the expiry check happens.
+
+        Parameters
+        ----------
+        stamps : ndarray, shape (n,)
+            [s]
+        T_base_tool : ndarray, shape (n, 4, 4)
+        cov_tool : ndarray, shape (n, 6, 6) or (6, 6)
+            Tool-frame covariances (one for all priors: shape (6, 6)).
+        joints : ndarray, shape (n, m), optional
+        validated : bool
+            See :meth:`add_prior`.  Only validated priors (``ppoe evaluate`` checks the whole batch first) take the
+            vectorised path: otherwise each prior's covariance is checked as :meth:`add_prior` does, one at a time.
+
+        Returns
+        -------
+        list of MeasurementOutcome
+            The outcomes of the pending measurements the priors made ready, in order.
+        """
+        t = np.asarray(stamps, dtype=np.float64).reshape(-1)
+        n = t.shape[0]
+        T = np.asarray(T_base_tool, dtype=np.float64)
+        cov = np.asarray(cov_tool, dtype=np.float64)
+        Q = None if joints is None or n == 0 else np.asarray(joints, dtype=np.float64).reshape(n, -1)
+        if T.shape != (n, 4, 4) or cov.shape not in ((6, 6), (n, 6, 6)):
+            raise MeasurementError(f"add_priors: {n} stamps need T_base_tool (n, 4, 4) and cov_tool (n, 6, 6) or "
+                                   f"(6, 6), got shapes {T.shape} and {cov.shape}")
+        one_cov = cov.ndim == 2
+        outcomes: list[MeasurementOutcome] = []
+        fast = validated and type(self.policy) is CorrectionPolicy
+        # a run continues at k if its stamp is newer than the one before and its pose is finite
+        finite = np.empty(n, dtype=np.bool_)
+        breaks = _correction_kernels().run_breaks(t, T, finite)
+        i = 0
+        while i < n:
+            newest = self.buffer.newest
+            if not fast or self.pending or not finite[i] or not (newest is None or t[i] > newest):
+                outcomes += self.add_prior(float(t[i]), T[i], cov if one_cov else cov[i], None if Q is None else Q[i],
+                                           validated=validated, estimate=False)[1]
+                i += 1
+                continue
+            b = int(np.searchsorted(breaks, i + 1))
+            j = int(breaks[b]) if b < len(breaks) else n
+            self._add_run(t[i:j], T[i:j], cov if one_cov else cov[i:j], None if Q is None else Q[i:j])
+            i = j
+        return outcomes
+
+    def _add_run(self, t: Array, T: Array, cov: Array, Q: Array | None) -> None:
+        """:meth:`add_priors` of priors with increasing stamps newer than the buffer, finite poses, checked
+        covariances and no pending measurement: only the expiry check and the buffer's appends happen."""
+        self.counts["priors"] += len(t)
+        for source, corr in list(self.corrections.items()):
+            if self._first_expiry(corr, t, T, Q) >= 0:
+                del self.corrections[source]
+                self.counts["corrections_dropped"] += 1
+        # what the appends leave in the buffer: the priors not older than the last one minus its duration
+        ts = t.tolist()
+        k = bisect.bisect_left(ts, ts[-1] - self.buffer.duration)
+        one_cov = cov.ndim == 2
+        samples = [PriorSample(ts[m], T[m], cov if one_cov else cov[m], None if Q is None else Q[m])
+                   for m in range(k, len(ts))]
+        self.buffer.append_run(ts[k:], samples)
+
+    def _first_expiry(self, corr: CarriedCorrection, t: Array, T: Array, Q: Array | None) -> int:
+        """Index of the first prior of a run at which ``corr`` expires (as :meth:`_active_corrections`), -1 if
+        none."""
+        pol = self.policy
+        qa = corr.anchor.joints
+        if pol.joint_motion > 0.0 and qa is not None and Q is not None and qa.shape == (Q.shape[1],):
+            Qr, qa_r = Q, qa
+        else:
+            Qr, qa_r = np.zeros((len(t), 0)), np.zeros(0)
+        if pol.tool_translation > 0.0 or pol.tool_rotation > 0.0:
+            T_rel = corr.T_anchor_inv @ T  # numpy's stacked product: the floats of one product per prior
+        else:
+            T_rel = np.zeros((len(t), 4, 4))
+        return int(_correction_kernels().first_expiry(t, corr.anchor.stamp, Qr, qa_r, T_rel, pol.timeout,
+                                                      pol.joint_motion, pol.tool_translation, pol.tool_rotation))
+
+    @staticmethod
+    def _checked_prior(stamp: float, T: Array, cov_tool: Array, validated: bool) -> Array:
+        """The checks of a prior that failed the quick ones (or has unusual types): raise the error, or pass and
+        return the covariance as :meth:`add_prior` keeps it."""
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise MeasurementError(f"prior at stamp {stamp}: T_base_tool must be a finite 4x4, got shape {T.shape}")
+        if validated:
+            cov = np.asarray(cov_tool, dtype=np.float64)
+            if cov.shape != (6, 6):
+                raise MeasurementError(f"prior at stamp {stamp}: cov_tool must be 6x6, got shape {cov.shape}")
+            return cov
+        return lie.check_covariance(cov_tool, name=f"prior at stamp {stamp}", size=6)
 
     def reset(self) -> None:
         """Forget priors, pending measurements and the carried corrections (counts stay)."""
@@ -295,19 +391,44 @@ class FusionPipeline:
         not older than their anchor (a late query must not erase a correction that is still
         valid now).  ``weight`` of the result is the largest weight applied.
         """
+        if len(self.corrections) == 1 and exclude is None and type(self.policy) is CorrectionPolicy:
+            return self._fuse_one(prior)
         applied = self._active_corrections(prior, exclude)
         if not applied:
             return FusedEstimate(prior.stamp, prior.T_base_tool, prior.cov_tool, 0.0, prior)
         T, cov = apply_carried_corrections(prior, applied)
-        return FusedEstimate(prior.stamp, T, cov, max(w for _, w in applied), prior)
+        return FusedEstimate(prior.stamp, T, cov, applied[0][1] if len(applied) == 1 else max(w for _, w in applied),
+                             prior)
+
+    def _fuse_one(self, prior: PriorSample) -> FusedEstimate:
+        """:meth:`fuse` with one correction (the common case) in one compiled call: the same weight, drop and
+        floats as :meth:`_active_corrections` + :func:`apply_carried_corrections`."""
+        (source, corr), = self.corrections.items()
+        pol = self.policy
+        qp, qa = pol.joint_args(prior.joints, corr.anchor.joints)
+        T, P = prior.T_base_tool, prior.cov_tool
+        T_out, cov_out = np.empty((4, 4)), np.empty((6, 6))
+        w = _correction_kernels().fuse_one_kernel(
+            np.asarray(T, dtype=np.float64), np.asarray(P, dtype=np.float64),  # any layout: the same arithmetic
+            pol.relative_pose(corr.T_anchor_inv, T), abs(prior.stamp - corr.anchor.stamp), qp, qa, pol.timeout,
+            pol.joint_motion, pol.tool_translation, pol.tool_rotation, pol.decay == "linear", corr.H, corr.R, corr.z,
+            T_out, cov_out)
+        if w > 0.0:
+            return FusedEstimate(prior.stamp, T_out, cov_out, w, prior)
+        if prior.stamp >= corr.anchor.stamp:
+            del self.corrections[source]
+            self.counts["corrections_dropped"] += 1
+        return FusedEstimate(prior.stamp, T, P, 0.0, prior)
 
     def _active_corrections(self, prior: PriorSample, exclude: str | None) -> list[tuple[CarriedCorrection, float]]:
         """The corrections to apply to ``prior`` with their weights (all sources but ``exclude``); expired ones are
         dropped and counted (see :meth:`fuse`)."""
         applied: list[tuple[CarriedCorrection, float]] = []
-        for source in list(self.corrections):
-            corr = self.corrections[source]
-            w = self.policy.weight(corr.anchor, prior, corr.T_anchor_inv)
+        if not self.corrections:
+            return applied
+        weight = self.policy.weight
+        for source, corr in list(self.corrections.items()):
+            w = weight(corr.anchor, prior, corr.T_anchor_inv)
             if w <= 0.0:
                 if prior.stamp >= corr.anchor.stamp:
                     del self.corrections[source]

@@ -121,7 +121,16 @@ class PriorBuffer:
         inserted at their place.  Priors older than ``newest - duration`` are evicted.
         """
         t = float(sample.stamp)
-        if self._stamps and t < self._stamps[-1] - self.duration:
+        stamps = self._stamps
+        if not stamps or t > stamps[-1]:  # in order (the common case): append, evict only if the oldest is out
+            stamps.append(t)
+            self._samples.append(sample)
+            if stamps[0] < t - self.duration:
+                k = bisect.bisect_left(stamps, t - self.duration)
+                del stamps[:k]
+                del self._samples[:k]
+            return True
+        if t < stamps[-1] - self.duration:
             return False
         i = bisect.bisect_left(self._stamps, t)
         if i < len(self._stamps) and self._stamps[i] == t:
@@ -135,6 +144,20 @@ class PriorBuffer:
             del self._stamps[:k]
             del self._samples[:k]
         return True
+
+    def append_run(self, stamps: list[float], samples: list[PriorSample]) -> None:
+        """:meth:`add` of each of ``samples`` (stamps ``stamps``) in turn, for increasing stamps all newer than the
+        buffer (the caller checks): appended, then the priors older than the newest minus ``duration`` evicted (what
+        the single adds leave)."""
+        if not samples:
+            return
+        self._stamps.extend(stamps)
+        self._samples.extend(samples)
+        cutoff = self._stamps[-1] - self.duration
+        if self._stamps[0] < cutoff:
+            k = bisect.bisect_left(self._stamps, cutoff)
+            del self._stamps[:k]
+            del self._samples[:k]
 
     def lookup(self, stamp: float) -> tuple[str, PriorSample | None]:
         """Prior at ``stamp``: interpolated inside the buffer (see class notes).

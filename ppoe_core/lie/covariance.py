@@ -7,7 +7,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ppoe_core.errors import CovarianceError
-from ppoe_core.lie.so3 import Array, _f
+from ppoe_core.lie.so3 import Array, _f, _kernels
 
 # ----------------------------------------------------------------------------
 # Covariances
@@ -16,13 +16,13 @@ from ppoe_core.lie.so3 import Array, _f
 
 def _rotate(T: ArrayLike, cov: ArrayLike, inverse: bool) -> Array:
     """``B cov B^T`` (``B^T cov B`` with ``inverse``), ``B = blockdiag(R, R)``, broadcast over leading axes."""
-    from ppoe_core.lie.kernels import rotate_covariance_kernel  # numba only when used: `ppoe record` starts fast
-
-    T_a, cov_a = _f(T), _f(cov)
-    if T_a.shape == (4, 4) and cov_a.shape == (6, 6):  # one message: no batch reshaping
-        out1 = np.empty((1, 6, 6))
-        rotate_covariance_kernel(np.ascontiguousarray(T_a)[None], np.ascontiguousarray(cov_a)[None], inverse, out1)
-        return out1[0]
+    kernels = _kernels()
+    T_a = T if type(T) is np.ndarray and T.dtype == np.float64 else _f(T)
+    cov_a = cov if type(cov) is np.ndarray and cov.dtype == np.float64 else _f(cov)
+    if T_a.shape == (4, 4) and cov_a.shape == (6, 6):  # one message: no batch reshaping, the same operations
+        out1 = np.empty((6, 6))
+        kernels.rotate_covariance_one(T_a, cov_a, inverse, out1)
+        return out1
     if T_a.shape[:-2] == cov_a.shape[:-2]:
         shape = cov_a.shape[:-2]
         T_flat = np.ascontiguousarray(T_a.reshape(-1, 4, 4))
@@ -32,7 +32,7 @@ def _rotate(T: ArrayLike, cov: ArrayLike, inverse: bool) -> Array:
         T_flat = np.ascontiguousarray(np.broadcast_to(T_a, shape + T_a.shape[-2:]).reshape(-1, 4, 4))
         cov_flat = np.ascontiguousarray(np.broadcast_to(cov_a, shape + (6, 6)).reshape(-1, 6, 6))
     out = np.empty_like(cov_flat)
-    rotate_covariance_kernel(T_flat, cov_flat, inverse, out)
+    kernels.rotate_covariance_kernel(T_flat, cov_flat, inverse, out)
     return out.reshape(shape + (6, 6))
 
 
@@ -109,9 +109,7 @@ def check_covariance(
     if size is not None and C.shape[-1] != size:
         raise CovarianceError(f"{name}: must be {size}x{size}, got {C.shape[-2]}x{C.shape[-1]}")
     if C.ndim == 2 and 0 < C.shape[0] <= 12:  # one message's covariance: the compiled quick pass
-        from ppoe_core.lie.kernels import covariance_passes_kernel
-
-        if covariance_passes_kernel(np.ascontiguousarray(C), tol, tol if eig_tol is None else eig_tol):
+        if _kernels().covariance_passes_kernel(np.ascontiguousarray(C), tol, tol if eig_tol is None else eig_tol):
             return 0.5 * (C + C.T) if symmetrize else C
     # array methods instead of np.all / np.max: the same reductions without the dispatch
     # overhead (this runs once per message in the nodes)

@@ -11,10 +11,41 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "quat_from_matrix_kernel", "rotate_covariance_kernel", "se3_exp_one", "se3_log_one", "so3_log_one",
+    "quat_from_matrix_kernel", "quat_from_matrix_one", "pose_fields_one", "pose_from_quat_one",
+    "rotate_covariance_kernel",
+    "rotate_covariance_one", "se3_exp_one", "se3_log_one", "so3_log_one",
     "se3_right_jacobian_one", "se3_right_jacobian_inv_one", "se3_inverse_one", "se3_mul",
     "covariance_passes_kernel", "mat_mul", "mat_mul_t", "sandwich",
 ]
+
+
+@njit(cache=True, inline="always")
+def _quat_into(R: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:
+    """Shepperd's quaternion of one rotation ``R`` (3, 3) into ``out`` (4,); ``q`` (4,) scratch."""
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
+    tr = r00 + r11 + r22
+    k, best = 0, tr
+    if not math.isnan(best):
+        for i, v in ((1, r00), (2, r11), (3, r22)):
+            if math.isnan(v):
+                k = i
+                break
+            if v > best:
+                k, best = i, v
+    if k == 0:
+        q[0], q[1], q[2], q[3] = r21 - r12, r02 - r20, r10 - r01, 1.0 + tr
+    elif k == 1:
+        q[0], q[1], q[2], q[3] = 1.0 + r00 - r11 - r22, r01 + r10, r02 + r20, r21 - r12
+    elif k == 2:
+        q[0], q[1], q[2], q[3] = r01 + r10, 1.0 - r00 + r11 - r22, r12 + r21, r02 - r20
+    else:
+        q[0], q[1], q[2], q[3] = r02 + r20, r12 + r21, 1.0 - r00 - r11 + r22, r10 - r01
+    norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    s = -1.0 / norm if q[3] / norm < 0.0 else 1.0 / norm
+    for i in range(4):
+        out[i] = q[i] * s
 
 
 @njit(cache=True)
@@ -25,30 +56,55 @@ def quat_from_matrix_kernel(R: np.ndarray, out: np.ndarray) -> None:
     is largest (the first one on ties; a NaN pivot wins, as ``np.argmax``), then normalised."""
     q = np.empty(4)
     for n in range(R.shape[0]):
-        r00, r01, r02 = R[n, 0, 0], R[n, 0, 1], R[n, 0, 2]
-        r10, r11, r12 = R[n, 1, 0], R[n, 1, 1], R[n, 1, 2]
-        r20, r21, r22 = R[n, 2, 0], R[n, 2, 1], R[n, 2, 2]
-        tr = r00 + r11 + r22
-        k, best = 0, tr
-        if not math.isnan(best):
-            for i, v in ((1, r00), (2, r11), (3, r22)):
-                if math.isnan(v):
-                    k = i
-                    break
-                if v > best:
-                    k, best = i, v
-        if k == 0:
-            q[0], q[1], q[2], q[3] = r21 - r12, r02 - r20, r10 - r01, 1.0 + tr
-        elif k == 1:
-            q[0], q[1], q[2], q[3] = 1.0 + r00 - r11 - r22, r01 + r10, r02 + r20, r21 - r12
-        elif k == 2:
-            q[0], q[1], q[2], q[3] = r01 + r10, 1.0 - r00 + r11 - r22, r12 + r21, r02 - r20
-        else:
-            q[0], q[1], q[2], q[3] = r02 + r20, r12 + r21, 1.0 - r00 - r11 + r22, r10 - r01
-        norm = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-        s = -1.0 / norm if q[3] / norm < 0.0 else 1.0 / norm
-        for i in range(4):
-            out[n, i] = q[i] * s
+        _quat_into(R[n], q, out[n])
+
+
+@njit(cache=True)
+def quat_from_matrix_one(R: np.ndarray, out: np.ndarray) -> None:
+    """:func:`quat_from_matrix_kernel` of one rotation ``R`` (3, 3) (any layout, e.g. ``T[:3, :3]``) into ``out``
+    (4,) (an output argument: a returned array costs more than the arithmetic)."""
+    _quat_into(R, np.empty(4), out)
+
+
+@njit(cache=True)
+def pose_fields_one(T: np.ndarray, out: np.ndarray) -> None:
+    """A pose message's fields of ``T`` (4, 4) into ``out`` (7,): the quaternion ``(x, y, z, w)`` of
+    :func:`quat_from_matrix_kernel` (the same floats) and the translation."""
+    _quat_into(T[:3, :3], np.empty(4), out[:4])
+    out[4], out[5], out[6] = T[0, 3], T[1, 3], T[2, 3]
+
+
+@njit(cache=True)
+def pose_from_quat_one(x: float, y: float, z: float, w: float, px: float, py: float, pz: float,
+                       T: np.ndarray) -> None:
+    """Homogeneous (4, 4) of the quaternion ``(x, y, z, w)`` (normalised here) and translation ``(px, py, pz)``;
+    the operations of the one-quaternion path of :func:`ppoe_core.lie.so3.matrix_from_quat` (bit-identical,
+    tested), into ``T`` (4, 4).  A zero or non-finite norm gives NaN entries (the caller checks the norm first)."""
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    T[0, 0], T[0, 1], T[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)
+    T[1, 0], T[1, 1], T[1, 2] = 2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)
+    T[2, 0], T[2, 1], T[2, 2] = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
+    T[0, 3], T[1, 3], T[2, 3] = px, py, pz
+    T[3, 0], T[3, 1], T[3, 2], T[3, 3] = 0.0, 0.0, 0.0, 1.0
+
+
+@njit(cache=True, inline="always")
+def _rotate_cov_into(T: np.ndarray, cov: np.ndarray, inverse: bool, out: np.ndarray, A: np.ndarray,
+                     tmp: np.ndarray) -> None:
+    """One pose: ``out = B cov B^T`` (``B^T cov B`` with ``inverse``); ``A``, ``tmp`` (3, 3) scratch."""
+    for i in range(3):
+        for j in range(3):
+            A[i, j] = T[j, i] if inverse else T[i, j]
+    for bi in range(2):
+        for bj in range(2):
+            for i in range(3):
+                for m in range(3):
+                    tmp[i, m] = A[i, 0] * cov[3 * bi, 3 * bj + m] + A[i, 1] * cov[3 * bi + 1, 3 * bj + m] \
+                        + A[i, 2] * cov[3 * bi + 2, 3 * bj + m]
+            for i in range(3):
+                for j in range(3):
+                    out[3 * bi + i, 3 * bj + j] = tmp[i, 0] * A[j, 0] + tmp[i, 1] * A[j, 1] + tmp[i, 2] * A[j, 2]
 
 
 @njit(cache=True)
@@ -58,19 +114,14 @@ def rotate_covariance_kernel(T: np.ndarray, cov: np.ndarray, inverse: bool, out:
     A = np.empty((3, 3))
     tmp = np.empty((3, 3))
     for n in range(T.shape[0]):
-        for i in range(3):
-            for j in range(3):
-                A[i, j] = T[n, j, i] if inverse else T[n, i, j]
-        for bi in range(2):
-            for bj in range(2):
-                for i in range(3):
-                    for m in range(3):
-                        tmp[i, m] = A[i, 0] * cov[n, 3 * bi, 3 * bj + m] + A[i, 1] * cov[n, 3 * bi + 1, 3 * bj + m] \
-                            + A[i, 2] * cov[n, 3 * bi + 2, 3 * bj + m]
-                for i in range(3):
-                    for j in range(3):
-                        out[n, 3 * bi + i, 3 * bj + j] = tmp[i, 0] * A[j, 0] + tmp[i, 1] * A[j, 1] \
-                            + tmp[i, 2] * A[j, 2]
+        _rotate_cov_into(T[n], cov[n], inverse, out[n], A, tmp)
+
+
+@njit(cache=True)
+def rotate_covariance_one(T: np.ndarray, cov: np.ndarray, inverse: bool, out: np.ndarray) -> None:
+    """:func:`rotate_covariance_kernel` of one pose ``T`` (4, 4) and covariance ``cov`` (6, 6) into ``out``
+    (6, 6)."""
+    _rotate_cov_into(T, cov, inverse, out, np.empty((3, 3)), np.empty((3, 3)))
 
 
 # ----------------------------------------------------------------------------

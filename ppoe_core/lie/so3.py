@@ -5,6 +5,7 @@ Batched over leading axes; small angles with vectorised ``np.where`` (docs/conve
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -19,6 +20,20 @@ _SMALL_Q = 1e-2
 
 def _f(x: ArrayLike) -> Array:
     return np.asarray(x, dtype=np.float64)
+
+
+_KERNELS: Any = None
+
+
+def _kernels() -> Any:
+    """:mod:`ppoe_core.lie.kernels`, imported on first use (numba only when used: `ppoe record` starts fast) and
+    kept (an import statement per message costs more than the kernel call)."""
+    global _KERNELS
+    if _KERNELS is None:
+        from ppoe_core.lie import kernels
+
+        _KERNELS = kernels
+    return _KERNELS
 
 
 # ----------------------------------------------------------------------------
@@ -97,12 +112,15 @@ def quat_from_matrix(R: ArrayLike) -> Array:
     ndarray, shape (..., 4)
     """
     R = _f(R)
+    kernels = _kernels()
+    if R.shape == (3, 3):  # one rotation (one message): no batch reshaping, the same operations
+        q = np.empty(4)
+        kernels.quat_from_matrix_one(R, q)
+        return q
     shape = R.shape[:-2]
     flat = np.ascontiguousarray(R.reshape(-1, 3, 3))
     out = np.empty((flat.shape[0], 4))
-    from ppoe_core.lie.kernels import quat_from_matrix_kernel  # numba only when used: `ppoe record` starts fast
-
-    quat_from_matrix_kernel(flat, out)
+    kernels.quat_from_matrix_kernel(flat, out)
     return out.reshape(shape + (4,))
 
 

@@ -5,14 +5,40 @@ from __future__ import annotations
 
 import importlib
 import math
+import os
 from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time as TimeMsg
-from geometry_msgs.msg import Pose, PoseWithCovarianceStamped
+from geometry_msgs.msg import Point, Pose, PoseWithCovariance, PoseWithCovarianceStamped, Quaternion
+from std_msgs.msg import Header
 
 from ppoe_core import lie
 from ppoe_core.errors import PpoeError
+from ppoe_core.lie.so3 import _kernels
+
+#: The generated message classes' private fields, as the fast builder of :func:`pose_cov_stamped_msg` fills them
+_MSG_SLOTS = {
+    PoseWithCovarianceStamped: {"_header", "_pose", "_check_fields"},
+    Header: {"_stamp", "_frame_id", "_check_fields"},
+    TimeMsg: {"_sec", "_nanosec", "_check_fields"},
+    PoseWithCovariance: {"_pose", "_covariance", "_check_fields"},
+    Pose: {"_position", "_orientation", "_check_fields"},
+    Point: {"_x", "_y", "_z", "_check_fields"},
+    Quaternion: {"_x", "_y", "_z", "_w", "_check_fields"},
+}
+#: Build the published pose message without its constructors (each builds default sub-messages that are then
+#: replaced: ~15 us per message): only with the field checks off (``ROS_PYTHON_CHECK_FIELDS`` not ``1``, the
+#: constructors' default) and the fields as expected (else the constructors); tested equal to the constructors'.
+_FAST_MSG = os.environ.get("ROS_PYTHON_CHECK_FIELDS", "") != "1" and all(
+    set(getattr(cls, "__slots__", ())) == slots for cls, slots in _MSG_SLOTS.items())
+
+
+def _bare(cls: Any) -> Any:
+    """An instance of a generated message class without its constructor (fields set by the caller)."""
+    obj = cls.__new__(cls)
+    obj._check_fields = False
+    return obj
 
 # --------------------------------------------------------------------- conversions
 
@@ -25,7 +51,11 @@ def stamp_to_ns(stamp: TimeMsg) -> int:
 def ns_to_stamp(ns: int) -> TimeMsg:
     """Integer nanoseconds -> ``builtin_interfaces/Time``."""
     ns = int(ns)
-    return TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    if not _FAST_MSG:
+        return TimeMsg(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    t = _bare(TimeMsg)
+    t._sec, t._nanosec = ns // 1_000_000_000, ns % 1_000_000_000
+    return t
 
 
 def pose_msg_from_matrix(T: np.ndarray, out: Pose | None = None) -> Pose:
@@ -42,16 +72,19 @@ def pose_msg_from_matrix(T: np.ndarray, out: Pose | None = None) -> Pose:
 
 def matrix_from_pose_msg(pose: Pose) -> np.ndarray:
     """``geometry_msgs/Pose`` -> homogeneous ``(4, 4)``; the quaternion is normalised."""
-    o = pose.orientation
-    x, y, z, w = float(o.x), float(o.y), float(o.z), float(o.w)
+    o, p = pose.orientation, pose.position
+    return _matrix_from_quat_xyz(float(o.x), float(o.y), float(o.z), float(o.w), p.x, p.y, p.z)
+
+
+def _matrix_from_quat_xyz(x: float, y: float, z: float, w: float, px: Any, py: Any, pz: Any) -> np.ndarray:
+    """Homogeneous ``(4, 4)`` of a message's quaternion (normalised) and position (see
+    :func:`matrix_from_pose_msg`)."""
     nq = math.sqrt(x * x + y * y + z * z + w * w)
     if not math.isfinite(nq) or nq < 1e-9:
         raise ValueError(f"pose quaternion {[x, y, z, w]} is not a rotation")
+    # lie.matrix_from_quat's one-quaternion operations (normalising again) and the translation, compiled
     T = np.empty((4, 4))
-    T[:3, :3] = lie.matrix_from_quat(np.array([x / nq, y / nq, z / nq, w / nq]))
-    p = pose.position
-    T[:3, 3] = (p.x, p.y, p.z)
-    T[3] = (0.0, 0.0, 0.0, 1.0)
+    _kernels().pose_from_quat_one(x / nq, y / nq, z / nq, w / nq, float(px), float(py), float(pz), T)
     return T
 
 
@@ -81,14 +114,29 @@ def pose_cov_stamped_msg(T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp:
     frame_id : str
         Parent frame.
     """
-    msg = PoseWithCovarianceStamped()
-    msg.header.stamp = ns_to_stamp(stamp) if isinstance(stamp, (int, np.integer)) else stamp
-    msg.header.frame_id = frame_id
-    pose_msg_from_matrix(T_parent_child, msg.pose.pose)
     cov = np.asarray(cov_ros, dtype=np.float64)
     if cov.shape != (6, 6):
         raise ValueError(f"covariance must be 6x6, got shape {cov.shape}")
-    msg.pose.covariance = cov.reshape(36).copy()  # the field's own type (float64[36]): no per-element check
+    stamp_msg = ns_to_stamp(stamp) if isinstance(stamp, (int, np.integer)) else stamp
+    if not _FAST_MSG:
+        msg = PoseWithCovarianceStamped()
+        msg.header.stamp = stamp_msg
+        msg.header.frame_id = frame_id
+        pose_msg_from_matrix(T_parent_child, msg.pose.pose)
+        msg.pose.covariance = cov.reshape(36).copy()  # the field's own type (float64[36]): no per-element check
+        return msg
+    fields = np.empty(7)
+    _kernels().pose_fields_one(np.asarray(T_parent_child, dtype=np.float64), fields)  # lie.quat_from_matrix's floats
+    qx, qy, qz, qw, px, py, pz = fields.tolist()
+    header, pwc, pose, point, quat = _bare(Header), _bare(PoseWithCovariance), _bare(Pose), _bare(Point), \
+        _bare(Quaternion)
+    header._stamp, header._frame_id = stamp_msg, frame_id
+    point._x, point._y, point._z = px, py, pz
+    quat._x, quat._y, quat._z, quat._w = qx, qy, qz, qw
+    pose._position, pose._orientation = point, quat
+    pwc._pose, pwc._covariance = pose, cov.reshape(36).copy()
+    msg = _bare(PoseWithCovarianceStamped)
+    msg._header, msg._pose = header, pwc
     return msg
 
 
@@ -97,6 +145,13 @@ def pose_cov_from_msg(msg: PoseWithCovarianceStamped) -> tuple[np.ndarray, np.nd
 
     ``cov_ros`` is in the ROS convention (docs/conventions.md sec. 2, axes of ``frame_id``).
     """
+    if _FAST_MSG and type(msg) is PoseWithCovarianceStamped:  # the fields checked at import: no property calls
+        pwc, header = msg._pose, msg._header
+        pose, stamp = pwc._pose, header._stamp
+        o, p = pose._orientation, pose._position
+        T = _matrix_from_quat_xyz(float(o._x), float(o._y), float(o._z), float(o._w), p._x, p._y, p._z)
+        cov_ros = np.array(pwc._covariance, dtype=float).reshape(6, 6)  # a copy: the message keeps its array
+        return T, cov_ros, int(stamp._sec) * 1_000_000_000 + int(stamp._nanosec), header._frame_id
     T = matrix_from_pose_msg(msg.pose.pose)
     cov_ros = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)  # a copy: the message keeps its array
     return T, cov_ros, stamp_to_ns(msg.header.stamp), msg.header.frame_id

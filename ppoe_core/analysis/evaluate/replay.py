@@ -501,35 +501,53 @@ def _replay(pri: _Priors, meas: list[Any], gt_stamps: np.ndarray, pipes: dict[st
                     {m: np.full((n_gt, 6, 6), np.nan) for m in METHODS}, np.full((n_gt, n_joints), np.nan),
                     {m: [] for m in pipes}, {m: {} for m in pipes}, {m: [] for m in pipes})
     bar = ProgressBar(len(ev), progress)
-    for done, e in enumerate(ev):
-        k, i = int(ev_k[e]), int(ev_i[e])
+    k_ev, i_ev = ev_k[ev], ev_i[ev]
+    # runs of consecutive priors (no measurement or ground truth between them) go through add_priors at once
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], (k_ev == 0).astype(np.int8), [0]])))
+    run_end = dict(zip(edges[0::2].tolist(), edges[1::2].tolist()))
+    e, tick = 0, 0
+    while e < len(ev):
+        k, i = int(k_ev[e]), int(i_ev[e])
         if k == 0:
-            for name, pipe in pipes.items():
-                cov = pri.cov_all[i] if name == "ppoe" else pri.cov_naive
-                _, outs = pipe.add_prior(float(pri.stamps[i]), pri.T_all[i], cov, pri.Q[i], validated=True,
-                                         estimate=False)  # estimates are read at ground-truth stamps only
-                run.record(name, outs, updaters[name].tags)
+            f = run_end[e]
+            _add_prior_run(run, pri, i_ev[e:f], pipes, updaters)
+            e = f
         elif k == 1:
             for name, pipe in pipes.items():
                 o = pipe.add_measurement(meas[i])
                 if o.status != "pending":
                     run.record(name, [o], updaters[name].tags)
+            e += 1
         else:
             _at_ground_truth(run, pri, float(gt_stamps[i]), i, pipes, updaters)
-        if done % 256 == 0:
-            bar.update(done)
+            e += 1
+        if e >= tick:
+            bar.update(e)
+            tick = e + 256
     for name, pipe in pipes.items():
         run.record(name, pipe.flush(), updaters[name].tags)
     bar.close()
     return run
 
 
+def _add_prior_run(run: ReplayRun, pri: _Priors, idx: np.ndarray, pipes: dict[str, Any],
+                   updaters: dict[str, Any]) -> None:
+    """Priors ``idx`` (consecutive events) through every pipeline: ``add_priors``, the calls ``add_prior(...,
+    validated=True, estimate=False)`` one by one would make (estimates are read at ground-truth stamps only)."""
+    a, b = int(idx[0]), int(idx[-1]) + 1
+    sel: Any = slice(a, b) if b - a == len(idx) and bool(np.all(np.diff(idx) == 1)) else idx
+    for name, pipe in pipes.items():
+        cov = pri.cov_all[sel] if name == "ppoe" else pri.cov_naive
+        outs = pipe.add_priors(pri.stamps[sel], pri.T_all[sel], cov, pri.Q[sel], validated=True)
+        run.record(name, outs, updaters[name].tags)
+
+
 def _at_ground_truth(run: ReplayRun, pri: _Priors, t: float, i: int, pipes: dict[str, Any],
                      updaters: dict[str, Any]) -> None:
     """Estimates of every method at ground-truth sample ``i`` (stamp ``t``)."""
     for name, pipe in pipes.items():
-        # stamps near 1.7e9 s resolve ~0.24 us in float64: 1 us margin
-        run.record(name, pipe.flush(older_than=t + 1e-6), updaters[name].tags)
+        if pipe.pending:  # stamps near 1.7e9 s resolve ~0.24 us in float64: 1 us margin
+            run.record(name, pipe.flush(older_than=t + 1e-6), updaters[name].tags)
         status, prior = pipe.buffer.lookup_hold(t)
         if prior is None:
             continue
