@@ -446,7 +446,8 @@ def test_bag_play_node_record_equals_fk(tmp_path: Path, model, split: bool) -> N
     stamps, qs = _split_expectation(q_all) if split else (list(1.0 + 0.01 * np.arange(len(q_all))), list(q_all))
     env = ros_env(tmp_path)
     node = NodeProcess.node("kinematics_node", env, tmp_path, params={"model_file": str(MODEL),
-                                                                       "use_sim_time": True})
+                                                                       "use_sim_time": True,
+                                                                       "joint_states_reliable": True})
     recorder = NodeProcess.ppoe(["record", "--out", str(rec), "--max-messages", str(len(qs)), "/ppoe/pose"], env,
                                 tmp_path, "record")
     player = None

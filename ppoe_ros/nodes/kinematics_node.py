@@ -1,7 +1,7 @@
 """Kinematics node: joint states -> PPOE pose with covariance (``/ppoe/pose``).
 
 Subscriptions
-    ``joint_states`` (``sensor_msgs/JointState``, sensor-data QoS): one output per message.
+    ``joint_states`` (``sensor_msgs/JointState``, sensor-data QoS; reliable with ``joint_states_reliable``): one output per message.
     ``robot_description`` (``std_msgs/String``, transient local) unless the
     ``robot_description`` parameter holds the URDF.
 Publications
@@ -111,6 +111,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               min_value=0, max_value=100000),
     ParamSpec("qos_depth", 100, "history depth of the joint-state subscription (sensor-data QoS)",
               min_value=1, max_value=100000),
+    ParamSpec("joint_states_reliable", False, "subscribe the joint states with reliable QoS (nothing lost between a "
+              "reliable publisher and the node, which may slow the publisher) instead of best effort (sensor data)"),
     ParamSpec("output_qos_depth", 1000, "history depth of the pose publishers (reliable): a subscriber "
               "that falls behind by more loses poses; 1000 = 1 s at 1 kHz", min_value=1, max_value=100000),
     ParamSpec("input_timeout", 1.0, "/diagnostics says WARN when no joint state arrived for this long; 0 = off",
@@ -186,10 +188,11 @@ class KinematicsNode(Node):
         if self._tf is not None:  # TF rides on the joint-vector step; with publish_tf off the hot path is as it was
             self._joint_vector = self._tf.wrap(self._joint_vector)  # type: ignore[method-assign]
         js_topic = p["joint_states_topic"]
+        js_qos = reliable_qos(p["qos_depth"]) if p["joint_states_reliable"] else sensor_qos(p["qos_depth"])
         self._on_joint_state = guarded(self.stats, js_topic)(self._joint_state)
         self._drain_max = int(p["drain_max"])
         self._js_sub, self._js_gaps = counted_subscription(self, self.stats, JointState, js_topic,
-                                                           self._on_joint_state_burst, sensor_qos(p["qos_depth"]),
+                                                           self._on_joint_state_burst, js_qos,
                                                            raw=True)
 
         take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
