@@ -1,7 +1,8 @@
 """Kinematics node: joint states -> PPOE pose with covariance (``/ppoe/pose``).
 
 Subscriptions
-    ``joint_states`` (``sensor_msgs/JointState``, sensor-data QoS; reliable with ``joint_states_reliable``): one output per message.
+    ``joint_states`` (``sensor_msgs/JointState``, sensor-data QoS; reliable with ``joint_states_reliable``):
+    one output per message.
     ``robot_description`` (``std_msgs/String``, transient local) unless the
     ``robot_description`` parameter holds the URDF.
 Publications
