@@ -117,15 +117,20 @@ def predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect
     return x0, (T[..., :3, :3] if stops.kind == "pose" else None), poses, dq, dxi
 
 
+def row_link_poses(poses: Mapping[str, np.ndarray], link: str, links: np.ndarray | None, n: int) -> np.ndarray:
+    """``T_root_link`` of each of ``n`` rows, (n, 4, 4), from :meth:`KinematicTree.link_poses` output: the rows'
+    own links ``links`` ((n,) of str), or ``link`` for every row when ``links`` is None."""
+    T = np.broadcast_to(poses[link], (n, 4, 4))
+    if links is None:
+        return T
+    for ln in dict.fromkeys(links.tolist()):
+        T = np.where((links == ln)[:, None, None], np.broadcast_to(poses[ln], T.shape), T)
+    return T
+
+
 def measured_link_poses(stops: Stops, poses: Mapping[str, np.ndarray]) -> np.ndarray:
     """``T_root_link`` of each row's measured link, (N, 4, 4) (several reflectors: per row)."""
-    T = np.broadcast_to(poses[stops.link], (len(stops), 4, 4))
-    if stops.links is None:
-        return T
-    rows = stops.row_links()
-    for ln in stops.chain_links():
-        T = np.where((rows == ln)[:, None, None], np.broadcast_to(poses[ln], T.shape), T)
-    return T
+    return row_link_poses(poses, stops.link, stops.links, len(stops))
 
 
 def chain_jacobians(tree: KinematicTree, stops: Stops, poses: Mapping[str, np.ndarray], dq: Mapping,

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core import lie
+from ppoe_core.analysis.diagnose.candidates import row_link_poses
 from ppoe_core.errors import MeasurementError, ModelConfigError
 from ppoe_core.estimation.camera import project_points_jacobian
 from ppoe_core.model.effects import Effect, make_effect, sum_effect_corrections
@@ -129,13 +130,7 @@ def _camera_points(
 
 def tag_link_poses(obs: PixelObs, poses: Mapping[str, np.ndarray]) -> np.ndarray:
     """``T_root_link`` of each row's tag link, (M, 4, 4), from :meth:`KinematicTree.link_poses` output."""
-    T = np.broadcast_to(poses[obs.link], (len(obs), 4, 4))
-    if obs.links is None:
-        return T
-    rows = obs.row_links()
-    for ln in obs.tag_links():
-        T = np.where((rows == ln)[:, None, None], np.broadcast_to(poses[ln], T.shape), T)
-    return T
+    return row_link_poses(poses, obs.link, obs.links, len(obs))
 
 
 def _tag_frame_jacobians(tree: KinematicTree, obs: PixelObs, poses: Mapping[str, np.ndarray], dq: Mapping,
