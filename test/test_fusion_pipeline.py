@@ -780,3 +780,20 @@ def test_fuse_with_one_correction_equals_weight_and_apply():
                 assert est.T_base_tool is prior.T_base_tool and est.cov_tool is prior.cov_tool
                 dropped = prior.stamp >= anchor.stamp
                 assert ("cam" in pipe.corrections) != dropped and pipe.counts["corrections_dropped"] == int(dropped)
+
+
+def test_warm_pipeline_compiles_the_per_prior_kernels_in_a_fresh_process():
+    """The nodes call warm_pipeline before subscribing: afterwards the per-prior kernels are compiled (or loaded),
+    so the first message does not pay for it."""
+    import subprocess
+    import sys
+
+    code = ("from ppoe_core.estimation.pipeline import warm_pipeline\n"
+            "from ppoe_core.estimation import correction_kernels as ck\n"
+            "names = ('prior_passes', 'correction_ratio', 'fuse_one_kernel', 'run_breaks')\n"
+            "assert not any(getattr(ck, n).signatures for n in names)\n"
+            "warm_pipeline()\n"
+            "print(','.join(n for n in names if not getattr(ck, n).signatures))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "", f"not compiled by warm_pipeline: {out.stdout}"

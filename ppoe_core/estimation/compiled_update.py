@@ -91,31 +91,3 @@ def warm_kernels() -> None:
     prior = PriorSample(0.0, X, P)
     apply_carried_corrections(prior, [(CarriedCorrection(prior, np.eye(6)[:2], np.ones(2), np.zeros(2)), 1.0)])
     lie.check_covariance(P, "warm-up", size=6)
-    _warm_pipeline(X, P)
-
-
-def _warm_pipeline(X: np.ndarray, P: np.ndarray) -> None:
-    """Run a small fusion pipeline (priors, one measurement, a run of priors, fused estimates) so that the
-    per-prior kernels (prior check, correction ratio, one-correction fuse, run breaks, first expiry) and the
-    one-pose conversions are loaded before the first message, not while the node's inputs queue up."""
-    from ppoe_core import lie
-    from ppoe_core.estimation.corrections import Measurement, ToolUpdate
-    from ppoe_core.estimation.pipeline import FusionPipeline
-
-    X_post = X.copy()
-    X_post[0, 3] += 1e-4
-
-    def updater(T: np.ndarray, cov: np.ndarray, meas: Measurement, prior: object) -> ToolUpdate:
-        return ToolUpdate(X_post, 0.5 * cov, True, 0.0)
-
-    pipe = FusionPipeline(updater)
-    q = np.zeros(2)
-    for k in range(3):
-        pipe.add_prior(0.01 * k, X, P, q)
-    pipe.add_measurement(Measurement(0.015, "warm-up", None))
-    stamps = 0.03 + 0.01 * np.arange(3)
-    pipe.add_priors(stamps, np.repeat(X[None], 3, axis=0), np.repeat(P[None], 3, axis=0), np.zeros((3, 2)))
-    pipe.add_prior(0.07, X, P, q)
-    T_quat = lie.matrix_from_quat(lie.quat_from_matrix(X[:3, :3]))
-    lie.cov_local_to_ros(X, lie.cov_ros_to_local(X, P))
-    del T_quat

@@ -85,6 +85,7 @@ __all__ = [
     "FusedEstimate",
     "MeasurementOutcome",
     "FusionPipeline",
+    "warm_pipeline",
     "TagMeasurement",
     "ContactMeasurement",
     "ModelUpdater",
@@ -555,3 +556,22 @@ def make_pipeline(
         max_hold=float(s["max_hold"]), policy=policy, max_pending=int(s["max_pending"]),
         min_interval=float(s["min_interval"]),
     )
+
+
+def warm_pipeline() -> None:
+    """Run a small fusion pipeline (priors, one measurement, a run of priors, fused estimates) so that its compiled
+    per-prior steps (prior check, correction ratio, one-correction fuse, run breaks) are compiled or loaded before
+    a node's first message, not while its inputs queue up (``ppoe_ros.common.runner``)."""
+    X, P = np.eye(4), np.eye(6) * 1e-6
+    X_post = X.copy()
+    X_post[0, 3] = 1e-4
+
+    def updater(T: Array, cov: Array, meas: Measurement, prior: PriorSample) -> ToolUpdate:
+        return ToolUpdate(X_post, 0.5 * cov, True, 0.0)
+
+    pipe = FusionPipeline(updater)
+    for k in range(3):
+        pipe.add_prior(0.01 * k, X, P, np.zeros(2))
+    pipe.add_measurement(Measurement(0.015, "warm-up", None))
+    pipe.add_priors(0.03 + 0.01 * np.arange(3), np.repeat(X[None], 3, axis=0), P, np.zeros((3, 2)))
+    pipe.add_prior(0.07, X, P, np.zeros(2))

@@ -113,8 +113,9 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, exe
 
 
 def _compile_kernels() -> None:
-    """Compile (or load from numba's cache) the per-message pose conversions before the node subscribes: on a
-    fresh install the first call compiles for a few seconds, which must not fall on the first message."""
+    """Compile (or load from numba's cache) the per-message pose conversions, the fusion update and the fusion
+    pipeline's per-prior steps before the node subscribes: on a fresh install the first call compiles for a few
+    seconds, which must not fall on the first message (inputs queue up and may be lost meanwhile)."""
     import numpy as np
 
     from ppoe_core import lie
@@ -122,8 +123,12 @@ def _compile_kernels() -> None:
     lie.quat_from_matrix(np.eye(3))
     lie.cov_ros_to_local(np.eye(4), lie.cov_local_to_ros(np.eye(4), np.eye(6)))
     from ppoe_core.estimation.compiled_update import warm_kernels
+    from ppoe_core.estimation.pipeline import warm_pipeline
+    from ppoe_ros.common.conversions import pose_cov_from_msg, pose_cov_stamped_msg
 
     warm_kernels()
+    warm_pipeline()
+    pose_cov_from_msg(pose_cov_stamped_msg(np.eye(4), np.eye(6), 0, "warm-up"))
 
 
 def _spin(node: Node, executor: str) -> None:
