@@ -57,8 +57,9 @@ def _string(data: bytes, pos: int, what: str) -> tuple[str, int]:
     """One CDR string at ``pos`` (aligned) -> (text, position after it)."""
     (n,) = _U32.unpack_from(data, pos)
     end = pos + 4 + n
-    if n == 0 or end > len(data):
-        raise MeasurementError(f"JointState CDR: {what} has length {n} at byte {pos} of {len(data)}")
+    if n == 0 or end > len(data) or data[end - 1] != 0:
+        raise MeasurementError(f"JointState CDR: {what} has length {n} at byte {pos} of {len(data)} "
+                               "(or is not NUL-terminated)")
     return data[pos + 4:end - 1].decode("utf-8"), end
 
 

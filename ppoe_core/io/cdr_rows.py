@@ -25,6 +25,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from ppoe_core.errors import MeasurementError
+from ppoe_core.io import cdr
 from ppoe_core.io.cdr import _align
 
 __all__ = ["Fallback", "PARSE_ERRORS", "parse_joint_state", "parse_compressed_image", "parse_pose",
@@ -46,17 +48,13 @@ class Fallback(Exception):
 
 
 #: errors of a parser that mean "use the typed deserialiser" (never a contract violation)
-PARSE_ERRORS = (Fallback, struct.error, UnicodeDecodeError, ValueError, IndexError)
+PARSE_ERRORS = (Fallback, MeasurementError, struct.error, UnicodeDecodeError, ValueError, IndexError)
 
 
 def _string(raw: bytes, pos: int) -> tuple[str, int]:
-    """The CDR string at ``pos`` (aligned here) -> (text, position after it); rosbags' ``check_string``."""
-    pos = _align(pos, 4)
-    (n,) = _U32.unpack_from(raw, pos)
-    end = pos + 4 + n
-    if n < 1 or end > len(raw) or raw[end - 1] != 0:
-        raise Fallback
-    return raw[pos + 4:end - 1].decode(), end
+    """The CDR string at ``pos`` (aligned here) -> (text, position after it): :mod:`ppoe_core.io.cdr`'s reader
+    (length inside the bytes, NUL-terminated UTF-8, as rosbags' ``check_string``)."""
+    return cdr._string(raw, _align(pos, 4), "string")
 
 
 def _header(raw: bytes) -> tuple[float, str, int]:
@@ -74,36 +72,10 @@ def _end(raw: bytes, pos: int) -> None:
         raise Fallback
 
 
-#: name-sequence bytes -> names (a publisher sends the same names every time)
-_names_cache: dict[bytes, tuple[str, ...]] = {}
-#: (count, bytes, names) of the last name sequence parsed
-_last_names: list[tuple[int, bytes, tuple[str, ...]]] = [(-1, b"", ())]
-
-
 def _names(raw: bytes, pos: int) -> tuple[tuple[str, ...], int]:
-    """The ``string[]`` at ``pos`` -> (names, position after it).
-
-    The strings start aligned to 4 (after the count), so the same count and bytes are the same names
-    wherever they sit in the message: bytes equal to the previous message's are not parsed again.
-    """
-    pos = _align(pos, 4)
-    (count,) = _U32.unpack_from(raw, pos)
-    start = p = pos + 4
-    last_count, last_key, last_names = _last_names[0]
-    if count == last_count and raw.startswith(last_key, start):
-        return last_names, start + len(last_key)
-    out = []
-    for _ in range(count):
-        name, p = _string(raw, p)
-        out.append(name)
-    key = raw[start:p]
-    names = _names_cache.get(key)
-    if names is None:
-        if len(_names_cache) > 256:
-            _names_cache.clear()
-        names = _names_cache[key] = tuple(out)
-    _last_names[0] = (count, key, names)
-    return names, p
+    """The ``string[]`` at ``pos`` -> (names, position after it): :mod:`ppoe_core.io.cdr`'s reader (the names
+    cached by their bytes: a publisher sends the same names every time)."""
+    return cdr._names(raw, _align(pos, 4))
 
 
 class _Layout(NamedTuple):
