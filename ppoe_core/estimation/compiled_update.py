@@ -72,7 +72,7 @@ def compiled_update(X0: Any, P0: Any, z: np.ndarray, model: Any, R: np.ndarray, 
 def warm_kernels() -> None:
     """Compile (or load from numba's cache) the kernels of the fusion path: a tag update (pixel and normalised,
     with camera noise), a contact update, a carried correction and the quick covariance check.  The nodes call it
-    before subscribing (``ppoe_ros.common.runner._compile_kernels``), the test session once (``test/conftest.py``)."""
+    before subscribing (``ppoe_ros.common.runner.warm_node_kernels``), the test session once (``test/conftest.py``)."""
     from ppoe_core import lie
     from ppoe_core.estimation.corrections import CarriedCorrection, apply_carried_corrections
     from ppoe_core.estimation.fusion import iterated_update

@@ -94,7 +94,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, exe
     node: Node | None = None
     code = 0
     try:
-        _compile_kernels()
+        warm_node_kernels()
         node = factory()
         _spin(node, executor)
     except PpoeError as exc:
@@ -112,7 +112,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, exe
     return code
 
 
-def _compile_kernels() -> None:
+def warm_node_kernels() -> None:
     """Compile (or load from numba's cache) the per-message pose conversions, the fusion update and the fusion
     pipeline's per-prior steps before the node subscribes: on a fresh install the first call compiles for a few
     seconds, which must not fall on the first message (inputs queue up and may be lost meanwhile)."""
