@@ -206,7 +206,7 @@ class Probe:
             self.executor.spin_once(timeout_sec=0.02)
 
     def wait_for_subscribers(self, pub: Any, proc: NodeProcess | None = None, n: int = 1,
-                             timeout: float = 15.0, settle: float = 0.5) -> None:
+                             timeout: float = 45.0, settle: float = 0.5) -> None:
         """Wait until ``pub`` has ``n`` matched subscriptions (the node under test is up).
 
         The publisher sees the match before the subscriber has matched the publisher
@@ -218,7 +218,7 @@ class Probe:
         self.spin_for(settle)
 
     def wait_for_publishers(self, topic: str, proc: NodeProcess | None = None, n: int = 1,
-                            timeout: float = 15.0) -> None:
+                            timeout: float = 45.0) -> None:
         """Wait until ``topic`` has ``n`` publishers."""
         self.spin_until(lambda: self.node.count_publishers(topic) >= n, timeout, proc,
                         f"a publisher on {topic}")
