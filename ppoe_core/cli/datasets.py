@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ppoe_core.analysis.diagnose.pixels import PixelObs
-from ppoe_core.analysis.diagnose.stops import Stops, motion_signs
+from ppoe_core.analysis.diagnose.stops import Stops, base_tilt_context, motion_signs
 from ppoe_core.errors import ModelConfigError
 from ppoe_core.robot.urdf import Robot
 
@@ -46,7 +46,8 @@ def stops_from_hilti(path: str | Path, robot: Robot, stationing_set: str | None 
     context ``time`` and ``motion_sign`` from the time-ordered waypoints, and ``gravity`` (the
     direction of gravity in ``base_link``) from the base accelerometer ``tilt_sensor_base``
     (mounted with rpy 0 on ``column_base``, which has rpy 0 in ``base_link``), so gravity
-    torques and moments follow the tilt of the robot on uneven ground.
+    torques and moments follow the tilt of the robot on uneven ground, and ``base_tilt`` (that tilt minus
+    its station mean: the robot rocking on its support between stops).
     """
     from ppoe_core.io.importers.hilti import load_hilti
 
@@ -59,17 +60,18 @@ def stops_from_hilti(path: str | Path, robot: Robot, stationing_set: str | None 
     signs = motion_signs(t, J, t)
     name = Path(path).stem
     stations = list(dict.fromkeys(s.station for s in stops))
+    session = np.array([stations.index(s.station) for s in stops])
+    gravity = -a_base / np.linalg.norm(a_base, axis=1)[:, None]
     return Stops(
         q=q, p_meas=np.array([s.prism_position for s in stops]), kind="point", link=tracker_link,
         point=np.zeros(3), sigma=sigma, base=robot.root,
-        session=np.array([stations.index(s.station) for s in stops]),
-        session_names=[f"{name}:{st}" for st in stations], group=np.zeros(len(stops), dtype=int),
+        session=session, session_names=[f"{name}:{st}" for st in stations], group=np.zeros(len(stops), dtype=int),
         group_names=[name],
         reg_mask=np.array([s.role == "stationing" and (stationing_set is None or stationing_set in s.point_sets)
                            for s in stops]),
         score_mask=np.array([s.role == "evaluation" and s.solution_space != 4 for s in stops]),
         context={"time": t - t[0], "motion_sign": {n: signs[:, i] for i, n in enumerate(ds.joint_names)},
-                 "gravity": -a_base / np.linalg.norm(a_base, axis=1)[:, None]},
+                 "gravity": gravity, "base_tilt": base_tilt_context(gravity, session)},
         imus={"base": ("tilt_sensor_base", a_base),
               "column_tip": ("tilt_sensor_column_tip", np.array([s.accel_column_tip for s in stops]))},
     )

@@ -23,7 +23,7 @@ Vocabulary (``name``: location, parameters, unit):
 ``gravity_compliance``      movable joint        ``compliance`` [rad/(N m) or m/N]
 ``mount_bending``           any joint            ``compliance_x``, ``compliance_y`` [rad/(N m)]
 ``lateral_compliance``      revolute joint       ``compliance_u``, ``compliance_v`` [rad/(N m)]
-``base_tilt``               root link            ``tilt_x``, ``tilt_y`` [rad]
+``base_tilt``               root link            ``tilt_x``, ``tilt_y`` [rad] (or ``gain`` of the measured tilt)
 ``backlash``                movable joint        ``play`` [rad or m] (half the dead band)
 ``thermal_growth``          any joint            ``alpha`` [1/K or 1/s]
 ``time_offset``             topic / sensor       ``dt`` [s]
@@ -35,6 +35,8 @@ Context keys (``context`` of :meth:`Effect.corrections`), each broadcast like th
 
 ``gravity``
     Gravity direction in the root frame, ``(..., 3)`` unit vector, default ``[0, 0, -1]``.
+``base_tilt``
+    ``(..., 2)`` [rad]: root tilt about its x, y axes measured by an accelerometer on it, minus its session mean.
 ``motion_sign``
     ``{joint: (...)}``: sign (+1, -1, 0) of each joint's last motion (backlash).
 ``temperature`` / ``time``
@@ -56,25 +58,9 @@ from ppoe_core.robot.config import EFFECT_NAMES as _CONFIG_EFFECT_NAMES
 from ppoe_core.robot.tree import KinematicTree, _batch
 from ppoe_core.robot.urdf import Robot
 
-__all__ = [
-    "EFFECT_NAMES",
-    "Effect",
-    "JointOffset",
-    "LinkError",
-    "GravityCompliance",
-    "MountBending",
-    "LateralCompliance",
-    "perpendicular_axes",
-    "BaseTilt",
-    "Backlash",
-    "ThermalGrowth",
-    "TimeOffset",
-    "CameraExtrinsics",
-    "TrackerRegistration",
-    "effect_from_config",
-    "make_effect",
-    "sum_effect_corrections",
-]
+__all__ = ["EFFECT_NAMES", "Effect", "JointOffset", "LinkError", "GravityCompliance", "MountBending",
+           "LateralCompliance", "perpendicular_axes", "BaseTilt", "Backlash", "ThermalGrowth", "TimeOffset",
+           "CameraExtrinsics", "TrackerRegistration", "effect_from_config", "make_effect", "sum_effect_corrections"]
 
 #: the contract vocabulary (docs/conventions.md sec. 6), in catalogue order (defined in config)
 EFFECT_NAMES = _CONFIG_EFFECT_NAMES
@@ -167,6 +153,9 @@ class Effect:
         """YAML entry ``{name, location, parameters[, ci]}`` (floats, for the model file)."""
         out: dict[str, Any] = {"name": self.name, "location": self.location,
                                "parameters": {k: float(v) for k, v in zip(self.param_names, self.params)}}
+        for key in ("variable", "reference"):  # what a context-driven effect is driven by (thermal, base tilt)
+            if getattr(self, key, None) is not None:
+                out[key] = getattr(self, key)
         if ci is not None:
             out["ci"] = {k: float(v) for k, v in zip(self.param_names, ci)}
         return out
@@ -188,10 +177,6 @@ def _check_joint(tree: KinematicTree, joint: str, effect: str, movable: bool = F
                                f"{tree.robot.joints[joint].type} joint; it must be movable")
 
 
-def _ones(q: Mapping[str, Any]) -> np.ndarray:
-    return np.ones(_batch(q) + (1,))
-
-
 class JointOffset(Effect):
     """Joint zero offset: ``dq_j = offset``."""
 
@@ -203,7 +188,7 @@ class JointOffset(Effect):
         super().__init__(tree, location, ("offset",), params)
 
     def basis(self, q, context=None, poses=None):
-        return {self.location: _ones(q)}, {}
+        return {self.location: np.ones(_batch(q) + (1,))}, {}
 
 
 class LinkError(Effect):
@@ -282,16 +267,20 @@ class _TwoAxisBending(Effect):
     """
 
     axis_names: tuple[str, str] = ("compliance_x", "compliance_y")
+    #: per axis, a compliance growing with the joint's own value (a telescopic stage: ``c_k + e_k q_j``)
+    scaled_names: tuple[str, ...] = ()
 
     def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None,
                  components: Sequence[str] | None = None) -> None:
         comps = tuple(components) if components is not None else self.axis_names
-        if not comps or any(c not in self.axis_names for c in comps):
+        allowed = self.axis_names + self.scaled_names
+        if not comps or any(c not in allowed for c in comps):
             raise ModelConfigError(f"effect {self.name} at '{location}': components {list(comps)} must be a "
-                                   f"non-empty subset of {list(self.axis_names)}")
+                                   f"non-empty subset of {list(allowed)}")
         self.components = comps
-        self.units = tuple("rad/(N m)" for _ in comps)
-        self.nonnegative = comps
+        self.units = tuple("rad/(N m)" if c in self.axis_names else "rad/(N m m)" for c in comps)
+        scaled = [c for c in comps if c in self.scaled_names]  # then c_k is the value at q_j = 0, any sign
+        self.nonnegative = tuple(scaled) or comps
         super().__init__(tree, location, comps, params)
 
     def axes_and_moment(self, q: Mapping[str, Any], context: Mapping[str, Any] | None,
@@ -302,9 +291,10 @@ class _TwoAxisBending(Effect):
     def basis(self, q, context=None, poses=None):
         axes, m = self.axes_and_moment(q, context or {}, poses)
         B = np.zeros(m.shape[:-1] + (6, len(self.components)))
+        qj = self.tree.joint_values(q)[self.location][..., None] if self.scaled_names else 1.0
         for i, c in enumerate(self.components):
-            k = self.axis_names.index(c)
-            B[..., 3:, i] = axes[..., k, :] * m[..., k, None]
+            k, f = (self.axis_names.index(c), 1.0) if c in self.axis_names else (self.scaled_names.index(c), qj)
+            B[..., 3:, i] = axes[..., k, :] * m[..., k, None] * f
         return {}, {self.location: B}
 
 
@@ -312,7 +302,9 @@ class MountBending(_TwoAxisBending):
     """Rotation at a (typically fixed) joint proportional to the gravity moment about it.
 
     ``theta = [c_x M_x, c_y M_y, 0]`` in the joint frame, ``M`` the moment [N m] of the weight of
-    everything the joint carries about the joint frame origin, in the joint frame axes.
+    everything the joint carries about the joint frame origin, in the joint frame axes.  At a prismatic
+    joint (a telescopic stage, whose overlap shrinks as it extends) ``c_k + e_k q_j`` with components
+    ``extension_x``, ``extension_y`` (``e_k`` >= 0; ``c_k`` then has any sign).
     """
 
     name = "mount_bending"
@@ -322,6 +314,8 @@ class MountBending(_TwoAxisBending):
     def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None,
                  components: Sequence[str] | None = None) -> None:
         _check_joint(tree, location, self.name)
+        if tree.robot.joints[location].type == "prismatic":
+            self.scaled_names = ("extension_x", "extension_y")
         super().__init__(tree, location, params, components)
 
     def moment(self, q, context=None, poses=None) -> np.ndarray:
@@ -379,23 +373,32 @@ class LateralCompliance(_TwoAxisBending):
 
 
 class BaseTilt(Effect):
-    """Rotation of the root about its x and y axes: ``dxi`` on every joint hanging on the root."""
+    """Rotation of the root about its x and y axes: ``dxi`` on every joint hanging on the root.  With
+    ``variable="measured"`` the tilt measured at each stop by an accelerometer fixed to the root (context
+    ``base_tilt``) times ``gain`` (1: the robot rocks on its support as measured)."""
 
     name = "base_tilt"
-    units = ("rad", "rad")
+    units: tuple[str, ...] = ("rad", "rad")
 
-    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
+    def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None,
+                 variable: str | None = None) -> None:
         if location != tree.root:
             raise ModelConfigError(f"effect {self.name}: location '{location}' must be the root link "
                                    f"'{tree.root}' of URDF {tree.robot.source}")
-        super().__init__(tree, location, ("tilt_x", "tilt_y"), params)
+        if variable not in (None, "measured"):
+            raise ModelConfigError(f"effect {self.name}: variable must be 'measured' or absent, got {variable!r}")
+        self.variable = variable
+        self.units = ("rad", "rad") if variable is None else ("1",)
+        super().__init__(tree, location, ("tilt_x", "tilt_y") if variable is None else ("gain",), params)
 
     def basis(self, q, context=None, poses=None):
-        out = {}
-        for jn in self.tree.robot.children(self.tree.root):
-            Ad = lie.adjoint(lie.inverse(self.tree.robot.joints[jn].origin))
-            out[jn] = np.broadcast_to(Ad[:, 3:5], _batch(q) + (6, 2))
-        return {}, out
+        w = (context or {}).get("base_tilt")
+        if self.variable is not None and w is None:
+            raise ModelConfigError(f"effect {self.name} at '{self.location}' needs context 'base_tilt'")
+        Ads = {jn: np.broadcast_to(lie.adjoint(lie.inverse(self.tree.robot.joints[jn].origin))[:, 3:5],
+                                   _batch(q) + (6, 2)) for jn in self.tree.robot.children(self.tree.root)}
+        return {}, {jn: Ad if self.variable is None else Ad @ np.asarray(w, dtype=float)[..., :, None]
+                    for jn, Ad in Ads.items()}
 
 
 class Backlash(Effect):
@@ -447,12 +450,6 @@ class ThermalGrowth(Effect):
         B = np.zeros(du.shape + (6, 1))
         B[..., :3, 0] = du[..., None] * d
         return {}, {self.location: B}
-
-    def to_config(self, ci=None):
-        out = super().to_config(ci)
-        out["variable"] = self.variable
-        out["reference"] = self.reference
-        return out
 
 
 class TimeOffset(Effect):
@@ -564,7 +561,9 @@ def effect_from_config(entry: Mapping[str, Any], robot: Robot | KinematicTree,
         options["components"] = tuple(k for k in _TWIST_KEYS if k in params)
     if name in ("mount_bending", "lateral_compliance"):
         axes = LateralCompliance.axis_names if name == "lateral_compliance" else MountBending.axis_names
-        options["components"] = tuple(k for k in axes if k in params) or axes
+        options["components"] = tuple(k for k in axes + ("extension_x", "extension_y") if k in params) or axes
+    if name == "base_tilt" and "variable" in entry:
+        options["variable"] = entry["variable"]
     if name == "thermal_growth":
         options["variable"] = entry.get("variable", "temperature")
         options["reference"] = float(entry.get("reference", 0.0))

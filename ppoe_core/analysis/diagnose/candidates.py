@@ -30,8 +30,12 @@ class Candidate:
 
     @property
     def key(self) -> str:
-        comps = "" if self.effect.name != "link_error" else "[" + ",".join(self.effect.param_names) + "]"
+        listed = self.effect.name == "link_error" or any(n.startswith("extension") for n in self.effect.param_names)
+        comps = "[" + ",".join(self.effect.param_names) + "]" if listed else ""
         return f"{self.effect.name}@{self.effect.location}{comps}"
+
+
+_BENDING_EXTENSION = ("compliance_x", "compliance_y", "extension_x", "extension_y")
 
 
 def _carried_mass(tree: KinematicTree, joint: str) -> float:
@@ -51,16 +55,20 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
     * ``lateral_compliance``: revolute joints carrying mass (bending about the two axes
       perpendicular to the joint axis; each axis its own sign check);
     * ``mount_bending``: fixed and prismatic joints carrying mass (a telescopic segment bends
-      at its overlap);
+      at its overlap); at prismatic joints also with a compliance linear in the extension
+      (``extension_x``, ``extension_y``: the overlap shrinks as the stage extends);
     * ``link_error`` (6 components; unidentifiable ones are pruned during selection): every
       joint on the path;
     * ``backlash``: independent movable joints whose last-motion sign changes (context);
     * ``thermal_growth``: joints with an origin offset above 5 cm, against the measured
       ``temperature`` (``/temperature``) if it varies by more than 1 K, else against time if the
       data span more than 10 minutes (the effect's ``variable`` says which);
-    * ``time_offset``: if the joints move at the measurement times (context ``joint_velocity``).
+    * ``time_offset``: if the joints move at the measurement times (context ``joint_velocity``);
+    * ``base_tilt`` with ``variable="measured"`` (tracker points, an accelerometer on the root: context
+      ``base_tilt``): the root rotated by the tilt that accelerometer measures at each stop (minus its
+      session mean, which the registration absorbs), times one ``gain``: a robot rocking on its support.
 
-    ``base_tilt`` is fitted by the accelerometer stage (:func:`diagnose_imu`) and
+    A constant ``base_tilt`` is fitted by the accelerometer stage (:func:`diagnose_imu`) and
     ``camera_extrinsics`` by the pixel stage (:func:`diagnose_pixels`); ``tracker_registration``
     is always estimated per session.
     """
@@ -84,12 +92,16 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
             out.append(make_effect("lateral_compliance", jn, tree))
         if (not j.movable or j.type == "prismatic") and mass > 0.0:
             out.append(make_effect("mount_bending", jn, tree))
+        if j.type == "prismatic" and mass > 0.0:  # telescopic: compliance growing with the extension
+            out.append(make_effect("mount_bending", jn, tree, components=_BENDING_EXTENSION))
         if j.independent and jn in signs and np.ptp(signs[jn]) > 0:
             out.append(make_effect("backlash", jn, tree))
         if np.linalg.norm(j.origin[:3, 3]) > 0.05:
             out.extend(_thermal(tree, jn, stops.context))
     if vel and max(float(np.max(np.abs(v))) for v in vel.values()) > 1e-6:
         out.append(make_effect("time_offset", "/joint_states", tree))
+    if stops.kind == "point" and "base_tilt" in stops.context:
+        out.append(make_effect("base_tilt", robot.root, tree, variable="measured"))
     return out
 
 

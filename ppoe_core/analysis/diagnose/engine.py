@@ -355,7 +355,9 @@ def _accelerometer_extras(res: DiagnoseResult, robot: Robot, tree: KinematicTree
                           declared: Sequence[Effect], found: list[Effect], options: DiagnoseOptions,
                           perturbation_cov: Mapping[str, np.ndarray] | None,
                           joint_noise: Mapping[str, float] | None) -> None:
-    """Accelerometer tilt residuals before/after (in-sample, not used by the fit) and the accelerometer stage."""
+    """Accelerometer tilt residuals before/after (in-sample, not used by the fit) and the accelerometer stage
+    (without a ``base_tilt`` driven by the measured tilt: it is made of these accelerometers' readings)."""
+    found = [e for e in found if not (e.name == "base_tilt" and getattr(e, "variable", None))]
     before = imu_tilt_residuals(tree, stops, list(declared))
     after = imu_tilt_residuals(tree, stops, list(declared) + found)
     res.extra["imu_tilt"] = {k: {"link": before[k]["link"], "n": before[k]["n"],

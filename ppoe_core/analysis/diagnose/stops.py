@@ -129,7 +129,7 @@ class Stops:
         go = np.cumsum([0] + [len(p.group_names) for p in parts])
         joints = set.intersection(*[set(p.q) for p in parts])
         ctx: dict[str, Any] = {}
-        for key in ("time", "temperature", "gravity"):
+        for key in ("time", "temperature", "gravity", "base_tilt"):
             if all(key in p.context for p in parts):
                 ctx[key] = np.concatenate([p.context[key] for p in parts])
         for key in ("motion_sign", "joint_velocity"):
@@ -170,6 +170,16 @@ class Stops:
                      reg_mask=self.reg_mask[rows], score_mask=self.score_mask[rows],
                      context={k: sub_ctx(v) for k, v in self.context.items()},
                      imus={k: (ln, a[rows]) for k, (ln, a) in self.imus.items()})
+
+
+def base_tilt_context(gravity: np.ndarray, session: np.ndarray) -> np.ndarray:
+    """Context ``base_tilt`` (N, 2) [rad]: the root's tilt about its x and y axes, ``[-g_y, g_x]`` of the
+    measured gravity direction ``g`` (N, 3) in the root frame, minus its mean per ``session`` (a constant
+    tilt is part of the session's registration; what is left is the robot rocking from stop to stop)."""
+    tilt = np.column_stack([-gravity[:, 1], gravity[:, 0]])
+    counts = np.maximum(np.bincount(session), 1)
+    means = np.stack([np.bincount(session, tilt[:, k]) / counts for k in range(2)], axis=1)
+    return tilt - means[session]
 
 
 def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
@@ -287,6 +297,8 @@ def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None =
     n = len(stamps)
     session, session_names, reg, score = _sessions(path, data, name, stamps, stationing_set)
     session, session_names = _split_by_frame(session, session_names, rows.frames)
+    if "gravity" in ctx:
+        ctx["base_tilt"] = base_tilt_context(ctx["gravity"], session)
     several = len(set(links)) > 1 or len(rows.trackers) > 1
     return Stops(q=q, p_meas=rows.meas, R_meas=R_meas, kind=kind, link=links[0],
                  point=rows.points if several else rows.points[0],
