@@ -66,15 +66,16 @@ def nominal_poses(tree: KinematicTree, stops: Stops) -> dict[str, np.ndarray]:
 
 
 def imu_tilt_raw(tree: KinematicTree, stops: Stops, effects: Sequence[Effect],
-                  tilt_group: np.ndarray | None = None) -> np.ndarray:
+                  tilt_group: np.ndarray | None = None, corrections: tuple[dict, dict] | None = None) -> np.ndarray:
     """Tilt residuals (measured minus predicted) of every accelerometer, shape (N, K, 2) [rad].
 
     Predicted up direction in the IMU link: ``u = R_root_link^T Exp(-w_g) z_root`` with
     ``w_g = [tilt_x, tilt_y, 0]`` the base tilt of the stop's group (``tilt_group`` (G, 2), root
     axes: the root is rotated by ``Exp(w_g)`` w.r.t. gravity, the ``base_tilt`` effect); measured:
     the normalised specific force.  Components: small rotations about the link's x and y axes.
+    ``corrections``: the ``(dq, dxi)`` of ``effects`` when the caller has them (finite differences).
     """
-    dq, dxi = sum_effect_corrections(list(effects), stops.q, stops.context, nominal_poses(tree, stops))
+    dq, dxi = corrections or sum_effect_corrections(list(effects), stops.q, stops.context, nominal_poses(tree, stops))
     links = [ln for ln, _ in stops.imus.values()]
     poses = tree.link_poses(stops.q, dq, dxi, links=links)
     up = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (len(stops), 3))
@@ -120,21 +121,33 @@ def imu_jacobian(tree: KinematicTree, stops: Stops, effect: Effect | None, curre
     """Central finite-difference Jacobian (N, K, 2, P) of the tilt *prediction* w.r.t. the
     parameters of ``effect`` (``None``: the per-group base tilt, P = 2 G), at ``current``."""
     cols = []
+    poses = nominal_poses(tree, stops)
     if effect is None:
+        fixed = sum_effect_corrections(list(current), stops.q, stops.context, poses)  # the same at every step
         for i in range(tilt_group.size):
             d = np.zeros(tilt_group.size)
             d[i] = h
-            rp = imu_tilt_raw(tree, stops, current, tilt_group + d.reshape(tilt_group.shape))
-            rm = imu_tilt_raw(tree, stops, current, tilt_group - d.reshape(tilt_group.shape))
+            rp = imu_tilt_raw(tree, stops, current, tilt_group + d.reshape(tilt_group.shape), fixed)
+            rm = imu_tilt_raw(tree, stops, current, tilt_group - d.reshape(tilt_group.shape), fixed)
             cols.append(-(rp - rm) / (2 * h))
     else:
         others = [e for e in current if not (e.name == effect.name and e.location == effect.location)]
+        base = sum_effect_corrections(others, stops.q, stops.context, poses)  # summed once, in the same order
+
+        def raw(e: Effect) -> np.ndarray:
+            dq, dxi = dict(base[0]), dict(base[1])
+            a, b = e.corrections(stops.q, stops.context, poses)
+            for k, v in a.items():
+                dq[k] = dq.get(k, 0.0) + v
+            for k, v in b.items():
+                dxi[k] = dxi.get(k, 0.0) + v
+            return imu_tilt_raw(tree, stops, [], tilt_group, (dq, dxi))
+
         for i in range(effect.n_params):
             d = np.zeros(effect.n_params)
             d[i] = h
-            rp = imu_tilt_raw(tree, stops, others + [effect.with_params(effect.params + d)], tilt_group)
-            rm = imu_tilt_raw(tree, stops, others + [effect.with_params(effect.params - d)], tilt_group)
-            cols.append(-(rp - rm) / (2 * h))
+            cols.append(-(raw(effect.with_params(effect.params + d)) - raw(effect.with_params(effect.params - d)))
+                        / (2 * h))
     return np.stack(cols, axis=-1)
 
 

@@ -54,6 +54,8 @@ class LinearProblem:
         self.x0 = x0
         self.R0 = R0
         self.register = stops.kind == "point"
+        self._regs0: dict[bytes, dict[int, np.ndarray]] = {}
+        self._step0: dict[bytes, tuple] = {}
         self.W = (np.eye(3) / stops.sigma_rows()[:, None, None] if W_base is None
                   else W_base)
         self.W_rot = (np.broadcast_to(np.eye(3) / stops.sigma_rot, (len(stops), 3, 3)) if W_rot is None
@@ -120,6 +122,14 @@ class LinearProblem:
         return {int(k): lie.from_rt(R[i], t[i]) for i, k in enumerate(sids) if good[i]}
 
     # -- fit ------------------------------------------------------------------------
+    def _start_regs(self, rows: np.ndarray) -> dict[int, np.ndarray]:
+        """Kabsch registrations of ``rows`` at ``theta = 0`` (the start of every fit): they depend on the rows
+        only, so they are computed once per row set (the selection fits every candidate on the same rows)."""
+        key = _rows_key(rows)
+        if key not in self._regs0:
+            self._regs0[key] = self.kabsch_regs(np.zeros((len(self.stops), 3, 0)), np.zeros(0), rows)
+        return dict(self._regs0[key])
+
     def fit(self, G: np.ndarray, rows: np.ndarray, iterations: int = 2) -> FitResult:
         """Gauss-Newton over ``theta`` and the registrations of the sessions of ``rows``.
 
@@ -131,7 +141,8 @@ class LinearProblem:
         s = self.stops
         P = G.shape[-1]
         theta = np.zeros(P)
-        regs = self.kabsch_regs(G, theta, rows)
+        key = _rows_key(rows)
+        regs = self._start_regs(rows)
         if self.register:
             rows = rows[np.isin(s.session[rows], list(regs))]
             rows = rows[np.argsort(s.session[rows], kind="stable")]
@@ -147,14 +158,23 @@ class LinearProblem:
         H_tt = np.zeros((P, P))
         for it in range(iterations):
             if self.register:
-                x = self.x0[rows] + Gr[:, :3] @ theta
-                Tn = T[inv]  # per-row registration
-                y = np.einsum("nij,nj->ni", Tn[:, :3, :3], x) + Tn[:, :3, 3]
-                A = Wr @ np.swapaxes(Tn[:, :3, :3], -1, -2)  # whitening in the tracker axes
-                r = (A @ (s.p_meas[rows] - y)[:, :, None])[..., 0]
-                Js = -A @ np.concatenate([np.broadcast_to(np.eye(3), (y.shape[0], 3, 3)), -lie.hat3(y)],
-                                         axis=-1)
-                H_tt, H_red, dtheta, d = _schur_step(Js, -(Wr @ Gr[:, :3]), r, seg, P)
+                # the first step starts at theta = 0 and the Kabsch registrations: its registration terms
+                # depend on the rows only (computed once per row set; the selection fits many candidates)
+                finite = it > 0 or bool(np.all(np.isfinite(Gr)))
+                if it == 0 and finite and key in self._step0:
+                    Js, r, pre = self._step0[key]
+                else:
+                    x = self.x0[rows] + Gr[:, :3] @ theta
+                    Tn = T[inv]  # per-row registration
+                    y = np.einsum("nij,nj->ni", Tn[:, :3, :3], x) + Tn[:, :3, 3]
+                    A = Wr @ np.swapaxes(Tn[:, :3, :3], -1, -2)  # whitening in the tracker axes
+                    r = (A @ (s.p_meas[rows] - y)[:, :, None])[..., 0]
+                    Js = -A @ np.concatenate([np.broadcast_to(np.eye(3), (y.shape[0], 3, 3)), -lie.hat3(y)],
+                                             axis=-1)
+                    pre = _registration_terms(Js, r, seg)
+                    if it == 0 and finite:
+                        self._step0[key] = (Js, r, pre)
+                H_tt, H_red, dtheta, d = _schur_step(Js, -(Wr @ Gr[:, :3]), r, seg, P, pre)
                 T = lie.exp(d) @ T
                 theta = theta + dtheta
                 if (it > 0 and np.abs(d).max(initial=0.0) < 1e-12
@@ -222,7 +242,7 @@ class LinearProblem:
 
 def _ssr(problem: LinearProblem, G: np.ndarray, rows: np.ndarray) -> float:
     """In-sample sum of squared residuals after a fit (screening of candidates)."""
-    fit = problem.fit(G, rows, iterations=1)
+    fit = problem.fit(G, rows, iterations=2)
     return float(
         np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows), fit.regs, fit.rows) ** 2)
     )
@@ -311,7 +331,7 @@ def _identifiable_subset(
 
     def check(G_c: np.ndarray, names: Sequence[str]) -> tuple[bool, str, float]:
         G = np.concatenate([base, G_c], axis=-1)
-        fit = problem.fit(G, rows, iterations=1)
+        fit = problem.fit(G, rows, iterations=2)
         if np.any(fit.absorbed[nb:] > options.max_absorbed):
             return False, "not separable from the tracker registration", math.inf
         if fit.condition > options.max_condition:
@@ -350,18 +370,32 @@ def _identifiable_subset(
     return _restrict(cand, keep, tree), "", ssr
 
 
-def _schur_step(Js: np.ndarray, Jts: np.ndarray, r: np.ndarray, seg: Any,
-                P: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One Gauss-Newton step with the registrations eliminated (Schur complement): ``(H_tt, H_red, dtheta, d)``
-    with ``d`` the registration steps per session; ``seg`` sums per-row terms per session."""
+def _rows_key(rows: np.ndarray) -> bytes:
+    """A dictionary key of a row set (index or mask array)."""
+    a = np.asarray(rows)
+    return a.dtype.str.encode() + a.tobytes()
+
+
+def _registration_terms(Js: np.ndarray, r: np.ndarray, seg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The parts of a Gauss-Newton step that involve the registrations only: ``Js^T``, the inverse of the
+    per-session information ``Hss`` and the per-session gradient ``gs``."""
     JsT = np.swapaxes(Js, -1, -2)
     Hss = seg(JsT @ Js) + 1e-12 * np.eye(6)
-    Hst = seg(JsT @ Jts)
     gs = seg((JsT @ r[:, :, None])[..., 0])
+    return JsT, np.linalg.inv(Hss), gs
+
+
+def _schur_step(Js: np.ndarray, Jts: np.ndarray, r: np.ndarray, seg: Any, P: int,
+                pre: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One Gauss-Newton step with the registrations eliminated (Schur complement): ``(H_tt, H_red, dtheta, d)``
+    with ``d`` the registration steps per session; ``seg`` sums per-row terms per session; ``pre``: the
+    :func:`_registration_terms` of ``Js`` and ``r`` if the caller has them."""
+    JsT, Hinv, gs = pre if pre is not None else _registration_terms(Js, r, seg)
+    Hst = seg(JsT @ Jts)
     Jf = Jts.reshape(Jts.shape[0] * 3, P)
     H_tt = Jf.T @ Jf
     g_t = Jf.T @ r.reshape(-1)
-    Hinv = np.linalg.inv(Hss)
     HiHst = Hinv @ Hst  # (S, 6, P)
     H_red = H_tt - np.einsum("sap,saq->pq", Hst, HiHst)
     g_red = g_t - np.einsum("sap,sa->p", Hst, np.einsum("sab,sb->sa", Hinv, gs))

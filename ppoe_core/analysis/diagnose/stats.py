@@ -21,15 +21,25 @@ def _paired_t(d: np.ndarray) -> float:
     return float(d.mean() / (sd / math.sqrt(d.size))) if sd > 0 else 0.0
 
 
+def _rankdata(a: np.ndarray) -> np.ndarray:
+    """Ranks 1..n of ``a`` (n,), ties given their average rank (``scipy.stats.rankdata``'s default, without
+    importing scipy: about 3 s of a diagnose run)."""
+    order = np.argsort(a, kind="mergesort")
+    s = a[order]
+    dense = np.cumsum(np.r_[True, s[1:] != s[:-1]])
+    count = np.r_[np.flatnonzero(np.r_[True, s[1:] != s[:-1]]), a.size]
+    out = np.empty(a.size)
+    out[order] = 0.5 * (count[dense] + count[dense - 1] + 1)
+    return out
+
+
 def _signed_rank_z(d: np.ndarray) -> float:
     """Normal-approximation z of the one-sided Wilcoxon signed-rank test that ``d > 0``."""
-    from scipy.stats import rankdata
-
     d = d[d != 0]
     n = d.size
     if n < 3:
         return 0.0
-    w = float(np.sum(rankdata(np.abs(d))[d > 0]))
+    w = float(np.sum(_rankdata(np.abs(d))[d > 0]))
     mu = n * (n + 1) / 4.0
     sd = math.sqrt(n * (n + 1) * (2 * n + 1) / 24.0)
     return (w - mu) / sd
