@@ -35,7 +35,7 @@ def imu_tilt_residuals(tree: KinematicTree, stops: Stops, effects: Sequence[Effe
     out: dict[str, dict] = {}
     if not stops.imus:
         return out
-    dq, dxi = sum_effect_corrections(list(effects), stops.q, stops.context)
+    dq, dxi = sum_effect_corrections(list(effects), stops.q, stops.context, nominal_poses(tree, stops))
     poses = tree.link_poses(stops.q, dq, dxi, links=[ln for ln, _ in stops.imus.values()])
     for name, (link, acc) in stops.imus.items():
         u_m = acc / np.linalg.norm(acc, axis=1)[:, None]
