@@ -232,7 +232,9 @@ def test_two_encoder_offsets_are_two_joint_offsets_not_one_link_error(tmp_path, 
     bag = _bag(tmp_path, "two", model, seed=5, stops=60, T_tracker_base={"xyz": [1.5, 0.5, 0.2], "rpy": [0, 0, 1]},
                effects=tuple({"name": "joint_offset", "location": j, "parameters": {"offset": v}}
                              for j, v in truth.items()))
-    assert main(["diagnose", str(bag), "--model", str(model), "--json", "--pixels", "off"]) == 0
+    out = tmp_path / "out_two"  # the report's plot labels the selection steps (one) though two effects are named
+    assert main(["diagnose", str(bag), "--model", str(model), "--json", "--pixels", "off", "--out", str(out)]) == 0
+    assert (out / "diagnose.png").stat().st_size > 0
     doc = json.loads(capsys.readouterr().out)
     assert sorted((e["name"], e["location"]) for e in doc["effects"]) == [("joint_offset", "joint_2"),
                                                                             ("joint_offset", "joint_3")]

@@ -214,11 +214,11 @@ def _plot(result: DiagnoseResult, png: Path) -> bool:
         ax[0].hist(ea, bins, alpha=0.6, label="after")
         ax[0].set_xlabel("held-out 3D error [mm]")
         ax[0].legend()
-        rms = [1e3 * result.residual_before] + [1e3 * s["heldout_rms"] for s in result.steps if s["accepted"]]
+        accepted = [s for s in result.steps if s["accepted"]]  # the selection's steps (a simplification after
+        rms = [1e3 * result.residual_before] + [1e3 * s["heldout_rms"] for s in accepted]  # it may rename them)
         ax[1].plot(range(len(rms)), rms, "o-")
         ax[1].axhline(1e3 * result.noise_floor, ls="--", color="k", label="noise floor")
-        ax[1].set_xticks(range(len(rms)), ["nominal"] + [f"+{e['name']}\n{e['location']}" for e in result.effects
-                                                         if e.get("measurement") != "pixels"],
+        ax[1].set_xticks(range(len(rms)), ["nominal"] + ["+" + s["candidate"].replace("@", "\n", 1) for s in accepted],
                          fontsize=6, rotation=30)
         ax[1].set_ylabel("held-out RMS [mm]")
         ax[1].legend()
