@@ -141,3 +141,16 @@ def test_constant_bending_at_a_telescopic_stage_keeps_two_parameters():
     assert [(e["name"], e["location"]) for e in res.effects] == [("mount_bending", "lift")], res.summary
     assert set(res.effects[0]["parameters"]) == {"compliance_x", "compliance_y"}
     assert res.effects[0]["ci"]["compliance_x"][0] <= 2e-5 <= res.effects[0]["ci"]["compliance_x"][1]
+
+
+def test_measured_base_tilt_without_a_measurement_changes_nothing(arm7):
+    """fk and the nodes have no per-stop accelerometer context: the effect then corrects nothing."""
+    from ppoe_core.model.ppoe import PPOEModel
+
+    eff = effect_from_config({"name": "base_tilt", "location": arm7.root, "parameters": {"gain": 1.0},
+                              "variable": "measured"}, arm7)
+    assert eff.corrections({"joint_1": np.zeros(3)}, {}) == ({}, {})
+    q = {j: 0.3 for j in KinematicTree(arm7).joint_names}
+    plain = PPOEModel(arm7)
+    model = PPOEModel(arm7, effects=[eff])
+    assert model.fk_mean(q, arm7.root, "tool0") == pytest.approx(plain.fk_mean(q, arm7.root, "tool0"), abs=1e-15)

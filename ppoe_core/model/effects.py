@@ -375,7 +375,7 @@ class LateralCompliance(_TwoAxisBending):
 class BaseTilt(Effect):
     """Rotation of the root about its x and y axes: ``dxi`` on every joint hanging on the root.  With
     ``variable="measured"`` the tilt measured at each stop by an accelerometer fixed to the root (context
-    ``base_tilt``) times ``gain`` (1: the robot rocks on its support as measured)."""
+    ``base_tilt``; none without it) times ``gain`` (1: the robot rocks on its support as measured)."""
 
     name = "base_tilt"
     units: tuple[str, ...] = ("rad", "rad")
@@ -393,8 +393,8 @@ class BaseTilt(Effect):
 
     def basis(self, q, context=None, poses=None):
         w = (context or {}).get("base_tilt")
-        if self.variable is not None and w is None:
-            raise ModelConfigError(f"effect {self.name} at '{self.location}' needs context 'base_tilt'")
+        if self.variable is not None and w is None:  # nothing measured (fk, nodes): no rocking to correct
+            return {}, {}
         Ads = {jn: np.broadcast_to(lie.adjoint(lie.inverse(self.tree.robot.joints[jn].origin))[:, 3:5],
                                    _batch(q) + (6, 2)) for jn in self.tree.robot.children(self.tree.root)}
         return {}, {jn: Ad if self.variable is None else Ad @ np.asarray(w, dtype=float)[..., :, None]
