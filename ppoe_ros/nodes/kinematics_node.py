@@ -34,9 +34,13 @@ timeline: that message is published.  Joint states that arrive before the URDF
 are counted as ``dropped``.  Joints the chain does not use are ignored.
 
 Throughput (``bench/bench_nodes.py``, docs/performance.md): the node spins rclpy's ``EventsExecutor``
-(:func:`~ppoe_ros.common.runner.run_node`), takes ``/joint_states`` as raw CDR bytes and parses them itself
-(:mod:`ppoe_core.io.cdr`), runs the one-configuration FK (a compiled kernel) in the callback and publishes
-the pose as bytes it serialises itself: no typed ROS message is built on the hot path.  ``max_batch`` > 1
+(:func:`~ppoe_ros.common.runner.run_node`), takes ``/joint_states`` as raw CDR bytes and publishes the pose as
+bytes: no typed ROS message is built on the hot path.  A usual joint state (a name layout seen before, finite
+values, stamp not going back, the chain's joints known and fresh) takes ONE compiled call from its bytes to the
+pose message's bytes (:mod:`ppoe_core.io.joint_pose`: parse, joint merge, one-configuration FK, quaternion,
+ROS covariance, serialisation); anything else takes the Python path (:mod:`ppoe_core.io.cdr`, the joint merger,
+``model.fk``), which gives the same bytes and all the diagnostics (with ``publish_tf``, ``max_batch`` > 1 or
+model effects only the Python path runs).  ``max_batch`` > 1
 moves the FK to a worker thread that takes whatever queued up as one vectorised batch (``model.fk``
 broadcasts over a batch axis); ``drain_max`` takes waiting messages in one callback, which also picks up
 messages the events executor was not told about after a history overflow.
