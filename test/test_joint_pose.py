@@ -76,6 +76,8 @@ def _stream(seed: int, n: int) -> list[bytes]:
         if rng.random() < 0.02:
             raw = raw[:int(rng.integers(len(raw)))]  # truncated
         out.append(raw)
+    # stamps before 1970 (a new timeline, then negative seconds in the output)
+    out += [_serialise(-5 * 10**9 + k * MS, ARM, list(rng.uniform(-3, 3, 7))) for k in range(20)]
     # seconds beyond int32 in the output (nanoseconds > 1e9 carry over): the Python path's error, both ways
     out.append(bytes(raw[:4]) + struct.pack("<iI", 2**31 - 1, 4_000_000_000) + bytes(raw[12:]))
     return out

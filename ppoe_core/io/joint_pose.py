@@ -226,7 +226,8 @@ class JointPoseFastPath:
                                 fields):
             return False
         for program, col, mult, off, raw, fields in self._targets[1:]:
-            chain_pose_cdr(self._q, col, mult, off, program, self._order, int(self._clock[0]), raw, fields)
+            if not chain_pose_cdr(self._q, col, mult, off, program, self._order, int(self._clock[0]), raw, fields):
+                return False  # (an overflowing mimic joint) the Python path redoes the message: same stamp, same merge
         return True
 
     def learn(self, data: bytes, names: tuple[str, ...]) -> None:
