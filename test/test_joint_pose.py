@@ -52,7 +52,10 @@ def _layouts(rng: np.random.Generator) -> list[list[str]]:
     """Name layouts: the whole arm (with and without extra joints, in several orders) and split ones."""
     out = [ARM + ["finger_left_joint"], list(ARM), ["finger_left_joint", "mast_pan"] + ARM[::-1]]
     out += [list(rng.permutation(ARM + ["other_joint"])) for _ in range(MAX_LAYOUTS + 2)]
-    out += [ARM[:4], ARM[4:] + ["finger_left_joint"], ["gripper"], ARM[:3] + ARM[:1], ARM + ["joint_1"]]
+    # split, none of the chain, repeated names; the last has as many chain entries as the chain has joints but
+    # lacks joint_7 (the merger's whole-chain step takes it)
+    out += [ARM[:4], ARM[4:] + ["finger_left_joint"], ["gripper"], ARM[:3] + ARM[:1], ARM + ["joint_1"],
+            ARM[:6] + ["joint_1"]]
     return out
 
 
@@ -62,7 +65,8 @@ def _stream(seed: int, n: int) -> list[bytes]:
     rng = np.random.default_rng(seed)
     layouts = _layouts(rng)
     t = 1_000 * 10**9
-    out = []
+    # first the chain-sized message without joint_7, then a split one: joint_7 has a stamp but no value
+    out = [_serialise(t, ARM[:6] + ["joint_1"], [0.1] * 7), _serialise(t, ARM[:4], [0.2] * 4)]
     for _ in range(n):
         r = rng.random()
         t += int(rng.choice([MS, 0, 700 * MS, -2 * MS, -3 * 10**9], p=[0.9, 0.03, 0.02, 0.03, 0.02]))
