@@ -24,7 +24,10 @@ Summary lines: ``relay_floor_cpu_share``, ``relay_floor_latency_p99``, ``kinemat
 ``kinematics_node_latency_p99`` and their ratios (node over relay).  Targets (issue "fast enough"):
 node <= 0.25 cores, p99 <= 2 ms, every message out, within about 1.5x of the relay.
 ``bench_nodes.load_avg_1min`` tells how busy the machine was.  ``fk_call`` is one ``PPOEModel.fk`` + ROS
-covariance conversion in this process, for scale.
+covariance conversion in this process, for scale; ``callback_python`` / ``callback_compiled`` are the node's
+subscription callback per message in this process (no DDS traffic: serialised joint states handed to it,
+the median of alternating repetitions) with its Python path only / as shipped (one compiled call,
+:mod:`ppoe_core.io.joint_pose`).
 
 Usage::
 
@@ -53,7 +56,7 @@ URDF = REPO / "config" / "robots" / "arm7.urdf"
 MODEL = REPO / "config" / "robots" / "arm7_model.yaml"
 ARM = [f"joint_{i}" for i in range(1, 8)] + ["finger_left_joint"]
 
-__all__ = ["feed", "relay", "run_mode", "fk_call_us", "main"]
+__all__ = ["feed", "relay", "run_mode", "fk_call_us", "callback_us", "main"]
 
 
 def _env(domain: int) -> dict[str, str]:
@@ -267,6 +270,43 @@ def fk_call_us(n: int = 500) -> float:
     return float(np.median(times) * 1e6)
 
 
+def callback_us(n: int = 5000, reps: int = 5) -> tuple[float, float]:
+    """The kinematics node's callback per joint state in this process [us]: (Python path, as shipped)."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.parameter import Parameter
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+
+    from ppoe_ros.common.runner import warm_node_kernels
+    from ppoe_ros.nodes.kinematics_node import KinematicsNode
+
+    warm_node_kernels()
+    rng = np.random.default_rng(1)
+    data = []
+    for k in range(n):
+        msg = JointState(name=ARM, position=[float(v) for v in rng.uniform(-1.0, 1.0, len(ARM))])
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 1000 + k // 1000, (k % 1000) * 1_000_000
+        data.append(serialize_message(msg))
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=random.randint(100, 200))
+    node = KinematicsNode(context=ctx, parameter_overrides=[Parameter("robot_description", value=URDF.read_text()),
+                                                             Parameter("model_file", value=str(MODEL))])
+    try:
+        fast, times = node._fast, {False: [], True: []}
+        for _ in range(reps):
+            for compiled in (False, True):
+                node._fast, node._last_ns = (fast if compiled else None), None
+                t = time.perf_counter()
+                for raw in data:
+                    node._on_joint_state_burst(raw)
+                times[compiled].append((time.perf_counter() - t) / n * 1e6)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    return float(np.median(times[False])), float(np.median(times[True]))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=30.0, help="measured seconds per mode (default 30)")
@@ -282,6 +322,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"bench_nodes.cpus: {os.cpu_count()} cores")
     print(f"bench_nodes.load_avg_1min: {os.getloadavg()[0]:.2f}")
     print(f"fk_call: {fk_call_us():.1f} us")
+    py_us, compiled_us = callback_us()
+    print(f"callback_python: {py_us:.1f} us")
+    print(f"callback_compiled: {compiled_us:.1f} us")
     results = {}
     for mode in [m.strip() for m in args.modes.split(",") if m.strip()]:
         r = run_mode(mode, args.rate, args.seconds, args.warmup)

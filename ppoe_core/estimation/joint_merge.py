@@ -37,6 +37,11 @@ class JointMerger:
         self._src = np.zeros(0, dtype=np.intp)
         self._dst = np.zeros(0, dtype=np.intp)
 
+    def index_maps(self) -> tuple[tuple[str, ...] | None, np.ndarray, np.ndarray]:
+        """``(names, src, dst)`` of the last :meth:`update`: its names, and which of them (``src``) go to which
+        needed joint (``dst``)."""
+        return self._names, self._src, self._dst
+
     def update(self, names: Sequence[str], positions: Sequence[float], stamp_ns: int) -> tuple[np.ndarray | None, str]:
         """Take one message; returns ``(joint vector (len(needed),), "")`` or ``(None, why not)``.
 

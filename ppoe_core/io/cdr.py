@@ -21,7 +21,7 @@ import numpy as np
 
 from ppoe_core.errors import MeasurementError
 
-__all__ = ["JointStateCdr", "parse_joint_state", "PoseCovarianceWriter"]
+__all__ = ["JointStateCdr", "parse_joint_state", "joint_state_names_block", "PoseCovarianceWriter"]
 
 _U32 = struct.Struct("<I")
 _STAMP = struct.Struct("<iI")
@@ -67,6 +67,26 @@ _names_cache: dict[bytes, tuple[str, ...]] = {}
 _last_names: list[tuple[int, bytes, tuple[str, ...]] | None] = [None]  # (count, name bytes, names) of the last call
 
 
+def _names_end(data: bytes, pos: int, count: int) -> int:
+    """Position after the ``count`` strings of a name sequence whose first string is at ``pos``."""
+    for _ in range(count):
+        pos = _align(pos, 4)
+        (n,) = _U32.unpack_from(data, pos)
+        pos += 4 + n
+        if n == 0 or pos > len(data):
+            raise MeasurementError(f"JointState CDR: a name has length {n} at byte {pos - n - 4} of {len(data)}")
+    return pos
+
+
+def joint_state_names_block(data: bytes) -> tuple[int, bytes]:
+    """``(count, bytes of the name strings)`` of a serialised ``JointState`` that :func:`parse_joint_state`
+    accepted: the name sequence as it is on the wire (what identifies a publisher's name layout)."""
+    (n,) = _U32.unpack_from(data, 12)
+    pos = _align(16 + n, 4)
+    (count,) = _U32.unpack_from(data, pos)
+    return count, bytes(data[pos + 4:_names_end(data, pos + 4, count)])
+
+
 def _names(data: bytes, pos: int) -> tuple[tuple[str, ...], int]:
     """The ``name`` sequence at ``pos`` (aligned to 4); the parsed tuple is cached by its bytes (a publisher
     sends the same names every time)."""
@@ -75,12 +95,7 @@ def _names(data: bytes, pos: int) -> tuple[tuple[str, ...], int]:
     last = _last_names[0]
     if last is not None and last[0] == count and data[start:start + len(last[1])] == last[1]:
         return last[2], start + len(last[1])  # the same names as the previous message
-    for _ in range(count):
-        pos = _align(pos, 4)
-        (n,) = _U32.unpack_from(data, pos)
-        pos += 4 + n
-        if n == 0 or pos > len(data):
-            raise MeasurementError(f"JointState CDR: a name has length {n} at byte {pos - n - 4} of {len(data)}")
+    pos = _names_end(data, start, count)
     key = data[start:pos]
     names = _names_cache.get(key)
     if names is None:
@@ -139,7 +154,15 @@ class PoseCovarianceWriter:
         self._buf = head + bytes(self._offset - len(head) + 8 * 43)
         # position (3), orientation x y z w (4), covariance (36, row-major, ROS convention)
         self._values = np.frombuffer(self._buf, dtype="<f8", count=43, offset=self._offset)
+        #: the message buffer as bytes (uint8) and its 43 doubles, for a compiled writer
+        #: (:mod:`ppoe_core.io.joint_pose`); :meth:`message` copies out what it wrote
+        self.raw = np.frombuffer(self._buf, dtype=np.uint8)
+        self.fields = self._values
         self.frame_id = frame_id
+
+    def message(self) -> bytes:
+        """The bytes of the buffer as last written (by :meth:`serialize` or a compiled writer)."""
+        return bytes(self._buf)
 
     def serialize(self, stamp_ns: int, position: np.ndarray, quat_xyzw: np.ndarray, cov_ros: np.ndarray) -> bytes:
         """The message bytes.

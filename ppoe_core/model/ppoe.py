@@ -278,6 +278,17 @@ class PPOEModel:
             return None
         return th * ch.motion_mult + ch.motion_off
 
+    def lean_program(self, frm: str | None, to: str | None) -> tuple | None:
+        """What the one-configuration path of :meth:`fk` evaluates for ``frm -> to``, for a compiled caller
+        (:mod:`ppoe_core.io.joint_pose`): ``(program, motion_col, motion_mult, motion_off)``, with ``program``
+        the arrays of :func:`ppoe_core.model.chain_kernel.eval_chain` and ``theta = q[motion_col] * motion_mult
+        + motion_off`` for ``q`` in :attr:`joint_names` order; None when effects are on (:meth:`fk` then takes
+        the general path)."""
+        ch = self._lookup(frm, to)
+        if self._effects:
+            return None
+        return ch.program, ch.motion_col, ch.motion_mult, ch.motion_off
+
     def _prepare(self, joints: Joints, frm: str | None, to: str | None, context: Mapping | None):
         """Chain, motion values ``theta`` (n_motion, N), effect factors, batch shape, N."""
         ch = self._lookup(frm, to)

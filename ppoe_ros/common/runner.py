@@ -124,9 +124,11 @@ def warm_node_kernels() -> None:
     lie.cov_ros_to_local(np.eye(4), lie.cov_local_to_ros(np.eye(4), np.eye(6)))
     from ppoe_core.estimation.compiled_update import warm_kernels
     from ppoe_core.estimation.pipeline import warm_pipeline
+    from ppoe_core.io import joint_pose
     from ppoe_ros.common.conversions import pose_cov_from_msg, pose_cov_stamped_msg
 
     warm_kernels()
+    joint_pose.warm_kernels()  # the kinematics node's per-message path
     warm_pipeline()
     pose_cov_from_msg(pose_cov_stamped_msg(np.eye(4), np.eye(6), 0, "warm-up"))
 

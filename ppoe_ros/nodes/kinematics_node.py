@@ -34,9 +34,13 @@ timeline: that message is published.  Joint states that arrive before the URDF
 are counted as ``dropped``.  Joints the chain does not use are ignored.
 
 Throughput (``bench/bench_nodes.py``, docs/performance.md): the node spins rclpy's ``EventsExecutor``
-(:func:`~ppoe_ros.common.runner.run_node`), takes ``/joint_states`` as raw CDR bytes and parses them itself
-(:mod:`ppoe_core.io.cdr`), runs the one-configuration FK (a compiled kernel) in the callback and publishes
-the pose as bytes it serialises itself: no typed ROS message is built on the hot path.  ``max_batch`` > 1
+(:func:`~ppoe_ros.common.runner.run_node`), takes ``/joint_states`` as raw CDR bytes and publishes the pose as
+bytes: no typed ROS message is built on the hot path.  A usual joint state (a name layout seen before, finite
+values, stamp not going back, the chain's joints known and fresh) takes ONE compiled call from its bytes to the
+pose message's bytes (:mod:`ppoe_core.io.joint_pose`: parse, joint merge, one-configuration FK, quaternion,
+ROS covariance, serialisation); anything else takes the Python path (:mod:`ppoe_core.io.cdr`, the joint merger,
+``model.fk``), which gives the same bytes and all the diagnostics (with ``publish_tf``, ``max_batch`` > 1 or
+model effects only the Python path runs).  ``max_batch`` > 1
 moves the FK to a worker thread that takes whatever queued up as one vectorised batch (``model.fk``
 broadcasts over a batch axis); ``drain_max`` takes waiting messages in one callback, which also picks up
 messages the events executor was not told about after a history overflow.
@@ -65,6 +69,7 @@ from ppoe_core.errors import ModelConfigError, PpoeError
 from ppoe_core.estimation.batch_worker import BatchWorker
 from ppoe_core.estimation.joint_merge import JointMerger
 from ppoe_core.io.cdr import PoseCovarianceWriter, parse_joint_state
+from ppoe_core.io.joint_pose import JointPoseFastPath
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_ros.common import (
@@ -166,7 +171,8 @@ class KinematicsNode(Node):
         self.reset_ns = int(round(p["stamp_reset_threshold"] * 1e9))
         self.model: Any = None
         self._urdf: str | None = None
-        self._last_ns: int | None = None
+        self._stamp_clock = np.zeros(2, dtype=np.int64)  # [last stamp ns, has one]: _last_ns, shared with the fast path
+        self._fast: JointPoseFastPath | None = None
         self._merger = JointMerger([], 0)
         self._needed: list[str] = []
         self._model_joints: list[str] = []
@@ -233,10 +239,34 @@ class KinematicsNode(Node):
         self._urdf = urdf_xml
         if self._tf is not None:
             self._tf.set_model(model)
+        self._fast = self._fast_path(model)
         self.get_logger().info(
             f"model from {where}: {len(model.joint_names)} joints; publishing "
             + ", ".join(f"{self.params['frame_prefix']}{self.reference}->{t.frame} on {t.pub.topic_name}"
                         for t in self.targets))
+
+    def _fast_path(self, model: Any) -> JointPoseFastPath | None:
+        """The whole per-message path as one compiled call (:mod:`ppoe_core.io.joint_pose`), for the default
+        configuration: FK in the callback, no TF, a model without effects; None otherwise."""
+        if self._tf is not None or self.params["max_batch"] > 1:
+            return None
+        leans = [model.lean_program(self.reference, t.frame) for t in self.targets]
+        if any(lean is None for lean in leans):
+            return None
+        fast = JointPoseFastPath(self._merger, self._dst, len(self._model_joints), self._stamp_clock,
+                                 [(lean, t.writer) for lean, t in zip(leans, self.targets)], self.order)
+        fast.warm()
+        return fast
+
+    @property
+    def _last_ns(self) -> int | None:
+        """Stamp of the last joint state taken [ns] (None before the first)."""
+        return int(self._stamp_clock[0]) if self._stamp_clock[1] else None
+
+    @_last_ns.setter
+    def _last_ns(self, stamp_ns: int | None) -> None:
+        self._stamp_clock[0] = stamp_ns or 0
+        self._stamp_clock[1] = stamp_ns is not None
 
     def _robot_description(self, msg: String) -> None:
         if msg.data == self._urdf:
@@ -268,6 +298,12 @@ class KinematicsNode(Node):
         """Validate one serialised joint state (in arrival order) and process it, or queue it for the worker."""
         stats = self.stats
         stats.counts["received"] += 1
+        fast = self._fast
+        if fast is not None and type(data) is bytes and fast.run(data):  # the usual message: one compiled call
+            for t in self.targets:
+                t.pub.publish(t.writer.message())
+            stats.counts["published"] += 1
+            return
         model = self.model
         if model is None:
             stats.bad(self.params["joint_states_topic"], "no URDF yet (waiting for robot_description)",
@@ -283,6 +319,8 @@ class KinematicsNode(Node):
             stats.bad(self.params["joint_states_topic"],
                       f"stamp jumped back by {jump:.3f} s (> stamp_reset_threshold): new timeline")
         q = self._joint_vector(msg)  # raises JointValueError / ValueError naming the joint
+        if fast is not None:
+            fast.learn(data, msg.names)
         if q is None:
             return
         self._last_ns = stamp_ns
