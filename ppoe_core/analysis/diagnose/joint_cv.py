@@ -70,13 +70,14 @@ def joint_heldout(tree: KinematicTree, effects: Sequence[Effect], stops: Stops |
     dict
         ``pixel_rms`` (camera frame -> held-out RMS of the 2D error [px]), ``tracker_rms`` (held-out RMS of the
         3D tracker error [m], NaN without tracker rows), ``pixel_error`` (M,) and ``tracker_error`` (N,)
-        per row (norms; NaN where not scored), ``folds``, ``protocol``.
+        per row (norms; NaN where not scored), ``pixel_residual`` (M, 2) (measured minus predicted [px], for
+        :func:`~ppoe_core.analysis.diagnose.pixel_structure.pixel_residual_structure`), ``folds``, ``protocol``.
     """
     pose_t, pose_p = joint_pose_ids(stops, pixels)
     ids = np.unique(np.concatenate([pose_t, pose_p]))
     perm = np.random.default_rng(seed).permutation(ids)
     e_t = np.full(0 if stops is None else len(stops), np.nan)
-    e_p = np.full(0 if pixels is None else len(pixels), np.nan)
+    r_p = np.full((0 if pixels is None else len(pixels), 2), np.nan)
     for k in range(folds):
         test_ids = perm[k::folds]
         tt, tp = np.isin(pose_t, test_ids), np.isin(pose_p, test_ids)
@@ -85,11 +86,12 @@ def joint_heldout(tree: KinematicTree, effects: Sequence[Effect], stops: Stops |
         fit = joint_fit(tree, effects, st, px, declared, pose_t=None if st is None else pose_t[~tt], **options)
         cur = [*declared, *fit.fitted]
         if pixels is not None and tp.any():
-            e_p[tp] = np.linalg.norm(pixels.uv[tp] - predict_pixels(tree, pixels.subset(tp), cur), axis=1)
+            r_p[tp] = pixels.uv[tp] - predict_pixels(tree, pixels.subset(tp), cur)
         if stops is not None and tt.any():
             e_t[tt] = np.linalg.norm(_tracker_errors(tree, stops, cur, fit.regs, np.flatnonzero(tt)), axis=1)
+    e_p = np.linalg.norm(r_p, axis=1)
     return {"pixel_rms": _per_camera_rms(pixels, e_p), "tracker_rms": _rms(e_t), "pixel_error": e_p,
-            "tracker_error": e_t, "folds": folds, "protocol": PROTOCOL}
+            "pixel_residual": r_p, "tracker_error": e_t, "folds": folds, "protocol": PROTOCOL}
 
 
 def score_joint(tree: KinematicTree, fit: JointFit, stops: Stops | None = None, pixels: PixelObs | None = None,
