@@ -19,6 +19,7 @@ import numpy as np
 
 from ppoe_core.analysis.diagnose.joint_fit import JointFit, joint_fit, subset_stops, tracker_points
 from ppoe_core.analysis.diagnose.linear import LinearProblem
+from ppoe_core.analysis.diagnose.pixel_structure import pixel_residual_structure, structure_summary
 from ppoe_core.analysis.diagnose.pixels import PixelObs, predict_pixels
 from ppoe_core.analysis.diagnose.results import DiagnoseResult
 from ppoe_core.analysis.diagnose.stops import Stops
@@ -143,7 +144,9 @@ def add_joint_fit(result: DiagnoseResult, robot: Robot, stops: Stops, pixels: Pi
     """The joint tracker + pixel fit as the final fit of a diagnosis: :func:`joint_effect_set`, fitted on all
     data (:func:`joint_fit`) and scored by :func:`joint_heldout`; ``result.extra["joint"]`` gets ``effects``
     (values and 95 % CIs), ``pixel_rms_heldout`` per camera [px], ``tracker_rms_heldout`` [m], the in-sample
-    values, ``sensor_sigma``, ``iterations``, ``cost``, ``protocol``; one summary line.  The stages' keys are
+    values, ``sensor_sigma``, ``iterations``, ``cost``, ``protocol``, ``pixel_structure`` (where the held-out
+    pixel residual concentrates: :func:`pixel_residual_structure`); one summary line, and one per camera whose
+    residual a model outside the catalogue explains.  The stages' keys are
     left as they are."""
     tree = KinematicTree(robot)
     effects = joint_effect_set(robot, result, pixels)
@@ -153,10 +156,13 @@ def add_joint_fit(result: DiagnoseResult, robot: Robot, stops: Stops, pixels: Pi
     block = {"effects": fit.effects, "pixel_rms_heldout": held["pixel_rms"], "tracker_rms_heldout": held["tracker_rms"],
              "pixel_rms_insample": fit.pixel_rms, "tracker_rms_insample": fit.tracker_rms,
              "sensor_sigma": fit.sensor_sigma, "iterations": fit.iterations, "cost": fit.cost,
-             "solver": "scipy.optimize.least_squares trf, soft_l1", "folds": folds, "protocol": PROTOCOL}
+             "solver": "scipy.optimize.least_squares trf, soft_l1", "folds": folds, "protocol": PROTOCOL,
+             "pixel_structure": pixel_residual_structure(pixels, held["pixel_residual"], tree,
+                                                         [*declared, *fit.fitted], folds=folds, seed=seed)}
     result.extra["joint"] = block
     per = ", ".join(f"{f} {v:.2f} px" for f, v in held["pixel_rms"].items())
     names = ", ".join(f"{e['name']}@{e['location']}" for e in fit.effects) or "none"
     result.summary += (f"\nJoint tracker + pixel fit ({len(stops)} stops, {len(pixels)} points; {names}): held-out "
                        f"({PROTOCOL}) tracker {1e3 * held['tracker_rms']:.3f} mm, pixels {per}.")
+    result.summary += structure_summary(block["pixel_structure"])
     return block

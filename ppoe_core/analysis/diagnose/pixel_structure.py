@@ -141,3 +141,20 @@ def pixel_residual_structure(obs: PixelObs, residual: np.ndarray, tree: Kinemati
     J = None if tree is None else point_jacobian(tree, obs, effects)
     return {f: _camera_structure(obs, c, r, J, folds, seed) for c, f in enumerate(obs.cameras)
             if np.any((obs.camera == c) & np.all(np.isfinite(r), axis=1))}
+
+
+#: what each structure model stands for, in words (summary lines)
+MEANING = {"image_position": "camera intrinsics / distortion (principal point, focal length, distortion centre)",
+           "tag_bias": "tag points off their nominal place on their links"}
+
+
+def structure_summary(structure: dict[str, dict[str, Any]]) -> str:
+    """Summary lines for the cameras whose held-out residual a structure model explains ("" if none): these
+    are model errors outside the effect catalogue."""
+    lines = []
+    for f, s in structure.items():
+        for name in s["explained_by"]:
+            lines.append(f"\nTag pixels of {f}: the held-out residual ({s['rms']:.2f} px) follows the "
+                         f"{name.replace('_', ' ')} ({s[f'rms_after_{name}']:.2f} px without it): "
+                         f"{MEANING[name]}, outside the effect catalogue.")
+    return "".join(lines)
