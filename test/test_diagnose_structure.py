@@ -10,7 +10,7 @@ from conftest import CONFIG, DATASETS
 from ppoe_core.analysis.diagnose import predict_pixels
 from ppoe_core.analysis.diagnose.joint_cv import joint_heldout
 from ppoe_core.analysis.diagnose.joint_synthetic import K_SYN, arm7_joint_data
-from ppoe_core.analysis.diagnose.pixel_structure import pixel_residual_structure
+from ppoe_core.analysis.diagnose.pixel_structure import pixel_residual_structure, structure_summary
 from ppoe_core.model.effects import make_effect
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import parse_urdf
@@ -55,6 +55,8 @@ def test_principal_point_error_shows_as_image_position(robot):
     assert s["explained_by"][0] == "image_position", s
     assert s["rms_after_image_position"] < 0.5 * s["rms"], s
     assert s["rms_after_tag_bias"] > 0.8 * s["rms"], s
+    line = structure_summary({CAM: s})
+    assert line.startswith(f"\nTag pixels of {CAM}: the held-out residual") and "principal point" in line, line
 
 
 def test_wrong_tag_point_shows_as_tag_bias(robot):
@@ -77,6 +79,7 @@ def test_noise_only_has_no_structure(robot):
     assert s["explained_by"] == [], s
     assert s["rms"] < 1.0
     assert s["rms_after_tag_bias_and_image_position"] > 0.9 * s["rms"], s
+    assert structure_summary({CAM: s}) == ""
 
 
 def test_residual_shape_is_checked(robot):

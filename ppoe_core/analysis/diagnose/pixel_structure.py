@@ -144,17 +144,18 @@ def pixel_residual_structure(obs: PixelObs, residual: np.ndarray, tree: Kinemati
 
 
 #: what each structure model stands for, in words (summary lines)
-MEANING = {"image_position": "camera intrinsics / distortion (principal point, focal length, distortion centre)",
-           "tag_bias": "tag points off their nominal place on their links"}
+MEANING = {"image_position": "camera intrinsics / distortion (principal point, focal length, distortion centre), "
+                             "outside the effect catalogue",
+           "tag_bias": "tag points off their nominal place on their links, not among the fitted effects"}
 
 
 def structure_summary(structure: dict[str, dict[str, Any]]) -> str:
-    """Summary lines for the cameras whose held-out residual a structure model explains ("" if none): these
-    are model errors outside the effect catalogue."""
+    """Summary lines for the cameras whose held-out residual a structure model explains ("" if none): model
+    errors the fitted effects do not cover."""
     lines = []
     for f, s in structure.items():
         for name in s["explained_by"]:
             lines.append(f"\nTag pixels of {f}: the held-out residual ({s['rms']:.2f} px) follows the "
                          f"{name.replace('_', ' ')} ({s[f'rms_after_{name}']:.2f} px without it): "
-                         f"{MEANING[name]}, outside the effect catalogue.")
+                         f"{MEANING[name]}.")
     return "".join(lines)
