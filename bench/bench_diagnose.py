@@ -37,6 +37,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from typing import Any
+
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
@@ -251,6 +253,7 @@ def motoman_joint() -> None:
     from ppoe_core.analysis.diagnose import pixel_candidates
     from ppoe_core.analysis.diagnose.joint_cv import joint_heldout, joint_pose_ids, score_joint
     from ppoe_core.analysis.diagnose.joint_fit import joint_fit
+    from ppoe_core.analysis.diagnose.pixel_structure import pixel_residual_structure
     from ppoe_core.cli.datasets import pixels_from_motoman, stops_from_motoman
     from ppoe_core.model.effects import make_effect
     from ppoe_core.robot.tree import KinematicTree
@@ -274,11 +277,15 @@ def motoman_joint() -> None:
     def fmt(r: dict) -> str:
         return " / ".join(f"{v:.2f}" for v in r.values())
 
+    Opp = {f: swapped_principal_point(o) for f, o in O.items()}
+    obp = Opp[files[0]]
     sets = [("registration_only", [], st, ob, (), {}), ("tracker_only", trk, st, None, (), {}),
             ("cameras_only", cams, None, ob, (), {}), ("staged", cams, None, ob, res.chosen, {}),
             ("joint_A", trk + cams, st, ob, (), {}), ("joint_B", trk + cams + offsets, st, ob, (), {}),
             ("joint_C", trk + cams + [make_effect("link_error", "T1_to_EE1", tree)], st, ob, (), {}),
-            ("joint_A_declared_noise", trk + cams, st, ob, (), {"presolve": False})]
+            ("joint_A_declared_noise", trk + cams, st, ob, (), {"presolve": False}),
+            ("pp_cameras_only", cams, None, obp, (), {}), ("pp_staged", cams, None, obp, res.chosen, {}),
+            ("pp_joint_A", trk + cams, st, obp, (), {})]
     for label, effs, stops, pixels, declared, kw in sets:
         t0 = time.perf_counter()
         h = joint_heldout(tree, effs, stops, pixels, declared, **kw)
@@ -286,14 +293,35 @@ def motoman_joint() -> None:
         print(f"motoman_joint_{label}: held-out pixels {fmt(h['pixel_rms'])} px, tracker "
               f"{1e3 * h['tracker_rms']:.3f} mm; in-sample {fmt(fit.pixel_rms)} px, {1e3 * fit.tracker_rms:.3f} mm; "
               f"noise {fit.sensor_sigma}; nfev {fit.iterations}; {time.perf_counter() - t0:.1f} s")
+        if label in ("joint_A", "pp_joint_A", "pp_cameras_only"):
+            structure_lines(label, pixel_residual_structure(pixels, h["pixel_residual"], tree))
+        obs_of = Opp if label.startswith("pp_") else O
         for f in files[1:]:
-            sc = score_joint(tree, fit, S[f], O[f], declared)
+            sc = score_joint(tree, fit, S[f], obs_of[f], declared)
             print(f"motoman_joint_{label}_to_{f}: pixels {fmt(sc['pixel_rms'])} px, tracker "
                   f"{1e3 * sc['tracker_rms']:.3f} mm")
-        if label == "joint_A":
+        if label in ("joint_A", "pp_joint_A"):
             for e in fit.effects:
-                print(f"motoman_joint_A_effect: {e['name']}@{e['location']} " + ", ".join(
+                print(f"motoman_joint_{label}_effect: {e['name']}@{e['location']} " + ", ".join(
                     f"{k} {v:.5f} +- {1.96 * e['sigma'][k]:.5f}" for k, v in e["parameters"].items()))
+
+
+def swapped_principal_point(obs: Any) -> Any:
+    """The Motoman marker pixels with each camera's principal point (cx, cy) exchanged (docs/diagnose.md:
+    the source's values fit a portrait image, the detections a landscape one)."""
+    out = obs.subset(np.arange(len(obs)))
+    out.K = [K.copy() for K in obs.K]
+    for K in out.K:
+        K[0, 2], K[1, 2] = K[1, 2], K[0, 2]
+    return out
+
+
+def structure_lines(label: str, structure: dict) -> None:
+    for f, s in structure.items():
+        print(f"motoman_joint_{label}_structure_{f}: held-out {s['rms']:.2f} px; per-pose common "
+              f"{s['per_pose_mean_rms']:.2f}, within image {s['within_pose_rms']:.2f}; after tag (marker) offsets "
+              f"{s['rms_after_tag_bias']:.2f}, after image position {s['rms_after_image_position']:.2f}, both "
+              f"{s['rms_after_tag_bias_and_image_position']:.2f} px; explained by {s['explained_by']}")
 
 
 if __name__ == "__main__":

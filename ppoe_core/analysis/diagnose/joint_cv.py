@@ -19,6 +19,7 @@ import numpy as np
 
 from ppoe_core.analysis.diagnose.joint_fit import JointFit, joint_fit, subset_stops, tracker_points
 from ppoe_core.analysis.diagnose.linear import LinearProblem
+from ppoe_core.analysis.diagnose.pixel_structure import pixel_residual_structure, structure_summary
 from ppoe_core.analysis.diagnose.pixels import PixelObs, predict_pixels
 from ppoe_core.analysis.diagnose.results import DiagnoseResult
 from ppoe_core.analysis.diagnose.stops import Stops
@@ -70,13 +71,14 @@ def joint_heldout(tree: KinematicTree, effects: Sequence[Effect], stops: Stops |
     dict
         ``pixel_rms`` (camera frame -> held-out RMS of the 2D error [px]), ``tracker_rms`` (held-out RMS of the
         3D tracker error [m], NaN without tracker rows), ``pixel_error`` (M,) and ``tracker_error`` (N,)
-        per row (norms; NaN where not scored), ``folds``, ``protocol``.
+        per row (norms; NaN where not scored), ``pixel_residual`` (M, 2) (measured minus predicted [px], for
+        :func:`~ppoe_core.analysis.diagnose.pixel_structure.pixel_residual_structure`), ``folds``, ``protocol``.
     """
     pose_t, pose_p = joint_pose_ids(stops, pixels)
     ids = np.unique(np.concatenate([pose_t, pose_p]))
     perm = np.random.default_rng(seed).permutation(ids)
     e_t = np.full(0 if stops is None else len(stops), np.nan)
-    e_p = np.full(0 if pixels is None else len(pixels), np.nan)
+    r_p = np.full((0 if pixels is None else len(pixels), 2), np.nan)
     for k in range(folds):
         test_ids = perm[k::folds]
         tt, tp = np.isin(pose_t, test_ids), np.isin(pose_p, test_ids)
@@ -85,11 +87,12 @@ def joint_heldout(tree: KinematicTree, effects: Sequence[Effect], stops: Stops |
         fit = joint_fit(tree, effects, st, px, declared, pose_t=None if st is None else pose_t[~tt], **options)
         cur = [*declared, *fit.fitted]
         if pixels is not None and tp.any():
-            e_p[tp] = np.linalg.norm(pixels.uv[tp] - predict_pixels(tree, pixels.subset(tp), cur), axis=1)
+            r_p[tp] = pixels.uv[tp] - predict_pixels(tree, pixels.subset(tp), cur)
         if stops is not None and tt.any():
             e_t[tt] = np.linalg.norm(_tracker_errors(tree, stops, cur, fit.regs, np.flatnonzero(tt)), axis=1)
+    e_p = np.linalg.norm(r_p, axis=1)
     return {"pixel_rms": _per_camera_rms(pixels, e_p), "tracker_rms": _rms(e_t), "pixel_error": e_p,
-            "tracker_error": e_t, "folds": folds, "protocol": PROTOCOL}
+            "pixel_residual": r_p, "tracker_error": e_t, "folds": folds, "protocol": PROTOCOL}
 
 
 def score_joint(tree: KinematicTree, fit: JointFit, stops: Stops | None = None, pixels: PixelObs | None = None,
@@ -141,7 +144,9 @@ def add_joint_fit(result: DiagnoseResult, robot: Robot, stops: Stops, pixels: Pi
     """The joint tracker + pixel fit as the final fit of a diagnosis: :func:`joint_effect_set`, fitted on all
     data (:func:`joint_fit`) and scored by :func:`joint_heldout`; ``result.extra["joint"]`` gets ``effects``
     (values and 95 % CIs), ``pixel_rms_heldout`` per camera [px], ``tracker_rms_heldout`` [m], the in-sample
-    values, ``sensor_sigma``, ``iterations``, ``cost``, ``protocol``; one summary line.  The stages' keys are
+    values, ``sensor_sigma``, ``iterations``, ``cost``, ``protocol``, ``pixel_structure`` (where the held-out
+    pixel residual concentrates: :func:`pixel_residual_structure`); one summary line, and one per camera whose
+    residual a model outside the catalogue explains.  The stages' keys are
     left as they are."""
     tree = KinematicTree(robot)
     effects = joint_effect_set(robot, result, pixels)
@@ -151,10 +156,13 @@ def add_joint_fit(result: DiagnoseResult, robot: Robot, stops: Stops, pixels: Pi
     block = {"effects": fit.effects, "pixel_rms_heldout": held["pixel_rms"], "tracker_rms_heldout": held["tracker_rms"],
              "pixel_rms_insample": fit.pixel_rms, "tracker_rms_insample": fit.tracker_rms,
              "sensor_sigma": fit.sensor_sigma, "iterations": fit.iterations, "cost": fit.cost,
-             "solver": "scipy.optimize.least_squares trf, soft_l1", "folds": folds, "protocol": PROTOCOL}
+             "solver": "scipy.optimize.least_squares trf, soft_l1", "folds": folds, "protocol": PROTOCOL,
+             "pixel_structure": pixel_residual_structure(pixels, held["pixel_residual"], tree,
+                                                         [*declared, *fit.fitted], folds=folds, seed=seed)}
     result.extra["joint"] = block
     per = ", ".join(f"{f} {v:.2f} px" for f, v in held["pixel_rms"].items())
     names = ", ".join(f"{e['name']}@{e['location']}" for e in fit.effects) or "none"
     result.summary += (f"\nJoint tracker + pixel fit ({len(stops)} stops, {len(pixels)} points; {names}): held-out "
                        f"({PROTOCOL}) tracker {1e3 * held['tracker_rms']:.3f} mm, pixels {per}.")
+    result.summary += structure_summary(block["pixel_structure"])
     return block
