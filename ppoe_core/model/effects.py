@@ -2,11 +2,9 @@
 
 Every effect is a small physical parametrisation that changes the kinematic chain through
 the two hooks of paper eq. 16, ``Exp(p_i) Exp(dxi_i) Exp(xi_i) Exp(zeta_i (q_i + dq_i))``:
-
-* ``dq``: an offset added to a joint value (for a mimic master it propagates through the
-  mimic multiplier), and
-* ``dxi``: a non-zero-mean twist ``[rho; theta]`` placed right after a joint's static
-  origin ``p_i``, where the joint's perturbation ``xi_i`` sits.
+* ``dq``: an offset added to a joint value (for a mimic master it propagates through the mimic multiplier), and
+* ``dxi``: a non-zero-mean twist ``[rho; theta]`` placed right after a joint's static origin ``p_i``, where the
+  joint's perturbation ``xi_i`` sits.
 
 All catalogued effects are *linear in their parameters*: ``corrections(q, context)`` is
 ``basis(q, context) @ params``, where :meth:`Effect.basis` gives the exact analytic
@@ -88,6 +86,7 @@ class Effect:
     units: tuple[str, ...] = ()
     #: parameters that are physically non-negative (a compliance yields along the load)
     nonnegative: tuple[str, ...] = ()
+    context_keys: tuple[str, ...] = ()  #: context it cannot do without (``ppoe_core.model.context``)
 
     def __init__(self, tree: KinematicTree, location: str, param_names: Sequence[str],
                  params: Sequence[float] | None = None) -> None:
@@ -406,6 +405,7 @@ class Backlash(Effect):
 
     name = "backlash"
     units = ("rad or m",)
+    context_keys = ("motion_sign",)
 
     def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
         _check_joint(tree, location, self.name, movable=True)
@@ -435,8 +435,7 @@ class ThermalGrowth(Effect):
         if variable not in ("temperature", "time"):
             raise ModelConfigError(f"effect {self.name} at '{location}': variable must be "
                                    f"'temperature' or 'time', got {variable!r}")
-        self.variable = variable
-        self.reference = float(reference)
+        self.variable, self.reference, self.context_keys = variable, float(reference), (variable,)
         super().__init__(tree, location, ("alpha",), params)
 
     def basis(self, q, context=None, poses=None):
@@ -461,6 +460,7 @@ class TimeOffset(Effect):
 
     name = "time_offset"
     units = ("s",)
+    context_keys = ("joint_velocity",)
 
     def __init__(self, tree: KinematicTree, location: str, params: Sequence[float] | None = None) -> None:
         super().__init__(tree, location, ("dt",), params)

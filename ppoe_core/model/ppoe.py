@@ -306,7 +306,11 @@ class PPOEModel:
             qd = self._all_joint_dict(joints, shape)
             dq_tot: dict[str, Array] = {}
             dxi_tot: dict[str, Array] = {}
+            on_chain = set(ch.motion_joint) | set(ch.d_joint) | set(ch.masters)
             for eff in effects:
+                if context is None and bool(getattr(eff, "context_keys", None)) \
+                        and getattr(eff, "location", None) in self.robot.joints and eff.location not in on_chain:
+                    continue  # reads a context but corrects a joint off this chain: changes nothing here
                 dq, dxi = eff.corrections(qd, dict(context or {}))
                 for k, v in dq.items():
                     dq_tot[k] = dq_tot.get(k, 0.0) + np.broadcast_to(np.asarray(v, dtype=float), shape).reshape(N)

@@ -61,7 +61,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rcl_interfaces.msg import ParameterType
 from rclpy.node import Node
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import JointState, Temperature
 from std_msgs.msg import String
 
 from ppoe_core import lie
@@ -70,6 +70,7 @@ from ppoe_core.estimation.batch_worker import BatchWorker
 from ppoe_core.estimation.joint_merge import JointMerger
 from ppoe_core.io.cdr import PoseCovarianceWriter, parse_joint_state
 from ppoe_core.io.joint_pose import JointPoseFastPath
+from ppoe_core.model.context import LiveContext
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_ros.common import (
@@ -178,6 +179,8 @@ class KinematicsNode(Node):
         self._model_joints: list[str] = []
         self._dst = np.zeros(0, dtype=np.intp)
         self._worker: BatchWorker | None = None
+        self._live: LiveContext | None = None  # context of effects that read time, motion or temperature
+        self._temperature_sub: Any = None
 
         out_qos = reliable_qos(p["output_qos_depth"])
         self.targets = [_Target(target, self.create_publisher(PoseWithCovarianceStamped, p["pose_topic"],
@@ -219,10 +222,12 @@ class KinematicsNode(Node):
             model = PPOEModel.from_strings(urdf_xml, Path(model_file) if model_file else None)
             reference = self.params["reference_frame"] or self._frames.get("base") or model.robot.root
             model.robot.check_link(reference)  # check the frames now, not at the first joint state
+            live = LiveContext(model.effects, model.joint_names)  # effects that read time, motion, temperature
             for t in self.targets:
                 model.robot.check_link(t.frame)
                 # compile (or load from numba's cache) the kernels now, not at the first joint state
-                T, cov = model.fk(np.zeros(len(model.joint_names)), reference, t.frame, order=self.order)
+                T, cov = model.fk(np.zeros(len(model.joint_names)), reference, t.frame, order=self.order,
+                                  context=live.neutral() if live else None)
                 lie.cov_local_to_ros(T, cov)
                 t.writer = PoseCovarianceWriter(self.params["frame_prefix"] + reference)
         except PpoeError as exc:
@@ -234,6 +239,10 @@ class KinematicsNode(Node):
         self._needed = needed
         self._dst = np.array([self._model_joints.index(n) for n in needed], dtype=np.intp)
         self._merger = JointMerger(needed, int(round(self.params["joint_max_age"] * 1e9)))
+        self._live = live if live else None
+        if self._live is not None and "temperature" in live.needed and self._temperature_sub is None:
+            self._temperature_sub = counted_subscription(self, self.stats, Temperature, "temperature",
+                                                         self._temperature, sensor_qos(10))
         self.reference = reference
         self.model = model
         self._urdf = urdf_xml
@@ -355,9 +364,10 @@ class KinematicsNode(Node):
             return
         q = np.stack([it[1] for it in items])
         try:
+            ctx = self._live.update_many([it[0] * 1e-9 for it in items], q) if self._live is not None else None
             results = []
             for t in self.targets:
-                T, cov_local = model.fk(q, self.reference, t.frame, order=self.order)
+                T, cov_local = model.fk(q, self.reference, t.frame, order=self.order, context=ctx)
                 results.append((t, T[:, :3, 3], lie.quat_from_matrix(T[:, :3, :3]), lie.cov_local_to_ros(T, cov_local)))
         except PpoeError as exc:
             for _ in items:
@@ -371,11 +381,19 @@ class KinematicsNode(Node):
     def _publish_one(self, stamp_ns: int, q: np.ndarray, model: Any) -> None:
         """FK of one validated joint state (the lean one-configuration path of ``model.fk``) and publish it;
         a :class:`PpoeError` is counted as a bad message by the caller's guard."""
+        ctx = self._live.update(stamp_ns * 1e-9, q) if self._live is not None else None
         for t in self.targets:
-            T, cov_local = model.fk(q, self.reference, t.frame, order=self.order)
+            T, cov_local = model.fk(q, self.reference, t.frame, order=self.order, context=ctx)
             t.pub.publish(t.writer.serialize(stamp_ns, T[:3, 3], lie.quat_from_matrix(T[:3, :3]),
                                              lie.cov_local_to_ros(T, cov_local)))
         self.stats.counts["published"] += 1
+
+    def _temperature(self, msg: Temperature) -> None:
+        """Latest ``temperature`` for a thermal_growth against temperature (subscribed only for such a model)."""
+        if not np.isfinite(msg.temperature):
+            raise ValueError(f"temperature {msg.temperature!r} is not finite")
+        if self._live is not None:
+            self._live.temperature = float(msg.temperature)
 
     def destroy_node(self) -> None:
         """Stop the worker thread, then destroy the node."""

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import BagError, ModelConfigError, PpoeError, PpoeWarning
+from ppoe_core.model.context import motion_signs
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
@@ -180,33 +181,6 @@ def base_tilt_context(gravity: np.ndarray, session: np.ndarray) -> np.ndarray:
     counts = np.maximum(np.bincount(session), 1)
     means = np.stack([np.bincount(session, tilt[:, k]) / counts for k in range(2)], axis=1)
     return tilt - means[session]
-
-
-def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
-                 threshold: float = 1e-5) -> np.ndarray:
-    """Sign of each joint's last motion before each time ``at`` (backlash context).
-
-    Parameters
-    ----------
-    stamps : (M,) joint-state times [s], increasing
-    positions : (M, J) joint values
-    at : (N,) query times [s]
-    threshold : float
-        Changes between consecutive samples below this [rad or m] are not motion.
-
-    Returns
-    -------
-    ndarray (N, J) of -1, 0, +1 (0: no motion seen yet).
-    """
-    d = np.diff(positions, axis=0)
-    s = np.where(np.abs(d) > threshold, np.sign(d), 0.0)
-    last = np.zeros_like(positions)
-    cur = np.zeros(positions.shape[1])
-    for k in range(1, positions.shape[0]):
-        cur = np.where(s[k - 1] != 0, s[k - 1], cur)
-        last[k] = cur
-    idx = np.clip(np.searchsorted(stamps, at, side="right") - 1, 0, len(stamps) - 1)
-    return last[idx]
 
 
 def _stop_info(path: str | Path) -> list[tuple[float, dict]]:

@@ -22,6 +22,7 @@ from ppoe_core.analysis.evaluate.inputs import JOINT_MAX_AGE_S, joint_matrix, re
 from ppoe_core.analysis.evaluate.scoring import score_points, score_poses
 from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
+from ppoe_core.model.context import batch_context
 
 # ----------------------------------------------------------------------------
 # Progress bar
@@ -288,7 +289,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     base, tool, kind = _check_inputs(data, model, model_yaml, opt, bag)
     sensors = {base, tool, *data.camera_info.frame_ids, *data.tag_observations.frame_ids}
     pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml,
-                     required_joints(model, sensors))
+                     required_joints(model, sensors), _first_temperature(data))
     fs = opt.fusion_settings()
     tag_meas, tag_counts = tag_measurements(data, model, bag, refine=str(fs["corner_refinement"]))
     contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
@@ -332,7 +333,8 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         score_poses(summary, samples, run, data.ground_truth_pose, have, methods, bag)
     else:
         score_points(summary, samples, run, data.ground_truth_point, have, methods, model, tool, opt.fit_set, bag,
-                     tracker=pick_reflector(model.config, data, tool, bag))
+                     tracker=pick_reflector(model.config, data, tool, bag),
+                     context_source=(float(np.min(data.joint_states.stamps)), _first_temperature(data)))
     _measurement_summary(summary, run, pipes, updaters, methods)
     if data.notes:
         summary["bag_notes"] = list(data.notes)
@@ -417,9 +419,18 @@ class _Priors:
     incomplete: int = 0
 
 
+def _first_temperature(data: Any) -> tuple[np.ndarray, np.ndarray] | None:
+    """Stamps and values of the bag's first ``/temperature[/<name>]`` topic (None: none)."""
+    for _topic, series in sorted(data.temperatures.items()):
+        return series.stamps, series.temperature
+    return None
+
+
 def _fk_priors(js: Any, model: Any, base: str, tool: str, order: int, bag: str,
-               model_yaml: str | Path, required: set[str] | None = None) -> _Priors:
-    """PPOE mean and covariance of the tool for every joint state (the kinematics node's output)."""
+               model_yaml: str | Path, required: set[str] | None = None,
+               temperature: tuple[np.ndarray, np.ndarray] | None = None) -> _Priors:
+    """PPOE mean and covariance of the tool for every joint state (the kinematics node's output); effects that
+    need a context (time, motion sign, temperature) get it from the joint states as in ``ppoe diagnose``."""
     Q, held = joint_matrix(js, model.joint_names, bag, required=required)
     complete = np.all(np.isfinite(Q), axis=1)  # split joint states: rows before every joint is known (or fresh)
     if not complete.any():
@@ -430,7 +441,9 @@ def _fk_priors(js: Any, model: Any, base: str, tool: str, order: int, bag: str,
     Q = Q[idx]
     joints = {n: Q[:, j] for j, n in enumerate(model.joint_names)}
     try:
-        T_all, cov_all = model.fk(joints, base, tool, order=order)
+        ctx = batch_context(model.effects, model.joint_names, stamps, Q, float(np.min(js.stamps)), temperature,
+                            where=f"bag {bag}")
+        T_all, cov_all = model.fk(joints, base, tool, order=order, context=ctx)
     except (UnknownJointError, JointValueError) as exc:
         raise BagError(f"bag {bag}: topic /joint_states: {exc}") from None
     cfg = model.config

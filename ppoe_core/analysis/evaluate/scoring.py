@@ -22,6 +22,7 @@ from ppoe_core.analysis.evaluate.metrics import (
     rotation_errors,
 )
 from ppoe_core.errors import PpoeError
+from ppoe_core.model.context import batch_context
 from ppoe_core.estimation import fusion
 
 if TYPE_CHECKING:
@@ -147,9 +148,11 @@ def _register(run: ReplayRun, gt_point: Any, usable: np.ndarray, p_fk: np.ndarra
 
 def score_points(summary: dict[str, Any], samples: dict[str, np.ndarray], run: ReplayRun, gt_point: Any,
                  have: np.ndarray, methods: list[str], model: Any, tool: str, fit_set: str, bag: str,
-                 tracker: Any = None) -> None:
+                 tracker: Any = None, context_source: tuple[float, Any] = (0.0, None)) -> None:
     """Reflector position errors (3D, lateral) and NEES of every method against the points of ``tracker``
-    (default: the model's ``tracker``; ``/ground_truth/point`` or ``/ground_truth/point/<name>``)."""
+    (default: the model's ``tracker``; ``/ground_truth/point`` or ``/ground_truth/point/<name>``).
+    ``context_source``: first joint-state time [s] and ``/temperature`` (stamps, values) of the bag, for effects
+    that read a context (:func:`ppoe_core.model.context.batch_context`)."""
     tr = tracker if tracker is not None else model.config.tracker
     gt_stamps = gt_point.stamps
     n_gt = len(gt_stamps)
@@ -160,7 +163,11 @@ def score_points(summary: dict[str, Any], samples: dict[str, np.ndarray], run: R
     r_tool = np.full((n_gt, 3), np.nan)
     if usable.any():
         jd = {n: run.gt_joints[usable, j] for j, n in enumerate(model.joint_names)}
-        T_tool_link = model.fk_mean(jd, tool, tr.link)
+        # effects reading a context (motion signs over the scored samples: only effects on the chain
+        # tool -> reflector link matter here)
+        ctx = batch_context(model.effects, model.joint_names, gt_stamps[usable], run.gt_joints[usable],
+                            context_source[0], context_source[1], where=f"bag {bag}")
+        T_tool_link = model.fk_mean(jd, tool, tr.link, context=ctx)
         r_tool[usable] = T_tool_link[..., :3, :3] @ tr.xyz + T_tool_link[..., :3, 3]
     Tfk = run.est_T["fk"]
     p_fk = np.einsum("nij,nj->ni", Tfk[:, :3, :3], r_tool) + Tfk[:, :3, 3]

@@ -1,0 +1,168 @@
+"""The context the model's effects read beside the joint values, built from the joint-state stream.
+
+Effects such as ``backlash`` (the sign of each joint's last motion), ``thermal_growth`` (time since the
+start of the recording, or a temperature) and ``time_offset`` (joint velocities) need more than one
+configuration: ``ppoe diagnose`` builds their context from a bag's joint states, and the same rules apply
+where a diagnosed model is used again: :func:`batch_context` for ``ppoe evaluate`` (a whole bag at once)
+and :class:`LiveContext` for the nodes (one joint state at a time).  ``time`` is seconds since the first
+joint state; ``motion_sign`` the sign of each joint's last change above ``threshold``; the FK of the
+joint-state stream itself is no sensor's, so a sensor's ``time_offset`` shifts nothing there
+(context ``sensor`` is empty).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ppoe_core.errors import ModelConfigError
+
+__all__ = ["LiveContext", "batch_context", "motion_signs", "needed_context"]
+
+#: Changes between consecutive joint samples below this [rad or m] are not motion.
+MOTION_THRESHOLD = 1e-5
+
+
+def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
+                 threshold: float = MOTION_THRESHOLD) -> np.ndarray:
+    """Sign of each joint's last motion before each time ``at`` (backlash context).
+
+    Parameters
+    ----------
+    stamps : (M,) joint-state times [s], increasing
+    positions : (M, J) joint values
+    at : (N,) query times [s]
+    threshold : float
+        Changes between consecutive samples below this [rad or m] are not motion.
+
+    Returns
+    -------
+    ndarray (N, J) of -1, 0, +1 (0: no motion seen yet).
+    """
+    d = np.diff(positions, axis=0)
+    s = np.where(np.abs(d) > threshold, np.sign(d), 0.0)
+    last = np.zeros_like(positions)
+    cur = np.zeros(positions.shape[1])
+    for k in range(1, positions.shape[0]):
+        cur = np.where(s[k - 1] != 0, s[k - 1], cur)
+        last[k] = cur
+    idx = np.clip(np.searchsorted(stamps, at, side="right") - 1, 0, len(stamps) - 1)
+    return last[idx]
+
+
+def needed_context(effects: Sequence[Any]) -> set[str]:
+    """Context keys the ``effects`` cannot do without (``time``, ``temperature``, ``motion_sign``,
+    ``joint_velocity``); empty for a model without such effects."""
+    keys: set[str] = set()
+    for eff in effects:
+        keys.update(getattr(eff, "context_keys", ()))
+    return keys
+
+
+def batch_context(effects: Sequence[Any], joint_names: Sequence[str], stamps: np.ndarray, Q: np.ndarray,
+                  t0: float, temperature: tuple[np.ndarray, np.ndarray] | None = None,
+                  where: str = "") -> dict[str, Any] | None:
+    """Context for ``N`` configurations of a recording (``ppoe evaluate``).
+
+    Parameters
+    ----------
+    effects : the model's effects
+    joint_names : (J,) names of the columns of ``Q``
+    stamps : (N,) times [s] of the rows of ``Q``, increasing
+    Q : (N, J) joint values
+    t0 : float
+        Time [s] of the recording's first joint state (``time`` = ``stamps - t0``).
+    temperature : (stamps (K,), values (K,)), optional
+        The recording's ``/temperature``; linear between samples, held beyond the ends.
+    where : str
+        Names the recording in errors.
+
+    Returns
+    -------
+    dict or None (no effect needs a context).
+    """
+    need = needed_context(effects)
+    if not need:
+        return None
+    ctx: dict[str, Any] = {"time": stamps - t0, "sensor": ""}
+    if "motion_sign" in need:
+        s = motion_signs(stamps, Q, stamps)
+        ctx["motion_sign"] = {n: s[:, j] for j, n in enumerate(joint_names)}
+    if "joint_velocity" in need:
+        ctx["joint_velocity"] = {n: (np.gradient(Q[:, j], stamps) if len(stamps) > 1 else np.zeros(len(stamps)))
+                                 for j, n in enumerate(joint_names)}
+    if "temperature" in need:
+        if temperature is None or not np.isfinite(temperature[1]).any():
+            raise ModelConfigError(f"{where}: the model has thermal_growth against temperature, but there is no "
+                                   "/temperature with a finite value")
+        ts, vs = temperature
+        good = np.isfinite(vs)
+        order = np.argsort(ts[good], kind="stable")
+        ctx["temperature"] = np.interp(stamps, ts[good][order], vs[good][order])
+    return ctx
+
+
+class LiveContext:
+    """The context of one joint state at a time (the nodes), by the rules of :func:`batch_context`.
+
+    Parameters
+    ----------
+    effects : the model's effects
+    joint_names : (J,) names of the joint vectors passed to :meth:`update`
+    """
+
+    def __init__(self, effects: Sequence[Any], joint_names: Sequence[str]) -> None:
+        self.needed = needed_context(effects)
+        self.names = list(joint_names)
+        self._t0: float | None = None
+        self._last: tuple[float, np.ndarray] | None = None
+        self._sign = np.zeros(len(self.names))
+        self.temperature: float | None = None
+
+    def __bool__(self) -> bool:
+        return bool(self.needed)
+
+    def update(self, stamp: float, q: np.ndarray) -> dict[str, Any]:
+        """Context of joint vector ``q`` (J,) at ``stamp`` [s]; remembers it for the next call.
+
+        Raises :class:`ModelConfigError` while a needed temperature has not been received."""
+        q = np.asarray(q, dtype=float)
+        vel = np.zeros(len(self.names))
+        if self._last is not None:
+            t_prev, q_prev = self._last
+            d = q - q_prev
+            self._sign = np.where(np.abs(d) > MOTION_THRESHOLD, np.sign(d), self._sign)
+            if stamp > t_prev:
+                vel = d / (stamp - t_prev)
+        if self._t0 is None:
+            self._t0 = stamp
+        self._last = (stamp, q.copy())
+        ctx: dict[str, Any] = {"time": stamp - self._t0, "sensor": "",
+                               "motion_sign": dict(zip(self.names, self._sign.copy())),
+                               "joint_velocity": dict(zip(self.names, vel))}
+        if "temperature" in self.needed:
+            if self.temperature is None:
+                raise ModelConfigError("the model has thermal_growth against temperature: no /temperature "
+                                       "received yet")
+            ctx["temperature"] = self.temperature
+        return ctx
+
+    def update_many(self, stamps: Sequence[float], Q: np.ndarray) -> dict[str, Any]:
+        """:meth:`update` of each row of ``Q`` (N, J) in turn, as one batched context (arrays of length N)."""
+        ctxs = [self.update(t, q) for t, q in zip(stamps, Q)]
+        out: dict[str, Any] = {"time": np.array([c["time"] for c in ctxs]), "sensor": ""}
+        for key in ("motion_sign", "joint_velocity"):
+            out[key] = {n: np.array([c[key][n] for c in ctxs]) for n in self.names}
+        if "temperature" in self.needed:
+            out["temperature"] = np.array([c["temperature"] for c in ctxs])
+        return out
+
+    def neutral(self) -> dict[str, Any]:
+        """A context in which time- and motion-dependent effects are at their start (the nodes' warm-up)."""
+        zeros = dict.fromkeys(self.names, 0.0)
+        ctx: dict[str, Any] = {"time": 0.0, "sensor": "", "motion_sign": zeros, "joint_velocity": zeros}
+        if "temperature" in self.needed:
+            ctx["temperature"] = 0.0
+        return ctx
