@@ -91,3 +91,4 @@ def warm_kernels() -> None:
     prior = PriorSample(0.0, X, P)
     apply_carried_corrections(prior, [(CarriedCorrection(prior, np.eye(6)[:2], np.ones(2), np.zeros(2)), 1.0)])
     lie.check_covariance(P, "warm-up", size=6)
+    lie.check_covariance(np.stack([P, P]), "warm-up", size=6)  # a batch (ppoe evaluate's priors)
