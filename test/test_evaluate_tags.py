@@ -63,3 +63,23 @@ def test_tag_stream_raises_the_first_error_in_image_order():
                                        r"/camera/camera_info with frame_id 'cam'"):
         stream.get(3)
     stream.close()
+
+
+def test_evaluate_pauses_the_garbage_collector_and_restores_it():
+    import gc
+
+    from ppoe_core.analysis.evaluate.replay import _gc_paused
+
+    assert gc.isenabled()
+    with pytest.raises(BagError):
+        with _gc_paused():
+            assert not gc.isenabled()
+            raise BagError("x")
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        with _gc_paused():
+            pass
+        assert not gc.isenabled()  # left as the caller had it
+    finally:
+        gc.enable()
