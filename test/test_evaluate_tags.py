@@ -67,18 +67,20 @@ def test_tag_stream_raises_the_first_error_in_image_order():
 
 def test_evaluate_pauses_the_garbage_collector_and_restores_it():
     import gc
+    import sys
 
-    from ppoe_core.analysis.evaluate.replay import _gc_paused
+    from ppoe_core.analysis.evaluate.replay import _SWITCH_INTERVAL, _replay_settings
 
     assert gc.isenabled()
+    interval = sys.getswitchinterval()
     with pytest.raises(BagError):
-        with _gc_paused():
-            assert not gc.isenabled()
+        with _replay_settings():
+            assert not gc.isenabled() and sys.getswitchinterval() == pytest.approx(min(interval, _SWITCH_INTERVAL))
             raise BagError("x")
-    assert gc.isenabled()
+    assert gc.isenabled() and sys.getswitchinterval() == interval
     gc.disable()
     try:
-        with _gc_paused():
+        with _replay_settings():
             pass
         assert not gc.isenabled()  # left as the caller had it
     finally:

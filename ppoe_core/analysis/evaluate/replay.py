@@ -179,21 +179,29 @@ _NO_MEASUREMENTS = (
     "no tag observations, images, contact planes or wrenches in contact in the bag: only forward kinematics scored"
 )
 
+#: the interpreter's switch interval while a bag is evaluated [s]: the image threads need the GIL between OpenCV
+#: calls, and with the default 5 ms they wait that long each time the replay (pure Python) holds it
+_SWITCH_INTERVAL = 0.00025
+
+
 @contextmanager
-def _gc_paused() -> Iterator[None]:
-    """The cyclic garbage collector off while a bag is evaluated (and on again after, if it was): its full
-    collections walk every object of the process (the bag's rows, the priors, the measurements; a tenth of a second
-    each on the 10-minute bench bag) for cycles the replay does not make; reference counting frees the rest."""
-    enabled = gc.isenabled()
+def _replay_settings() -> Iterator[None]:
+    """While a bag is evaluated (both restored after): the cyclic garbage collector off (its full collections walk
+    every object of the process, the bag's rows, the priors, the measurements, a tenth of a second each on the
+    10-minute bench bag, for cycles the replay does not make; reference counting frees the rest) and the switch
+    interval at most :data:`_SWITCH_INTERVAL` (the image threads run beside the replay, ``TagStream``)."""
+    enabled, interval = gc.isenabled(), sys.getswitchinterval()
     gc.disable()
+    sys.setswitchinterval(min(interval, _SWITCH_INTERVAL))
     try:
         yield
     finally:
+        sys.setswitchinterval(interval)
         if enabled:
             gc.enable()
 
 
-@_gc_paused()
+@_replay_settings()
 def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptions | None = None) -> Evaluation:
     """Replay ``bag`` through the core pipeline and score FK, PPOE-fused and naive-fused poses.
 

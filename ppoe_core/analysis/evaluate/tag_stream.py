@@ -57,6 +57,8 @@ class TagStream:
         self.counts = {"tag_messages": 0, "tag_points": 0, "images": 0, "images_without_tags": 0}
         self._out: list[Any] = []
         self._dets: Any = None
+        self._rows: Any = None
+        self._camera: Any = None
         self.stamps: list[float] = []
         cams = _camera_lookup(data)
         obs = data.tag_observations
@@ -97,12 +99,10 @@ class TagStream:
             camera(i)  # its error first, as for an image that does not decode
             return imgs.decode(i)
 
-        def finish(i: int, dets: list[Any]) -> tuple[np.ndarray, np.ndarray]:
-            K, D = camera(i)
-            return rows_from_detections(dets, K, D)[0], K  # = observe_tags(imgs.decode(i), K, D, family, ...)
-
-        self._dets = detections_in_images(decode, len(imgs), family, refine, workers, finish=finish,
-                                          ahead=len(imgs))
+        self._rows = rows_from_detections
+        self._camera = camera
+        # the rows are made here, not on the workers: the less Python (GIL) they run, the less the replay waits
+        self._dets = detections_in_images(decode, len(imgs), family, refine, workers, ahead=len(imgs))
 
     def get(self, k: int) -> Any:
         """The measurement of slot ``k`` (None: an image without tags); reads the images up to ``k`` in order."""
@@ -114,7 +114,9 @@ class TagStream:
         from ppoe_core.estimation.pipeline import Measurement, TagMeasurement, source_key
 
         self.counts["images"] += 1
-        rows, K = next(self._dets)
+        dets = next(self._dets)
+        K, D = self._camera(i)
+        rows = self._rows(dets, K, D)[0]  # = observe_tags(imgs.decode(i), K, D, family, ...)
         self.counts["tag_messages"] += 1
         if rows.shape[0] == 0:
             self.counts["images_without_tags"] += 1
