@@ -179,24 +179,16 @@ _NO_MEASUREMENTS = (
     "no tag observations, images, contact planes or wrenches in contact in the bag: only forward kinematics scored"
 )
 
-#: the interpreter's switch interval while a bag is evaluated [s]: the image threads need the GIL between OpenCV
-#: calls, and with the default 5 ms they wait that long each time the replay (pure Python) holds it
-_SWITCH_INTERVAL = 0.00025
-
-
 @contextmanager
 def _replay_settings() -> Iterator[None]:
-    """While a bag is evaluated (both restored after): the cyclic garbage collector off (its full collections walk
-    every object of the process, the bag's rows, the priors, the measurements, a tenth of a second each on the
-    10-minute bench bag, for cycles the replay does not make; reference counting frees the rest) and the switch
-    interval at most :data:`_SWITCH_INTERVAL` (the image threads run beside the replay, ``TagStream``)."""
-    enabled, interval = gc.isenabled(), sys.getswitchinterval()
+    """The cyclic garbage collector off while a bag is evaluated (and on again after, if it was): its full
+    collections walk every object of the process (the bag's rows, the priors, the measurements; a tenth of a second
+    each on the 10-minute bench bag) for cycles the replay does not make; reference counting frees the rest."""
+    enabled = gc.isenabled()
     gc.disable()
-    sys.setswitchinterval(min(interval, _SWITCH_INTERVAL))
     try:
         yield
     finally:
-        sys.setswitchinterval(interval)
         if enabled:
             gc.enable()
 
@@ -234,8 +226,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     base, tool, kind = _check_inputs(data, model, model_yaml, opt, bag)
     sensors = {base, tool, *data.camera_info.frame_ids, *data.tag_observations.frame_ids}
     fs = opt.fusion_settings()
-    # the images' tags are detected on worker threads from here on, while the forward kinematics and the replay
-    # run (which takes them in stamp order)
+    # the images' tags are detected on worker threads from here on, while the forward kinematics run
     tags = TagStream(data, model, bag, refine=str(fs["corner_refinement"]))
     try:
         pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml,
@@ -244,8 +235,11 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         pipes, updaters = _pipelines(model, base, tool, fs, pri.cov_naive)
         gt_stamps = data.ground_truth_pose.stamps if kind == "pose" else data.ground_truth_point.stamps
         slots = MeasurementSlots(tags, contact_meas)
-        run = _replay(pri, slots, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
+        # every image before the replay: the threads beside the (pure Python) replay would wait for the GIL and
+        # make it wait, which cost more than the overlap saved (measured on a quiet machine: 3.3-3.5 s against
+        # 2.7 s for the 10-minute bench bag)
         meas = slots.measurements()
+        run = _replay(pri, slots, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
     finally:
         tags.close()
     tag_counts = tags.counts

@@ -1,5 +1,5 @@
 """Tag measurements of ``ppoe evaluate``: recorded observations, or tag detections on the bag's images made on
-worker threads while the replay runs (:class:`TagStream`), and the measurements of the replay in stamp order
+worker threads started early (:class:`TagStream`), and the measurements of the replay in stamp order
 (:class:`MeasurementSlots`)."""
 
 from __future__ import annotations
@@ -45,8 +45,8 @@ class TagStream:
     Recorded observations are used as they are (made at once).  Otherwise the images are decoded and their tags
     detected (``ppoe_core.sensing.tags.detect_tags``, as the tag node; its rows by
     :func:`ppoe_core.sensing.tag_rows.rows_from_detections`) on ``workers`` threads, started here and running
-    while the caller does other work (the forward kinematics, the replay); the images are handed out in image
-    order, with the first error (no camera_info, an image that does not decode) at its image, as one loop over
+    while the caller does other work (``ppoe evaluate``: the forward kinematics); the images are handed out in
+    image order, with the first error (no camera_info, an image that does not decode) at its image, as one loop over
     the images would.  ``counts``: tag_messages, tag_points, images, images_without_tags (complete once every
     slot was read).  Call :meth:`close` at the end (stops the threads).
     """
