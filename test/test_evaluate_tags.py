@@ -1,5 +1,5 @@
-"""``ppoe evaluate``'s tag measurements made on worker threads while the replay runs (``TagStream``) and the
-replay's measurement order (``MeasurementSlots``)."""
+"""``ppoe evaluate``'s tag measurements made on worker threads started before the forward kinematics
+(``TagStream``), and the garbage collector paused during an evaluation."""
 
 from __future__ import annotations
 
@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 from test_tags import _frames
 
-from ppoe_core.analysis.evaluate.tag_stream import MeasurementSlots, TagStream, tag_measurements
+from ppoe_core.analysis.evaluate.tag_stream import TagStream, tag_measurements
 from ppoe_core.errors import BagError
-from ppoe_core.estimation.pipeline import Measurement
 
 K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
 D = np.array([-0.1, 0.05, 0.001, -0.001, 0.0])
@@ -34,26 +33,25 @@ MODEL = SimpleNamespace(config=SimpleNamespace(tags=SimpleNamespace(family="tag3
 @pytest.mark.parametrize("workers", [1, 2])
 def test_tag_stream_equals_one_loop_over_the_images(workers):
     frames = _frames(10)
-    stamps = [1.0, 1.5, 1.25, 2.0, 2.0, 3.0, 2.5, 4.0, 4.5, 5.0]  # not in image order
+    stamps = [1.0, 1.5, 1.25, 2.0, 2.0, 3.0, 2.5, 4.0, 4.5, 5.0]
     seq, counts = tag_measurements(_data(frames, stamps), MODEL, "bag", workers=1)
     assert counts["images"] == 10 and 0 < counts["images_without_tags"] < 10 and len(seq) < 10
     stream = TagStream(_data(frames, stamps), MODEL, "bag", workers=workers)
-    contact = [Measurement(2.0, "/contact/plane", None), Measurement(0.5, "/contact/plane", None)]
-    slots = MeasurementSlots(stream, contact)
     try:
-        assert slots.stamps == sorted(stamps + [2.0, 0.5])
-        got = [slots.get(k) for k in range(len(slots))]  # in stamp order, images out of image order
+        assert stream.stamps == stamps
+        late = stream.get(6)  # the images up to 6 are read in order
+        assert stream.counts["images"] == 7
+        got = stream.measurements()
     finally:
         stream.close()
-    ref = sorted(seq + contact, key=lambda m: m.stamp)  # the order of the replay before the slots
-    kept = [m for m in got if m is not None]
-    assert len(kept) == len(ref) and all(a is b for a, b in zip(slots.measurements(), kept))
-    assert stream.counts == counts
-    for a, b in zip(kept, ref):
+    assert late is None or late in got
+    assert stream.counts == counts and len(got) == len(seq)
+    for a, b in zip(got, seq):
         assert a.stamp == b.stamp and a.source == b.source
-        if a.payload is not None:
-            np.testing.assert_array_equal(a.payload.xy, b.payload.xy)
-            np.testing.assert_array_equal(a.payload.ids, b.payload.ids)
+        np.testing.assert_array_equal(a.payload.xy, b.payload.xy)
+        np.testing.assert_array_equal(a.payload.uv, b.payload.uv)
+        np.testing.assert_array_equal(a.payload.ids, b.payload.ids)
+        np.testing.assert_array_equal(a.payload.corners, b.payload.corners)
 
 
 def test_tag_stream_raises_the_first_error_in_image_order():
@@ -68,17 +66,17 @@ def test_tag_stream_raises_the_first_error_in_image_order():
 def test_evaluate_pauses_the_garbage_collector_and_restores_it():
     import gc
 
-    from ppoe_core.analysis.evaluate.replay import _replay_settings
+    from ppoe_core.analysis.evaluate.replay import _gc_paused
 
     assert gc.isenabled()
     with pytest.raises(BagError):
-        with _replay_settings():
+        with _gc_paused():
             assert not gc.isenabled()
             raise BagError("x")
     assert gc.isenabled()
     gc.disable()
     try:
-        with _replay_settings():
+        with _gc_paused():
             pass
         assert not gc.isenabled()  # left as the caller had it
     finally:

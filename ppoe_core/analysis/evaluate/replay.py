@@ -21,7 +21,7 @@ from ppoe_core.analysis.evaluate.metrics import (
 from ppoe_core.analysis.evaluate.options import EvaluateOptions, Evaluation
 from ppoe_core.analysis.evaluate.inputs import JOINT_MAX_AGE_S, joint_matrix, recorded_estimate, required_joints
 from ppoe_core.analysis.evaluate.scoring import score_points, score_poses
-from ppoe_core.analysis.evaluate.tag_stream import MeasurementSlots, TagStream
+from ppoe_core.analysis.evaluate.tag_stream import TagStream
 from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
 
@@ -180,7 +180,7 @@ _NO_MEASUREMENTS = (
 )
 
 @contextmanager
-def _replay_settings() -> Iterator[None]:
+def _gc_paused() -> Iterator[None]:
     """The cyclic garbage collector off while a bag is evaluated (and on again after, if it was): its full
     collections walk every object of the process (the bag's rows, the priors, the measurements; a tenth of a second
     each on the 10-minute bench bag) for cycles the replay does not make; reference counting frees the rest."""
@@ -193,7 +193,7 @@ def _replay_settings() -> Iterator[None]:
             gc.enable()
 
 
-@_replay_settings()
+@_gc_paused()
 def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptions | None = None) -> Evaluation:
     """Replay ``bag`` through the core pipeline and score FK, PPOE-fused and naive-fused poses.
 
@@ -234,12 +234,11 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
         pipes, updaters = _pipelines(model, base, tool, fs, pri.cov_naive)
         gt_stamps = data.ground_truth_pose.stamps if kind == "pose" else data.ground_truth_point.stamps
-        slots = MeasurementSlots(tags, contact_meas)
-        # every image before the replay: the threads beside the (pure Python) replay would wait for the GIL and
-        # make it wait, which cost more than the overlap saved (measured on a quiet machine: 3.3-3.5 s against
+        # every image before the replay: detection threads beside the (pure Python) replay would wait for the GIL
+        # and make it wait, which cost more than the overlap saved (measured on a quiet machine: 3.3-3.5 s against
         # 2.7 s for the 10-minute bench bag)
-        meas = slots.measurements()
-        run = _replay(pri, slots, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
+        meas = sorted(tags.measurements() + contact_meas, key=lambda m: m.stamp)
+        run = _replay(pri, meas, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
     finally:
         tags.close()
     tag_counts = tags.counts
@@ -441,16 +440,13 @@ class ReplayRun:
                 self.errors[name].append(o.error)
 
 
-def _replay(pri: _Priors, meas: MeasurementSlots, gt_stamps: np.ndarray, pipes: dict[str, Any],
-            updaters: dict[str, Any], n_joints: int, progress: bool) -> ReplayRun:
-    """Priors, measurements and ground-truth stamps in time order through the pipelines (as the nodes see them).
-    A measurement slot without a measurement (an image without tags) only ends a run of priors (``add_priors`` of
-    two runs is ``add_priors`` of both)."""
+def _replay(pri: _Priors, meas: list[Any], gt_stamps: np.ndarray, pipes: dict[str, Any], updaters: dict[str, Any],
+            n_joints: int, progress: bool) -> ReplayRun:
+    """Priors, measurements and ground-truth stamps in time order through the pipelines (as the nodes see them)."""
     # events: (stamp, kind rank, index); priors first, then measurements, then ground truth
-    n_meas = len(meas)
-    ev_t = np.concatenate([pri.stamps, np.asarray(meas.stamps, dtype=np.float64), gt_stamps])
-    ev_k = np.concatenate([np.zeros(len(pri.stamps), int), np.ones(n_meas, int), np.full(len(gt_stamps), 2)])
-    ev_i = np.concatenate([np.arange(len(pri.stamps)), np.arange(n_meas), np.arange(len(gt_stamps))])
+    ev_t = np.concatenate([pri.stamps, [m.stamp for m in meas], gt_stamps])
+    ev_k = np.concatenate([np.zeros(len(pri.stamps), int), np.ones(len(meas), int), np.full(len(gt_stamps), 2)])
+    ev_i = np.concatenate([np.arange(len(pri.stamps)), np.arange(len(meas)), np.arange(len(gt_stamps))])
     ev = np.lexsort((ev_i, ev_k, ev_t))
     n_gt = len(gt_stamps)
     run = ReplayRun({m: np.full((n_gt, 4, 4), np.nan) for m in METHODS},
@@ -469,9 +465,8 @@ def _replay(pri: _Priors, meas: MeasurementSlots, gt_stamps: np.ndarray, pipes: 
             _add_prior_run(run, pri, i_ev[e:f], pipes, updaters)
             e = f
         elif k == 1:
-            m = meas.get(i)
-            for name, pipe in pipes.items() if m is not None else ():
-                o = pipe.add_measurement(m)
+            for name, pipe in pipes.items():
+                o = pipe.add_measurement(meas[i])
                 if o.status != "pending":
                     run.record(name, [o], updaters[name].tags)
             e += 1

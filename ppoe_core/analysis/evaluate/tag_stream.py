@@ -1,6 +1,5 @@
 """Tag measurements of ``ppoe evaluate``: recorded observations, or tag detections on the bag's images made on
-worker threads started early (:class:`TagStream`), and the measurements of the replay in stamp order
-(:class:`MeasurementSlots`)."""
+worker threads started early (:class:`TagStream`)."""
 
 from __future__ import annotations
 
@@ -12,7 +11,7 @@ import numpy as np
 
 from ppoe_core.errors import BagError
 
-__all__ = ["IMAGE_WORKERS", "MeasurementSlots", "TagStream", "tag_measurements"]
+__all__ = ["IMAGE_WORKERS", "TagStream", "tag_measurements"]
 
 #: threads decoding images and detecting tags (two, or one on a single core)
 IMAGE_WORKERS = min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
@@ -152,29 +151,3 @@ def tag_measurements(
     finally:
         stream.close()
 
-
-class MeasurementSlots:
-    """The replay's measurements in stamp order: the tag slots of a :class:`TagStream` and other measurements
-    (contact), in the order of ``sorted(tag + other, key=stamp)`` (stable: tags first at equal stamps);
-    :meth:`get` the measurement of slot ``k`` or None (an image without tags)."""
-
-    def __init__(self, tags: TagStream, other: list[Any]) -> None:
-        self.tags = tags
-        stamps = tags.stamps + [m.stamp for m in other]
-        n_tag = len(tags.stamps)
-        self._order = sorted(range(len(stamps)), key=stamps.__getitem__)
-        self.stamps = [stamps[j] for j in self._order]
-        self._n_tag = n_tag
-        self._other = other
-
-    def __len__(self) -> int:
-        return len(self.stamps)
-
-    def get(self, k: int) -> Any:
-        j = self._order[k]
-        return self.tags.get(j) if j < self._n_tag else self._other[j - self._n_tag]
-
-    def measurements(self) -> list[Any]:
-        """Every measurement (slots without one left out), in slot order."""
-        out = [self.get(k) for k in range(len(self.stamps))]
-        return [m for m in out if m is not None]
