@@ -36,7 +36,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from ppoe_core.analysis.evaluate import EvaluateOptions, evaluate_bag  # noqa: E402
-from ppoe_core.analysis.evaluate.replay import IMAGE_WORKERS  # noqa: E402
+from ppoe_core.analysis.evaluate.tag_stream import IMAGE_WORKERS  # noqa: E402
 from ppoe_core.io.bagio import read_bag  # noqa: E402
 from ppoe_core.sim.simulate import simulate  # noqa: E402
 

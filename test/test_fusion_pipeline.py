@@ -692,7 +692,7 @@ def test_compiled_correction_ratio_equals_the_python_reference():
 def _pipeline_state(pipe: FusionPipeline) -> tuple:
     """Everything add_priors must leave as the add_prior calls do."""
     buf = [(s.stamp, s.T_base_tool.tobytes(), s.cov_tool.tobytes(), None if s.joints is None else s.joints.tobytes())
-           for s in pipe.buffer._samples]
+           for s in pipe.buffer.samples()]
     corr = [(src, c.anchor.stamp, c.H.tobytes(), c.z.tobytes()) for src, c in pipe.corrections.items()]
     return dict(pipe.counts), list(pipe.buffer._stamps), buf, corr, [m.stamp for m in pipe.pending]
 

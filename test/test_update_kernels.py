@@ -279,3 +279,58 @@ def test_quick_covariance_check_agrees_with_the_eigenvalues(case):
     else:
         with pytest.raises(CovarianceError, match="c: "):
             lie.check_covariance(C, "c", size=6, tol=1e-9, eig_tol=1e-12)
+
+
+def _check_same_correction(got: CarriedCorrection | None, ref: CarriedCorrection | None) -> None:
+    assert (got is None) == (ref is None)
+    if got is None or ref is None:
+        return
+    np.testing.assert_array_equal(got.T_anchor_inv, ref.T_anchor_inv)
+    assert got.H.shape == ref.H.shape and got.anchor is ref.anchor
+    for name in ("H", "R", "z"):
+        a, b = getattr(got, name), getattr(ref, name)
+        np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12 * np.abs(b).max(), err_msg=name)
+
+
+def test_compiled_from_update_equals_the_numpy_reference():
+    """``CarriedCorrection.from_update`` (compiled) against ``from_update_reference``: random updates from the raw
+    prior or from a corrected estimate, a prior certain about some directions, an update that adds nothing, inputs
+    of other types and a non-finite covariance (the reference decides)."""
+    rng = np.random.default_rng(12)
+    for k in range(200):
+        T = lie.exp(rng.normal(size=6))
+        P = _random_cov(rng, 10.0 ** rng.uniform(-6, -2))
+        if k % 5 == 0:  # certain about x and the rotation about z
+            P[0, :] = P[:, 0] = P[5, :] = P[:, 5] = 0.0
+        anchor = PriorSample(0.1 * k, T, P)
+        corrected = k % 2 == 1
+        T_pre = T @ lie.exp(1e-3 * rng.normal(size=6)) if corrected else None
+        P_pre = 0.8 * P if corrected else None
+        T_post = (T if T_pre is None else T_pre) @ lie.exp(1e-3 * rng.normal(size=6))
+        P_post = 0.5 * P + (_random_cov(rng, 1e-8) if k % 3 else 0.0)
+        _check_same_correction(CarriedCorrection.from_update(anchor, T_post, P_post, T_pre, P_pre),
+                               CarriedCorrection.from_update_reference(anchor, T_post, P_post, T_pre, P_pre))
+    anchor = PriorSample(0.0, np.eye(4), np.eye(6) * 1e-4)
+    assert CarriedCorrection.from_update(anchor, np.eye(4), np.eye(6) * 1e-4) is None  # no information added
+    assert CarriedCorrection.from_update(PriorSample(0.0, np.eye(4), np.zeros((6, 6))), np.eye(4), np.eye(6)) is None
+    _check_same_correction(CarriedCorrection.from_update(anchor, np.eye(4).tolist(), (np.eye(6) * 1e-5).tolist()),
+                           CarriedCorrection.from_update_reference(anchor, np.eye(4), np.eye(6) * 1e-5))
+    bad = np.eye(6) * 1e-5
+    bad[2, 2] = np.nan
+    with pytest.raises(np.linalg.LinAlgError):  # as numpy's eigh of a NaN matrix: the reference's error
+        CarriedCorrection.from_update(anchor, np.eye(4), bad)
+
+
+def test_batched_covariance_check_passes_and_fails_as_the_eigenvalues():
+    """The compiled quick pass of a batch (each matrix with its own scale) returns what the batched eigenvalue
+    check returns; a batch with one bad matrix still gets the eigenvalue check's error."""
+    rng = np.random.default_rng(13)
+    C = np.stack([_random_cov(rng, 10.0 ** rng.uniform(-8, 0)) for _ in range(50)])
+    assert lk.covariances_pass_kernel(C, 1e-9, 1e-9)
+    assert lie.check_covariance(C, "batch", size=6) is C
+    np.testing.assert_array_equal(lie.check_covariance(C, "batch", size=6, symmetrize=True),
+                                  0.5 * (C + np.swapaxes(C, 1, 2)))
+    C[17, 3, 3] = -1e-3 * np.abs(C).max()
+    assert not lk.covariances_pass_kernel(C, 1e-9, 1e-9)
+    with pytest.raises(CovarianceError, match="batch: not positive semi-definite"):
+        lie.check_covariance(C, "batch", size=6)

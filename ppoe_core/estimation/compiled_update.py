@@ -71,7 +71,8 @@ def compiled_update(X0: Any, P0: Any, z: np.ndarray, model: Any, R: np.ndarray, 
 
 def warm_kernels() -> None:
     """Compile (or load from numba's cache) the kernels of the fusion path: a tag update (pixel and normalised,
-    with camera noise), a contact update, a carried correction and the quick covariance check.  The nodes call it
+    with camera noise), a contact update, a carried correction (applied and made) and the quick covariance checks (one
+    matrix, a batch).  The nodes call it
     before subscribing (``ppoe_ros.common.runner.warm_node_kernels``), the test session once (``test/conftest.py``)."""
     from ppoe_core import lie
     from ppoe_core.estimation.corrections import CarriedCorrection, apply_carried_corrections
@@ -90,4 +91,6 @@ def warm_kernels() -> None:
     iterated_update(X, P, [0.0], ContactPlaneModel(np.eye(4), P, [0.0, 0.0, -0.5]), with_cost=True)
     prior = PriorSample(0.0, X, P)
     apply_carried_corrections(prior, [(CarriedCorrection(prior, np.eye(6)[:2], np.ones(2), np.zeros(2)), 1.0)])
+    CarriedCorrection.from_update(prior, X, 0.5 * P)
     lie.check_covariance(P, "warm-up", size=6)
+    lie.check_covariance(np.stack([P, P]), "warm-up", size=6)  # a batch (ppoe evaluate's priors)

@@ -10,10 +10,20 @@ import math
 import numpy as np
 from numba import njit
 
-from ppoe_core.lie.kernels import covariance_passes_kernel, mat_mul, mat_mul_t, sandwich, se3_exp_one, se3_mul
+from ppoe_core.lie.kernels import (
+    covariance_passes_kernel,
+    mat_mul,
+    mat_mul_t,
+    sandwich,
+    se3_exp_one,
+    se3_inverse_one,
+    se3_log_one,
+    se3_mul,
+)
 
 __all__ = [
-    "apply_corrections_kernel", "correction_ratio", "first_expiry", "fuse_one_kernel", "prior_passes", "run_breaks",
+    "apply_corrections_kernel", "correction_ratio", "first_expiry", "from_update_kernel", "fuse_one_kernel",
+    "prior_passes", "run_breaks",
 ]
 
 
@@ -183,3 +193,71 @@ def run_breaks(t: np.ndarray, T: np.ndarray, finite: np.ndarray) -> np.ndarray:
             out[m] = k
             m += 1
     return out[:m]
+
+
+# ----------------------------------------------------------------------------
+# A new carried correction (CarriedCorrection.from_update)
+# ----------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _finite(M: np.ndarray) -> bool:
+    for i in range(M.shape[0]):
+        for j in range(M.shape[1]):
+            if not math.isfinite(M[i, j]):
+                return False
+    return True
+
+
+@njit(cache=True)
+def from_update_kernel(T_anchor: np.ndarray, T_pre: np.ndarray, pre_is_anchor: bool, cov_pre: np.ndarray,
+                       T_post: np.ndarray, cov_post: np.ndarray, jitter: float, H_out: np.ndarray, R_out: np.ndarray,
+                       z_out: np.ndarray, T_anchor_inv: np.ndarray) -> int:
+    """:meth:`CarriedCorrection.from_update` (the Python reference, the same steps: LAPACK's ``eigh`` and BLAS
+    products as numpy's, one-pose SE(3) inverse and logarithm): the correction's ``H`` (r, 6), ``R``, ``z`` (r,)
+    into the first ``r`` rows of ``H_out`` (6, 6), ``R_out``, ``z_out`` (6,), ``T_anchor^-1`` into
+    ``T_anchor_inv``; returns ``r``, 0 when the update added no information, -1 when an input is not finite (the
+    reference decides)."""
+    if not (_finite(cov_pre) and _finite(cov_post) and _finite(T_anchor) and _finite(T_pre) and _finite(T_post)):
+        return -1
+    s0, U_all = np.linalg.eigh(0.5 * (cov_pre + cov_pre.T))
+    keep0 = s0 > 1e-12 * max(s0.max(), 1e-300)
+    n0 = int(keep0.sum())
+    if n0 == 0:
+        return 0
+    U = np.ascontiguousarray(U_all[:, keep0])
+    Ut = np.ascontiguousarray(U.T)
+    info0 = np.zeros((n0, n0))
+    s_keep = s0[keep0]
+    for i in range(n0):
+        info0[i, i] = 1.0 / s_keep[i]
+    P1 = (Ut @ (0.5 * (cov_post + cov_post.T))) @ U
+    P1 = 0.5 * (P1 + P1.T) + jitter * np.eye(n0)
+    info1 = np.linalg.inv(P1)
+    se3_inverse_one(T_anchor, T_anchor_inv)
+    if pre_is_anchor:
+        T_pre_inv = T_anchor_inv
+    else:
+        T_pre_inv = np.empty((4, 4))
+        se3_inverse_one(T_pre, T_pre_inv)
+    delta, pre = np.empty(6), np.empty(6)
+    se3_log_one(T_pre_inv @ T_post, delta)
+    se3_log_one(T_anchor_inv @ T_pre, pre)
+    y = info1 @ (Ut @ delta)
+    D = info1 - info0
+    lam_all, V_all = np.linalg.eigh(0.5 * (D + D.T))
+    keep = lam_all > 1e-9 * max(np.abs(lam_all).max(), 1e-300)
+    r = int(keep.sum())
+    if r == 0:
+        return 0
+    lam = lam_all[keep]
+    Vt = np.ascontiguousarray(V_all[:, keep].T)
+    H = Vt @ Ut
+    Vy = Vt @ y
+    Hp = H @ pre
+    for i in range(r):
+        R_out[i] = 1.0 / lam[i]
+        z_out[i] = R_out[i] * Vy[i] + Hp[i]
+        for j in range(6):
+            H_out[i, j] = H[i, j]
+    return r

@@ -237,7 +237,34 @@ class CarriedCorrection:
         ``cov_post`` is read as a covariance in the tool tangent space at ``T_post``; the
         change of tangent space between ``T_prior`` and ``T_post`` (second order in
         ``delta``) is neglected.  Returns None if the update added no information.
+
+        Compiled (:func:`ppoe_core.estimation.correction_kernels.from_update_kernel`) for finite float (4, 4) poses
+        and (6, 6) covariances; :meth:`from_update_reference` otherwise (and in the tests, as the reference).
         """
+        c = np.ascontiguousarray
+        T_a = c(anchor.T_base_tool, dtype=np.float64)
+        T_pre_a = T_a if T_pre is None else c(T_pre, dtype=np.float64)
+        cov_pre_a = c(anchor.cov_tool if cov_pre is None else cov_pre, dtype=np.float64)
+        T_post_a, cov_post_a = c(T_post, dtype=np.float64), c(cov_post, dtype=np.float64)
+        if not (T_a.shape == T_pre_a.shape == T_post_a.shape == (4, 4) and cov_pre_a.shape == cov_post_a.shape
+                == (6, 6)):
+            return CarriedCorrection.from_update_reference(anchor, T_post, cov_post, T_pre, cov_pre)
+        H, R, z, T_inv = np.empty((6, 6)), np.empty(6), np.empty(6), np.empty((4, 4))
+        r = _correction_kernels().from_update_kernel(T_a, T_pre_a, T_pre_a is T_a, cov_pre_a, T_post_a, cov_post_a,
+                                                     _INV_JITTER, H, R, z, T_inv)
+        if r < 0:
+            return CarriedCorrection.from_update_reference(anchor, T_post, cov_post, T_pre, cov_pre)
+        return CarriedCorrection(anchor, H[:r], R[:r], z[:r], T_inv) if r else None
+
+    @staticmethod
+    def from_update_reference(
+        anchor: PriorSample,
+        T_post: Array,
+        cov_post: Array,
+        T_pre: Array | None = None,
+        cov_pre: Array | None = None,
+    ) -> CarriedCorrection | None:
+        """:meth:`from_update` in numpy (the reference of the compiled path; any input, errors as numpy raises)."""
         # work in the range of the prior covariance: directions the prior is certain about
         # carry no correction (and P_prior^-1 is not needed there)
         T_pre = anchor.T_base_tool if T_pre is None else np.asarray(T_pre, dtype=np.float64)

@@ -296,10 +296,7 @@ class FusionPipeline:
         # what the appends leave in the buffer: the priors not older than the last one minus its duration
         ts = t.tolist()
         k = bisect.bisect_left(ts, ts[-1] - self.buffer.duration)
-        one_cov = cov.ndim == 2
-        samples = [PriorSample(ts[m], T[m], cov if one_cov else cov[m], None if Q is None else Q[m])
-                   for m in range(k, len(ts))]
-        self.buffer.append_run(ts[k:], samples)
+        self.buffer.append_arrays(ts[k:], T[k:], cov if cov.ndim == 2 else cov[k:], None if Q is None else Q[k:])
 
     def _first_expiry(self, corr: CarriedCorrection, t: Array, T: Array, Q: Array | None) -> int:
         """Index of the first prior of a run at which ``corr`` expires (as :meth:`_active_corrections`), -1 if

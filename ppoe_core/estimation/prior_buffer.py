@@ -6,6 +6,7 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
+from itertools import repeat
 
 import numpy as np
 
@@ -43,6 +44,21 @@ class PriorSample:
     T_base_tool: Array
     cov_tool: Array
     joints: Array | None = None
+
+
+class _Run:
+    """Priors appended at once (:meth:`PriorBuffer.append_arrays`), made into :class:`PriorSample` objects only when
+    the buffer hands one out (an offline replay reads a few of them): the same stamps and array views as samples
+    made at once."""
+
+    __slots__ = ("stamps", "T", "cov", "joints")
+
+    def __init__(self, stamps: list[float], T: Array, cov: Array, joints: Array | None) -> None:
+        self.stamps, self.T, self.cov, self.joints = stamps, T, cov, joints
+
+    def sample(self, m: int) -> PriorSample:
+        cov = self.cov if self.cov.ndim == 2 else self.cov[m]
+        return PriorSample(self.stamps[m], self.T[m], cov, None if self.joints is None else self.joints[m])
 
 
 class LookupStatus:
@@ -90,7 +106,8 @@ class PriorBuffer:
         self.max_gap = float(max_gap)
         self.max_hold = float(max_hold)
         self._stamps: list[float] = []
-        self._samples: list[PriorSample] = []
+        # PriorSample, or (run, index) of a prior of a run not yet made into one (_get makes and keeps it)
+        self._samples: list[PriorSample | tuple[_Run, int]] = []
 
     def __len__(self) -> int:
         return len(self._samples)
@@ -107,7 +124,18 @@ class PriorBuffer:
 
     def latest(self) -> PriorSample | None:
         """The newest prior, or None."""
-        return self._samples[-1] if self._samples else None
+        return self._get(-1) if self._samples else None
+
+    def samples(self) -> list[PriorSample]:
+        """Every prior kept, oldest first."""
+        return [self._get(i) for i in range(len(self._samples))]
+
+    def _get(self, i: int) -> PriorSample:
+        s = self._samples[i]
+        if type(s) is tuple:
+            s = s[0].sample(s[1])
+            self._samples[i] = s
+        return s  # type: ignore[return-value]
 
     def clear(self) -> None:
         """Forget every prior."""
@@ -145,14 +173,15 @@ class PriorBuffer:
             del self._samples[:k]
         return True
 
-    def append_run(self, stamps: list[float], samples: list[PriorSample]) -> None:
-        """:meth:`add` of each of ``samples`` (stamps ``stamps``) in turn, for increasing stamps all newer than the
-        buffer (the caller checks): appended, then the priors older than the newest minus ``duration`` evicted (what
-        the single adds leave)."""
-        if not samples:
+    def append_arrays(self, stamps: list[float], T: Array, cov: Array, joints: Array | None) -> None:
+        """:meth:`add` of ``PriorSample(stamps[m], T[m], cov[m] (or cov if (6, 6)), joints[m] (or None))`` for each
+        ``m`` in turn, for increasing stamps all newer than the buffer (the caller checks): appended, then the priors
+        older than the newest minus ``duration`` evicted (what the single adds leave).  The samples are made when
+        the buffer hands them out."""
+        if not stamps:
             return
         self._stamps.extend(stamps)
-        self._samples.extend(samples)
+        self._samples.extend(zip(repeat(_Run(stamps, T, cov, joints)), range(len(stamps))))
         cutoff = self._stamps[-1] - self.duration
         if self._stamps[0] < cutoff:
             k = bisect.bisect_left(self._stamps, cutoff)
@@ -176,8 +205,8 @@ class PriorBuffer:
             return LookupStatus.TOO_NEW, None
         i = bisect.bisect_left(self._stamps, t)
         if self._stamps[i] == t:
-            return LookupStatus.OK, self._samples[i]
-        a, b = self._samples[i - 1], self._samples[i]
+            return LookupStatus.OK, self._get(i)
+        a, b = self._get(i - 1), self._get(i)
         t0, t1 = self._stamps[i - 1], self._stamps[i]
         if t1 - t0 > self.max_gap:
             near = a if (t - t0) <= (t1 - t) else b
@@ -191,7 +220,7 @@ class PriorBuffer:
         ``max_hold`` takes the newest prior (zero-order hold: the arm is assumed at rest)."""
         status, sample = self.lookup(stamp)
         if status == LookupStatus.TOO_NEW and float(stamp) - self._stamps[-1] <= self.max_hold:
-            return LookupStatus.OK, _held(self._samples[-1], float(stamp))
+            return LookupStatus.OK, _held(self._get(-1), float(stamp))
         return status, sample
 
 

@@ -111,6 +111,9 @@ def check_covariance(
     if C.ndim == 2 and 0 < C.shape[0] <= 12:  # one message's covariance: the compiled quick pass
         if _kernels().covariance_passes_kernel(np.ascontiguousarray(C), tol, tol if eig_tol is None else eig_tol):
             return 0.5 * (C + C.T) if symmetrize else C
+    elif C.ndim == 3 and 0 < C.shape[0] and 0 < C.shape[1] <= 12:  # a batch (all forward-kinematics priors of a bag)
+        if _kernels().covariances_pass_kernel(np.ascontiguousarray(C), tol, tol if eig_tol is None else eig_tol):
+            return 0.5 * (C + np.swapaxes(C, -1, -2)) if symmetrize else C
     # array methods instead of np.all / np.max: the same reductions without the dispatch
     # overhead (this runs once per message in the nodes)
     if not np.isfinite(C).all():

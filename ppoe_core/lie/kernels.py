@@ -15,7 +15,7 @@ __all__ = [
     "rotate_covariance_kernel",
     "rotate_covariance_one", "se3_exp_one", "se3_log_one", "so3_log_one",
     "se3_right_jacobian_one", "se3_right_jacobian_inv_one", "se3_inverse_one", "se3_mul",
-    "covariance_passes_kernel", "mat_mul", "mat_mul_t", "sandwich",
+    "covariance_passes_kernel", "covariances_pass_kernel", "mat_mul", "mat_mul_t", "sandwich",
 ]
 
 
@@ -360,6 +360,17 @@ def covariance_passes_kernel(C: np.ndarray, tol: float, eig_tol: float) -> bool:
             A[i, j] = t / d
     return True
 
+
+
+@njit(cache=True)
+def covariances_pass_kernel(C: np.ndarray, tol: float, eig_tol: float) -> bool:
+    """:func:`covariance_passes_kernel` of every matrix of a batch ``(N, n, n)``, each with its own scale.  True
+    implies the batch check of ``covariance.check_covariance`` (one scale, the largest: a looser bound) passes too;
+    False means "decide with the eigenvalues"."""
+    for k in range(C.shape[0]):
+        if not covariance_passes_kernel(C[k], tol, eig_tol):
+            return False
+    return True
 
 # ----------------------------------------------------------------------------
 # Small dense products without a BLAS call (the sizes of the measurement updates: 6x6, m x 6; a BLAS call and its

@@ -15,7 +15,7 @@ camera optical frame.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Generator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from itertools import islice
 from typing import Any
@@ -26,8 +26,7 @@ from ppoe_core.estimation.camera import project_points, undistort_pixels
 from ppoe_core.sensing import tags as tagmod
 
 __all__ = ["OBSERVATION_FIELDS", "DEFAULT_CORNER_REFINEMENT", "observe_tags", "rows_from_detections",
-           "detections_in_images",
-           "centre_from_corners"]
+           "detections_in_images", "ImageDetections", "centre_from_corners"]
 
 #: fields of one observation row (and FLOAT64 fields of one ``/tag_bearing/observations`` point)
 OBSERVATION_FIELDS: tuple[str, ...] = ("id", "corner", "u", "v", "x", "y")
@@ -109,38 +108,76 @@ def observe_tags(
 
 
 def detections_in_images(decode: Callable[[int], np.ndarray], n: int, dictionary: str = "tag36h11",
-                         refine: str = DEFAULT_CORNER_REFINEMENT, workers: int = 1) -> Generator[list[Any], None, None]:
-    """:func:`ppoe_core.sensing.tags.detect_tags` of images ``decode(0) .. decode(n - 1)``, in that order.
+                         refine: str = DEFAULT_CORNER_REFINEMENT, workers: int = 1,
+                         finish: Callable[[int, list[Any]], Any] | None = None,
+                         ahead: int | None = None) -> ImageDetections:
+    """:func:`ppoe_core.sensing.tags.detect_tags` of images ``decode(0) .. decode(n - 1)``, in that order (an
+    iterator with ``close()``).
 
-    With ``workers`` > 1, decoding and detection run on that many threads (OpenCV releases the GIL), a few
-    images ahead of the consumer (OpenCV's own threads are set to one meanwhile); every image's detections,
-    or the error its decoding or detection raised, are still handed out in image order, and the threads stop
-    when the consumer stops (``close()``).
+    With ``workers`` > 1, decoding and detection run on that many threads (OpenCV releases the GIL), started at
+    once and ``ahead`` images (default ``4 * workers``) ahead of the consumer (OpenCV's own threads are set to one
+    meanwhile); every image's detections, or the error its decoding or detection raised, are still handed out in
+    image order, and the threads stop when the consumer stops (``close()``, also after an error).  ``finish(i,
+    detections)``, if given, runs on the same thread and its result is handed out instead.
     The detections do not depend on the thread (``test/test_tags.py``).
     """
-    def one(i: int) -> list[Any]:
-        return tagmod.detect_tags(decode(i), dictionary, refine)
+    def one(i: int) -> Any:
+        dets = tagmod.detect_tags(decode(i), dictionary, refine)
+        return dets if finish is None else finish(i, dets)
 
-    if workers <= 1 or n < 2:
-        yield from (one(i) for i in range(n))
-        return
-    import cv2
+    return ImageDetections(one, n, workers, 4 * workers if ahead is None else ahead)
 
-    cv_threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)  # the pool is the parallelism; OpenCV's own threads would only compete for the cores
-    ex = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="detect_tags")
-    try:
-        todo = iter(range(n))
-        pending = deque(ex.submit(one, i) for i in islice(todo, 4 * workers))
-        while pending:
-            done = pending.popleft()
-            nxt = next(todo, None)
-            if nxt is not None:
-                pending.append(ex.submit(one, nxt))
-            yield done.result()
-    finally:
-        ex.shutdown(wait=True, cancel_futures=True)
-        cv2.setNumThreads(cv_threads)
+
+class ImageDetections:
+    """``one(0) .. one(n - 1)`` in order, on ``workers`` threads up to ``ahead`` images ahead of the consumer
+    (:func:`detections_in_images`)."""
+
+    def __init__(self, one: Callable[[int], Any], n: int, workers: int, ahead: int) -> None:
+        self._one, self._n, self._next = one, n, 0
+        self._ex: ThreadPoolExecutor | None = None
+        self._pending: deque[Any] = deque()
+        if workers <= 1 or n < 2:
+            return
+        import cv2
+
+        self._cv_threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)  # the pool is the parallelism; OpenCV's own threads would only compete for the cores
+        self._ex = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="detect_tags")
+        self._todo = iter(range(n))
+        self._pending.extend(self._ex.submit(one, i) for i in islice(self._todo, max(int(ahead), 1)))
+
+    def __iter__(self) -> ImageDetections:
+        return self
+
+    def __next__(self) -> Any:
+        if self._ex is None:
+            if self._next >= self._n:
+                raise StopIteration
+            self._next += 1
+            return self._one(self._next - 1)
+        if not self._pending:
+            self.close()
+            raise StopIteration
+        done = self._pending.popleft()
+        nxt = next(self._todo, None)
+        if nxt is not None:
+            self._pending.append(self._ex.submit(self._one, nxt))
+        try:
+            return done.result()
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        """Stop the threads (the images not started are dropped)."""
+        if self._ex is not None:
+            import cv2
+
+            self._ex.shutdown(wait=True, cancel_futures=True)
+            self._ex = None
+            self._pending.clear()
+            self._n = self._next  # nothing more to hand out
+            cv2.setNumThreads(self._cv_threads)
 
 
 def rows_from_detections(

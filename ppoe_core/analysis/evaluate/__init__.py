@@ -89,10 +89,10 @@ from ppoe_core.analysis.evaluate.replay import (
     contact_measurements,
     evaluate_bag,
     joint_matrix,
-    tag_measurements,
 )
 from ppoe_core.analysis.evaluate.report import markdown_report, write_report
 from ppoe_core.analysis.evaluate.scoring import registration_split
+from ppoe_core.analysis.evaluate.tag_stream import tag_measurements
 
 __all__ = [
     "registration_split",

@@ -1,0 +1,153 @@
+"""Tag measurements of ``ppoe evaluate``: recorded observations, or tag detections on the bag's images made on
+worker threads started early (:class:`TagStream`)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ppoe_core.errors import BagError
+
+__all__ = ["IMAGE_WORKERS", "TagStream", "tag_measurements"]
+
+#: threads decoding images and detecting tags (two, or one on a single core)
+IMAGE_WORKERS = min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+
+
+def _camera_lookup(data: Any) -> Callable[[str, float], tuple[np.ndarray, np.ndarray] | None]:
+    """frame_id, stamp -> (K, D) of the latest camera_info of that frame at or before the stamp
+    (or the first one after it if there is none before)."""
+    ci = data.camera_info
+    per: dict[str, tuple[np.ndarray, list[int]]] = {}
+    for i, f in enumerate(ci.frame_ids):
+        per.setdefault(f, (np.zeros(0), []))[1].append(i)
+    table = {f: (ci.stamps[idx], idx) for f, (_, idx) in per.items()}
+
+    def lookup(frame: str, stamp: float) -> tuple[np.ndarray, np.ndarray] | None:
+        if frame not in table:
+            return None
+        st, idx = table[frame]
+        k = int(np.searchsorted(st, stamp, side="right")) - 1
+        i = idx[max(k, 0)]
+        return ci.K[i], ci.D[i]
+
+    return lookup
+
+
+class TagStream:
+    """The tag measurements of a bag, one slot per recorded ``/tag_bearing/observations`` message or per camera
+    image (``stamps``), :meth:`get` the measurement of a slot (None: no tag point).
+
+    Recorded observations are used as they are (made at once).  Otherwise the images are decoded and their tags
+    detected (``ppoe_core.sensing.tags.detect_tags``, as the tag node; its rows by
+    :func:`ppoe_core.sensing.tag_rows.rows_from_detections`) on ``workers`` threads, started here and running
+    while the caller does other work (``ppoe evaluate``: the forward kinematics); the images are handed out in
+    image order, with the first error (no camera_info, an image that does not decode) at its image, as one loop over
+    the images would.  ``counts``: tag_messages, tag_points, images, images_without_tags (complete once every
+    slot was read).  Call :meth:`close` at the end (stops the threads).
+    """
+
+    def __init__(self, data: Any, model: Any, bag: str, refine: str = "subpix", workers: int = IMAGE_WORKERS) -> None:
+        from ppoe_core.estimation.pipeline import Measurement, TagMeasurement, source_key
+
+        self.counts = {"tag_messages": 0, "tag_points": 0, "images": 0, "images_without_tags": 0}
+        self._out: list[Any] = []
+        self._dets: Any = None
+        self._rows: Any = None
+        self._camera: Any = None
+        self.stamps: list[float] = []
+        cams = _camera_lookup(data)
+        obs = data.tag_observations
+        if len(obs):
+            topic = "/tag_bearing/observations"
+            for i in range(len(obs)):
+                m = obs.message(i)
+                self.counts["tag_messages"] += 1
+                if m["ids"].size == 0:
+                    continue
+                self.counts["tag_points"] += int(m["ids"].size)
+                frame, stamp = obs.frame_ids[i], float(obs.stamps[i])
+                KD = cams(frame, stamp)
+                fx, fy = (float(KD[0][0, 0]), float(KD[0][1, 1])) if KD is not None else (None, None)
+                payload = TagMeasurement(frame, m["ids"], m["corners"], m["xy"], m["uv"], fx, fy)
+                self._out.append(Measurement(stamp, source_key(topic, frame), payload))
+            self.stamps = [m.stamp for m in self._out]
+            return
+        self._imgs = imgs = data.images
+        if len(imgs) == 0 or model.config.tags is None:
+            return
+        self.stamps = [float(t) for t in imgs.stamps]
+        self._start(cams, model.config.tags.family, refine, workers, bag)
+
+    def _start(self, cams: Callable[[str, float], Any], family: str, refine: str, workers: int, bag: str) -> None:
+        from ppoe_core.sensing.tag_rows import detections_in_images, rows_from_detections
+
+        imgs = self._imgs
+
+        def camera(i: int) -> tuple[np.ndarray, np.ndarray]:
+            KD = cams(imgs.frame_ids[i], self.stamps[i])
+            if KD is None:
+                raise BagError(f"bag {bag}: topic {imgs.topic} message {i}: no /camera/camera_info with frame_id "
+                               f"{imgs.frame_ids[i]!r}")
+            return KD
+
+        def decode(i: int) -> np.ndarray:
+            camera(i)  # its error first, as for an image that does not decode
+            return imgs.decode(i)
+
+        self._rows = rows_from_detections
+        self._camera = camera
+        # the rows are made here, not on the workers: the less Python (GIL) they run, the less the replay waits
+        self._dets = detections_in_images(decode, len(imgs), family, refine, workers, ahead=len(imgs))
+
+    def get(self, k: int) -> Any:
+        """The measurement of slot ``k`` (None: an image without tags); reads the images up to ``k`` in order."""
+        while len(self._out) <= k:
+            self._out.append(self._image(len(self._out)))
+        return self._out[k]
+
+    def _image(self, i: int) -> Any:
+        from ppoe_core.estimation.pipeline import Measurement, TagMeasurement, source_key
+
+        self.counts["images"] += 1
+        dets = next(self._dets)
+        K, D = self._camera(i)
+        rows = self._rows(dets, K, D)[0]  # = observe_tags(imgs.decode(i), K, D, family, ...)
+        self.counts["tag_messages"] += 1
+        if rows.shape[0] == 0:
+            self.counts["images_without_tags"] += 1
+            return None
+        self.counts["tag_points"] += int(rows.shape[0])
+        ids, corners = np.rint(rows[:, 0]).astype(int), np.rint(rows[:, 1]).astype(int)
+        frame = self._imgs.frame_ids[i]
+        payload = TagMeasurement(frame, ids, corners, rows[:, 4:6], rows[:, 2:4], float(K[0, 0]), float(K[1, 1]))
+        return Measurement(self.stamps[i], source_key("/tag_bearing/observations", frame), payload)
+
+    def measurements(self) -> list[Any]:
+        """Every slot's measurement (those with tags), in slot order."""
+        if self.stamps:
+            self.get(len(self.stamps) - 1)
+        return [m for m in self._out if m is not None]
+
+    def close(self) -> None:
+        """Stop the detection threads."""
+        if self._dets is not None:
+            self._dets.close()
+
+
+def tag_measurements(
+    data: Any, model: Any, bag: str, refine: str = "subpix", workers: int = IMAGE_WORKERS
+) -> tuple[list[Any], dict[str, int]]:
+    """Measurements of tag observations: recorded ``/tag_bearing/observations`` if present,
+    else detections on the camera images (``ppoe_core.sensing.tags.detect_tags``, as the tag node; decoded
+    and detected on ``workers`` threads, the results taken in image order, the same for any ``workers``);
+    :class:`TagStream` read to the end."""
+    stream = TagStream(data, model, bag, refine, workers)
+    try:
+        return stream.measurements(), stream.counts
+    finally:
+        stream.close()
+
