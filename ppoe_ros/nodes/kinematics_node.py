@@ -32,6 +32,10 @@ A backward jump larger than ``stamp_reset_threshold`` (a replayed bag looping,
 a simulator reset) is logged and counted too, but taken as the start of a new
 timeline: that message is published.  Joint states that arrive before the URDF
 are counted as ``dropped``.  Joints the chain does not use are ignored.
+A model whose effects read a context (``thermal_growth`` against time or temperature, ``backlash``) gets it from
+the joint states so far (:class:`ppoe_core.model.context.LiveContext`: time since the first one, each joint's last
+motion sign); for a temperature the node subscribes to ``temperature`` (``sensor_msgs/Temperature``) and counts
+joint states as bad until the first arrives.
 
 Throughput (``bench/bench_nodes.py``, docs/performance.md): the node spins rclpy's ``EventsExecutor``
 (:func:`~ppoe_ros.common.runner.run_node`), takes ``/joint_states`` as raw CDR bytes and publishes the pose as
