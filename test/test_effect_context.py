@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -72,8 +73,9 @@ def test_temperature_effect_needs_a_temperature(tmp_path: Path) -> None:
     stamps, Q = _walk(np.random.default_rng(4), 5, len(model.joint_names))
     with pytest.raises(ModelConfigError, match="/temperature"):
         batch_context(model.effects, model.joint_names, stamps, Q, t0=stamps[0], where="bag b")
+    series = SimpleNamespace(stamps=np.array([99.0, 101.0]), temperature=np.array([20.0, 30.0]))
     ctx = batch_context(model.effects, model.joint_names, stamps, Q, t0=stamps[0],
-                        temperature=(np.array([99.0, 101.0]), np.array([20.0, 30.0])))
+                        temperatures={"/temperature": series})
     np.testing.assert_allclose(ctx["temperature"], np.interp(stamps, [99.0, 101.0], [20.0, 30.0]))
     live = LiveContext(model.effects, model.joint_names)
     with pytest.raises(ModelConfigError, match="no /temperature"):

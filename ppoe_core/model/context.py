@@ -12,14 +12,14 @@ joint-state stream itself is no sensor's, so a sensor's ``time_offset`` shifts n
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from ppoe_core.errors import ModelConfigError
 
-__all__ = ["LiveContext", "batch_context", "motion_signs", "needed_context"]
+__all__ = ["LiveContext", "batch_context", "motion_signs", "needed_context", "sample_series", "temperature_at"]
 
 #: Changes between consecutive joint samples below this [rad or m] are not motion.
 MOTION_THRESHOLD = 1e-5
@@ -52,6 +52,33 @@ def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
     return last[idx]
 
 
+def sample_series(t: np.ndarray, v: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Values of a series (times ``t`` (M,) increasing, values ``v`` (M,)) at times ``at``: linear interpolation
+    between samples, but the last sample is held across a gap longer than 5 median sample periods (a static stop's
+    burst followed by its measurements, docs/conventions.md sec. 3); NaN without samples."""
+    if t.size == 0:
+        return np.full(at.shape, np.nan)
+    if t.size == 1:
+        return np.full(at.shape, v[0])
+    dt = np.diff(t)
+    gap = 5.0 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 0.0
+    i = np.clip(np.searchsorted(t, at, side="right") - 1, 0, t.size - 1)
+    j = np.minimum(i + 1, t.size - 1)
+    hold = (t[j] - t[i]) > gap
+    return np.where(hold | (at <= t[0]), v[i], np.interp(at, t, v))
+
+
+def temperature_at(temperatures: Mapping[str, Any], stamps: np.ndarray) -> np.ndarray | None:
+    """The first (by topic name) ``/temperature[/<name>]`` series with a finite value (``.stamps``,
+    ``.temperature``) sampled at ``stamps`` by :func:`sample_series`; None when there is none."""
+    for _topic, series in sorted(temperatures.items()):
+        good = np.isfinite(series.temperature)
+        if good.any():
+            order = np.argsort(series.stamps[good], kind="stable")
+            return sample_series(series.stamps[good][order], series.temperature[good][order], stamps)
+    return None
+
+
 def needed_context(effects: Sequence[Any]) -> set[str]:
     """Context keys the ``effects`` cannot do without (``time``, ``temperature``, ``motion_sign``,
     ``joint_velocity``); empty for a model without such effects."""
@@ -62,9 +89,8 @@ def needed_context(effects: Sequence[Any]) -> set[str]:
 
 
 def batch_context(effects: Sequence[Any], joint_names: Sequence[str], stamps: np.ndarray, Q: np.ndarray,
-                  t0: float, temperature: tuple[np.ndarray, np.ndarray] | None = None,
-                  where: str = "") -> dict[str, Any] | None:
-    """Context for ``N`` configurations of a recording (``ppoe evaluate``).
+                  t0: float, temperatures: Mapping[str, Any] | None = None, where: str = "") -> dict[str, Any] | None:
+    """Context for ``N`` configurations of a recording (``ppoe evaluate``), by the rules of ``ppoe diagnose``.
 
     Parameters
     ----------
@@ -74,8 +100,8 @@ def batch_context(effects: Sequence[Any], joint_names: Sequence[str], stamps: np
     Q : (N, J) joint values
     t0 : float
         Time [s] of the recording's first joint state (``time`` = ``stamps - t0``).
-    temperature : (stamps (K,), values (K,)), optional
-        The recording's ``/temperature``; linear between samples, held beyond the ends.
+    temperatures : topic -> temperature series of the recording (``BagData.temperatures``), optional
+        Read by :func:`temperature_at`.
     where : str
         Names the recording in errors.
 
@@ -94,13 +120,11 @@ def batch_context(effects: Sequence[Any], joint_names: Sequence[str], stamps: np
         ctx["joint_velocity"] = {n: (np.gradient(Q[:, j], stamps) if len(stamps) > 1 else np.zeros(len(stamps)))
                                  for j, n in enumerate(joint_names)}
     if "temperature" in need:
-        if temperature is None or not np.isfinite(temperature[1]).any():
+        temp = temperature_at(temperatures or {}, stamps)
+        if temp is None:
             raise ModelConfigError(f"{where}: the model has thermal_growth against temperature, but there is no "
                                    "/temperature with a finite value")
-        ts, vs = temperature
-        good = np.isfinite(vs)
-        order = np.argsort(ts[good], kind="stable")
-        ctx["temperature"] = np.interp(stamps, ts[good][order], vs[good][order])
+        ctx["temperature"] = temp
     return ctx
 
 
@@ -139,9 +163,11 @@ class LiveContext:
         if self._t0 is None:
             self._t0 = stamp
         self._last = (stamp, q.copy())
-        ctx: dict[str, Any] = {"time": stamp - self._t0, "sensor": "",
-                               "motion_sign": dict(zip(self.names, self._sign.copy())),
-                               "joint_velocity": dict(zip(self.names, vel))}
+        ctx: dict[str, Any] = {"time": stamp - self._t0, "sensor": ""}
+        if "motion_sign" in self.needed:
+            ctx["motion_sign"] = dict(zip(self.names, self._sign.copy()))
+        if "joint_velocity" in self.needed:
+            ctx["joint_velocity"] = dict(zip(self.names, vel))
         if "temperature" in self.needed:
             if self.temperature is None:
                 raise ModelConfigError("the model has thermal_growth against temperature: no /temperature "
@@ -154,7 +180,8 @@ class LiveContext:
         ctxs = [self.update(t, q) for t, q in zip(stamps, Q)]
         out: dict[str, Any] = {"time": np.array([c["time"] for c in ctxs]), "sensor": ""}
         for key in ("motion_sign", "joint_velocity"):
-            out[key] = {n: np.array([c[key][n] for c in ctxs]) for n in self.names}
+            if key in self.needed:
+                out[key] = {n: np.array([c[key][n] for c in ctxs]) for n in self.names}
         if "temperature" in self.needed:
             out["temperature"] = np.array([c["temperature"] for c in ctxs])
         return out

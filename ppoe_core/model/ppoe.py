@@ -60,6 +60,12 @@ __all__ = ["PPOEModel", "Joints"]
 Joints = Mapping[str, ArrayLike] | ArrayLike
 
 
+def _off_chain(ch: Any, joint: str) -> bool:
+    """``joint`` is neither moved nor perturbed on the compiled chain ``ch`` (an effect's correction there changes
+    nothing the chain computes)."""
+    return joint not in ch.motion_joint and joint not in ch.d_joint and joint not in ch.masters
+
+
 # ----------------------------------------------------------------------------
 # The model
 # ----------------------------------------------------------------------------
@@ -306,10 +312,8 @@ class PPOEModel:
             qd = self._all_joint_dict(joints, shape)
             dq_tot: dict[str, Array] = {}
             dxi_tot: dict[str, Array] = {}
-            on_chain = set(ch.motion_joint) | set(ch.d_joint) | set(ch.masters)
             for eff in effects:
-                if context is None and bool(getattr(eff, "context_keys", None)) \
-                        and getattr(eff, "location", None) in self.robot.joints and eff.location not in on_chain:
+                if context is None and getattr(eff, "context_keys", None) and _off_chain(ch, eff.location):
                     continue  # reads a context but corrects a joint off this chain: changes nothing here
                 dq, dxi = eff.corrections(qd, dict(context or {}))
                 for k, v in dq.items():

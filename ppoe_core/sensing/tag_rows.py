@@ -109,7 +109,6 @@ def observe_tags(
 
 def detections_in_images(decode: Callable[[int], np.ndarray], n: int, dictionary: str = "tag36h11",
                          refine: str = DEFAULT_CORNER_REFINEMENT, workers: int = 1,
-                         finish: Callable[[int, list[Any]], Any] | None = None,
                          ahead: int | None = None) -> ImageDetections:
     """:func:`ppoe_core.sensing.tags.detect_tags` of images ``decode(0) .. decode(n - 1)``, in that order (an
     iterator with ``close()``).
@@ -117,13 +116,11 @@ def detections_in_images(decode: Callable[[int], np.ndarray], n: int, dictionary
     With ``workers`` > 1, decoding and detection run on that many threads (OpenCV releases the GIL), started at
     once and ``ahead`` images (default ``4 * workers``) ahead of the consumer (OpenCV's own threads are set to one
     meanwhile); every image's detections, or the error its decoding or detection raised, are still handed out in
-    image order, and the threads stop when the consumer stops (``close()``, also after an error).  ``finish(i,
-    detections)``, if given, runs on the same thread and its result is handed out instead.
+    image order, and the threads stop when the consumer stops (``close()``, also after an error).
     The detections do not depend on the thread (``test/test_tags.py``).
     """
-    def one(i: int) -> Any:
-        dets = tagmod.detect_tags(decode(i), dictionary, refine)
-        return dets if finish is None else finish(i, dets)
+    def one(i: int) -> list[Any]:
+        return tagmod.detect_tags(decode(i), dictionary, refine)
 
     return ImageDetections(one, n, workers, 4 * workers if ahead is None else ahead)
 

@@ -25,7 +25,8 @@ from ppoe_core.analysis.diagnose.report import load_model
 from ppoe_core.analysis.diagnose.results import DiagnoseResult
 from ppoe_core.analysis.diagnose.selection import select_by_heldout_gain
 from ppoe_core.analysis.diagnose.stats import _lstsq, _pose_folds
-from ppoe_core.analysis.diagnose.stops import _sample_joint, motion_signs
+from ppoe_core.analysis.diagnose.stops import motion_signs
+from ppoe_core.model.context import sample_series as _sample_joint
 from ppoe_core.errors import BagError, MeasurementError
 from ppoe_core.model.effects import Effect, effect_from_config
 from ppoe_core.robot.tree import KinematicTree

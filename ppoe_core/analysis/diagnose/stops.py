@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import BagError, ModelConfigError, PpoeError, PpoeWarning
-from ppoe_core.model.context import motion_signs
+from ppoe_core.model.context import motion_signs, temperature_at
+from ppoe_core.model.context import sample_series as _sample_joint
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
@@ -197,22 +198,6 @@ def _stop_info(path: str | Path) -> list[tuple[float, dict]]:
     return out
 
 
-def _sample_joint(t: np.ndarray, v: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """Joint values at times ``at``: linear interpolation between samples, but the last sample
-    is held across a gap longer than 5 median sample periods (a static stop's burst followed
-    by its measurements, docs/conventions.md sec. 3)."""
-    if t.size == 0:
-        return np.full(at.shape, np.nan)
-    if t.size == 1:
-        return np.full(at.shape, v[0])
-    dt = np.diff(t)
-    gap = 5.0 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 0.0
-    i = np.clip(np.searchsorted(t, at, side="right") - 1, 0, t.size - 1)
-    j = np.minimum(i + 1, t.size - 1)
-    hold = (t[j] - t[i]) > gap
-    return np.where(hold | (at <= t[0]), v[i], np.interp(at, t, v))
-
-
 def stops_from_bag(path: str | Path, robot: Robot, *, tracker_link: str | None = None,
                    tracker_xyz: Sequence[float] = (0.0, 0.0, 0.0), tracker_sigma: float = 5e-4,
                    base: str | None = None, tool: str | None = None, pose_sigma: float = 5e-4,
@@ -384,12 +369,9 @@ def _split_by_frame(session: np.ndarray, names: list[str], frames: list[str]) ->
 
 def _temperature_context(data: Any, stamps: np.ndarray, ctx: dict[str, Any]) -> None:
     """``ctx["temperature"]``: the first ``/temperature[/<name>]`` topic at the stamps (none: no key)."""
-    for _topic, series in sorted(data.temperatures.items()):
-        good = np.isfinite(series.temperature)
-        if good.any():
-            order = np.argsort(series.stamps[good], kind="stable")
-            ctx["temperature"] = _sample_joint(series.stamps[good][order], series.temperature[good][order], stamps)
-            return
+    temp = temperature_at(data.temperatures, stamps)
+    if temp is not None:
+        ctx["temperature"] = temp
 
 
 def _check_joint_samples(path: str | Path, jn: str, t: np.ndarray, n_messages: int) -> None:

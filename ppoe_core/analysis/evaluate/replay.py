@@ -231,7 +231,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     tags = TagStream(data, model, bag, refine=str(fs["corner_refinement"]))
     try:
         pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml,
-                         required_joints(model, sensors), _first_temperature(data))
+                         required_joints(model, sensors), data.temperatures)
         contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
         pipes, updaters = _pipelines(model, base, tool, fs, pri.cov_naive)
         gt_stamps = data.ground_truth_pose.stamps if kind == "pose" else data.ground_truth_point.stamps
@@ -261,7 +261,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     else:
         score_points(summary, samples, run, data.ground_truth_point, have, methods, model, tool, opt.fit_set, bag,
                      tracker=pick_reflector(model.config, data, tool, bag),
-                     context_source=(float(np.min(data.joint_states.stamps)), _first_temperature(data)))
+                     context_source=(float(np.min(data.joint_states.stamps)), data.temperatures))
     _measurement_summary(summary, run, pipes, updaters, methods)
     if data.notes:
         summary["bag_notes"] = list(data.notes)
@@ -371,16 +371,9 @@ class _Priors:
     incomplete: int = 0
 
 
-def _first_temperature(data: Any) -> tuple[np.ndarray, np.ndarray] | None:
-    """Stamps and values of the bag's first ``/temperature[/<name>]`` topic (None: none)."""
-    for _topic, series in sorted(data.temperatures.items()):
-        return series.stamps, series.temperature
-    return None
-
-
 def _fk_priors(js: Any, model: Any, base: str, tool: str, order: int, bag: str,
                model_yaml: str | Path, required: set[str] | None = None,
-               temperature: tuple[np.ndarray, np.ndarray] | None = None) -> _Priors:
+               temperatures: Any = None) -> _Priors:
     """PPOE mean and covariance of the tool for every joint state (the kinematics node's output); effects that
     need a context (time, motion sign, temperature) get it from the joint states as in ``ppoe diagnose``."""
     Q, held = joint_matrix(js, model.joint_names, bag, required=required)
@@ -393,7 +386,7 @@ def _fk_priors(js: Any, model: Any, base: str, tool: str, order: int, bag: str,
     Q = Q[idx]
     joints = {n: Q[:, j] for j, n in enumerate(model.joint_names)}
     try:
-        ctx = batch_context(model.effects, model.joint_names, stamps, Q, float(np.min(js.stamps)), temperature,
+        ctx = batch_context(model.effects, model.joint_names, stamps, Q, float(np.min(js.stamps)), temperatures,
                             where=f"bag {bag}")
         T_all, cov_all = model.fk(joints, base, tool, order=order, context=ctx)
     except (UnknownJointError, JointValueError) as exc:

@@ -151,7 +151,7 @@ def score_points(summary: dict[str, Any], samples: dict[str, np.ndarray], run: R
                  tracker: Any = None, context_source: tuple[float, Any] = (0.0, None)) -> None:
     """Reflector position errors (3D, lateral) and NEES of every method against the points of ``tracker``
     (default: the model's ``tracker``; ``/ground_truth/point`` or ``/ground_truth/point/<name>``).
-    ``context_source``: first joint-state time [s] and ``/temperature`` (stamps, values) of the bag, for effects
+    ``context_source``: first joint-state time [s] and the temperature series of the bag, for effects
     that read a context (:func:`ppoe_core.model.context.batch_context`)."""
     tr = tracker if tracker is not None else model.config.tracker
     gt_stamps = gt_point.stamps
