@@ -586,10 +586,10 @@ def effect_from_config(entry: Mapping[str, Any], robot: Robot | KinematicTree,
 
 def sum_effect_corrections(effects: Sequence[Effect], q: Mapping[str, Any],
                       context: Mapping[str, Any] | None = None,
-                      poses: Mapping[str, np.ndarray] | None = None) -> Corrections:
-    """Sum the corrections of several effects: ``(dq, dxi)`` dictionaries (eq. 16 hooks)."""
-    dq: dict[str, np.ndarray] = {}
-    dxi: dict[str, np.ndarray] = {}
+                      poses: Mapping[str, np.ndarray] | None = None, start: Corrections | None = None) -> Corrections:
+    """Sum the corrections of several effects: ``(dq, dxi)`` dictionaries (eq. 16 hooks), added to ``start``'s."""
+    dq: dict[str, np.ndarray] = dict(start[0]) if start else {}
+    dxi: dict[str, np.ndarray] = dict(start[1]) if start else {}
     for eff in effects:
         a, b = eff.corrections(q, context or {}, poses)
         for k, v in a.items():

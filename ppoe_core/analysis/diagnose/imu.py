@@ -135,13 +135,8 @@ def imu_jacobian(tree: KinematicTree, stops: Stops, effect: Effect | None, curre
         base = sum_effect_corrections(others, stops.q, stops.context, poses)  # summed once, in the same order
 
         def raw(e: Effect) -> np.ndarray:
-            dq, dxi = dict(base[0]), dict(base[1])
-            a, b = e.corrections(stops.q, stops.context, poses)
-            for k, v in a.items():
-                dq[k] = dq.get(k, 0.0) + v
-            for k, v in b.items():
-                dxi[k] = dxi.get(k, 0.0) + v
-            return imu_tilt_raw(tree, stops, [], tilt_group, (dq, dxi))
+            return imu_tilt_raw(tree, stops, [], tilt_group,
+                                sum_effect_corrections([e], stops.q, stops.context, poses, start=base))
 
         for i in range(effect.n_params):
             d = np.zeros(effect.n_params)
