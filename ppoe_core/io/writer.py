@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import BagError
+from ppoe_core.io.bag_qos import offered_qos
 from ppoe_core.io.messages import (
     _IMU_RE,
     CONTRACT_TYPES,
@@ -91,6 +92,9 @@ class BagWriter:
         self._writer: Any = None
         self._connections: dict[str, Any] = {}
         self.counts: dict[str, int] = {}
+        #: offered QoS per topic (rosbags ``Qos`` list), stored in metadata.yaml; set it before a topic's first
+        #: message (``ppoe record``: what the publishers offered); a topic not in it gets :func:`offered_qos`
+        self.offered_qos: dict[str, list[Any]] = {}
 
     # -- lifecycle
     def open(self) -> BagWriter:
@@ -159,7 +163,8 @@ class BagWriter:
                 expected = T_IMU
             if expected is not None and expected != msgtype:
                 raise BagError(f"topic {topic} must carry {expected}, not {msgtype}")
-            conn = self._writer.add_connection(topic, msgtype, typestore=typestore())
+            conn = self._writer.add_connection(topic, msgtype, typestore=typestore(),
+                                               offered_qos_profiles=self.offered_qos.get(topic) or offered_qos(topic))
             self._connections[topic] = conn
         elif conn.msgtype != msgtype:
             raise BagError(f"topic {topic} was opened with {conn.msgtype}, cannot write {msgtype}")

@@ -8,7 +8,15 @@ mismatch, so :meth:`ppoe_core.io.bagio.BagWriter.write_raw` parses and re-serial
 them with rosbags.  The recorded bag therefore reads back with plain ``rosbags``.
 
 The subscription QoS follows the publishers: transient local when all of them
-are (``/robot_description``), best effort if any publisher is best effort.
+are (``/robot_description``), best effort if any publisher is best effort.  The
+profiles the publishers offered are stored per topic in ``metadata.yaml``
+(``offered_qos_profiles``, as ``ros2 bag record`` does), so ``ros2 bag play`` and
+``ppoe play`` offer them again.
+
+Standard ROS arguments follow ``--ros-args``: ``-r __ns:=/robot1`` records the given relative topic
+names in that namespace (``joint_states`` is ``/robot1/joint_states``; the bag keeps the full names),
+``-r __node:=NAME`` renames the recorder.
+
 The log time of a message is its receive time on the node clock
 (``--use-sim-time`` to take it from ``/clock``).  Stops on SIGINT/SIGTERM or
 after ``--duration``; the bag is closed properly either way (exit 0).
@@ -30,6 +38,7 @@ from typing import Any
 
 from ppoe_core.errors import PpoeError
 from ppoe_core.io.bagio import BagWriter
+from ppoe_ros.cli.play import add_ros_args, init_ros
 
 __all__ = ["add_arguments", "run", "Recorder"]
 
@@ -48,6 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--flush-period", type=float, default=0.5, metavar="SECONDS",
                         help="write the messages to disk at least this often, with metadata.yaml, so that a "
                              "recorder killed with -9 leaves a readable bag (mcap; default 0.5)")
+    add_ros_args(parser)
 
 
 def _qos_for(publishers: list[Any]) -> Any:
@@ -70,7 +80,7 @@ class Recorder:
 
         self.node = node
         self.writer = writer
-        self.pending = list(dict.fromkeys(topics))
+        self.pending = list(dict.fromkeys(node.resolve_topic_name(t) for t in topics))
         self.subs: dict[str, Any] = {}
         self.stats = NodeStats(node, ("received", "written", "bad"))
         from rclpy.clock import Clock, ClockType
@@ -82,6 +92,7 @@ class Recorder:
     def discover(self) -> None:
         """Subscribe every pending topic that now has a publisher."""
         from ppoe_ros.common import message_class
+        from ppoe_ros.common.bag_qos import qos_from_rclpy
 
         if not self.pending:
             return
@@ -96,6 +107,7 @@ class Recorder:
             if not pubs:
                 continue
             cls = message_class(msgtype)
+            self.writer.offered_qos[topic] = [qos_from_rclpy(p.qos_profile) for p in pubs]
             self.subs[topic] = self.node.create_subscription(
                 cls, topic, self._callback(topic, msgtype), _qos_for(pubs), raw=True)
             self.pending.remove(topic)
@@ -134,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     recorder: Recorder | None = None
     node = None
     try:
-        rclpy.init(args=["ppoe_record"], signal_handler_options=SignalHandlerOptions.NO)
+        init_ros("ppoe_record", list(args.ros_args or []), signal_handler_options=SignalHandlerOptions.NO)
         node = rclpy.create_node("ppoe_record", parameter_overrides=[
             Parameter("use_sim_time", Parameter.Type.BOOL, bool(args.use_sim_time))])
         writer.open()
