@@ -88,13 +88,13 @@ def _true_params(e: Mapping[str, Any], rep: Mapping[str, Any], truth: Mapping[st
     return p
 
 
-def _check_params(key: str, truth_p: Mapping[str, float], rep: Mapping[str, Any]) -> list[str]:
+def _check_params(key: str, truth_p: Mapping[str, float], rep: Mapping[str, Any], required: set[str]) -> list[str]:
     """``name@loc.param`` lines for every reported parameter whose truth (0 if the truth does not have it) lies
-    outside its CI, and every non-zero true parameter not reported."""
+    outside its CI, and every ``required`` parameter (the effect's non-zero true ones) not reported."""
     out = []
     ci = rep.get("ci") or {}
     params = rep.get("parameters") or {}
-    for k in sorted(set(params) | {k for k, v in truth_p.items() if v != 0.0}):
+    for k in sorted(set(params) | required):
         t = truth_p.get(k, 0.0)
         if k not in ci:
             out.append(f"{key}.{k}: truth {t:.4g} not reported" if k not in params else
@@ -139,7 +139,8 @@ def judge(truth: Mapping[str, Any], diagnosis: Mapping[str, Any], robot: Robot |
         if str(rep["location"]) != str(e["location"]) and e["name"] == "camera_extrinsics":
             v.out_of_ci.append(f"{key}: reported at {rep['location']}, parameters not comparable")
             continue
-        v.out_of_ci += _check_params(key, _true_params(e, rep, truth), rep)
+        required = {k for k, x in (e.get("parameters") or {}).items() if isinstance(x, Mapping) or float(x) != 0.0}
+        v.out_of_ci += _check_params(key, _true_params(e, rep, truth), rep, required)
     v.extra = [v.reported[i] for i in range(len(reported)) if i not in used and v.reported[i] not in allowed_extra]
     return v
 
