@@ -9,7 +9,8 @@ The *true* robot is the nominal URDF plus
   :mod:`ppoe_core.model.effects` so that ``ppoe diagnose`` is tested against physics, not
   against its own code): ``joint_offset``, ``link_error``, ``gravity_compliance``,
   ``mount_bending``, ``base_tilt``, ``backlash``, ``thermal_growth``, ``time_offset``,
-  ``camera_extrinsics``.
+  ``camera_extrinsics``; ``camera_intrinsics`` and ``tag_offset`` change what the camera sees
+  (:mod:`ppoe_core.sim.camera_sim`); ``transmission_error`` is outside the vocabulary.
 
 One link of the true chain is (paper eq. 16 with the effects inserted)::
 
