@@ -48,6 +48,7 @@ setup(
             "pytest-timeout>=2",
             "pytransform3d>=3.6",
             "gtsam>=4.3",         # test_diagnose_joint: GTSAM factor graph vs scipy (importorskip)
+            "xacro>=2.0",         # test_launch_file: a .xacro urdf expanded by the launch file (importorskip)
             "colcon-core",
             "colcon-ros",
             "colcon-python-setup-py",
