@@ -23,6 +23,7 @@ setup(
         ("share/" + PACKAGE + "/config", sorted(glob("config/*.*"))),
         ("share/" + PACKAGE + "/config/robots", sorted(glob("config/robots/*.*"))),
         ("share/" + PACKAGE + "/config/nodes", sorted(glob("config/nodes/*.*"))),
+        ("share/" + PACKAGE + "/config/rviz", sorted(glob("config/rviz/*.rviz"))),
         ("share/" + PACKAGE + "/launch", sorted(glob("launch/*.py"))),
     ],
     python_requires=">=3.10",
@@ -68,6 +69,7 @@ setup(
             "tag_bearing_node = ppoe_ros.nodes.tag_bearing_node:main",
             "contact_node = ppoe_ros.nodes.contact_node:main",
             "fusion_node = ppoe_ros.nodes.fusion_node:main",
+            "ppoe_markers = ppoe_ros.common.markers:main",
         ],
     },
 )

@@ -21,6 +21,8 @@ Arguments
     use_sim_time  true when a bag is replayed with ``ppoe play --clock`` (default false)
     kinematics, tag_bearing, contact, fusion
                   start that node (default true each)
+    markers       also start ppoe_markers: the raw and fused position ellipsoids on ``ppoe/markers`` (default false)
+    rviz          also start rviz2 with ``share/ppoe_ros/config/rviz/ppoe.rviz`` (default false)
 
 Paths (``model``, ``urdf``, ``params_file``) may be ``package://PKG/PATH`` URIs or relative paths: a relative
 path is taken from the directory ``ros2 launch`` runs in, else from the ppoe_ros share directory (so
@@ -74,6 +76,8 @@ ARGUMENTS = {
     "tag_bearing": ("true", "start tag_bearing_node"),
     "contact": ("true", "start contact_node"),
     "fusion": ("true", "start fusion_node"),
+    "markers": ("false", "start ppoe_markers (covariance ellipsoids on ppoe/markers for RViz)"),
+    "rviz": ("false", "start rviz2 with config/rviz/ppoe.rviz"),
 }
 
 #: (executable, launch argument that switches it on, parameters of that node the launch arguments set)
@@ -150,20 +154,33 @@ def launch_nodes(context: object, *args: object, **kwargs: object) -> list:
         defaults = str(share / "config" / "nodes" / f"{executable}.yaml")
         nodes.append(Node(package=PACKAGE, executable=executable, name=executable, **common,
                           parameters=[defaults, *user_params, {k: overrides[k] for k in keys}]))
+    if _true(value("markers")):
+        nodes.append(Node(package=PACKAGE, executable="ppoe_markers", name="ppoe_markers", **common,
+                          parameters=[{"use_sim_time": overrides["use_sim_time"]}]))
+    if _true(value("rviz")):
+        _require("rviz2", "rviz:=true", "ros-jazzy-rviz2")
+        nodes.append(Node(package="rviz2", executable="rviz2", name="rviz2", output="screen",
+                          arguments=["-d", str(share / "config" / "rviz" / "ppoe.rviz")],
+                          parameters=[{"use_sim_time": overrides["use_sim_time"]}]))
     return nodes
+
+
+def _require(package: str, why: str, apt: str) -> None:
+    """RuntimeError naming the apt package when ``package`` is not installed."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+    try:
+        get_package_prefix(package)
+    except PackageNotFoundError:
+        raise RuntimeError(f"ppoe.launch.py: {why}, but the package {package} is not installed "
+                           f"(apt install {apt})") from None
 
 
 def _robot_state_publisher(overrides: dict, common: dict) -> "Node":
     """robot_state_publisher with the launch's URDF, frame prefix and clock."""
     if not overrides["robot_description"]:
         raise RuntimeError("ppoe.launch.py: robot_state_publisher:=true needs urdf:=FILE")
-    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
-
-    try:
-        get_package_prefix("robot_state_publisher")
-    except PackageNotFoundError:
-        raise RuntimeError("ppoe.launch.py: robot_state_publisher:=true, but the package robot_state_publisher is "
-                           "not installed (apt install ros-jazzy-robot-state-publisher)") from None
+    _require("robot_state_publisher", "robot_state_publisher:=true", "ros-jazzy-robot-state-publisher")
     params = {k: overrides[k] for k in ("robot_description", "frame_prefix", "use_sim_time")}
     return Node(package="robot_state_publisher", executable="robot_state_publisher", name="robot_state_publisher",
                 **common, parameters=[params])

@@ -157,6 +157,28 @@ def test_launch_expands_xacro_and_starts_robot_state_publisher(monkeypatch: pyte
         module.launch_nodes({**ctx, "urdf": ""})
 
 
+def test_launch_markers_and_rviz(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """markers:=true starts ppoe_markers in the namespace; rviz:=true starts rviz2 with the shipped config (refused,
+    naming the apt package, when rviz2 is not installed)."""
+    module = _load_launch(monkeypatch, tmp_path / "prefix")
+    share = tmp_path / "prefix" / "share" / "ppoe_ros"
+    model = tmp_path / "m.yaml"
+    model.write_text("perturbations: {}\n")
+    ctx = _context(module, model=str(model), kinematics="false", tag_bearing="false", contact="false",
+                   fusion="false", markers="true", namespace="r1", use_sim_time="true")
+    (markers,) = module.launch_nodes(ctx)
+    assert (markers.kwargs["executable"], markers.kwargs["namespace"]) == ("ppoe_markers", "r1")
+    assert markers.kwargs["parameters"] == [{"use_sim_time": True}]
+    assert "ppoe_markers" in _console_scripts()
+    with pytest.raises(RuntimeError, match="apt install ros-jazzy-rviz2"):
+        module.launch_nodes({**ctx, "rviz": "true"})
+    (tmp_path / "prefix" / "share" / "ament_index" / "resource_index" / "packages" / "rviz2").write_text("")
+    _, rviz = module.launch_nodes({**ctx, "rviz": "true"})
+    config = Path(rviz.kwargs["arguments"][1])
+    assert rviz.kwargs["arguments"][0] == "-d" and config == share / "config" / "rviz" / "ppoe.rviz"
+    assert config.is_file()
+
+
 def test_config_files_exist_for_every_node() -> None:
     missing = [f"{n}.yaml" for n in NODES if not (REPO / "config" / "nodes" / f"{n}.yaml").is_file()]
     assert not missing, missing
