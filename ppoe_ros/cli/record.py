@@ -41,6 +41,7 @@ from typing import Any
 
 from ppoe_core.errors import PpoeError
 from ppoe_core.io.bagio import BagWriter
+from ppoe_ros.cli import StopFlag
 from ppoe_ros.cli.play import add_ros_args, init_ros
 
 __all__ = ["add_arguments", "run", "Recorder"]
@@ -148,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
     if writer.replaces_existing:
         print(f"ppoe record: recording into {writer.write_path}; it replaces {args.out} when the recording ends",
               file=sys.stderr)
-    stop = _StopFlag()
+    stop = getattr(args, "stop_flag", None) or StopFlag()  # ``ppoe`` installs it before the imports
     recorder: Recorder | None = None
     node = None
     try:
@@ -182,22 +183,3 @@ def run(args: argparse.Namespace) -> int:
     if recorder is not None and recorder.pending:
         print(f"ppoe record: never saw a publisher of {', '.join(recorder.pending)}", file=sys.stderr)
     return 0
-
-
-class _StopFlag:
-    """SIGINT/SIGTERM set :attr:`raised` (instead of raising in the middle of a write); :meth:`restore`."""
-
-    def __init__(self) -> None:
-        import signal
-
-        self.raised = False
-        self._old = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        self.raised = True
-
-    def restore(self) -> None:
-        import signal
-
-        for sig, old in self._old.items():
-            signal.signal(sig, old)
