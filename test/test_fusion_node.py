@@ -208,7 +208,7 @@ def _wait_until_fusion_idle(env, procs, quiet: float = 2.0, timeout: float = 60.
 
         def idle() -> bool:
             for d in reversed(diags):
-                st = {s.name: s for s in d.status}.get("fusion_node")
+                st = {s.name: s for s in d.status}.get("/fusion_node: health")
                 if st is not None:
                     kv = {k.key: k.value for k in st.values}
                     break
@@ -275,7 +275,7 @@ def test_end_to_end_bag_with_tags(tmp_path):
                                  "/camera/image_raw/compressed"], rate=2.0)
     v_prior, v_fused, n_gt = _errors_at_ground_truth(bag, recorded)
     e_prior, e_fused = np.linalg.norm(v_prior, axis=1), np.linalg.norm(v_fused, axis=1)
-    diag = _diag(recorded, "fusion_node")
+    diag = _diag(recorded, "/fusion_node: health")
     print(f"\ntable1_exp1 end to end: {len(e_fused)}/{n_gt} stops, position error mean prior "
           f"{e_prior.mean() * 1000:.2f} mm, fused {e_fused.mean() * 1000:.2f} mm; fusion diagnostics {diag}")
     assert len(e_fused) >= n_gt - 2  # a stop may lack fused poses when the machine is loaded
@@ -303,7 +303,7 @@ def test_end_to_end_bag_with_contact(tmp_path):
     normal = plane.T_frame_plane[:3, 2]
     touched = np.linalg.norm(v_fused - v_prior, axis=1) > 1e-9
     n_prior, n_fused = np.abs(v_prior[touched] @ normal), np.abs(v_fused[touched] @ normal)
-    diag = _diag(recorded, "fusion_node")
+    diag = _diag(recorded, "/fusion_node: health")
     print(
         f"\ncontact end to end: {len(e_fused)}/{n_gt} stops, position error mean prior "
         f"{e_prior.mean() * 1000:.2f} mm, fused {e_fused.mean() * 1000:.2f} mm; along the table normal on the "

@@ -88,7 +88,7 @@ def _wait_count(live, box, n, what) -> None:
 def _last_counts(live) -> dict[str, int]:
     for arr in reversed(live["diags"]):
         for st in arr.status:
-            if st.name == "kinematics_node":
+            if st.name == "/kinematics_node: health":
                 return {kv.key: int(kv.value) for kv in st.values if kv.value.isdigit()}
     return {}
 
@@ -384,7 +384,7 @@ def test_burst_losses_are_counted_on_diagnostics(tmp_path: Path) -> None:
         probe.spin_for(0.5)
 
         def kv() -> dict[str, str]:
-            st = [s for d in diags for s in d.status if s.name == "kinematics_node"]
+            st = [s for d in diags for s in d.status if s.name == "/kinematics_node: health"]
             return {k.key: k.value for k in st[-1].values} if st else {}
 
         n = 3000
@@ -565,7 +565,7 @@ def test_diagnostics_error_without_model_and_warn_when_the_input_is_silent(tmp_p
         js = probe.publisher("/joint_states", JointState, 100)
 
         def last() -> DiagnosticStatus | None:
-            st = [s for d in diags for s in d.status if s.name == "kinematics_node"]
+            st = [s for d in diags for s in d.status if s.name == "/kinematics_node: health"]
             return st[-1] if st else None
 
         probe.spin_until(lambda: last() is not None, 15, proc, "/diagnostics")
