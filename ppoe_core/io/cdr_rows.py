@@ -58,7 +58,7 @@ def _string(raw: bytes, pos: int) -> tuple[str, int]:
 
 
 def _header(raw: bytes) -> tuple[float, str, int]:
-    """``header.stamp`` in seconds (as ``messages._stamp_s``), ``header.frame_id`` and the position after it."""
+    """``header.stamp`` in seconds (as ``messages.stamp_seconds``), ``header.frame_id`` and the position after it."""
     if raw[:2] != b"\x00\x01":  # not little-endian CDR: the typed path handles (or refuses) it
         raise Fallback
     sec, nsec = _STAMP.unpack_from(raw, 4)
