@@ -28,7 +28,6 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ppoe_core import lie
-from ppoe_ros.common.conversions import stamp_to_ns
 from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats
 from ppoe_core.model.tf_frames import JointFrames, TfFrame, calibrated_camera_frames, urdf_collision
 
@@ -103,8 +102,12 @@ def tf_message_cdr(frames: Sequence[TfFrame], stamp_ns: int) -> bytes:
     builds no typed message."""
     sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
     stamp = _STAMP.pack(sec, nsec)
-    T = np.stack([f.T_parent_child for f in frames]) if frames else np.zeros((0, 4, 4))
-    pose = np.concatenate([T[:, :3, 3], lie.quat_from_matrix(T[:, :3, :3])], axis=1).tolist()
+    if len(frames) == 1:  # the fusion node's corrected tool, at every prior: no stacking
+        T1 = np.asarray(frames[0].T_parent_child, dtype=float)
+        pose = [T1[:3, 3].tolist() + lie.quat_from_matrix(T1[:3, :3]).tolist()]
+    else:
+        T = np.stack([f.T_parent_child for f in frames]) if frames else np.zeros((0, 4, 4))
+        pose = np.concatenate([T[:, :3, 3], lie.quat_from_matrix(T[:, :3, :3])], axis=1).tolist()
     buf = bytearray(b"\x00\x01\x00\x00")  # CDR little endian; alignment counts from the end of this
     buf += _U32.pack(len(frames))
     for k, f in enumerate(frames):
@@ -210,10 +213,10 @@ class FusionTf:
             ([f"{p}{base} -> {p}{child} on {TF_TOPIC} (corrected tool)"] if self.child else [])
             + [f"{p}{c.parent} -> {p}{c.child} on {TF_STATIC_TOPIC} (calibrated camera)" for c in cameras]) or "none"))
 
-    def publish(self, T_base_tool: np.ndarray, stamp: TimeMsg) -> None:
-        """The corrected tool frame on ``/tf`` at ``stamp`` (the fused pose's), unless it is off."""
+    def publish(self, T_base_tool: np.ndarray, stamp_ns: int) -> None:
+        """The corrected tool frame on ``/tf`` at ``stamp_ns`` [ns] (the fused pose's), unless it is off."""
         if self.child is not None and self.broadcaster is not None:
-            self.broadcaster.send([TfFrame(self.base, self.child, T_base_tool)], stamp_to_ns(stamp))
+            self.broadcaster.send([TfFrame(self.base, self.child, T_base_tool)], stamp_ns)
 
 
 class KinematicsTf:
