@@ -23,7 +23,10 @@ that are given its work array (``fourth``): numba prunes the ``fourth is None`` 
 ``none``, so a second-order caller (the kinematics node's default) never compiles it (about half of the cold
 compile).  The working set of a call is sized ``min(N, CHUNK)`` (one configuration allocates 3 KB, not 100 KB), the
 covariance accumulates in two vectorised passes per column (the column into ``g``, then the 21 products), and
-``fastmath={"contract"}`` lets LLVM fuse multiply-adds (results differ from separate rounding in the last bit).
+``fastmath={"contract"}`` lets LLVM fuse multiply-adds (results differ from separate rounding in the last bit).  The
+joint angles' sines and cosines are :func:`sincos` (Cephes' reduction and polynomials, within 2 ulp of libm's, no
+call): libm's are called one angle at a time and kept the loop scalar; with it the batched order-2 FK went 2.0 ->
+2.5 M configurations/s (bench/bench_fk.py, under load; 32 configurations per chunk was slower than 64).
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from ppoe_core.jit import njit
 
 from ppoe_core.model.fourth_order import compound_chunk
 
-__all__ = ["CHUNK", "FOURTH_WORK", "eval_chain", "fk_one"]
+__all__ = ["CHUNK", "FOURTH_WORK", "SINCOS_LIMIT", "eval_chain", "fk_one", "sincos"]
 
 #: configurations per chunk (the working set ``(n_f + 1, 3, 4, CHUNK)`` stays in cache)
 CHUNK = 64
@@ -55,13 +58,73 @@ def _static(Fk: np.ndarray, nx: np.ndarray, out: np.ndarray, C: int) -> None:
             out[i, 3, n] += f3
 
 
+#: the sine and cosine of :func:`sincos`: |x| beyond this takes numpy's (the three-part reduction by pi/4 keeps
+#: its accuracy up to about 2**30; a joint angle is never near it)
+SINCOS_LIMIT = 1.0e6
+# Cody-Waite reduction by pi/4 in three parts and minimax polynomials on [-pi/4, pi/4] (Cephes sin.c, S. Moshier)
+_FOUR_OVER_PI = 1.27323954473516268615
+_DP1, _DP2, _DP3 = 7.85398125648498535156e-1, 3.77489470793079817668e-8, 2.69515142907905952645e-15
+_S0, _S1, _S2 = 1.58962301576546568060e-10, -2.50507477628578072866e-8, 2.75573136213857245213e-6
+_S3, _S4, _S5 = -1.98412698295895385996e-4, 8.33333333332211858878e-3, -1.66666666666666307295e-1
+_C0, _C1, _C2 = -1.13585365213876817300e-11, 2.08757008419747316778e-9, -2.75573141792967388112e-7
+_C3, _C4, _C5 = 2.48015872888517045348e-5, -1.38888888888730564116e-3, 4.16666666666665929218e-2
+
+
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _rot_z(th: np.ndarray, n0: int, nx: np.ndarray, out: np.ndarray, C: int) -> None:
-    """``out = Rz(theta) @ nx`` for the configurations ``n0 .. n0 + C``."""
-    for n in range(C):
-        c = np.cos(th[n0 + n])
-        s = np.sin(th[n0 + n])
-        for j in range(4):
+def sincos(x: float) -> tuple[float, float]:
+    """``(sin x, cos x)`` within 2 ulp of libm's for ``|x| <= SINCOS_LIMIT``, without a call or a branch, so that
+    the loop over configurations vectorises (libm's ``sin`` and ``cos`` are 20 ns per angle, called one by one:
+    two thirds of the chain's suffix products)."""
+    a = abs(x)
+    j = np.int64(a * _FOUR_OVER_PI)
+    j += j & 1
+    y = float(j)
+    z = ((a - y * _DP1) - y * _DP2) - y * _DP3
+    zz = z * z
+    ps = z + z * zz * (((((_S0 * zz + _S1) * zz + _S2) * zz + _S3) * zz + _S4) * zz + _S5)
+    pc = 1.0 - 0.5 * zz + zz * zz * (((((_C0 * zz + _C1) * zz + _C2) * zz + _C3) * zz + _C4) * zz + _C5)
+    q = j & 7
+    swap = (q == 2) | (q == 6)
+    s = pc if swap else ps
+    c = ps if swap else pc
+    s = -s if (q >= 4) != (x < 0) else s
+    c = -c if (q == 2) | (q == 4) else c
+    return s, c
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _angles(theta: np.ndarray, n0: int, C: int, cs: np.ndarray) -> None:
+    """``cs[m, 0, n], cs[m, 1, n]`` = sine, cosine of ``theta[m, n0 + n]`` for the chunk (:func:`sincos`; numpy's
+    beyond :data:`SINCOS_LIMIT`).  A chunk of one configuration takes numpy's: the single-configuration paths
+    (:func:`fk_one` compiled into any caller, :func:`eval_chain` of one configuration) then give the same bits
+    whatever the compiler makes of the inlined polynomial (fused multiply-adds); a row of a batch may differ from
+    them by 2 ulp of the sine."""
+    if C == 1:
+        for m in range(theta.shape[0]):
+            cs[m, 0, 0] = np.sin(theta[m, n0])
+            cs[m, 1, 0] = np.cos(theta[m, n0])
+        return
+    for m in range(theta.shape[0]):
+        big = 0.0
+        for n in range(C):
+            s, c = sincos(theta[m, n0 + n])
+            cs[m, 0, n] = s
+            cs[m, 1, n] = c
+            big = max(big, abs(theta[m, n0 + n]))
+        if big > SINCOS_LIMIT:
+            for n in range(C):
+                if abs(theta[m, n0 + n]) > SINCOS_LIMIT:
+                    cs[m, 0, n] = np.sin(theta[m, n0 + n])
+                    cs[m, 1, n] = np.cos(theta[m, n0 + n])
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _rot_z(sc: np.ndarray, nx: np.ndarray, out: np.ndarray, C: int) -> None:
+    """``out = Rz(theta) @ nx`` for the chunk, ``sc`` = (2, C) its sines and cosines."""
+    for j in range(4):
+        for n in range(C):
+            s = sc[0, n]
+            c = sc[1, n]
             a = nx[0, j, n]
             b = nx[1, j, n]
             out[0, j, n] = c * a - s * b
@@ -83,9 +146,11 @@ def _general(Dk: np.ndarray, n0: int, nx: np.ndarray, out: np.ndarray, C: int) -
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def _suffixes(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, theta: np.ndarray, D: np.ndarray, n0: int,
-              C: int, S: np.ndarray) -> None:
-    """Suffix products ``S[k]`` (rows ``(3, 4, C)``) of the chain for configurations ``n0 .. n0 + C``."""
+              C: int, S: np.ndarray, cs: np.ndarray) -> None:
+    """Suffix products ``S[k]`` (rows ``(3, 4, C)``) of the chain for configurations ``n0 .. n0 + C`` (``cs``: work
+    array (n_motion, 2, >= C) of the motions' sines and cosines)."""
     nf = F.shape[0]
+    _angles(theta, n0, C, cs)
     for i in range(3):
         for j in range(4):
             for n in range(C):
@@ -95,7 +160,7 @@ def _suffixes(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, theta: np.ndarra
         if code == 0:
             _static(F[k], S[k + 1], S[k], C)
         elif code == 1:
-            _rot_z(theta[arg[k]], n0, S[k + 1], S[k], C)
+            _rot_z(cs[arg[k]], S[k + 1], S[k], C)
         elif code == 2:
             for i in range(3):
                 for j in range(4):
@@ -260,11 +325,12 @@ def eval_chain(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, col_pos: np.nda
     N = theta.shape[1]
     C0 = min(N, CHUNK)
     S = np.empty((F.shape[0] + 1, 3, 4, C0))
+    cs = np.empty((theta.shape[0], 2, C0))
     acc = np.zeros((21, C0))
     g = np.empty((6, C0))
     for n0 in range(0, N, CHUNK):
         C = min(CHUNK, N - n0)
-        _suffixes(F, kind, arg, theta, D, n0, C, S)
+        _suffixes(F, kind, arg, theta, D, n0, C, S, cs)
         if order == 2 and C == 1:
             _cov_one(S, col_pos, X, acc)
         elif order == 2:
@@ -323,7 +389,7 @@ def fk_one(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, col_pos: np.ndarray
             return False
     S = np.empty((F.shape[0] + 1, 3, 4, 1))
     acc = np.zeros((21, 1))
-    _suffixes(F, kind, arg, theta, np.zeros((0, 4, 4, 1)), 0, 1, S)
+    _suffixes(F, kind, arg, theta, np.zeros((0, 4, 4, 1)), 0, 1, S, np.empty((n_mot, 2, 1)))
     for i in range(3):
         for j in range(4):
             T[i, j] = S[0, i, j, 0]
