@@ -18,7 +18,7 @@ import pytest
 
 from ppoe_core.errors import BagError
 from ppoe_core.io import bagio, reader
-from ppoe_core.io.cdr_rows import PARSE_ERRORS
+from ppoe_core.io.cdr import PARSE_ERRORS
 from ppoe_core.io.messages import deserialize
 from ppoe_core.io.rows import row_kind
 

@@ -3,7 +3,7 @@
 
 Every topic has a :class:`RowKind`: ``fields`` takes a typed (rosbags) message apart, ``build`` checks the
 fields and makes the row.  The hot topics also have ``parse``, which reads the same fields from the raw
-CDR bytes (:mod:`ppoe_core.io.cdr_rows`); where it cannot, the reader deserialises the typed message, so both
+CDR bytes (:func:`ppoe_core.io.cdr.parse_fields`); where it cannot, the reader deserialises the typed message, so both
 paths build the same rows through the same checks and error messages.
 """
 
@@ -17,12 +17,16 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.errors import BagError
-from ppoe_core.io import cdr_rows
+from ppoe_core.io import cdr
 from ppoe_core.io.messages import (
     IMU_TOPIC_PREFIX,
+    T_COMPRESSED_IMAGE,
+    T_JOINT_STATE,
     T_POINT,
+    T_POSE,
     T_POSE_COV,
     T_TEMPERATURE,
+    T_WRENCH,
     TAG_OBSERVATION_FIELDS,
     TOPIC_CAMERA_INFO,
     TOPIC_COMPRESSED_IMAGE,
@@ -246,19 +250,30 @@ def _typed(build: Callable[[Any, str, int, bool], tuple]) -> RowKind:
     return RowKind(None, _itself, build)
 
 
-_JOINT_STATE = RowKind(cdr_rows.parse_joint_state, _js_fields, _js_row)
-_POINT = RowKind(cdr_rows.parse_point, _point_fields, _point_row)
-_POSE_COV = RowKind(cdr_rows.parse_pose_cov, _pose_cov_fields, _pose_cov_row)
+def _raw(msgtype: str) -> Callable[[bytes], tuple]:
+    """Raw bytes -> the fields the typed path gives (stamp [s] as :func:`stamp_seconds`, frame_id, the rest), by
+    the one CDR reader (:func:`ppoe_core.io.cdr.parse_fields`)."""
+
+    def parse(raw: bytes) -> tuple:
+        (sec, nsec, frame), *rest = cdr.parse_fields(msgtype, raw)
+        return (float(sec) + 1e-9 * float(nsec), frame, *rest)
+
+    return parse
+
+
+_JOINT_STATE = RowKind(_raw(T_JOINT_STATE), _js_fields, _js_row)
+_POINT = RowKind(_raw(T_POINT), _point_fields, _point_row)
+_POSE_COV = RowKind(_raw(T_POSE_COV), _pose_cov_fields, _pose_cov_row)
 _IMU = _typed(_row_imu)
 _TEMPERATURE = _typed(_row_temperature)
 #: topic -> its rows (``/imu/<name>``, point, temperature and pose-with-covariance topics by prefix / type)
 _KINDS: dict[str, RowKind] = {
     TOPIC_JOINT_STATES: _JOINT_STATE,
     TOPIC_CAMERA_INFO: _typed(_row_camera_info),
-    TOPIC_COMPRESSED_IMAGE: RowKind(cdr_rows.parse_compressed_image, _compressed_fields, _compressed_row),
+    TOPIC_COMPRESSED_IMAGE: RowKind(_raw(T_COMPRESSED_IMAGE), _compressed_fields, _compressed_row),
     TOPIC_IMAGE: _typed(_row_image),
-    TOPIC_WRENCH: RowKind(cdr_rows.parse_wrench, _wrench_fields, _wrench_row),
-    TOPIC_GT_POSE: RowKind(cdr_rows.parse_pose, _pose_fields, _pose_row),
+    TOPIC_WRENCH: RowKind(_raw(T_WRENCH), _wrench_fields, _wrench_row),
+    TOPIC_GT_POSE: RowKind(_raw(T_POSE), _pose_fields, _pose_row),
     TOPIC_GT_POINT: _POINT,
     TOPIC_TAG_OBSERVATIONS: _typed(_row_tag_cloud),
 }
