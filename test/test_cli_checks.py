@@ -158,3 +158,39 @@ def test_online_parse_refuses_both_zero_for_the_node_too():
     with pytest.raises(ModelConfigError, match=r"online_effects\[0\]: process_noise and initial_sigma are both 0"):
         parse_online_config(entries, model)
     assert len(parse_online_config(entries_from_flat(["base_tilt:base_link"], [0.0], [0.01], 20.0), model)) == 1
+
+
+# ----------------------------------------------------------------------------- messages cite the user's file
+
+
+def _bad_model(tmp_path: Path) -> Path:
+    text = ARM7_MODEL.read_text().replace("\n  joint_1: 0.0005", "\n  joint_99: 0.0005", 1)
+    assert "joint_99" in text
+    path = tmp_path / "bad_model.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_online_evaluate_names_the_bags_urdf_not_a_string(tmp_path, capsys):
+    """Was: "unknown joint 'joint_99' (not in URDF <string>)"."""
+    model = _bad_model(tmp_path)
+    assert main(["evaluate", str(NO_EFFECT), "--model", str(model), "--online"]) == 2
+    err = capsys.readouterr().err
+    assert f"{model}:" in err and f"(not in URDF bag {NO_EFFECT} /robot_description)" in err and "<string>" not in err
+
+
+@pytest.mark.ros
+def test_kinematics_node_names_where_its_urdf_came_from(tmp_path):
+    pytest.importorskip("rclpy")
+    from ros_helpers import NodeProcess, ros_env, write_params_file
+
+    model = _bad_model(tmp_path)
+    params = write_params_file(tmp_path / "p.yaml", {"robot_description": ARM7_URDF.read_text(),
+                                                     "model_file": str(model)})
+    proc = NodeProcess.node("kinematics_node", ros_env(tmp_path), tmp_path, params_file=params)
+    try:
+        code = proc.wait(60)
+    finally:
+        proc.stop()
+    out = proc.output()
+    assert code == 2 and "(not in URDF parameter robot_description)" in out and "<string>" not in out, out
