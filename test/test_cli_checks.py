@@ -103,7 +103,8 @@ def test_fit_bags_of_different_urdfs_are_refused_naming_the_joints(tmp_path, cap
     assert longer != text
     b = _bag_of(tmp_path / "b", longer, 2)
     err = _refused(capsys, [str(a), str(b)], monkeypatch)
-    assert f"bag {b}: /robot_description is another robot than bag {a}'s (joint_4: origin xyz" in err, err
+    assert f"bag {b}: /robot_description is another robot than bag {a}'s (joint_4: origin xyz [0, 0, 0.2155] vs " \
+        "[0, 0, 0.3155])" in err, err
     assert "fit bags must all record one robot" in err
 
 

@@ -99,7 +99,7 @@ def _joint_signature(joint: Any) -> dict[str, Any]:
 
 
 def _vec(v: Any) -> str:
-    return np.array2string(np.asarray(v), precision=6, separator=", ", suppress_small=True)
+    return "[" + ", ".join(f"{x:.6g}" for x in np.asarray(v, float).ravel()) + "]"
 
 
 def robot_differences(a: Any, b: Any, geometry: bool = True) -> list[str]:

@@ -263,7 +263,7 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
         raise DatasetError(f"{path}: joint_names {joint_names} differ from the expected {_EXPECTED_JOINTS}")
     stops: list[HiltiStop] = []
     incomplete: list[str] = []
-    layout: dict[str, dict[str, tuple[int, int]]] = {}
+    layout: dict[str, dict[str, list[tuple[str, int]]]] = {}
     heights = doc["column_heights"]
     if not isinstance(heights, dict):
         raise DatasetError(f"{path}: column_heights must be a mapping")
@@ -275,8 +275,8 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
             if not isinstance(sval, dict):
                 raise DatasetError(f"{path}: column_heights/{height}/solution_spaces/{space}: not a mapping")
             _station_stops(path, height, space, sval, stops, incomplete)
-            layout.setdefault(f"{height}", {})[f"{space}"] = tuple(  # type: ignore[assignment]
-                len(sval.get(key) or []) for key in _ROLES)
+            layout.setdefault(f"{height}", {})[f"{space}"] = [(_ROLES[k], len(v or [])) for k, v in sval.items()
+                                                               if k in _ROLES]
     stops.sort(key=lambda s: s.time)
     times = np.array([s.time for s in stops])
     if len(times) > 1 and np.min(np.diff(times)) <= (BURST_COUNT - 1) * BURST_PERIOD_S + MEASUREMENT_DELAY_S:
@@ -298,12 +298,12 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
     return HiltiDataset(path=path, joint_names=joint_names, stops=stops, incomplete=incomplete, truncated=truncated)
 
 
-def truncation_notes(layout: dict[str, dict[str, tuple[int, int]]]) -> list[str]:
-    """Signs that a file was cut short, from its layout (column height -> solution space -> (stationing,
-    evaluation) stop counts, in file order).  The format declares no stop count, but every complete file
-    repeats one pattern of solution spaces per column height: the last height lacking a space that every other
-    height has, or its last station holding fewer stops of a role than that space does at any other height, is
-    what a cut leaves."""
+def truncation_notes(layout: dict[str, dict[str, list[tuple[str, int]]]]) -> list[str]:
+    """Signs that a file was cut short, from its layout (column height -> solution space -> [(role, stop count)],
+    all in file order).  The format declares no stop count, but every complete file repeats one pattern of
+    solution spaces per column height: the last height lacking a space that every other height has, or the last
+    list of the file (its last station's last role) holding fewer stops than that list does at any other height,
+    is what a cut leaves."""
     heights = list(layout)
     if len(heights) < 2:
         return []
@@ -315,11 +315,13 @@ def truncation_notes(layout: dict[str, dict[str, tuple[int, int]]]) -> list[str]
         notes.append(f"column height {last}, the last in the file, lacks solution space(s) {', '.join(missing)} "
                      "that every other height has")
     space = list(layout[last])[-1]
-    for k, role in enumerate(_ROLES.values()):
-        ref = [layout[h][space][k] for h in others if space in layout[h]]
-        if ref and layout[last][space][k] < min(ref):
-            notes.append(f"its last station h{last}_s{space} has {layout[last][space][k]} {role} stops where "
-                         f"solution space {space} has {min(ref)}-{max(ref)} at the other heights")
+    if not layout[last][space]:
+        return notes
+    role, count = layout[last][space][-1]
+    ref = [n for h in others for r, n in layout[h].get(space, []) if r == role]
+    if ref and count < min(ref):
+        notes.append(f"its last station h{last}_s{space} has {count} {role} stops where solution space {space} "
+                     f"has {min(ref)}-{max(ref)} at the other heights")
     return notes
 
 
