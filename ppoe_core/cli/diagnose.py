@@ -34,6 +34,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ppoe_core.cli.checks import check_diagnose_inputs, float_range, int_range
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -55,12 +57,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "what was lost)")
     parser.add_argument("--cv", default="auto", choices=("auto", "stops", "groups"),
                         help="cross-validation: over stops, or leave-one-bag-out (auto: bags if >= 3)")
-    parser.add_argument("--folds", type=int, default=5, help="folds of the stop-wise cross-validation")
-    parser.add_argument("--min-gain", type=float, default=0.03,
+    parser.add_argument("--folds", type=int_range(2), default=5, help="folds of the stop-wise cross-validation")
+    parser.add_argument("--min-gain", type=float_range(0.0, 1.0, max_open=True), default=0.03,
                         help="minimum relative held-out MSE reduction to accept an effect (default 0.03)")
-    parser.add_argument("--min-t", type=float, default=4.0,
+    parser.add_argument("--min-t", type=float_range(0.0), default=4.0,
                         help="minimum paired t statistic of that reduction (default 4)")
-    parser.add_argument("--max-effects", type=int, default=8, help="at most this many effects (default 8)")
+    parser.add_argument("--max-effects", type=int_range(1), default=8, help="at most this many effects (default 8)")
     parser.add_argument("--measurement", default="auto", choices=("auto", "point", "pose"),
                         help="residuals of /ground_truth/point (auto: preferred) or /ground_truth/pose")
     parser.add_argument("--stationing-set", default="cross", choices=("cross", "square", "all"),
@@ -72,7 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="final joint tracker + pixel fit of the effects the stages chose plus every camera's "
                              "camera_extrinsics (auto: when the bags carry tracker points and tag pixels); JSON "
                              "key 'joint', held-out over poses")
-    parser.add_argument("--pixel-sigma", type=float, default=None,
+    parser.add_argument("--pixel-sigma", type=float_range(0.0, min_open=True), default=None,
                         help="pixel noise 1-sigma per axis used to whiten tag residuals [px] "
                              "(default: the model's camera.pixel_sigma, else 1)")
 
@@ -92,6 +94,7 @@ def run(args: argparse.Namespace) -> int:
     from ppoe_core.io.bagio import read_bag
     from ppoe_core.robot.urdf import parse_urdf
 
+    check_diagnose_inputs(args)  # every bag before the fit: readable, not twice, one robot (cli/checks.py)
     if args.out:  # checked before the run, not after it
         prepare_out_dir(args.out)
     urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description

@@ -148,9 +148,13 @@ def parse_online_config(raw: Any, model: Any, where: str = "online_effects") -> 
             eff = effect_from_config(cfg, model.robot, where=w)
         if any(t.effect.name == eff.name and t.effect.location == eff.location for t in out):
             raise ModelConfigError(f"{w}: effect {eff.describe()} is listed twice")
-        out.append(TrackedEffect(
-            eff, _vector(entry.get("process_noise"), eff.n_params, DEFAULT_PROCESS_NOISE[name], w + ".process_noise"),
-            _vector(entry.get("initial_sigma"), eff.n_params, DEFAULT_INITIAL_SIGMA[name], w + ".initial_sigma")))
+        noise = _vector(entry.get("process_noise"), eff.n_params, DEFAULT_PROCESS_NOISE[name], w + ".process_noise")
+        sigma = _vector(entry.get("initial_sigma"), eff.n_params, DEFAULT_INITIAL_SIGMA[name], w + ".initial_sigma")
+        if np.any((noise == 0.0) & (sigma == 0.0)):  # issue 25: such a parameter could never move
+            raise ModelConfigError(f"{w}: process_noise and initial_sigma are both 0 for parameter(s) "
+                                   f"{np.flatnonzero((noise == 0.0) & (sigma == 0.0)).tolist()} of "
+                                   f"{eff.describe()}: the filter could never move them; give one of them > 0")
+        out.append(TrackedEffect(eff, noise, sigma))
     return out
 
 

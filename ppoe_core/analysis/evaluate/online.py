@@ -182,7 +182,8 @@ def evaluate_online(bag: str | Path, model_path: str | Path, online_effects: Any
         Bad online config; a tracker frame without ``tracker_registration`` in the model.
     """
     data = read_bag(bag, load_images=False)
-    model = PPOEModel.from_strings(data.require_robot_description(), Path(model_path))
+    model = PPOEModel.from_strings(data.require_robot_description(), Path(model_path),
+                                   urdf_source=f"bag {bag} /robot_description")
     fr = model.config.frames
     base = base or (fr.base if fr is not None and fr.base else model.robot.root)
     tool = tool or (fr.tool if fr is not None else None)
