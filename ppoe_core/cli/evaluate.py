@@ -74,6 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bar.add_argument("--progress", dest="progress", action="store_true", default=None,
                      help="progress bar on stderr (default: only when stderr is a terminal)")
     bar.add_argument("--no-progress", dest="progress", action="store_false")
+    bar.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,12 +87,13 @@ def run(args: argparse.Namespace) -> int:
         write_report,
     )
     from ppoe_core.cli.output import prepare_out_dir
+    from ppoe_core.io.progress import progress_wanted
 
     if args.out:  # checked before the run, not after it
         prepare_out_dir(args.out)
     if args.online or args.online_config or args.truth:
         return _run_online(args)
-    progress = sys.stderr.isatty() if args.progress is None else bool(args.progress)
+    progress = progress_wanted(args.quiet, args.progress)
     fusion = load_fusion_params(args.fusion_params) if args.fusion_params else {}
     for key, value in (("max_iterations", args.iterations), ("gate_probability", args.gate),
                        ("pixel_sigma", args.pixel_sigma)):
