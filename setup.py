@@ -70,6 +70,7 @@ setup(
             "contact_node = ppoe_ros.nodes.contact_node:main",
             "fusion_node = ppoe_ros.nodes.fusion_node:main",
             "ppoe_markers = ppoe_ros.common.markers:main",
+            "ppoe_calibration = ppoe_ros.common.calibration:main",
         ],
     },
 )
