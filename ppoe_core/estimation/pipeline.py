@@ -58,6 +58,7 @@ from ppoe_core.estimation.corrections import (
     _sym,
     apply_carried_corrections,
 )
+from ppoe_core.model.stamp_policy import StampResetPolicy
 from ppoe_core.estimation.prior_buffer import (
     Array,
     LookupStatus,
@@ -156,7 +157,7 @@ class FusionPipeline:
         if max_pending < 0:
             raise PpoeError(f"FusionPipeline: max_pending must be >= 0, got {max_pending}")
         self.max_pending = int(max_pending)
-        self.reset_jump = float(reset_jump)
+        self.stamp_policy = StampResetPolicy(float(reset_jump))
         if not min_interval >= 0.0:
             raise PpoeError(f"FusionPipeline: min_interval must be >= 0 s, got {min_interval}")
         self.min_interval = float(min_interval)
@@ -214,7 +215,7 @@ class FusionPipeline:
             q = np.asarray(joints, dtype=np.float64).reshape(-1)
         sample = PriorSample(float(stamp), T, cov, q)
         newest = self.buffer.newest
-        if newest is not None and sample.stamp < newest - self.reset_jump:
+        if self.stamp_policy.new_timeline_s(sample.stamp, newest):
             self.reset()
             self.counts["resets"] += 1
         elif newest is not None and sample.stamp <= newest:

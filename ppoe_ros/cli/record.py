@@ -26,7 +26,10 @@ mcap chunk and ``metadata.yaml`` is rewritten with the counts so far, so a
 recorder killed with ``-9`` loses at most about that much: ``ppoe play`` /
 ``evaluate`` read such a bag from its chunks and say that it was not closed.
 
-Exit codes: 0 done, 2 output exists (without ``--force``) / cannot write.
+``--force`` replaces an existing bag directory only if it holds nothing but bag files, and only when the
+recording ends (it is written beside it meanwhile); a recording that got no message keeps the old bag.
+
+Exit codes: 0 done, 2 output exists (without ``--force``), is not a bag directory, or cannot be written.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from typing import Any
 
 from ppoe_core.errors import PpoeError
 from ppoe_core.io.bagio import BagWriter
+from ppoe_ros.cli import StopFlag
 from ppoe_ros.cli.play import add_ros_args, init_ros
 
 __all__ = ["add_arguments", "run", "Recorder"]
@@ -141,8 +145,11 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     writer = BagWriter(args.out, storage=args.storage, overwrite=args.force,
-                       flush_period=args.flush_period)  # BagError if it exists
-    stop = _StopFlag()
+                       flush_period=args.flush_period)  # BagError if it exists (or, with --force, is not a bag)
+    if writer.replaces_existing:
+        print(f"ppoe record: recording into {writer.write_path}; it replaces {args.out} when the recording ends",
+              file=sys.stderr)
+    stop = getattr(args, "stop_flag", None) or StopFlag()  # ``ppoe`` installs it before the imports
     recorder: Recorder | None = None
     node = None
     try:
@@ -161,32 +168,18 @@ def run(args: argparse.Namespace) -> int:
             executor.spin_once(timeout_sec=0.05)
             writer.flush_if_due()
     finally:
-        writer.close()
+        kept = writer.replaces_existing and not writer.counts  # recorded nothing: the old bag stays
+        if kept:
+            writer.discard()
+        else:
+            writer.close()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
         stop.restore()
     counts = ", ".join(f"{t}: {n}" for t, n in sorted(writer.counts.items())) or "nothing"
-    print(f"ppoe record: wrote {args.out} ({counts})", file=sys.stderr)
+    print(f"ppoe record: recorded nothing; the existing bag {args.out} is kept as it was" if kept
+          else f"ppoe record: wrote {args.out} ({counts})", file=sys.stderr)
     if recorder is not None and recorder.pending:
         print(f"ppoe record: never saw a publisher of {', '.join(recorder.pending)}", file=sys.stderr)
     return 0
-
-
-class _StopFlag:
-    """SIGINT/SIGTERM set :attr:`raised` (instead of raising in the middle of a write); :meth:`restore`."""
-
-    def __init__(self) -> None:
-        import signal
-
-        self.raised = False
-        self._old = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        self.raised = True
-
-    def restore(self) -> None:
-        import signal
-
-        for sig, old in self._old.items():
-            signal.signal(sig, old)

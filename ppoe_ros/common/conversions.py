@@ -163,25 +163,6 @@ def wrench_to_numpy(msg: Any) -> np.ndarray:
     return np.array([w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y, w.torque.z])
 
 
-def joint_positions(msg: Any, topic: str = "/joint_states") -> dict[str, float]:
-    """``sensor_msgs/JointState`` -> ``{name: position}``.
-
-    Raises
-    ------
-    ValueError
-        ``name`` and ``position`` differ in length, or a name repeats (message names the topic).
-    """
-    names = msg.name
-    pos = msg.position
-    if len(names) != len(pos):
-        raise ValueError(f"{topic}: {len(names)} names but {len(pos)} positions")
-    out = dict(zip(names, (float(p) for p in pos)))
-    if len(out) != len(names):
-        repeated = sorted(n for n in set(names) if list(names).count(n) > 1)
-        raise ValueError(f"{topic}: repeated joint names {repeated}")
-    return out
-
-
 def message_class(type_name: str) -> type:
     """ROS message class from its type name (``"sensor_msgs/msg/JointState"`` or ``"sensor_msgs/JointState"``).
 
