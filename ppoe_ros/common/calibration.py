@@ -28,9 +28,9 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ppoe_core.errors import PpoeError
-from ppoe_ros.common.conversions import joint_positions, matrix_from_pose_msg, stamp_to_ns
+from ppoe_core.model.joint_history import JointHistory
+from ppoe_ros.common.conversions import matrix_from_pose_msg, stamp_to_ns
 from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats, guarded
-from ppoe_ros.common.joint_buffer import JointBuffer
 from ppoe_ros.common.params import ParamSpec, check_nonempty, declare_parameters
 from ppoe_ros.common.qos import reliable_qos, sensor_qos
 from ppoe_ros.common.runner import run_node, take_robot_description
@@ -69,7 +69,7 @@ class CalibrationNode(Node):
         self.stats = NodeStats(self, ("received", "samples", "computed", "bad"))
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         self.session: Any = None
-        self.joints = JointBuffer(int(_JOINT_HISTORY_S * 1e9))
+        self.joints = JointHistory([])
         self.latest: Any = None  # (stamp_ns, frame, value) of the newest measurement
         self._used: int | None = None  # stamp of the measurement the last sample used
         self._urdf: str | None = None
@@ -89,7 +89,7 @@ class CalibrationNode(Node):
 
         robot = parse_urdf(urdf_xml, text_source=where)
         names = robot.independent_joints
-        self.joints.set_names(names)
+        self.joints = JointHistory(names, needed=[], known=robot.joints, keep_ns=int(_JOINT_HISTORY_S * 1e9))
         self.session = CalibrationSession(urdf_xml, self.p["model_file"])
         self._urdf = urdf_xml
         self.get_logger().info(f"model from {where}: {len(names)} joints; call ~/take_sample at each stop")
@@ -100,7 +100,7 @@ class CalibrationNode(Node):
 
     def _joint_state(self, msg: JointState) -> None:
         if self.session is not None:
-            self.joints.add(stamp_to_ns(msg.header.stamp), joint_positions(msg, self.p["joint_states_topic"]))
+            self.joints.update(msg.name, msg.position, stamp_to_ns(msg.header.stamp))
 
     def _measurement(self, msg: Any) -> None:
         self.stats.inc("received")
@@ -116,7 +116,7 @@ class CalibrationNode(Node):
         """Names and positions of the joints known at the joint state nearest ``stamp_ns`` (PpoeError naming the
         gap when none is within max_age); a joint never received is left out (``ppoe diagnose`` names it if the
         measured chain needs it)."""
-        stamps = self.joints.stamps
+        stamps = self.joints.history.stamps
         if not stamps:
             raise PpoeError("no joint state received yet")
         i = bisect.bisect_left(stamps, stamp_ns)
@@ -125,11 +125,11 @@ class CalibrationNode(Node):
         if gap > self.p["max_age"]:
             raise PpoeError(f"the joint state nearest the measurement is {gap:.3f} s away (max_age "
                             f"{self.p['max_age']:g} s)")
-        q = self.joints.values[near]
+        q = self.joints.history.values[near]
         known = ~np.isnan(q)
         if not known.any():
             raise PpoeError("no joint value of the URDF received yet")
-        return tuple(n for n, k in zip(self.joints.names, known) if k), q[known].copy()
+        return tuple(n for n, k in zip(self.joints.joints, known) if k), q[known].copy()
 
     def _take_sample(self, request: Any, response: Any) -> Any:
         from ppoe_core.cli.live_calibration import CalibrationSample
