@@ -96,3 +96,34 @@ def test_unknown_node_kind_is_named(tmp_path: Path) -> None:
     proc = NodeProcess([sys.executable, "-m", "ppoe_ros.common.lifecycle", "no_such_node"], env, tmp_path / "x.log")
     assert proc.wait(60) == 2
     assert "no managed node 'no_such_node'" in proc.output() and "kinematics_node" in proc.output()
+
+
+KINDS = {
+    "kinematics_node": ("/joint_states", {"model_file": str(ROBOTS / "arm7_model.yaml"),
+                                          "robot_description": (ROBOTS / "arm7.urdf").read_text()}),
+    "tag_bearing_node": ("/camera/image_raw/compressed", {"model_file": str(ROBOTS / "rover_model.yaml")}),
+    "contact_node": ("/wrench", {"plane_frame": "base_link", "plane_xyz": [0.0, 0.0, 0.0],
+                                 "plane_rpy": [0.0, 0.0, 0.0], "plane_sigma": [0.0, 0.0, 0.001, 0.01, 0.01, 0.0]}),
+    "fusion_node": ("/ppoe/pose", {"model_file": str(ROBOTS / "rover_model.yaml"),
+                                   "robot_description": (ROBOTS / "rover.urdf").read_text(), "publish_tf": False}),
+}
+
+
+@pytest.mark.parametrize("kind", list(KINDS))
+def test_every_managed_node_subscribes_only_while_active(tmp_path: Path, kind: str) -> None:
+    from lifecycle_msgs.msg import Transition
+
+    topic, params = KINDS[kind]
+    env = ros_env(tmp_path)
+    pf = write_params_file(tmp_path / "p.yaml", params)
+    cmd = [sys.executable, "-m", "ppoe_ros.common.lifecycle", kind, "--ros-args", "--params-file", str(pf)]
+    with Probe(env) as probe, NodeProcess(cmd, env, tmp_path / f"{kind}.log") as node:
+        for transition in (Transition.TRANSITION_CONFIGURE, Transition.TRANSITION_ACTIVATE,
+                           Transition.TRANSITION_DEACTIVATE):
+            if transition != Transition.TRANSITION_CONFIGURE:
+                want = 1 if transition == Transition.TRANSITION_DEACTIVATE else 0
+                probe.spin_until(lambda w=want: probe.node.count_subscribers(topic) == w, 20, node,
+                                 f"{want} subscriber(s) of {topic}")
+            assert _transition(probe, node, kind, transition), node.output()[-2000:]
+        probe.spin_until(lambda: probe.node.count_subscribers(topic) == 0, 20, node, f"{topic} unsubscribed")
+        assert "[ERROR]" not in node.output() and node.alive()
