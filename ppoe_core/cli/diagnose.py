@@ -74,13 +74,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="final joint tracker + pixel fit of the effects the stages chose plus every camera's "
                              "camera_extrinsics (auto: when the bags carry tracker points and tag pixels); JSON "
                              "key 'joint', held-out over poses")
+    bar = parser.add_mutually_exclusive_group()
+    bar.add_argument("--progress", dest="progress", action="store_true", default=None,
+                     help="the running stage and time on stderr (default: only when stderr is a terminal)")
+    bar.add_argument("--no-progress", dest="progress", action="store_false")
+    bar.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
     parser.add_argument("--pixel-sigma", type=float_range(0.0, min_open=True), default=None,
                         help="pixel noise 1-sigma per axis used to whiten tag residuals [px] "
                              "(default: the model's camera.pixel_sigma, else 1)")
 
 
 def run(args: argparse.Namespace) -> int:
-    """Diagnose, print and optionally write the report and the updated model; returns 0."""
+    """Diagnose, print and optionally write the report and the updated model; returns 0.
+
+    The running stage and the time spent are shown on stderr (:class:`ppoe_core.io.progress.Ticker`) when it
+    is a terminal, unless ``--quiet``."""
+    from ppoe_core.io.progress import Ticker, progress_wanted
+
+    with Ticker("diagnose", progress_wanted(args.quiet, args.progress)) as tick:
+        return _run(args, tick)
+
+
+def _run(args: argparse.Namespace, tick: Any) -> int:
+    """:func:`run` with its progress ticker ``tick`` (``tick.stage(text)`` names each stage)."""
     from ppoe_core.analysis.diagnose import (
         DiagnoseOptions,
         Stops,
@@ -97,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
     check_diagnose_inputs(args)  # every bag before the fit: readable, not twice, one robot (cli/checks.py)
     if args.out:  # checked before the run, not after it
         prepare_out_dir(args.out)
+    tick.stage(f"reading {len(args.bags)} bag(s)")
     urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description
     if not urdf:
         raise BagError(f"bag {args.bags[0]}: no /robot_description")
@@ -107,13 +124,18 @@ def run(args: argparse.Namespace) -> int:
     opts = DiagnoseOptions(folds=args.folds, cv=args.cv, min_gain=args.min_gain, min_t=args.min_t,
                            max_effects=args.max_effects,
                            imu_sigma={k: v.sigma for k, v in (getattr(cfg, "imus", None) or {}).items()} or None)
+    tick.stage("fitting the effects")
     res = diagnose(robot, stops, declared, pert, jnoise, opts)
+    tick.stage("tag pixels")
     pixels = _pixel_stage(args, res, robot, cfg, declared, pert, jnoise) if args.pixels != "off" else None
+    tick.stage("joint fit")
     _joint_stage(args, res, robot, stops, pixels, declared)
     if args.test:
+        tick.stage(f"scoring {len(args.test)} test bag(s)")
         _test_stage(args, res, robot, cfg, declared)
     paths = {}
     if args.out:
+        tick.stage("writing the report")
         paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))
         model_out = write_model_yaml(args.model, res, Path(args.out) / "model_diagnosed.yaml")
         calibrated = _write_calibrated(args, res, urdf, robot, declared)

@@ -81,6 +81,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     bar.add_argument("--progress", dest="progress", action="store_true", default=None,
                      help="progress bar on stderr (default: only when stderr is a terminal)")
     bar.add_argument("--no-progress", dest="progress", action="store_false")
+    bar.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -109,8 +110,9 @@ def _run_offline(args: argparse.Namespace) -> int:
         markdown_report,
         write_report,
     )
+    from ppoe_core.io.progress import progress_wanted
 
-    progress = sys.stderr.isatty() if args.progress is None else bool(args.progress)
+    progress = progress_wanted(args.quiet, args.progress)
     fusion = load_fusion_params(args.fusion_params) if args.fusion_params else {}
     for key, value in (("max_iterations", args.iterations), ("gate_probability", args.gate),
                        ("pixel_sigma", args.pixel_sigma)):

@@ -87,6 +87,7 @@ from ppoe_core.estimation.sources import parse_sources
 from ppoe_ros.common.fusion_sources import SOURCES_PARAM, LiveSources, source_names, source_specs
 from ppoe_ros.common.tag_cloud import observations_from_cloud
 from ppoe_ros.common.online_effects import ONLINE_PARAMS, OnlineEffectsHook
+from ppoe_ros.common.services import FusionServices
 from ppoe_ros.common.tf_broadcast import FusionTf
 
 __all__ = ["FusionNode", "PARAMS", "main"]
@@ -336,6 +337,7 @@ class FusionNode(Node):
         self.sources = LiveSources(self, parse_sources(p, names, f"node {self.get_fully_qualified_name()}"),
                                    self.stats, self.prefix, self._measure)
         self.sources.subscribe(qos)
+        self.commands = FusionServices(self, self.pipeline, self._measure, self.prefix, self.stats)
         self._last_prior_wall = time.monotonic()
         self.create_timer(
             0.1,
