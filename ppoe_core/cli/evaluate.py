@@ -53,8 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--fusion-params", default=None, metavar="PARAMS.yaml",
-        help="a ROS 2 parameter file of the fusion node (buffer, gating, correction policy; a /** file shared by the "
-             "nodes also sets corner_refinement and the contact node's force_threshold, release_threshold, "
+        help="a ROS 2 parameter file of the fusion node (buffer, gating, correction policy, and its sensor blocks "
+             "'sources': tracker points, 6D poses, accelerometers, replayed from the bag's topics; a /** file shared "
+             "by the nodes also sets corner_refinement and the contact node's force_threshold, release_threshold, "
              "force_component); default: the nodes' defaults",
     )
     parser.add_argument(
@@ -107,6 +108,7 @@ def _run_offline(args: argparse.Namespace) -> int:
         EvaluateOptions,
         evaluate_bag,
         load_fusion_params,
+        load_sources,
         markdown_report,
         write_report,
     )
@@ -126,7 +128,7 @@ def _run_offline(args: argparse.Namespace) -> int:
     opts = EvaluateOptions(
         base=args.base, tool=args.tool, order=args.order, fit_set=args.fit_set, fusion=fusion,
         ground_truth=args.ground_truth, progress=progress, accept_partial=args.accept_partial, urdf=args.urdf,
-        estimate=args.estimate,
+        estimate=args.estimate, sources=load_sources(args.fusion_params) if args.fusion_params else [],
     )
     ev = evaluate_bag(args.bag, args.model, opts)
     for note in ev.summary.get("bag_notes", []):

@@ -83,6 +83,7 @@ from ppoe_core.analysis.evaluate.options import (
     EvaluateOptions,
     Evaluation,
     load_fusion_params,
+    load_sources,
 )
 from ppoe_core.analysis.evaluate.replay import (
     contact_measurements,
@@ -114,4 +115,5 @@ __all__ = [
     "EVALUATE_SETTINGS",
     "REPLAY_SETTINGS",
     "load_fusion_params",
+    "load_sources",
 ]
