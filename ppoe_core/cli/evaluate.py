@@ -74,8 +74,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="track drifting effects online (docs/online.md): tool error before / static / online, "
                              "online.json and online_parameters.png in --out")
     parser.add_argument("--online-config", default=None, metavar="ONLINE.yaml",
-                        help="with --online: online_effects list (process noise per parameter [unit/sqrt(s)]) and "
-                             "jump_probability; default: base tilt and the model's trackable effects")
+                        help="with --online: online_effects list (process noise per parameter [unit/sqrt(s)]), "
+                             "jump_probability, the drift monitor, or a node parameter file (its online_* parameters "
+                             "and sources); default: the model's trackable effects and the base tilt when a stream "
+                             "sees it, the monitor on (docs/online.md)")
     parser.add_argument("--truth", default=None, metavar="BAG.truth.yaml",
                         help="with --online: the simulation truth (ppoe simulate) to compare the estimate with")
     bar = parser.add_mutually_exclusive_group()
@@ -156,7 +158,7 @@ def _run_online(args: argparse.Namespace) -> int:
     """``--online``: replay with the online effect filter, print the before / static / online table (or JSON)."""
     from ppoe_core.analysis.evaluate.online import (
         evaluate_online,
-        load_online_config,
+        load_online_settings,
         markdown_online,
         write_online_report,
     )
@@ -164,10 +166,10 @@ def _run_online(args: argparse.Namespace) -> int:
 
     if not args.online:
         raise ModelConfigError("--online-config and --truth need --online")
-    entries, jump = load_online_config(args.online_config)
-    check_online_entries(entries, jump, args.online_config)  # numbers at parse time, naming the file
+    settings = load_online_settings(args.online_config)
+    check_online_entries(settings.entries, settings.jump_probability, args.online_config)  # naming the file
     truth = read_yaml_file(args.truth, "truth file", ModelConfigError)[0] if args.truth else None
-    ev = evaluate_online(args.bag, args.model, entries, jump, truth=truth, base=args.base, tool=args.tool)
+    ev = evaluate_online(args.bag, args.model, truth=truth, base=args.base, tool=args.tool, settings=settings)
     if args.out:
         _written(args, write_online_report(ev, args.out, args.model))
     if args.json:

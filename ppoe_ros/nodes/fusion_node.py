@@ -321,7 +321,8 @@ class FusionNode(Node):
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         self.diagnostics.watch_input("input (prior or measurement)", "received", p["input_timeout"])
         self.tf = FusionTf(self, p, self.diagnostics)
-        self.online = OnlineEffectsHook(self, p, self.stats, p["model_file"]) if p["online_enable"] else None
+        self.online = (OnlineEffectsHook(self, p, self.stats, p["model_file"], self.diagnostics)
+                       if p["online_enable"] else None)
         qos = sensor_qos(p["qos_depth"])
         rel = reliable_qos(p["qos_depth"])
 
@@ -403,6 +404,9 @@ class FusionNode(Node):
         if not (math.isfinite(fx) and math.isfinite(fy) and fx > 0 and fy > 0):
             raise MeasurementError(f"camera_info K has fx = {fx}, fy = {fy}")
         self.focal[msg.header.frame_id] = (fx, fy)
+        if self.online is not None:  # a change of the intrinsics mid-run is counted and logged by the hook
+            self.online.camera_info(unprefixed(self.prefix, msg.header.frame_id, self.params["camera_info_topic"]),
+                                    np.asarray(msg.k, float).reshape(3, 3), np.asarray(msg.d, float))
 
     def _joint_state(self, msg: JointState) -> None:
         if self.model is None:
@@ -469,6 +473,8 @@ class FusionNode(Node):
         if self.updater is None:
             self.stats.bad(m.source, "no robot model yet (waiting for robot_description)", kind="dropped_no_model")
             return
+        if self.online is not None:  # every measurement kind also updates the online effects
+            self.online.measure(m)
         self._report(self.pipeline.add_measurement(m))
         self._sync_counts()
 
