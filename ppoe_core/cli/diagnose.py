@@ -34,6 +34,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ppoe_core.cli.checks import check_diagnose_inputs, float_range, int_range
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -55,12 +57,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "what was lost)")
     parser.add_argument("--cv", default="auto", choices=("auto", "stops", "groups"),
                         help="cross-validation: over stops, or leave-one-bag-out (auto: bags if >= 3)")
-    parser.add_argument("--folds", type=int, default=5, help="folds of the stop-wise cross-validation")
-    parser.add_argument("--min-gain", type=float, default=0.03,
+    parser.add_argument("--folds", type=int_range(2), default=5, help="folds of the stop-wise cross-validation")
+    parser.add_argument("--min-gain", type=float_range(0.0, 1.0, max_open=True), default=0.03,
                         help="minimum relative held-out MSE reduction to accept an effect (default 0.03)")
-    parser.add_argument("--min-t", type=float, default=4.0,
+    parser.add_argument("--min-t", type=float_range(0.0), default=4.0,
                         help="minimum paired t statistic of that reduction (default 4)")
-    parser.add_argument("--max-effects", type=int, default=8, help="at most this many effects (default 8)")
+    parser.add_argument("--max-effects", type=int_range(1), default=8, help="at most this many effects (default 8)")
     parser.add_argument("--measurement", default="auto", choices=("auto", "point", "pose"),
                         help="residuals of /ground_truth/point (auto: preferred) or /ground_truth/pose")
     parser.add_argument("--stationing-set", default="cross", choices=("cross", "square", "all"),
@@ -72,13 +74,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="final joint tracker + pixel fit of the effects the stages chose plus every camera's "
                              "camera_extrinsics (auto: when the bags carry tracker points and tag pixels); JSON "
                              "key 'joint', held-out over poses")
-    parser.add_argument("--pixel-sigma", type=float, default=None,
+    bar = parser.add_mutually_exclusive_group()
+    bar.add_argument("--progress", dest="progress", action="store_true", default=None,
+                     help="the running stage and time on stderr (default: only when stderr is a terminal)")
+    bar.add_argument("--no-progress", dest="progress", action="store_false")
+    bar.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+    parser.add_argument("--pixel-sigma", type=float_range(0.0, min_open=True), default=None,
                         help="pixel noise 1-sigma per axis used to whiten tag residuals [px] "
                              "(default: the model's camera.pixel_sigma, else 1)")
 
 
 def run(args: argparse.Namespace) -> int:
-    """Diagnose, print and optionally write the report and the updated model; returns 0."""
+    """Diagnose, print and optionally write the report and the updated model; returns 0.
+
+    The running stage and the time spent are shown on stderr (:class:`ppoe_core.io.progress.Ticker`) when it
+    is a terminal, unless ``--quiet``."""
+    from ppoe_core.io.progress import Ticker, progress_wanted
+
+    with Ticker("diagnose", progress_wanted(args.quiet, args.progress)) as tick:
+        return _run(args, tick)
+
+
+def _run(args: argparse.Namespace, tick: Any) -> int:
+    """:func:`run` with its progress ticker ``tick`` (``tick.stage(text)`` names each stage)."""
     from ppoe_core.analysis.diagnose import (
         DiagnoseOptions,
         Stops,
@@ -92,8 +110,10 @@ def run(args: argparse.Namespace) -> int:
     from ppoe_core.io.bagio import read_bag
     from ppoe_core.robot.urdf import parse_urdf
 
+    check_diagnose_inputs(args)  # every bag before the fit: readable, not twice, one robot (cli/checks.py)
     if args.out:  # checked before the run, not after it
         prepare_out_dir(args.out)
+    tick.stage(f"reading {len(args.bags)} bag(s)")
     urdf = read_bag(args.bags[0], topics=["/robot_description"], load_images=False).robot_description
     if not urdf:
         raise BagError(f"bag {args.bags[0]}: no /robot_description")
@@ -104,13 +124,18 @@ def run(args: argparse.Namespace) -> int:
     opts = DiagnoseOptions(folds=args.folds, cv=args.cv, min_gain=args.min_gain, min_t=args.min_t,
                            max_effects=args.max_effects,
                            imu_sigma={k: v.sigma for k, v in (getattr(cfg, "imus", None) or {}).items()} or None)
+    tick.stage("fitting the effects")
     res = diagnose(robot, stops, declared, pert, jnoise, opts)
+    tick.stage("tag pixels")
     pixels = _pixel_stage(args, res, robot, cfg, declared, pert, jnoise) if args.pixels != "off" else None
+    tick.stage("joint fit")
     _joint_stage(args, res, robot, stops, pixels, declared)
     if args.test:
+        tick.stage(f"scoring {len(args.test)} test bag(s)")
         _test_stage(args, res, robot, cfg, declared)
     paths = {}
     if args.out:
+        tick.stage("writing the report")
         paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))
         model_out = write_model_yaml(args.model, res, Path(args.out) / "model_diagnosed.yaml")
         calibrated = _write_calibrated(args, res, urdf, robot, declared)

@@ -86,7 +86,6 @@ from ppoe_core.analysis.evaluate.options import (
     load_sources,
 )
 from ppoe_core.analysis.evaluate.replay import (
-    ProgressBar,
     contact_measurements,
     evaluate_bag,
     joint_matrix,
@@ -94,6 +93,7 @@ from ppoe_core.analysis.evaluate.replay import (
 from ppoe_core.analysis.evaluate.report import markdown_report, write_report
 from ppoe_core.analysis.evaluate.scoring import registration_split
 from ppoe_core.analysis.evaluate.tag_stream import tag_measurements
+from ppoe_core.io.progress import ProgressBar
 
 __all__ = [
     "registration_split",

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import gc
 import math
-import sys
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -24,58 +23,9 @@ from ppoe_core.analysis.evaluate.scoring import score_points, score_poses
 from ppoe_core.analysis.evaluate.sources import measurement_dim, source_measurements
 from ppoe_core.analysis.evaluate.tag_stream import TagStream
 from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
+from ppoe_core.io.progress import ProgressBar
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
 from ppoe_core.model.context import batch_context
-
-# ----------------------------------------------------------------------------
-# Progress bar
-# ----------------------------------------------------------------------------
-
-
-class ProgressBar:
-    """A minimal text progress bar on a stream (stderr by default), throttled to 10 Hz.
-
-    Parameters
-    ----------
-    total : int
-        Number of steps.
-    enabled : bool
-        Draw nothing when False.
-    label : str
-    stream : file-like, optional
-    """
-
-    def __init__(self, total: int, enabled: bool, label: str = "evaluate", stream: Any = None) -> None:
-        self.total = max(int(total), 1)
-        self.enabled = bool(enabled)
-        self.label = label
-        self.stream = stream if stream is not None else sys.stderr
-        self._last = 0.0
-        self._t0 = time.monotonic()
-
-    def update(self, done: int) -> None:
-        """Redraw for ``done`` steps finished (at most every 0.1 s)."""
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if now - self._last < 0.1 and done < self.total:
-            return
-        self._last = now
-        frac = min(done / self.total, 1.0)
-        width = 30
-        bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
-        el = now - self._t0
-        eta = f"{el / frac - el:6.1f}s" if frac > 0 else "     ?"
-        self.stream.write(f"\r{self.label} [{bar}] {100 * frac:5.1f}% {el:6.1f}s eta {eta}")
-        self.stream.flush()
-
-    def close(self) -> None:
-        """Finish the line."""
-        if self.enabled:
-            self.update(self.total)
-            self.stream.write("\n")
-            self.stream.flush()
-
 
 # ----------------------------------------------------------------------------
 # Replay
