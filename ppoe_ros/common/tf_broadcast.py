@@ -1,4 +1,4 @@
-"""TF output of the nodes: ``/tf`` and ``/tf_static`` (``tf2_msgs/msg/TFMessage``, CONTRACT.md sec. 4).
+"""TF output of the nodes: ``/tf`` and ``/tf_static`` (``tf2_msgs/msg/TFMessage``, docs/conventions.md sec. 4).
 
 Published as tf2_ros' broadcasters do (no tf2_ros needed): ``/tf`` reliable, volatile, keep last 100;
 ``/tf_static`` reliable, transient local, keep last 1, every static transform of the node in one message
