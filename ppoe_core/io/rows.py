@@ -16,7 +16,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ppoe_core import lie
-from ppoe_core.errors import BagError
+from ppoe_core.errors import BagError, MeasurementError
 from ppoe_core.io import cdr
 from ppoe_core.io.messages import (
     IMU_TOPIC_PREFIX,
@@ -53,7 +53,7 @@ from ppoe_core.io.series import (
     Wrenches,
 )
 
-__all__ = ["RowKind", "row_kind", "finish", "expected_type", "named"]
+__all__ = ["RowKind", "row_kind", "finish", "expected_type", "named", "tag_rows_from_cloud"]
 
 
 def expected_type(topic: str) -> str | None:
@@ -98,31 +98,38 @@ def _v3(v: Any) -> list[float]:
     return [float(v.x), float(v.y), float(v.z)]
 
 
-def _parse_cloud(msg: Any, topic: str, k: int) -> np.ndarray:
-    """PointCloud2 -> (P, 6) float array in TAG_OBSERVATION_FIELDS order."""
-    dt = {7: "f4", 8: "f8"}
-    offsets: dict[str, tuple[int, str]] = {}
-    for f in msg.fields:
-        if f.name in TAG_OBSERVATION_FIELDS:
-            if f.datatype not in dt:
-                raise BagError(f"topic {topic}: message {k} field {f.name!r} must be FLOAT32/FLOAT64")
-            offsets[f.name] = (int(f.offset), dt[f.datatype])
-    missing = [n for n in TAG_OBSERVATION_FIELDS if n not in offsets]
-    if missing:
-        raise BagError(f"topic {topic}: message {k} lacks PointCloud2 fields {missing}")
-    n = int(msg.width) * int(msg.height)
+def tag_rows_from_cloud(msg: Any) -> np.ndarray:
+    """A ``/tag_bearing/observations`` ``PointCloud2`` (a ROS or a rosbags message: its fields read as attributes)
+    -> (n, 6) float rows in :data:`~ppoe_core.io.messages.TAG_OBSERVATION_FIELDS` order ``[id, corner, u, v, x,
+    y]``.  Fields are read by name and offset (FLOAT64 or FLOAT32), so a producer may order them differently or add
+    fields.
+
+    Raises
+    ------
+    MeasurementError
+        A required field is missing or not float, or the data size does not match.
+    """
+    by_name = {f.name: f for f in msg.fields}
+    n, step = int(msg.width) * int(msg.height), int(msg.point_step)
     raw = np.asarray(msg.data, dtype=np.uint8).tobytes()
-    step = int(msg.point_step)
     if len(raw) < n * step:
-        raise BagError(f"topic {topic}: message {k} has {len(raw)} data bytes for {n} points of {step}")
+        raise MeasurementError(f"PointCloud2 has {len(raw)} bytes for {n} points of {step} bytes")
     endian = ">" if msg.is_bigendian else "<"
-    out = np.empty((n, len(TAG_OBSERVATION_FIELDS)))
     buf = np.frombuffer(raw[: n * step], dtype=np.uint8).reshape(n, step) if n else np.zeros((0, step), np.uint8)
+    out = np.empty((n, len(TAG_OBSERVATION_FIELDS)))
     for j, name in enumerate(TAG_OBSERVATION_FIELDS):
-        off, code = offsets[name]
-        size = int(code[1])
+        f = by_name.get(name)
+        if f is None:
+            raise MeasurementError(f"PointCloud2 has no field '{name}' (fields: {sorted(by_name)})")
+        code = {7: "f4", 8: "f8"}.get(int(f.datatype))
+        if code is None:
+            raise MeasurementError(f"PointCloud2 field '{name}' has datatype {f.datatype}, expected FLOAT64/FLOAT32")
+        off, size = int(f.offset), int(code[1])
+        if off + size > step:
+            raise MeasurementError(f"PointCloud2 field '{name}' offset {off} outside point_step {step}")
         out[:, j] = np.ascontiguousarray(buf[:, off:off + size]).view(endian + code).reshape(-1)
     return out
+
 
 # -- per-topic rows: fields of a typed message (``fields``) or of the raw bytes (``parse``) -> row (``build``) ---------
 
@@ -222,7 +229,11 @@ def _row_imu(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
 
 
 def _row_tag_cloud(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (stamp_seconds(msg.header), msg.header.frame_id, _parse_cloud(msg, topic, k))
+    try:
+        rows = tag_rows_from_cloud(msg)
+    except MeasurementError as exc:
+        raise BagError(f"topic {topic}: message {k}: {exc}") from None
+    return (stamp_seconds(msg.header), msg.header.frame_id, rows)
 
 
 def _pose_cov_fields(msg: Any) -> tuple:
