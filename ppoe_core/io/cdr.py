@@ -26,7 +26,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -316,8 +316,7 @@ def joint_state_names_block(data: bytes) -> tuple[int, bytes]:
     return count, bytes(data[start:_strings(data, pos, "name")[1]])
 
 
-@dataclass(frozen=True)
-class _Layout:
+class _Layout(NamedTuple):
     """Where the fields of a ``JointState`` lie: a message of the same size and the same bytes but for the stamp and
     the float64 values (same encapsulation, frame_id, names and value counts) has its fields there."""
 
@@ -334,25 +333,31 @@ class _Layout:
 _last_layout: list[_Layout | None] = [None]
 
 
-def _joint_state_fields(raw: bytes) -> list[Any]:
+def _values(raw: bytes, span: tuple[int, int, int]) -> np.ndarray:
+    return np.frombuffer(raw, dtype="<f8", count=span[2], offset=span[1]) if span[2] else _EMPTY
+
+
+def _joint_state_fields(raw: bytes) -> tuple[Any, ...]:
     lay = _last_layout[0]
-    if lay is not None and len(raw) == lay.size and raw.startswith(lay.body, 12) and raw.startswith(lay.head) \
-            and all(_U32.unpack_from(raw, c)[0] == n for c, _, n in lay.spans[1:]):
-        check_end(raw, lay.end)
-        sec, nsec = _STAMP.unpack_from(raw, 4)
-        return [(sec, nsec, lay.frame), lay.names] + [
-            np.frombuffer(raw, dtype="<f8", count=n, offset=o) if n else _EMPTY for _, o, n in lay.spans]
+    if lay is not None and len(raw) == lay.size and raw.startswith(lay.body, 12) and raw.startswith(lay.head):
+        p, v, e = lay.spans
+        if _U32.unpack_from(raw, v[0])[0] == v[2] and _U32.unpack_from(raw, e[0])[0] == e[2]:
+            check_end(raw, lay.end)
+            sec, nsec = _STAMP.unpack_from(raw, 4)
+            return (float(sec) + 1e-9 * float(nsec), lay.frame, lay.names, _values(raw, p), _values(raw, v),
+                    _values(raw, e))
     spans: list[tuple[int, int, int]] = []
     values, end = read(_JOINT_STATE, raw, spans=spans)
     check_end(raw, end)
-    _last_layout[0] = _Layout(len(raw), raw[:4], raw[12:spans[0][0] + 4], values[0][2], values[1], tuple(spans), end)
-    return values
+    (sec, nsec, frame), *rest = values
+    _last_layout[0] = _Layout(len(raw), raw[:4], raw[12:spans[0][0] + 4], frame, values[1], tuple(spans), end)
+    return (float(sec) + 1e-9 * float(nsec), frame, *rest)
 
 
-def parse_fields(msgtype: str, raw: bytes) -> list[Any]:
-    """The fields of a message of :data:`SCHEMAS` for the bag reader (:func:`read`'s values; ``JointState`` messages
-    laid out as the previous one are read at its offsets, after comparing the bytes that decide them); the trailing
-    bytes checked (:func:`check_end`).
+def parse_fields(msgtype: str, raw: bytes) -> tuple[Any, ...]:
+    """The fields of a message of :data:`SCHEMAS` for the bag reader: ``(stamp [s], frame_id, the other fields as
+    :func:`read` gives them)`` (``JointState`` messages laid out as the previous one are read at its offsets, after
+    comparing the bytes that decide them); the trailing bytes checked (:func:`check_end`).
 
     Raises
     ------
@@ -363,4 +368,5 @@ def parse_fields(msgtype: str, raw: bytes) -> list[Any]:
         return _joint_state_fields(raw)
     values, end = read(SCHEMAS[msgtype], raw)
     check_end(raw, end)
-    return values
+    sec, nsec, frame = values[0]
+    return (float(sec) + 1e-9 * float(nsec), frame, *values[1:])

@@ -9,13 +9,14 @@ paths build the same rows through the same checks and error messages.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from ppoe_core import lie
+from ppoe_core.lie.compiled import lie_kernels
 from ppoe_core.errors import BagError, MeasurementError
 from ppoe_core.io import cdr
 from ppoe_core.io.messages import (
@@ -78,14 +79,12 @@ def named(topic: str, prefix: str) -> bool:
 
 def _pose_to_T(v: tuple[float, ...]) -> np.ndarray:
     """``(px, py, pz, qx, qy, qz, qw)`` -> (4, 4); ValueError for a zero or non-finite quaternion."""
-    q = np.array(v[3:7], dtype=float)
-    if not (math.isfinite(v[3]) and math.isfinite(v[4]) and math.isfinite(v[5]) and math.isfinite(v[6])) \
-            or np.linalg.norm(q) < 1e-9:
-        raise ValueError(f"invalid quaternion {q}")
+    x, y, z, w = (float(c) for c in v[3:7])
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z) and math.isfinite(w)) \
+            or math.sqrt(x * x + y * y + z * z + w * w) < 1e-9:
+        raise ValueError(f"invalid quaternion {np.array(v[3:7])}")
     T = np.empty((4, 4))
-    T[:3, :3] = lie.matrix_from_quat(q)
-    T[:3, 3] = v[:3]
-    T[3] = (0.0, 0.0, 0.0, 1.0)
+    lie_kernels().pose_from_quat_one(x, y, z, w, float(v[0]), float(v[1]), float(v[2]), T)  # lie.matrix_from_quat's
     return T
 
 
@@ -264,12 +263,7 @@ def _typed(build: Callable[[Any, str, int, bool], tuple]) -> RowKind:
 def _raw(msgtype: str) -> Callable[[bytes], tuple]:
     """Raw bytes -> the fields the typed path gives (stamp [s] as :func:`stamp_seconds`, frame_id, the rest), by
     the one CDR reader (:func:`ppoe_core.io.cdr.parse_fields`)."""
-
-    def parse(raw: bytes) -> tuple:
-        (sec, nsec, frame), *rest = cdr.parse_fields(msgtype, raw)
-        return (float(sec) + 1e-9 * float(nsec), frame, *rest)
-
-    return parse
+    return functools.partial(cdr.parse_fields, msgtype)
 
 
 _JOINT_STATE = RowKind(_raw(T_JOINT_STATE), _js_fields, _js_row)
