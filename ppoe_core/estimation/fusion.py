@@ -53,18 +53,8 @@ from ppoe_core.estimation.compiled_update import run_update
 from ppoe_core.estimation.update_types import MeasurementModelLike, UpdateResult
 
 __all__ = [
-    "MeasurementModelLike",
-    "UpdateResult",
-    "iterated_update",
-    "numerical_jacobian_state",
-    "numerical_jacobian_noise",
-    "check_noise_covariance",
-    "check_pose",
-    "nees",
-    "nis",
-    "nees_bounds",
-    "nis_bounds",
-    "chi2_gate",
+    "MeasurementModelLike", "UpdateResult", "iterated_update", "numerical_jacobian_state", "numerical_jacobian_noise",
+    "check_noise_covariance", "check_pose", "nees", "nis", "nees_bounds", "nis_bounds", "chi2_gate",
 ]
 
 
@@ -292,10 +282,7 @@ def nees_bounds(dim: int = 6, n_trials: int = 1, probability: float = 0.95) -> t
     """
     a = (1.0 - probability) / 2.0
     dof = n_trials * dim
-    return (
-        float(scipy.stats.chi2.ppf(a, dof) / n_trials),
-        float(scipy.stats.chi2.ppf(1.0 - a, dof) / n_trials),
-    )
+    return (float(scipy.stats.chi2.ppf(a, dof) / n_trials), float(scipy.stats.chi2.ppf(1.0 - a, dof) / n_trials))
 
 
 def nis_bounds(dim: int, n_trials: int = 1, probability: float = 0.95) -> tuple[float, float]:

@@ -28,11 +28,7 @@ from ppoe_core.estimation.updater import ModelUpdater
 from ppoe_core.robot.tree import GRAVITY
 
 __all__ = [
-    "PointMeasurement",
-    "PoseMeasurement",
-    "GravityMeasurement",
-    "SOURCE_PAYLOADS",
-    "SelectedObservation",
+    "PointMeasurement", "PoseMeasurement", "GravityMeasurement", "SOURCE_PAYLOADS", "SelectedObservation",
     "SourceUpdater",
 ]
 

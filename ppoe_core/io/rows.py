@@ -20,38 +20,13 @@ from ppoe_core.lie.compiled import lie_kernels
 from ppoe_core.errors import BagError, MeasurementError
 from ppoe_core.io import cdr
 from ppoe_core.io.messages import (
-    IMU_TOPIC_PREFIX,
-    T_COMPRESSED_IMAGE,
-    T_JOINT_STATE,
-    T_POINT,
-    T_POSE,
-    T_POSE_COV,
-    T_TEMPERATURE,
-    T_WRENCH,
-    TAG_OBSERVATION_FIELDS,
-    TOPIC_CAMERA_INFO,
-    TOPIC_COMPRESSED_IMAGE,
-    TOPIC_GT_POINT,
-    TOPIC_GT_POSE,
-    TOPIC_IMAGE,
-    TOPIC_JOINT_STATES,
-    TOPIC_TAG_OBSERVATIONS,
-    TOPIC_TEMPERATURE,
-    TOPIC_WRENCH,
-    stamp_seconds,
+    IMU_TOPIC_PREFIX, T_COMPRESSED_IMAGE, T_JOINT_STATE, T_POINT, T_POSE, T_POSE_COV, T_TEMPERATURE, T_WRENCH,
+    TAG_OBSERVATION_FIELDS, TOPIC_CAMERA_INFO, TOPIC_COMPRESSED_IMAGE, TOPIC_GT_POINT, TOPIC_GT_POSE, TOPIC_IMAGE,
+    TOPIC_JOINT_STATES, TOPIC_TAG_OBSERVATIONS, TOPIC_TEMPERATURE, TOPIC_WRENCH, stamp_seconds,
 )
 from ppoe_core.io.series import (
-    BagData,
-    CameraInfos,
-    Images,
-    ImuSeries,
-    JointStates,
-    PointSeries,
-    PoseCovSeries,
-    PoseSeries,
-    TagObservationRows,
-    TemperatureSeries,
-    Wrenches,
+    BagData, CameraInfos, Images, ImuSeries, JointStates, PointSeries, PoseCovSeries, PoseSeries, TagObservationRows,
+    TemperatureSeries, Wrenches,
 )
 
 __all__ = ["RowKind", "row_kind", "finish", "expected_type", "named", "tag_rows_from_cloud"]

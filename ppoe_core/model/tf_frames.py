@@ -31,12 +31,7 @@ from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.model.effects import sum_effect_corrections
 
 __all__ = [
-    "STATIC_EFFECTS",
-    "TfFrame",
-    "JointFrames",
-    "camera_mount_joint",
-    "camera_mount_parent",
-    "calibrated_camera_frames",
+    "STATIC_EFFECTS", "TfFrame", "JointFrames", "camera_mount_joint", "camera_mount_parent", "calibrated_camera_frames",
     "urdf_collision",
 ]
 

@@ -33,15 +33,8 @@ from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats
 from ppoe_core.model.tf_frames import JointFrames, TfFrame, calibrated_camera_frames, urdf_collision
 
 __all__ = [
-    "TF_TOPIC",
-    "TF_STATIC_TOPIC",
-    "TF2_MSGS_HINT",
-    "tf_message_class",
-    "transform_msg",
-    "tf_message_cdr",
-    "TfBroadcaster",
-    "FusionTf",
-    "KinematicsTf",
+    "TF_TOPIC", "TF_STATIC_TOPIC", "TF2_MSGS_HINT", "tf_message_class", "transform_msg", "tf_message_cdr",
+    "TfBroadcaster", "FusionTf", "KinematicsTf",
 ]
 
 TF_TOPIC = "/tf"

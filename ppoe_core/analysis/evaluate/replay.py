@@ -14,9 +14,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core import lie
-from ppoe_core.analysis.evaluate.metrics import (
-    METHODS,
-)
+from ppoe_core.analysis.evaluate.metrics import (METHODS)
 from ppoe_core.analysis.evaluate.options import EvaluateOptions, Evaluation
 from ppoe_core.analysis.evaluate.inputs import JOINT_MAX_AGE_S, joint_matrix, recorded_estimate, required_joints
 from ppoe_core.analysis.evaluate.scoring import score_points, score_poses

@@ -15,12 +15,7 @@ from ppoe_core.errors import BagError, MeasurementError, ModelConfigError
 from ppoe_core.estimation.corrections import Measurement
 from ppoe_core.estimation.pipeline import source_key
 from ppoe_core.estimation.sources import (
-    SourceConfig,
-    UnknownFrame,
-    complete_source,
-    imu_payload,
-    point_payload,
-    pose_payload,
+    SourceConfig, UnknownFrame, complete_source, imu_payload, point_payload, pose_payload,
 )
 from ppoe_core.io.messages import IMU_TOPIC_PREFIX, TOPIC_GT_POINT
 
