@@ -73,10 +73,9 @@ def _add_fusion_options(parser: argparse.ArgumentParser) -> None:
     iterations, gate = FUSION_RANGES["max_iterations"], FUSION_RANGES["gate_probability"]
     parser.add_argument(
         "--fusion-params", default=None, metavar="PARAMS.yaml",
-        help="a ROS 2 parameter file of the fusion node (buffer, gating, correction policy, and its sensor blocks "
-             "'sources': tracker points, 6D poses, accelerometers, replayed from the bag's topics; a /** file shared "
-             "by the nodes also sets corner_refinement and the contact node's force_threshold, release_threshold, "
-             "force_component); default: the nodes' defaults",
+        help="a ROS 2 parameter file of the fusion node (buffer, gating, correction policy, its 'sources': tracker "
+             "points, 6D poses, accelerometers from the bag; a /** file shared by the nodes also sets "
+             "corner_refinement, force_threshold, release_threshold, force_component); default: the nodes' defaults",
     )
     parser.add_argument(
         "--set", dest="fusion_set", action="append", default=[], metavar="KEY=VALUE",
