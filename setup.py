@@ -23,6 +23,7 @@ setup(
         ("share/" + PACKAGE + "/config", sorted(glob("config/*.*"))),
         ("share/" + PACKAGE + "/config/robots", sorted(glob("config/robots/*.*"))),
         ("share/" + PACKAGE + "/config/nodes", sorted(glob("config/nodes/*.*"))),
+        ("share/" + PACKAGE + "/config/rviz", sorted(glob("config/rviz/*.rviz"))),
         ("share/" + PACKAGE + "/launch", sorted(glob("launch/*.py"))),
     ],
     python_requires=">=3.10",
@@ -48,6 +49,7 @@ setup(
             "pytest-timeout>=2",
             "pytransform3d>=3.6",
             "gtsam>=4.3",         # test_diagnose_joint: GTSAM factor graph vs scipy (importorskip)
+            "xacro>=2.0",         # test_launch_file: a .xacro urdf expanded by the launch file (importorskip)
             "colcon-core",
             "colcon-ros",
             "colcon-python-setup-py",
@@ -67,6 +69,7 @@ setup(
             "tag_bearing_node = ppoe_ros.nodes.tag_bearing_node:main",
             "contact_node = ppoe_ros.nodes.contact_node:main",
             "fusion_node = ppoe_ros.nodes.fusion_node:main",
+            "ppoe_markers = ppoe_ros.common.markers:main",
         ],
     },
 )

@@ -179,7 +179,7 @@ def run_mode(mode: str, rate: float, seconds: float, warmup: float) -> dict[str,
 
     def on_diag(msg: DiagnosticArray) -> None:
         for st in msg.status:
-            if st.name == "kinematics_node":
+            if st.name == "/kinematics_node: health":
                 diag.update({kv.key: int(kv.value) for kv in st.values if kv.value.isdigit()})
 
     def on_pose_burst(raw: bytes) -> None:

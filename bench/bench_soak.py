@@ -122,7 +122,7 @@ class _Receiver:
 
     def _diag(self, msg: object) -> None:
         for st in msg.status:  # type: ignore[attr-defined]
-            if st.name == "kinematics_node":
+            if st.name == "/kinematics_node: health":
                 self.diag.update({kv.key: int(kv.value) for kv in st.values if kv.value.isdigit()})
 
     def spin(self, seconds: float) -> None:

@@ -11,7 +11,12 @@ No ROS import anywhere in this package.
 
 from __future__ import annotations
 
-from ppoe_core.errors import (
+# first: numba's kernel cache must point at a writable directory before any kernel module is imported
+from ppoe_core.compile_cache import configure_compile_cache
+
+configure_compile_cache()
+
+from ppoe_core.errors import (  # noqa: E402
     BagError,
     CovarianceError,
     DatasetError,
@@ -24,9 +29,9 @@ from ppoe_core.errors import (
     UnknownJointError,
     UrdfError,
 )
-from ppoe_core.model.ppoe import PPOEModel
-from ppoe_core.robot.config import ModelConfig, load_model_config
-from ppoe_core.robot.urdf import Joint, Link, Robot, parse_urdf
+from ppoe_core.model.ppoe import PPOEModel  # noqa: E402
+from ppoe_core.robot.config import ModelConfig, load_model_config  # noqa: E402
+from ppoe_core.robot.urdf import Joint, Link, Robot, parse_urdf  # noqa: E402
 
 __all__ = [
     "PPOEModel",

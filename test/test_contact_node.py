@@ -86,7 +86,7 @@ def test_wrench_hysteresis_plane_and_bad_input_live(tmp_path: Path) -> None:
         assert stamp_to_ns(out[-1].header.stamp) == stamps[-1] + 10_000_000 and len(out) == len(expected) + 1
         log = proc.output()
         assert "bad message on /wrench: non-finite wrench" in log
-        assert "bad message on /wrench: stamp jumped back by 0.090000 s" in log
+        assert "bad message on /wrench: stamp " in log and "jumped back by 0.090000 s: message dropped" in log
         assert log.count("contact begins") == 3 and log.count("contact ends") == 2
         # a clock reset (bag loop, simulator restart: 10 s back, > stamp_reset_threshold) starts a new
         # timeline instead of rejecting every later wrench (issue 13 item 7)

@@ -144,3 +144,122 @@ def test_a_dh_robot_of_our_own_with_two_reflectors_is_diagnosed_in_one_fit(tmp_p
     lo, hi = doc["effects"][0]["ci"]["offset"]
     assert lo <= 0.015 <= hi
     assert doc["n_stops"] == 80 and doc["n_sessions"] == 1
+
+
+# ----------------------------------------------------------------------------- trees of chains
+
+HUMANOID = CONFIG / "robots" / "humanoid19_dh.yaml"
+
+
+def _fixed_T(xyz, rpy):
+    """Independent of ppoe_core.lie: URDF rpy = Rz(yaw) Ry(pitch) Rx(roll), then the translation."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    R = np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                  [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                  [-sp, cp * sr, cp * cr]])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, xyz
+    return T
+
+
+def _chain_product(rows, q):
+    """Standard DH: prod Rz(theta_i + q_i) Tz(d_i) Tx(a_i) Rx(alpha_i)."""
+    T = np.eye(4)
+    for r, qi in zip(rows, q):
+        T = T @ _rz(r.get("theta", 0.0) + qi) @ _tr(0.0, r.get("d", 0.0)) @ _tr(r.get("a", 0.0), 0.0) \
+            @ _rx(r.get("alpha", 0.0))
+    return T
+
+
+def test_a_tree_of_chains_matches_the_product_of_its_dh_matrices():
+    """humanoid19 (torso, two arms on the chest, a head): every hand / head frame = mount transforms times the
+    DH products of the chains from the root, at random joint values; 19 movable joints, masses and inertias
+    as written."""
+    table = yaml.safe_load(HUMANOID.read_text())
+    robot = parse_urdf(dh_to_urdf(HUMANOID))
+    tree = KinematicTree(robot)
+    assert len(robot.independent_joints) == 19 and robot.root == "pelvis"
+    torso, left, right, head = table["chains"]
+    rng = np.random.default_rng(7)
+    for _ in range(10):
+        qv = {j: rng.uniform(-1.5, 1.5) for j in robot.independent_joints}
+        P = tree.link_poses({j: np.array(v) for j, v in qv.items()})
+        T_chest = _chain_product(torso["joints"], [qv[r["name"]] for r in torso["joints"]])
+        np.testing.assert_allclose(P["chest_flange"], T_chest, atol=1e-12)
+        for arm in (left, right):
+            m, tool = arm["mount"], arm["tool"]
+            # the arm's mount hangs on `chest` (the last torso row's frame BEFORE its a/alpha)
+            r3 = torso["joints"][2]
+            T_chest_link = T_chest @ np.linalg.inv(_tr(r3["a"], 0.0) @ _rx(r3["alpha"]))
+            T = T_chest_link @ _fixed_T(m["xyz"], m["rpy"]) @ _chain_product(
+                arm["joints"], [qv[r["name"]] for r in arm["joints"]]) @ _fixed_T(tool["xyz"], [0, 0, 0])
+            np.testing.assert_allclose(P[tool["name"]], T, atol=1e-12)
+        T_head = T_chest_link @ _fixed_T(head["mount"]["xyz"], head["mount"]["rpy"]) @ _chain_product(
+            head["joints"], [qv[r["name"]] for r in head["joints"]])
+        np.testing.assert_allclose(P["head_link_2_flange"], T_head, atol=1e-12)
+    chest = robot.links["chest"].inertial
+    assert chest is not None and chest.mass == 14.0
+    np.testing.assert_allclose(np.diag(chest.inertia), [0.1008, 0.1933, 0.1933])
+    hand = robot.links["l_hand"].inertial
+    assert hand is not None and hand.mass == 0.3 and robot.joints["l_hand_joint"].type == "fixed"
+
+
+def test_mounts_frames_and_payloads_of_the_industrial_arms():
+    """ind6 / cobot6: the arm on a named mount joint (mount_bending needs it), a camera on a named fixed joint,
+    a payload on the tool; the tool = mount times the chain's DH product."""
+    for name, mount, first in (("ind6", "mount_joint", "joint_1"), ("cobot6", "mount_joint", "shoulder_pan")):
+        path = CONFIG / "robots" / f"{name}_dh.yaml"
+        table = yaml.safe_load(path.read_text())
+        robot = parse_urdf(dh_to_urdf(path))
+        assert robot.root == "world" and robot.joints[mount].type == "fixed"
+        assert robot.joints["camera_joint"].parent == "world" and "camera_optical_frame" in robot.links
+        assert robot.joints[first].parent == "base_link" and robot.links["tool0"].inertial is not None
+        arm = table["chains"][0]
+        q = np.random.default_rng(3).uniform(-2, 2, 6)
+        P = KinematicTree(robot).link_poses({r["name"]: np.array(v) for r, v in zip(arm["joints"], q)})
+        T = _fixed_T(arm["mount"]["xyz"], arm["mount"].get("rpy", [0, 0, 0])) @ _chain_product(arm["joints"], q) \
+            @ _fixed_T(arm["tool"]["xyz"], [0, 0, 0])
+        np.testing.assert_allclose(P["tool0"], T, atol=1e-12)
+
+
+def _tree_table(tmp: Path, **over) -> Path:
+    doc = {"name": "t", "base_link": "base",
+           "chains": [{"name": "a", "joints": [{"name": "a1", "a": 0.3, "lower": -1, "upper": 1}]},
+                      {"name": "b", "parent": "a_link_1", "mount": {"name": "b_mount", "xyz": [0, 0.1, 0]},
+                       "joints": [{"name": "b1", "d": 0.2, "lower": -1, "upper": 1}],
+                       "tool": {"name": "b_tool", "mass": 1.0, "inertia": [0.01, 0.01, 0.02]}}],
+           "frames": [{"name": "cam", "parent": "base", "joint": "cam_joint", "xyz": [1, 0, 0]}]}
+    doc.update(over)
+    (tmp / "tree.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    return tmp / "tree.yaml"
+
+
+def test_tree_default_names_and_parents(tmp_path):
+    robot = parse_urdf(dh_to_urdf(_tree_table(tmp_path)))
+    assert robot.joints["a1"].child == "a_link_1" and robot.joints["a_flange_joint"].child == "a_link_1_flange"
+    assert robot.joints["b_mount_joint"].parent == "a_link_1" and robot.joints["b1"].parent == "b_mount"
+    assert robot.joints["cam_joint"].parent == "base"
+    assert robot.links["b_tool"].inertial.mass == 1.0
+
+
+@pytest.mark.parametrize("change,needle", [
+    ({"chains": [{"name": "a", "parent": "nowhere", "joints": [{"name": "a1", "type": "continuous"}]}]},
+     "chains[0].parent: unknown parent link 'nowhere'"),
+    ({"frames": [{"name": "base", "parent": "base"}]}, "frames[0]: link name 'base' is used twice"),
+    ({"chains": [{"name": "a", "joints": [{"name": "a1", "type": "continuous"},
+                                          {"name": "a1", "type": "continuous"}]}]},
+     "chains[0].joints[1]: joint name 'a1' is used twice"),
+    ({"chains": [{"name": "a", "joints": [{"name": "a1", "type": "continuous", "mass": 1.0, "inertia": [1, 2]}]}]},
+     "chains[0].joints[0].inertia: must be a list of 3 numbers"),
+    ({"chains": [{"name": "a", "joints": [{"name": "a1", "type": "hinge"}]}]},
+     "chains[0].joints[0].type: must be revolute, continuous or prismatic"),
+    ({"chains": [{"name": "a", "joints": [{"name": "a1", "type": "continuous"}], "colour": 1}]},
+     "chains[0]: unknown key 'colour'"),
+    ({"frames": [{"name": "cam"}]}, "frames[0]: missing required key 'parent'"),
+])
+def test_bad_tree_entries_name_the_file_line_and_entry(tmp_path, change, needle):
+    path = _tree_table(tmp_path, **change)
+    with pytest.raises(ModelConfigError) as err:
+        dh_to_urdf(path)
+    assert needle in str(err.value) and f"{path}:" in str(err.value), str(err.value)

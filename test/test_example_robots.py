@@ -16,6 +16,7 @@ from conftest import CONFIG_ROBOTS as CONFIG
 
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_core.robot.config import load_model_config
+from ppoe_core.robot.dh import dh_to_urdf
 from ppoe_core.robot.urdf import parse_urdf
 
 MODEL_YAMLS = sorted(CONFIG.glob("*_model.yaml"))
@@ -23,8 +24,10 @@ URDFS = sorted(CONFIG.glob("*.urdf"))
 DEG = math.pi / 180.0
 
 
-def _urdf_for(yaml_path: Path) -> Path:
-    return CONFIG / (yaml_path.name.split("_")[0] + ".urdf")
+def _urdf_for(yaml_path: Path) -> str:
+    """The robot's URDF file, or the URDF of its DH table ``<robot>_dh.yaml`` (``ppoe urdf from-dh``)."""
+    urdf = CONFIG / (yaml_path.name.split("_")[0] + ".urdf")
+    return str(urdf) if urdf.is_file() else dh_to_urdf(CONFIG / (yaml_path.name.split("_")[0] + "_dh.yaml"))
 
 
 def _model(name: str, yaml_name: str | None = None) -> PPOEModel:
@@ -53,7 +56,7 @@ def test_urdf_parses_and_optical_frames_follow_convention(urdf: Path) -> None:
 
 @pytest.mark.parametrize("model_yaml", MODEL_YAMLS, ids=lambda p: p.stem)
 def test_model_yaml_loads_and_names_existing_frames(model_yaml: Path) -> None:
-    robot = parse_urdf(str(_urdf_for(model_yaml)))
+    robot = parse_urdf(_urdf_for(model_yaml))
     cfg = load_model_config(str(model_yaml), robot)
     assert cfg.perturbations, "every example model perturbs something"
     links = set(robot.links)

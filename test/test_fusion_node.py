@@ -208,7 +208,7 @@ def _wait_until_fusion_idle(env, procs, quiet: float = 2.0, timeout: float = 60.
 
         def idle() -> bool:
             for d in reversed(diags):
-                st = {s.name: s for s in d.status}.get("fusion_node")
+                st = {s.name: s for s in d.status}.get("/fusion_node: health")
                 if st is not None:
                     kv = {k.key: k.value for k in st.values}
                     break
@@ -275,7 +275,7 @@ def test_end_to_end_bag_with_tags(tmp_path):
                                  "/camera/image_raw/compressed"], rate=2.0)
     v_prior, v_fused, n_gt = _errors_at_ground_truth(bag, recorded)
     e_prior, e_fused = np.linalg.norm(v_prior, axis=1), np.linalg.norm(v_fused, axis=1)
-    diag = _diag(recorded, "fusion_node")
+    diag = _diag(recorded, "/fusion_node: health")
     print(f"\ntable1_exp1 end to end: {len(e_fused)}/{n_gt} stops, position error mean prior "
           f"{e_prior.mean() * 1000:.2f} mm, fused {e_fused.mean() * 1000:.2f} mm; fusion diagnostics {diag}")
     assert len(e_fused) >= n_gt - 2  # a stop may lack fused poses when the machine is loaded
@@ -303,7 +303,7 @@ def test_end_to_end_bag_with_contact(tmp_path):
     normal = plane.T_frame_plane[:3, 2]
     touched = np.linalg.norm(v_fused - v_prior, axis=1) > 1e-9
     n_prior, n_fused = np.abs(v_prior[touched] @ normal), np.abs(v_fused[touched] @ normal)
-    diag = _diag(recorded, "fusion_node")
+    diag = _diag(recorded, "/fusion_node: health")
     print(
         f"\ncontact end to end: {len(e_fused)}/{n_gt} stops, position error mean prior "
         f"{e_prior.mean() * 1000:.2f} mm, fused {e_fused.mean() * 1000:.2f} mm; along the table normal on the "
@@ -340,22 +340,22 @@ def test_config_file_documents_every_parameter(node):
             assert "Default" in " ".join(lines[max(0, i - 4) : i]), f"{path.name}: '{key}' comment names no default"
 
 
-def test_joint_buffer_merges_partial_messages_and_looks_up_by_stamp():
-    from ppoe_ros.nodes.fusion_node import _JointBuffer
+def test_fusion_node_joints_are_the_one_joint_history():
+    """The fusion node looks the prior's joints up in a JointHistory of every model joint (split messages merged per
+    joint, NaN = unknown; the bounded hold of JointHistory.at), as evaluate's joint matrix merges them."""
+    from ppoe_core.model.joint_history import JointHistory
 
-    jb = _JointBuffer(duration_ns=1_000_000_000)
-    jb.set_names(["a", "b", "c"])
+    jb = JointHistory(["a", "b", "c"], known=["a", "b", "c"], max_age_ns=500_000_000, keep_ns=2_000_000_000)
     assert jb.at(5) is None
-    jb.add(100, {"a": 1.0, "x": 9.0})  # unknown names ignored, unknown joints stay NaN
-    jb.add(200, {"b": 2.0})  # a partial message keeps the last known values of the others
+    jb.update(["a"], [1.0], 100)
+    jb.update(["b"], [2.0], 200)  # a partial message keeps the last known values of the others
     np.testing.assert_array_equal(jb.at(150), [1.0, np.nan, np.nan])
     np.testing.assert_array_equal(jb.at(250), [1.0, 2.0, np.nan])
-    np.testing.assert_array_equal(jb.at(50), [1.0, np.nan, np.nan])  # prior older than all: oldest
-    jb.add(2_000_000_000, {"c": float("nan")})  # NaN stays unknown; old snapshots evicted
-    assert len(jb.stamps) == 1
-    jb.add(10, {"c": 3.0})  # time went backwards: new timeline
-    assert jb.stamps == [10]
-    np.testing.assert_array_equal(jb.at(10), [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(jb.at(50), [1.0, np.nan, np.nan])  # prior just older than all: the oldest
+    Q, held = JointHistory(["a", "b", "c"], max_age_ns=500_000_000).merge_rows(
+        np.array([100e-9, 200e-9]), np.array([[1.0, np.nan, np.nan], [np.nan, 2.0, np.nan]]))
+    np.testing.assert_array_equal(Q, [jb.at(100), jb.at(200)])
+    assert held == 1
 
 
 def test_evaluate_refuses_what_the_node_refuses(tmp_path, capsys):

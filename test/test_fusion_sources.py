@@ -122,14 +122,11 @@ def test_source_gate_is_used_and_unknown_link_is_named(arm7):
 
 
 def test_parse_sources_refuses_blocks_that_do_not_fit_their_type():
-    pytest.importorskip("rclpy")
     from ppoe_core.errors import ModelConfigError
-    from ppoe_ros.common.fusion_sources import parse_sources, source_specs
+    from ppoe_core.estimation.sources import parse_sources
 
-    def params(**over):
-        base = {s.name: s.default for s in source_specs(["s"])}
-        return {**base, "s.type": "pose", "s.topic": "mocap", "s.link": "tool0", **{f"s.{k}": v for k, v in
-                                                                                      over.items()}}
+    def params(**over):  # missing keys take their defaults
+        return {"s.type": "pose", "s.topic": "mocap", "s.link": "tool0", **{f"s.{k}": v for k, v in over.items()}}
 
     (src,) = parse_sources(params(components=[True] * 5 + [False]), ["s"], "/fusion_node")
     assert src.kind == "pose" and src.mask.tolist() == [True] * 5 + [False] and src.gate is None
@@ -137,7 +134,9 @@ def test_parse_sources_refuses_blocks_that_do_not_fit_their_type():
                         ({"sigma": [0.1]}, "needs 0 or 6 positive"),
                         ({"link": ""}, "link whose pose is measured is required"),
                         ({"sensor_pose": [0.0] * 6}, "with 'frame' set"),
-                        ({"gate_probability": 0.3}, "must be 0")):
+                        ({"gate_probability": 0.3}, "must be 0"),
+                        ({"type": "laser"}, "must be one of"),
+                        ({"xyz": [0.0, 1.0]}, "needs a list of 0 or 3 values")):
         with pytest.raises(ModelConfigError, match=match) as info:
             parse_sources(params(**over), ["s"], "/fusion_node")
         assert "parameter 's." in str(info.value) and "/fusion_node" in str(info.value)

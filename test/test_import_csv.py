@@ -100,8 +100,8 @@ def test_radians_without_roles_and_the_joint_values_round_trip(tmp_path):
 
 
 @pytest.mark.parametrize("mutate,needle", [
-    (lambda rows, m: rows[3].update(q4="abc"), "row 5 column 'q4': not a number: 'abc'"),
-    (lambda rows, m: rows[2].update(q1=""), "row 4 column 'q1': empty"),
+    (lambda rows, m: rows[3].update(q4="abc"), "stops.csv:5: column 'q4': not a number: 'abc'"),
+    (lambda rows, m: rows[2].update(q1=""), "stops.csv:4: column 'q1': empty"),
     (lambda rows, m: m["joints"].update(joint_9="q1"), "joints.joint_9: not an independent movable joint"),
     (lambda rows, m: m.update(angle_unit="grad"), "angle_unit: must be one of ['rad', 'deg']"),
     (lambda rows, m: m["joints"].update(joint_1="nope"), "columns ['nope'] named by"),
@@ -123,3 +123,87 @@ def test_bad_input_names_the_row_column_or_key(tmp_path, mutate, needle):
     with pytest.raises(DatasetError, match=None) as err:
         import_csv(c, mp, URDF, tmp_path / "bag")
     assert needle in str(err.value)
+
+
+def _rewrite(path: Path, edit) -> None:
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join(edit(lines)) + "\n", encoding="utf-8")
+
+
+def _import_exit(c: Path, mp: Path, out: Path, capsys) -> tuple[int, str]:
+    from ppoe_ros.cli import main
+
+    code = main(["import", "csv", str(c), "--mapping", str(mp), "--urdf", str(URDF), "--out", str(out)])
+    return code, capsys.readouterr().err
+
+
+def test_a_column_twice_in_the_header_is_an_error_naming_it(tmp_path, capsys):
+    """Was: the last 'q1' used silently, exit 0."""
+    c, mp = _write(tmp_path, n=6)
+    _rewrite(c, lambda lines: [lines[0] + ",q1"] + [ln + ",0.5" for ln in lines[1:]])
+    code, err = _import_exit(c, mp, tmp_path / "bag", capsys)
+    assert code == 2 and f"{c}:1: column 'q1' appears 2 times in the header (columns 1, 14)" in err, err
+    assert not (tmp_path / "bag").exists()
+
+
+def test_a_row_longer_or_shorter_than_the_header_is_an_error_naming_the_line(tmp_path, capsys):
+    """Was: the extra cell dropped silently (longer), exit 0."""
+    c, mp = _write(tmp_path, n=6)
+    _rewrite(c, lambda lines: lines[:3] + [lines[3] + ",7.5"] + lines[4:])
+    code, err = _import_exit(c, mp, tmp_path / "bag", capsys)
+    assert code == 2 and f"{c}:4: 14 cells but the header has 13 columns" in err, err
+    _rewrite(c, lambda lines: lines[:3] + [lines[3].rsplit(",", 2)[0]] + lines[4:])
+    code, err = _import_exit(c, mp, tmp_path / "bag", capsys)
+    assert code == 2 and f"{c}:4: 12 cells but the header has 13 columns" in err, err
+    assert not (tmp_path / "bag").exists()
+
+
+@pytest.mark.parametrize("second", [10.0, 10.15])
+def test_stops_at_the_same_time_are_an_error_naming_both_lines(tmp_path, capsys, second):
+    """Was: two stops at t = 10 s interleaved their joint states, so one point got the other stop's joints."""
+    c, mp = _write(tmp_path, n=6)
+    with open(c, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    rows[4]["t"] = str(second)  # line 6; line 2 is at t = 10 s
+    with open(c, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    code, err = _import_exit(c, mp, tmp_path / "bag", capsys)
+    what = "the same as" if second == 10.0 else "0.15 s after"
+    assert code == 2 and f"{c}:6: column 't': stop time {second:g} s is {what} the stop at line 2 (10 s)" in err, err
+    assert "at least 0.2 s apart" in err
+
+
+def test_stops_out_of_time_order_but_apart_keep_their_own_joints(tmp_path):
+    """Rows need not be in time order: each point is paired with its own row's joint values."""
+    from ppoe_core.analysis.diagnose import stops_from_bag
+    from ppoe_core.io.importers.csv_stops import import_csv
+
+    c, mp = _write(tmp_path, n=6, deg=False, roles=False)
+    with open(c, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    rows[1]["t"], rows[4]["t"] = rows[4]["t"], rows[1]["t"]
+    with open(c, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    import_csv(c, mp, URDF, tmp_path / "bag")
+    stops = stops_from_bag(tmp_path / "bag", parse_urdf(URDF), tracker_link="tool0")
+    order = sorted((float(r["t"]), i) for i, r in enumerate(rows) if r["px"])
+    for k, (_t, i) in enumerate(order):
+        np.testing.assert_allclose([stops.q[j][k] for j in JOINTS], [float(rows[i][f"q{n}"]) for n in range(1, 8)])
+
+
+def test_a_utf8_byte_order_mark_is_accepted(tmp_path):
+    """Was: "not in the header ['\\ufefft', ...]" for every Excel export."""
+    from ppoe_core.io.importers.csv_stops import import_csv
+
+    c, mp = _write(tmp_path, n=6)
+    text = c.read_text()
+    m = yaml.safe_load(mp.read_text())
+    first = text.split(",", 1)[0]
+    m["joints"]["joint_1"] = first  # the BOM sits on the first column name
+    mp.write_text(yaml.safe_dump(m))
+    c.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    assert import_csv(c, mp, URDF, tmp_path / "bag")["stops"] == 6

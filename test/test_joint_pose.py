@@ -114,8 +114,8 @@ def test_compiled_path_publishes_the_same_bytes_and_counts(tmp_path: Path, order
             taken = [0]
             run = fast._fast.run
 
-            def counted(data: bytes) -> bool:
-                ok = run(data)
+            def counted(data: bytes, limit: int) -> bool:
+                ok = run(data, limit)
                 taken[0] += ok
                 return ok
 
@@ -129,8 +129,9 @@ def test_compiled_path_publishes_the_same_bytes_and_counts(tmp_path: Path, order
             assert len(fast_out) == len(slow_out) == 2 * fast.stats.counts["published"]
             for k, (a, b) in enumerate(zip(fast_out, slow_out)):
                 assert a == b, f"output {k} differs"
-            np.testing.assert_array_equal(fast._merger.values, slow._merger.values)
-            assert fast._last_ns == slow._last_ns
+            np.testing.assert_array_equal(fast._history.values, slow._history.values)
+            np.testing.assert_array_equal(fast._history.stamps, slow._history.stamps)
+            assert fast._history.last_ns == slow._history.last_ns
             # runner.warm_node_kernels compiled the kernels for exactly the types the node passes
             assert len(joint_state_pose.signatures) == 1 and len(chain_pose_cdr.signatures) == 1
         finally:

@@ -88,7 +88,7 @@ def _wait_count(live, box, n, what) -> None:
 def _last_counts(live) -> dict[str, int]:
     for arr in reversed(live["diags"]):
         for st in arr.status:
-            if st.name == "kinematics_node":
+            if st.name == "/kinematics_node: health":
                 return {kv.key: int(kv.value) for kv in st.values if kv.value.isdigit()}
     return {}
 
@@ -210,6 +210,37 @@ def test_stamp_reset_starts_new_timeline(live) -> None:
     _wait_count(live, live["poses"], n0 + 2, "poses after the clock reset")
     assert [stamp_to_ns(m.header.stamp) for m in live["poses"][n0:]] == [s_new, s_next]
     assert "(> stamp_reset_threshold): new timeline" in live["proc"].output()
+
+
+def test_future_stamp_repeated_and_misspelt_joints_are_refused_and_counted(live) -> None:
+    """Issue 25: a joint state stamped 0.9 s ahead of the node's clock is refused (not published) and the valid
+    messages after it are published (before: it was published and every valid message of the next second was
+    dropped as "jumped back"); a message naming a joint twice is refused, naming it (before: the last value was
+    used); ``joint_２`` (full-width 2) instead of ``joint_2`` is refused, naming both (before: the pose used the held
+    ``joint_2`` of an earlier message).  Each counted as bad, the node keeps publishing."""
+    probe, proc = live["probe"], live["proc"]
+    probe.spin_for(0.6)  # the counters of the earlier tests on /diagnostics first
+    n0 = len(live["poses"])
+    c0 = _last_counts(live)
+    live["clock"][0] = time.time()  # stamps on the node's (wall) clock from here on
+    q = [0.25] * 7
+    s1 = _send(live, ARM, q)
+    _send_at(live, int((live["clock"][0] + 0.9) * 1e9), ARM, q)          # 0.9 s in the future
+    s2 = _send(live, ARM, q)
+    _send(live, ARM + ["joint_1"], q + [0.5])                            # joint_1 twice
+    _send(live, ["joint_1", "joint_\uff12"] + ARM[2:], [0.25, 0.9] + q[2:])  # joint_２: joint_2 missing
+    s3 = _send(live, ARM, q)
+    _wait_count(live, live["poses"], n0 + 3, "the valid poses around the refused ones")
+    probe.spin_for(0.3)
+    assert [stamp_to_ns(m.header.stamp) for m in live["poses"][n0:]] == [s1, s2, s3]
+    probe.spin_until(lambda: _last_counts(live).get("bad", 0) >= c0.get("bad", 0) + 3, 5, proc, "bad +3")
+    assert _last_counts(live)["bad"] == c0.get("bad", 0) + 3
+    log = proc.output()
+    assert "ahead of the clock (> future tolerance 0.5 s): refused" in log
+    assert "lists joint(s) 'joint_1' more than once: message refused" in log
+    assert "carries 'joint_\uff12' (looks like 'joint_2'), not a joint of the URDF, and lacks needed joint(s) " \
+           "'joint_2'" in log
+    assert "jumped back" not in log.split("ahead of the clock")[-1], "no valid message dropped after it"
 
 
 def test_parameter_urdf_sim_time_and_synchronous_mode(tmp_path: Path) -> None:
@@ -353,7 +384,7 @@ def test_burst_losses_are_counted_on_diagnostics(tmp_path: Path) -> None:
         probe.spin_for(0.5)
 
         def kv() -> dict[str, str]:
-            st = [s for d in diags for s in d.status if s.name == "kinematics_node"]
+            st = [s for d in diags for s in d.status if s.name == "/kinematics_node: health"]
             return {k.key: k.value for k in st[-1].values} if st else {}
 
         n = 3000
@@ -514,7 +545,7 @@ def test_unknown_frame_or_model_file_refused_at_startup(tmp_path: Path) -> None:
         )
         try:  # defaults from the model YAML frames section; needed joints = the arm's 7
             assert node.reference == "base_link" and node.targets[0].frame == "tool0"
-            assert node._needed == ARM
+            assert node._history.needed == ARM
         finally:
             node.destroy_node()
 
@@ -534,7 +565,7 @@ def test_diagnostics_error_without_model_and_warn_when_the_input_is_silent(tmp_p
         js = probe.publisher("/joint_states", JointState, 100)
 
         def last() -> DiagnosticStatus | None:
-            st = [s for d in diags for s in d.status if s.name == "kinematics_node"]
+            st = [s for d in diags for s in d.status if s.name == "/kinematics_node: health"]
             return st[-1] if st else None
 
         probe.spin_until(lambda: last() is not None, 15, proc, "/diagnostics")

@@ -1,25 +1,28 @@
 """launch/ppoe.launch.py and the node parameter files, checked without launch_ros.
 
-launch / launch_ros are not installable here, so the launch file is executed against small recording
-stand-ins of the launch classes: the arguments it declares (namespace, urdf, model, frame_prefix ...),
-the nodes :func:`launch_nodes` builds from their values, and that every parameter it sets is one the
-node declares.  The node config files are checked
-against the parameters the nodes declare, and for a comment on every key.
+launch / launch_ros are not installable here (no PyPI wheel of either for Jazzy), so the launch file is executed
+against small recording stand-ins of the launch classes, with the real ament_index_python over an ament prefix
+made of this checkout (:func:`ament_prefix`): the arguments it declares, the nodes :func:`launch_nodes` builds
+from their values, and that every parameter it sets is one the node declares.  test/test_launch_run.py starts
+the nodes it describes.  The node config files are checked against the parameters the nodes declare, and for a
+comment on every key.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib
 import importlib.util
 import sys
-import types
 from pathlib import Path
 
 import pytest
 import yaml
 from conftest import REPO
+from launch_helpers import LAUNCH, launch_context
+from launch_helpers import load_launch as _load_launch
 
-LAUNCH = REPO / "launch" / "ppoe.launch.py"
+_context = launch_context
 
 
 def _console_scripts() -> dict[str, str]:
@@ -30,56 +33,6 @@ def _console_scripts() -> dict[str, str]:
             entry_points = ast.literal_eval(node.value)
             return dict(s.replace(" ", "").split("=", 1) for s in entry_points["console_scripts"])
     raise AssertionError("setup.py has no entry_points")
-
-
-def _load_launch(monkeypatch: pytest.MonkeyPatch, share: Path):
-    """The launch file executed against recording stand-ins of launch / launch_ros / ament_index_python."""
-    for name, mod in _stub_modules(share).items():
-        monkeypatch.setitem(sys.modules, name, mod)
-    spec = importlib.util.spec_from_file_location("ppoe_launch_under_test", LAUNCH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-class _Rec:
-    """Stand-in of a launch class: remembers its arguments."""
-
-    def __init__(self, *args, **kwargs):
-        self.args = args
-        self.kwargs = kwargs
-
-
-class _LaunchConfiguration(_Rec):
-    def perform(self, context):
-        return context[self.args[0]]
-
-
-def _stub_modules(share: Path) -> dict[str, types.ModuleType]:
-    names = {
-        "launch": ["LaunchDescription"],
-        "launch.actions": ["DeclareLaunchArgument", "OpaqueFunction"],
-        "launch.substitutions": [],
-        "launch_ros": [],
-        "launch_ros.actions": ["Node"],
-        "ament_index_python": [],
-    }
-    mods = {}
-    for mod_name, classes in names.items():
-        mod = types.ModuleType(mod_name)
-        for cls in classes:
-            setattr(mod, cls, type(cls, (_Rec,), {}))
-        mods[mod_name] = mod
-    mods["launch.substitutions"].LaunchConfiguration = _LaunchConfiguration
-    packages = types.ModuleType("ament_index_python.packages")
-    packages.get_package_share_directory = lambda name: str(share) if name == "ppoe_ros" else 1 / 0
-    mods["ament_index_python.packages"] = packages
-    return mods
-
-
-def _context(module, **values) -> dict[str, str]:
-    """Launch argument values: the declared defaults, overridden by ``values``."""
-    return {**{k: d for k, (d, _) in module.ARGUMENTS.items()}, **values}
 
 
 def test_every_executable_exists_in_setup_py(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
@@ -118,30 +71,112 @@ def test_launch_arguments_set_real_node_parameters(monkeypatch: pytest.MonkeyPat
 
 
 def test_launch_nodes_namespace_urdf_model_prefix(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    module = _load_launch(monkeypatch, tmp_path)
+    module = _load_launch(monkeypatch, tmp_path / "prefix")
+    share = tmp_path / "prefix" / "share" / "ppoe_ros"
     urdf = tmp_path / "robot.urdf"
     urdf.write_text("<robot name='r'/>")
-    ctx = _context(module, model="/m.yaml", urdf=str(urdf), namespace="robot1", frame_prefix="robot1/",
-                   use_sim_time="true", contact="false")
+    model = tmp_path / "m.yaml"
+    model.write_text("perturbations: {}\n")
+    ctx = _context(module, model=str(model), urdf=str(urdf), namespace="robot1", frame_prefix="robot1/",
+                   use_sim_time="true", contact="false", log_level="DEBUG")
     nodes = module.launch_nodes(ctx)
     assert [n.kwargs["executable"] for n in nodes] == ["kinematics_node", "tag_bearing_node", "fusion_node"]
     for node in nodes:
         kw = node.kwargs
         exe = kw["executable"]
         assert kw["package"] == "ppoe_ros" and kw["name"] == exe and kw["namespace"] == "robot1"
+        assert kw["ros_arguments"] == ["--log-level", "debug"]
         params_file, overrides = kw["parameters"]
-        assert params_file == str(tmp_path / "config" / "nodes" / f"{exe}.yaml")
-        assert overrides["model_file"] == "/m.yaml" and overrides["use_sim_time"] is True
+        assert params_file == str(share / "config" / "nodes" / f"{exe}.yaml")
+        assert overrides["model_file"] == str(model) and overrides["use_sim_time"] is True
         if exe != "tag_bearing_node":
             assert overrides["robot_description"] == "<robot name='r'/>"
             assert overrides["frame_prefix"] == "robot1/"
     # defaults: root namespace, URDF from the topic, no prefix; the old argument name still works
-    nodes = module.launch_nodes(_context(module, model_file="/old.yaml"))
+    nodes = module.launch_nodes(_context(module, model_file=str(model)))
     assert len(nodes) == 4 and all(n.kwargs["namespace"] == "" for n in nodes)
     fusion = nodes[-1].kwargs["parameters"][1]
-    assert fusion == {"model_file": "/old.yaml", "robot_description": "", "frame_prefix": "", "use_sim_time": False}
+    assert fusion == {"model_file": str(model), "robot_description": "", "frame_prefix": "", "use_sim_time": False}
+    assert nodes[0].kwargs["ros_arguments"] == ["--log-level", "info"]
     with pytest.raises(RuntimeError, match="model:=MODEL.yaml is required"):
         module.launch_nodes(_context(module))
+
+
+def test_launch_paths_package_uris_relative_and_params_file(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """package:// URIs, paths relative to the launch directory or to the package share, a params_file between the
+    shipped defaults and the arguments; a missing file or a bad level is named."""
+    module = _load_launch(monkeypatch, tmp_path / "prefix")
+    share = (tmp_path / "prefix" / "share" / "ppoe_ros").resolve()
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "mine.yaml").write_text("kinematics_node:\n  ros__parameters:\n    order: 4\n")
+    monkeypatch.chdir(elsewhere)
+    ctx = _context(module, model="package://ppoe_ros/config/robots/arm7_model.yaml", urdf="config/robots/arm7.urdf",
+                   params_file="mine.yaml", tag_bearing="false", contact="false", fusion="false")
+    (node,) = module.launch_nodes(ctx)
+    defaults, mine, overrides = node.kwargs["parameters"]
+    assert defaults == str(share / "config" / "nodes" / "kinematics_node.yaml")
+    assert mine == str((elsewhere / "mine.yaml").resolve())
+    assert overrides["model_file"] == str((REPO / "config" / "robots" / "arm7_model.yaml").resolve())
+    assert overrides["robot_description"] == (REPO / "config" / "robots" / "arm7.urdf").read_text()
+    with pytest.raises(RuntimeError, match="params_file:=nope.yaml: no such file"):
+        module.launch_nodes({**ctx, "params_file": "nope.yaml"})
+    with pytest.raises(RuntimeError, match="package 'no_such_pkg' not found"):
+        module.launch_nodes({**ctx, "model": "package://no_such_pkg/m.yaml"})
+    with pytest.raises(RuntimeError, match="log_level:=loud is not one of"):
+        module.launch_nodes({**ctx, "log_level": "loud"})
+
+
+def test_launch_expands_xacro_and_starts_robot_state_publisher(monkeypatch: pytest.MonkeyPatch,
+                                                               tmp_path: Path) -> None:
+    """A .xacro URDF is expanded (the xacro package, when installed) and given to robot_state_publisher and the
+    nodes; robot_state_publisher is refused without a URDF or when it is not installed."""
+    pytest.importorskip("xacro")
+    module = _load_launch(monkeypatch, tmp_path / "prefix")
+    xacro_file = tmp_path / "arm.urdf.xacro"
+    xacro_file.write_text('<robot name="arm" xmlns:xacro="http://www.ros.org/wiki/xacro">'
+                          '<xacro:property name="len" value="0.5"/><link name="base_link"/><link name="tool0"/>'
+                          '<joint name="j" type="fixed"><parent link="base_link"/><child link="tool0"/>'
+                          '<origin xyz="0 0 ${len * 2}"/></joint></robot>')
+    model = tmp_path / "m.yaml"
+    model.write_text("perturbations: {}\n")
+    ctx = _context(module, model=str(model), urdf=str(xacro_file), tag_bearing="false", contact="false",
+                   fusion="false", frame_prefix="r/", robot_state_publisher="true")
+    rsp_prefix = tmp_path / "prefix"  # make robot_state_publisher "installed" in the same prefix
+    (rsp_prefix / "share" / "ament_index" / "resource_index" / "packages" / "robot_state_publisher").write_text("")
+    rsp, kin = module.launch_nodes(ctx)
+    assert (rsp.kwargs["package"], rsp.kwargs["executable"]) == ("robot_state_publisher", "robot_state_publisher")
+    (params,) = rsp.kwargs["parameters"]
+    assert params["frame_prefix"] == "r/" and 'xyz="0 0 1.0"' in params["robot_description"]
+    assert "xacro:" not in params["robot_description"]
+    assert kin.kwargs["parameters"][-1]["robot_description"] == params["robot_description"]
+    (rsp_prefix / "share" / "ament_index" / "resource_index" / "packages" / "robot_state_publisher").unlink()
+    with pytest.raises(RuntimeError, match="robot_state_publisher is not installed"):
+        module.launch_nodes(ctx)
+    with pytest.raises(RuntimeError, match="needs urdf:=FILE"):
+        module.launch_nodes({**ctx, "urdf": ""})
+
+
+def test_launch_markers_and_rviz(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """markers:=true starts ppoe_markers in the namespace; rviz:=true starts rviz2 with the shipped config (refused,
+    naming the apt package, when rviz2 is not installed)."""
+    module = _load_launch(monkeypatch, tmp_path / "prefix")
+    share = tmp_path / "prefix" / "share" / "ppoe_ros"
+    model = tmp_path / "m.yaml"
+    model.write_text("perturbations: {}\n")
+    ctx = _context(module, model=str(model), kinematics="false", tag_bearing="false", contact="false",
+                   fusion="false", markers="true", namespace="r1", use_sim_time="true")
+    (markers,) = module.launch_nodes(ctx)
+    assert (markers.kwargs["executable"], markers.kwargs["namespace"]) == ("ppoe_markers", "r1")
+    assert markers.kwargs["parameters"] == [{"use_sim_time": True}]
+    assert "ppoe_markers" in _console_scripts()
+    with pytest.raises(RuntimeError, match="apt install ros-jazzy-rviz2"):
+        module.launch_nodes({**ctx, "rviz": "true"})
+    (tmp_path / "prefix" / "share" / "ament_index" / "resource_index" / "packages" / "rviz2").write_text("")
+    _, rviz = module.launch_nodes({**ctx, "rviz": "true"})
+    config = Path(rviz.kwargs["arguments"][1])
+    assert rviz.kwargs["arguments"][0] == "-d" and config == share / "config" / "rviz" / "ppoe.rviz"
+    assert config.is_file()
 
 
 def test_config_files_exist_for_every_node() -> None:

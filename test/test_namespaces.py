@@ -84,7 +84,7 @@ def test_two_robots_in_one_graph_outputs_do_not_cross(tmp_path):
 
     from ppoe_ros.common import matrix_from_pose_msg, ns_to_stamp
     from ppoe_ros.common.tf_broadcast import tf_message_class
-    from ppoe_ros.common.tf_frames import JointFrames
+    from ppoe_core.model.tf_frames import JointFrames
 
     TFMessage = tf_message_class()
     model = PPOEModel.from_files(ARM7_URDF, ARM7_MODEL)

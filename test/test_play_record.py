@@ -109,6 +109,14 @@ def test_play_record_round_trip(tmp_path: Path, sim_time: bool) -> None:
         got = [_plain(m) for _, m in recorded.get(topic, [])]
         want = [_plain(m) for _, m in source[topic]]
         assert got == want, f"{topic}: {len(got)} recorded vs {len(want)} played, or contents differ"
+    # the publishers' offers are recorded (as ros2 bag record does): the player's latched URDF stays latched
+    from rosbags.interfaces import QosDurability
+
+    from ppoe_core.io.bag_qos import recorded_qos
+
+    offers = recorded_qos(rec)
+    assert [q.durability for q in offers["/robot_description"]] == [QosDurability.TRANSIENT_LOCAL]
+    assert [q.durability for q in offers["/joint_states"]] == [QosDurability.VOLATILE]  # (discovery: no depth)
     # /clock carried the bag time: non-decreasing, within the bag's span
     clock_ns = [m.clock.sec * 10**9 + m.clock.nanosec for _, m in recorded["/clock"]]
     assert len(clock_ns) >= 40

@@ -17,7 +17,7 @@ from ppoe_core.estimation import camera
 from ppoe_core.sensing import tags
 from ppoe_core.sensing.tag_rows import observe_tags  # noqa: E402  (what the node publishes)
 from ppoe_ros.common.tag_cloud import cloud_from_observations, observations_from_cloud  # noqa: E402
-from ppoe_ros.nodes.tag_bearing_node import camera_from_info, decode_image  # noqa: E402
+from ppoe_core.io.images import camera_from_info, decode_image  # noqa: E402
 
 W, H = 640, 480
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
@@ -204,7 +204,7 @@ def test_image_size_read_from_the_header_and_huge_images_refused_before_decoding
     import cv2
     from sensor_msgs.msg import CompressedImage
 
-    from ppoe_ros.nodes.tag_bearing_node import check_image_size, image_size_from_header
+    from ppoe_core.io.images import check_image_size, image_size_from_header
 
     ok, png = cv2.imencode(".png", np.zeros((48, 64), np.uint8))
     ok2, jpg = cv2.imencode(".jpg", np.zeros((48, 64, 3), np.uint8))

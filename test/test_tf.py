@@ -23,7 +23,7 @@ from std_msgs.msg import Header  # noqa: E402
 
 from ppoe_core import PPOEModel, lie  # noqa: E402
 from ppoe_ros.common import matrix_from_pose_msg, ns_to_stamp, pose_cov_stamped_msg, stamp_to_ns  # noqa: E402
-from ppoe_ros.common.tf_frames import JointFrames, calibrated_camera_frames, urdf_collision  # noqa: E402
+from ppoe_core.model.tf_frames import JointFrames, calibrated_camera_frames, urdf_collision  # noqa: E402
 
 HAVE_TF2_MSGS = importlib.util.find_spec("tf2_msgs") is not None
 needs_tf2_msgs = pytest.mark.skipif(not HAVE_TF2_MSGS, reason="tf2_msgs not importable: run "
@@ -131,7 +131,7 @@ def test_tf_message_cdr_equals_rclpy_serialisation():
     from rclpy.serialization import deserialize_message, serialize_message
 
     from ppoe_ros.common.tf_broadcast import tf_message_cdr, tf_message_class, transform_msg
-    from ppoe_ros.common.tf_frames import TfFrame
+    from ppoe_core.model.tf_frames import TfFrame
 
     TFMessage = tf_message_class()
     rng = np.random.default_rng(7)
@@ -148,8 +148,8 @@ def test_tf_message_cdr_equals_rclpy_serialisation():
 
 
 def test_kinematics_node_hot_path_untouched_without_publish_tf(tmp_path):
-    """publish_tf false (the default): the per-message joint-vector step is the class's own, no /tf publisher;
-    true: the step also publishes TF."""
+    """publish_tf false (the default): no TF object and no /tf publisher, the per-message path is the compiled one;
+    true: TF is published from the Python path (the compiled one is off)."""
     from rclpy.parameter import Parameter
     from ros_helpers import Probe, ros_env
 
@@ -159,7 +159,7 @@ def test_kinematics_node_hot_path_untouched_without_publish_tf(tmp_path):
     with Probe(ros_env(tmp_path)) as probe:
         node = KinematicsNode(context=probe.context, parameter_overrides=[urdf])
         try:
-            assert "_joint_vector" not in vars(node) and node._tf is None
+            assert node._tf is None and node._fast is not None
             assert not any(p.topic_name in ("/tf", "/tf_static") for p in node.publishers)
         finally:
             node.destroy_node()
@@ -167,7 +167,7 @@ def test_kinematics_node_hot_path_untouched_without_publish_tf(tmp_path):
             return
         node = KinematicsNode(context=probe.context, parameter_overrides=[urdf, Parameter("publish_tf", value=True)])
         try:
-            assert "_joint_vector" in vars(node) and node._tf is not None
+            assert node._tf is not None and node._fast is None
             assert {"/tf", "/tf_static"} <= {p.topic_name for p in node.publishers}
         finally:
             node.destroy_node()

@@ -16,7 +16,10 @@ from pathlib import Path
 
 import yaml
 
-__all__ = ["add_arguments", "run"]
+__all__ = ["add_arguments", "run", "TRUTH_HEADER"]
+
+#: first characters of the truth YAML written here: ``--force`` replaces only a file starting with them
+TRUTH_HEADER = "# truth of bag "
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,7 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="BAG", help="bag directory to create")
     parser.add_argument("--seed", type=int, default=None, help="RNG seed (overrides the scenario's seed)")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (default mcap)")
-    parser.add_argument("--force", action="store_true", help="overwrite an existing bag directory")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an existing bag directory (only one holding nothing but bag files) and its "
+                             "truth file")
     parser.add_argument("--truth", metavar="FILE", default=None,
                         help="where to write the truth YAML (default BAG.truth.yaml; 'none' to skip)")
     parser.add_argument("--json", action="store_true", help="print a JSON summary to stdout")
@@ -35,6 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run ``ppoe simulate``; returns the exit code."""
     from ppoe_core.errors import ScenarioError
+    from ppoe_core.io.outputs import check_bag_target, check_generated_file
     from ppoe_core.sim.simulate import SCENARIO_DOC, simulate
 
     if args.help_scenario:
@@ -42,14 +48,18 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.scenario or not args.out:
         raise ScenarioError("ppoe simulate needs SCENARIO.yaml and --out BAG")
-    t0 = time.perf_counter()
-    res = simulate(args.scenario, args.out, seed=args.seed, storage=args.storage, overwrite=args.force)
-    wall = time.perf_counter() - t0
     out = Path(args.out)
     truth_path = None
     if args.truth != "none":
         truth_path = Path(args.truth) if args.truth else out.parent / (out.name + ".truth.yaml")
-        truth_path.write_text("# truth of bag " + out.name + " (written by ppoe simulate; tools are never told)\n"
+    check_bag_target(out, args.force)  # before the work: a path we may not replace is refused now
+    if truth_path is not None:
+        check_generated_file(truth_path, args.force, TRUTH_HEADER, "truth file")
+    t0 = time.perf_counter()
+    res = simulate(args.scenario, args.out, seed=args.seed, storage=args.storage, overwrite=args.force)
+    wall = time.perf_counter() - t0
+    if truth_path is not None:
+        truth_path.write_text(TRUTH_HEADER + out.name + " (written by ppoe simulate; tools are never told)\n"
                               + yaml.safe_dump(res.truth, sort_keys=False, default_flow_style=None))
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
     summary = {"bag": str(out), "size_bytes": size, "duration_s": res.duration, "stops": res.n_stops,

@@ -4,40 +4,14 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from ppoe_core import lie
 from ppoe_core.errors import MeasurementError
+from ppoe_core.estimation.update_types import CompiledModel
 
-
-def _hat(v: np.ndarray) -> np.ndarray:
-    return lie.hat3(np.asarray(v, dtype=float))
-
-
-def _check_cov(cov: Any, dim: int, name: str) -> np.ndarray:
-    from ppoe_core.estimation.fusion import check_noise_covariance  # local import: fusion imports nothing from here
-
-    return check_noise_covariance(cov, dim, name)
-
-
-def _check_pose(T: Any, name: str) -> np.ndarray:
-    from ppoe_core.estimation.fusion import check_pose
-
-    return check_pose(T, name)
-
-
-def _block_diag(*blocks: np.ndarray) -> np.ndarray:
-    n = sum(b.shape[0] for b in blocks)
-    out = np.zeros((n, n))
-    i = 0
-    for b in blocks:
-        k = b.shape[0]
-        out[i : i + k, i : i + k] = b
-        i += k
-    return out
+__all__ = ["MeasurementModel"]
 
 
 class MeasurementModel:
@@ -45,13 +19,17 @@ class MeasurementModel:
 
     Subclasses set ``name``, ``dim``, ``noise_dim``, ``noise_cov`` and implement ``h``,
     ``jacobian_state`` and ``jacobian_noise`` (returning ``None`` selects central
-    differences in :mod:`ppoe_core.estimation.fusion`).
+    differences in :mod:`ppoe_core.estimation.fusion`); ``noise_checked`` when ``noise_cov`` is built
+    from checked blocks, ``compiled`` when the model's linearisation is compiled
+    (:class:`~ppoe_core.estimation.update_types.CompiledModel`).
     """
 
     name: str = "measurement"
     dim: int = 0
     noise_dim: int = 0
     noise_cov: np.ndarray = np.zeros((0, 0))
+    noise_checked: bool = False
+    compiled: CompiledModel | None = None
 
     def validate(self, z: Any) -> np.ndarray:
         """Return ``z`` as a float array of shape ``(dim,)``; MeasurementError otherwise."""
@@ -88,7 +66,8 @@ class MeasurementModel:
         None (numerical)."""
         return self.h(T_state), self.jacobian_state(T_state), self.jacobian_noise(T_state)
 
-    def _noise(self, v: np.ndarray | None) -> np.ndarray:
+    def noise_vector(self, v: np.ndarray | None) -> np.ndarray:
+        """``v`` as the model's noise vector (zeros for None); MeasurementError for a wrong shape."""
         if v is None:
             return np.zeros(self.noise_dim)
         v = np.asarray(v, dtype=float)
@@ -97,15 +76,3 @@ class MeasurementModel:
                 f"{self.name}: noise vector has shape {v.shape}, expected ({self.noise_dim},)"
             )
         return v
-
-
-def _block_diag_rect(blocks: Sequence[np.ndarray]) -> np.ndarray:
-    rows = sum(b.shape[0] for b in blocks)
-    cols = sum(b.shape[1] for b in blocks)
-    out = np.zeros((rows, cols))
-    i = j = 0
-    for b in blocks:
-        out[i : i + b.shape[0], j : j + b.shape[1]] = b
-        i += b.shape[0]
-        j += b.shape[1]
-    return out

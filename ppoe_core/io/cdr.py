@@ -25,7 +25,7 @@ __all__ = ["JointStateCdr", "parse_joint_state", "joint_state_names_block", "Pos
 
 _U32 = struct.Struct("<I")
 _STAMP = struct.Struct("<iI")
-_HEADER_LE = b"\x00\x01\x00\x00"
+CDR_LE_HEADER = b"\x00\x01\x00\x00"
 
 
 @dataclass(frozen=True)
@@ -48,7 +48,7 @@ class JointStateCdr:
     positions: np.ndarray
 
 
-def _align(pos: int, a: int) -> int:
+def align(pos: int, a: int) -> int:
     """``pos`` (absolute) rounded up to a multiple of ``a`` relative to the end of the 4-byte header."""
     return pos + (-(pos - 4)) % a
 
@@ -70,7 +70,7 @@ _last_names: list[tuple[int, bytes, tuple[str, ...]] | None] = [None]  # (count,
 def _names_end(data: bytes, pos: int, count: int) -> int:
     """Position after the ``count`` strings of a name sequence whose first string is at ``pos``."""
     for _ in range(count):
-        pos = _align(pos, 4)
+        pos = align(pos, 4)
         (n,) = _U32.unpack_from(data, pos)
         pos += 4 + n
         if n == 0 or pos > len(data):
@@ -82,7 +82,7 @@ def joint_state_names_block(data: bytes) -> tuple[int, bytes]:
     """``(count, bytes of the name strings)`` of a serialised ``JointState`` that :func:`parse_joint_state`
     accepted: the name sequence as it is on the wire (what identifies a publisher's name layout)."""
     (n,) = _U32.unpack_from(data, 12)
-    pos = _align(16 + n, 4)
+    pos = align(16 + n, 4)
     (count,) = _U32.unpack_from(data, pos)
     return count, bytes(data[pos + 4:_names_end(data, pos + 4, count)])
 
@@ -101,7 +101,7 @@ def _names(data: bytes, pos: int) -> tuple[tuple[str, ...], int]:
     if names is None:
         out, p = [], start
         for k in range(count):
-            name, p = _string(data, _align(p, 4), f"name[{k}]")
+            name, p = _string(data, align(p, 4), f"name[{k}]")
             out.append(name)
         names = tuple(out)
         if len(_names_cache) > 64:
@@ -119,15 +119,15 @@ def parse_joint_state(data: bytes) -> JointStateCdr:
     MeasurementError
         Not little-endian CDR, or truncated (names the field and the byte offset).
     """
-    if len(data) < 16 or data[:2] != _HEADER_LE[:2]:
+    if len(data) < 16 or data[:2] != CDR_LE_HEADER[:2]:
         raise MeasurementError(f"JointState CDR: {len(data)} bytes without the little-endian CDR header")
     try:
         sec, nsec = _STAMP.unpack_from(data, 4)
         frame_id, pos = _string(data, 12, "header.frame_id")
-        names, pos = _names(data, _align(pos, 4))
-        pos = _align(pos, 4)
+        names, pos = _names(data, align(pos, 4))
+        pos = align(pos, 4)
         (n_pos,) = _U32.unpack_from(data, pos)
-        pos = _align(pos + 4, 8) if n_pos else pos + 4
+        pos = align(pos + 4, 8) if n_pos else pos + 4
         if pos + 8 * n_pos > len(data):
             raise MeasurementError(f"JointState CDR: {n_pos} positions do not fit in {len(data)} bytes")
         positions = np.frombuffer(data, dtype="<f8", count=n_pos, offset=pos)
@@ -149,8 +149,8 @@ class PoseCovarianceWriter:
 
     def __init__(self, frame_id: str) -> None:
         frame = frame_id.encode("utf-8") + b"\x00"
-        head = bytearray(_HEADER_LE + bytes(8) + _U32.pack(len(frame)) + frame)
-        self._offset = _align(len(head), 8)
+        head = bytearray(CDR_LE_HEADER + bytes(8) + _U32.pack(len(frame)) + frame)
+        self._offset = align(len(head), 8)
         self._buf = head + bytes(self._offset - len(head) + 8 * 43)
         # position (3), orientation x y z w (4), covariance (36, row-major, ROS convention)
         self._values = np.frombuffer(self._buf, dtype="<f8", count=43, offset=self._offset)

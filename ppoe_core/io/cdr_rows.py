@@ -27,7 +27,7 @@ import numpy as np
 
 from ppoe_core.errors import MeasurementError
 from ppoe_core.io import cdr
-from ppoe_core.io.cdr import _align
+from ppoe_core.io.cdr import align
 
 __all__ = ["Fallback", "PARSE_ERRORS", "parse_joint_state", "parse_compressed_image", "parse_pose",
            "parse_point", "parse_wrench", "parse_pose_cov"]
@@ -54,11 +54,11 @@ PARSE_ERRORS = (Fallback, MeasurementError, struct.error, UnicodeDecodeError, Va
 def _string(raw: bytes, pos: int) -> tuple[str, int]:
     """The CDR string at ``pos`` (aligned here) -> (text, position after it): :mod:`ppoe_core.io.cdr`'s reader
     (length inside the bytes, NUL-terminated UTF-8, as rosbags' ``check_string``)."""
-    return cdr._string(raw, _align(pos, 4), "string")
+    return cdr._string(raw, align(pos, 4), "string")
 
 
 def _header(raw: bytes) -> tuple[float, str, int]:
-    """``header.stamp`` in seconds (as ``messages._stamp_s``), ``header.frame_id`` and the position after it."""
+    """``header.stamp`` in seconds (as ``messages.stamp_seconds``), ``header.frame_id`` and the position after it."""
     if raw[:2] != b"\x00\x01":  # not little-endian CDR: the typed path handles (or refuses) it
         raise Fallback
     sec, nsec = _STAMP.unpack_from(raw, 4)
@@ -75,7 +75,7 @@ def _end(raw: bytes, pos: int) -> None:
 def _names(raw: bytes, pos: int) -> tuple[tuple[str, ...], int]:
     """The ``string[]`` at ``pos`` -> (names, position after it): :mod:`ppoe_core.io.cdr`'s reader (the names
     cached by their bytes: a publisher sends the same names every time)."""
-    return cdr._names(raw, _align(pos, 4))
+    return cdr._names(raw, align(pos, 4))
 
 
 class _Layout(NamedTuple):
@@ -97,9 +97,9 @@ _last_layout: list[_Layout | None] = [None]
 
 def _sequence(raw: bytes, pos: int) -> tuple[tuple[int, int, int], int]:
     """A ``float64`` sequence at ``pos`` -> ((count offset, count, data offset), position after it)."""
-    c = _align(pos, 4)
+    c = align(pos, 4)
     (n,) = _U32.unpack_from(raw, c)
-    d = _align(c + 4, 8) if n else c + 4
+    d = align(c + 4, 8) if n else c + 4
     if d + 8 * n > len(raw):
         raise Fallback
     return (c, n, d), d + 8 * n
@@ -137,7 +137,7 @@ def parse_compressed_image(raw: bytes) -> tuple[float, str, str, memoryview]:
     """``sensor_msgs/CompressedImage`` -> (stamp, frame_id, format, data as a view of ``raw``)."""
     stamp, frame, pos = _header(raw)
     fmt, pos = _string(raw, pos)
-    pos = _align(pos, 4)
+    pos = align(pos, 4)
     (n,) = _U32.unpack_from(raw, pos)
     pos += 4
     if pos + n > len(raw):
@@ -149,7 +149,7 @@ def parse_compressed_image(raw: bytes) -> tuple[float, str, str, memoryview]:
 def _fixed(raw: bytes, layout: struct.Struct) -> tuple[float, str, tuple[float, ...], int]:
     """Header then ``layout``'s float64 values (aligned to 8) -> (stamp, frame_id, values, position after)."""
     stamp, frame, pos = _header(raw)
-    pos = _align(pos, 8)
+    pos = align(pos, 8)
     return stamp, frame, layout.unpack_from(raw, pos), pos + layout.size
 
 

@@ -2,14 +2,16 @@
 serialised ``geometry_msgs/PoseWithCovarianceStamped`` bytes out.
 
 What the Python path does step by step (:func:`ppoe_core.io.cdr.parse_joint_state`,
-:class:`ppoe_core.estimation.joint_merge.JointMerger`, the one-configuration :meth:`PPOEModel.fk
+:meth:`ppoe_core.model.joint_history.JointHistory.update`, the one-configuration :meth:`PPOEModel.fk
 <ppoe_core.model.ppoe.PPOEModel.fk>`, :func:`ppoe_core.lie.quat_from_matrix`, :func:`ppoe_core.lie.cov_local_to_ros`,
 :class:`ppoe_core.io.cdr.PoseCovarianceWriter`) costs about 30 us per message in Python and numpy dispatch;
 the arithmetic is a few microseconds.  :class:`JointPoseFastPath` runs the same steps with the same compiled
 pieces (:func:`ppoe_core.model.chain_kernel.eval_chain`, the quaternion and covariance kernels of
 :mod:`ppoe_core.lie.kernels`, the writer's own buffer) in one numba call, for the messages where nothing is
 unusual: a name layout seen before (the bytes of the name sequence equal a learned one), every position finite,
-the stamp not older than the last one, the chain's joints all known and fresh.  Anything else returns "not
+the stamp not older than the last one nor beyond the future limit, the chain's joints all known and fresh (the
+merge step is the history's own compiled :func:`~ppoe_core.model.joint_history.merge_into` /
+:func:`~ppoe_core.model.joint_history.fresh_vector`).  Anything else returns "not
 handled" BEFORE any state changed, and the caller runs its Python path, which produces the diagnostics (and
 learns a new name layout for the next message).  Same floats as the Python path (``test/test_joint_pose.py``).
 """
@@ -22,18 +24,19 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from ppoe_core.estimation.joint_merge import JointMerger
+from ppoe_core.model.joint_history import NEVER_NS, JointHistory, fresh_vector, merge_into
 from ppoe_core.io import cdr
 from ppoe_core.io.cdr import PoseCovarianceWriter
-from ppoe_core.lie.kernels import _quat_into, _rotate_cov_into
+from ppoe_core.lie.kernels import quat_into, rotate_covariance_into
 from ppoe_core.model.chain_kernel import eval_chain
 
 __all__ = ["JointPoseFastPath", "joint_state_pose", "chain_pose_cdr", "MAX_LAYOUTS"]
 
 #: name layouts (publishers) remembered at once; the oldest is forgotten first
 MAX_LAYOUTS = 8
-_NEVER = np.iinfo(np.int64).min
-_align = njit(cache=True, inline="always")(cdr._align)  # the CDR alignment rule of ppoe_core.io.cdr, compiled
+#: no future limit
+NO_LIMIT = np.iinfo(np.int64).max
+_align = njit(cache=True, inline="always")(cdr.align)  # the CDR alignment rule of ppoe_core.io.cdr, compiled
 
 
 @njit(cache=True, inline="always")
@@ -93,29 +96,22 @@ def _layout(d: Any, lay: np.ndarray, blob: np.ndarray) -> tuple[int, int, int]:
 @njit(cache=True)
 def _merge(d: Any, pos: int, count: int, src: np.ndarray, dst: np.ndarray, stamp: int, values: np.ndarray,
            stamps: np.ndarray, max_age: int, scratch: np.ndarray) -> bool:
-    """:meth:`JointMerger.update` of the positions at ``pos`` (``count`` of them, checked to fit) with the index
+    """:meth:`JointHistory.update` of the positions at ``pos`` (``count`` of them, checked to fit) with the index
     maps ``src``/``dst`` when it gives a joint vector; False (nothing changed) when it would not or would raise."""
     npos = _u32(d, pos)
     pos = _align(pos + 4, 8) if npos else pos + 4
     if npos != count or pos + 8 * npos > len(d) or src.shape[0] == 0:
         return False
+    carried = np.empty(src.shape[0])
+    for i in range(src.shape[0]):
+        carried[i] = _f64(d, pos + 8 * src[i], scratch)
+        if not np.isfinite(carried[i]):
+            return False
     new_v = values.copy()
     new_s = stamps.copy()
-    for i in range(src.shape[0]):
-        v = _f64(d, pos + 8 * src[i], scratch)
-        if not np.isfinite(v):
-            return False
-        new_v[dst[i]] = v
-        new_s[dst[i]] = stamp
-    if src.shape[0] == values.shape[0]:  # the whole chain in one message (the merger's fast path)
-        new_s[:] = stamp
-    else:
-        for j in range(new_s.shape[0]):
-            if new_s[j] == _NEVER or (max_age > 0 and stamp - new_s[j] > max_age):
-                return False
-    for j in range(new_v.shape[0]):
-        if not np.isfinite(new_v[j]):
-            return False
+    merge_into(new_v, new_s, dst, carried, stamp)
+    if fresh_vector(new_v, new_s, stamp, max_age, NEVER_NS, np.empty(new_v.shape[0])):
+        return False
     values[:] = new_v
     stamps[:] = new_s
     return True
@@ -148,9 +144,9 @@ def chain_pose_cdr(q: np.ndarray, motion_col: np.ndarray, mult: np.ndarray, off:
         out_u8[4 + k] = (usec >> (8 * k)) & 0xFF
         out_u8[8 + k] = (nsec >> (8 * k)) & 0xFF
     out_f8[0], out_f8[1], out_f8[2] = T[0, 0, 3], T[0, 1, 3], T[0, 2, 3]
-    _quat_into(T[0, :3, :3], np.empty(4), out_f8[3:7])
+    quat_into(T[0, :3, :3], np.empty(4), out_f8[3:7])
     ros = np.empty((6, 6))
-    _rotate_cov_into(T[0], cov[0], False, ros, np.empty((3, 3)), np.empty((3, 3)))
+    rotate_covariance_into(T[0], cov[0], False, ros, np.empty((3, 3)), np.empty((3, 3)))
     for i in range(6):
         for j in range(6):
             out_f8[7 + 6 * i + j] = ros[i, j]
@@ -159,15 +155,14 @@ def chain_pose_cdr(q: np.ndarray, motion_col: np.ndarray, mult: np.ndarray, off:
 
 @njit(cache=True)
 def joint_state_pose(d: Any, lay: np.ndarray, blob: np.ndarray, src: np.ndarray, dst: np.ndarray,
-                     values: np.ndarray, stamps: np.ndarray, max_age: int, clock: np.ndarray, model_dst: np.ndarray,
-                     q: np.ndarray, motion_col: np.ndarray, mult: np.ndarray, off: np.ndarray, program: tuple,
-                     order: int, out_u8: np.ndarray, out_f8: np.ndarray) -> int:
+                     values: np.ndarray, stamps: np.ndarray, max_age: int, clock: np.ndarray, limit: int,
+                     model_dst: np.ndarray, q: np.ndarray, motion_col: np.ndarray, mult: np.ndarray, off: np.ndarray,
+                     program: tuple, order: int, out_u8: np.ndarray, out_f8: np.ndarray) -> int:
     """The whole per-message path for the first target (module docstring): 1 when the pose message is in
     ``out_u8`` (``q`` holds the joint vector, ``clock`` = ``[last stamp ns, has one]`` the message's stamp), 0 when
-    the message is left to the Python path.  Returning 0 after :func:`_merge` changed the merger is harmless: the
-    Python path then applies the same update again (idempotent) and raises what it raises."""
+    the message is left to the Python path (also a stamp after ``limit``, the clock plus the future tolerance)."""
     r, stamp, pos = _layout(d, lay, blob)
-    if r < 0 or (clock[1] != 0 and stamp < clock[0]):
+    if r < 0 or stamp > limit or (clock[1] != 0 and stamp < clock[0]):
         return 0
     pos = _align(pos, 4)
     if pos + 4 > len(d):
@@ -191,57 +186,55 @@ class JointPoseFastPath:
 
     Parameters
     ----------
-    merger : the node's joint merger (its ``values`` / ``stamps`` arrays are updated in place, shared with
-        the Python path)
-    model_dst : index of each of ``merger.needed`` in the model's joint vector
+    history : the node's joint history (its ``values`` / ``stamps`` / ``clock`` arrays are updated in place, shared
+        with the Python path); its joints are the chain's, in the order of ``model_dst``
+    model_dst : index of each of ``history.joints`` in the model's joint vector
     n_joints : length of the model's joint vector
-    clock : int64 (2,) ``[last stamp ns, has one]``, shared with the Python path
     targets : per output ``(model.lean_program(reference, frame), writer)``
     order : covariance order (2 or 4)
     """
 
-    def __init__(self, merger: JointMerger, model_dst: np.ndarray, n_joints: int, clock: np.ndarray,
-                 targets: list[tuple[tuple, PoseCovarianceWriter]], order: int) -> None:
+    def __init__(self, history: JointHistory, model_dst: np.ndarray, n_joints: int,
+                 targets: list[tuple[Any, PoseCovarianceWriter]], order: int) -> None:
         if sys.byteorder != "little":  # pragma: no cover - the writer's doubles are little endian
             raise ValueError("JointPoseFastPath needs a little-endian host")
-        self._merger = merger
+        self._history = history
         self._model_dst = np.ascontiguousarray(model_dst, dtype=np.int64)
         self._q = np.zeros(n_joints)
-        self._clock = clock
-        self._max_age = int(merger.max_age_ns)
         self._order = int(order)
-        self._targets = [(lean[0], lean[1], lean[2], lean[3], w.raw, w.fields) for lean, w in targets]
+        self._targets = [(lean.program, lean.motion_col, lean.mult, lean.off, w.raw, w.fields) for lean, w in targets]
         self._layouts: dict[bytes, tuple[int, np.ndarray, np.ndarray]] = {}
         self._lay = np.zeros((0, 5), dtype=np.int64)
         self._blob = np.zeros(0, dtype=np.uint8)
         self._src = np.zeros(0, dtype=np.int64)
         self._dst = np.zeros(0, dtype=np.int64)
 
-    def run(self, data: bytes) -> bool:
-        """Write every target's message into its writer's buffer; False: the message is the Python path's."""
+    def run(self, data: bytes, limit_ns: int = NO_LIMIT) -> bool:
+        """Write every target's message into its writer's buffer; False: the message is the Python path's
+        (``limit_ns``: a stamp after it is, the receiver's clock plus the future tolerance)."""
         program, col, mult, off, raw, fields = self._targets[0]
-        m = self._merger
-        if not joint_state_pose(data, self._lay, self._blob, self._src, self._dst, m.values, m.stamps, self._max_age,
-                                self._clock, self._model_dst, self._q, col, mult, off, program, self._order, raw,
-                                fields):
+        h = self._history
+        if not joint_state_pose(data, self._lay, self._blob, self._src, self._dst, h.values, h.stamps, h.max_age_ns,
+                                h.clock, limit_ns, self._model_dst, self._q, col, mult, off, program, self._order,
+                                raw, fields):
             return False
         for program, col, mult, off, raw, fields in self._targets[1:]:
-            if not chain_pose_cdr(self._q, col, mult, off, program, self._order, int(self._clock[0]), raw, fields):
+            if not chain_pose_cdr(self._q, col, mult, off, program, self._order, int(h.clock[0]), raw, fields):
                 return False  # (an overflowing mimic joint) the Python path redoes the message: same stamp, same merge
         return True
 
     def learn(self, data: bytes, names: tuple[str, ...]) -> None:
-        """Remember the name layout of ``data``, a message the Python path just gave to the merger (whose index
-        maps are then the ones of ``names``)."""
-        merger_names, src, dst = self._merger.index_maps()
-        if merger_names != names:
+        """Remember the name layout of ``data``, a message the Python path just merged (its layout has no
+        problem: a refused layout is never learned)."""
+        lay = self._history.layout(names)
+        if lay.problem:
             return
         count, key = cdr.joint_state_names_block(data)
         if key in self._layouts or count != len(names):
             return
         if len(self._layouts) >= MAX_LAYOUTS:
             del self._layouts[next(iter(self._layouts))]
-        self._layouts[key] = (count, src.astype(np.int64), dst.astype(np.int64))
+        self._layouts[key] = (count, lay.src, lay.dst)
         rows, blobs, srcs, dsts = [], [], [], []
         b0 = m0 = 0
         for blob, (cnt, s, d) in self._layouts.items():
@@ -258,7 +251,7 @@ class JointPoseFastPath:
 
     def warm(self) -> None:
         """Compile (or load from numba's cache) the kernels: a message of no learned layout (nothing changes)."""
-        probe = bytes(cdr._HEADER_LE) + bytes(8) + b"\x01\x00\x00\x00\x00\x00\x00\x00" + bytes(8)
+        probe = bytes(cdr.CDR_LE_HEADER) + bytes(8) + b"\x01\x00\x00\x00\x00\x00\x00\x00" + bytes(8)
         self.run(probe)
         program, col, mult, off, raw, fields = self._targets[0]
         chain_pose_cdr(np.full(self._q.shape, np.nan), col, mult, off, program, self._order, 0, raw, fields)
@@ -267,10 +260,11 @@ class JointPoseFastPath:
 def warm_kernels() -> None:
     """Compile (or load from numba's cache) :func:`joint_state_pose` and :func:`chain_pose_cdr` for the argument
     types a node passes (a model's chain program, a writer's buffer), without a model: a one-factor chain."""
-    program = (np.eye(4)[None].copy(), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
-               np.zeros(0, dtype=np.int64), np.zeros((0, 2, 3)), np.zeros(0, dtype=np.int64),
-               np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64))
-    merger = JointMerger(["a"])
-    lean = (program, np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
-    JointPoseFastPath(merger, np.zeros(1, dtype=np.int64), 1, np.zeros(2, dtype=np.int64),
+    from ppoe_core.model.chain import ChainProgram, LeanChain
+
+    program = ChainProgram(np.eye(4)[None].copy(), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                           np.zeros(0, dtype=np.int64), np.zeros((0, 2, 3)), np.zeros(0, dtype=np.int64),
+                           np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64))
+    lean = LeanChain(program, np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
+    JointPoseFastPath(JointHistory(["a"]), np.zeros(1, dtype=np.int64), 1,
                       [(lean, PoseCovarianceWriter("warm-up"))], 2).warm()

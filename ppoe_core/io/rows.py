@@ -33,7 +33,7 @@ from ppoe_core.io.messages import (
     TOPIC_TAG_OBSERVATIONS,
     TOPIC_TEMPERATURE,
     TOPIC_WRENCH,
-    _stamp_s,
+    stamp_seconds,
 )
 from ppoe_core.io.series import (
     BagData,
@@ -124,7 +124,7 @@ def _parse_cloud(msg: Any, topic: str, k: int) -> np.ndarray:
 
 
 def _js_fields(msg: Any) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, tuple(msg.name), np.asarray(msg.position, dtype=float),
+    return (stamp_seconds(msg.header), msg.header.frame_id, tuple(msg.name), np.asarray(msg.position, dtype=float),
             np.asarray(msg.velocity, dtype=float), np.asarray(msg.effort, dtype=float))
 
 
@@ -149,12 +149,12 @@ def _js_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
 
 def _row_camera_info(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
     K = np.asarray(msg.k, dtype=float).reshape(3, 3)
-    return (_stamp_s(msg.header), msg.header.frame_id, K, np.asarray(msg.d, dtype=float),
+    return (stamp_seconds(msg.header), msg.header.frame_id, K, np.asarray(msg.d, dtype=float),
             int(msg.width), int(msg.height), msg.distortion_model)
 
 
 def _compressed_fields(msg: Any) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, msg.format, np.asarray(msg.data, dtype=np.uint8))
+    return (stamp_seconds(msg.header), msg.header.frame_id, msg.format, np.asarray(msg.data, dtype=np.uint8))
 
 
 def _compressed_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
@@ -177,13 +177,13 @@ def _row_image(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
         raise BagError(f"topic {topic}: message {k} data size {buf.shape[0]} too small for {w}x{h} {enc}")
     img = buf[: h * step].reshape(h, step)[:, : w * ch]
     shape = (h, w) if ch == 1 else (h, w, 3)
-    return (_stamp_s(msg.header), msg.header.frame_id, enc,
+    return (stamp_seconds(msg.header), msg.header.frame_id, enc,
             np.ascontiguousarray(img).tobytes() if load_images else b"", shape)
 
 
 def _wrench_fields(msg: Any) -> tuple:
     f, t = msg.wrench.force, msg.wrench.torque
-    return (_stamp_s(msg.header), msg.header.frame_id, (f.x, f.y, f.z, t.x, t.y, t.z))
+    return (stamp_seconds(msg.header), msg.header.frame_id, (f.x, f.y, f.z, t.x, t.y, t.z))
 
 
 def _wrench_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
@@ -192,7 +192,7 @@ def _wrench_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
 
 
 def _pose_fields(msg: Any) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, _pose_values(msg.pose))
+    return (stamp_seconds(msg.header), msg.header.frame_id, _pose_values(msg.pose))
 
 
 def _pose_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
@@ -201,7 +201,7 @@ def _pose_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
 
 def _point_fields(msg: Any) -> tuple:
     p = msg.point
-    return (_stamp_s(msg.header), msg.header.frame_id, (p.x, p.y, p.z))
+    return (stamp_seconds(msg.header), msg.header.frame_id, (p.x, p.y, p.z))
 
 
 def _point_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
@@ -209,20 +209,20 @@ def _point_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:
 
 
 def _row_temperature(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, float(msg.temperature), float(msg.variance))
+    return (stamp_seconds(msg.header), msg.header.frame_id, float(msg.temperature), float(msg.variance))
 
 
 def _row_imu(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, _v3(msg.linear_acceleration),
+    return (stamp_seconds(msg.header), msg.header.frame_id, _v3(msg.linear_acceleration),
             _v3(msg.angular_velocity), np.asarray(msg.linear_acceleration_covariance, float).reshape(3, 3))
 
 
 def _row_tag_cloud(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, _parse_cloud(msg, topic, k))
+    return (stamp_seconds(msg.header), msg.header.frame_id, _parse_cloud(msg, topic, k))
 
 
 def _pose_cov_fields(msg: Any) -> tuple:
-    return (_stamp_s(msg.header), msg.header.frame_id, _pose_values(msg.pose.pose), msg.pose.covariance)
+    return (stamp_seconds(msg.header), msg.header.frame_id, _pose_values(msg.pose.pose), msg.pose.covariance)
 
 
 def _pose_cov_row(f: tuple, topic: str, k: int, load_images: bool) -> tuple:

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import BagError
+from ppoe_core.io.bag_qos import offered_qos
 from ppoe_core.io.messages import (
     _IMU_RE,
     CONTRACT_TYPES,
@@ -45,6 +46,7 @@ from ppoe_core.io.messages import (
     stamp_to_ns,
     typestore,
 )
+from ppoe_core.io.outputs import BagReplacement, check_bag_target
 
 
 # ===================================================================== writer
@@ -58,7 +60,10 @@ class BagWriter:
     storage
         ``"mcap"`` (default) or ``"sqlite3"``.
     overwrite
-        Delete an existing bag directory at ``path`` first.
+        Replace an existing bag directory at ``path``, only if it holds nothing but rosbag2 files (else
+        :class:`BagError` naming what else is there; an existing file is refused too).  The new bag is written
+        beside it (:attr:`write_path`) and renamed into place at :meth:`close`; :meth:`discard` (or an exception
+        inside the ``with`` block) keeps the old bag (:mod:`ppoe_core.io.outputs`).
     flush_period
         Seconds (mcap only): write ``metadata.yaml`` at :meth:`open` and, at most this long after a
         message, close the pending chunk, flush it to disk and rewrite ``metadata.yaml`` with the counts
@@ -79,25 +84,25 @@ class BagWriter:
         plugins = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
         if storage not in plugins:
             raise BagError(f"bag {self.path}: storage must be 'mcap' or 'sqlite3', got {storage!r}")
-        if self.path.exists():
-            if not overwrite:
-                raise BagError(f"bag {self.path} exists already (pass overwrite=True / --force)")
-            import shutil
-
-            shutil.rmtree(self.path)
+        self._replacement = BagReplacement(self.path) if check_bag_target(self.path, overwrite) else None
+        #: where the bag is being written (``path``, or a folder beside it when it replaces an existing bag)
+        self.write_path = self._replacement.write_path if self._replacement is not None else self.path
         self._storage = plugins[storage]
         self._flush_period = flush_period if storage == "mcap" else None
         self._last_flush = 0.0
         self._writer: Any = None
         self._connections: dict[str, Any] = {}
         self.counts: dict[str, int] = {}
+        #: offered QoS per topic (rosbags ``Qos`` list), stored in metadata.yaml; set it before a topic's first
+        #: message (``ppoe record``: what the publishers offered); a topic not in it gets :func:`offered_qos`
+        self.offered_qos: dict[str, list[Any]] = {}
 
     # -- lifecycle
     def open(self) -> BagWriter:
         """Create the bag directory and open it for writing."""
         from rosbags.rosbag2 import Writer, WriterError
 
-        writer = Writer(self.path, version=9, storage_plugin=self._storage)
+        writer = Writer(self.write_path, version=9, storage_plugin=self._storage)
         try:
             writer.open()
         except OSError as exc:
@@ -111,10 +116,36 @@ class BagWriter:
         return self
 
     def close(self) -> None:
-        """Finish the bag (writes ``metadata.yaml``)."""
+        """Finish the bag (writes ``metadata.yaml``); a replacement is renamed into place of the old bag."""
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+            if self._replacement is not None:
+                self._replacement.commit()
+                self._replacement = None
+        elif self._replacement is not None:  # never opened: nothing to put in place of the old bag
+            self._replacement.discard()
+            self._replacement = None
+
+    @property
+    def replaces_existing(self) -> bool:
+        """True while the bag being written will replace an existing bag at :attr:`path` on :meth:`close`."""
+        return self._replacement is not None
+
+    def discard(self) -> None:
+        """Stop without keeping what was written: a replacement is removed and the old bag kept as it was; a new
+        bag is closed (left as written)."""
+        if self._replacement is None:
+            self.close()
+            return
+        if self._writer is not None:
+            try:
+                self._writer.close()
+            except Exception:  # noqa: BLE001 - the folder is removed below whatever state rosbags left it in
+                pass
+            self._writer = None
+        self._replacement.discard()
+        self._replacement = None
 
     def flush(self) -> None:
         """Close the pending chunk, flush the mcap to disk and rewrite ``metadata.yaml`` (mcap only).
@@ -145,8 +176,11 @@ class BagWriter:
     def __enter__(self) -> BagWriter:
         return self.open()
 
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
+    def __exit__(self, exc_type: Any, *exc: Any) -> None:
+        if exc_type is not None and self._replacement is not None:
+            self.discard()  # an error while writing: the old bag stays
+        else:
+            self.close()
 
     # -- generic
     def _connection(self, topic: str, msgtype: str) -> Any:
@@ -159,7 +193,8 @@ class BagWriter:
                 expected = T_IMU
             if expected is not None and expected != msgtype:
                 raise BagError(f"topic {topic} must carry {expected}, not {msgtype}")
-            conn = self._writer.add_connection(topic, msgtype, typestore=typestore())
+            conn = self._writer.add_connection(topic, msgtype, typestore=typestore(),
+                                               offered_qos_profiles=self.offered_qos.get(topic) or offered_qos(topic))
             self._connections[topic] = conn
         elif conn.msgtype != msgtype:
             raise BagError(f"topic {topic} was opened with {conn.msgtype}, cannot write {msgtype}")

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -18,8 +18,11 @@ from ppoe_core.robot.urdf import Robot
 Array = np.ndarray
 
 
+__all__ = ["OP_STATIC", "OP_ROT_Z", "OP_TRANS_Z", "OP_EFFECT", "OP_SITE", "Chain", "ChainProgram", "LeanChain",
+           "compile_chain"]
+
 # ----------------------------------------------------------------------------
-# Small private helpers
+# Small helpers
 # ----------------------------------------------------------------------------
 
 
@@ -45,30 +48,47 @@ def _rot6(R: Array) -> Array:
     return out
 
 
-# Levi-Civita tensor: hat(t)[i, j] = sum_k _EPS[i, j, k] t[k]
-_EPS = np.zeros((3, 3, 3))
-_EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = -1.0
-_EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = 1.0
-
 
 # ----------------------------------------------------------------------------
 # Compiled chain
 # ----------------------------------------------------------------------------
 
-# program op codes
-_S, _RZ, _TZ, _D, _SITE = 0, 1, 2, 3, 4
+#: program op codes of :attr:`Chain.ops`
+OP_STATIC, OP_ROT_Z, OP_TRANS_Z, OP_EFFECT, OP_SITE = 0, 1, 2, 3, 4
+
+
+class ChainProgram(NamedTuple):
+    """The arrays of a chain for :func:`ppoe_core.model.chain_kernel.eval_chain` (contiguous, fixed dtypes; the
+    module docstring there says what each holds)."""
+
+    F: Array  # (n_f, 4, 4) constant factors, identity at motion and effect slots
+    kind: Array  # (n_f,) int64: 0 constant, 1 rotation about z, 2 translation along z, 3 effect factor
+    arg: Array  # (n_f,) int64: motion or effect index of each factor
+    col_pos: Array  # (m,) int64: suffix index of each covariance column
+    X: Array  # (m, 2, 3): rows [v^T; w^T] of each column
+    mot_pos: Array  # (n_motion,) int64: factor index of each motion
+    mot_kind: Array  # (n_motion,) int64: 1 revolute, 2 prismatic
+    site_start: Array  # (n_sites + 1,) int64: first column of each perturbation site
+
+
+class LeanChain(NamedTuple):
+    """What the one-configuration compiled path needs of a chain (:meth:`PPOEModel.lean_program`)."""
+
+    program: ChainProgram
+    motion_col: Array  # (n_motion,) index of each motion's master in the model's joint vector
+    mult: Array  # (n_motion,) sign * mimic multiplier
+    off: Array  # (n_motion,) sign * mimic offset
 
 
 @dataclass
-class _Chain:
+class Chain:
     """A compiled chain ``frm -> to``.
 
     ``ops`` is a list of ``(code, arg)``:
-      * ``(_S, M)``: multiply by the constant 4x4 ``M``;
-      * ``(_RZ, i)`` / ``(_TZ, i)``: rotate about / translate along local z by motion ``i``;
-      * ``(_D, k)``: multiply by ``Exp(dxi)`` of effect site ``k`` (effects only);
-      * ``(_SITE, k)``: perturbation site ``k`` (covariance columns from the product of
-        everything after it).
+      * ``(OP_STATIC, M)``: multiply by the constant 4x4 ``M``;
+      * ``(OP_ROT_Z, i)`` / ``(OP_TRANS_Z, i)``: rotate about / translate along local z by motion ``i``;
+      * ``(OP_EFFECT, k)``: multiply by ``Exp(dxi)`` of effect site ``k`` (effects only);
+      * ``(OP_SITE, k)``: perturbation site ``k`` (covariance columns from the product of everything after it).
     """
 
     frm: str
@@ -82,7 +102,6 @@ class _Chain:
     motion_mult: Array  # (n_motion,) sign * multiplier
     motion_off: Array  # (n_motion,) sign * offset
     motion_sign: Array  # (n_motion,) +1 down, -1 up
-    motion_kind: list  # _RZ or _TZ
     masters: list  # independent joints the chain needs, first-use order
     # perturbation sites
     site_L: list  # (6, r_k) factors in the canonical frame at the site (negated on the
@@ -90,29 +109,19 @@ class _Chain:
     #               matters for cross-covariances between chains (fk_multi)
     site_label: list  # "xi:<joint>" / "noise:<joint>"
     L_all: Array  # (m, 6) all factor columns stacked (rows = columns of L_k)
-    H_all: Array  # (m, 3, 3) hat of the rotational part of each column
-    X_rows: Array  # (m, 2, 3) rows [v^T; w^T] of each column
-    col_pos: Array  # (m,) suffix index (site position) of each column
-    col_site: Array  # (m,) site index of each column
     col_ids: list  # (m,) (site label, column of its factor): identifies the random source
-    site_cols: list  # per site: (LvT (r, 3), LwT (r, 3), H (r, 3, 3), rot_only, c0, c1)
-    site_sparse: list  # per site: None (dense) or [(column, v non-zeros, w non-zeros), ...]
     # effect sites
-    d_joint: list  # joint name of each _D site
+    d_joint: list  # joint name of each OP_EFFECT site
     d_map: list  # (6, 6) map of the joint's dxi into the canonical twist (sign included)
-    # single-configuration program
-    f_static: Array  # (n_f, 4, 4) factors with identities at motion/D slots
-    f_motion_idx: Array  # factor index of each motion
-    f_rz: tuple  # (motion indices, factor indices) of the revolute motions
-    f_tz: tuple  # (motion indices, factor indices) of the prismatic motions
-    f_d_idx: Array  # factor index of each D op
-    site_pos: Array  # (n_sites,) number of factors before each site
-    program: tuple  # arrays of the compiled evaluation (ppoe_core.model.chain_kernel: F, kind, arg, col_pos, X,
-    #                 mot_pos, mot_kind, site_start)
+    program: ChainProgram
+
+    def lean(self) -> LeanChain:
+        """:class:`LeanChain` of this chain."""
+        return LeanChain(self.program, self.motion_col, self.motion_mult, self.motion_off)
 
 
-def _compile(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects: bool) -> _Chain:
-    """Build the program of the chain ``frm -> to`` (see :class:`_Chain`)."""
+def compile_chain(robot: Robot, config: ModelConfig, frm: str, to: str, with_effects: bool) -> Chain:
+    """Build the program of the chain ``frm -> to`` (see :class:`Chain`)."""
     return _ChainBuilder(robot, config, with_effects).build(frm, to)
 
 
@@ -144,7 +153,7 @@ class _ChainBuilder:
 
     def flush(self) -> None:
         if self.has_pending and not np.array_equal(self.pending, np.eye(4)):
-            self.ops.append((_S, self.pending))
+            self.ops.append((OP_STATIC, self.pending))
         self.pending = np.eye(4)
         self.has_pending = False
 
@@ -157,7 +166,7 @@ class _ChainBuilder:
         if master not in self.masters:
             self.masters.append(master)
         self.flush()
-        kind = _TZ if j.type == "prismatic" else _RZ
+        kind = OP_TRANS_Z if j.type == "prismatic" else OP_ROT_Z
         self.ops.append((kind, len(self.motion_joint)))
         self.motion_joint.append(jn)
         self.motion_master.append(master)
@@ -170,7 +179,7 @@ class _ChainBuilder:
         if L.shape[1] == 0:
             return
         self.flush()
-        self.ops.append((_SITE, len(self.site_L)))
+        self.ops.append((OP_SITE, len(self.site_L)))
         self.site_L.append(L)
         self.site_label.append(label)
 
@@ -178,7 +187,7 @@ class _ChainBuilder:
         if not self.with_effects:
             return
         self.flush()
-        self.ops.append((_D, len(self.d_joint)))
+        self.ops.append((OP_EFFECT, len(self.d_joint)))
         self.d_joint.append(jn)
         self.d_map.append(M6)
 
@@ -232,32 +241,14 @@ class _ChainBuilder:
                 self.site(self.xi_L(jn), "xi:" + jn)
 
     # -- compiled tables --------------------------------------------------------------------------------------------
-    def columns(self) -> tuple[Array, Array, list, list]:
-        """Stacked low-rank columns (m, 6), their site per column, and per site the dense / sparse column data."""
-        site_L = self.site_L
-        if site_L:
-            L_all = np.concatenate([L.T for L in site_L], axis=0)
-            col_site = np.concatenate([np.full(L.shape[1], k) for k, L in enumerate(site_L)]).astype(int)
-        else:
-            L_all = np.zeros((0, 6))
-            col_site = np.zeros(0, dtype=int)
-        site_cols = []
-        site_sparse: list = []
-        c0 = 0
-        for L in site_L:
-            r = L.shape[1]
-            site_cols.append((L[:3].T.copy(), L[3:].T.copy(), lie.hat3(L[3:].T), not np.any(L[:3]), c0, c0 + r))
-            if all(np.count_nonzero(L[:, i]) <= 2 for i in range(r)):
-                site_sparse.append([
-                    (c0 + i,
-                     tuple((j, float(L[j, i])) for j in range(3) if L[j, i] != 0.0),
-                     tuple((j, float(L[3 + j, i])) for j in range(3) if L[3 + j, i] != 0.0))
-                    for i in range(r)
-                ])
-            else:
-                site_sparse.append(None)
-            c0 += r
-        return L_all, col_site, site_cols, site_sparse
+    def columns(self) -> tuple[Array, Array, list[int]]:
+        """Stacked low-rank columns (m, 6), the site of each column and the first column of each site (+ m)."""
+        if not self.site_L:
+            return np.zeros((0, 6)), np.zeros(0, dtype=int), [0]
+        L_all = np.concatenate([L.T for L in self.site_L], axis=0)
+        col_site = np.concatenate([np.full(L.shape[1], k) for k, L in enumerate(self.site_L)]).astype(int)
+        start = np.concatenate([[0], np.cumsum([L.shape[1] for L in self.site_L])]).astype(int)
+        return L_all, col_site, start.tolist()
 
     def factors(self) -> tuple[list, list, list, Array]:
         """Single-configuration program: factor list, motion / insertion factor positions, site positions."""
@@ -266,12 +257,12 @@ class _ChainBuilder:
         f_d_idx: list = []
         site_pos = np.zeros(len(self.site_L), dtype=int)
         for code, arg in self.ops:
-            if code == _S:
+            if code == OP_STATIC:
                 factors.append(arg)
-            elif code in (_RZ, _TZ):
+            elif code in (OP_ROT_Z, OP_TRANS_Z):
                 f_motion_idx.append(len(factors))
                 factors.append(np.eye(4))
-            elif code == _D:
+            elif code == OP_EFFECT:
                 f_d_idx.append(len(factors))
                 factors.append(np.eye(4))
             else:
@@ -280,16 +271,16 @@ class _ChainBuilder:
             factors.append(np.eye(4))
         return factors, f_motion_idx, f_d_idx, site_pos
 
-    def build(self, frm: str, to: str) -> _Chain:
+    def build(self, frm: str, to: str) -> Chain:
         up, down = self.robot.chain(frm, to)
         self.up(up)
         self.down(down)
         self.flush()
-        L_all, col_site, site_cols, site_sparse = self.columns()
+        L_all, col_site, site_start = self.columns()
         factors, f_motion_idx, f_d_idx, site_pos = self.factors()
-        motion_kind, site_L, site_label = self.motion_kind, self.site_L, self.site_label
+        site_L, site_label = self.site_L, self.site_label
         slot = np.array([self.masters.index(m) for m in self.motion_master], dtype=int)
-        return _Chain(
+        return Chain(
             frm=frm,
             to=to,
             ops=self.ops,
@@ -300,46 +291,31 @@ class _ChainBuilder:
             motion_mult=np.array(self.motion_mult, dtype=float),
             motion_off=np.array(self.motion_off, dtype=float),
             motion_sign=np.array(self.motion_sign, dtype=float),
-            motion_kind=motion_kind,
             masters=self.masters,
             site_L=site_L,
             site_label=site_label,
             L_all=L_all,
-            H_all=lie.hat3(L_all[:, 3:]),
-            X_rows=L_all.reshape(-1, 2, 3).copy(),
-            col_pos=site_pos[col_site],
-            col_site=col_site,
             col_ids=[(site_label[k], i) for k, L in enumerate(site_L) for i in range(L.shape[1])],
-            site_cols=site_cols,
-            site_sparse=site_sparse,
             d_joint=self.d_joint,
             d_map=self.d_map,
-            f_static=np.array(factors),
-            f_motion_idx=np.array(f_motion_idx, dtype=int),
-            f_rz=(np.array([i for i, k in enumerate(motion_kind) if k == _RZ], dtype=int),
-                  np.array([f_motion_idx[i] for i, k in enumerate(motion_kind) if k == _RZ], dtype=int)),
-            f_tz=(np.array([i for i, k in enumerate(motion_kind) if k == _TZ], dtype=int),
-                  np.array([f_motion_idx[i] for i, k in enumerate(motion_kind) if k == _TZ], dtype=int)),
-            f_d_idx=np.array(f_d_idx, dtype=int),
-            site_pos=site_pos,
-            program=_program(factors, f_motion_idx, f_d_idx, motion_kind, site_pos[col_site], L_all,
-                             [c[4] for c in site_cols] + [L_all.shape[0]]),
+            program=_program(factors, f_motion_idx, f_d_idx, self.motion_kind, site_pos[col_site], L_all, site_start),
         )
 
 
 def _program(factors: list, f_motion_idx: list, f_d_idx: list, motion_kind: list, col_pos: Array,
-             L_all: Array, site_start: list) -> tuple:
-    """The chain's arrays for :func:`ppoe_core.model.chain_kernel.eval_chain` (contiguous, fixed dtypes)."""
+             L_all: Array, site_start: list) -> ChainProgram:
+    """The chain's :class:`ChainProgram`."""
     kind = np.zeros(len(factors), dtype=np.int64)
     arg = np.zeros(len(factors), dtype=np.int64)
     for i, (f, k) in enumerate(zip(f_motion_idx, motion_kind)):
-        kind[f] = 1 if k == _RZ else 2
+        kind[f] = 1 if k == OP_ROT_Z else 2
         arg[f] = i
     for i, f in enumerate(f_d_idx):
         kind[f] = 3
         arg[f] = i
-    return (
+    return ChainProgram(
         np.ascontiguousarray(np.array(factors, dtype=float)), kind, arg, np.asarray(col_pos, dtype=np.int64),
         np.ascontiguousarray(L_all.reshape(-1, 2, 3), dtype=float), np.array(f_motion_idx, dtype=np.int64),
-        np.array([1 if k == _RZ else 2 for k in motion_kind], dtype=np.int64), np.array(site_start, dtype=np.int64),
+        np.array([1 if k == OP_ROT_Z else 2 for k in motion_kind], dtype=np.int64),
+        np.array(site_start, dtype=np.int64),
     )

@@ -3,10 +3,12 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 
-from ppoe_core.model.chain import _D, _RZ, _S, _TZ, Array, _Chain
+from ppoe_core import lie
+from ppoe_core.model.chain import OP_EFFECT, OP_ROT_Z, OP_STATIC, OP_TRANS_Z, Array, Chain
+
+__all__ = ["evaluate", "forward_product", "exp_batch_last", "rows_to_poses"]
 
 # ----------------------------------------------------------------------------
 # Chain evaluation
@@ -16,7 +18,7 @@ from ppoe_core.model.chain import _D, _RZ, _S, _TZ, Array, _Chain
 _NO_D = np.zeros((0, 4, 4, 1))
 
 
-def evaluate(ch: _Chain, theta: Array, D: Array | None, order: int = 2, want_cols: bool = False,
+def evaluate(ch: Chain, theta: Array, D: Array | None, order: int = 2, want_cols: bool = False,
              want_jac: bool = False) -> tuple[Array, Array | None, Array | None, Array | None]:
     """Mean poses, covariances, local covariance columns and joint-motion columns of a chain.
 
@@ -60,7 +62,7 @@ def evaluate(ch: _Chain, theta: Array, D: Array | None, order: int = 2, want_col
     return T, (cov if order else None), (G if want_cols else None), (J if want_jac else None)
 
 
-def _eval_forward(ch: _Chain, theta: Array, D: Array | None, pert: list) -> Array:
+def forward_product(ch: Chain, theta: Array, D: Array | None, pert: list) -> Array:
     """Forward product of the chain for many configurations with sampled perturbations.
 
     Used by the Monte-Carlo sampler: every perturbation ``Exp(xi_k)`` is inserted at its
@@ -85,16 +87,16 @@ def _eval_forward(ch: _Chain, theta: Array, D: Array | None, pert: list) -> Arra
     if theta.size:
         c, s = np.cos(theta), np.sin(theta)
     for code, arg in ch.ops:
-        if code == _S:
+        if code == OP_STATIC:
             P = np.einsum("ijn,jk->ikn", P, arg)
-        elif code == _RZ:
+        elif code == OP_ROT_Z:
             p0 = P[:, 0].copy()
             p1 = P[:, 1]
             P[:, 0] = p0 * c[arg] + p1 * s[arg]
             P[:, 1] = p1 * c[arg] - p0 * s[arg]
-        elif code == _TZ:
+        elif code == OP_TRANS_Z:
             P[:, 3] += P[:, 2] * theta[arg]
-        elif code == _D:
+        elif code == OP_EFFECT:
             assert D is not None
             P = _mul_rows(P, D[arg])
         else:  # perturbation site
@@ -102,42 +104,9 @@ def _eval_forward(ch: _Chain, theta: Array, D: Array | None, pert: list) -> Arra
     return P
 
 
-def _exp_batch_last(xi: Array) -> Array:
-    """SE(3) ``Exp`` for twists ``(6, N)`` -> ``(4, 4, N)`` (batch last, elementwise).
-
-    Same map as :func:`ppoe_core.lie.exp` (paper eq. 3): ``R = I + A W + B W^2``,
-    ``t = (I + B W + C W^2) rho`` with ``A = sin t / t``, ``B = (1 - cos t) / t^2``,
-    ``C = (t - sin t) / t^3`` (Taylor series below ``t^2 < 1e-6``) and ``W^2 = w w^T - t^2 I``.
-    """
-    rho, w = xi[:3], xi[3:]
-    N = xi.shape[1]
-    t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
-    small = t2 < 1e-6
-    ts = np.sqrt(np.where(small, 1.0, t2))
-    st, ct = np.sin(ts), np.cos(ts)
-    A = np.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, st / ts)
-    B = np.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - ct) / np.where(small, 1.0, t2))
-    C = np.where(small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0, (ts - st) / (ts * np.where(small, 1.0, t2)))
-    out = np.zeros((4, 4, N))
-    # W w-cross matrix entries: W[0,1] = -w2, W[0,2] = w1, W[1,2] = -w0
-    for i in range(3):
-        for j in range(3):
-            ww = w[i] * w[j]
-            out[i, j] = B * ww
-            if i == j:
-                out[i, j] += 1.0 - B * t2
-    out[0, 1] -= A * w[2]
-    out[1, 0] += A * w[2]
-    out[0, 2] += A * w[1]
-    out[2, 0] -= A * w[1]
-    out[1, 2] -= A * w[0]
-    out[2, 1] += A * w[0]
-    # t = rho + B (w x rho) + C (w x (w x rho)),  w x (w x rho) = w (w.rho) - t2 rho
-    wxr = np.stack([w[1] * rho[2] - w[2] * rho[1], w[2] * rho[0] - w[0] * rho[2], w[0] * rho[1] - w[1] * rho[0]])
-    wr = w[0] * rho[0] + w[1] * rho[1] + w[2] * rho[2]
-    out[:3, 3] = rho + B * wxr + C * (w * wr - t2 * rho)
-    out[3, 3] = 1.0
-    return out
+def exp_batch_last(xi: Array) -> Array:
+    """SE(3) ``Exp`` (:func:`ppoe_core.lie.exp`, paper eq. 3) of twists ``(6, N)`` -> ``(4, 4, N)`` (batch last)."""
+    return np.moveaxis(lie.exp(np.asarray(xi).T), 0, -1)
 
 
 def _mul_rows(P: Array, E: Array) -> Array:
@@ -155,7 +124,7 @@ def _mul_rows(P: Array, E: Array) -> Array:
 # ----------------------------------------------------------------------------
 
 
-def _rows_to_T(P: Array) -> Array:
+def rows_to_poses(P: Array) -> Array:
     """``(3, 4, N)`` pose rows -> ``(N, 4, 4)``."""
     N = P.shape[-1]
     T = np.zeros((N, 4, 4))

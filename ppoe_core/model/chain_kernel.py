@@ -8,7 +8,7 @@ perturbation site ``S`` is the paper's "everything after it" ``B_k``, so the sit
 :data:`CHUNK` with the batch axis innermost, so the compiler vectorises over configurations (SIMD); a single
 configuration is a chunk of one.
 
-Program arrays (built once per chain by :func:`ppoe_core.model.chain.program`):
+Program arrays (:class:`ppoe_core.model.chain.ChainProgram`, built once per chain):
 
 * ``F`` (n_f, 4, 4): constant factors, identity at motion and effect slots;
 * ``kind`` (n_f,): 0 constant, 1 rotation about z by ``theta[arg]``, 2 translation along z by ``theta[arg]``,

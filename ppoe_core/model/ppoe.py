@@ -51,8 +51,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
-from ppoe_core.model.chain import Array, _Chain, _compile
-from ppoe_core.model.chain_eval import _eval_forward, _exp_batch_last, _rows_to_T, evaluate
+from ppoe_core.model.chain import Array, Chain, LeanChain, compile_chain
+from ppoe_core.model.chain_eval import evaluate, exp_batch_last, forward_product, rows_to_poses
 from ppoe_core.robot.config import ModelConfig, load_model_config
 from ppoe_core.robot.urdf import Robot, parse_urdf
 
@@ -98,7 +98,7 @@ class PPOEModel:
         self.config = config if config is not None else load_model_config(None, robot)
         self.joint_names: list[str] = robot.independent_joints
         self._index = {n: i for i, n in enumerate(self.joint_names)}
-        self._chains: dict[tuple[str, str, bool], _Chain] = {}
+        self._chains: dict[tuple[str, str, bool], Chain] = {}
         self._effects: list | None = list(effects) if effects is not None else None
 
     # -- construction -----------------------------------------------------------
@@ -172,11 +172,11 @@ class PPOEModel:
         self.robot.check_link(to)
         return frm, to
 
-    def _chain(self, frm: str, to: str, with_effects: bool) -> _Chain:
+    def _chain(self, frm: str, to: str, with_effects: bool) -> Chain:
         key = (frm, to, with_effects)
         ch = self._chains.get(key)
         if ch is None:
-            ch = _compile(self.robot, self.config, frm, to, with_effects)
+            ch = compile_chain(self.robot, self.config, frm, to, with_effects)
             self._chains[key] = ch
         return ch
 
@@ -253,7 +253,7 @@ class PPOEModel:
         return out
 
     # -- core evaluation ----------------------------------------------------------
-    def _lookup(self, frm: str | None, to: str | None) -> _Chain:
+    def _lookup(self, frm: str | None, to: str | None) -> Chain:
         with_effects = bool(self._effects) if self._effects is not None else bool(self.effects)
         ch = self._chains.get((frm, to, with_effects))  # type: ignore[arg-type]
         if ch is None:
@@ -262,7 +262,7 @@ class PPOEModel:
             self._chains[(frm, to, with_effects)] = ch
         return ch
 
-    def _single_theta(self, joints: Joints, ch: _Chain) -> Array | None:
+    def _single_theta(self, joints: Joints, ch: Chain) -> Array | None:
         """Lean path: motion values of ONE configuration without effects, or None (use the
         general path, which also produces the error messages)."""
         if self._effects:
@@ -284,16 +284,15 @@ class PPOEModel:
             return None
         return th * ch.motion_mult + ch.motion_off
 
-    def lean_program(self, frm: str | None, to: str | None) -> tuple | None:
+    def lean_program(self, frm: str | None, to: str | None) -> LeanChain | None:
         """What the one-configuration path of :meth:`fk` evaluates for ``frm -> to``, for a compiled caller
-        (:mod:`ppoe_core.io.joint_pose`): ``(program, motion_col, motion_mult, motion_off)``, with ``program``
-        the arrays of :func:`ppoe_core.model.chain_kernel.eval_chain` and ``theta = q[motion_col] * motion_mult
-        + motion_off`` for ``q`` in :attr:`joint_names` order; None when effects are on (:meth:`fk` then takes
-        the general path)."""
+        (:mod:`ppoe_core.io.joint_pose`): the :class:`~ppoe_core.model.chain.LeanChain` (the chain program of
+        :func:`ppoe_core.model.chain_kernel.eval_chain` and ``theta = q[motion_col] * mult + off`` for ``q`` in
+        :attr:`joint_names` order); None when effects are on (:meth:`fk` then takes the general path)."""
         ch = self._lookup(frm, to)
         if self._effects:
             return None
-        return ch.program, ch.motion_col, ch.motion_mult, ch.motion_off
+        return ch.lean()
 
     def _prepare(self, joints: Joints, frm: str | None, to: str | None, context: Mapping | None):
         """Chain, motion values ``theta`` (n_motion, N), effect factors, batch shape, N."""
@@ -331,7 +330,7 @@ class PPOEModel:
                 D = np.empty((len(ch.d_joint), 4, 4, N))
                 for k, jn in enumerate(ch.d_joint):
                     if jn in dxi_tot:
-                        D[k] = _exp_batch_last((dxi_tot[jn] @ ch.d_map[k].T).T)
+                        D[k] = exp_batch_last((dxi_tot[jn] @ ch.d_map[k].T).T)
                     else:
                         D[k] = np.eye(4)[:, :, None]
         return ch, theta, D, shape, N
@@ -486,9 +485,9 @@ class PPOEModel:
         pert = []
         for L in ch.site_L:
             z = rng.standard_normal((L.shape[1], NN))
-            pert.append(_exp_batch_last(L @ z))
-        P = _eval_forward(ch, theta_r, D_r, pert)
-        return _rows_to_T(P).reshape((n,) + shape + (4, 4))
+            pert.append(exp_batch_last(L @ z))
+        P = forward_product(ch, theta_r, D_r, pert)
+        return rows_to_poses(P).reshape((n,) + shape + (4, 4))
 
     def jacobian_joints(
         self, joints: Joints, frm: str | None = None, to: str | None = None, context: Mapping[str, Any] | None = None
@@ -518,7 +517,7 @@ class PPOEModel:
         return list(self._chain(frm, to, False).site_label)
 
 
-def _shift_motions(ch: _Chain, theta: Array, dq: Mapping[str, Array]) -> Array:
+def _shift_motions(ch: Chain, theta: Array, dq: Mapping[str, Array]) -> Array:
     """Motion values ``theta`` (n_motion, N) plus the joint offsets ``dq``: a mimic joint follows its master's true
     value (``dq`` of the master times the multiplier) and adds its own ``dq``."""
     theta = theta.copy()

@@ -15,6 +15,7 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.errors import ModelConfigError, ScenarioError, UnknownFrameError, UnknownJointError, UrdfError
 from ppoe_core.robot.config import ModelConfig, load_model_config
+from ppoe_core.robot.dh import dh_to_urdf
 from ppoe_core.robot.urdf import Robot, parse_urdf
 from ppoe_core.robot.yaml_io import read_yaml_file
 from ppoe_core.sim.schedule import TEMPERATURE_DOC
@@ -31,14 +32,19 @@ TRUTH_EFFECTS: dict[str, tuple[str, ...]] = {
     "backlash": ("play",),
     "thermal_growth": ("alpha",),
     "time_offset": ("dt",),
+    "camera_intrinsics": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"),
+    "tag_offset": ("x", "y", "z", "rx", "ry", "rz"),
     # outside the docs/conventions.md sec. 6 vocabulary (for testing that diagnose reports it as unexplained):
     "transmission_error": ("amplitude", "periods"),
 }
 
 SCENARIO_DOC = """\
 # ppoe simulate scenario (all keys; defaults in brackets). Paths are relative to the scenario file.
+extends: _base.yaml        # optional: a base scenario merged under this file (this file's keys win; mappings
+                           # merge key by key, lists are replaced; the base's paths are relative to the base) [none]
 robot:
-  urdf: ../config/robots/rover.urdf        # nominal URDF (written to /robot_description) [required]
+  urdf: ../config/robots/rover.urdf        # nominal URDF (written to /robot_description) [required, or dh]
+  dh: ../config/robots/ind6_dh.yaml        # instead of urdf: a DH table (ppoe urdf from-dh), its URDF is written
   model: ../config/robots/rover_model.yaml # model YAML: perturbations, joint_noise, tags, camera, tracker, imus,
   contact [required]
 seed: 0                    # RNG seed; `--seed` overrides [0]
@@ -48,6 +54,8 @@ truth:
   perturbation_scale: 1.0  # multiplies the drawn xi [1.0]
   joint_noise: true        # add the model's joint_noise (per stop) to the true joint values [true]
   record_draws: false      # write each stop's window [s], drawn xi and joint errors to the truth file [false]
+  encoder_noise: 0.0       # white noise on every recorded /joint_states sample (also at rest), not on the true
+                           # robot: a number for every driven joint or {joint: sigma} [rad|m] [0]
   effects:                 # systematic effects of the true robot, docs/conventions.md sec. 6 names [none]
     - {name: joint_offset, location: JOINT, parameters: {offset: 0.01}}        # q_true = q_meas + offset [rad|m]
     - {name: link_error, location: JOINT, parameters: {x: 0.001, rz: 0.002}}   # dxi at JOINT [m, rad]
@@ -63,6 +71,10 @@ truth:
     start_time) [1/s]
     - {name: time_offset, location: /joint_states, parameters: {dt: 0.02}}     # joint states stamped t carry q(t -
     dt) [s]
+    - {name: camera_intrinsics, location: CAMERA_FRAME, parameters: {fx: 5.0, cx: -3.0, k1: 0.02}}  # the TRUE
+      # camera = the scenario camera's K, D (written to /camera/camera_info) + these [px, 1]; constant
+    - {name: tag_offset, location: tag_3, parameters: {x: 0.002, rz: 0.01}}  # true pose of tag 3 on its link =
+      # the model's mount @ Exp([x y z rx ry rz]) (local, tag axes) [m, rad]; constant
     - {name: transmission_error, location: JOINT, parameters: {amplitude: 0.003, periods: 3}}  # NOT in the
       # contract vocabulary: cyclic gear error dq = amplitude sin(periods q) [rad, periods per rad]
 trajectory:
@@ -97,7 +109,10 @@ camera:                    # optional; needs the model's camera and tags section
   D: [0, 0, 0, 0, 0]       # plumb_bob k1 k2 p1 p2 k3 [zeros]
   rate: 5.0                # image rate [Hz] (<= 30) [5.0]
   during: stops            # stops: only inside stops; always: whole bag [stops]
-  format: png              # png | jpeg (/camera/image_raw/compressed) or raw (mono8 /camera/image_raw) [png]
+  format: png              # png | jpeg (/camera/image_raw/compressed), raw (mono8 /camera/image_raw), or
+                           # observations: no image, the tag pixels (centre + 4 corners) of the tags in view on
+                           # /tag_bearing/observations as the tag bearing node would publish them [png]
+  pixel_sigma: 0.3         # observations: Gaussian noise per corner pixel coordinate [px] [0.3]
   noise_sigma: 1.0         # Gaussian grey-level noise [1.0]
   blur_sigma: 0.0          # Gaussian blur before the noise [px] [0.0]
   background: 128          # grey level [128]
@@ -116,6 +131,7 @@ ground_truth:
     frame: tracker         # header.frame_id (not in the URDF) [tracker]
     T_tracker_base: {xyz: [3, 1, 0.5], rpy: [0, 0, 2.5]}  # unknown registration [m, rad] [identity]
     rate: 0.0              # [Hz]; 0 = once per stop [0.0]
+    during: stops          # stops: only inside stops; always: whole bag, also while moving (rate > 0) [stops]
 imus:                      # /imu/<name> for every IMU of the model, optional [none]
   rate: 0.0                # [Hz]; 0 = once per stop [0.0]
   sigma: null              # noise 1-sigma [m/s^2] [model imus.<name>.sigma]
@@ -128,8 +144,8 @@ contact:                   # /wrench, optional [none]
   rate: null               # [Hz] [trajectory.joint_rate]
 """ + TEMPERATURE_DOC
 
-_TOP_KEYS = ("robot", "seed", "start_time", "truth", "trajectory", "camera", "ground_truth", "imus", "contact",
-             "temperature")
+_TOP_KEYS = ("extends", "robot", "seed", "start_time", "truth", "trajectory", "camera", "ground_truth", "imus",
+             "contact", "temperature")
 
 
 # =============================================================================
@@ -195,6 +211,73 @@ def _pose_cfg(d: Any, path: str, key: str) -> np.ndarray:
     return lie.from_xyz_rpy(xyz, rpy)
 
 
+#: how deep ``extends`` may chain (a cycle is an error long before)
+_MAX_EXTENDS = 8
+
+
+def _merged(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    """``over`` on top of ``base``: mappings merged key by key (recursively), anything else replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merged(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else v
+    return out
+
+
+def read_scenario_raw(path: str | os.PathLike, depth: int = 0) -> dict[str, Any]:
+    """A scenario file's mapping, with its ``extends: BASE.yaml`` (relative to the file) merged under it: the file's
+    keys win, mappings merge key by key, lists and values are replaced; the base's robot paths are made absolute
+    (they are relative to the base).  Every file ``extends`` reaches is listed in :func:`scenario_files`.
+
+    Raises
+    ------
+    ScenarioError
+        Unreadable file, YAML error, unknown key, ``extends`` deeper than 8 (a cycle); names the file and key.
+    """
+    p = Path(path)
+    raw, _ = read_yaml_file(p, "scenario", ScenarioError)
+    raw = _check_keys(raw, _TOP_KEYS, str(p), "top level")
+    rob = raw.get("robot")
+    if isinstance(rob, Mapping):
+        raw["robot"] = {k: str((p.parent / str(v)).resolve()) if k in ("urdf", "dh", "model") else v
+                        for k, v in rob.items()}
+    base = raw.pop("extends", None)
+    if base is None:
+        return raw
+    if depth >= _MAX_EXTENDS:
+        raise ScenarioError(f"{_where(str(p), 'extends')}: more than {_MAX_EXTENDS} levels (a cycle?)")
+    return _merged(read_scenario_raw(p.parent / str(base), depth + 1), raw)
+
+
+def scenario_files(path: str | os.PathLike) -> list[Path]:
+    """The scenario file, the files its ``extends`` chain reaches, and the robot files (URDF or DH table, model
+    YAML) they name: what a bag made from it depends on besides the simulator's code."""
+    p = Path(path).resolve()
+    out = [p]
+    for _ in range(_MAX_EXTENDS):
+        raw, _ = read_yaml_file(out[-1], "scenario", ScenarioError)
+        if not isinstance(raw, Mapping) or raw.get("extends") is None:
+            break
+        out.append((out[-1].parent / str(raw["extends"])).resolve())
+    rob = read_scenario_raw(p).get("robot") or {}
+    return out + [Path(str(rob[k])) for k in ("urdf", "dh", "model") if k in rob]
+
+
+def _robot_text(p: Path, rob: Mapping[str, Any]) -> tuple[str, str]:
+    """URDF text of the scenario's robot (``robot.urdf``, or ``robot.dh`` through ``ppoe urdf from-dh``) and its
+    source for messages."""
+    if "dh" in rob:
+        dh_path = (p.parent / str(rob["dh"])).resolve()
+        try:
+            return dh_to_urdf(dh_path), f"{dh_path} (from-dh)"
+        except ModelConfigError as exc:
+            raise ScenarioError(f"{_where(str(p), 'robot.dh')}: {exc}") from None
+    urdf_path = (p.parent / str(rob["urdf"])).resolve()
+    try:
+        return urdf_path.read_text(), str(urdf_path)
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{_where(str(p), 'robot.urdf')}: cannot read {urdf_path}: {exc}") from None
+
+
 @dataclass
 class Scenario:
     """A parsed, validated scenario (see :data:`SCENARIO_DOC`)."""
@@ -217,19 +300,14 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         Missing file, YAML error, unknown key, bad value; the message names the file and key.
     """
     p = Path(path)
-    raw, _ = read_yaml_file(p, "scenario", ScenarioError)
-    raw = _check_keys(raw, _TOP_KEYS, str(p), "top level")
-    rob = _check_keys(raw.get("robot"), ("urdf", "model"), str(p), "robot")
-    if "urdf" not in rob or "model" not in rob:
-        raise ScenarioError(f"{_where(str(p), 'robot')} needs 'urdf' and 'model'")
-    urdf_path = (p.parent / str(rob["urdf"])).resolve()
+    raw = read_scenario_raw(p)
+    rob = _check_keys(raw.get("robot"), ("urdf", "dh", "model"), str(p), "robot")
+    if ("urdf" in rob) == ("dh" in rob) or "model" not in rob:
+        raise ScenarioError(f"{_where(str(p), 'robot')} needs 'model' and one of 'urdf' or 'dh'")
     model_path = (p.parent / str(rob["model"])).resolve()
+    urdf_text, urdf_source = _robot_text(p, rob)
     try:
-        urdf_text = urdf_path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ScenarioError(f"{_where(str(p), 'robot.urdf')}: cannot read {urdf_path}: {exc}") from None
-    try:
-        robot = parse_urdf(str(urdf_path))
+        robot = parse_urdf(urdf_text, text_source=urdf_source)
         model = load_model_config(str(model_path), robot)
     except (UrdfError, ModelConfigError, UnknownJointError, UnknownFrameError) as exc:
         raise ScenarioError(f"scenario {p}: {exc}") from None

@@ -179,6 +179,7 @@ class _SimConfig:
                 "blur_sigma",
                 "background",
                 "time_offset",
+                "pixel_sigma",
             ),
             P,
             "camera",
@@ -196,8 +197,8 @@ class _SimConfig:
             raise ScenarioError(f"{_where(P, 'camera')}: intrinsics = [fx, fy, cx, cy], D = 5 plumb_bob numbers")
         fx, fy, cx, cy = (float(v) for v in intr)
         fmt = c.get("format", "png")
-        if fmt not in ("png", "jpeg", "raw"):
-            raise ScenarioError(f"{_where(P, 'camera.format')} must be png, jpeg or raw")
+        if fmt not in ("png", "jpeg", "raw", "observations"):
+            raise ScenarioError(f"{_where(P, 'camera.format')} must be png, jpeg, raw or observations")
         during = c.get("during", "stops")
         if during not in ("stops", "always"):
             raise ScenarioError(f"{_where(P, 'camera.during')} must be stops or always")
@@ -214,6 +215,7 @@ class _SimConfig:
             "blur": _num(c, "blur_sigma", 0.0, P, "camera", minimum=0.0),
             "background": int(_num(c, "background", 128, P, "camera", minimum=0, maximum=255)),
             "time_offset": _num(c, "time_offset", 0.0, P, "camera"),
+            "pixel_sigma": _num(c, "pixel_sigma", 0.3, P, "camera", minimum=0.0),
         }
 
     def _parse_gt_pose(self, raw_gt: Any) -> dict[str, Any]:
@@ -237,7 +239,10 @@ class _SimConfig:
         """Scenario ``ground_truth.point`` (or one entry of its list): reflector topic, link and position,
         noise, tracker frame and pose; link, position and noise default to the model's tracker of that topic."""
         P, m = self.path, self.model
-        g = _check_keys(raw_gt, ("topic", "link", "xyz", "sigma", "frame", "T_tracker_base", "rate"), P, where)
+        g = _check_keys(raw_gt, ("topic", "link", "xyz", "sigma", "frame", "T_tracker_base", "rate", "during"), P,
+                        where)
+        if g.get("during", "stops") not in ("stops", "always"):
+            raise ScenarioError(f"{_where(P, where + '.during')} must be stops or always")
         topic = str(g.get("topic", "/ground_truth/point"))
         tr = next((t for t in m.trackers if t.topic == topic), m.tracker)
         link = g.get("link") or (tr.link if tr else None)
@@ -252,6 +257,7 @@ class _SimConfig:
             "T_tracker_base": _pose_cfg(g.get("T_tracker_base"), P, where + ".T_tracker_base"),
             "T_cfg": g.get("T_tracker_base") or {},
             "rate": _num(g, "rate", 0.0, P, where, minimum=0.0),
+            "during": str(g.get("during", "stops")),
             "topic": topic,
         }
 

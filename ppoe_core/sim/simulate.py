@@ -9,7 +9,8 @@ The *true* robot is the nominal URDF plus
   :mod:`ppoe_core.model.effects` so that ``ppoe diagnose`` is tested against physics, not
   against its own code): ``joint_offset``, ``link_error``, ``gravity_compliance``,
   ``mount_bending``, ``base_tilt``, ``backlash``, ``thermal_growth``, ``time_offset``,
-  ``camera_extrinsics``.
+  ``camera_extrinsics``; ``camera_intrinsics`` and ``tag_offset`` change what the camera sees
+  (:mod:`ppoe_core.sim.camera_sim`); ``transmission_error`` is outside the vocabulary.
 
 One link of the true chain is (paper eq. 16 with the effects inserted)::
 
@@ -39,19 +40,19 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.errors import PpoeError, ScenarioError
-from ppoe_core.estimation.camera import project_points
 from ppoe_core.io.bagio import BagWriter
 from ppoe_core.robot.tree import GRAVITY
-from ppoe_core.sensing.tags import render_tags, tag_points_local
 from ppoe_core.sim.scenario import (
     SCENARIO_DOC,
     TRUTH_EFFECTS,
     Scenario,
     _check_keys,
+    _joints_map,
     _num,
     _where,
     load_scenario,
 )
+from ppoe_core.sim.camera_sim import camera_events, check_camera_truth, tag_poses_cam, visible_tags
 from ppoe_core.sim.schedule import parse_temperature, temperature_events, truth_entries
 from ppoe_core.sim.sim_config import _min_jerk, _SimConfig, _Stop
 from ppoe_core.sim.truth import TrueRobot
@@ -88,7 +89,7 @@ class _Sim(_SimConfig):
         self.robot = sc.robot
         self.model = sc.model
         truth = _check_keys(raw.get("truth"), ("perturbations", "perturbation_scale", "joint_noise", "effects",
-                                               "record_draws"),
+                                               "record_draws", "encoder_noise"),
                             self.path, "truth")
         self.draw = truth.get("perturbations", "once")
         if self.draw not in ("once", "per_stop", "none"):
@@ -105,6 +106,23 @@ class _Sim(_SimConfig):
             "joint_rate", "dwell", "settle", "move_time", "extra_joints", "start", "stops", "random_stops",
             "smooth"), self.path, "trajectory"))
         self._parse_sensors()
+        self.encoder_noise = self._parse_encoder_noise(truth.get("encoder_noise", 0.0))
+        check_camera_truth(self)
+
+    def _parse_encoder_noise(self, raw: Any) -> np.ndarray:
+        """``truth.encoder_noise``: 1-sigma per driven joint of the white noise on each recorded sample [rad|m]."""
+        where = "truth.encoder_noise"
+        if isinstance(raw, Mapping):
+            m = _joints_map(raw, self.path, where, self.robot)
+            bad = sorted(set(m) - set(self.joints))
+            if bad:
+                raise ScenarioError(f"{_where(self.path, where)}: {bad} are not driven joints")
+            sig = np.array([m.get(j, 0.0) for j in self.joints])
+        else:
+            sig = np.full(len(self.joints), _num({"v": raw}, "v", 0.0, self.path, where, minimum=0.0))
+        if np.any(sig < 0):
+            raise ScenarioError(f"{_where(self.path, where)} must be >= 0")
+        return sig
 
     def _draw_xi(self, n_sets: int) -> list[dict[str, np.ndarray]]:
         out = []
@@ -136,37 +154,6 @@ class _Sim(_SimConfig):
         noise = {jn: np.array([self.noise_sets[k].get(jn, 0.0) for k in set_idx]) for jn in self.model.joint_noise}
         sg = {j: signs[:, i] for i, j in enumerate(self.joints)}
         return self.true.poses(q, xi, noise, sg, t - self.sc.start_time, n)
-
-    # -- visibility ----------------------------------------------------------
-    def _tag_poses_cam(self, poses: Mapping[str, np.ndarray]) -> tuple[np.ndarray, list[int], np.ndarray]:
-        T_root_cam = poses[self.cam["frame"]]
-        T_cam_root = lie.inverse(T_root_cam)
-        assert self.model.tags is not None  # a camera is simulated only with tags declared
-        items = self.model.tags.items
-        Ts = np.stack([T_cam_root @ poses[it.link] @ it.T_link_tag for it in items], axis=1)  # (n, k, 4, 4)
-        return Ts, [it.id for it in items], np.array([it.size for it in items])
-
-    def _visible(self, T_cam_tags: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-        """(n, k) bool: tag in front, facing the camera (< 70 deg) and all corners inside the image (margin 5 px)."""
-        n, k = T_cam_tags.shape[:2]
-        vis = np.zeros((n, k), bool)
-        for a in range(n):
-            for b in range(k):
-                T = T_cam_tags[a, b]
-                t = T[:3, 3]
-                if t[2] < 0.1:
-                    continue
-                if -(T[:3, 2] @ t) / np.linalg.norm(t) < math.cos(math.radians(70)):
-                    continue
-                P = tag_points_local(sizes[b] * 1.25) @ T[:3, :3].T + t
-                if np.any(P[:, 2] < 0.05):
-                    continue
-                uv = project_points(P, self.cam["K"], self.cam["D"])
-                if np.all(
-                    (uv[:, 0] > 5) & (uv[:, 0] < self.cam["w"] - 5) & (uv[:, 1] > 5) & (uv[:, 1] < self.cam["h"] - 5)
-                ):
-                    vis[a, b] = True
-        return vis
 
     # -- plan -----------------------------------------------------------------
     def plan(self) -> None:
@@ -220,8 +207,8 @@ class _Sim(_SimConfig):
                     )
                 Q = np.array([[q[j] for j in self.joints]])
                 poses = self.true.poses({j: Q[:, i] for i, j in enumerate(self.joints)}, {}, {}, {}, np.zeros(1), 1)
-                Ts, _, sizes = self._tag_poses_cam(poses)
-                if self._visible(Ts, sizes)[0].sum() < cfg["min_visible"]:
+                Ts, _, sizes = tag_poses_cam(self, poses)
+                if visible_tags(self.cam, Ts, sizes)[0].sum() < cfg["min_visible"]:
                     continue
             self.stops.append(_Stop(q, self.dwell))
             got += 1
@@ -372,12 +359,14 @@ class _Sim(_SimConfig):
         # joint states (time offset: a message stamped t carries the position at t - dt)
         names = list(self.joints) + list(self.extra)
         Qjs, _, _ = self.state_at(self.t - self.dt_js)
+        if np.any(self.encoder_noise > 0):
+            Qjs = Qjs + self.encoder_noise * self.rng.standard_normal(Qjs.shape)
         extra_vals = [float(v) for v in self.extra.values()]
         for i, t in enumerate(self.t):
             events.append((float(t), 0, "js", (names, np.concatenate([Qjs[i], extra_vals]))))
         visible_ids: set[int] = set()
         if self.cam is not None:
-            visible_ids = self._camera_events(events)
+            visible_ids = camera_events(self, events)
         if self.gt_pose is not None:
             self._gt_pose_events(events)
         if self.gt_point is not None:
@@ -393,34 +382,6 @@ class _Sim(_SimConfig):
         return SimulationResult(
             str(out), counts, self.truth_dict(), float(self.t[-1] - self.t[0]), len(self.windows), sorted(visible_ids)
         )
-
-    def _camera_events(self, events: list[tuple[float, int, str, tuple]]) -> set[int]:
-        """Images of the tags at their true poses (noise from the simulator's rng), stamped with the camera's time
-        offset."""
-        visible_ids: set[int] = set()
-        ts = self.sensor_times(self.cam["rate"], self.cam["during"])
-        Q, S, G = self.state_at(ts)
-        poses = self.truth_poses(Q, S, G, ts)
-        Ts, ids, sizes = self._tag_poses_cam(poses)
-        assert self.model.tags is not None
-        for i, t in enumerate(ts):
-            img, drawn = render_tags(
-                (self.cam["w"], self.cam["h"]),
-                self.cam["K"],
-                self.cam["D"],
-                Ts[i],
-                ids,
-                sizes,
-                dictionary=self.model.tags.family,
-                background=self.cam["background"],
-                noise_sigma=self.cam["noise"],
-                rng=self.rng,
-                blur_sigma=self.cam["blur"],
-            )
-            visible_ids.update(drawn)
-            st = float(t + self.cam["time_offset"])
-            events.append((st, 1, "cam", (img,)))
-        return visible_ids
 
     def _gt_pose_events(self, events: list[tuple[float, int, str, tuple]]) -> None:
         """Ground-truth poses of the target in the tracked frame, with noise."""
@@ -439,7 +400,7 @@ class _Sim(_SimConfig):
     def _gt_point_events(self, events: list[tuple[float, int, str, tuple]]) -> None:
         """Tracker measurements of each reflector in its tracker frame, with noise."""
         for k, g in enumerate(self.gt_points):
-            ts = self.sensor_times(g["rate"])
+            ts = self.sensor_times(g["rate"], g["during"])
             Q, S, G = self.state_at(ts)
             poses = self.truth_poses(Q, S, G, ts)
             p = (g["T_tracker_base"] @ poses[g["link"]] @ np.append(g["xyz"], 1.0))[:, :3]
@@ -491,6 +452,10 @@ class _Sim(_SimConfig):
                         bag.write_image(t, cam_frame, pl[0])
                     else:
                         bag.write_compressed_image(t, cam_frame, pl[0], self.cam["format"])
+                elif kind == "obs":
+                    bag.write_camera_info(t, cam_frame, self.cam["w"], self.cam["h"], self.cam["K"], self.cam["D"])
+                    r = pl[0]
+                    bag.write_tag_observations(t, cam_frame, r[:, 0], r[:, 1], r[:, 2:4], r[:, 4:6])
                 elif kind == "gtpose":
                     bag.write_ground_truth_pose(t, self.gt_pose["frame"], pl[0])
                 elif kind == "gtpoint":
@@ -528,6 +493,8 @@ class _Sim(_SimConfig):
                 "frame": self.cam["frame"],
                 "K": self.cam["K"].tolist(),
                 "D": self.cam["D"].tolist(),
+                "K_true": self.cam["K_true"].tolist(),
+                "D_true": self.cam["D_true"].tolist(),
                 "width": self.cam["w"],
                 "height": self.cam["h"],
             }

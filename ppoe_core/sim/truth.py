@@ -18,6 +18,18 @@ from ppoe_core.robot.urdf import Robot
 from ppoe_core.sim.scenario import TRUTH_EFFECTS
 from ppoe_core.sim.schedule import Schedule, parse_value
 
+#: effects whose parameters cannot change during a recording
+_CONSTANT = ("time_offset", "camera_intrinsics", "tag_offset")
+
+
+def tag_location(loc: Any, where: str) -> str:
+    """``tag_<id>`` from a tag_offset location written as ``tag_<id>`` or as the id (an integer)."""
+    s = str(loc)
+    if isinstance(loc, bool) or not (s.isdigit() or (s.startswith("tag_") and s[4:].isdigit())):
+        raise ScenarioError(f"{where}: tag_offset location must be tag_<id> or the tag id, got {loc!r}")
+    return f"tag_{int(s[4:] if s.startswith('tag_') else s)}"
+
+
 # =============================================================================
 # true robot
 # =============================================================================
@@ -57,28 +69,17 @@ class TrueRobot:
         name = e["name"]
         if name not in TRUTH_EFFECTS:
             raise ScenarioError(f"{where}: unknown effect {name!r} (known: {list(TRUTH_EFFECTS)})")
-        loc = str(e.get("location", ""))
         params = e.get("parameters") or {}
         bad = sorted(set(params) - set(TRUTH_EFFECTS[name]))
         if bad:
             raise ScenarioError(f"{where}: effect {name} has no parameters {bad} (has {list(TRUTH_EFFECTS[name])})")
-        if name == "base_tilt":
-            if loc != self.robot.root:
-                raise ScenarioError(f"{where}: base_tilt location must be the root link '{self.robot.root}'")
-        elif name != "time_offset":
-            if loc not in self.robot.joints:
-                raise ScenarioError(f"{where}: location '{loc}' is not a joint of {self.robot.source}")
-            if (
-                name in ("joint_offset", "gravity_compliance", "backlash", "transmission_error")
-                and not self.robot.joints[loc].movable
-            ):
-                raise ScenarioError(f"{where}: {name} needs a movable joint, '{loc}' is {self.robot.joints[loc].type}")
+        loc = self._location(name, e.get("location", ""), where)
         out: dict[str, Any] = {"name": name, "location": loc, "parameters": {}}
         for k in TRUTH_EFFECTS[name]:
             s = parse_value(params.get(k, 0.0), f"{where}.parameters.{k}")
             out["parameters"][k] = s.values[0] if len(s.values) == 1 else s
-            if name == "time_offset" and isinstance(out["parameters"][k], Schedule):
-                raise ScenarioError(f"{where}: time_offset dt cannot change during the recording")
+            if name in _CONSTANT and isinstance(out["parameters"][k], Schedule):
+                raise ScenarioError(f"{where}: {name} {k} cannot change during the recording")
         if set(e) & {"variable", "reference"}:
             if name != "thermal_growth":
                 raise ScenarioError(f"{where}: only thermal_growth takes 'variable' and 'reference'")
@@ -90,14 +91,58 @@ class TrueRobot:
             out["reference"] = parse_value(e.get("reference", 0.0), f"{where}.reference").values[0]
         return out
 
+    def _location(self, name: str, raw: Any, where: str) -> str:
+        """The checked location of a true effect ``name`` (root link, tag, camera frame, joint or topic)."""
+        loc = str(raw)
+        if name == "base_tilt":
+            if loc != self.robot.root:
+                raise ScenarioError(f"{where}: base_tilt location must be the root link '{self.robot.root}'")
+        elif name == "tag_offset":
+            loc = tag_location(raw, where)
+        elif name == "camera_intrinsics":
+            if loc not in self.robot.links:
+                raise ScenarioError(f"{where}: camera_intrinsics location '{loc}' is not a link (the camera's optical "
+                                    f"frame) of {self.robot.source}")
+        elif name != "time_offset":
+            if loc not in self.robot.joints:
+                raise ScenarioError(f"{where}: location '{loc}' is not a joint of {self.robot.source}")
+            if (
+                name in ("joint_offset", "gravity_compliance", "backlash", "transmission_error")
+                and not self.robot.joints[loc].movable
+            ):
+                raise ScenarioError(f"{where}: {name} needs a movable joint, '{loc}' is {self.robot.joints[loc].type}")
+        return loc
+
     @staticmethod
     def params_at(e: Mapping[str, Any], elapsed: np.ndarray) -> dict[str, Any]:
         """Parameters of effect ``e`` at ``elapsed`` (n,) [s since start]: floats, or (n,) for schedules."""
         return {k: v(elapsed) if isinstance(v, Schedule) else v for k, v in e["parameters"].items()}
 
-    def effect_param(self, name: str, key: str) -> float:
-        """Sum of parameter ``key`` over the true effects called ``name`` (0 if none)."""
-        return sum(e["parameters"][key] for e in self.effects if e["name"] == name)
+    def effect_param(self, name: str, key: str, location: str | None = None) -> float:
+        """Sum of parameter ``key`` over the true effects called ``name`` (at ``location`` if given; 0 if none)."""
+        return sum(e["parameters"][key] for e in self.effects
+                   if e["name"] == name and (location is None or e["location"] == location))
+
+    def true_camera(self, frame: str, K: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The TRUE intrinsics of the camera ``frame`` whose declared ``K`` (3, 3) [px] and plumb_bob ``D`` (5,)
+        are given: plus the ``camera_intrinsics`` effects at ``frame`` (``fx fy cx cy`` [px], ``k1 k2 p1 p2 k3``)."""
+        d = {k: self.effect_param("camera_intrinsics", k, frame) for k in TRUTH_EFFECTS["camera_intrinsics"]}
+        K_true = np.array(K, dtype=float, copy=True)
+        K_true[0, 0] += d["fx"]
+        K_true[1, 1] += d["fy"]
+        K_true[0, 2] += d["cx"]
+        K_true[1, 2] += d["cy"]
+        D_true = np.array(D, dtype=float, copy=True) + np.array([d[k] for k in ("k1", "k2", "p1", "p2", "k3")])
+        return K_true, D_true
+
+    def tag_offset(self, tag_id: int) -> np.ndarray:
+        """``T_mount_true`` (4, 4): the true pose of tag ``tag_id`` in its declared (model YAML) pose, the product
+        of ``Exp([x y z rx ry rz])`` of its ``tag_offset`` effects (identity without one)."""
+        T = np.eye(4)
+        for e in self.effects:
+            if e["name"] == "tag_offset" and e["location"] == f"tag_{int(tag_id)}":
+                T = T @ lie.exp(np.array([e["parameters"][k] for k in TRUTH_EFFECTS["tag_offset"]], dtype=float))
+        return T
 
     # -- chain ------------------------------------------------------------------
     def link_poses(

@@ -13,7 +13,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 
-__all__ = ["main", "SUBCOMMANDS"]
+__all__ = ["main", "SUBCOMMANDS", "SIGNAL_COMMANDS", "StopFlag"]
 
 #: subcommand -> (module, one-line help)
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -26,6 +26,32 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "play": ("ppoe_ros.cli.play", "publish a recorded bag onto live ROS 2 topics"),
     "record": ("ppoe_ros.cli.record", "record live ROS 2 topics into a new bag"),
 }
+
+
+#: subcommands that stop cleanly on SIGINT/SIGTERM: their flag is installed before their module (and rclpy,
+#: numba) is imported, so a signal during a slow start-up is not lost (it used to kill ``ppoe record`` with -15)
+SIGNAL_COMMANDS = ("record",)
+
+
+class StopFlag:
+    """SIGINT/SIGTERM set :attr:`raised` (instead of raising in the middle of a write); :meth:`restore` puts the
+    previous handlers back."""
+
+    def __init__(self) -> None:
+        import signal
+
+        self.raised = False
+        self._old = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def _handle(self, signum: int, frame: object) -> None:
+        self.raised = True
+
+    def restore(self) -> None:
+        """The handlers in place before this flag."""
+        import signal
+
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -51,8 +77,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = next((a for a in args_list if not a.startswith("-")), None)
     if command not in SUBCOMMANDS:
         command = None
+    stop = StopFlag() if command in SIGNAL_COMMANDS else None
     parser = build_parser(command)
     args = parser.parse_args(args_list)
+    args.stop_flag = stop
     from ppoe_core.errors import PpoeError
 
     with warnings.catch_warnings(record=True) as caught:

@@ -1,13 +1,22 @@
-"""``ppoe play BAG``: publish a recorded bag onto live ROS 2 topics (no ``ros2 bag`` needed).
+"""``ppoe play BAG [--ros-args ...]``: publish a recorded bag onto live ROS 2 topics (no ``ros2 bag`` needed).
 
 The messages' stored CDR bytes are published unchanged (rclpy raw publish), in
 log-time order, paced by the bag's log times divided by ``--rate``.  With
 ``--clock`` the bag time is published on ``/clock`` (``rosgraph_msgs/Clock``)
 before each message and every ``1/--clock-hz`` seconds in between, so nodes with
-``use_sim_time:=true`` run on the bag's clock.  ``/robot_description`` is
-published with transient-local QoS (latched, as robot_state_publisher does), all
-other topics reliable with a deep history.  ``--loop`` starts over at the end
+``use_sim_time:=true`` run on the bag's clock.  ``--loop`` starts over at the end
 (the clock then jumps back; nodes count that as a stamp reset).
+
+QoS, as ``ros2 bag play`` does: each topic is offered with the profile recorded in the bag's
+``metadata.yaml`` (:func:`ppoe_core.io.bag_qos.playback_qos`); a topic recorded without one gets
+:func:`ppoe_core.io.bag_qos.offered_qos` (transient local for ``robot_description`` and ``tf_static``,
+where ``ros2 bag play`` would offer volatile; reliable and volatile otherwise).  A latched topic keeps
+all its messages for late subscribers; other topics are published with a deep history (1000).
+
+Standard ROS arguments follow ``--ros-args`` (rclpy parses them): ``-r __ns:=/robot1`` plays the bag's
+topics in that namespace (``/joint_states`` on ``/robot1/joint_states``; ``/clock``, ``/tf``,
+``/tf_static``, ``/diagnostics`` stay global, as robot_state_publisher keeps them), ``-r FROM:=TO`` remaps
+a topic, ``-r __node:=NAME`` renames the player, ``-p use_sim_time:=true`` runs its node on ``/clock``.
 
 A topic whose message type is not installed here is skipped with a message on
 stderr (an error if it was asked for with ``--topics``).
@@ -16,7 +25,8 @@ A damaged bag (fewer readable messages than its ``metadata.yaml`` says) is refus
 anything is published, naming per topic what was lost, unless ``--accept-partial``; an
 unfinished recording (no footer or metadata) is read record by record, with a warning.
 
-Exit codes: 0 done (or interrupted), 2 unreadable or damaged bag / unknown topic / nothing to play.
+Exit codes: 0 done (or interrupted), 2 unreadable or damaged bag / unknown topic / nothing to play / bad
+``--ros-args``.
 """
 
 from __future__ import annotations
@@ -29,9 +39,16 @@ from typing import Any
 from ppoe_core.errors import BagError, PpoeError
 from ppoe_core.io import bagio
 
-__all__ = ["add_arguments", "run", "ROBOT_DESCRIPTION_TOPIC"]
+__all__ = ["add_arguments", "add_ros_args", "init_ros", "run", "ROBOT_DESCRIPTION_TOPIC", "GLOBAL_TOPICS",
+           "play_name"]
 
 ROBOT_DESCRIPTION_TOPIC = "/robot_description"
+
+#: topics played under their absolute name whatever the namespace (robot_state_publisher's convention)
+GLOBAL_TOPICS = ("/clock", "/tf", "/tf_static", "/diagnostics", "/rosout", "/parameter_events")
+
+#: history depth of a volatile topic's publisher (a subscriber that falls this far behind loses the oldest)
+_VOLATILE_DEPTH = 1000
 
 
 def _positive(text: str) -> float:
@@ -57,6 +74,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "what was lost)")
     parser.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SECONDS",
                         help="before playing, wait up to SECONDS until every played topic has a subscriber")
+    add_ros_args(parser)
+
+
+def play_name(topic: str) -> str:
+    """Name the player publishes ``topic`` under: relative (so ``__ns`` applies) unless in :data:`GLOBAL_TOPICS`."""
+    return topic if topic in GLOBAL_TOPICS else topic.lstrip("/")
+
+
+def _publisher_qos(topic: str, recorded: list[Any], count: int) -> Any:
+    """The rclpy profile for ``topic``: the recorded offer (rosbag2's rule), else ours; depth for replay."""
+    from ppoe_core.io.bag_qos import offered_qos, playback_qos
+    from ppoe_ros.common.bag_qos import qos_to_rclpy
+    from rosbags.interfaces import QosDurability
+
+    profile = playback_qos(recorded, fallback=offered_qos(topic)[0])
+    latched = profile.durability == QosDurability.TRANSIENT_LOCAL
+    return qos_to_rclpy(profile, depth=max(1, min(count, _VOLATILE_DEPTH)) if latched else _VOLATILE_DEPTH)
+
+
+def add_ros_args(parser: argparse.ArgumentParser) -> None:
+    """The ``--ros-args ...`` option (everything after it, for rclpy), shared with ``ppoe record``."""
+    parser.add_argument("--ros-args", dest="ros_args", nargs=argparse.REMAINDER, default=[], metavar="ARG",
+                        help="standard ROS arguments, last on the line: -r __ns:=/robot1, -r FROM:=TO, "
+                             "-p use_sim_time:=true, --log-level debug")
+
+
+def init_ros(name: str, ros_args: list[str], **kwargs: Any) -> None:
+    """``rclpy.init`` with the user's ``--ros-args`` (``kwargs`` to rclpy.init); a malformed one is a
+    PpoeError (exit 2, one line)."""
+    import rclpy
+    from rclpy._rclpy_pybind11 import RCLError, UnknownROSArgsError
+
+    try:
+        rclpy.init(args=[name, "--ros-args", *ros_args] if ros_args else [name], **kwargs)
+    except UnknownROSArgsError as exc:
+        raise PpoeError(f"--ros-args: not ROS arguments: {exc.args[0] if exc.args else exc}") from None
+    except RCLError as exc:
+        raise PpoeError(f"bad --ros-args {' '.join(ros_args)}: {str(exc).split(', at ')[0]}") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -65,7 +120,8 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.executors import ExternalShutdownException
     from rosgraph_msgs.msg import Clock
 
-    from ppoe_ros.common import LATCHED_QOS, reliable_qos
+    from ppoe_core.io.bag_qos import recorded_qos
+    from ppoe_ros.common import reliable_qos
 
     info = bagio.bag_topics(args.bag)  # raises BagError naming the bag
     selected, classes = _select_topics(args, info)
@@ -76,18 +132,19 @@ def run(args: argparse.Namespace) -> int:
     for note in check.notes:
         print(f"ppoe play: warning: {note}", file=sys.stderr)
 
-    rclpy.init(args=["ppoe_play"])
+    recorded = recorded_qos(args.bag)
+    init_ros("ppoe_play", list(args.ros_args or []))
     node = rclpy.create_node("ppoe_play")
     log = node.get_logger()
     n_sent = 0
     try:
         pubs: dict[str, Any] = {}
         for topic in selected:
-            qos = LATCHED_QOS if topic == ROBOT_DESCRIPTION_TOPIC else reliable_qos(1000)
-            pubs[topic] = node.create_publisher(classes[topic], topic, qos)
+            qos = _publisher_qos(topic, recorded.get(topic, []), check.counts.get(topic, 0))
+            pubs[topic] = node.create_publisher(classes[topic], play_name(topic), qos)
         clock_pub = node.create_publisher(Clock, "/clock", reliable_qos(10)) if args.clock else None
         _wait(node, pubs, args.delay, args.wait_for_subscribers)
-        counts = ", ".join(f"{t} ({check.counts.get(t, 0)})" for t in selected)
+        counts = ", ".join(f"{pubs[t].topic_name} ({check.counts.get(t, 0)})" for t in selected)
         log.info(f"playing {args.bag}: {counts} at rate {args.rate:g}")
         while True:
             sent = _play_once(args, pubs, clock_pub)

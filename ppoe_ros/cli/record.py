@@ -8,7 +8,15 @@ mismatch, so :meth:`ppoe_core.io.bagio.BagWriter.write_raw` parses and re-serial
 them with rosbags.  The recorded bag therefore reads back with plain ``rosbags``.
 
 The subscription QoS follows the publishers: transient local when all of them
-are (``/robot_description``), best effort if any publisher is best effort.
+are (``/robot_description``), best effort if any publisher is best effort.  The
+profiles the publishers offered are stored per topic in ``metadata.yaml``
+(``offered_qos_profiles``, as ``ros2 bag record`` does), so ``ros2 bag play`` and
+``ppoe play`` offer them again.
+
+Standard ROS arguments follow ``--ros-args``: ``-r __ns:=/robot1`` records the given relative topic
+names in that namespace (``joint_states`` is ``/robot1/joint_states``; the bag keeps the full names),
+``-r __node:=NAME`` renames the recorder.
+
 The log time of a message is its receive time on the node clock
 (``--use-sim-time`` to take it from ``/clock``).  Stops on SIGINT/SIGTERM or
 after ``--duration``; the bag is closed properly either way (exit 0).
@@ -18,7 +26,10 @@ mcap chunk and ``metadata.yaml`` is rewritten with the counts so far, so a
 recorder killed with ``-9`` loses at most about that much: ``ppoe play`` /
 ``evaluate`` read such a bag from its chunks and say that it was not closed.
 
-Exit codes: 0 done, 2 output exists (without ``--force``) / cannot write.
+``--force`` replaces an existing bag directory only if it holds nothing but bag files, and only when the
+recording ends (it is written beside it meanwhile); a recording that got no message keeps the old bag.
+
+Exit codes: 0 done, 2 output exists (without ``--force``), is not a bag directory, or cannot be written.
 """
 
 from __future__ import annotations
@@ -30,6 +41,8 @@ from typing import Any
 
 from ppoe_core.errors import PpoeError
 from ppoe_core.io.bagio import BagWriter
+from ppoe_ros.cli import StopFlag
+from ppoe_ros.cli.play import add_ros_args, init_ros
 
 __all__ = ["add_arguments", "run", "Recorder"]
 
@@ -48,6 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--flush-period", type=float, default=0.5, metavar="SECONDS",
                         help="write the messages to disk at least this often, with metadata.yaml, so that a "
                              "recorder killed with -9 leaves a readable bag (mcap; default 0.5)")
+    add_ros_args(parser)
 
 
 def _qos_for(publishers: list[Any]) -> Any:
@@ -70,7 +84,7 @@ class Recorder:
 
         self.node = node
         self.writer = writer
-        self.pending = list(dict.fromkeys(topics))
+        self.pending = list(dict.fromkeys(node.resolve_topic_name(t) for t in topics))
         self.subs: dict[str, Any] = {}
         self.stats = NodeStats(node, ("received", "written", "bad"))
         from rclpy.clock import Clock, ClockType
@@ -82,6 +96,7 @@ class Recorder:
     def discover(self) -> None:
         """Subscribe every pending topic that now has a publisher."""
         from ppoe_ros.common import message_class
+        from ppoe_ros.common.bag_qos import qos_from_rclpy
 
         if not self.pending:
             return
@@ -96,6 +111,7 @@ class Recorder:
             if not pubs:
                 continue
             cls = message_class(msgtype)
+            self.writer.offered_qos[topic] = [qos_from_rclpy(p.qos_profile) for p in pubs]
             self.subs[topic] = self.node.create_subscription(
                 cls, topic, self._callback(topic, msgtype), _qos_for(pubs), raw=True)
             self.pending.remove(topic)
@@ -129,12 +145,15 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     writer = BagWriter(args.out, storage=args.storage, overwrite=args.force,
-                       flush_period=args.flush_period)  # BagError if it exists
-    stop = _StopFlag()
+                       flush_period=args.flush_period)  # BagError if it exists (or, with --force, is not a bag)
+    if writer.replaces_existing:
+        print(f"ppoe record: recording into {writer.write_path}; it replaces {args.out} when the recording ends",
+              file=sys.stderr)
+    stop = getattr(args, "stop_flag", None) or StopFlag()  # ``ppoe`` installs it before the imports
     recorder: Recorder | None = None
     node = None
     try:
-        rclpy.init(args=["ppoe_record"], signal_handler_options=SignalHandlerOptions.NO)
+        init_ros("ppoe_record", list(args.ros_args or []), signal_handler_options=SignalHandlerOptions.NO)
         node = rclpy.create_node("ppoe_record", parameter_overrides=[
             Parameter("use_sim_time", Parameter.Type.BOOL, bool(args.use_sim_time))])
         writer.open()
@@ -149,32 +168,18 @@ def run(args: argparse.Namespace) -> int:
             executor.spin_once(timeout_sec=0.05)
             writer.flush_if_due()
     finally:
-        writer.close()
+        kept = writer.replaces_existing and not writer.counts  # recorded nothing: the old bag stays
+        if kept:
+            writer.discard()
+        else:
+            writer.close()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
         stop.restore()
     counts = ", ".join(f"{t}: {n}" for t, n in sorted(writer.counts.items())) or "nothing"
-    print(f"ppoe record: wrote {args.out} ({counts})", file=sys.stderr)
+    print(f"ppoe record: recorded nothing; the existing bag {args.out} is kept as it was" if kept
+          else f"ppoe record: wrote {args.out} ({counts})", file=sys.stderr)
     if recorder is not None and recorder.pending:
         print(f"ppoe record: never saw a publisher of {', '.join(recorder.pending)}", file=sys.stderr)
     return 0
-
-
-class _StopFlag:
-    """SIGINT/SIGTERM set :attr:`raised` (instead of raising in the middle of a write); :meth:`restore`."""
-
-    def __init__(self) -> None:
-        import signal
-
-        self.raised = False
-        self._old = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        self.raised = True
-
-    def restore(self) -> None:
-        import signal
-
-        for sig, old in self._old.items():
-            signal.signal(sig, old)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import re
 import time
 import traceback
 from collections.abc import Callable, Iterable
@@ -105,8 +106,31 @@ def guarded(stats: NodeStats, topic: str,
     return deco
 
 
+#: name of the check in a node's status, ``<namespace>/<node>: health`` (diagnostic_updater's "node: task" form)
+HEALTH_CHECK = "health"
+
+_ROBOT_NAME = re.compile(r"<robot\b[^>]*?\bname\s*=\s*[\"']([^\"']*)[\"']")
+
+
+def status_name(fully_qualified_node: str, check: str = HEALTH_CHECK) -> str:
+    """``DiagnosticStatus.name`` of a node's check: ``/robot1/kinematics_node: health`` (unique per robot)."""
+    return f"{fully_qualified_node}: {check}"
+
+
+def urdf_robot_name(urdf_xml: str) -> str:
+    """The ``name`` of the ``<robot>`` element of a URDF text ("" when there is none)."""
+    m = _ROBOT_NAME.search(urdf_xml)
+    return m.group(1) if m else ""
+
+
 class DiagnosticsPublisher:
     """Publish a node's :class:`NodeStats` on ``/diagnostics`` every ``period`` seconds.
+
+    The status is named :func:`status_name` (``<namespace>/<node>: health``), so the statuses of two namespaced
+    robots never collide; its ``hardware_id`` is the robot's name: ``hardware_id`` when given, else the
+    ``<robot name>`` of the URDF (the node's ``robot_description`` parameter, else the latched
+    ``robot_description_topic`` / ``robot_description`` topic of its namespace), and until a URDF is known the
+    node's namespace (``robot1``; "" in the root namespace).
 
     Level WARN while bad messages, errors or losses (counters in ``NodeStats.warn_keys``)
     arrived in the last period, or while a watched input is silent (:meth:`watch_input`), else OK
@@ -120,8 +144,9 @@ class DiagnosticsPublisher:
         self._node = node
         self._stats = stats
         self._pub = node.create_publisher(DiagnosticArray, topic, reliable_qos(10))
-        self._name = f"{node.get_name()}"
-        self._hardware_id = hardware_id
+        self._name = status_name(node.get_fully_qualified_name())
+        self._hardware_id = hardware_id or node.get_namespace().strip("/")
+        self._robot_sub: Any = None if not hardware_id else False  # False: given, never looked up
         self._last_bad = 0
         self._level: bytes | None = None
         self._message = ""
@@ -131,6 +156,33 @@ class DiagnosticsPublisher:
         self._timer = node.create_timer(
             float(period), self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME)
         )
+
+    def set_hardware_id(self, hardware_id: str) -> None:
+        """Report ``hardware_id`` from now on (the robot's name), instead of the one looked up."""
+        self._hardware_id = str(hardware_id)
+        self._robot_sub = False
+
+    def _look_up_robot_name(self) -> None:
+        """The robot name from the ``robot_description`` parameter, else subscribe its latched topic (once)."""
+        node = self._node
+        if node.has_parameter("robot_description"):
+            name = urdf_robot_name(str(node.get_parameter("robot_description").value or ""))
+            if name:
+                self.set_hardware_id(name)
+                return
+        topic = "robot_description"
+        if node.has_parameter("robot_description_topic"):
+            topic = str(node.get_parameter("robot_description_topic").value or topic)
+        from std_msgs.msg import String
+
+        from ppoe_ros.common.qos import LATCHED_QOS
+
+        def on_urdf(msg: Any) -> None:
+            name = urdf_robot_name(msg.data)
+            if name and self._robot_sub is not False:
+                self._hardware_id = name
+
+        self._robot_sub = node.create_subscription(String, topic, on_urdf, LATCHED_QOS)
 
     def set_status(self, level: bytes | None, message: str, **extra: Any) -> None:
         """Override level/message (``DiagnosticStatus.OK/WARN/ERROR``; None = automatic) and add values."""
@@ -174,6 +226,8 @@ class DiagnosticsPublisher:
 
     def publish(self) -> None:
         """Publish one ``DiagnosticArray`` now."""
+        if self._robot_sub is None:
+            self._look_up_robot_name()
         paused = self._refresh_gap_counters()
         silent = self._silent_inputs()
         counts = self._stats.counts

@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from ppoe_core.errors import MeasurementError
+from ppoe_core.estimation.sources import unprefixed
 from ppoe_ros.common.params import ParamSpec
 
 __all__ = ["FRAME_PREFIX_PARAM", "prefixed", "unprefixed", "resolve_topics"]
@@ -34,21 +34,6 @@ FRAME_PREFIX_PARAM = ParamSpec(
 def prefixed(prefix: str, frame: str) -> str:
     """``prefix + frame`` (an empty frame stays empty)."""
     return prefix + frame if frame else frame
-
-
-def unprefixed(prefix: str, frame: str, topic: str) -> str:
-    """The URDF name of a received ``header.frame_id``: ``frame`` without ``prefix``.
-
-    Raises
-    ------
-    MeasurementError
-        ``frame`` does not start with ``prefix`` (a message of another robot); names the topic.
-    """
-    if not prefix:
-        return frame
-    if not frame.startswith(prefix):
-        raise MeasurementError(f"{topic}: header.frame_id '{frame}' lacks the frame_prefix '{prefix}' of this robot")
-    return frame[len(prefix):]
 
 
 def resolve_topics(node: Any, params: dict[str, Any], keys: Sequence[str]) -> None:

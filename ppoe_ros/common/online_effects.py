@@ -25,7 +25,6 @@ is counted as bad and logged (throttled); the node keeps running.
 
 from __future__ import annotations
 
-import bisect
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -38,23 +37,16 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, JointState, Temperature
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
-from ppoe_core import lie
-from ppoe_core.errors import MeasurementError, ModelConfigError
-from ppoe_core.estimation.joint_merge import JointMerger
+from ppoe_core.errors import ModelConfigError
 from ppoe_core.estimation.online_effects import OnlineEffects, entries_from_flat, parse_online_config
+from ppoe_core.estimation.online_inputs import IMU_TOPIC, OnlineInputs, OnlineMeasurement, OnlineStep
 from ppoe_core.robot.yaml_io import read_yaml_mapping
-from ppoe_ros.common import (
-    DiagnosticsPublisher,
-    NodeStats,
-    ParamSpec,
-    check_nonempty,
-    counted_subscription,
-    declare_parameters,
-    reliable_qos,
-    run_node,
-    stamp_to_ns,
-    take_robot_description,
-)
+from ppoe_ros.common.conversions import stamp_to_ns
+from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats
+from ppoe_ros.common.losses import counted_subscription
+from ppoe_ros.common.params import ParamSpec, check_nonempty, declare_parameters
+from ppoe_ros.common.qos import reliable_qos
+from ppoe_ros.common.runner import run_node, take_robot_description
 
 __all__ = ["ONLINE_PARAMS", "OnlineEffectsHook", "OnlineEffectsNode", "estimates_msg", "estimates_from_msg", "main"]
 
@@ -82,11 +74,6 @@ ONLINE_PARAMS: tuple[ParamSpec, ...] = (
               min_value=0.0, max_value=1e6),
 )
 
-_HISTORY_NS = 10_000_000_000  # joint states / temperatures kept for the lookup at a point's stamp
-_TEMPERATURE_WAIT_NS = 2_000_000_000  # a point waits at most this long (joint-state time) for a newer temperature
-_MAX_PENDING = 1000  # points waiting for their joint state; older ones are dropped (counted)
-
-
 def estimates_msg(filt: OnlineEffects, stamp_s: float) -> Float64MultiArray:
     """The estimate as ``Float64MultiArray`` (module docstring: stamp in the padding, P x (P + 1))."""
     P = len(filt.labels)
@@ -103,28 +90,6 @@ def estimates_from_msg(msg: Any) -> tuple[float, list[str], np.ndarray, np.ndarr
     P = int(msg.layout.dim[0].size)
     arr = np.asarray(msg.data[msg.layout.data_offset:], dtype=float).reshape(P, P + 1)
     return float(msg.data[0]), msg.layout.dim[0].label.split(","), arr[:, 0].copy(), arr[:, 1:].copy()
-
-
-class _History:
-    """Values by stamp [ns] (last ``_HISTORY_NS``): the latest at or before a stamp."""
-
-    def __init__(self) -> None:
-        self.stamps: list[int] = []
-        self.values: list[Any] = []
-
-    def add(self, stamp_ns: int, value: Any) -> None:
-        if self.stamps and stamp_ns < self.stamps[-1]:
-            self.stamps.clear()  # time went backwards (a bag replayed again): new timeline
-            self.values.clear()
-        self.stamps.append(stamp_ns)
-        self.values.append(value)
-        cut = bisect.bisect_left(self.stamps, stamp_ns - _HISTORY_NS)
-        if cut:
-            del self.stamps[:cut], self.values[:cut]
-
-    def at(self, stamp_ns: int) -> Any:
-        i = bisect.bisect_right(self.stamps, stamp_ns) - 1
-        return self.values[i] if i >= 0 else None
 
 
 class OnlineEffectsHook:
@@ -147,11 +112,7 @@ class OnlineEffectsHook:
                   "online_no_model", "online_published"):
             stats.counts.setdefault(k, 0)
         self.filter: OnlineEffects | None = None
-        self.merger: JointMerger | None = None
-        self.joints = _History()
-        self.temps = _History()
-        self.pending: list[tuple[int, Any, str]] = []
-        self._uses_temperature = False
+        self.inputs: OnlineInputs | None = None
         self._subscribed: set[str] = set()
         self.pub = node.create_publisher(Float64MultiArray, self.p["online_estimates_topic"], reliable_qos(1000))
         qos = reliable_qos(1000)
@@ -166,120 +127,59 @@ class OnlineEffectsHook:
                 counted_subscription(node, stats, PointStamped, topic,
                                      lambda msg, topic=topic: self._point(msg, topic), qos)
         for name in raw.get("imus") or {}:
-            counted_subscription(node, stats, Imu, f"/imu/{name}",
-                                 lambda msg, name=str(name): self._point(msg, f"/imu/{name}"), qos)
+            counted_subscription(node, stats, Imu, f"{IMU_TOPIC}{name}",
+                                 lambda msg, name=str(name): self._point(msg, f"{IMU_TOPIC}{name}", name), qos)
         if self.p["online_write_period"] > 0 and self.p["online_model_out"]:
             node.create_timer(self.p["online_write_period"], self.write_model)
 
     def set_model(self, model: Any) -> None:
-        """Build the filter for ``model`` (the diagnosed PPOEModel) and subscribe its tracker topics."""
+        """Build the filter for ``model`` (the diagnosed PPOEModel) and its input alignment."""
         entries = entries_from_flat(self.p["online_effects"], self.p["online_process_noise"],
                                     self.p["online_initial_sigma"], self.p["online_thermal_reference"])
         self.filter = OnlineEffects(model, parse_online_config(entries, model),
                                     self.p["online_jump_probability"] or None)
-        self.model = model
-        self._uses_temperature = any(getattr(e, "variable", None) == "temperature" for e in self.filter.effects())
-        self.merger = JointMerger(model.joint_names, int(self.p["online_joint_max_age"] * 1e9))
+        self.inputs = OnlineInputs(self.filter, int(self.p["online_joint_max_age"] * 1e9))
         self.node.get_logger().info(f"online effects: tracking {self.filter.labels} from "
                                     f"{sorted(self._subscribed)}")
 
     # ---------------------------------------------------------------- callbacks
     def _joint_state(self, msg: JointState) -> None:
-        if self.merger is None:
-            return
-        q, _ = self.merger.update(list(msg.name), list(msg.position), stamp_to_ns(msg.header.stamp))
-        if q is not None:  # else not every joint seen yet / too old: a point then counts in online_no_joints
-            self.joints.add(stamp_to_ns(msg.header.stamp), dict(zip(self.merger.needed, q.tolist())))
-        self._drain()
-
-    def _ready(self, stamp_ns: int) -> bool:
-        """A point at ``stamp_ns`` is processed once a joint state (and, for a thermal effect, a temperature) at or
-        after it arrived, so that the values at its stamp are known as they are offline (inputs lag on their own
-        queues); a temperature is waited for at most ``_TEMPERATURE_WAIT_NS`` of joint-state time."""
-        j = self.joints.stamps[-1] if self.joints.stamps else None
-        if j is None or j < stamp_ns:
-            return False
-        if not self._uses_temperature or (self.temps.stamps and self.temps.stamps[-1] >= stamp_ns):
-            return True
-        return j - stamp_ns > _TEMPERATURE_WAIT_NS
-
-    def _drain(self) -> None:
-        while self.pending and self._ready(self.pending[0][0]):
-            st, msg, topic = self.pending.pop(0)
-            self._process_point(st, msg, topic)
+        if self.inputs is not None:
+            self._publish(self.inputs.joint_state(msg.name, msg.position, stamp_to_ns(msg.header.stamp)))
 
     def _temperature(self, msg: Temperature) -> None:
-        if not np.isfinite(msg.temperature):
-            raise MeasurementError(f"temperature {msg.temperature!r} is not finite")
-        self.temps.add(stamp_to_ns(msg.header.stamp), float(msg.temperature))
-        self._drain()
+        if self.inputs is not None:
+            self._publish(self.inputs.temperature(stamp_to_ns(msg.header.stamp), msg.temperature))
 
-    def _point(self, msg: Any, topic: str) -> None:
+    def _point(self, msg: Any, topic: str, imu: str | None = None) -> None:
         """A tracker point (``PointStamped``) or an accelerometer message (``Imu``, topic ``/imu/<name>``)."""
-        if self.filter is None:
+        if self.inputs is None:
             self.stats.inc("online_no_model")
             return
-        st = stamp_to_ns(msg.header.stamp)
-        if isinstance(msg, Imu):
-            imu = self.model.config.imus[topic[len("/imu/"):]]
-            if msg.header.frame_id != imu.link:
-                raise MeasurementError(f"header.frame_id {msg.header.frame_id!r} is not the IMU's link {imu.link!r} "
-                                       f"of the model")
-            v = msg.linear_acceleration
-        else:
-            self.filter.registration(msg.header.frame_id, topic)  # a bad frame is refused now, not when due
-            v = msg.point
-        if not np.all(np.isfinite([v.x, v.y, v.z])):
-            raise MeasurementError(f"measurement ({v.x}, {v.y}, {v.z}) is not finite")
-        if self.pending or not self._ready(st):
-            self.pending.append((st, msg, topic))
-            if len(self.pending) > _MAX_PENDING:
-                self.pending.pop(0)
-                self.stats.inc("online_dropped_pending")
-            return
-        self._process_point(st, msg, topic)
+        v = msg.linear_acceleration if imu is not None else msg.point
+        m = OnlineMeasurement(stamp_to_ns(msg.header.stamp), topic, msg.header.frame_id,
+                              np.array([v.x, v.y, v.z], dtype=float), imu)
+        self._publish(self.inputs.measurement(m))
 
-    def _process_point(self, st: int, msg: Any, topic: str) -> None:
-        filt = self.filter
-        assert filt is not None
-        q = self.joints.at(st)
-        if q is None:
-            self.stats.inc("online_no_joints")
-            return
-        temp = self.temps.at(st)
-        if temp is not None and filt.context.get("temperature") != temp:
-            filt.set_temperature(st * 1e-9, temp)
-        jumps = filt.counts.jumps
-        if isinstance(msg, Imu):
-            imu = self.model.config.imus[topic[len("/imu/"):]]
-            a = msg.linear_acceleration
-            up = filt.update_gravity(st * 1e-9, q, imu.link, [a.x, a.y, a.z], imu.sigma)
-        else:
-            tr = next(t for t in self.model.config.trackers if t.topic == topic)
-            T_tr = filt.registration(msg.header.frame_id, topic)
-            p = [msg.point.x, msg.point.y, msg.point.z]
-            up = filt.update_point(st * 1e-9, q, tr.link, tr.xyz, p, T_tr, tr.sigma)
-        if up is None:
-            self.stats.inc("online_waiting")
-            return
-        self.stats.inc("online_points")
-        self.stats.inc("online_jumps", filt.counts.jumps - jumps)
-        self.pub.publish(estimates_msg(filt, st * 1e-9))
-        self.stats.inc("online_published")
+    def _publish(self, steps: list[OnlineStep]) -> None:
+        """The estimate after each step; the counters synced with the alignment's."""
+        assert self.inputs is not None and self.filter is not None
+        for step in steps:
+            self.stats.inc("online_points")
+            self.pub.publish(estimates_msg(self.filter, step.stamp_ns * 1e-9))
+            self.stats.inc("online_published")
+        c, s = self.inputs.counts, self.stats.counts
+        s["online_jumps"], s["online_waiting"] = c.jumps, c.waiting
+        s["online_no_joints"], s["online_dropped_pending"] = c.no_joints, c.dropped_pending
 
     # ---------------------------------------------------------------- outputs
     def correct_prior(self, stamp_ns: int, T_base_tool: np.ndarray, cov_tool: np.ndarray, base: str,
                       tool: str) -> tuple[np.ndarray, np.ndarray]:
-        """A kinematics prior of the static model moved to the online estimate: ``T_static Exp(d)`` with
-        ``Exp(d) = T_static(q)^-1 T_online(q)`` at the joints of ``stamp_ns``, covariance ``+ J P J^T``; the prior
-        unchanged while there is no model or no joint state."""
-        filt = self.filter
-        q = self.joints.at(stamp_ns) if filt is not None else None
-        if filt is None or q is None or filt.needs_temperature():
+        """The prior moved to the online estimate (:meth:`OnlineInputs.correct_prior
+        <ppoe_core.estimation.online_inputs.OnlineInputs.correct_prior>`); unchanged while there is no model."""
+        if self.inputs is None:
             return T_base_tool, cov_tool
-        T_on, J = filt.tool_jacobian(q, base, tool)
-        T_st = filt.static_model.fk_mean(q, base, tool, context=filt.context)
-        return T_base_tool @ lie.inverse(T_st) @ T_on, cov_tool + J @ filt.P @ J.T
+        return self.inputs.correct_prior(stamp_ns, T_base_tool, cov_tool, base, tool)
 
     def write_model(self) -> Path | None:
         """Write the model YAML with the current estimate to ``online_model_out`` (None when off or no model)."""

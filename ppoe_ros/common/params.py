@@ -18,6 +18,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from ppoe_core.errors import ModelConfigError, PpoeError
+from ppoe_ros.common.paths import resolve_path_parameters
 
 # ---------------------------------------------------------------------- parameters
 
@@ -190,6 +191,7 @@ def declare_parameters(
         if reason is not None:
             raise ModelConfigError(f"node {node_name}: parameter '{spec.name}' {reason}")
         values[spec.name] = value
+    resolve_path_parameters(node, values)  # package:// and parameter-file-relative paths (common/paths.py)
 
     _report_unknown_overrides(node, by_name)
 

@@ -6,9 +6,9 @@ Published as tf2_ros' broadcasters do (no tf2_ros needed): ``/tf`` reliable, vol
 
 * :class:`FusionTf`: the fusion node's corrected tool frame on ``/tf`` (parent = base frame, child =
   ``tf_child_frame``, default ``<tool>_corrected``) at every fused pose, and the calibrated camera frames
-  on ``/tf_static`` (:func:`~ppoe_ros.common.tf_frames.calibrated_camera_frames`).
+  on ``/tf_static`` (:func:`~ppoe_core.model.tf_frames.calibrated_camera_frames`).
 * :class:`KinematicsTf`: the kinematics node's model frames like robot_state_publisher
-  (:class:`~ppoe_ros.common.tf_frames.JointFrames`).
+  (:class:`~ppoe_core.model.tf_frames.JointFrames`).
 
 A child frame that is a URDF link is refused with an error naming the frame and the parameter; that
 frame's TF is off, the node keeps running, and ``/diagnostics`` says so.  Without ``tf2_msgs`` (a pip
@@ -18,7 +18,7 @@ install where ``scripts/build_tf2_msgs.py`` was not run) TF is off with one log 
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -30,7 +30,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from ppoe_core import lie
 from ppoe_ros.common.conversions import stamp_to_ns
 from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats
-from ppoe_ros.common.tf_frames import JointFrames, TfFrame, calibrated_camera_frames, urdf_collision
+from ppoe_core.model.tf_frames import JointFrames, TfFrame, calibrated_camera_frames, urdf_collision
 
 __all__ = [
     "TF_TOPIC",
@@ -254,18 +254,8 @@ class KinematicsTf:
         if self.frames is None:
             return
         try:
-            frames = self.frames.frames(names, positions)
+            frames = self.frames.frames(names, positions, stamp_ns)
             if frames:
                 self.broadcaster.send(frames, stamp_ns)
         except Exception as exc:  # noqa: BLE001 - TF must not stop the pose output
             self.stats.error(TF_TOPIC, exc)
-
-    def wrap(self, joint_vector: Callable[[Any], Any]) -> Callable[[Any], Any]:
-        """``joint_vector(msg)`` followed by :meth:`publish` of the message's joints (when it did not raise)."""
-
-        def joint_vector_and_tf(msg: Any) -> Any:
-            q = joint_vector(msg)
-            self.publish(msg.stamp_ns, msg.names, msg.positions)
-            return q
-
-        return joint_vector_and_tf

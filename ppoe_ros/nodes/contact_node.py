@@ -41,6 +41,7 @@ from std_msgs.msg import Bool
 from ppoe_core.errors import ModelConfigError
 from ppoe_core.robot.config import load_contact_config
 from ppoe_core.robot.yaml_io import read_yaml_mapping
+from ppoe_core.model.stamp_policy import BACKWARD, NEW_TIMELINE, StampRefused, StampResetPolicy
 from ppoe_core.sensing.contact import (
     DEFAULT_FORCE_THRESHOLD,
     DEFAULT_RELEASE_THRESHOLD,
@@ -49,21 +50,11 @@ from ppoe_core.sensing.contact import (
     force_measure,
     plane_from_config,
 )
-from ppoe_ros.common import (
-    DiagnosticsPublisher,
-    NodeStats,
-    ParamSpec,
-    check_length,
-    check_nonempty,
-    declare_parameters,
-    counted_subscription,
-    mapping_get,
-    pose_cov_stamped_msg,
-    reliable_qos,
-    sensor_qos,
-    stamp_to_ns,
-    wrench_to_numpy,
-)
+from ppoe_ros.common.conversions import pose_cov_stamped_msg, stamp_to_ns, wrench_to_numpy
+from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats
+from ppoe_ros.common.losses import counted_subscription
+from ppoe_ros.common.params import ParamSpec, check_length, check_nonempty, declare_parameters, mapping_get
+from ppoe_ros.common.qos import reliable_qos, sensor_qos
 from ppoe_ros.common.frame_prefix import FRAME_PREFIX_PARAM, prefixed, resolve_topics
 
 __all__ = ["ContactNode", "PARAMS", "main"]
@@ -128,6 +119,7 @@ class ContactNode(Node):
             raise ModelConfigError(f"{where}: {exc}") from None
         self._component = p["force_component"]
         self._last_ns: int | None = None
+        self.policy = StampResetPolicy(p["stamp_reset_threshold"])
         self._out = pose_cov_stamped_msg(self.plane.T_frame_plane, self.plane.cov_ros, 0,
                                          prefixed(p["frame_prefix"], self.plane.frame))
         self._pub = self.create_publisher(PoseWithCovarianceStamped, p["plane_topic"], reliable_qos(100))
@@ -170,14 +162,11 @@ class ContactNode(Node):
         if not np.all(np.isfinite(w)):
             raise ValueError(f"non-finite wrench {w.tolist()}")
         stamp_ns = stamp_to_ns(msg.header.stamp)
-        last = self._last_ns
-        if last is not None and stamp_ns < last:
-            jump = (last - stamp_ns) * 1e-9
-            if jump <= self.params["stamp_reset_threshold"]:
-                raise ValueError(f"stamp jumped back by {jump:.6f} s: message ignored")
-            self.stats.bad(self.params["wrench_topic"],
-                           f"stamp jumped back by {jump:.3f} s (> stamp_reset_threshold): new timeline, "
-                           "contact state reset")
+        check = self.policy.check(stamp_ns, self._last_ns)
+        if check.verdict == BACKWARD:
+            raise StampRefused(check.why, check.verdict)
+        if check.verdict == NEW_TIMELINE:
+            self.stats.bad(self.params["wrench_topic"], f"{check.why}, contact state reset")
             self.detector.in_contact = False
         self._last_ns = stamp_ns
         force = float(force_measure(w[:3], self._component))
@@ -202,7 +191,7 @@ class ContactNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point ``contact_node`` (``--ros-args`` accepted)."""
-    from ppoe_ros.common import run_node
+    from ppoe_ros.common.runner import run_node
 
     return run_node(ContactNode, args)
 

@@ -73,29 +73,18 @@ from ppoe_core.estimation.pipeline import (
     make_updater,
     source_key,
 )
+from ppoe_core.model.joint_history import JointHistory
 from ppoe_core.estimation.source_updater import SourceUpdater
 from ppoe_core.robot.yaml_io import read_yaml_mapping
-from ppoe_ros.common import (
-    DiagnosticsPublisher,
-    NodeStats,
-    ParamSpec,
-    check_nonempty,
-    counted_subscription,
-    declare_parameters,
-    guarded,
-    joint_positions,
-    mapping_get,
-    ns_to_stamp,
-    pose_cov_from_msg,
-    pose_cov_stamped_msg,
-    reliable_qos,
-    sensor_qos,
-    stamp_to_ns,
-    take_robot_description,
-)
+from ppoe_ros.common.conversions import ns_to_stamp, pose_cov_from_msg, pose_cov_stamped_msg, stamp_to_ns
+from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats, guarded
+from ppoe_ros.common.losses import counted_subscription
+from ppoe_ros.common.params import ParamSpec, check_nonempty, declare_parameters, mapping_get
+from ppoe_ros.common.qos import reliable_qos, sensor_qos
+from ppoe_ros.common.runner import take_robot_description
 from ppoe_ros.common.frame_prefix import FRAME_PREFIX_PARAM, resolve_topics, unprefixed
-from ppoe_ros.common.fusion_sources import SOURCES_PARAM, LiveSources, parse_sources, source_names, source_specs
-from ppoe_ros.common.joint_buffer import JointBuffer as _JointBuffer
+from ppoe_core.estimation.sources import parse_sources
+from ppoe_ros.common.fusion_sources import SOURCES_PARAM, LiveSources, source_names, source_specs
 from ppoe_ros.common.tag_cloud import observations_from_cloud
 from ppoe_ros.common.online_effects import ONLINE_PARAMS, OnlineEffectsHook
 from ppoe_ros.common.tf_broadcast import FusionTf
@@ -121,6 +110,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("contact_topic", "contact/plane", "contact plane (PoseWithCovarianceStamped); empty = off"),
     ParamSpec("camera_info_topic", "camera/camera_info", "CameraInfo for the focal lengths; empty = fit from u,v"),
     ParamSpec("joint_states_topic", "joint_states", "JointState for joint positions at the prior stamps; empty = off"),
+    ParamSpec("joint_max_age", 0.5, "a joint value a split joint-state message lacks is held this long (as the "
+              "kinematics node's joint_max_age); 0 = no limit", unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("fused_topic", "ppoe/fused_pose", "output topic (PoseWithCovarianceStamped)", check=check_nonempty),
     ParamSpec(
         "buffer_duration",
@@ -321,7 +312,7 @@ class FusionNode(Node):
         self.updater: ModelUpdater | None = None
         self.model: Any = None
         self._urdf: str | None = None
-        self.joints = _JointBuffer(int((p["buffer_duration"] + 1.0) * 1e9))
+        self.joints = JointHistory([])
         self.focal: dict[str, tuple[float, float]] = {}
 
         self.pub = self.create_publisher(PoseWithCovarianceStamped, p["fused_topic"],
@@ -342,8 +333,8 @@ class FusionNode(Node):
         sub(PoseWithCovarianceStamped, p["contact_topic"], self._contact, rel)
         sub(CameraInfo, p["camera_info_topic"], self._camera_info, qos)
         sub(JointState, p["joint_states_topic"], self._joint_state, qos)
-        self.sources = LiveSources(self, parse_sources(p, names, self.get_fully_qualified_name()), self.stats,
-                                   self.prefix, self._measure)
+        self.sources = LiveSources(self, parse_sources(p, names, f"node {self.get_fully_qualified_name()}"),
+                                   self.stats, self.prefix, self._measure)
         self.sources.subscribe(qos)
         self._last_prior_wall = time.monotonic()
         self.create_timer(
@@ -374,7 +365,11 @@ class FusionNode(Node):
         import ppoe_core.estimation.measurements  # noqa: F401
 
         self.model, self.updater, self._urdf = model, updater, urdf_xml
-        self.joints.set_names(model.joint_names)
+        p = self.params
+        self.joints = JointHistory(model.joint_names, known=model.robot.joints,
+                                   max_age_ns=int(round(p["joint_max_age"] * 1e9)),
+                                   keep_ns=int((p["buffer_duration"] + 1.0) * 1e9),
+                                   policy=self.pipeline.stamp_policy)
         self.tf.set_model(model, self.base_frame, self.tool_frame)
         if self.online is not None:
             self.online.set_model(model)
@@ -410,7 +405,7 @@ class FusionNode(Node):
     def _joint_state(self, msg: JointState) -> None:
         if self.model is None:
             return
-        self.joints.add(stamp_to_ns(msg.header.stamp), joint_positions(msg, self.params["joint_states_topic"]))
+        self.joints.update(msg.name, msg.position, stamp_to_ns(msg.header.stamp))  # a refused one: counted bad
 
     def _prior(self, msg: PoseWithCovarianceStamped) -> None:
         self.stats.counts["received"] += 1
@@ -426,7 +421,8 @@ class FusionNode(Node):
             self.stats.bad(topic, f"prior at {stamp_ns * 1e-9:.6f} s is older than the prior buffer "
                                   f"(newest {newest:.6f} s, {self.params['buffer_duration']:g} s kept): dropped",
                            kind="priors_late")
-        elif newest is not None and newest - self.pipeline.reset_jump <= stamp_ns * 1e-9 <= newest:
+        elif newest is not None and not self.pipeline.stamp_policy.new_timeline_s(stamp_ns * 1e-9, newest) \
+                and stamp_ns * 1e-9 <= newest:
             self.stats.bad(topic, f"prior at {stamp_ns * 1e-9:.6f} s is not newer than the last one "
                                   f"({newest:.6f} s): used, out of order", kind="priors_out_of_order")
         self._last_prior_wall = time.monotonic()
@@ -551,7 +547,7 @@ class FusionNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point ``fusion_node`` (``--ros-args`` accepted)."""
-    from ppoe_ros.common import run_node
+    from ppoe_ros.common.runner import run_node
 
     return run_node(FusionNode, args)
 

@@ -26,12 +26,14 @@ joint: each output uses the latest value of every chain joint, at most ``joint_m
 carrying none of the chain's joints is counted as ``ignored``, one arriving while a chain joint is not
 yet known or too old as ``incomplete`` (both logged, throttled, no output).
 
-Bad input never stops the node: a NaN/inf position, mismatched ``name``/``position`` lengths, or a
-stamp older than the previous one is logged (throttled), counted as ``bad`` and dropped.
-A backward jump larger than ``stamp_reset_threshold`` (a replayed bag looping,
-a simulator reset) is logged and counted too, but taken as the start of a new
-timeline: that message is published.  Joint states that arrive before the URDF
-are counted as ``dropped``.  Joints the chain does not use are ignored.
+Bad input never stops the node: a NaN/inf position, mismatched ``name``/``position`` lengths, a joint named
+twice, a chain joint missing while the message carries a name the URDF lacks (a misspelt joint: its held value is
+not used), a stamp older than the previous one or more than ``stamp_future_tolerance`` ahead of the node's clock
+is logged (throttled), counted as ``bad`` and dropped (:class:`ppoe_core.model.joint_history.JointHistory`,
+:class:`~ppoe_core.model.joint_history.StampResetPolicy`).  A backward jump larger than
+``stamp_reset_threshold`` (a replayed bag looping, a simulator reset) is logged and counted too, but taken as the
+start of a new timeline (held joint values forgotten): that message is published.  Joint states that arrive
+before the URDF are counted as ``dropped``.  Joints the chain does not use are ignored.
 A model whose effects read a context (``thermal_growth`` against time or temperature, ``backlash``) gets it from
 the joint states so far (:class:`ppoe_core.model.context.LiveContext`: time since the first one, each joint's last
 motion sign); for a temperature the node subscribes to ``temperature`` (``sensor_msgs/Temperature``) and counts
@@ -56,6 +58,7 @@ Parameters: see ``config/nodes/kinematics_node.yaml`` (every key documented ther
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -71,25 +74,18 @@ from std_msgs.msg import String
 from ppoe_core import lie
 from ppoe_core.errors import ModelConfigError, PpoeError
 from ppoe_core.estimation.batch_worker import BatchWorker
-from ppoe_core.estimation.joint_merge import JointMerger
+from ppoe_core.model.joint_history import JointHistory
+from ppoe_core.model.stamp_policy import StampResetPolicy
 from ppoe_core.io.cdr import PoseCovarianceWriter, parse_joint_state
-from ppoe_core.io.joint_pose import JointPoseFastPath
+from ppoe_core.io.joint_pose import NO_LIMIT, JointPoseFastPath
 from ppoe_core.model.context import LiveContext
 from ppoe_core.model.ppoe import PPOEModel
 from ppoe_core.robot.yaml_io import read_yaml_mapping
-from ppoe_ros.common import (
-    DiagnosticsPublisher,
-    NodeStats,
-    counted_subscription,
-    ParamSpec,
-    check_nonempty,
-    declare_parameters,
-    guarded,
-    mapping_get,
-    reliable_qos,
-    sensor_qos,
-    take_robot_description,
-)
+from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats, guarded
+from ppoe_ros.common.losses import counted_subscription
+from ppoe_ros.common.params import ParamSpec, check_nonempty, declare_parameters, mapping_get
+from ppoe_ros.common.qos import reliable_qos, sensor_qos
+from ppoe_ros.common.runner import take_robot_description
 from ppoe_ros.common.frame_prefix import FRAME_PREFIX_PARAM, resolve_topics
 from ppoe_ros.common.tf_broadcast import KinematicsTf
 
@@ -133,6 +129,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               max_value=3600.0),
     ParamSpec("stamp_reset_threshold", 1.0, "a stamp this much older than the last one starts a new timeline",
               unit="s", min_value=0.0),
+    ParamSpec("stamp_future_tolerance", 0.5, "a stamp more than this ahead of the node's clock is refused (counted "
+              "as bad, not published); 0 = off", unit="s", min_value=0.0, max_value=3600.0),
     FRAME_PREFIX_PARAM,
     ParamSpec("publish_tf", False, "publish the model's frames on /tf (movable joints, at each joint state) and "
               "/tf_static (fixed joints) like robot_state_publisher"),
@@ -173,13 +171,13 @@ class KinematicsNode(Node):
         self.reference = p["reference_frame"] or frames.get("base") or ""
         target = p["target_frame"] or frames.get("tool") or "tool0"
         self.order = int(p["order"])
-        self.reset_ns = int(round(p["stamp_reset_threshold"] * 1e9))
+        self.policy = StampResetPolicy(p["stamp_reset_threshold"], p["stamp_future_tolerance"])
+        self._future_ns = self.policy.future_ns
+        self._sim_time = bool(self.get_parameter("use_sim_time").value)
         self.model: Any = None
         self._urdf: str | None = None
-        self._stamp_clock = np.zeros(2, dtype=np.int64)  # [last stamp ns, has one]: _last_ns, shared with the fast path
         self._fast: JointPoseFastPath | None = None
-        self._merger = JointMerger([], 0)
-        self._needed: list[str] = []
+        self._history = JointHistory([], policy=self.policy)
         self._model_joints: list[str] = []
         self._dst = np.zeros(0, dtype=np.intp)
         self._worker: BatchWorker | None = None
@@ -199,8 +197,6 @@ class KinematicsNode(Node):
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         self._tf = (KinematicsTf.create(self, self.stats, self.diagnostics, p["frame_prefix"]) if p["publish_tf"]
                     else None)
-        if self._tf is not None:  # TF rides on the joint-vector step; with publish_tf off the hot path is as it was
-            self._joint_vector = self._tf.wrap(self._joint_vector)  # type: ignore[method-assign]
         js_topic = p["joint_states_topic"]
         js_qos = reliable_qos(p["qos_depth"]) if p["joint_states_reliable"] else sensor_qos(p["qos_depth"])
         self._on_joint_state = guarded(self.stats, js_topic)(self._joint_state)
@@ -240,9 +236,9 @@ class KinematicsNode(Node):
         for t in self.targets:
             needed += [n for n in model.chain_joints(reference, t.frame) if n not in needed]
         self._model_joints = list(model.joint_names)
-        self._needed = needed
         self._dst = np.array([self._model_joints.index(n) for n in needed], dtype=np.intp)
-        self._merger = JointMerger(needed, int(round(self.params["joint_max_age"] * 1e9)))
+        self._history = JointHistory(needed, known=model.robot.joints, policy=self.policy,
+                                     max_age_ns=int(round(self.params["joint_max_age"] * 1e9)))
         self._live = live if live else None
         if self._live is not None and "temperature" in live.needed and self._temperature_sub is None:
             self._temperature_sub = counted_subscription(self, self.stats, Temperature, "temperature",
@@ -266,20 +262,19 @@ class KinematicsNode(Node):
         leans = [model.lean_program(self.reference, t.frame) for t in self.targets]
         if any(lean is None for lean in leans):
             return None
-        fast = JointPoseFastPath(self._merger, self._dst, len(self._model_joints), self._stamp_clock,
+        fast = JointPoseFastPath(self._history, self._dst, len(self._model_joints),
                                  [(lean, t.writer) for lean, t in zip(leans, self.targets)], self.order)
         fast.warm()
         return fast
 
-    @property
-    def _last_ns(self) -> int | None:
-        """Stamp of the last joint state taken [ns] (None before the first)."""
-        return int(self._stamp_clock[0]) if self._stamp_clock[1] else None
-
-    @_last_ns.setter
-    def _last_ns(self, stamp_ns: int | None) -> None:
-        self._stamp_clock[0] = stamp_ns or 0
-        self._stamp_clock[1] = stamp_ns is not None
+    def _now_ns(self) -> int | None:
+        """The node's clock [ns] for the future-stamp check (None: off, or no /clock yet with use_sim_time); the
+        system clock without use_sim_time (what rclpy's clock reads, at a fraction of its cost)."""
+        if not self._future_ns:
+            return None
+        if not self._sim_time:
+            return time.time_ns()
+        return self.get_clock().now().nanoseconds or None
 
     def _robot_description(self, msg: String) -> None:
         if msg.data == self._urdf:
@@ -312,48 +307,36 @@ class KinematicsNode(Node):
         stats = self.stats
         stats.counts["received"] += 1
         fast = self._fast
-        if fast is not None and type(data) is bytes and fast.run(data):  # the usual message: one compiled call
-            for t in self.targets:
+        now = self._now_ns()
+        limit = NO_LIMIT if now is None else now + self._future_ns
+        if fast is not None and type(data) is bytes and fast.run(data, limit):
+            for t in self.targets:  # the usual message: one compiled call
                 t.pub.publish(t.writer.message())
             stats.counts["published"] += 1
             return
         model = self.model
+        topic = self.params["joint_states_topic"]
         if model is None:
-            stats.bad(self.params["joint_states_topic"], "no URDF yet (waiting for robot_description)",
-                      kind="dropped")
+            stats.bad(topic, "no URDF yet (waiting for robot_description)", kind="dropped")
             return
         msg = parse_joint_state(data)  # MeasurementError naming the field of a malformed message
-        stamp_ns = msg.stamp_ns
-        last = self._last_ns
-        if last is not None and stamp_ns < last:
-            jump = (last - stamp_ns) * 1e-9
-            if last - stamp_ns <= self.reset_ns:
-                raise ValueError(f"stamp {stamp_ns * 1e-9:.9f} s jumped back by {jump:.6f} s: message dropped")
-            stats.bad(self.params["joint_states_topic"],
-                      f"stamp jumped back by {jump:.3f} s (> stamp_reset_threshold): new timeline")
-        q = self._joint_vector(msg)  # raises JointValueError / ValueError naming the joint
+        # StampRefused / JointValueError / ValueError naming the stamp or the joint: counted as bad by the guard
+        upd = self._history.update(msg.names, msg.positions, msg.stamp_ns, now)
+        if upd.new_timeline:
+            stats.bad(topic, upd.new_timeline)
+        if self._tf is not None:
+            self._tf.publish(msg.stamp_ns, msg.names, msg.positions)
         if fast is not None:
             fast.learn(data, msg.names)
-        if q is None:
+        if upd.values is None:
+            stats.bad(topic, upd.why, kind=upd.kind)
             return
-        self._last_ns = stamp_ns
-        if self._worker is None:
-            self._publish_one(stamp_ns, q, model)
-        else:
-            self._worker.put((stamp_ns, q, model))
-
-    def _joint_vector(self, msg: Any) -> np.ndarray | None:
-        """Joint values in ``model.joint_names`` order, merged per joint from split joint-state messages
-        (:class:`~ppoe_core.estimation.joint_merge.JointMerger`); None (counted, logged) while the chain's
-        joints are not all known and fresh, or when the message carries none of them."""
-        values, why = self._merger.update(msg.names, msg.positions, msg.stamp_ns)
-        if values is None:
-            self.stats.bad(self.params["joint_states_topic"], why,
-                           kind="ignored" if why.startswith("carries none") else "incomplete")
-            return None
         q = np.zeros(len(self._model_joints))
-        q[self._dst] = values
-        return q
+        q[self._dst] = upd.values
+        if self._worker is None:
+            self._publish_one(msg.stamp_ns, q, model)
+        else:
+            self._worker.put((msg.stamp_ns, q, model))
 
     def _process(self, items: list[tuple[Any, np.ndarray, Any]]) -> None:
         """FK of a batch of validated joint states (one model call per target) and publish each."""
@@ -408,7 +391,7 @@ class KinematicsNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point ``kinematics_node`` (``--ros-args`` accepted)."""
-    from ppoe_ros.common import run_node
+    from ppoe_ros.common.runner import run_node
 
     return run_node(KinematicsNode, args, executor="events")
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.errors import BagError
+from ppoe_core.model.joint_history import JointHistory
 
 __all__ = ["JOINT_MAX_AGE_S", "joint_matrix", "recorded_estimate", "required_joints"]
 
@@ -20,39 +21,34 @@ JOINT_MAX_AGE_S = 0.5
 
 def joint_matrix(js: Any, joint_names: Sequence[str], bag: str, max_age_s: float = JOINT_MAX_AGE_S,
                  required: set[str] | None = None) -> tuple[np.ndarray, int]:
-    """Joint states -> (N, n) in ``joint_names`` order, merged per joint as the kinematics node does
-    (:class:`~ppoe_core.estimation.joint_merge.JointMerger`): a joint a message lacks takes its latest earlier
-    value while that is at most ``max_age_s`` old (0: no limit); rows that cannot be completed are NaN.
+    """Joint states -> (N, n) in ``joint_names`` order, merged per joint as the nodes merge them
+    (:meth:`ppoe_core.model.joint_history.JointHistory.merge_rows`): a joint a message lacks (or has no finite
+    value for) takes its latest earlier value while that is at most ``max_age_s`` old (0: no limit); rows that
+    cannot be completed are NaN.
 
     Returns the matrix and the number of values held from a previous message.  A joint of ``required`` (default:
     every joint) that the bag never carries (or never with a finite value) is a BagError; another one is held at
     0 (a joint off every chain the evaluation uses, e.g. the other arm of a dual-arm robot).
     """
-    N = len(js)
-    Q = np.empty((N, len(joint_names)))
-    held = 0
-    stamps = np.asarray(js.stamps, dtype=float)
-    for j, name in enumerate(joint_names):
-        if name not in js.names and required is not None and name not in required:
-            Q[:, j] = 0.0
-            continue
+    cols = []
+    for name in joint_names:
         if name not in js.names:
+            if required is not None and name not in required:
+                cols.append(-1)
+                continue
             raise BagError(
                 f"bag {bag}: topic /joint_states never carries joint {name!r} that the model chain needs "
                 f"(carries {js.names})"
             )
-        col = js.positions[:, js.names.index(name)].copy()
-        bad = ~np.isfinite(col)
-        if bad.any():
-            if bad.all():
-                raise BagError(f"bag {bag}: topic /joint_states: joint {name!r} has no finite value")
-            idx = np.where(bad, -1, np.arange(N))
-            np.maximum.accumulate(idx, out=idx)
-            fresh = (idx >= 0) & ((max_age_s <= 0) | (stamps - stamps[np.maximum(idx, 0)] <= max_age_s))
-            fill = bad & fresh
-            col[fill] = col[idx[fill]]
-            held += int(fill.sum())
-        Q[:, j] = col
+        k = js.names.index(name)
+        if not np.isfinite(js.positions[:, k]).any():
+            raise BagError(f"bag {bag}: topic /joint_states: joint {name!r} has no finite value")
+        cols.append(k)
+    carried = [k for k in cols if k >= 0]
+    Q_carried, held = JointHistory([js.names[k] for k in carried], max_age_ns=int(round(max_age_s * 1e9))).merge_rows(
+        js.stamps, js.positions[:, carried])
+    Q = np.zeros((len(js), len(joint_names)))
+    Q[:, [j for j, k in enumerate(cols) if k >= 0]] = Q_carried
     return Q, held
 
 

@@ -31,6 +31,7 @@ import numpy as np
 from ppoe_core.analysis.evaluate.inputs import joint_matrix, required_joints
 from ppoe_core.analysis.evaluate.metrics import error_stats, rotation_errors
 from ppoe_core.errors import BagError, ModelConfigError
+from ppoe_core.estimation.online_inputs import IMU_TOPIC, OnlineMeasurement, apply_measurement
 from ppoe_core.estimation.online_effects import (
     OnlineEffects,
     entries_from_flat,
@@ -131,6 +132,11 @@ def _fresh_model(model: PPOEModel, truth: Mapping[str, Any], stamp: float) -> PP
     return model.with_effects(effs)
 
 
+def _ns(stamp: float) -> int:
+    """A bag stamp [s] in integer nanoseconds (the live messages' stamps; ``* 1e-9`` gives it back)."""
+    return int(round(float(stamp) * 1e9))
+
+
 def _events(data: Any, model: PPOEModel, base: str, tool: str, temperature_topic: str) -> list[tuple]:
     """(stamp, order, kind, payload) of the temperatures, tracker points and ground-truth poses, in stamp order."""
     ev: list[tuple] = []
@@ -143,11 +149,14 @@ def _events(data: Any, model: PPOEModel, base: str, tool: str, temperature_topic
     for tr in model.config.trackers:
         s = series.get(tr.topic)
         if s is not None:
-            ev += [(float(t), 2, "point", (tr, s.frame_ids[i], s.p[i])) for i, t in enumerate(s.stamps)]
-    for name, imu in model.config.imus.items():
+            ev += [(float(t), 2, "point", OnlineMeasurement(_ns(t), tr.topic, s.frame_ids[i], s.p[i]))
+                   for i, t in enumerate(s.stamps)]
+    for name in model.config.imus:
         s = data.imus.get(name)
         if s is not None:
-            ev += [(float(t), 2, "imu", (imu, s.linear_acceleration[i])) for i, t in enumerate(s.stamps)]
+            ev += [(float(t), 2, "imu", OnlineMeasurement(_ns(t), f"{IMU_TOPIC}{name}", s.frame_ids[i],
+                                                          s.linear_acceleration[i], name))
+                   for i, t in enumerate(s.stamps)]
     gt = data.ground_truth_pose
     if len(gt) == 0:
         raise BagError(f"bag {data.path}: --online needs /ground_truth/pose to score the tool")
@@ -199,12 +208,7 @@ def evaluate_online(bag: str | Path, model_path: str | Path, online_effects: Any
             continue
         q = dict(zip(names, Q[i]))
         if kind in ("point", "imu"):
-            if kind == "point":
-                tr, frame_id, p = pl
-                up = filt.update_point(stamp, q, tr.link, tr.xyz, p, filt.registration(frame_id, tr.topic),
-                                       tr.sigma)
-            else:
-                up = filt.update_gravity(stamp, q, pl[0].link, pl[1], pl[0].sigma)
+            up = apply_measurement(filt, pl, q)
             if up is not None:
                 rec["st"].append(stamp)
                 rec["th"].append(filt.theta.copy())

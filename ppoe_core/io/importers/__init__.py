@@ -15,6 +15,21 @@ bags or model files these importers write.  The submodules are imported lazily.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from ppoe_core.io.stops import STOP_TOPIC, read_stop_info
 
-__all__ = ["STOP_TOPIC", "read_stop_info"]
+__all__ = ["MODEL_HEADER", "STOP_TOPIC", "check_outputs", "read_stop_info"]
+
+#: first characters of a model YAML the importers write: ``--force`` replaces only a file starting with them
+MODEL_HEADER = "# ppoe model for "
+
+
+def check_outputs(bag: Path, model_out: Path | None, overwrite: bool) -> None:
+    """Refuse, before any work, an output bag or model YAML that exists (without ``overwrite``) or is not ours
+    (:mod:`ppoe_core.io.outputs`)."""
+    from ppoe_core.io.outputs import check_bag_target, check_generated_file
+
+    check_bag_target(bag, overwrite)
+    if model_out is not None:
+        check_generated_file(model_out, overwrite, MODEL_HEADER, "model file")

@@ -19,7 +19,9 @@ the file and line, CSV errors the row and column)::
 Per stop the bag holds (docs/conventions.md sec. 3, static dataset): a ``/dataset/stop`` JSON object
 (``stop``, ``station``, ``role``), a burst of :data:`BURST_COUNT` identical ``/joint_states`` at 50 Hz, then
 the measurements, stamped inside the stop.  Empty cells of a measurement column skip that measurement
-for that stop (counted); an empty or non-numeric joint cell is an error naming the row.
+for that stop (counted); an empty or non-numeric joint cell is an error naming ``FILE:LINE`` and the column.
+A column named twice in the header, a row with more or fewer cells than the header, or two stops closer
+than :data:`STOP_MIN_SPACING_S` in time are errors; a UTF-8 byte-order mark (Excel) is accepted.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import csv
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -36,11 +38,15 @@ from ppoe_core.errors import DatasetError
 from ppoe_core.io.importers import STOP_TOPIC
 from ppoe_core.robot.urdf import Robot
 
-__all__ = ["import_csv", "load_mapping"]
+__all__ = ["import_csv", "load_mapping", "read_csv_rows", "STOP_MIN_SPACING_S"]
 
 BURST_COUNT = 5
 BURST_PERIOD_S = 0.02
 MEASUREMENT_DELAY_S = 0.1
+#: closest two stop times may be [s]: a stop's burst of joint states and its measurements take 0.1 s, and the
+#: measurement holds the stop's joint values only across a gap of more than 5 burst periods (0.1 s) before the
+#: next stop (:func:`ppoe_core.model.context.sample_series`)
+STOP_MIN_SPACING_S = 0.2
 _TOP = ("joints", "angle_unit", "length_unit", "points", "pose", "time", "station", "role")
 
 
@@ -85,103 +91,186 @@ def import_csv(csv_path: str | Path, mapping_path: str | Path, urdf_path: str | 
                overwrite: bool = False) -> dict[str, Any]:
     """Write the contract bag ``out`` from ``csv_path``; returns the counts written and skipped.
 
+    Every row is read and checked before the bag is written: a bad file leaves no bag behind.
+
     Raises
     ------
     DatasetError
-        A bad mapping, a missing column, a bad cell (naming the row and column).
+        A bad mapping, a missing or repeated column, a row longer or shorter than the header, a bad cell, stop
+        times closer than :data:`STOP_MIN_SPACING_S` (naming ``FILE:LINE`` and the column).
     """
+    from ppoe_core.io.importers import check_outputs
     from ppoe_core.robot.urdf import parse_urdf
 
-    urdf_xml = Path(urdf_path).read_text(encoding="utf-8")
-    robot = parse_urdf(urdf_xml, text_source=str(urdf_path))
+    check_outputs(Path(out), None, overwrite)
+    try:
+        urdf_xml = Path(urdf_path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{urdf_path}: cannot read the URDF: {getattr(exc, 'strerror', None) or exc}") from None
+    robot = parse_urdf(urdf_xml, text_source=str(urdf_path))  # UrdfError naming the user's file and line
     m = load_mapping(mapping_path, robot)
-    rows, header = _read_csv(csv_path)
+    rows, header = read_csv_rows(csv_path)
     needed = list(m["joints"].values()) + [c for p in m.get("points") or [] for c in p["columns"]]
     needed += list((m.get("pose") or {}).get("columns", [])) + [m[k] for k in ("time", "station", "role") if k in m]
     missing = [c for c in needed if c not in header]
     if missing:
         raise DatasetError(f"{csv_path}: columns {missing} named by {mapping_path} are not in the header {header}")
-    return _write(csv_path, rows, m, robot, urdf_xml, out, overwrite)
+    stops = _parse_stops(csv_path, rows, m, robot)
+    return _write(stops, m, urdf_xml, out, overwrite)
 
 
-def _read_csv(path: str | Path) -> tuple[list[dict[str, str]], list[str]]:
+#: (line number in the file, cells by column name)
+CsvRow = tuple[int, dict[str, str]]
+
+
+def read_csv_rows(path: str | Path) -> tuple[list[CsvRow], list[str]]:
+    """Data rows of a CSV with a header row: ``([(line, {column: cell})], header)``.
+
+    A UTF-8 byte-order mark (Excel) is skipped, header names are stripped, blank lines skipped.
+
+    Raises
+    ------
+    DatasetError
+        Unreadable file, no header or no data rows, a column named twice in the header, a row with more or
+        fewer cells than the header (``FILE:LINE``).
+    """
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            reader = csv.DictReader(fh)
-            rows = list(reader)
-            header = list(reader.fieldnames or [])
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            reader = csv.reader(fh)
+            first = next(reader, None)
+            header = [h.strip() for h in first or []]
+            _check_header(path, header)
+            rows: list[CsvRow] = []
+            line = reader.line_num + 1
+            for cells in reader:
+                if cells and len(cells) != len(header):
+                    raise DatasetError(f"{path}:{line}: {len(cells)} cells but the header has {len(header)} "
+                                       f"columns; every row must have one cell per column (empty cells allowed)")
+                if cells:
+                    rows.append((line, dict(zip(header, cells))))
+                line = reader.line_num + 1
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise DatasetError(f"{path}: cannot read as CSV: {exc}") from None
+        raise DatasetError(f"{path}: cannot read as CSV: {getattr(exc, 'strerror', None) or exc}") from None
     if not rows:
         raise DatasetError(f"{path}: no data rows")
     return rows, header
 
 
-def _cell(path: str | Path, row: dict[str, str], i: int, col: str, required: bool) -> float | None:
-    text = (row.get(col) or "").strip()
+def _check_header(path: str | Path, header: list[str]) -> None:
+    if not header:
+        raise DatasetError(f"{path}: empty file: no header row")
+    for name in header:
+        where = [k + 1 for k, h in enumerate(header) if h == name]
+        if name and len(where) > 1:
+            raise DatasetError(f"{path}:1: column {name!r} appears {len(where)} times in the header (columns "
+                               f"{', '.join(map(str, where))}); rename one of them")
+
+
+def _cell(path: str | Path, row: CsvRow, col: str, required: bool) -> float | None:
+    line, cells = row
+    text = (cells.get(col) or "").strip()
     if not text:
         if required:
-            raise DatasetError(f"{path}: row {i + 2} column {col!r}: empty")
+            raise DatasetError(f"{path}:{line}: column {col!r}: empty")
         return None
     try:
         v = float(text)
     except ValueError:
-        raise DatasetError(f"{path}: row {i + 2} column {col!r}: not a number: {text!r}") from None
+        raise DatasetError(f"{path}:{line}: column {col!r}: not a number: {text!r}") from None
     if not math.isfinite(v):
-        raise DatasetError(f"{path}: row {i + 2} column {col!r}: not finite: {text!r}")
+        raise DatasetError(f"{path}:{line}: column {col!r}: not finite: {text!r}")
     return v
 
 
-def _write(path: str | Path, rows: list[dict[str, str]], m: dict[str, Any], robot: Robot, urdf_xml: str,
-           out: str | Path, overwrite: bool) -> dict[str, Any]:
-    from ppoe_core.io.bagio import BagWriter, typestore
+class _Stop(NamedTuple):
+    """One CSV row, checked: stop time [s], joint values [rad, m], stop info, points and pose (None: empty)."""
 
+    t: float
+    q: np.ndarray
+    info: dict[str, Any]
+    points: list[tuple[str, str, np.ndarray | None]]
+    pose: np.ndarray | None
+
+
+def _parse_stops(path: str | Path, rows: list[CsvRow], m: dict[str, Any], robot: Robot) -> list[_Stop]:
+    """Every row checked and converted (units applied) before anything is written."""
     ang = math.pi / 180.0 if m.get("angle_unit") == "deg" else 1.0
     lin = 1e-3 if m.get("length_unit") == "mm" else 1.0
     names = list(m["joints"])
     scale = np.array([lin if robot.joints[j].type == "prismatic" else ang for j in names])
+    times = _stop_times(path, rows, m)
+    stops = []
+    for i, (row, t) in enumerate(zip(rows, times)):
+        q = np.array([_cell(path, row, m["joints"][j], True) for j in names], dtype=float) * scale
+        info: dict[str, Any] = {"stop": i}
+        for key in ("station", "role"):
+            if key in m:
+                info[key] = row[1][m[key]].strip()
+        if info.get("role", "stationing") not in ("stationing", "evaluation"):
+            raise DatasetError(f"{path}:{row[0]}: column {m['role']!r}: role must be stationing or evaluation, "
+                               f"got {info['role']!r}")
+        points = []
+        for p in m.get("points") or []:
+            v = [_cell(path, row, c, False) for c in p["columns"]]
+            xyz = None if any(x is None for x in v) else np.array(v, float) * lin
+            points.append((str(p.get("topic", "/ground_truth/point")), str(p.get("frame", "tracker")), xyz))
+        pose = _pose(path, row, m["pose"], lin) if "pose" in m else None
+        stops.append(_Stop(t, q, info, points, pose))
+    return stops
+
+
+def _stop_times(path: str | Path, rows: list[CsvRow], m: dict[str, Any]) -> list[float]:
+    """Stop times [s] (the ``time`` column, else one stop per 2 s); stops closer than
+    :data:`STOP_MIN_SPACING_S` are an error naming both lines (their joint states would interleave)."""
+    if "time" not in m:
+        return [2.0 * (i + 1) for i in range(len(rows))]
+    times = [float(_cell(path, row, m["time"], True) or 0.0) for row in rows]
+    order = sorted(range(len(rows)), key=times.__getitem__)
+    for a, b in zip(order, order[1:]):
+        if times[b] - times[a] < STOP_MIN_SPACING_S:
+            raise DatasetError(
+                f"{path}:{rows[b][0]}: column {m['time']!r}: stop time {times[b]:g} s is "
+                f"{'the same as' if times[b] == times[a] else f'{times[b] - times[a]:.3g} s after'} the stop at line "
+                f"{rows[a][0]} ({times[a]:g} s); stops must be at least {STOP_MIN_SPACING_S:g} s apart, or one "
+                "stop's measurements would get the other stop's joint values")
+    return times
+
+
+def _write(stops: list[_Stop], m: dict[str, Any], urdf_xml: str, out: str | Path,
+           overwrite: bool) -> dict[str, Any]:
+    from ppoe_core.io.bagio import BagWriter, typestore
+
+    names = list(m["joints"])
     skipped: dict[str, int] = {}
     String = typestore().types["std_msgs/msg/String"]
     with BagWriter(out, overwrite=overwrite) as w:
         w.write_robot_description(urdf_xml, stamp=0.0)
-        for i, row in enumerate(rows):
-            t = _cell(path, row, i, m["time"], True) if "time" in m else 2.0 * (i + 1)
-            assert t is not None
-            q = np.array([_cell(path, row, i, m["joints"][j], True) for j in names], dtype=float) * scale
-            info: dict[str, Any] = {"stop": i}
-            for key in ("station", "role"):
-                if key in m:
-                    info[key] = row[m[key]].strip()
-            if info.get("role", "stationing") not in ("stationing", "evaluation"):
-                raise DatasetError(f"{path}: row {i + 2} column {m['role']!r}: role must be stationing or "
-                                   f"evaluation, got {info['role']!r}")
-            w.write_message(STOP_TOPIC, String(data=json.dumps(info)), t)
+        for s in stops:
+            w.write_message(STOP_TOPIC, String(data=json.dumps(s.info)), s.t)
             for k in range(BURST_COUNT):
-                w.write_joint_state(t + k * BURST_PERIOD_S, names, q)
-            tm = t + MEASUREMENT_DELAY_S
-            for p in m.get("points") or []:
-                topic = p.get("topic", "/ground_truth/point")
-                v = [_cell(path, row, i, c, False) for c in p["columns"]]
-                if any(x is None for x in v):
+                w.write_joint_state(s.t + k * BURST_PERIOD_S, names, s.q)
+            tm = s.t + MEASUREMENT_DELAY_S
+            for topic, frame, xyz in s.points:
+                if xyz is None:
                     skipped[topic] = skipped.get(topic, 0) + 1
-                    continue
-                w.write_ground_truth_point(tm, str(p.get("frame", "tracker")), np.array(v, float) * lin, topic=topic)
-            if "pose" in m:
-                _pose(path, w, row, i, m["pose"], tm, lin, skipped)
+                else:
+                    w.write_ground_truth_point(tm, frame, xyz, topic=topic)
+            if s.pose is None and "pose" in m:
+                skipped["/ground_truth/pose"] = skipped.get("/ground_truth/pose", 0) + 1
+            elif s.pose is not None:
+                w.write_ground_truth_pose(tm, str(m["pose"].get("frame", "base_link")), s.pose)
         counts = dict(w.counts)
-    return {"counts": counts, "skipped": skipped, "stops": len(rows)}
+    return {"counts": counts, "skipped": skipped, "stops": len(stops)}
 
 
-def _pose(path: str | Path, w: Any, row: dict[str, str], i: int, pose: dict[str, Any], tm: float, lin: float,
-          skipped: dict[str, int]) -> None:
+def _pose(path: str | Path, row: CsvRow, pose: dict[str, Any], lin: float) -> np.ndarray | None:
+    """Tool pose (4, 4) of a row's pose columns (x y z [length unit], qx qy qz qw); None if a cell is empty."""
     from ppoe_core import lie
 
-    v = [_cell(path, row, i, c, False) for c in pose["columns"]]
+    v = [_cell(path, row, c, False) for c in pose["columns"]]
     if any(x is None for x in v):
-        skipped["/ground_truth/pose"] = skipped.get("/ground_truth/pose", 0) + 1
-        return
+        return None
     quat = np.array(v[3:], float)
     if abs(np.linalg.norm(quat) - 1.0) > 1e-3:
-        raise DatasetError(f"{path}: row {i + 2}: pose quaternion {quat.tolist()} is not unit length")
-    T = lie.from_rt(lie.matrix_from_quat(quat), np.array(v[:3], float) * lin)
-    w.write_ground_truth_pose(tm, str(pose.get("frame", "base_link")), T)
+        raise DatasetError(f"{path}:{row[0]}: pose quaternion {quat.tolist()} is not unit length")
+    return lie.from_rt(lie.matrix_from_quat(quat), np.array(v[:3], float) * lin)

@@ -1,4 +1,5 @@
-"""The transforms the nodes offer on ``/tf`` and ``/tf_static``, computed from a PPOE model (numpy only, no rclpy).
+"""The transforms the nodes offer on ``/tf`` and ``/tf_static``, computed from a PPOE model (no ROS; the nodes'
+publishers are ``ppoe_ros.common.tf_broadcast``).
 
 * :class:`JointFrames`: what robot_state_publisher publishes, from the model: for every movable joint the
   child link in its parent link at a joint state (``/tf``), for every fixed joint the same once
@@ -8,6 +9,8 @@
   their fixed mount hangs on, with the model's static effects (e.g. ``camera_extrinsics``) applied.
 * :func:`urdf_collision`: a child frame name that is already a URDF link (it would fight
   robot_state_publisher over that frame).
+* :data:`STATIC_EFFECTS` and :func:`camera_mount_joint`: which effects do not depend on the configuration, and the
+  fixed joint a camera's mount correction sits at (``ppoe diagnose`` puts ``camera_extrinsics`` there).
 
 Frame names in variables as in docs/conventions.md sec. 7: ``T_parent_child`` maps child to parent
 coordinates.
@@ -22,11 +25,15 @@ from typing import Any
 import numpy as np
 
 from ppoe_core import lie
+from ppoe_core.model.joint_history import NEVER_NS, JointHistory
+from ppoe_core.model.stamp_policy import StampResetPolicy
+from ppoe_core.model.effects import sum_effect_corrections
 
 __all__ = [
     "STATIC_EFFECTS",
     "TfFrame",
     "JointFrames",
+    "camera_mount_joint",
     "camera_mount_parent",
     "calibrated_camera_frames",
     "urdf_collision",
@@ -57,17 +64,21 @@ def urdf_collision(robot: Any, frame: str) -> str | None:
 # ------------------------------------------------------------------------- cameras
 
 
-def camera_mount_parent(robot: Any, frame: str) -> str | None:
-    """The link a camera ``frame`` is mounted on: the parent of the first fixed joint after the last movable
-    joint on the path from the root (where ``ppoe diagnose`` puts ``camera_extrinsics``); None when ``frame``
-    is the root link or hangs directly on a movable joint (then it is not static)."""
+def camera_mount_joint(robot: Any, frame: str) -> str | None:
+    """The fixed joint a camera ``frame``'s mount correction sits at: the first fixed joint after the last movable
+    joint on the path from the root (where ``ppoe diagnose`` puts ``camera_extrinsics``); None when ``frame`` is
+    the root link or hangs directly on a movable joint (then it is not static)."""
     path = robot.path_from_root(frame)
     k = len(path)
     while k > 0 and not robot.joints[path[k - 1]].movable:
         k -= 1
-    if k == len(path):
-        return None
-    return str(robot.joints[path[k]].parent)
+    return None if k == len(path) else str(path[k])
+
+
+def camera_mount_parent(robot: Any, frame: str) -> str | None:
+    """The link a camera ``frame`` is mounted on: the parent link of :func:`camera_mount_joint` (None as there)."""
+    joint = camera_mount_joint(robot, frame)
+    return None if joint is None else str(robot.joints[joint].parent)
 
 
 def calibrated_camera_frames(model: Any, suffix: str) -> tuple[list[TfFrame], list[str]]:
@@ -129,11 +140,8 @@ class JointFrames:
         others are evaluated at every joint state on the latest value of every joint.
     """
 
-    def __init__(self, model: Any) -> None:
-        from ppoe_core.model.effects import sum_effect_corrections
-
+    def __init__(self, model: Any, policy: StampResetPolicy | None = None) -> None:
         robot = self.robot = model.robot
-        self._sum = sum_effect_corrections
         self.independent = list(robot.independent_joints)
         zeros = {n: np.zeros(()) for n in self.independent}
         static = [e for e in model.effects if e.name in STATIC_EFFECTS]
@@ -150,15 +158,19 @@ class JointFrames:
         self._origins = np.stack([j.origin @ lie.exp(self.dxi0.get(j.name, np.zeros(6))) for j in self.movable]) \
             if self.movable else np.zeros((0, 4, 4))
         axes = np.array([j.axis for j in self.movable], dtype=float).reshape(-1, 3)
-        self._axes = axes  # unit axes: the motion Exp(zeta v) is Rodrigues' rotation or a slide along them
-        self._K = lie.hat3(axes) if len(axes) else np.zeros((0, 3, 3))
-        self._K2 = self._K @ self._K
-        self._prismatic = np.array([j.type == "prismatic" for j in self.movable], dtype=bool)
+
+        prismatic = np.array([j.type == "prismatic" for j in self.movable], dtype=bool)
+        #: unit twist of each movable joint's motion, ``Exp(zeta v)`` (paper eq. 3)
+        self._zeta = np.zeros((len(self.movable), 6))
+        self._zeta[prismatic, :3] = axes[prismatic]
+        self._zeta[~prismatic, 3:] = axes[~prismatic]
         # independent joint -> rows of the movable joints its value moves (itself and its mimic followers)
         self._driven: dict[str, list[int]] = {n: [] for n in self.independent}
         for j in self.movable:
             master = j.mimic_root[0] if j.mimic_root is not None else j.name
             self._driven.setdefault(master, []).append(self._row[j.name])
+        #: the latest value of every joint (no age limit: TF shows the last known configuration)
+        self.history = JointHistory(self.independent, needed=[], policy=policy)
         self.latest: dict[str, float] = {}
         self._layout: tuple[tuple[str, ...], np.ndarray, np.ndarray] | None = None
 
@@ -185,25 +197,27 @@ class JointFrames:
             self._layout = (key, np.array(src, dtype=np.intp), np.array(rows, dtype=np.intp))
         return self._layout[1], self._layout[2]
 
-    def frames(self, names: Sequence[str], positions: Sequence[float]) -> list[TfFrame]:
+    def frames(self, names: Sequence[str], positions: Sequence[float], stamp_ns: int = 0) -> list[TfFrame]:
         """The transforms a joint state changes: the movable joints it carries values for (and their mimic
         followers), and, once every joint has a value, every joint a configuration-dependent effect moves.
 
-        Joints the model does not know and non-finite values are ignored (the pose path reports them).
+        The joint state is merged per joint by :attr:`history` (a refused one raises as there); joints the model
+        does not know and non-finite values are ignored (the pose path reports them).
         """
+        h = self.history
+        h.update(names, positions, stamp_ns)
         src, rows = self._rows_of(names)
         pos = np.asarray(positions, dtype=float)
         finite = np.isfinite(pos[src])
         if not finite.all():  # a joint without a value in this message: none of the joints it drives
             src = src[finite]
             rows = np.array(sorted({r for i in src for r in self._driven[names[i]]}), dtype=np.intp)
-        for i in src:
-            self.latest[names[i]] = float(pos[i])
+        self.latest = {n: float(v) for n, v, st in zip(self.independent, h.values, h.stamps) if st != NEVER_NS}
         dq: dict[str, Any] = {}
         dxi: dict[str, Any] = {}
         complete = len(self.latest) == len(self.independent)
         if self.dynamic and complete:
-            dq, dxi = self._sum(self.dynamic, self._with_mimic(self.latest), {})
+            dq, dxi = sum_effect_corrections(self.dynamic, self._with_mimic(self.latest), {})
             rows = np.union1d(rows, [self._row[n] for n in self.dynamic_joints if n in self._row]).astype(np.intp)
         elif self.dynamic:
             rows = np.array([r for r in rows if self.movable[r].name not in self.dynamic_joints], dtype=np.intp)
@@ -236,11 +250,5 @@ class JointFrames:
                 origins[k] = j.origin @ lie.exp(self.dxi0.get(j.name, np.zeros(6)) + np.asarray(dxi[j.name]))
         ok = np.isfinite(values)
         rows, v = rows[ok], values[ok]
-        M = np.zeros((len(rows), 4, 4))  # Exp(zeta v) of a unit joint twist (paper eq. 3), without the series
-        slide = self._prismatic[rows]
-        M[:, :3, :3] = np.eye(3) + (np.where(slide, 0.0, np.sin(v))[:, None, None] * self._K[rows]
-                                    + np.where(slide, 0.0, 1.0 - np.cos(v))[:, None, None] * self._K2[rows])
-        M[:, :3, 3] = np.where(slide, v, 0.0)[:, None] * self._axes[rows]
-        M[:, 3, 3] = 1.0
-        T = origins[ok] @ M
+        T = origins[ok] @ lie.exp(self._zeta[rows] * v[:, None])
         return [TfFrame(self.movable[r].parent, self.movable[r].child, T[k]) for k, r in enumerate(rows)]
