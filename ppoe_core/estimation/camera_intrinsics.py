@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ppoe_core.estimation.camera import distort, distortion_coefficients, project_points_jacobian
+from ppoe_core.estimation.camera import distortion_coefficients, project_points_jacobian
 
 __all__ = ["INTRINSIC_ORDER", "project_with_intrinsics_jacobian"]
 
@@ -50,7 +50,7 @@ def project_with_intrinsics_jacobian(P_cam: np.ndarray, K: np.ndarray, D: np.nda
     Dv = distortion_coefficients(D)
     uv, J_point = project_points_jacobian(P, Kf, Dv)
     xy = P[:, :2] / P[:, 2:3]
-    xyd, _ = distort(xy, Dv)
+    xyd = np.linalg.solve(Kf[:2, :2], (uv - Kf[:2, 2]).T).T  # the distorted normalised point the projection used
     x, y = xy[:, 0], xy[:, 1]
     r2 = x * x + y * y
     dd = np.zeros((P.shape[0], 2, 5))  # d (xd, yd) / d (k1, k2, p1, p2, k3)

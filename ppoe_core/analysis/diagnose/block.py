@@ -171,6 +171,10 @@ class ResidualBlock(ABC):
     def candidates(self) -> list[Effect]:
         """Catalogue effects (zero parameters) at every plausible location this measurement sees."""
 
+    def camera_mounts(self) -> dict[str, str]:
+        """Camera mount joint -> camera optical frame of the cameras this block sees (none by default)."""
+        return {}
+
     def chain_links(self) -> list[str]:
         """The links whose chains this block measures (group moves run along the path to each)."""
         return []

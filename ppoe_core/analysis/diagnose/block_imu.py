@@ -7,10 +7,11 @@ perturbation ``phi`` of the link's rotation moves ``u_p`` by ``u_p x phi``: the 
 ``A phi``, ``A = [[u_z, 0, -u_x], [0, u_z, -u_y]]``, and the chain part is the rotation rows of
 :meth:`KinematicTree.frame_jacobian`.
 
-Nuisances, per group (bag or file: one placement of the robot): the base tilt ``w`` of the placement (2, root axes:
-``u_p = R^T Exp(-w) z``, ``du/dw = R^T [Exp(-w) z]x`` (x, y columns)), whose share of the reference accelerometer
-(the one nearest the root) includes that sensor's mounting, and the mounting of every other accelerometer (2 each,
-additive on its two tilt components); their current values are the block's state (the solver's steps update it).
+Nuisances, per group (bag or file: one placement of the robot): the base tilt ``w`` of the placement relative to
+the first one (2, root axes: ``u_p = R^T Exp(-w) z``, ``du/dw = R^T Exp(-w) [z]x J_r(-w)`` (x, y columns); none for the
+first placement, whose tilt is the ``base_tilt`` effect: the reference accelerometer, the one nearest the root, is
+taken as mounted as declared), and the mounting of every other accelerometer (2 each, additive on its two tilt
+components); their current values are the block's state (the solver's steps update it).
 ``base_tilt`` driven by the measured tilt is made of these readings: it is not a prediction of them (zero Jacobian,
 left out of the prediction).  Noise: ``sigma / |a|`` per component (``sigma`` per accelerometer [m/s^2], model
 ``imus``; default 4e-4) plus the declared prior on the link's rotation.
@@ -31,10 +32,23 @@ from ppoe_core.errors import MeasurementError
 from ppoe_core.model.effects import Effect, make_effect
 from ppoe_core.robot.tree import KinematicTree
 
-__all__ = ["ImuBlock", "DEFAULT_IMU_SIGMA"]
+__all__ = ["ImuBlock", "DEFAULT_IMU_SIGMA", "at_rest"]
 
 #: accelerometer 1-sigma per axis [m/s^2] when the model's ``imus`` section gives none
 DEFAULT_IMU_SIGMA = 4e-4
+
+
+#: an accelerometer measures gravity only at rest: rows where a joint moves faster than this [rad/s or m/s] are left
+#: out (their specific force holds the motion's acceleration)
+REST_SPEED = 1e-3
+
+
+def at_rest(stops: Stops) -> np.ndarray:
+    """Rows (N,) where no joint moves faster than :data:`REST_SPEED` (context ``joint_velocity``; all without it)."""
+    vel = stops.context.get("joint_velocity") or {}
+    if not vel:
+        return np.ones(len(stops), dtype=bool)
+    return np.max(np.abs(np.stack([np.asarray(v, dtype=float) for v in vel.values()])), axis=0) <= REST_SPEED
 
 
 def _measured_tilt(effect: Effect) -> bool:
@@ -51,6 +65,10 @@ class ImuBlock(ResidualBlock):
     def __init__(self, tree: KinematicTree, stops: Stops, sigma: Mapping[str, float] | None = None) -> None:
         if not stops.imus:
             raise MeasurementError("imu block: the stops carry no accelerometer (/imu/<name>) data")
+        rest = at_rest(stops)
+        self.dropped = int((~rest).sum())
+        if not rest.all():
+            stops = stops.subset(rest)
         self.names = list(stops.imus)
         self.links = [ln for ln, _ in stops.imus.values()]
         acc = np.stack([a for _, a in stops.imus.values()], axis=1)  # (n, K, 3)
@@ -70,7 +88,6 @@ class ImuBlock(ResidualBlock):
         super().__init__(tree, stops.q, stops.context, stops.group, stops.group_names, stops.group,
                          stops.group_names)
         self.nu = np.zeros((len(stops.group_names), 2 * self.K))
-        self.dropped = 0
 
     def _poses(self, effects: Sequence[Effect]) -> tuple[dict, dict, dict]:
         eff = [e for e in effects if not _measured_tilt(e)]
@@ -87,7 +104,10 @@ class ImuBlock(ResidualBlock):
         nu = self.nu[self.group]  # (n, 2K): placement tilt, then the mountings
         w = np.zeros((n, 3))
         w[:, :2] = -nu[:, :2]
-        g = lie.so3_exp(w)[:, :, 2]  # Exp(-w) z: the up direction in the tilted root frame
+        Rw = lie.so3_exp(w)
+        g = Rw[:, :, 2]  # Exp(-w) z: the up direction in the tilted root frame
+        # d Exp(-w) z / d w = Exp(-w) [z]x J_r(-w) (x, y columns: the tilt has no z part)
+        dg = (Rw @ lie.hat3(np.array([0.0, 0.0, 1.0])) @ lie.so3_right_jacobian(w))[:, :, :2]
         for k, link in enumerate(self.links):
             R = poses[link][:, :3, :3]
             u = np.einsum("nji,nj->ni", R, g)  # R^T Exp(-w) z
@@ -98,8 +118,8 @@ class ImuBlock(ResidualBlock):
             A = np.zeros((n, 2, 3))  # d tilt / d phi (right perturbation of the link's rotation)
             A[:, 0, 0], A[:, 0, 2] = u[:, 2], -u[:, 0]
             A[:, 1, 1], A[:, 1, 2] = u[:, 2], -u[:, 1]
-            du = np.einsum("nji,njk->nik", R, lie.hat3(g)[:, :, :2])  # d u / d w: R^T [g]x (x, y columns)
-            N[:, sl, 0:2] = np.stack([du[:, 1, :], -du[:, 0, :]], axis=1)
+            du = np.einsum("nji,njk->nik", R, dg)  # d u / d w
+            N[:, sl, 0:2] = np.stack([du[:, 1, :], -du[:, 0, :]], axis=1) * (self.group > 0)[:, None, None]
             if k != self.ref:
                 c = 2 + 2 * self._mount_slot(k)
                 N[:, sl, c:c + 2] = np.eye(2)
@@ -132,9 +152,11 @@ class ImuBlock(ResidualBlock):
         return {name: [float(v) for v in self.nu[g, :2]] for g, name in enumerate(self.group_names)}
 
     def candidates(self) -> list[Effect]:
-        """``joint_offset`` (revolute), ``gravity_compliance`` and ``mount_bending`` on the paths to the sensors
-        (rotations; a constant rotation is a mounting)."""
-        robot, out, seen = self.tree.robot, [], set()
+        """``base_tilt`` (the first placement's), ``joint_offset`` (revolute), ``gravity_compliance`` and
+        ``mount_bending`` on the paths to the sensors (rotations; a constant rotation of another sensor's link is its
+        mounting)."""
+        robot, seen = self.tree.robot, set()
+        out = [make_effect("base_tilt", robot.root, self.tree)]
         for link in self.links:
             for jn in robot.path_from_root(link):
                 if jn in seen:

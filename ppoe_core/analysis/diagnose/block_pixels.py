@@ -3,8 +3,8 @@
 Row ``i``: measured minus predicted raw pixel (2, [px]).  Derivatives of the prediction: chain effects through the
 tag link's and the camera's frame Jacobians times :meth:`Effect.basis`; ``camera_intrinsics`` of the row's camera
 through the intrinsics Jacobian (:mod:`ppoe_core.estimation.camera_intrinsics`); ``tag_offset`` of the row's tag
-through ``d uv / d p_link R_link_tag [I, -[t]x]`` (right perturbation of the tag pose, ``t`` the point in the tag
-frame).  Noise: ``sigma_px`` per axis plus the declared prior propagated to the pixels.  Candidates: every
+through ``d uv / d p_link R_link_tag [I, -[t]x] J_r(delta)`` (right perturbation of the tag pose, ``t`` the point in
+the tag frame).  Noise: ``sigma_px`` per axis plus the declared prior propagated to the pixels.  Candidates: every
 observing camera's ``camera_extrinsics`` (at its mount joint) and ``camera_intrinsics`` (nested levels), a
 ``time_offset`` of every camera that saw the robot move, every known tag's ``tag_offset``, and the arm effects on
 the tag links' chains.
@@ -103,11 +103,13 @@ class PixelBlock(ResidualBlock):
         if not m.any():
             return out
         T = obs.tag_poses[tid]
+        Jr = np.eye(6)
         for e in effects:
             if e.name == "tag_offset" and getattr(e, "tag_id", None) == tid:
                 T = e.corrected(T)  # type: ignore[attr-defined]
+                Jr = lie.right_jacobian(e.twist())  # type: ignore[attr-defined]
         t = obs.tag_point[m]
-        B = T[:3, :3] @ np.concatenate([np.broadcast_to(np.eye(3), (t.shape[0], 3, 3)), -lie.hat3(t)], axis=-1)
+        B = T[:3, :3] @ np.concatenate([np.broadcast_to(np.eye(3), (t.shape[0], 3, 3)), -lie.hat3(t)], axis=-1) @ Jr
         full = pr.J_point[m] @ B  # (m, 2, 6)
         idx = [("x", "y", "z", "rx", "ry", "rz").index(p) for p in c.param_names]
         out[m] = full[:, :, idx]
@@ -132,6 +134,9 @@ class PixelBlock(ResidualBlock):
 
     def chain_links(self) -> list[str]:
         return self.obs.tag_links()
+
+    def camera_mounts(self) -> dict[str, str]:
+        return {camera_mount_joint(self.tree.robot, f): f for f in self.obs.cameras}
 
     def camera_of_mount(self, joint: str) -> str | None:
         """The camera frame whose ``camera_extrinsics`` sits at ``joint``."""

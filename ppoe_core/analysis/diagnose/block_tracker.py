@@ -3,8 +3,9 @@
 Row ``i`` (a reflector at a stop) measures ``p_i = T_s x_i`` with ``x_i`` the reflector in the root frame on the
 corrected chain and ``T_s`` the tracker-to-root registration of its session ``s`` (a nuisance).  The registration is
 ``T_s = T0_s Exp(d_s)`` (right perturbation, root axes, ``d = [rho; theta]``): the residual in root axes is
-``z_i - x_i`` with ``z_i = T0_s^-1 p_i``, and the prediction moves by ``[I, -[x_i]x] d_s``.  ``T0_s`` starts as the
-Kabsch fit of the session's rows; the solver's registration steps update it.  Sessions with fewer than 3 rows or
+``z_i - x_i`` with ``z_i = T0_s^-1 p_i``, and the prediction moves by ``[I, -[z_i]x] d_s``.  ``T0_s`` starts as the
+Kabsch fit of the session's rows; the solver's registration steps update it.  (Exactly: ``z`` moves by
+``-[I, -[z_i]x] d_s``, written as a move of the prediction.)  Sessions with fewer than 3 rows or
 collinear points cannot be registered: their rows are dropped (counted in :attr:`TrackerBlock.dropped`).
 """
 
@@ -135,11 +136,12 @@ class TrackerBlock(ResidualBlock):
         s = self.stops
         x, _, poses, dq, dxi = predict_nominal(self.tree, s, (), self.corrections(effects))
         n = len(s)
-        r = self.measured_in_root() - x
+        z = self.measured_in_root()
+        r = z - x
         need_chain = chain or bool(candidates) or bool(pert) or bool(jnoise)
         Jq, Jx, _, _ = chain_jacobians(self.tree, s, poses, dq, dxi) if need_chain else ({}, {}, {}, {})
         J = [chain_columns(Jq, Jx, self.basis(c), c.n_params, (n, 3)) for c in candidates]
-        N = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), -lie.hat3(x)], axis=-1)
+        N = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), -lie.hat3(z)], axis=-1)
         S = s.sigma_rows()[:, None, None] ** 2 * np.eye(3)
         Q = prior_covariance(Jq, Jx, pert, jnoise, (n, 3))
         return Linearisation(r, J, N, S, Q, Jq=Jq)

@@ -163,8 +163,7 @@ class Linearised:
         raw = self.raw_diag[new_cols]
         if np.any(raw <= 1e-18 * max(float(self.raw_diag.max(initial=0.0)), 1e-300)):
             return Identifiability(False, math.inf, 1.0, "does not act on the measurements")
-        red = np.diag(self.all.H)[new_cols]
-        absorbed = float(np.max(1.0 - red / raw)) if new_cols.size else 0.0
+        absorbed = float(np.max(self.sys.absorbed()[new_cols])) if new_cols.size else 0.0
         if absorbed > max_absorbed:
             return Identifiability(False, math.inf, absorbed, "not separable from the nuisances (registration)")
         H = self.all.H[np.ix_(cols, cols)]

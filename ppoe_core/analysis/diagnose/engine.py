@@ -17,10 +17,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 import numpy as np
+import yaml
 
 from ppoe_core.analysis.diagnose.block import ResidualBlock
-from ppoe_core.analysis.diagnose.block_imu import ImuBlock
+from ppoe_core.analysis.diagnose.block_imu import ImuBlock, at_rest
 from ppoe_core.analysis.diagnose.block_pixels import PixelBlock
 from ppoe_core.analysis.diagnose.block_pose import PoseBlock
 from ppoe_core.analysis.diagnose.block_tracker import TrackerBlock
@@ -34,21 +36,24 @@ from ppoe_core.analysis.diagnose.selection import Selection, SelectionOptions, s
 from ppoe_core.analysis.diagnose.solver import Problem
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.analysis.diagnose.terms import Catalogue, Term, model_key
-from ppoe_core.errors import MeasurementError, ModelConfigError, PpoeError
-from ppoe_core.model.effects import Effect
+from ppoe_core.errors import MeasurementError, ModelConfigError, PpoeError, UnknownJointError
+from ppoe_core.model.effects import Effect, make_effect
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
 __all__ = ["Measurements", "build_blocks", "diagnose"]
 
+#: an accelerometer block needs at least this many rows at rest
+MIN_IMU_ROWS = 6
 #: rounds of refit and noise re-estimation at the start (the declared scales are only a start)
 NOISE_ROUNDS = 3
 #: a refit confirms the linearisation when its cost is within this share of the linearised system's prediction
 LINEARISATION_TOL = 0.01
-#: the noise scales are estimated again when the fit's whitened cost changed by more than this share
+#: everything is linearised again, with new noise scales, when a refit lowered the whitened cost by this share
 NOISE_REESTIMATE = 0.05
-#: effects of a sensor itself, listed first among the candidates (ties go to them)
-SENSOR_FIRST = ("camera_extrinsics", "camera_intrinsics", "tag_offset", "time_offset")
+#: the order of the candidates: an exact tie (effects the data cannot tell apart) goes to the earlier one
+TIE_ORDER = ("camera_extrinsics", "camera_intrinsics", "tag_offset", "time_offset", "base_tilt", "joint_offset",
+             "gravity_compliance", "lateral_compliance", "mount_bending", "backlash", "thermal_growth", "link_error")
 
 
 @dataclass
@@ -70,7 +75,7 @@ def build_blocks(tree: KinematicTree, data: Measurements, declared: Sequence[Eff
         kind = "tracker" if s.kind == "point" else "pose"
         if want is None or kind in want:
             blocks.append(TrackerBlock(tree, s, declared) if kind == "tracker" else PoseBlock(tree, s))
-        if s.imus and (want is None or "imu" in want):
+        if s.imus and (want is None or "imu" in want) and at_rest(s).sum() >= MIN_IMU_ROWS:
             blocks.append(ImuBlock(tree, s, options.imu_sigma or {}))
     if data.pixels is not None and len(data.pixels) and (want is None or "pixels" in want):
         blocks.append(PixelBlock(tree, data.pixels))
@@ -106,8 +111,8 @@ class Run:
         """Refit ``model`` on the nonlinear chain, re-estimate the noise scales, and linearise every candidate there."""
         first = self.lin is None
         for _ in range(NOISE_ROUNDS if first else 1):
-            cost = self.refit(model)
-            self.estimate_noise(self.effects, self.catalogue.n_params(model), cost)
+            self.refit(model)
+            self.estimate_noise(self.effects, self.catalogue.n_params(model))
             self.problem.system(self.effects, [])  # whitening with the new scales
         sys = self.problem.system(self.effects, self.catalogue.effects)
         by_cand = {t.cand: t for t in model}
@@ -115,6 +120,7 @@ class Run:
                  for c, e in enumerate(self.catalogue.effects)]
         theta = np.concatenate(parts) if parts else np.zeros(0)
         self.lin = Linearised(sys, self.catalogue, theta, self.unit_fold)
+        self.noise_cost = self.lin.ssr(model)  # the cost in the new whitening
         return self.lin
 
     def refit(self, model: tuple[Term, ...]) -> float:
@@ -129,16 +135,16 @@ class Run:
 
     def confirm(self, model: tuple[Term, ...], predicted: float) -> bool:
         """Refit ``model``; whether the current linearisation still holds: the refitted cost within
-        :data:`LINEARISATION_TOL` (relative) of the ``predicted`` in-sample cost of the linearised system."""
+        :data:`LINEARISATION_TOL` (relative) of the ``predicted`` in-sample cost of the linearised system, and
+        within :data:`NOISE_REESTIMATE` of the cost the noise scales were estimated at (a fit that took away much
+        of the residual needs new scales: the old ones give the rows the shape of the error it took away)."""
         cost = self.refit(model)
-        return abs(cost - predicted) <= LINEARISATION_TOL * max(predicted, 1e-300)
+        linear = abs(cost - predicted) <= LINEARISATION_TOL * max(predicted, 1e-300)
+        noise = self.noise_cost is None or cost >= (1.0 - NOISE_REESTIMATE) * self.noise_cost
+        return linear and noise
 
-    def estimate_noise(self, effects: Sequence[Effect], n_params: int, cost: float) -> None:
-        """Each block's sensor and prior scales from its residual at the fitted model (:mod:`noise`); skipped when
-        the fit's whitened cost changed by less than :data:`NOISE_REESTIMATE` since the last estimate."""
-        if self.noise_cost is not None and abs(cost - self.noise_cost) <= NOISE_REESTIMATE * self.noise_cost:
-            return
-        self.noise_cost = cost
+    def estimate_noise(self, effects: Sequence[Effect], n_params: int) -> None:
+        """Each block's sensor and prior scales from its residual at the fitted model (:mod:`noise`)."""
         pr = self.problem
         model = [*pr.declared, *effects]
         total = sum(len(b) * b.dim for b in pr.blocks)
@@ -152,36 +158,88 @@ class Run:
             st.scales = estimate_scales(r, st.S, st.Q, frac, st.scales if self.lin is not None else None)
 
 
-def _catalogue(tree: KinematicTree, blocks: Sequence[ResidualBlock], options: DiagnoseOptions) -> Catalogue:
-    """Candidates of every block (``options.candidates`` prefixes filter) and the measured chains."""
-    cands = [c for b in blocks for c in b.candidates()]
-    # exact ties are broken by catalogue order: a sensor's own effect before a chain effect that the sensor cannot
-    # tell from it (a camera moved, or the whole arm relative to a camera fixed to the root)
-    cands.sort(key=lambda c: c.name not in SENSOR_FIRST)
+def _effect_of(tree: KinematicTree, name: str, loc: str) -> Effect:
+    """A declared effect (``--effects``) with all its parameters.
+
+    Raises
+    ------
+    ModelConfigError, UnknownJointError
+        Not an effect of the vocabulary, or not at a location of this robot (names it).
+    """
+    try:
+        return make_effect(name, loc, tree)
+    except (ModelConfigError, UnknownJointError) as exc:
+        raise type(exc)(f"--effects {name}@{loc}: {exc}") from None
+
+
+def _catalogue(tree: KinematicTree, blocks: Sequence[ResidualBlock], options: DiagnoseOptions,
+               declared: Sequence[Effect] = ()) -> Catalogue:
+    """Candidates of every block (``options.candidates`` prefixes filter), ``declared`` ones (``--effects``), the
+    measured chains and the cameras."""
+    cands = [c for b in blocks for c in b.candidates()] + list(declared)
+    # exact ties are broken by catalogue order (TIE_ORDER): a sensor's own effect before a chain effect the sensor
+    # cannot tell from it (a camera moved, or the whole arm relative to a camera fixed to the root), the generic
+    # link_error last (a tilted base, not a link error at the first joint)
+    cands.sort(key=lambda c: TIE_ORDER.index(c.name) if c.name in TIE_ORDER else len(TIE_ORDER))
     if options.candidates:
         cands = [c for c in cands if any(c.key.startswith(p) for p in options.candidates)]
     chains = [ln for b in blocks for ln in b.chain_links()]
-    return Catalogue(tree, cands, chains)
+    cameras = {j: f for b in blocks for j, f in b.camera_mounts().items()}
+    return Catalogue(tree, cands, chains, cameras)
 
 
-def _declared_model(catalogue: Catalogue, specs: Sequence[str], tree: KinematicTree) -> tuple[Term, ...]:
-    """``--effects``: terms of ``name@location[comp,...]`` specs; a spec that is not a candidate is added."""
-    terms = []
+def declared_specs(specs: Sequence[str]) -> list[tuple[str, str, list[str]]]:
+    """``--effects``: ``(name, location, components)`` of ``name@location[comp,...]`` specs or of YAML files with an
+    ``effects`` list of ``{name, location[, parameters]}`` (the parameters' names choose the components; all if
+    none is given)."""
+    entries: list[tuple[str, str, list[str]]] = []
     for spec in specs:
+        if spec.endswith((".yaml", ".yml")) and Path(spec).is_file():
+            doc = yaml.safe_load(Path(spec).read_text(encoding="utf-8")) or {}
+            for e in doc.get("effects") or []:
+                entries.append((str(e["name"]), str(e["location"]), list((e.get("parameters") or {}).keys())))
+            continue
         head, _, comps = spec.partition("[")
         name, _, loc = head.partition("@")
-        full_key = next((k for k in catalogue.index if k.split("[")[0] == f"{name}@{loc}"), None)
-        if full_key is None:
-            raise ModelConfigError(f"--effects {spec}: no such candidate; candidates are e.g. "
-                                   f"{', '.join(list(catalogue.index)[:6])}")
-        cand = catalogue.index[full_key]
-        e = catalogue.effects[cand]
-        names = [c for c in comps.rstrip("]").split(",") if c] if comps else list(e.param_names)
-        bad = [c for c in names if c not in e.param_names]
-        if bad:
-            raise ModelConfigError(f"--effects {spec}: {name} has no parameters {bad} (has {list(e.param_names)})")
-        terms.append(Term(cand, tuple(e.param_names.index(c) for c in names)))
-    return model_key(terms)
+        entries.append((name, loc, [c for c in comps.rstrip("]").split(",") if c]))
+    return entries
+
+
+def _declared_model(run: Run, entries: Sequence[tuple[str, str, list[str]]], options: DiagnoseOptions
+                    ) -> tuple[tuple[Term, ...], dict[str, str]]:
+    """The terms of the ``--effects`` entries (:func:`declared_specs`) that these measurements can identify, and the
+    reasons of those left out."""
+    lin = run.relinearise(())
+    terms: list[Term] = []
+    left_out: dict[str, str] = {}
+    for name, loc, comps in entries:
+        t = _term_of(run.catalogue, name, loc, comps)
+        idf = lin.identifiable(tuple(terms), [t], options.max_condition, options.max_absorbed)
+        if idf.ok:
+            terms.append(t)
+        else:
+            left_out[run.catalogue.describe(t)] = idf.reason
+    return model_key(terms), left_out
+
+
+def _term_of(catalogue: Catalogue, name: str, loc: str, comps: Sequence[str]) -> Term:
+    """The catalogue term of effect ``name`` at ``loc`` (or at the camera frame ``loc``) with the parameters
+    ``comps`` (all if empty).
+
+    Raises
+    ------
+    ModelConfigError
+        No such candidate, or parameters it does not have.
+    """
+    cand = next((i for i, e in enumerate(catalogue.effects) if e.name == name
+                 and (e.location == loc or getattr(e, "frame", None) == loc)), None)
+    if cand is None:
+        raise ModelConfigError(f"--effects {name}@{loc}: no such effect in the catalogue of this robot")
+    e = catalogue.effects[cand]
+    bad = [c for c in comps if c not in e.param_names]
+    if bad:
+        raise ModelConfigError(f"--effects {name}@{loc}: no parameters {bad} (has {list(e.param_names)})")
+    return Term(cand, tuple(e.param_names.index(c) for c in comps) if comps else tuple(range(e.n_params)))
 
 
 def diagnose(robot: Robot, data: Measurements | Stops, declared: Sequence[Effect] = (),
@@ -205,7 +263,8 @@ def diagnose(robot: Robot, data: Measurements | Stops, declared: Sequence[Effect
         check_stops(robot, data.stops)
     blocks = build_blocks(tree, data, declared, options)
     problem = Problem(blocks, declared, perturbation_cov, joint_noise, options.loss, options.loss_scale)
-    catalogue = _catalogue(tree, blocks, options)
+    entries = declared_specs(options.effects or [])
+    catalogue = _catalogue(tree, blocks, options, [_effect_of(tree, n, loc) for n, loc, _ in entries])
     unit_group = np.zeros(problem.n_units, dtype=int)
     for g, u in zip(problem.groups, problem.units):
         unit_group[u] = g
@@ -214,9 +273,9 @@ def diagnose(robot: Robot, data: Measurements | Stops, declared: Sequence[Effect
     before = run.relinearise(())
     insample_before = [b.residual([*problem.declared]) for b in blocks]
     if options.effects:
-        model = _declared_model(catalogue, options.effects, tree)
+        model, left_out = _declared_model(run, entries, options)
         lin = run.relinearise(model)
-        selection = Selection(model, [], {}, before.heldout(()), lin.heldout(model))
+        selection = Selection(model, [], left_out, before.heldout(()), lin.heldout(model))
     else:
         sel_opts = SelectionOptions(min_t=options.min_t, min_gain=options.min_gain, penalty=options.penalty,
                                     max_condition=options.max_condition, max_absorbed=options.max_absorbed,

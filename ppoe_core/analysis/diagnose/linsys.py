@@ -93,6 +93,7 @@ class LinearSystem:
     _segments: list[tuple[NuisanceSet, list[np.ndarray]]] | None = field(default=None, init=False, repr=False)
     _reduced_cache: tuple[np.ndarray, np.ndarray, float, list[tuple], np.ndarray] | None = field(
         default=None, init=False, repr=False)
+    _absorbed: np.ndarray | None = field(default=None, init=False, repr=False)
 
     @property
     def n_columns(self) -> int:
@@ -125,21 +126,42 @@ class LinearSystem:
             for ns, segs in self.segments():
                 for pos in segs:
                     rows, N = ns.idx[pos], ns.N[pos]
-                    if not _determined(N):
-                        terms.append((rows, N, None, None, None, None, None))
+                    act = _active(N)
+                    if not _determined(N, act):
+                        terms.append((rows, N, act, None, None, None, None, None))
                         continue
-                    A_inv = np.linalg.inv(N.T @ N)
+                    A_inv = _ginv(N, act)
                     M, g = N.T @ self.G[rows], N.T @ self.e[rows]
                     AM, Ag = A_inv @ M, A_inv @ g
                     H -= M.T @ AM
                     b -= M.T @ Ag
                     ee -= float(g @ Ag)
-                    terms.append((rows, N, A_inv, M, g, AM, Ag))
+                    terms.append((rows, N, act, A_inv, M, g, AM, Ag))
             in_seg = np.zeros(self.e.size, dtype=bool)
             for t in terms:
                 in_seg[t[0]] = True
             self._reduced_cache = (H, b, ee, terms, in_seg)
         return self._reduced_cache
+
+    def absorbed(self) -> np.ndarray:
+        """Per column (C,), the smallest share of its information the nuisances absorb in any block where it acts
+        (1: absorbed everywhere, e.g. a rigid motion of the whole arm against a tracker's registration; a column
+        that no block sees gets 1)."""
+        if self._absorbed is None:
+            _, _, _, terms, _ = self._reduced()
+            out = np.ones(self.G.shape[1])
+            for part in self.parts:
+                G = self.G[part.start:part.stop]
+                raw = np.einsum("ij,ij->j", G, G)
+                red = raw.copy()
+                for rows, _N, _act, A_inv, M, _g, AM, _Ag in terms:
+                    if A_inv is not None and part.start <= rows[0] < part.stop:
+                        red -= np.einsum("kj,kj->j", M, AM)
+                acts = raw > 1e-300
+                share = np.where(acts, 1.0 - red / np.where(acts, raw, 1.0), 1.0)
+                out = np.minimum(out, share)
+            self._absorbed = out
+        return self._absorbed
 
     def fold(self, train: np.ndarray) -> Fold:
         """:class:`Fold` with training components ``train`` (n,) bool; the others are held out.  A segment whose
@@ -172,7 +194,7 @@ class LinearSystem:
         its training part (if it determines the nuisance) eliminated again, and its held-out components adjusted:
         by that training part, or, without one, by the segment's ``reg`` test components, scored on the others
         (``score`` and not ``reg``; every test component of the segment when it has no such split)."""
-        rows, N, A_inv, M, g, AM, Ag = term
+        rows, N, act, A_inv, M, g, AM, Ag = term
         tr = train[rows]
         if A_inv is not None and tr.all():
             return ee
@@ -186,7 +208,7 @@ class LinearSystem:
         H -= Go.T @ Go
         b -= Go.T @ eo
         ee -= float(eo @ eo)
-        if tr.any() and _determined(N[tr]):
+        if tr.any() and _determined(N[tr], act):
             fit_rows, fit_N, out, training = rows[tr], N[tr], te, True
         else:
             if tr.any():  # its training part cannot determine the nuisance: it does not train
@@ -199,10 +221,10 @@ class LinearSystem:
             out = split if split.any() else te
             scored[loc[rows[te]]] = False
             fit_rows, fit_N, training = rows[reg], N[reg], False
-            if not te.any() or not _determined(fit_N):
+            if not te.any() or not _determined(fit_N, act):
                 return ee
             scored[loc[rows[out]]] = True
-        A2 = np.linalg.inv(fit_N.T @ fit_N)
+        A2 = _ginv(fit_N, act)
         M2, g2 = fit_N.T @ self.G[fit_rows], fit_N.T @ self.e[fit_rows]
         AM2, Ag2 = A2 @ M2, A2 @ g2
         if training:
@@ -227,9 +249,10 @@ class LinearSystem:
             for s in np.unique(ns.seg):
                 m = ns.seg == s
                 rows, Ns = ns.idx[m], ns.N[m]
-                if not _determined(Ns):
+                act = _active(Ns)
+                if not _determined(Ns, act):
                     continue
-                A_inv = np.linalg.inv(Ns.T @ Ns)
+                A_inv = _ginv(Ns, act)
                 e_p[rows] -= Ns @ (A_inv @ (Ns.T @ self.e[rows]))
                 G_p[rows] -= Ns @ (A_inv @ (Ns.T @ self.G[rows]))
         return e_p, G_p
@@ -244,20 +267,37 @@ class LinearSystem:
             for s in np.unique(ns.seg):
                 m = ns.seg == s
                 Ns = ns.N[m]
-                if _determined(Ns):
-                    step[s] = np.linalg.solve(Ns.T @ Ns, Ns.T @ r[ns.idx[m]])
+                act = _active(Ns)
+                if _determined(Ns, act):
+                    step[s] = _ginv(Ns, act) @ (Ns.T @ r[ns.idx[m]])
             out[ns.block] = step
         return out
 
 
-def _determined(N: np.ndarray) -> bool:
-    """Whether nuisance rows ``N`` (m, k) determine all k parameters (scaled information well conditioned)."""
-    if N.shape[0] < N.shape[1]:
-        return False
-    A = N.T @ N
+def _active(N: np.ndarray) -> np.ndarray:
+    """The nuisance columns (k,) that act on a segment at all (a placement's tilt that is fixed by definition has a
+    zero column)."""
+    norm = np.sqrt(np.einsum("ij,ij->j", N, N))
+    return norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
+
+
+def _determined(N: np.ndarray, act: np.ndarray) -> bool:
+    """Whether nuisance rows ``N`` (m, k) determine the ``act`` columns (scaled information well conditioned)."""
+    Na = N[:, act]
+    if Na.shape[0] < Na.shape[1] or not act.any():
+        return bool(not act.any())
+    A = Na.T @ Na
     d = np.sqrt(np.maximum(np.diag(A), 1e-300))
     ev = np.linalg.eigvalsh(A / d[:, None] / d[None, :])
     return bool(ev[0] > MIN_NUISANCE_EIG * max(ev[-1], 1e-300))
+
+
+def _ginv(N: np.ndarray, act: np.ndarray) -> np.ndarray:
+    """``(N^T N)^-1`` on the ``act`` columns, zero elsewhere (k, k)."""
+    out = np.zeros((N.shape[1], N.shape[1]))
+    Na = N[:, act]
+    out[np.ix_(act, act)] = np.linalg.inv(Na.T @ Na)
+    return out
 
 
 @dataclass

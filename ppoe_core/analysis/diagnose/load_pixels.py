@@ -9,9 +9,10 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.analysis.diagnose.block_contact import Contacts
+from ppoe_core.analysis.diagnose.load_stops import static_mean
 from ppoe_core.analysis.diagnose.pixels import PixelObs
 from ppoe_core.errors import BagError
-from ppoe_core.model.context import motion_signs, sample_series
+from ppoe_core.model.context import motion_band, motion_signs, sample_series
 from ppoe_core.robot.config import load_model_config
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
@@ -138,7 +139,11 @@ def _joints_at(js: Any, robot: Robot, at: np.ndarray, path: str | Path,
         cols.append(np.interp(t_js, t_js[good], col[good]))
         v = np.gradient(col[good], t_js[good]) if good.sum() > 1 else np.zeros(good.sum())
         vel[j] = sample_series(t_js[good], v, at)
-    signs = motion_signs(t_js, np.column_stack(cols), at)
+    P = np.column_stack(cols)
+    band = motion_band(P)
+    signs = motion_signs(t_js, P, at, band)
+    names = list(q)
+    q = dict(zip(names, static_mean(t_js, P, at, band, np.column_stack([q[j] for j in names])).T))
     ctx = {"time": at - t_js[0], "joint_velocity": vel,
            "motion_sign": {j: signs[:, i] for i, j in enumerate(q)}}
     return q, ctx

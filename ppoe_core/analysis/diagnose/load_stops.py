@@ -15,11 +15,11 @@ import numpy as np
 
 from ppoe_core.analysis.diagnose.stops import Stops, base_tilt_context
 from ppoe_core.errors import BagError, ModelConfigError, PpoeError, PpoeWarning
-from ppoe_core.model.context import motion_signs, sample_series, temperature_at
+from ppoe_core.model.context import motion_band, motion_signs, sample_series, temperature_at
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
-__all__ = ["stops_from_bag"]
+__all__ = ["stops_from_bag", "static_mean"]
 
 
 def _stop_info(path: str | Path) -> list[tuple[float, dict]]:
@@ -253,15 +253,37 @@ def _joint_context(js: Any, robot: Robot, links: Sequence[str], stamps: np.ndarr
         pos_cols.append(np.interp(t_js, tg, cg))
         v = np.gradient(cg, tg) if good.sum() > 1 else np.zeros(good.sum())
         vel[jn] = sample_series(tg, v, stamps)
+    if pos_cols:  # at rest, the mean of the stop's samples (a noisy encoder's jitter averaged away)
+        P = np.column_stack(pos_cols)
+        q.update(zip(jnames, static_mean(t_js, P, stamps, motion_band(P), np.column_stack([q[j] for j in jnames])).T))
     absent = [j for j in robot.independent_joints if j not in q]  # off every measured chain (checked above)
     if absent:
         warnings.warn(f"bag {path}: /joint_states never carries {absent}; they are off the measured chains and "
                       "held at 0 (they only move the masses the gravity effects see)", PpoeWarning, stacklevel=3)
         q.update({j: np.zeros(len(stamps)) for j in absent})
-    signs = motion_signs(t_js, np.column_stack(pos_cols), stamps) if pos_cols else np.zeros((len(stamps), 0))
+    P = np.column_stack(pos_cols) if pos_cols else np.zeros((len(t_js), 0))
+    signs = motion_signs(t_js, P, stamps, motion_band(P)) if pos_cols else np.zeros((len(stamps), 0))
     ctx = {"time": stamps - t_js[0], "motion_sign": {j: signs[:, i] for i, j in enumerate(jnames)},
            "joint_velocity": vel}
     return q, ctx
+
+
+#: half-width [s] of the window of joint samples averaged at a measurement taken at rest
+STATIC_WINDOW = 0.25
+
+
+def static_mean(t: np.ndarray, P: np.ndarray, at: np.ndarray, band: np.ndarray, q_at: np.ndarray) -> np.ndarray:
+    """Joint values (N, J) at times ``at``: where every joint rests (the samples within :data:`STATIC_WINDOW` of
+    the time that stay within twice the motion dead band ``band`` (J,) of the interpolated value ``q_at`` (N, J),
+    at least 3), the mean of those samples; elsewhere ``q_at``."""
+    out = q_at.copy()
+    lo, hi = np.searchsorted(t, at - STATIC_WINDOW), np.searchsorted(t, at + STATIC_WINDOW, side="right")
+    for i in range(at.size):
+        W = P[lo[i]:hi[i]]
+        keep = np.all(np.abs(W - q_at[i]) <= 2.0 * band, axis=1)
+        if keep.sum() >= 3:
+            out[i] = W[keep].mean(axis=0)
+    return out
 
 
 def _gravity_context(data: Any, robot: Robot, stamps: np.ndarray, ctx: dict[str, Any]) -> None:

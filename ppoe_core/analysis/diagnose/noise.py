@@ -34,7 +34,8 @@ def estimate_scales(r: np.ndarray, S: np.ndarray, Q: np.ndarray, dof_fraction: f
     """Maximum-likelihood scales of ``C_i = a^2 S_i + k^2 Q_i`` for residuals ``r`` (n, d) (module docstring):
     ``-2 log L = sum_i log det C_i + r_i^T C_i^-1 r_i`` minimised over ``log a^2``, ``log k^2`` (L-BFGS-B with the
     analytic gradient ``dL/dlam_j = sum_i tr(C_i^-1 D_j) - r_i^T C_i^-1 D_j C_i^-1 r_i``, from three starts: it is
-    not convex).
+    not convex).  The prior's share is kept only when it lowers ``-2 log L`` by more than ``ln n`` (BIC) against the
+    sensor alone (then ``k = 0``): with too few rows the two shapes are not told apart.
 
     ``dof_fraction`` (0, 1]: the share of the residual's degrees of freedom left after the fit (in-sample residuals
     are smaller than the noise by that factor).  Rows with non-finite residuals are ignored.
@@ -67,7 +68,10 @@ def estimate_scales(r: np.ndarray, S: np.ndarray, Q: np.ndarray, dof_fraction: f
         prev = np.array([start.a ** 2, start.k ** 2])[:len(D)]
         starts = [np.log(np.clip(prev, np.exp(lo), np.exp(hi)))]
     sols = [minimize(f, x0[:len(D)], jac=True, method="L-BFGS-B", bounds=list(zip(lo, hi))) for x0 in starts]
-    lam = np.exp(min(sols, key=lambda z: float(z.fun)).x)
+    best = min(sols, key=lambda z: float(z.fun))
+    lam = np.exp(best.x)
+    if has_q and f(np.array([np.log(base[0]), lo[1]]))[0] - float(best.fun) < np.log(r.shape[0]):
+        return NoiseScales(a=float(np.sqrt(base[0])), k=0.0)  # the prior's share is not needed (BIC)
     return NoiseScales(a=float(np.sqrt(lam[0])), k=float(np.sqrt(lam[1])) if has_q else 0.0)
 
 

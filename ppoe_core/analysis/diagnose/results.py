@@ -221,6 +221,10 @@ class DiagnoseResult:
             "per_group": m.per_group if m is not None else {},
             "steps": self.steps, "rejected": self.rejected, "summary": self.summary,
         }
+        px = self.blocks.get("pixels")
+        if px is not None:  # per camera [px], as the tag-pixel reports have always had them
+            out["pixels"] = {"n": px.n, **{f"pixel_rms_{k}": {c: v[f"rms_{k}"] for c, v in px.per_sensor.items()}
+                                           for k in ("before", "after", "before_insample", "after_insample")}}
         if self.test is not None:
             out["test"] = self.test
         if self.fitted_joint_noise:

@@ -7,17 +7,23 @@ starts from (the noise scale of the current fit), ``P`` the number of parameters
 parameter (``U`` scored poses; a BIC-like price).
 
 * **Forward**: every candidate not in the model (each ``camera_intrinsics`` level, its identifiable components
-  only, no significantly negative compliance) and every group move (one kind on every joint of a measured chain) is
-  scored; the one that lowers ``L`` most is added if it lowers ``L`` and its per-pose held-out gains are
-  significant: paired t or one-sided signed-rank z >= ``min_t`` (and a relative gain >= ``min_gain``).
+  only, no significantly negative compliance), every held term grown by one nested step (a parameter more, an
+  intrinsics level more) and every group move (one kind on every joint of a measured chain) is
+  scored; of those that lower ``L`` with significant per-pose held-out gains (paired t or one-sided signed-rank
+  z >= ``min_t``, and a relative gain >= ``min_gain``), the one that lowers ``L`` most is added.
 * **Confirmation**: the new model is refitted on the full nonlinear chain (:meth:`Problem.refit`); every candidate
   is linearised again there unless the refitted cost is the one the current linearisation predicted.
 * **Backward**, after every addition until nothing changes: for every term, its removal, each nested simpler term
   (one parameter less, an intrinsics level less, ``joint_offset@j`` for ``link_error@j``) and the simpler
   replacements by one or two other candidates with fewer parameters in all that explain nothing beyond it; the
   move that lowers ``L`` most is taken whenever ``L`` does not rise (the held-out fit does not get worse by more
-  than ``kappa`` per parameter saved).  Backward moves are linear at the point of the last refit (the next accepted step refits them).
+  than ``kappa`` per parameter saved) and the held-out losses are not significant (paired t or signed-rank z
+  of the per-pose losses below :data:`BACKWARD_T`).  Backward moves are linear at the point of the last refit
+  (the next accepted step refits them).
 * **Stop** when no forward move qualifies (``max_effects`` optionally caps the number of terms).
+* **Phases**: first the sensors' own effects only (camera extrinsics and intrinsics, tag placement, a sensor's time
+  offset: the model of a measurement, before any arm effect is asked to explain what a sensor's own error does),
+  then every candidate; the backward pass may still replace a sensor effect by an arm effect.
 """
 
 from __future__ import annotations
@@ -40,6 +46,9 @@ SWAP_SCREEN = 6
 #: terms with at least this many parameters are tried against simpler replacements by other candidates (two
 #: parameters are covered by the nested one-parameter terms)
 SWAP_MIN_PARAMS = 3
+#: a backward move is not taken when it makes the held-out fit significantly worse: the per-pose losses' paired t
+#: and signed-rank z both reach this (one-sided 2.3 %)
+BACKWARD_T = 2.0
 #: iterations of the backward pass at one linearisation (each removes or simplifies one term)
 MAX_BACKWARD = 200
 
@@ -108,6 +117,7 @@ class Selector:
         self.rejected: dict[str, str] = {}
         self.steps: list[dict[str, Any]] = []
         self.visited: set[tuple[Term, ...]] = set()
+        self.allowed: set[int] | None = None  #: forward candidates of the current phase (None: all)
         self._lin: Linearised | None = None
         self._variance: dict[tuple[Term, ...], float] = {}
 
@@ -191,8 +201,18 @@ class Selector:
         """Every single addition and group move, scored (module docstring)."""
         held = {t.cand for t in model}
         moves = []
+        for t in model:  # a held term grown by a nested step (a parameter more, an intrinsics level more)
+            rest = tuple(x for x in model if x != t)
+            for r in self.catalogue.richer(t):
+                assert self.lin is not None
+                if not self.lin.identifiable(rest, [r], self.options.max_condition, self.options.max_absorbed).ok:
+                    continue
+                r2 = self._signed(rest, r)
+                if r2 is None or r2 == t or model_key([*rest, r2]) in self.visited:
+                    continue
+                moves.append(self.score(model, model_key([*rest, r2]), "extend", self.catalogue.describe(r2)))
         for cand in range(len(self.catalogue)):
-            if cand in held:
+            if cand in held or (self.allowed is not None and cand not in self.allowed):
                 continue
             for entry in self.catalogue.entry_terms(cand):
                 term = self.admissible(model, entry)
@@ -201,7 +221,7 @@ class Selector:
                 new = model_key([*model, term])
                 if new not in self.visited:
                     moves.append(self.score(model, new, "add", self.catalogue.describe(term)))
-        if self.options.groups:
+        if self.options.groups and self.allowed is None:
             moves.extend(self.group_moves(model))
         return moves
 
@@ -227,6 +247,31 @@ class Selector:
         total = float(d0[ok].sum())
         rel = float((d0[ok] - m.d[ok]).sum()) / total if total > 0 else 0.0
         return m.delta_L < 0.0 and max(m.t, m.z) >= o.min_t and rel >= o.min_gain
+
+    def best(self, moves: Sequence[Move], model: tuple[Term, ...]) -> Move:
+        """The move that lowers ``L`` most; equal ones (to rounding) go by fewer parameters, then by catalogue order
+        (a sensor's own effects first).  A camera's intrinsics give way to the same camera's extrinsics when those
+        explain at least as much (the held-out gain, penalty aside): a mount is more often off than a calibration,
+        and small errors of the two look alike in the pixels."""
+        def key(m: Move) -> tuple[float, int, int]:
+            new = [t.cand for t in m.model if t not in model]
+            return (round(m.delta_L, 6), self.catalogue.n_params(m.model), min(new, default=-1))
+
+        best = min(moves, key=key)
+        new = [t for t in best.model if t not in model]
+        eff = self.catalogue.effects[new[0].cand] if best.action == "add" and new else None
+        if eff is None or eff.name != "camera_intrinsics":
+            return best
+        mounts = {j for j, f in self.catalogue.cameras.items() if f == eff.location}
+
+        def camera_move(m: Move, name: str) -> bool:
+            added = [self.catalogue.effects[t.cand] for t in m.model if t not in model]
+            return m.action == "add" and len(added) == 1 and added[0].name == name and (
+                added[0].location in mounts if name == "camera_extrinsics" else added[0].location == eff.location)
+
+        rival = max((m for m in moves if camera_move(m, "camera_extrinsics")), key=lambda m: m.gain, default=None)
+        own = max(m.gain for m in moves if camera_move(m, "camera_intrinsics"))
+        return rival if rival is not None and rival.gain >= own else best
 
     # -- backward -------------------------------------------------------------------------------------
     def backward_moves(self, model: tuple[Term, ...]) -> list[Move]:
@@ -278,12 +323,10 @@ class Selector:
         """Backward moves at the current linearisation until none lowers ``L`` (module docstring)."""
         changed = False
         for _ in range(MAX_BACKWARD):
-            moves = self.backward_moves(model)
+            moves = [m for m in self.backward_moves(model) if m.delta_L <= 0.0 and -max(m.t, m.z) < BACKWARD_T]
             if not moves:
                 break
             best = min(moves, key=lambda m: (m.delta_L, self.catalogue.n_params(m.model)))
-            if best.delta_L > 0.0:
-                break
             self.steps.append(best.record())
             model, changed = best.model, True
         return model, changed
@@ -297,21 +340,34 @@ def select(catalogue: Catalogue, refitter: Refitter, options: SelectionOptions,
     sel.lin = refitter.relinearise(model)
     d_before = sel.lin.heldout(())
     sel.visited.add(model)
-    for _ in range(options.max_rounds):
-        if options.max_effects is not None and len(model) >= options.max_effects:
+    sensors = {i for i, e in enumerate(catalogue.effects) if catalogue.is_sensor_own(i)}
+    for phase, allowed in (("sensors", sensors), ("all", None)):
+        if phase == "sensors" and not sensors:
+            continue
+        sel.allowed = allowed
+        model = _forward(sel, model, phase)
+    return Selection(model, sel.steps, sel.rejected, d_before, sel.lin.heldout(model))
+
+
+def _forward(sel: Selector, model: tuple[Term, ...], phase: str) -> tuple[Term, ...]:
+    """Forward steps (each settled by a refit and a backward pass) until none qualifies or the cap is reached."""
+    assert sel.lin is not None
+    for _ in range(sel.options.max_rounds):
+        if sel.options.max_effects is not None and len(model) >= sel.options.max_effects:
             break
         d0 = sel.lin.heldout(model)
         moves = sel.forward_moves(model)
-        best = min(moves, key=lambda m: (m.delta_L, catalogue.n_params(m.model))) if moves else None
-        if best is None or not sel.accept(best, d0):
+        ok = [m for m in moves if sel.accept(m, d0)]
+        best = sel.best(ok or moves, model) if moves else None
+        if best is None or not ok:
             if best is not None:
-                sel.steps.append({**best.record(), "accepted": False})
+                sel.steps.append({**best.record(), "accepted": False, "phase": phase})
             break
-        sel.steps.append({**best.record(), "accepted": True})
+        sel.steps.append({**best.record(), "accepted": True, "phase": phase})
         model = best.model
         sel.visited.add(model)
         model = _settle(sel, model)
-    return Selection(model, sel.steps, sel.rejected, d_before, sel.lin.heldout(model))
+    return model
 
 
 def _settle(sel: Selector, model: tuple[Term, ...]) -> tuple[Term, ...]:

@@ -21,6 +21,8 @@ from ppoe_core.robot.tree import KinematicTree
 
 __all__ = ["Term", "Catalogue", "GROUP_KINDS"]
 
+#: effects that model a sensor: a camera's pose and intrinsics, a tag's placement
+SENSOR_EFFECTS = ("camera_extrinsics", "camera_intrinsics", "tag_offset")
 #: effect kinds offered as group moves (one per measured chain): the elastic-robot model
 GROUP_KINDS = ("joint_offset", "gravity_compliance", "lateral_compliance", "mount_bending")
 
@@ -46,19 +48,22 @@ class Catalogue:
     tree : KinematicTree
     effects : candidate effects; duplicates (same key) are dropped
     chains : measured links (the group moves run along the path from the root to each)
+    cameras : camera mount joint -> camera optical frame
     """
 
-    def __init__(self, tree: KinematicTree, effects: Sequence[Effect], chains: Sequence[str] = ()) -> None:
+    def __init__(self, tree: KinematicTree, effects: Sequence[Effect], chains: Sequence[str] = (),
+                 cameras: dict[str, str] | None = None) -> None:
         self.tree = tree
-        seen: dict[tuple[str, str], Effect] = {}
-        for e in effects:  # one candidate per name and location: the one with the most parameters (the others are
-            place = (e.name, e.location)  # nested in it)
+        seen: dict[tuple[str, str, str], Effect] = {}
+        for e in effects:  # one candidate per name, location and driving variable: the one with the most parameters
+            place = (e.name, e.location, str(getattr(e, "variable", "")))  # (the others are nested in it)
             if place not in seen or e.n_params > seen[place].n_params:
                 seen[place] = e.with_params(np.zeros(e.n_params))
         self.effects = list(seen.values())
         self.index = {e.key: i for i, e in enumerate(self.effects)}
         self.by_place = {(e.name, e.location): i for i, e in enumerate(self.effects)}
         self.chains = list(dict.fromkeys(chains))
+        self.cameras = dict(cameras or {})  # camera_extrinsics location (mount joint) -> camera optical frame
 
     def __len__(self) -> int:
         return len(self.effects)
@@ -71,12 +76,16 @@ class Catalogue:
         return Term(cand, tuple(range(e.n_params)))
 
     def entry_terms(self, cand: int) -> list[Term]:
-        """Terms by which candidate ``cand`` may enter a model: all its parameters; every intrinsics level."""
+        """Terms by which candidate ``cand`` may enter a model: all its parameters; every intrinsics level; a twist's
+        translation or rotation alone (``link_error``, ``tag_offset``); a telescopic bending without its extension
+        terms."""
         e = self.effects[cand]
         if e.name == "camera_intrinsics":
             return [Term(cand, self._level(e, lv)) for lv in INTRINSIC_LEVELS]
         if e.name == "mount_bending" and len(e.param_names) == 4:  # telescopic: the constant bending, or growing
             return [Term(cand, (0, 1)), self.full(cand)]
+        if e.name in ("link_error", "tag_offset") and len(e.param_names) == 6:  # a shift, a turn, or both
+            return [Term(cand, (0, 1, 2)), Term(cand, (3, 4, 5)), self.full(cand)]
         return [self.full(cand)]
 
     def _level(self, e: Effect, names: Sequence[str]) -> tuple[int, ...]:
@@ -116,6 +125,21 @@ class Catalogue:
             if j is not None:
                 out.append(self.full(j))
         return out
+
+    def is_sensor_own(self, cand: int) -> bool:
+        """Whether candidate ``cand`` models a sensor rather than the robot (:data:`SENSOR_EFFECTS`, a time offset
+        of a sensor frame)."""
+        e = self.effects[cand]
+        return e.name in SENSOR_EFFECTS or (e.name == "time_offset" and e.location in self.tree.robot.links)
+
+    def richer(self, term: Term) -> list[Term]:
+        """Terms that ``term`` is nested in, one step up: an intrinsics level more, one parameter more."""
+        e = self.effects[term.cand]
+        if e.name == "camera_intrinsics":
+            names = {e.param_names[i] for i in term.comps}
+            return [Term(term.cand, self._level(e, lv)) for lv in INTRINSIC_LEVELS if names < set(lv)]
+        missing = [i for i in range(e.n_params) if i not in term.comps]
+        return [Term(term.cand, tuple(sorted((*term.comps, i)))) for i in missing]
 
     def groups(self, model: Sequence[Term]) -> list[tuple[str, list[int]]]:
         """Group moves: ``(label, candidates)`` of one :data:`GROUP_KINDS` kind on every joint of a measured chain
