@@ -211,3 +211,23 @@ def test_library_and_cli_give_the_same_json(tmp_path):
     assert json.loads(out.getvalue()) == json.loads(json.dumps(lib))
     assert lib["effects"][0]["name"] == "joint_offset" and "no_effect" in lib["test"]
     assert np.isfinite(POINT).all()
+
+
+def test_selection_on_a_linear_problem_names_the_true_column(robot):
+    """``select_linear`` (the drift naming's entry, analysis/drift_naming.py): a whitened problem with free columns
+    and one candidate's column in the data; the selection names exactly that candidate, with its drop-one gain."""
+    from ppoe_core.analysis.diagnose import LinearProblem, select_linear
+
+    tree = KinematicTree(robot)
+    rng = np.random.default_rng(5)
+    cands = [make_effect("joint_offset", f"joint_{k}", robot) for k in range(1, 7)]
+    n = 240
+    free = rng.normal(size=(n, 3))
+    cols = [rng.normal(size=(n, 1)) for _ in cands]
+    e = free @ np.array([1.0, -2.0, 0.5]) + 0.8 * cols[3][:, 0] + rng.normal(size=n)
+    cluster = np.arange(n) // 2
+    problem = LinearProblem(e, free, cands, cols, cluster, np.arange(n // 2) % 5, tree)
+    sel = select_linear(problem)
+    assert [(c.candidate, c.comps) for c in sel.chosen] == [(3, (0,))]
+    assert sel.chosen[0].gain > 0.2 and sel.chosen[0].t > 4
+    assert sel.chosen[0].effect.key == cands[3].key

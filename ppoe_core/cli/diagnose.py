@@ -24,6 +24,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ppoe_core.cli.checks import check_diagnose_inputs, float_range, int_range
+
 __all__ = ["add_arguments", "run"]
 
 
@@ -48,14 +50,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "what was lost)")
     parser.add_argument("--cv", default="auto", choices=("auto", "stops", "groups"),
                         help="cross-validation: over robot poses, or leave-one-bag-out (auto: bags if >= 3)")
-    parser.add_argument("--folds", type=int, default=5, help="folds of the cross-validation over poses (default 5)")
-    parser.add_argument("--min-t", type=float, default=4.0,
+    parser.add_argument("--folds", type=int_range(2), default=5,
+                        help="folds of the cross-validation over poses (default 5)")
+    parser.add_argument("--min-t", type=float_range(0.0), default=4.0,
                         help="minimum paired t (or signed-rank z) over poses of a step's held-out gains (default 4)")
-    parser.add_argument("--min-gain", type=float, default=0.0,
+    parser.add_argument("--min-gain", type=float_range(0.0, 1.0, max_open=True), default=0.0,
                         help="minimum relative held-out gain of a step (default 0: the penalised likelihood decides)")
-    parser.add_argument("--penalty", type=float, default=None,
+    parser.add_argument("--penalty", type=float_range(0.0), default=None,
                         help="price per parameter in held-out -2 log L (default: ln of the number of poses)")
-    parser.add_argument("--max-effects", type=int, default=None,
+    parser.add_argument("--max-effects", type=int_range(1), default=None,
                         help="optional cap on the number of effects (default: none; selection stops when nothing "
                              "significant is left)")
     parser.add_argument("--no-groups", action="store_true",
@@ -71,26 +74,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "images)")
     parser.add_argument("--imu", default="auto", choices=("auto", "off"),
                         help="fit accelerometer tilts too (auto: if the bags have /imu/<name>)")
-    parser.add_argument("--pixel-sigma", type=float, default=None,
+    bar = parser.add_mutually_exclusive_group()
+    bar.add_argument("--progress", dest="progress", action="store_true", default=None,
+                     help="the running stage and time on stderr (default: only when stderr is a terminal)")
+    bar.add_argument("--no-progress", dest="progress", action="store_false")
+    bar.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+    parser.add_argument("--pixel-sigma", type=float_range(0.0, min_open=True), default=None,
                         help="declared pixel noise 1-sigma per axis [px] (default: the model's camera.pixel_sigma, "
                              "else 1; the fit estimates the actual noise)")
 
 
 def run(args: argparse.Namespace) -> int:
-    """Diagnose, print and optionally write the report, the diagnosed model and the calibration; returns 0."""
+    """Diagnose, print and optionally write the report, the diagnosed model and the calibration; returns 0.
+
+    The running stage and the time spent are shown on stderr (:class:`ppoe_core.io.progress.Ticker`) when it
+    is a terminal, unless ``--quiet``."""
+    from ppoe_core.io.progress import Ticker, progress_wanted
+
+    with Ticker("diagnose", progress_wanted(args.quiet, args.progress)) as tick:
+        return _run(args, tick)
+
+
+def _run(args: argparse.Namespace, tick: Any) -> int:
+    """:func:`run` with its progress ticker ``tick`` (``tick.stage(text)`` names each stage)."""
     from ppoe_core.analysis.diagnose.files import LoadOptions, diagnose_bags
     from ppoe_core.analysis.diagnose.report import write_model_yaml, write_report
     from ppoe_core.cli.output import prepare_out_dir
 
+    check_diagnose_inputs(args)  # every bag before the fit: readable, not twice, one robot (cli/checks.py)
     if args.out:  # checked before the run, not after it
         prepare_out_dir(args.out)
     done = diagnose_bags(args.bags, args.model, args.test, options(args), LoadOptions(
         base=args.base, tool=args.tool, measurement=args.measurement,
         stationing_set=None if args.stationing_set == "all" else args.stationing_set, pixels=args.pixels,
-        pixel_sigma=args.pixel_sigma, accept_partial=args.accept_partial))
+        pixel_sigma=args.pixel_sigma, accept_partial=args.accept_partial), stage=tick.stage)
     res = done.result
     paths = {}
     if args.out:
+        tick.stage("writing the report")
         paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))
         model_out = write_model_yaml(args.model, res, Path(args.out) / "model_diagnosed.yaml")
         calibrated = _write_calibrated(args, done)

@@ -87,6 +87,7 @@ from ppoe_core.estimation.sources import parse_sources
 from ppoe_ros.common.fusion_sources import SOURCES_PARAM, LiveSources, source_names, source_specs
 from ppoe_ros.common.tag_cloud import observations_from_cloud
 from ppoe_ros.common.online_effects import ONLINE_PARAMS, OnlineEffectsHook
+from ppoe_ros.common.services import FusionServices
 from ppoe_ros.common.tf_broadcast import FusionTf
 
 __all__ = ["FusionNode", "PARAMS", "main"]
@@ -320,7 +321,8 @@ class FusionNode(Node):
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         self.diagnostics.watch_input("input (prior or measurement)", "received", p["input_timeout"])
         self.tf = FusionTf(self, p, self.diagnostics)
-        self.online = OnlineEffectsHook(self, p, self.stats, p["model_file"]) if p["online_enable"] else None
+        self.online = (OnlineEffectsHook(self, p, self.stats, p["model_file"], self.diagnostics)
+                       if p["online_enable"] else None)
         qos = sensor_qos(p["qos_depth"])
         rel = reliable_qos(p["qos_depth"])
 
@@ -336,6 +338,7 @@ class FusionNode(Node):
         self.sources = LiveSources(self, parse_sources(p, names, f"node {self.get_fully_qualified_name()}"),
                                    self.stats, self.prefix, self._measure)
         self.sources.subscribe(qos)
+        self.commands = FusionServices(self, self.pipeline, self._measure, self.prefix, self.stats)
         self._last_prior_wall = time.monotonic()
         self.create_timer(
             0.1,
@@ -401,6 +404,9 @@ class FusionNode(Node):
         if not (math.isfinite(fx) and math.isfinite(fy) and fx > 0 and fy > 0):
             raise MeasurementError(f"camera_info K has fx = {fx}, fy = {fy}")
         self.focal[msg.header.frame_id] = (fx, fy)
+        if self.online is not None:  # a change of the intrinsics mid-run is counted and logged by the hook
+            self.online.camera_info(unprefixed(self.prefix, msg.header.frame_id, self.params["camera_info_topic"]),
+                                    np.asarray(msg.k, float).reshape(3, 3), np.asarray(msg.d, float))
 
     def _joint_state(self, msg: JointState) -> None:
         if self.model is None:
@@ -467,6 +473,8 @@ class FusionNode(Node):
         if self.updater is None:
             self.stats.bad(m.source, "no robot model yet (waiting for robot_description)", kind="dropped_no_model")
             return
+        if self.online is not None:  # every measurement kind also updates the online effects
+            self.online.measure(m)
         self._report(self.pipeline.add_measurement(m))
         self._sync_counts()
 

@@ -32,6 +32,7 @@ from ppoe_core.analysis.diagnose.block_tracker import TrackerBlock
 from ppoe_core.analysis.diagnose.candidates import candidate_effects, predict_nominal
 from ppoe_core.analysis.diagnose.engine import Measurements, diagnose
 from ppoe_core.analysis.diagnose.files import diagnose_bags, load_measurements
+from ppoe_core.analysis.diagnose.linear_problem import ChosenTerm, LinearProblem, LinearSelection, select_linear
 from ppoe_core.analysis.diagnose.load_pixels import contacts_from_bag, pixels_from_bag
 from ppoe_core.analysis.diagnose.load_stops import stops_from_bag
 from ppoe_core.analysis.diagnose.pixels import (
@@ -45,18 +46,22 @@ from ppoe_core.analysis.diagnose.pixels import (
 )
 from ppoe_core.analysis.diagnose.report import load_model, write_model_yaml, write_report
 from ppoe_core.analysis.diagnose.results import BlockReport, DiagnoseOptions, DiagnoseResult, EffectReport
+from ppoe_core.analysis.diagnose.selection import SelectionOptions
 from ppoe_core.analysis.diagnose.solver import Problem
 from ppoe_core.analysis.diagnose.stops import Stops, motion_signs
 from ppoe_core.analysis.diagnose.testing import protocol_scores, score_stops
 
 __all__ = [
     "BlockReport",
+    "ChosenTerm",
     "ContactBlock",
     "Contacts",
     "DiagnoseOptions",
     "DiagnoseResult",
     "EffectReport",
     "ImuBlock",
+    "LinearProblem",
+    "LinearSelection",
     "Linearisation",
     "Measurements",
     "PixelBlock",
@@ -64,6 +69,7 @@ __all__ = [
     "PoseBlock",
     "Problem",
     "ResidualBlock",
+    "SelectionOptions",
     "Stops",
     "TrackerBlock",
     "camera_mount_joint",
@@ -83,6 +89,7 @@ __all__ = [
     "project",
     "protocol_scores",
     "score_stops",
+    "select_linear",
     "stops_from_bag",
     "write_model_yaml",
     "write_report",

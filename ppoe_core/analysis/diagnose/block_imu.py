@@ -94,7 +94,8 @@ class ImuBlock(ResidualBlock):
         dq, dxi = self.corrections(eff)
         return self.tree.link_poses(self.q, dq, dxi), dq, dxi
 
-    def linearise(self, effects, candidates, pert, jnoise, chain=False):
+    def linearise(self, effects: Sequence[Effect], candidates: Sequence[Effect], pert: Mapping[str, np.ndarray],
+                  jnoise: Mapping[str, float], chain: bool = False) -> Linearisation:
         poses, dq, dxi = self._poses(effects)
         n, K = len(self), self.K
         r, N, S = np.empty((n, 2 * K)), np.zeros((n, 2 * K, 2 * K)), np.zeros((n, 2 * K, 2 * K))

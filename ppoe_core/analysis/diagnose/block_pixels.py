@@ -12,7 +12,7 @@ the tag links' chains.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -69,7 +69,8 @@ class PixelBlock(ResidualBlock):
         super().__init__(tree, obs.q, obs.context, np.full(len(obs), -1), [], group, names)
         self.dropped = 0
 
-    def linearise(self, effects, candidates, pert, jnoise, chain=False):
+    def linearise(self, effects: Sequence[Effect], candidates: Sequence[Effect], pert: Mapping[str, np.ndarray],
+                  jnoise: Mapping[str, float], chain: bool = False) -> Linearisation:
         obs, n = self.obs, len(self.obs)
         need = chain or bool(candidates) or bool(pert) or bool(jnoise)
         pr = project(self.tree, obs, effects, jacobians=need, corrections=self.corrections(effects))

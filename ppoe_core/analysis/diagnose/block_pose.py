@@ -8,7 +8,7 @@ when the base is not the root; candidates upstream of the base are not proposed)
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -62,7 +62,8 @@ class PoseBlock(ResidualBlock):
 
         return x, R, joined(Jq, Fq, ()), joined(Jx, Fx, (6,))
 
-    def linearise(self, effects, candidates, pert, jnoise, chain=False):
+    def linearise(self, effects: Sequence[Effect], candidates: Sequence[Effect], pert: Mapping[str, np.ndarray],
+                  jnoise: Mapping[str, float], chain: bool = False) -> Linearisation:
         s = self.stops
         assert s.R_meas is not None
         x, R, Jq, Jx = self._chain(effects)

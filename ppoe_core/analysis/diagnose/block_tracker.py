@@ -132,7 +132,8 @@ class TrackerBlock(ResidualBlock):
         T = lie.inverse(self.T0)[self.segment]
         return np.einsum("nij,nj->ni", T[:, :3, :3], self.stops.p_meas) + T[:, :3, 3]
 
-    def linearise(self, effects, candidates, pert, jnoise, chain=False):
+    def linearise(self, effects: Sequence[Effect], candidates: Sequence[Effect], pert: Mapping[str, np.ndarray],
+                  jnoise: Mapping[str, float], chain: bool = False) -> Linearisation:
         s = self.stops
         x, _, poses, dq, dxi = predict_nominal(self.tree, s, (), self.corrections(effects))
         n = len(s)

@@ -4,7 +4,7 @@ and score the result on test bags -- exactly what ``ppoe diagnose BAG... --model
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -112,21 +112,26 @@ def load_measurements(bags: Sequence[str | Path], robot: Robot, cfg: Any, load: 
 
 
 def diagnose_bags(bags: Sequence[str | Path], model: str | Path, test: Sequence[str | Path] = (),
-                  options: DiagnoseOptions | None = None, load: LoadOptions | None = None) -> BagDiagnosis:
+                  options: DiagnoseOptions | None = None, load: LoadOptions | None = None,
+                  stage: Callable[[str], None] | None = None) -> BagDiagnosis:
     """``ppoe diagnose`` as a library call (module docstring): the first bag's robot, the model's declared effects
     and covariance, every bag's measurements, the diagnosis, and (``test``) the fitted model scored unchanged on
-    each test bag (``result.test``, keyed by the bag directory's name)."""
+    each test bag (``result.test``, keyed by the bag directory's name).  ``stage(text)`` is told each step."""
     load = load or LoadOptions()
+    stage = stage or (lambda text: None)
+    stage(f"reading {len(bags)} bag(s)")
     urdf, robot = read_robot(bags[0])
     cfg, declared, pert, jnoise = load_model(model, robot)
     data = load_measurements(bags, robot, cfg, load, str(model))
     options = options or DiagnoseOptions()
     if options.imu_sigma is None and getattr(cfg, "imus", None):
         options.imu_sigma = {k: v.sigma for k, v in cfg.imus.items()}
+    stage("fitting and selecting effects")
     res = diagnose(robot, data, declared, pert, jnoise, options)
     for note in load.notes:
         res.summary += "\n" + note
     if test:
+        stage(f"scoring {len(test)} test bag(s)")
         res.test = {}
         for k, bag in enumerate(test):
             check_same_robot(robot, read_robot(bag)[1], str(bags[0]), str(bag))
