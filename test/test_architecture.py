@@ -48,20 +48,9 @@ ROS_TOP_LEVEL = {
 }
 MODULES = list(gen.iter_modules())
 
-_ENGINE = "engine rewrite (issue 20) in progress: the diagnose stages' helpers become public there"
 _SCENARIOS = "the scenarios helper's modules (ppoe_core/sim): their scenario-file checks become public there"
 #: (importing module, imported module, name) -> why the underscore name is still imported
 PRIVATE_IMPORTS_ALLOWED: dict[tuple[str, str, str], str] = {
-    **{("ppoe_core.analysis.diagnose." + m, "ppoe_core.analysis.diagnose." + d, n): _ENGINE for m, d, n in (
-        ("engine", "imu", "_imu_cost"), ("engine", "linear", "_identifiable_subset"), ("engine", "linear", "_ssr"),
-        ("engine", "linear", "_stack"), ("engine", "stats", "_paired_t"), ("engine", "stats", "_point_covariance"),
-        ("engine", "stats", "_rms3"), ("engine", "stats", "_rms_m"), ("engine", "stats", "_rotation_covariance"),
-        ("engine", "stats", "_signed_rank_z"), ("imu", "candidates", "_carried_mass"), ("imu", "stats", "_lstsq"),
-        ("imu", "stats", "_pose_folds"), ("imu", "stats", "_rotation_covariance"), ("joint_fit", "pixels", "_map_ctx"),
-        ("parsimony", "linear", "_identifiable_subset"), ("parsimony", "linear", "_stack"),
-        ("parsimony", "stats", "_paired_t"), ("pixel_stage", "pixels", "_map_ctx"), ("pixel_stage", "stats", "_lstsq"),
-        ("pixel_stage", "stats", "_pose_folds"), ("selection", "stats", "_lstsq"),
-        ("selection", "stats", "_paired_t"), ("selection", "stats", "_signed_rank_z"))},
     **{("ppoe_core.sim." + m, "ppoe_core.sim." + d, n): _SCENARIOS for m, d, n in (
         ("camera_sim", "scenario", "_where"), ("sim_config", "scenario", "_check_keys"),
         ("sim_config", "scenario", "_joints_map"), ("sim_config", "scenario", "_num"),
@@ -76,8 +65,6 @@ PRIVATE_IMPORTS_ALLOWED: dict[tuple[str, str, str], str] = {
     **{("ppoe_core.io.writer", "ppoe_core.io.messages", n): "messages' names are public (IMU_TOPIC_RE, pose_message, "
        "vector3_message); the underscore aliases serve the faults helper's writer.py until it imports them"
        for n in ("_IMU_RE", "_pose_msg", "_vec3")},
-    ("ppoe_core.model.effects", "ppoe_core.robot.tree", "_batch"): "tree.batch_shape is public; the alias serves the "
-    "engine's effects.py (issue 20 rewrite) until it imports it",
 }
 #: (module, lazily imported module) -> why a function-level import of a module that imports it back is kept
 CYCLE_IMPORTS_ALLOWED: dict[tuple[str, str], str] = {

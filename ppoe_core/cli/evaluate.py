@@ -24,9 +24,6 @@ __all__ = ["add_arguments", "run"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``evaluate`` options (docs/conventions.md section 6 plus ours)."""
-    from ppoe_core.estimation.updater import FUSION_RANGES
-
-    iterations, gate = FUSION_RANGES["max_iterations"], FUSION_RANGES["gate_probability"]
     parser.add_argument("bag", metavar="BAG", help="contract bag directory")
     parser.add_argument("--model", required=True, metavar="MODEL.yaml", help="model YAML for the bag's robot")
     parser.add_argument("--base", default=None, help="reference frame (default: model YAML frames.base)")
@@ -51,6 +48,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--fit-set", default="cross", choices=("cross", "square", "all"),
         help="stationing set for per-station tracker registration (bags with /dataset/stop roles)",
     )
+    _add_fusion_options(parser)
+    parser.add_argument("--online", action="store_true",
+                        help="track drifting effects online (docs/online.md): tool error before / static / online, "
+                             "online.json and online_parameters.png in --out")
+    parser.add_argument("--online-config", default=None, metavar="ONLINE.yaml",
+                        help="with --online: online_effects list (process noise per parameter [unit/sqrt(s)]), "
+                             "jump_probability, the drift monitor, or a node parameter file (its online_* parameters "
+                             "and sources); default: the model's trackable effects and the base tilt when a stream "
+                             "sees it, the monitor on (docs/online.md)")
+    parser.add_argument("--truth", default=None, metavar="BAG.truth.yaml",
+                        help="with --online: the simulation truth (ppoe simulate) to compare the estimate with")
+    bar = parser.add_mutually_exclusive_group()
+    bar.add_argument("--progress", dest="progress", action="store_true", default=None,
+                     help="progress bar on stderr (default: only when stderr is a terminal)")
+    bar.add_argument("--no-progress", dest="progress", action="store_false")
+    bar.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+
+
+def _add_fusion_options(parser: argparse.ArgumentParser) -> None:
+    """The fusion settings of the replay: a parameter file, ``--set``, and three overrides (ranges of the node)."""
+    from ppoe_core.estimation.updater import FUSION_RANGES
+
+    iterations, gate = FUSION_RANGES["max_iterations"], FUSION_RANGES["gate_probability"]
     parser.add_argument(
         "--fusion-params", default=None, metavar="PARAMS.yaml",
         help="a ROS 2 parameter file of the fusion node (buffer, gating, correction policy, its 'sources': tracker "
@@ -69,21 +89,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"override gate_probability, in [{gate[0]:g}, {gate[1]:g}] (1 = no gate)")
     parser.add_argument("--pixel-sigma", type=float_range(0.0), default=None,
                         help="override pixel_sigma [px] (0: the model's)")
-    parser.add_argument("--online", action="store_true",
-                        help="track drifting effects online (docs/online.md): tool error before / static / online, "
-                             "online.json and online_parameters.png in --out")
-    parser.add_argument("--online-config", default=None, metavar="ONLINE.yaml",
-                        help="with --online: online_effects list (process noise per parameter [unit/sqrt(s)]), "
-                             "jump_probability, the drift monitor, or a node parameter file (its online_* parameters "
-                             "and sources); default: the model's trackable effects and the base tilt when a stream "
-                             "sees it, the monitor on (docs/online.md)")
-    parser.add_argument("--truth", default=None, metavar="BAG.truth.yaml",
-                        help="with --online: the simulation truth (ppoe simulate) to compare the estimate with")
-    bar = parser.add_mutually_exclusive_group()
-    bar.add_argument("--progress", dest="progress", action="store_true", default=None,
-                     help="progress bar on stderr (default: only when stderr is a terminal)")
-    bar.add_argument("--no-progress", dest="progress", action="store_false")
-    bar.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -19,6 +19,8 @@ EFFECT_NAMES = (
     "thermal_growth",
     "time_offset",
     "camera_extrinsics",
+    "camera_intrinsics",
+    "tag_offset",
     "tracker_registration",
 )
 
