@@ -70,6 +70,8 @@ setup(
             "contact_node = ppoe_ros.nodes.contact_node:main",
             "fusion_node = ppoe_ros.nodes.fusion_node:main",
             "ppoe_markers = ppoe_ros.common.markers:main",
+            "ppoe_calibration = ppoe_ros.common.calibration:main",
+            "ppoe_managed = ppoe_ros.common.lifecycle:main",
         ],
     },
 )

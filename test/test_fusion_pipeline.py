@@ -525,12 +525,13 @@ def test_posterior_cost_equals_prior_nis_for_a_linear_model():
     T = _random_pose(rng)
     obs = mm.PoseObservation(np.diag(rng.uniform(1e-6, 1e-5, 6)))
     z = T @ lie.exp(rng.multivariate_normal(np.zeros(6), P) * 1e-2)
-    from ppoe_core.estimation.fusion import iterated_update
-    from ppoe_core.estimation.pipeline import posterior_cost
+    from update_reference import posterior_cost_reference
 
-    res = iterated_update(T, P, z, obs, max_iterations=10, gate_probability=None)
-    cost = posterior_cost(obs, res.T, res.residual, res.correction, P)
-    assert cost == pytest.approx(res.nis, rel=1e-3)
+    from ppoe_core.estimation.fusion import iterated_update
+
+    res = iterated_update(T, P, z, obs, max_iterations=10, gate_probability=None, with_cost=True)
+    assert res.cost == pytest.approx(res.nis, rel=1e-3)
+    assert res.cost == pytest.approx(posterior_cost_reference(obs, res.T, res.residual, res.correction, P), rel=1e-9)
 
 
 def test_pipeline_min_interval_throttles_per_source():
@@ -788,7 +789,7 @@ def test_warm_pipeline_compiles_the_per_prior_kernels_in_a_fresh_process():
     import subprocess
     import sys
 
-    code = ("from ppoe_core.estimation.pipeline import warm_pipeline\n"
+    code = ("from ppoe_core.estimation.warmup import warm_pipeline\n"
             "from ppoe_core.estimation import correction_kernels as ck\n"
             "names = ('prior_passes', 'correction_ratio', 'fuse_one_kernel', 'run_breaks')\n"
             "assert not any(getattr(ck, n).signatures for n in names)\n"

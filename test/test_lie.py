@@ -11,6 +11,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import array_shapes, arrays
 from jacobian_check import numerical_jacobian
 
+import lie_reference as ref
+
 from ppoe_core import lie
 from ppoe_core.errors import CovarianceError
 
@@ -341,15 +343,43 @@ def test_fit_rigid_bad_input():
 
 
 # ----------------------------------------------------------------------------
-# single-input fast paths (one pose per message in the nodes) = batched code, bit for bit
+# the compiled maps (THE implementation) against their numpy references (test/lie_reference.py), one input = batch
 # ----------------------------------------------------------------------------
 
 
-def test_single_input_fast_paths_are_bit_identical_to_the_batched_code():
+def _twists(rng: np.random.Generator) -> list[np.ndarray]:
+    """Twists at every angle scale (both sides of the series thresholds) and at angle pi."""
+    xis = [rng.normal(size=6) * s for s in (0.0, 1e-7, 9e-4, 1.1e-3, 9e-3, 1.1e-2, 1e-3, 0.1, 1.0, 3.0)
+           for _ in range(100)]
+    return xis + [np.r_[rng.normal(size=3), np.pi * unit(v)] for v in rng.normal(size=(50, 3))]
+
+
+def test_compiled_maps_equal_their_numpy_references():
+    rng = np.random.default_rng(30)
+    xis = np.array(_twists(rng))
+    T = lie.exp(xis)
+    np.testing.assert_allclose(T, ref.exp_reference(xis), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(lie.log(T), ref.log_reference(T), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(lie.inverse(T), ref.inverse_reference(T), rtol=0, atol=0)
+    np.testing.assert_allclose(lie.left_jacobian(xis), ref.left_jacobian_reference(xis), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(lie.left_jacobian_inv(xis), ref.left_jacobian_inv_reference(xis), rtol=1e-12,
+                               atol=1e-12)
+    np.testing.assert_allclose(lie.right_jacobian(xis), ref.left_jacobian_reference(-xis), rtol=0, atol=1e-12)
+    w = xis[:, 3:]
+    np.testing.assert_allclose(lie.so3_exp(w), ref.so3_exp_reference(w), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(lie.so3_log(T[:, :3, :3]), ref.so3_log_reference(T[:, :3, :3]), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(lie.so3_left_jacobian(w), ref.so3_left_jacobian_reference(w), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(lie.so3_left_jacobian_inv(w), ref.so3_left_jacobian_inv_reference(w), rtol=1e-12,
+                               atol=1e-12)
+    q = lie.quat_from_matrix(T[:, :3, :3])
+    np.testing.assert_allclose(q, ref.quat_from_matrix_reference(T[:, :3, :3]), rtol=0, atol=1e-15)
+    qs = q * rng.uniform(0.5, 2.0, (len(q), 1))  # not normalised
+    np.testing.assert_allclose(lie.matrix_from_quat(qs), ref.matrix_from_quat_reference(qs), rtol=0, atol=1e-15)
+
+
+def test_single_inputs_are_the_batched_kernels_bit_for_bit():
     rng = np.random.default_rng(31)
-    xis = [rng.normal(size=6) * s for s in (0.0, 1e-7, 1e-5, 1e-3, 0.1, 1.0, 3.0) for _ in range(300)]
-    xis += [np.r_[rng.normal(size=3), np.pi * unit(v)] for v in rng.normal(size=(100, 3))]  # angle pi
-    for xi in xis:
+    for xi in _twists(rng):
         T = lie.exp(xi)
         assert np.array_equal(T, lie.exp(xi[None])[0]), xi
         assert np.array_equal(lie.quat_from_matrix(T[:3, :3]), lie.quat_from_matrix(T[None, :3, :3])[0]), xi
@@ -360,14 +390,18 @@ def test_single_input_fast_paths_are_bit_identical_to_the_batched_code():
     # every Shepperd pivot, including exact ties on diagonal matrices
     for R in (np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])):
         assert np.array_equal(lie.quat_from_matrix(R), lie.quat_from_matrix(R[None])[0])
-    # non-finite input behaves as the batched code (NaN out, no exception)
+        np.testing.assert_array_equal(lie.quat_from_matrix(R), ref.quat_from_matrix_reference(R))
+    # non-finite input gives NaN, no exception; a zero quaternion NaN
     assert np.all(np.isnan(lie.exp(np.full(6, np.nan))[:3]))
     assert np.all(np.isnan(lie.quat_from_matrix(np.full((3, 3), np.nan))))
+    assert np.all(np.isnan(lie.matrix_from_quat(np.zeros(4))))
+    with pytest.raises(ValueError, match="expected an array of shape \\(..., 6\\)"):
+        lie.exp(np.zeros(5))
 
 
 def test_one_pose_kernels_are_bit_identical_to_the_batched_kernels():
     """The one-pose kernels of the message path (covariance rotation, quaternion of a strided ``T[:3, :3]``, pose
-    from a quaternion) give the floats of the batched code; mutating a kernel's arithmetic fails this."""
+    from a quaternion) give the floats of the batched kernels."""
     from ppoe_core.lie import kernels
 
     rng = np.random.default_rng(32)

@@ -86,6 +86,8 @@ def test_markers_node_publishes_raw_fused_and_correction(tmp_path: Path) -> None
         probe.spin_for(1.0)
         raw_pub.publish(raw)
         probe.spin_until(lambda: len(arrays) >= 3, 20, proc, "markers after a bad message")
+        # the node's log reaches its file late under load: wait for the line instead of reading once
+        probe.spin_until(lambda: "bad message on ppoe/pose" in proc.output(), 20, proc, "the bad-message log line")
         log = proc.output()
     k = sigma_scale(0.99)
     (only_raw,) = arrays[0].markers

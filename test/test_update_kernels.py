@@ -13,6 +13,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from jacobian_check import SE3_MINUS, SE3_PLUS, check_jacobian
 
+import lie_reference as ref
+import update_reference as upd_ref
+
 from conftest import pose_from
 from ppoe_core import lie
 from ppoe_core.errors import CovarianceError, MeasurementError
@@ -21,7 +24,6 @@ from ppoe_core.estimation.corrections import CarriedCorrection, apply_carried_co
 from ppoe_core.estimation.fusion import iterated_update
 from ppoe_core.estimation.measurements import ContactPlaneModel, TagBearingModel, tag_points
 from ppoe_core.estimation.prior_buffer import PriorSample
-from ppoe_core.estimation.updater import posterior_cost
 from ppoe_core.lie import kernels as lk
 
 SETTINGS = settings(max_examples=60, deadline=None)
@@ -50,19 +52,19 @@ def _jr(xi: np.ndarray, inverse: bool = False) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- SE(3) on one element
-def test_compiled_se3_equals_the_numpy_functions():
+def test_compiled_se3_equals_the_numpy_references():
     rng = np.random.default_rng(3)
     for scale in (0.0, 1e-7, 1e-4, 1e-2, 0.3, 1.0, 2.5):
         for _ in range(40):
             xi = rng.normal(size=6) * scale
-            T = lie.exp(xi)
+            T = ref.exp_reference(xi)
             np.testing.assert_allclose(_exp(xi), T, rtol=0, atol=1e-14)
-            np.testing.assert_allclose(_log(T), lie.log(T), rtol=0, atol=1e-13)
-            np.testing.assert_allclose(_jr(xi), lie.right_jacobian(xi), rtol=0, atol=1e-13)
-            np.testing.assert_allclose(_jr(xi, True), lie.right_jacobian_inv(xi), rtol=0, atol=1e-11)
+            np.testing.assert_allclose(_log(T), ref.log_reference(T), rtol=0, atol=1e-13)
+            np.testing.assert_allclose(_jr(xi), ref.left_jacobian_reference(-xi), rtol=0, atol=1e-13)
+            np.testing.assert_allclose(_jr(xi, True), ref.left_jacobian_inv_reference(-xi), rtol=0, atol=1e-11)
             inv, prod = np.empty((4, 4)), np.empty((4, 4))
             lk.se3_inverse_one(T, inv)
-            np.testing.assert_array_equal(inv, lie.inverse(T))
+            np.testing.assert_array_equal(inv, ref.inverse_reference(T))
             lk.se3_mul(T, inv, prod)
             np.testing.assert_allclose(prod, np.eye(4), atol=1e-12)
 
@@ -126,14 +128,25 @@ def _contact_model(distance_sigma: float = 0.0) -> ContactPlaneModel:
 
 
 def _python_path(model, *args, **kw):
-    """The same update through the Python path (the model without ``compiled_args``)."""
-    cls = type(model)
-    f = cls.compiled_args
-    del cls.compiled_args
-    try:
-        return iterated_update(*args, model, **kw)
-    finally:
-        cls.compiled_args = f
+    """The same update by the numpy reference (test/update_reference.py)."""
+    return upd_ref.iterated_update_reference(*args, model, **kw)
+
+
+class _External:
+    """A model seen without its compiled linearisation: the update gets it from outside at each iterate."""
+
+    compiled = None
+
+    def __init__(self, model):
+        self._model = model
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+
+def _external_path(model, *args, **kw):
+    """The same update with the linearisation given from outside (as a model without a compiled one)."""
+    return iterated_update(*args, _External(model), **kw)
 
 
 def _random_cov(rng, scale=1e-5, singular=False):
@@ -168,9 +181,10 @@ def test_compiled_tag_update_equals_the_python_path(mode, camera, D):
                    dict(max_iterations=1, transport_covariance=False), dict(gate_probability=None, with_cost=True)):
             r1 = iterated_update(X0, P, z, tags, **kw)
             _assert_same(r1, _python_path(tags, X0, P, z, **kw))
+            _assert_same(r1, _external_path(tags, X0, P, z, **kw))
             if kw.get("with_cost"):
-                assert math.isclose(r1.cost, posterior_cost(tags, r1.T, r1.residual, r1.correction, P),
-                                    rel_tol=1e-9)
+                assert math.isclose(r1.cost, upd_ref.posterior_cost_reference(tags, r1.T, r1.residual, r1.correction,
+                                                                               P), rel_tol=1e-9)
 
 
 @pytest.mark.parametrize("distance_sigma", [0.0, 0.001])
@@ -183,15 +197,16 @@ def test_compiled_contact_update_equals_the_python_path(distance_sigma):
         for kw in (dict(), dict(gate_probability=None, with_cost=True), dict(max_iterations=1)):
             r1 = iterated_update(X, P, [0.0], contact, **kw)
             _assert_same(r1, _python_path(contact, X, P, [0.0], **kw))
+            _assert_same(r1, _external_path(contact, X, P, [0.0], **kw))
             if kw.get("with_cost"):
-                assert math.isclose(r1.cost, posterior_cost(contact, r1.T, r1.residual, r1.correction, P),
-                                    rel_tol=1e-9)
+                assert math.isclose(r1.cost, upd_ref.posterior_cost_reference(contact, r1.T, r1.residual,
+                                                                               r1.correction, P), rel_tol=1e-9)
 
 
 def _kernel_linearize(model, X):
-    kind, G, pts, K, D, pixel, extra, min_depth = model.compiled_args()
     h, H, M = np.empty(model.dim), np.empty((model.dim, 6)), np.empty((model.dim, model.noise_dim))
-    assert uk._linearize(kind, X, G, pts, K, D, pixel, extra, min_depth, h, H, M) == -1
+    spec = model.compiled
+    assert uk.linearize(spec.kind, X, *spec[1:], h, H, M) == -1
     return h, H, M
 
 
@@ -202,7 +217,7 @@ def test_compiled_linearisations_central_differences(model):
     X = (T_BASE_CAM @ pose_from([0.02, -0.01, 0.6], [np.pi, 0.2, 0.1]) if isinstance(model, TagBearingModel)
          else pose_from([0.4, 0.1, -0.018], [0.0, 0.0, 0.3])) @ lie.exp(0.01 * rng.normal(size=6))
     h, H, M = _kernel_linearize(model, X)
-    np.testing.assert_allclose(h, model.h(X), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(h, model.h(X, np.zeros(model.noise_dim)), rtol=1e-12, atol=1e-12)
     scale = 1.0 if getattr(model, "mode", "") == "pixel" else 1e-3
     check_jacobian(model.h, X, H, dim=6, plus=SE3_PLUS, atol=1e-4 * scale, err_msg="H")
     check_jacobian(lambda v: model.h(X, v), np.zeros(model.noise_dim), M, atol=1e-4 * scale, err_msg="M")
@@ -295,7 +310,7 @@ def _check_same_correction(got: CarriedCorrection | None, ref: CarriedCorrection
 def test_compiled_from_update_equals_the_numpy_reference():
     """``CarriedCorrection.from_update`` (compiled) against ``from_update_reference``: random updates from the raw
     prior or from a corrected estimate, a prior certain about some directions, an update that adds nothing, inputs
-    of other types and a non-finite covariance (the reference decides)."""
+    of other types; a non-finite covariance or wrong shapes are a MeasurementError."""
     rng = np.random.default_rng(12)
     for k in range(200):
         T = lie.exp(rng.normal(size=6))
@@ -309,15 +324,17 @@ def test_compiled_from_update_equals_the_numpy_reference():
         T_post = (T if T_pre is None else T_pre) @ lie.exp(1e-3 * rng.normal(size=6))
         P_post = 0.5 * P + (_random_cov(rng, 1e-8) if k % 3 else 0.0)
         _check_same_correction(CarriedCorrection.from_update(anchor, T_post, P_post, T_pre, P_pre),
-                               CarriedCorrection.from_update_reference(anchor, T_post, P_post, T_pre, P_pre))
+                               upd_ref.from_update_reference(anchor, T_post, P_post, T_pre, P_pre))
     anchor = PriorSample(0.0, np.eye(4), np.eye(6) * 1e-4)
     assert CarriedCorrection.from_update(anchor, np.eye(4), np.eye(6) * 1e-4) is None  # no information added
     assert CarriedCorrection.from_update(PriorSample(0.0, np.eye(4), np.zeros((6, 6))), np.eye(4), np.eye(6)) is None
     _check_same_correction(CarriedCorrection.from_update(anchor, np.eye(4).tolist(), (np.eye(6) * 1e-5).tolist()),
-                           CarriedCorrection.from_update_reference(anchor, np.eye(4), np.eye(6) * 1e-5))
+                           upd_ref.from_update_reference(anchor, np.eye(4), np.eye(6) * 1e-5))
+    with pytest.raises(MeasurementError, match="covariances 6x6"):
+        CarriedCorrection.from_update(anchor, np.eye(4), np.eye(5))
     bad = np.eye(6) * 1e-5
     bad[2, 2] = np.nan
-    with pytest.raises(np.linalg.LinAlgError):  # as numpy's eigh of a NaN matrix: the reference's error
+    with pytest.raises(MeasurementError, match="not finite"):  # numpy's eigh raised LinAlgError here before
         CarriedCorrection.from_update(anchor, np.eye(4), bad)
 
 

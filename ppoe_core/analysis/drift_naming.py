@@ -10,9 +10,10 @@ whitened Jacobian of the tracked parameters and, for every candidate effect of t
 location of the measured chains (the engine's :func:`candidate_effects`, plus the constant ``base_tilt`` and each
 seen camera's ``camera_extrinsics``), its whitened Jacobian through the same chain rule as the filter.
 
-Screening is forward selection by held-out residual, as the engine's: ``folds``-fold cross-validation over the
-window's measurements (interleaved in time), each model fitted by linear least squares with the tracked parameters
-free; a candidate is named when it lowers the held-out sum of squared whitened residuals by at least ``min_gain``
+Screening is the engine's selection routine on that linear problem
+(:func:`~ppoe_core.analysis.diagnose.select_linear`: penalised held-out likelihood over ``folds`` interleaved folds of
+the window's measurements, the tracked parameters free in every fit, group moves and the backward pass, docs/
+diagnose.md "Selection"); a term is named when its step lowers the held-out residual by at least ``min_gain``
 (relative) with a paired t statistic over the held-out measurements of at least ``min_t``, is identifiable with the
 effects already chosen (scaled condition number below ``max_condition``) and has a physical sign (compliances);
 up to ``max_named`` effects.  A thermal candidate takes the first temperature of the run as its reference (the
@@ -28,7 +29,14 @@ from typing import Any
 
 import numpy as np
 
-from ppoe_core.analysis.diagnose import Stops, candidate_effects
+from ppoe_core.analysis.diagnose import (
+    ChosenTerm,
+    LinearProblem,
+    SelectionOptions,
+    Stops,
+    candidate_effects,
+    select_linear,
+)
 from ppoe_core.errors import PpoeError
 from ppoe_core.estimation.online_config import ONLINE_EFFECT_NAMES
 from ppoe_core.estimation.online_effects import OnlineEffects
@@ -150,25 +158,24 @@ def _fit(G: np.ndarray, y: np.ndarray, max_condition: float) -> tuple[np.ndarray
     return (Ni @ (Gs.T @ y)) / d, Ni / np.outer(d, d)
 
 
-def _heldout(cols: list[np.ndarray], y: list[np.ndarray], folds: int, max_condition: float) -> np.ndarray | None:
-    """Held-out squared whitened residual per row (N,) over interleaved folds; None if a fold's fit is singular."""
-    n = len(y)
-    fold = np.arange(n) % folds
-    e = np.empty(n)
-    for k in range(folds):
-        tr, te = np.flatnonzero(fold != k), np.flatnonzero(fold == k)
-        if te.size == 0:
-            continue
-        fit = _fit(np.concatenate([cols[i] for i in tr]), np.concatenate([y[i] for i in tr]), max_condition)
-        if fit is None:
-            return None
-        for i in te:
-            e[i] = float(np.sum((y[i] - cols[i] @ fit[0]) ** 2))
-    return e
-
-
-def _stack(a: list[np.ndarray], b: list[np.ndarray]) -> list[np.ndarray]:
-    return [np.concatenate([x, z], axis=1) for x, z in zip(a, b)]
+def _problem(filt: OnlineEffects, win: _Window, s: NamingSettings) -> tuple[LinearProblem, list[Effect]] | None:
+    """The window as the engine's linear problem: rows = measurements (interleaved folds), the tracked parameters
+    free, every candidate that can be evaluated on the window; None if the tracked ones cannot be identified."""
+    base = _columns(filt, win, None)
+    assert base is not None  # the tracked effects are evaluated on every update
+    if base[0].shape[1] and _fit(np.concatenate(base), np.concatenate(win.y), s.max_condition) is None:
+        return None
+    cands, cols = [], []
+    for e in window_candidates(filt, win.rows):
+        c = _columns(filt, win, [e])
+        if c is not None:
+            cands.append(e)
+            cols.append(np.concatenate(c))
+    sizes = [y.size for y in win.y]
+    cluster = np.repeat(np.arange(len(sizes)), sizes)
+    problem = LinearProblem(np.concatenate(win.y), np.concatenate(base), cands, cols, cluster,
+                            np.arange(len(sizes)) % s.folds, filt.tree)
+    return problem, cands
 
 
 def name_drift(filt: OnlineEffects, rows: Sequence[OnlineRow], settings: NamingSettings | None = None
@@ -179,81 +186,37 @@ def name_drift(filt: OnlineEffects, rows: Sequence[OnlineRow], settings: NamingS
     n = len(win.rows)
     if n < 2 * s.folds:
         return DriftNaming([], n, 0, f"{n} usable measurements in the window, fewer than {2 * s.folds}")
-    base = _columns(filt, win, None)
-    assert base is not None  # the tracked effects are evaluated on every update
-    cands = window_candidates(filt, win.rows)
-    cols = {i: c for i, e in enumerate(cands) if (c := _columns(filt, win, [e])) is not None}
-    e0 = _heldout(base, win.y, s.folds, s.max_condition)
-    if e0 is None:
-        return DriftNaming([], n, len(cols), "the tracked effects are not identifiable on the window")
-    chosen: list[tuple[int, float, float]] = []
-    cur, e_cur = base, e0
-    while len(chosen) < s.max_named:
-        best = _best(cands, cols, cur, e_cur, win, s, {c[0] for c in chosen})
-        if best is None:
-            break
-        i, gain, t, e_new = best
-        chosen.append((i, gain, t))
-        cur, e_cur = _stack(cur, cols[i]), e_new
-    if not chosen:
-        return DriftNaming([], n, len(cols), f"no candidate lowers the held-out residual by {100 * s.min_gain:.0f} % "
-                                             f"with t >= {s.min_t:g} (screened {len(cols)})")
-    return _named(filt, cands, chosen, cur, win, n, len(cols))
+    built = _problem(filt, win, s)
+    if built is None:
+        return DriftNaming([], n, 0, "the tracked effects are not identifiable on the window")
+    problem, cands = built
+    sel = select_linear(problem, SelectionOptions(min_t=s.min_t, min_gain=s.min_gain, max_effects=s.max_named,
+                                                  max_condition=s.max_condition))
+    if not sel.chosen:
+        return DriftNaming([], n, len(cands), f"no candidate lowers the penalised held-out residual by "
+                                              f"{100 * s.min_gain:.0f} % with t >= {s.min_t:g} "
+                                              f"(screened {len(cands)})")
+    return _named(filt, problem, sel.chosen, win, n, len(cands))
 
 
-def _best(cands: list[Effect], cols: dict[int, list[np.ndarray]], cur: list[np.ndarray], e_cur: np.ndarray,
-          win: _Window, s: NamingSettings, used: set[int]) -> tuple[int, float, float, np.ndarray] | None:
-    """The candidate with the largest held-out gain over ``cur`` that passes the rules (module docstring)."""
-    best = None
-    ssr = float(np.sum(e_cur))
-    for i, c in cols.items():
-        if i in used:
-            continue
-        G = _stack(cur, c)
-        e = _heldout(G, win.y, s.folds, s.max_condition)
-        if e is None:
-            continue
-        d = e_cur - e
-        gain = float(np.sum(d) / ssr) if ssr > 0 else 0.0
-        sd = float(np.std(d, ddof=1))
-        t = float(np.mean(d) / (sd / math.sqrt(d.size))) if sd > 0 else 0.0
-        if gain < s.min_gain or t < s.min_t or not _physical(cands[i], G, win.y, cur[0].shape[1], s):
-            continue
-        if best is None or gain > best[1]:
-            best = (i, gain, t, e)
-    return best
-
-
-def _physical(eff: Effect, G: list[np.ndarray], y: list[np.ndarray], n_before: int, s: NamingSettings) -> bool:
-    """A compliance must not come out negative (more than 1.96 sigma): a structure yields along its load."""
-    if not eff.nonnegative:
-        return True
-    fit = _fit(np.concatenate(G), np.concatenate(y), s.max_condition)
-    if fit is None:
-        return False
-    th, cov = fit[0][n_before:], np.diag(fit[1])[n_before:]
-    return not any(k in eff.nonnegative and v + 1.96 * math.sqrt(max(c, 0.0)) < 0
-                   for k, v, c in zip(eff.param_names, th, cov))
-
-
-def _named(filt: OnlineEffects, cands: list[Effect], chosen: list[tuple[int, float, float]], G: list[np.ndarray],
-           win: _Window, n: int, screened: int) -> DriftNaming:
-    """The full-window fit of the tracked set plus the chosen effects: estimates, sigmas, covariance."""
+def _named(filt: OnlineEffects, problem: LinearProblem, chosen: list[ChosenTerm], win: _Window, n: int,
+           screened: int) -> DriftNaming:
+    """The full-window fit of the tracked set plus the chosen terms: estimates, sigmas, covariance."""
     y = np.concatenate(win.y)
-    Gf = np.concatenate(G)
+    Gf = np.concatenate([problem.free, *(problem.columns[c.candidate][:, list(c.comps)] for c in chosen)], axis=1)
     fit = _fit(Gf, y, math.inf)
-    assert fit is not None  # every fold's fit was regular
+    assert fit is not None  # the selection checked identifiability
     d, cov = fit
     r = y - Gf @ d
     cov = cov * max(1.0, float(r @ r) / max(1, y.size - d.size))
     P = filt.theta.shape[0]
     k, named = P, []
-    for i, gain, t in chosen:
-        e = cands[i]
-        sl = slice(k, k + e.n_params)
-        named.append(NamedEffect(e.with_params(d[sl]), gain, t, np.sqrt(np.diag(cov)[sl]),
+    for c in chosen:
+        e = c.effect
+        sl = slice(k, k + len(c.comps))
+        named.append(NamedEffect(e.with_params(d[sl]), c.gain, c.t, np.sqrt(np.diag(cov)[sl]),
                                  e.name in ONLINE_EFFECT_NAMES))
-        k += e.n_params
+        k += len(c.comps)
     theta = np.concatenate([filt.theta + d[:P], d[P:]])
     return DriftNaming(named, n, screened, "", theta, cov)
 

@@ -6,7 +6,8 @@ Points are in the camera optical frame (z forward, x right, y down; docs/convent
 
 * :func:`project_points` - points -> distorted pixels, batched over leading axes;
 * :func:`project_points_jacobian` - the same (or undistorted normalised coordinates) with
-  ``d uv / d P`` for the measurement models and the pixel stage of ``ppoe diagnose``;
+  ``d uv / d P`` for the measurement models and the pixel stage of ``ppoe diagnose`` (compiled,
+  :mod:`ppoe_core.estimation.camera_kernel`, the projection of the compiled updates too);
 * :func:`undistort_pixels` - pixels -> undistorted normalised coordinates (the inverse, iterative,
   through OpenCV), as the tag bearing node publishes them.
 """
@@ -18,8 +19,12 @@ from collections.abc import Sequence
 import numpy as np
 
 from ppoe_core.errors import MeasurementError
+from ppoe_core.lie.compiled import compiled
 
-__all__ = ["distortion_coefficients", "distort", "project_points", "project_points_jacobian", "undistort_pixels"]
+__all__ = ["distortion_coefficients", "project_points", "project_points_jacobian", "undistort_pixels"]
+
+_NO_K = np.eye(3)
+_NO_D = np.zeros(5)
 
 
 def distortion_coefficients(D: Sequence[float] | np.ndarray | None, name: str = "camera") -> np.ndarray:
@@ -45,30 +50,14 @@ def distortion_coefficients(D: Sequence[float] | np.ndarray | None, name: str = 
     return out
 
 
-def distort(xy: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """plumb_bob distortion of normalised points ``xy`` (n, 2) -> (xd (n, 2), J (n, 2, 2) = d xd / d xy)."""
-    k1, k2, p1, p2, k3 = D
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-    drad = k1 + 2 * k2 * r2 + 3 * k3 * r2**2
-    xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    J = np.empty((xy.shape[0], 2, 2))
-    J[:, 0, 0] = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
-    J[:, 0, 1] = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-    J[:, 1, 0] = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-    J[:, 1, 1] = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
-    return np.stack([xd, yd], axis=-1), J
-
-
 def project_points_jacobian(
     p_camera: np.ndarray,
     K: np.ndarray | None,
     D: np.ndarray | Sequence[float] | None,
     mode: str = "pixel",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Project camera-frame points and return the Jacobian w.r.t. the 3D point.
+    """Project camera-frame points and return the Jacobian w.r.t. the 3D point (the compiled projection,
+    :func:`ppoe_core.estimation.camera_kernel.project_one`).
 
     Parameters
     ----------
@@ -89,20 +78,13 @@ def project_points_jacobian(
     """
     P = np.asarray(p_camera, dtype=float)
     lead = P.shape[:-1]
-    P = P.reshape(-1, 3)
-    X, Y, Z = P[:, 0], P[:, 1], P[:, 2]
-    xy = np.stack([X / Z, Y / Z], axis=-1)
-    Jp = np.zeros((P.shape[0], 2, 3))
-    Jp[:, 0, 0] = 1 / Z
-    Jp[:, 0, 2] = -X / Z**2
-    Jp[:, 1, 1] = 1 / Z
-    Jp[:, 1, 2] = -Y / Z**2
-    if mode == "normalized":
-        return xy.reshape(lead + (2,)), Jp.reshape(lead + (2, 3))
-    xyd, Jd = distort(xy, np.zeros(5) if D is None else distortion_coefficients(D))
-    A = np.asarray(K, dtype=float)[:2, :2]
-    uv = xyd @ A.T + np.asarray(K, dtype=float)[:2, 2]
-    J = np.einsum("ij,njk,nkl->nil", A, Jd, Jp)
+    flat = np.ascontiguousarray(P.reshape(-1, 3))
+    pixel = mode != "normalized"
+    K_arr = np.ascontiguousarray(K, dtype=float) if pixel else _NO_K
+    D_arr = (np.zeros(5) if D is None else distortion_coefficients(D)) if pixel else _NO_D
+    uv = np.empty((flat.shape[0], 2))
+    J = np.empty((flat.shape[0], 2, 3))
+    compiled("ppoe_core.estimation.camera_kernel").project_kernel(flat, K_arr, D_arr, pixel, uv, J)
     return uv.reshape(lead + (2,)), J.reshape(lead + (2, 3))
 
 

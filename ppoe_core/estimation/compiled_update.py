@@ -1,52 +1,81 @@
-"""The compiled path of :func:`ppoe_core.estimation.fusion.iterated_update`: models with a ``compiled_args()``
-(tag bearing, contact plane) run the whole iterated update in one call of
-:func:`ppoe_core.estimation.update_kernels.update_kernel`; this wrapper allocates its outputs, raises the project's
-errors for its status codes and builds the :class:`~ppoe_core.estimation.fusion.UpdateResult`."""
+"""The iterated update's driver: :func:`run_update` calls :func:`ppoe_core.estimation.update_kernels.update_kernel`
+(THE implementation of the update), gives it the model's linearisation at each iterate when the model's own is not
+compiled, turns its status codes into the project's errors and builds the
+:class:`~ppoe_core.estimation.update_types.UpdateResult`."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
-from ppoe_core.errors import CovarianceError, MeasurementError
+from ppoe_core.errors import CovarianceError, MeasurementError, PpoeError
+from ppoe_core.estimation.checks import check_noise_covariance, check_pose
+from ppoe_core.estimation.update_types import CompiledModel, UpdateResult
+from ppoe_core.lie.compiled import compiled
 
-__all__ = ["compiled_update", "checked_noise_covariance", "warm_kernels"]
+__all__ = ["run_update", "Linearisation"]
+
+#: ``linearise(T) -> (residual z ominus h(T) (m,), H (m, 6), M (m, k))`` of a model whose linearisation is not compiled
+Linearisation = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+_NONE_3 = np.eye(3)
+_NONE_5 = np.zeros(5)
+_NONE_PTS = np.zeros((1, 3))
 
 
-def checked_noise_covariance(model: Any) -> np.ndarray | None:
-    """``model.noise_cov`` if the model built it from checked blocks (``model._checked_noise_cov is
-    model.noise_cov``: the blocks passed :func:`ppoe_core.estimation.fusion.check_noise_covariance` with their own
-    scale, so the whole passes too), else None (check it)."""
-    R = getattr(model, "noise_cov", None)
-    return R if R is not None and getattr(model, "_checked_noise_cov", None) is R else None
+def run_update(X0: Any, P0: Any, z: np.ndarray, model: Any, R: np.ndarray, spec: CompiledModel | None,
+               linearise: Linearisation | None, max_iterations: int, step_tolerance: float, gate: float,
+               transport: bool, want_cost: bool) -> UpdateResult:
+    """One iterated update (arguments as :func:`ppoe_core.estimation.fusion.iterated_update`; ``R`` the checked
+    noise covariance, ``gate`` the NIS threshold or ``inf``): ``spec`` the model's compiled linearisation (``z`` then
+    the validated measurement), else ``linearise`` gives it at each iterate.
 
-
-def compiled_update(X0: Any, P0: Any, z: np.ndarray, model: Any, R: np.ndarray, max_iterations: int,
-                    step_tolerance: float, gate: float, transport: bool, want_cost: bool) -> Any:
-    """One compiled iterated update (arguments as ``fusion.iterated_update``; ``R`` the checked noise
-    covariance, ``gate`` the NIS threshold or ``inf``).
-
-    Returns
-    -------
-    UpdateResult or None
-        None when the prior fails a check: the caller's Python path then raises the exact error.
+    Raises
+    ------
+    MeasurementError, CovarianceError
+        As the update's module docstring lists (a point behind the camera, ``S`` not positive definite, a bad
+        prior or measurement).
     """
-    from ppoe_core.estimation.fusion import UpdateResult
-    from ppoe_core.estimation.update_kernels import buffer_size, output_views, update_kernel
-
+    k = compiled("ppoe_core.estimation.update_kernels")
     X0 = np.ascontiguousarray(X0, dtype=np.float64)
     P0 = np.ascontiguousarray(P0, dtype=np.float64)
     if X0.shape != (4, 4) or P0.shape != (6, 6):
-        return None
+        _raise_prior(model, X0, P0)
     m = int(model.dim)
-    buf, iout = np.zeros(buffer_size(m, max_iterations)), np.zeros(3, dtype=np.int64)
-    kind, G, pts, K, D, pixel, extra, min_depth = model.compiled_args()
-    status = update_kernel(kind, X0, P0, z, R, G, pts, K, D, pixel, extra, min_depth, max_iterations,
-                           step_tolerance, gate, transport, want_cost, buf, iout)
-    T, cov, y0, S0, res, gain, H, corr, steps, fout = output_views(buf, m, max_iterations)
+    buf, iout = np.zeros(k.buffer_size(m, max_iterations)), np.zeros(5, dtype=np.int64)
+    if spec is not None:
+        kind, G, pts, K, D, pixel, extra, min_depth = spec
+        zv = z
+    else:
+        kind, G, pts, K, D, pixel, extra, min_depth = k.KIND_EXTERNAL, X0, _NONE_PTS, _NONE_3, _NONE_5, False, \
+            False, 0.0
+        zv = np.zeros(m)
+    r, H, M = np.zeros(m), np.zeros((m, 6)), np.zeros((m, R.shape[0]))
+    while True:
+        status = k.update_kernel(kind, X0, P0, zv, R, G, pts, K, D, pixel, extra, min_depth, max_iterations,
+                                 step_tolerance, gate, transport, want_cost, buf, iout, r, H, M)
+        if status != k.NEED_LINEARISATION:
+            break
+        assert linearise is not None
+        r, H, M = linearise(k.output_views(buf, m, max_iterations)[0].copy())
+    return _result(k, status, buf, iout, model, X0, P0, z, m, max_iterations, gate)
+
+
+def _raise_prior(model: Any, X0: np.ndarray, P0: np.ndarray) -> None:
+    check_pose(X0, f"{model.name}: prior pose")
+    check_noise_covariance(P0, 6, f"{model.name}: prior covariance")
+    raise PpoeError(f"{model.name}: the prior fails the compiled update's check but passes check_pose / "
+                    "check_noise_covariance")  # pragma: no cover - the two apply the same rules
+
+
+def _result(k: Any, status: int, buf: np.ndarray, iout: np.ndarray, model: Any, X0: np.ndarray, P0: np.ndarray,
+            z: Any, m: int, max_iterations: int, gate: float) -> UpdateResult:
+    """The :class:`UpdateResult` of a finished kernel run, or the error its status code means."""
+    T, cov, y0, S0, res, gain, H, corr, steps, fout = k.output_views(buf, m, max_iterations)
     if status == 4:
-        return None
+        _raise_prior(model, X0, P0)
     if status == 5:
         model.validate(z)  # raises the model's message
     if status == 2:
@@ -67,30 +96,3 @@ def compiled_update(X0: Any, P0: Any, z: np.ndarray, model: Any, R: np.ndarray, 
     return UpdateResult(T=T, cov=cov, accepted=True, nis=nis, gate=gate, iterations=n_it, converged=bool(iout[1]),
                         innovation=y0, S=S0, residual=res, gain=gain, H=H, correction=corr,
                         steps=tuple(steps[:n_it].tolist()), cost=float(fout[1]))
-
-
-def warm_kernels() -> None:
-    """Compile (or load from numba's cache) the kernels of the fusion path: a tag update (pixel and normalised,
-    with camera noise), a contact update, a carried correction (applied and made) and the quick covariance checks (one
-    matrix, a batch).  The nodes call it
-    before subscribing (``ppoe_ros.common.runner.warm_node_kernels``), the test session once (``test/conftest.py``)."""
-    from ppoe_core import lie
-    from ppoe_core.estimation.corrections import CarriedCorrection, apply_carried_corrections
-    from ppoe_core.estimation.fusion import iterated_update
-    from ppoe_core.estimation.measurements import ContactPlaneModel, TagBearingModel, tag_points
-    from ppoe_core.estimation.prior_buffer import PriorSample
-
-    T_cam = np.eye(4)
-    X = np.eye(4)
-    X[2, 3] = 0.5
-    P = np.eye(6) * 1e-6
-    K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
-    for mode in ("pixel", "normalized"):
-        tags = TagBearingModel(tag_points(0.05), K, None, 0.5, mode=mode, T_ref_camera=T_cam, cov_camera=P)
-        iterated_update(X, P, tags.h(X), tags, gate_probability=None, with_cost=True)
-    iterated_update(X, P, [0.0], ContactPlaneModel(np.eye(4), P, [0.0, 0.0, -0.5]), with_cost=True)
-    prior = PriorSample(0.0, X, P)
-    apply_carried_corrections(prior, [(CarriedCorrection(prior, np.eye(6)[:2], np.ones(2), np.zeros(2)), 1.0)])
-    CarriedCorrection.from_update(prior, X, 0.5 * P)
-    lie.check_covariance(P, "warm-up", size=6)
-    lie.check_covariance(np.stack([P, P]), "warm-up", size=6)  # a batch (ppoe evaluate's priors)

@@ -7,17 +7,13 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 
 from ppoe_core import lie
+from ppoe_core.estimation.checks import check_noise_covariance, check_pose
 from ppoe_core.errors import MeasurementError
 from ppoe_core.estimation.direct_measurements import PoseObservation
-from ppoe_core.estimation.measurement_base import (
-    MeasurementModel,
-    _block_diag,
-    _block_diag_rect,
-    _check_cov,
-    _check_pose,
-)
+from ppoe_core.estimation.update_types import MeasurementModel
 
 
 # --------------------------------------------------------------------------- composition
@@ -41,13 +37,13 @@ class ChainedObservation(MeasurementModel):
     def __init__(self, inner: MeasurementModel, T_tool_L: Any, cov_L: Any = None, name: str = "") -> None:
         self.inner = inner
         self.name = name or f"{inner.name} (chained)"
-        self.T_tool_L = _check_pose(T_tool_L, f"{self.name}: T_tool_L")
+        self.T_tool_L = check_pose(T_tool_L, f"{self.name}: T_tool_L")
         self.Ad_L_tool = lie.adjoint(lie.inverse(self.T_tool_L))
         self.has_link_noise = cov_L is not None
         blocks = [np.asarray(inner.noise_cov, dtype=float)]
         if self.has_link_noise:
-            blocks.append(_check_cov(cov_L, 6, f"{self.name}: cov_L"))
-        self.noise_cov = _block_diag(*blocks)
+            blocks.append(check_noise_covariance(cov_L, 6, f"{self.name}: cov_L"))
+        self.noise_cov = scipy.linalg.block_diag(*blocks)
         self.noise_dim = self.noise_cov.shape[0]
         self.dim = inner.dim
 
@@ -58,7 +54,7 @@ class ChainedObservation(MeasurementModel):
         return self.inner.residual(z, z_pred)
 
     def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
-        v = self._noise(v)
+        v = self.noise_vector(v)
         k = self.inner.noise_dim
         T_L = T_state @ self.T_tool_L
         if self.has_link_noise:
@@ -98,7 +94,7 @@ class StackedObservation(MeasurementModel):
         self.parts = list(parts)
         self.name = name
         self.dim = sum(p.dim for p in self.parts)
-        self.noise_cov = _block_diag(*[np.asarray(p.noise_cov, float) for p in self.parts])
+        self.noise_cov = scipy.linalg.block_diag(*[np.asarray(p.noise_cov, float) for p in self.parts])
         self.noise_dim = self.noise_cov.shape[0]
         self._zsizes = [16 if isinstance(p, PoseObservation) else p.dim for p in self.parts]
 
@@ -120,7 +116,7 @@ class StackedObservation(MeasurementModel):
         return np.concatenate(parts)
 
     def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
-        v = self._noise(v)
+        v = self.noise_vector(v)
         vs = self._split(v, [p.noise_dim for p in self.parts])
         return np.concatenate([np.asarray(p.h(T_state, vp), float).ravel() for p, vp in zip(self.parts, vs)])
 
@@ -142,4 +138,4 @@ class StackedObservation(MeasurementModel):
         Ms_known = [M for M in Ms if M is not None]
         if len(Ms_known) < len(Ms):
             return None
-        return _block_diag_rect(Ms_known)
+        return scipy.linalg.block_diag(*Ms_known)

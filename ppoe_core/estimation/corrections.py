@@ -10,8 +10,9 @@ from typing import Any, Protocol
 import numpy as np
 
 from ppoe_core import lie
-from ppoe_core.errors import PpoeError
-from ppoe_core.estimation.prior_buffer import _INV_JITTER, Array, PriorSample
+from ppoe_core.lie.compiled import compiled
+from ppoe_core.errors import MeasurementError, PpoeError
+from ppoe_core.estimation.prior_buffer import INV_JITTER, Array, PriorSample
 
 #: 6x6 identity (read-only; built once instead of per prior)
 _EYE6 = np.eye(6)
@@ -22,18 +23,12 @@ _EYE4.setflags(write=False)
 _NO_JOINTS = np.zeros(0)
 _NO_JOINTS.setflags(write=False)
 
-_KERNELS: Any = None
+_CORRECTION_KERNELS = "ppoe_core.estimation.correction_kernels"
 
 
-def _correction_kernels() -> Any:
-    """:mod:`ppoe_core.estimation.correction_kernels`, imported on first use (numba) and kept: an import
-    statement per prior costs more than the kernel call."""
-    global _KERNELS
-    if _KERNELS is None:
-        from ppoe_core.estimation import correction_kernels
-
-        _KERNELS = correction_kernels
-    return _KERNELS
+def correction_kernels() -> Any:
+    """:mod:`ppoe_core.estimation.correction_kernels`, imported on first use (numba) and kept."""
+    return compiled(_CORRECTION_KERNELS)
 
 
 # ----------------------------------------------------------------------------
@@ -153,7 +148,7 @@ class CorrectionPolicy:
         :func:`ppoe_core.estimation.correction_kernels.correction_ratio`."""
         qp, qa = self.joint_args(prior.joints, anchor.joints)
         T_inv = lie.inverse(anchor.T_base_tool) if T_anchor_inv is None else T_anchor_inv
-        return _correction_kernels().correction_ratio(
+        return correction_kernels().correction_ratio(
             abs(prior.stamp - anchor.stamp), qp, qa, self.relative_pose(T_inv, prior.T_base_tool), self.timeout,
             self.joint_motion, self.tool_translation, self.tool_rotation)
 
@@ -238,8 +233,13 @@ class CarriedCorrection:
         change of tangent space between ``T_prior`` and ``T_post`` (second order in
         ``delta``) is neglected.  Returns None if the update added no information.
 
-        Compiled (:func:`ppoe_core.estimation.correction_kernels.from_update_kernel`) for finite float (4, 4) poses
-        and (6, 6) covariances; :meth:`from_update_reference` otherwise (and in the tests, as the reference).
+        Compiled (:func:`ppoe_core.estimation.correction_kernels.from_update_kernel`; the numpy reference of the
+        tests is ``test/update_reference.py``).
+
+        Raises
+        ------
+        MeasurementError
+            Poses not (4, 4), covariances not (6, 6), or an input with NaN / inf.
         """
         c = np.ascontiguousarray
         T_a = c(anchor.T_base_tool, dtype=np.float64)
@@ -248,50 +248,15 @@ class CarriedCorrection:
         T_post_a, cov_post_a = c(T_post, dtype=np.float64), c(cov_post, dtype=np.float64)
         if not (T_a.shape == T_pre_a.shape == T_post_a.shape == (4, 4) and cov_pre_a.shape == cov_post_a.shape
                 == (6, 6)):
-            return CarriedCorrection.from_update_reference(anchor, T_post, cov_post, T_pre, cov_pre)
+            raise MeasurementError(f"carried correction at {anchor.stamp}: poses must be 4x4 and covariances 6x6, got "
+                                   f"{T_pre_a.shape}, {T_post_a.shape}, {cov_pre_a.shape}, {cov_post_a.shape}")
         H, R, z, T_inv = np.empty((6, 6)), np.empty(6), np.empty(6), np.empty((4, 4))
-        r = _correction_kernels().from_update_kernel(T_a, T_pre_a, T_pre_a is T_a, cov_pre_a, T_post_a, cov_post_a,
-                                                     _INV_JITTER, H, R, z, T_inv)
+        r = correction_kernels().from_update_kernel(T_a, T_pre_a, T_pre_a is T_a, cov_pre_a, T_post_a, cov_post_a,
+                                                     INV_JITTER, H, R, z, T_inv)
         if r < 0:
-            return CarriedCorrection.from_update_reference(anchor, T_post, cov_post, T_pre, cov_pre)
+            raise MeasurementError(f"carried correction at {anchor.stamp}: a pose or covariance of the update is not "
+                                   "finite")
         return CarriedCorrection(anchor, H[:r], R[:r], z[:r], T_inv) if r else None
-
-    @staticmethod
-    def from_update_reference(
-        anchor: PriorSample,
-        T_post: Array,
-        cov_post: Array,
-        T_pre: Array | None = None,
-        cov_pre: Array | None = None,
-    ) -> CarriedCorrection | None:
-        """:meth:`from_update` in numpy (the reference of the compiled path; any input, errors as numpy raises)."""
-        # work in the range of the prior covariance: directions the prior is certain about
-        # carry no correction (and P_prior^-1 is not needed there)
-        T_pre = anchor.T_base_tool if T_pre is None else np.asarray(T_pre, dtype=np.float64)
-        cov_pre = anchor.cov_tool if cov_pre is None else cov_pre
-        s0, U = np.linalg.eigh(_sym(cov_pre))
-        keep0 = s0 > 1e-12 * max(float(s0.max()), 1e-300)
-        if not np.any(keep0):
-            return None
-        U = U[:, keep0]
-        info0 = np.diag(1.0 / s0[keep0])
-        P1 = U.T @ _sym(cov_post) @ U
-        P1 = _sym(P1) + _INV_JITTER * np.eye(P1.shape[0])
-        info1 = np.linalg.inv(P1)
-        # both logarithms in one (batched) call: the floats of two single calls (tested), half the numpy calls
-        T_anchor_inv = lie.inverse(anchor.T_base_tool)
-        T_pre_inv = T_anchor_inv if T_pre is anchor.T_base_tool else lie.inverse(T_pre)
-        delta, pre = lie.log(np.stack([T_pre_inv @ T_post, T_anchor_inv @ T_pre]))
-        y = info1 @ (U.T @ delta)
-        lam, V = np.linalg.eigh(_sym(info1 - info0))
-        keep = lam > 1e-9 * max(float(np.max(np.abs(lam))), 1e-300)
-        if not np.any(keep):
-            return None
-        lam, V = lam[keep], V[:, keep]
-        H = V.T @ U.T
-        R = 1.0 / lam
-        z = R * (V.T @ y) + H @ pre
-        return CarriedCorrection(anchor, H, R, z, T_anchor_inv)
 
     def apply(self, prior: PriorSample, weight: float) -> tuple[Array, Array]:
         """Fused ``(T_base_tool, cov_tool)`` for ``prior`` with this correction at ``weight``.
@@ -317,20 +282,21 @@ def apply_carried_corrections(
     else:
         active = [(c, w) for c, w in corrections if w > 0.0]
         if not active:
-            return prior.T_base_tool, _sym(prior.cov_tool)
+            return prior.T_base_tool, symmetric(prior.cov_tool)
         H = np.concatenate([c.H for c, _ in active])
         Rw = np.concatenate([c.R / w for c, w in active])
         z = np.concatenate([c.z for c, _ in active])
     T_out, cov = np.empty((4, 4)), np.empty((6, 6))
     # the kernel symmetrises the covariance itself ((P + P^T) / 2 of a symmetric P is P: the same floats)
-    _correction_kernels().apply_corrections_kernel(
+    correction_kernels().apply_corrections_kernel(
         np.ascontiguousarray(prior.T_base_tool, dtype=np.float64),
         np.ascontiguousarray(prior.cov_tool, dtype=np.float64), np.ascontiguousarray(H, dtype=np.float64), Rw,
         np.ascontiguousarray(z, dtype=np.float64), T_out, cov)
     return T_out, cov
 
 
-def _sym(A: Array) -> Array:
+def symmetric(A: Array) -> Array:
+    """``(A + A^T) / 2`` as float64."""
     A = np.asarray(A, dtype=np.float64)
     return 0.5 * (A + A.T)
 

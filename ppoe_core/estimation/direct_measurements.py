@@ -5,16 +5,12 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 
 from ppoe_core import lie
+from ppoe_core.estimation.checks import check_noise_covariance, check_pose
 from ppoe_core.errors import CovarianceError, MeasurementError
-from ppoe_core.estimation.measurement_base import (
-    MeasurementModel,
-    _block_diag,
-    _check_cov,
-    _check_pose,
-    _hat,
-)
+from ppoe_core.estimation.update_types import MeasurementModel
 from ppoe_core.robot.tree import GRAVITY
 
 
@@ -58,16 +54,16 @@ class PointObservation(MeasurementModel):
                 raise CovarianceError(f"{name}: sigma must be > 0, got {float(sig)}")
             cov_point = np.eye(3) * float(sig) ** 2
         else:
-            cov_point = _check_cov(sig, 3, f"{name}: point covariance")
+            cov_point = check_noise_covariance(sig, 3, f"{name}: point covariance")
         self.T_ref_sensor = (
-            np.eye(4) if T_ref_sensor is None else _check_pose(T_ref_sensor, f"{name}: T_ref_sensor")
+            np.eye(4) if T_ref_sensor is None else check_pose(T_ref_sensor, f"{name}: T_ref_sensor")
         )
         self.T_sensor_ref = lie.inverse(self.T_ref_sensor)
         blocks = [cov_point]
         self.has_sensor_noise = cov_sensor is not None
         if self.has_sensor_noise:
-            blocks.append(_check_cov(cov_sensor, 6, f"{name}: cov_sensor"))
-        self.noise_cov = _block_diag(*blocks)
+            blocks.append(check_noise_covariance(cov_sensor, 6, f"{name}: cov_sensor"))
+        self.noise_cov = scipy.linalg.block_diag(*blocks)
         self.noise_dim = self.noise_cov.shape[0]
         self.dim = 3
 
@@ -81,14 +77,14 @@ class PointObservation(MeasurementModel):
         """Predicted point in the sensor frame (3,) [m]."""
         if v is None:
             return self.point_sensor(T_state)
-        v = self._noise(v)
+        v = self.noise_vector(v)
         w = v[3:] if self.has_sensor_noise else None
         return self.point_sensor(T_state, w) + v[:3]
 
     def jacobian_state(self, T_state: np.ndarray) -> np.ndarray:
         """``H`` (3, 6) = ``R_sensor_link [I, -[p]x]``."""
         R = (self.T_sensor_ref @ T_state)[:3, :3]
-        return np.hstack([R, -R @ _hat(self.point_link)])
+        return np.hstack([R, -R @ lie.hat3(self.point_link)])
 
     def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray:
         """``M`` (3, 3[+6]) = ``[I, (-I, [p_sensor]x)]``."""
@@ -96,7 +92,7 @@ class PointObservation(MeasurementModel):
         M[:, :3] = np.eye(3)
         if self.has_sensor_noise:
             M[:, 3:6] = -np.eye(3)
-            M[:, 6:9] = _hat(self.point_sensor(T_state))
+            M[:, 6:9] = lie.hat3(self.point_sensor(T_state))
         return M
 
 
@@ -115,18 +111,18 @@ class PoseObservation(MeasurementModel):
 
     def __init__(self, cov: Any, name: str = "pose") -> None:
         self.name = name
-        self.noise_cov = _check_cov(cov, 6, f"{name}: covariance")
+        self.noise_cov = check_noise_covariance(cov, 6, f"{name}: covariance")
         self.noise_dim = 6
         self.dim = 6
 
     def validate(self, z: Any) -> np.ndarray:
-        return _check_pose(z, f"{self.name}: measurement")
+        return check_pose(z, f"{self.name}: measurement")
 
     def residual(self, z: np.ndarray, z_pred: np.ndarray) -> np.ndarray:
         return lie.log(lie.inverse(z_pred) @ z)
 
     def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
-        v = self._noise(v)
+        v = self.noise_vector(v)
         return np.asarray(T_state, dtype=float) @ lie.exp(v)
 
     def jacobian_state(self, T_state: np.ndarray) -> np.ndarray:
@@ -183,14 +179,14 @@ class GravityObservation(MeasurementModel):
 
     def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         """Predicted specific force in the sensor frame (3,) [m/s^2]."""
-        v = self._noise(v)
+        v = self.noise_vector(v)
         a_link = self.gravity * (T_state[:3, :3].T @ self.up_ref)
         return self.R_link_sensor.T @ a_link + v
 
     def jacobian_state(self, T_state: np.ndarray) -> np.ndarray:
         """``H`` (3, 6) = ``[0, R_ls^T [a_link]x]``."""
         a_link = self.gravity * (T_state[:3, :3].T @ self.up_ref)
-        return np.hstack([np.zeros((3, 3)), self.R_link_sensor.T @ _hat(a_link)])
+        return np.hstack([np.zeros((3, 3)), self.R_link_sensor.T @ lie.hat3(a_link)])
 
     def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray:
         return np.eye(3)

@@ -59,19 +59,17 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 
 from ppoe_core import lie
+from ppoe_core.estimation.checks import check_noise_covariance, check_pose
 from ppoe_core.errors import CovarianceError, MeasurementError
 from ppoe_core.estimation.camera import distortion_coefficients, project_points_jacobian
 from ppoe_core.estimation.composite_measurements import ChainedObservation, StackedObservation
 from ppoe_core.estimation.direct_measurements import GravityObservation, PointObservation, PoseObservation
-from ppoe_core.estimation.measurement_base import (
-    MeasurementModel,
-    _block_diag,
-    _check_cov,
-    _check_pose,
-    _hat,
-)
+from ppoe_core.estimation.update_types import MeasurementModel
+from ppoe_core.estimation.update_types import KIND_CONTACT, KIND_TAG, CompiledModel
+from ppoe_core.lie.compiled import compiled
 
 __all__ = [
     "MeasurementModel",
@@ -191,7 +189,7 @@ class TagBearingModel(MeasurementModel):
         elif pose_checked:
             self.T_ref_camera = np.asarray(T_ref_camera, dtype=float)
         else:
-            self.T_ref_camera = _check_pose(T_ref_camera, f"{name}: T_ref_camera")
+            self.T_ref_camera = check_pose(T_ref_camera, f"{name}: T_ref_camera")
         self.T_camera_ref = lie.inverse(self.T_ref_camera)
         self.min_depth = float(min_depth)
         n = pts.shape[0]
@@ -206,23 +204,15 @@ class TagBearingModel(MeasurementModel):
         blocks = [np.diag(sig**2)]
         self.has_camera_noise = cov_camera is not None
         if self.has_camera_noise:
-            blocks.append(_check_cov(cov_camera, 6, f"{name}: cov_camera"))
-        self.noise_cov = _block_diag(*blocks)
-        self._checked_noise_cov = self.noise_cov  # built from checked blocks (compiled_update)
-        self._kernel_args: tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, bool, float] | None = None
+            blocks.append(check_noise_covariance(cov_camera, 6, f"{name}: cov_camera"))
+        self.noise_cov = scipy.linalg.block_diag(*blocks)
+        self.noise_checked = True  # built from checked blocks
         self.noise_dim = self.noise_cov.shape[0]
-
-    def compiled_args(self) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, bool, float]:
-        """The model for :func:`ppoe_core.estimation.update_kernels.update_kernel`: kind, ``T_camera_ref``,
-        points, ``K``, ``D``, pixel mode, camera noise, ``min_depth``."""
-        from ppoe_core.estimation.update_kernels import KIND_TAG
-
-        if self._kernel_args is None:  # built once: the model does not change after construction
-            self._kernel_args = (
-                KIND_TAG, np.ascontiguousarray(self.T_camera_ref), np.ascontiguousarray(self.points_tool),
-                np.ascontiguousarray(self.K), np.ascontiguousarray(self.D, dtype=np.float64), self.mode == "pixel",
-                self.has_camera_noise, self.min_depth)
-        return self._kernel_args
+        #: the compiled linearisation (the whole update in one call)
+        self.compiled = CompiledModel(
+            KIND_TAG, np.ascontiguousarray(self.T_camera_ref), np.ascontiguousarray(self.points_tool),
+            np.ascontiguousarray(self.K), np.ascontiguousarray(self.D, dtype=np.float64), self.mode == "pixel",
+            self.has_camera_noise, self.min_depth)
 
     def points_camera(self, T_state: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Points in the camera frame (n, 3) for state ``T_ref_tool`` and camera noise ``w``."""
@@ -232,42 +222,27 @@ class TagBearingModel(MeasurementModel):
         p = self.points_tool @ T_cam_tool[:3, :3].T + T_cam_tool[:3, 3]
         bad = np.flatnonzero(p[:, 2] < self.min_depth)
         if bad.size:
-            i = int(bad[0])
-            raise MeasurementError(
-                f"{self.name}: {self.labels[i]} is behind the camera or too close "
-                f"(z = {p[i, 2]:.4g} m < min_depth {self.min_depth} m)"
-            )
+            self._behind(int(bad[0]), float(p[bad[0], 2]))
         return p
+
+    def _behind(self, i: int, depth: float) -> None:
+        raise MeasurementError(f"{self.name}: {self.labels[i]} is behind the camera or too close "
+                               f"(z = {depth:.4g} m < min_depth {self.min_depth} m)")
 
     def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         """Predicted ``[u_0, v_0, u_1, v_1, ...]`` (2n,) for ``T_state = T_ref_tool``."""
         if v is None:
-            uv, _ = project_points_jacobian(self.points_camera(T_state), self.K, self.D, self.mode)
-            return uv.ravel()
-        v = self._noise(v)
+            return self.linearize(T_state)[0]
+        v = self.noise_vector(v)
         w = v[self.dim :] if self.has_camera_noise else None
         uv, _ = project_points_jacobian(self.points_camera(T_state, w), self.K, self.D, self.mode)
         return uv.ravel() + v[: self.dim]
 
     def linearize(self, T_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(h(T), H, M)`` sharing one projection (see :meth:`jacobian_state`,
-        :meth:`jacobian_noise`)."""
-        p_c = self.points_camera(T_state)
-        uv, Jproj = project_points_jacobian(p_c, self.K, self.D, self.mode)
-        n = p_c.shape[0]
-        R_ct = (self.T_camera_ref @ T_state)[:3, :3]
-        Jx = np.empty((n, 3, 6))
-        Jx[:, :, :3] = R_ct
-        Jx[:, :, 3:] = -R_ct @ _hat(self.points_tool)
-        H = np.einsum("nij,njk->nik", Jproj, Jx).reshape(2 * n, 6)
-        M = np.zeros((self.dim, self.noise_dim))
-        M[:, : self.dim] = np.eye(self.dim)
-        if self.has_camera_noise:
-            Jw = np.empty((n, 3, 6))
-            Jw[:, :, :3] = -np.eye(3)
-            Jw[:, :, 3:] = _hat(p_c)
-            M[:, self.dim :] = np.einsum("nij,njk->nik", Jproj, Jw).reshape(2 * n, 6)
-        return uv.ravel(), H, M
+        """``(h(T), H, M)``: ``H = d pi / d p_c R_camera_tool [I, -[p_i]x]`` (2n, 6), ``M`` identity for the pixel
+        noise and ``d pi / d p_c [-I, [p_c]x]`` for the camera pose noise (the compiled linearisation,
+        :func:`ppoe_core.estimation.update_kernels.linearize`)."""
+        return _linearize_compiled(self, T_state)
 
     def jacobian_state(self, T_state: np.ndarray) -> np.ndarray:
         """``H`` (2n, 6): ``d pi / d p_c * R_camera_tool [I, -[p_i]x]``."""
@@ -276,6 +251,19 @@ class TagBearingModel(MeasurementModel):
     def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray:
         """``M`` (2n, 2n[+6]): identity for the pixel noise, ``d pi/d p_c [-I, [p_c]x]`` for w."""
         return self.linearize(T_state)[2]
+
+
+def _linearize_compiled(model: Any, T_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(h(T), H, M)`` of a model with a compiled linearisation (``model.compiled``)."""
+    spec = model.compiled
+    h, H = np.empty(model.dim), np.empty((model.dim, 6))
+    M = np.empty((model.dim, model.noise_dim))
+    bad = compiled("ppoe_core.estimation.update_kernels").linearize(
+        spec.kind, np.ascontiguousarray(T_state, dtype=np.float64), spec.G, spec.points, spec.K, spec.D, spec.pixel,
+        spec.extra, spec.min_depth, h, H, M)
+    if bad >= 0:
+        model._behind(int(bad), float(h[0]))
+    return h, H, M
 
 
 # --------------------------------------------------------------------------- contact
@@ -312,7 +300,7 @@ class ContactPlaneModel(MeasurementModel):
         name: str = "contact plane",
     ) -> None:
         self.name = name
-        self.T_ref_plane = _check_pose(T_ref_plane, f"{name}: T_ref_plane")
+        self.T_ref_plane = check_pose(T_ref_plane, f"{name}: T_ref_plane")
         self.T_plane_ref = lie.inverse(self.T_ref_plane)
         p = np.asarray(point_tool, dtype=float)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
@@ -321,24 +309,17 @@ class ContactPlaneModel(MeasurementModel):
         if not (np.isfinite(distance_sigma) and distance_sigma >= 0):
             raise CovarianceError(f"{name}: distance_sigma must be >= 0, got {distance_sigma}")
         self.distance_sigma = float(distance_sigma)
-        blocks = [_check_cov(cov_plane, 6, f"{name}: cov_plane")]
+        blocks = [check_noise_covariance(cov_plane, 6, f"{name}: cov_plane")]
         if self.distance_sigma > 0:
             blocks.append(np.array([[self.distance_sigma**2]]))
-        self.noise_cov = _block_diag(*blocks)
-        self._checked_noise_cov = self.noise_cov  # built from checked blocks (compiled_update)
-        self._kernel_args: tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, bool, float] | None = None
+        self.noise_cov = scipy.linalg.block_diag(*blocks)
+        self.noise_checked = True  # built from checked blocks
         self.noise_dim = self.noise_cov.shape[0]
         self.dim = 1
-
-    def compiled_args(self) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool, bool, float]:
-        """The model for :func:`ppoe_core.estimation.update_kernels.update_kernel`: kind, ``T_plane_ref``, the
-        tool point (1, 3), unused ``K`` and ``D``, distance noise."""
-        from ppoe_core.estimation.update_kernels import KIND_CONTACT
-
-        if self._kernel_args is None:  # built once: the model does not change after construction
-            self._kernel_args = (KIND_CONTACT, np.ascontiguousarray(self.T_plane_ref), self.point_tool.reshape(1, 3),
-                                 np.eye(3), np.zeros(5), False, self.distance_sigma > 0, 0.0)
-        return self._kernel_args
+        #: the compiled linearisation (the whole update in one call)
+        self.compiled = CompiledModel(KIND_CONTACT, np.ascontiguousarray(self.T_plane_ref),
+                                      self.point_tool.reshape(1, 3), np.eye(3), np.zeros(5), False,
+                                      self.distance_sigma > 0, 0.0)
 
     def point_plane(self, T_state: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """Tool point in the (perturbed) plane frame, shape (3,)."""
@@ -350,27 +331,22 @@ class ContactPlaneModel(MeasurementModel):
     def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
         """Signed distance (1,) [m], positive on the side the normal points to."""
         if v is None:
-            return np.array([self.point_plane(T_state)[2]])
-        v = self._noise(v)
+            return self.linearize(T_state)[0]
+        v = self.noise_vector(v)
         d = self.point_plane(T_state, v[:6])[2]
         if self.distance_sigma > 0:
             d = d + v[6]
         return np.array([d])
 
+    def linearize(self, T_state: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(h(T), H, M)``: ``H = e_z^T R_plane_tool [I, -[p]x]`` (1, 6), ``M = e_z^T [-I, [p_plane]x]`` (+ 1 for the
+        distance noise) (the compiled linearisation, :func:`ppoe_core.estimation.update_kernels.linearize`)."""
+        return _linearize_compiled(self, T_state)
+
     def jacobian_state(self, T_state: np.ndarray) -> np.ndarray:
         """``H`` (1, 6) = ``e_z^T R_plane_tool [I, -[p]x]``."""
-        R = (self.T_plane_ref @ T_state)[:3, :3]
-        H = np.empty((1, 6))
-        H[0, :3] = R[2]
-        H[0, 3:] = -(R[2] @ _hat(self.point_tool))
-        return H
+        return self.linearize(T_state)[1]
 
     def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray:
         """``M`` (1, 6[+1]) = ``e_z^T [-I, [p_plane]x]`` (+ 1 for the distance noise)."""
-        p = self.point_plane(T_state)
-        M = np.zeros((1, self.noise_dim))
-        M[0, 2] = -1.0
-        M[0, 3:6] = _hat(p)[2]
-        if self.distance_sigma > 0:
-            M[0, 6] = 1.0
-        return M
+        return self.linearize(T_state)[2]

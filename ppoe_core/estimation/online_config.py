@@ -88,9 +88,14 @@ def tracked(effect: Effect, process_noise: Any = None, initial_sigma: Any = None
     if effect.name not in ONLINE_EFFECT_NAMES:
         raise ModelConfigError(f"{where or effect.describe()}: effect {effect.name!r} cannot be tracked online "
                                f"(can: {list(ONLINE_EFFECT_NAMES)})")
-    return TrackedEffect(
-        effect, _vector(process_noise, effect.n_params, DEFAULT_PROCESS_NOISE[effect.name], where + ".process_noise"),
-        _vector(initial_sigma, effect.n_params, DEFAULT_INITIAL_SIGMA[effect.name], where + ".initial_sigma"))
+    noise = _vector(process_noise, effect.n_params, DEFAULT_PROCESS_NOISE[effect.name], where + ".process_noise")
+    sigma = _vector(initial_sigma, effect.n_params, DEFAULT_INITIAL_SIGMA[effect.name], where + ".initial_sigma")
+    frozen = np.flatnonzero((noise == 0.0) & (sigma == 0.0))
+    if frozen.size:  # issue 25: such a parameter could never move (and its "jumps" would change nothing)
+        raise ModelConfigError(f"{where or effect.describe()}: process_noise and initial_sigma are both 0 for "
+                               f"parameter(s) {frozen.tolist()} of {effect.describe()}: the filter could never move "
+                               "them; give one of them > 0")
+    return TrackedEffect(effect, noise, sigma)
 
 
 def model_streams(model: Any, sources: Iterable[Any] = ()) -> set[str]:

@@ -54,8 +54,8 @@ from ppoe_core.estimation.corrections import (
     MeasurementOutcome,
     MeasurementUpdater,
     ToolUpdate,
-    _correction_kernels,
-    _sym,
+    correction_kernels,
+    symmetric,
     apply_carried_corrections,
 )
 from ppoe_core.model.stamp_policy import StampResetPolicy
@@ -71,7 +71,6 @@ from ppoe_core.estimation.updater import (
     ModelUpdater,
     TagMeasurement,
     make_updater,
-    posterior_cost,
 )
 
 __all__ = [
@@ -86,12 +85,10 @@ __all__ = [
     "FusedEstimate",
     "MeasurementOutcome",
     "FusionPipeline",
-    "warm_pipeline",
     "TagMeasurement",
     "ContactMeasurement",
     "ModelUpdater",
     "COUNT_KEYS",
-    "posterior_cost",
     "apply_carried_corrections",
     "FUSION_SETTINGS",
     "make_pipeline",
@@ -208,7 +205,7 @@ class FusionPipeline:
         T = np.asarray(T_base_tool, dtype=np.float64)
         cov = cov_tool
         if not (T.shape == (4, 4) and type(cov) is np.ndarray and cov.dtype == np.float64 and cov.shape == (6, 6)
-                and _correction_kernels().prior_passes(T, cov, not validated)):
+                and correction_kernels().prior_passes(T, cov, not validated)):
             cov = self._checked_prior(float(stamp), T, cov_tool, validated)  # the full checks: error or pass
         q = joints
         if q is not None and not (type(q) is np.ndarray and q.dtype == np.float64 and q.ndim == 1):
@@ -271,7 +268,7 @@ class FusionPipeline:
         fast = validated and type(self.policy) is CorrectionPolicy
         # a run continues at k if its stamp is newer than the one before and its pose is finite
         finite = np.empty(n, dtype=np.bool_)
-        breaks = _correction_kernels().run_breaks(t, T, finite)
+        breaks = correction_kernels().run_breaks(t, T, finite)
         i = 0
         while i < n:
             newest = self.buffer.newest
@@ -312,7 +309,7 @@ class FusionPipeline:
             T_rel = corr.T_anchor_inv @ T  # numpy's stacked product: the floats of one product per prior
         else:
             T_rel = np.zeros((len(t), 4, 4))
-        return int(_correction_kernels().first_expiry(t, corr.anchor.stamp, Qr, qa_r, T_rel, pol.timeout,
+        return int(correction_kernels().first_expiry(t, corr.anchor.stamp, Qr, qa_r, T_rel, pol.timeout,
                                                       pol.joint_motion, pol.tool_translation, pol.tool_rotation))
 
     @staticmethod
@@ -407,7 +404,7 @@ class FusionPipeline:
         qp, qa = pol.joint_args(prior.joints, corr.anchor.joints)
         T, P = prior.T_base_tool, prior.cov_tool
         T_out, cov_out = np.empty((4, 4)), np.empty((6, 6))
-        w = _correction_kernels().fuse_one_kernel(
+        w = correction_kernels().fuse_one_kernel(
             np.asarray(T, dtype=np.float64), np.asarray(P, dtype=np.float64),  # any layout: the same arithmetic
             pol.relative_pose(corr.T_anchor_inv, T), abs(prior.stamp - corr.anchor.stamp), qp, qa, pol.timeout,
             pol.joint_motion, pol.tool_translation, pol.tool_rotation, pol.decay == "linear", corr.H, corr.R, corr.z,
@@ -472,7 +469,7 @@ class FusionPipeline:
             return MeasurementOutcome(measurement, "rejected", nis=float(res.nis))
         self.counts["accepted"] += 1
         T_post = np.asarray(res.T_base_tool, dtype=np.float64)
-        cov_post = _sym(res.cov_tool)
+        cov_post = symmetric(res.cov_tool)
         corr = CarriedCorrection.from_update(prior, T_post, cov_post, est.T_base_tool, est.cov_tool)
         if corr is not None:
             self.corrections[measurement.source] = corr
@@ -554,22 +551,3 @@ def make_pipeline(
         max_hold=float(s["max_hold"]), policy=policy, max_pending=int(s["max_pending"]),
         min_interval=float(s["min_interval"]),
     )
-
-
-def warm_pipeline() -> None:
-    """Run a small fusion pipeline (priors, one measurement, a run of priors, fused estimates) so that its compiled
-    per-prior steps (prior check, correction ratio, one-correction fuse, run breaks) are compiled or loaded before
-    a node's first message, not while its inputs queue up (``ppoe_ros.common.runner``)."""
-    X, P = np.eye(4), np.eye(6) * 1e-6
-    X_post = X.copy()
-    X_post[0, 3] = 1e-4
-
-    def updater(T: Array, cov: Array, meas: Measurement, prior: PriorSample) -> ToolUpdate:
-        return ToolUpdate(X_post, 0.5 * cov, True, 0.0)
-
-    pipe = FusionPipeline(updater)
-    for k in range(3):
-        pipe.add_prior(0.01 * k, X, P, np.zeros(2))
-    pipe.add_measurement(Measurement(0.015, "warm-up", None))
-    pipe.add_priors(0.03 + 0.01 * np.arange(3), np.repeat(X[None], 3, axis=0), P, np.zeros((3, 2)))
-    pipe.add_prior(0.07, X, P, np.zeros(2))

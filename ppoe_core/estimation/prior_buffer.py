@@ -16,7 +16,7 @@ from ppoe_core.errors import PpoeError
 Array = np.ndarray
 
 #: jitter [m^2 or rad^2] added to a covariance's diagonal before it is inverted
-_INV_JITTER = 1e-14
+INV_JITTER = 1e-14
 
 
 # ----------------------------------------------------------------------------

@@ -1,17 +1,29 @@
-"""Compiled (numba) iterated LG-EKF update for the tag-bearing and contact-plane models: one call per measurement.
+"""THE iterated LG-EKF update on SE(3) (compiled, numba): paper eq. 19-24, gain of docs/conventions.md sec. 1.
 
-The same algorithm as :func:`ppoe_core.estimation.fusion.iterated_update` (module docstring there: eq. 19-24,
-gain ``K = P H^T S^-1``, Joseph form, prior moved to the iterate with ``Jr^-1``, posterior moved with ``Jr``),
-with the linearisations of :class:`~ppoe_core.estimation.measurements.TagBearingModel` and
-:class:`~ppoe_core.estimation.measurements.ContactPlaneModel` written for one point at a time, and the SE(3)
-functions of :mod:`ppoe_core.lie.kernels`.  The Python wrapper (``fusion._compiled_update``) allocates the
-outputs, turns the status codes below into the project's errors and builds the ``UpdateResult``; it falls back to
-the Python path (which raises the exact message) for a prior that fails a check here.
+One call of :func:`update_kernel` runs the whole update for the models whose linearisation is compiled here (the
+tag bearing and the contact plane models: :data:`KIND_TAG`, :data:`KIND_CONTACT`).  Any other model
+(:data:`KIND_EXTERNAL`: tracker points, 6D poses, accelerometers, chained or selected ones, numerical Jacobians)
+runs the same loop with its linearisation given from outside: the kernel returns :data:`NEED_LINEARISATION` with the
+pose to linearise at in the output buffer, the caller (:func:`ppoe_core.estimation.compiled_update.run_update`)
+evaluates the model there and calls it again (the state of the loop lives in the buffers).  So the algorithm is
+written once:
+
+* prior seen from the iterate ``X_i``: ``e_i = Log(X_i^-1 X_0)``, ``P_i = Jr^-1(e_i) P_0 Jr^-T(e_i)``;
+* innovation ``y_i = r_i - H_i e_i``, ``S_i = H_i P_i H_i^T + M_i R M_i^T`` (Cholesky, never inverted), gain
+  ``K_i = P_i H_i^T S_i^-1``, step ``d_i = e_i + K_i y_i``, ``X_{i+1} = X_i Exp(d_i)``, until ``|d_i| <
+  step_tolerance`` or ``max_iterations``; the NIS at the prior gates the measurement (iteration 1);
+* covariance in Joseph form, moved to the new estimate with ``Jr(d)``, symmetrised and floored (:func:`spd`); the
+  estimate's rotation re-orthonormalised (:func:`reorthonormalise`);
+* the post-fit residual, the correction ``Log(X_0^-1 X)`` and the posterior cost (:func:`posterior_cost`).
+
+The module docstring of :mod:`ppoe_core.estimation.fusion` states the approximations.  The numpy reference the tests
+compare with is ``test/update_reference.py``.
 
 Status codes returned by :func:`update_kernel`:
 ``0`` accepted, ``1`` rejected by the gate, ``2`` point ``ierr`` behind the camera (its depth in ``ferr``),
 ``3`` innovation covariance not positive definite (leading minor ``ierr``), ``4`` the prior pose or covariance
-fails its check, ``5`` the measurement has NaN/inf.
+fails its check, ``5`` the measurement has NaN/inf, ``6`` (:data:`NEED_LINEARISATION`) give the linearisation at
+``T`` of the output buffer and call again.
 """
 
 from __future__ import annotations
@@ -21,7 +33,10 @@ import math
 import numpy as np
 from numba import njit
 
+from ppoe_core.estimation.camera_kernel import project_one
+from ppoe_core.estimation.update_types import KIND_CONTACT, KIND_TAG
 from ppoe_core.lie.kernels import (
+    cholesky_into,
     mat_mul,
     mat_mul_t,
     sandwich,
@@ -33,45 +48,16 @@ from ppoe_core.lie.kernels import (
     se3_right_jacobian_one,
 )
 
-__all__ = ["KIND_TAG", "KIND_CONTACT", "update_kernel", "buffer_size", "output_views"]
+__all__ = ["KIND_TAG", "KIND_CONTACT", "KIND_EXTERNAL", "NEED_LINEARISATION", "update_kernel", "buffer_size",
+           "output_views", "linearize", "spd", "reorthonormalise", "posterior_cost"]
 
-#: model kinds
-KIND_TAG = 0
-KIND_CONTACT = 1
+#: a model whose linearisation the caller gives (KIND_TAG, KIND_CONTACT: compiled here, update_types)
+KIND_EXTERNAL = 2
+#: status: linearise the model at ``T`` of the output buffer and call again
+NEED_LINEARISATION = 6
 
 
 # --------------------------------------------------------------------------- linearisations
-@njit(cache=True)
-def _project(p: np.ndarray, K: np.ndarray, D: np.ndarray, pixel: bool, uv: np.ndarray, J: np.ndarray) -> None:
-    """One camera point ``p`` (3,) -> ``uv`` (2,) and ``J = d uv / d p`` (2, 3), as
-    :func:`ppoe_core.estimation.camera.project_points_jacobian` (normalised or plumb_bob pixels)."""
-    X, Y, Z = p[0], p[1], p[2]
-    x, y = X / Z, Y / Z
-    jp00, jp02, jp11, jp12 = 1 / Z, -X / Z**2, 1 / Z, -Y / Z**2
-    if not pixel:
-        uv[0], uv[1] = x, y
-        J[0, 0], J[0, 1], J[0, 2] = jp00, 0.0, jp02
-        J[1, 0], J[1, 1], J[1, 2] = 0.0, jp11, jp12
-        return
-    k1, k2, p1, p2, k3 = D[0], D[1], D[2], D[3], D[4]
-    r2 = x * x + y * y
-    rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-    drad = k1 + 2 * k2 * r2 + 3 * k3 * r2**2
-    xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    d00 = rad + 2 * x * x * drad + 2 * p1 * y + 6 * p2 * x
-    d01 = 2 * x * y * drad + 2 * p1 * x + 2 * p2 * y
-    d11 = rad + 2 * y * y * drad + 6 * p1 * y + 2 * p2 * x
-    uv[0] = xd * K[0, 0] + yd * K[0, 1] + K[0, 2]
-    uv[1] = xd * K[1, 0] + yd * K[1, 1] + K[1, 2]
-    for i in range(2):
-        a0 = K[i, 0] * d00 + K[i, 1] * d01  # (A Jd)[i, :]
-        a1 = K[i, 0] * d01 + K[i, 1] * d11
-        J[i, 0] = a0 * jp00
-        J[i, 1] = a1 * jp11
-        J[i, 2] = a0 * jp02 + a1 * jp12
-
-
 @njit(cache=True)
 def _tag_linearize(X: np.ndarray, G: np.ndarray, pts: np.ndarray, K: np.ndarray, D: np.ndarray, pixel: bool,
                    extra: bool, min_depth: float, h: np.ndarray, H: np.ndarray, M: np.ndarray) -> int:
@@ -92,7 +78,7 @@ def _tag_linearize(X: np.ndarray, G: np.ndarray, pts: np.ndarray, K: np.ndarray,
     J = np.empty((2, 3))
     M[:, :] = 0.0
     for i in range(n):
-        _project(pc[i], K, D, pixel, uv, J)
+        project_one(pc[i], K, D, pixel, uv, J)
         px, py, pz = pts[i, 0], pts[i, 1], pts[i, 2]
         for r in range(2):
             row = 2 * i + r
@@ -142,8 +128,10 @@ def _contact_linearize(X: np.ndarray, G: np.ndarray, pts: np.ndarray, extra: boo
 
 
 @njit(cache=True)
-def _linearize(kind: int, X: np.ndarray, G: np.ndarray, pts: np.ndarray, K: np.ndarray, D: np.ndarray,
-               pixel: bool, extra: bool, min_depth: float, h: np.ndarray, H: np.ndarray, M: np.ndarray) -> int:
+def linearize(kind: int, X: np.ndarray, G: np.ndarray, pts: np.ndarray, K: np.ndarray, D: np.ndarray,
+              pixel: bool, extra: bool, min_depth: float, h: np.ndarray, H: np.ndarray, M: np.ndarray) -> int:
+    """``h(X)``, ``H``, ``M`` of a compiled model kind (the measurement models' own ``linearize`` calls this);
+    returns -1, or the index of the first point closer than ``min_depth`` (its depth in ``h[0]``)."""
     if kind == KIND_TAG:
         return _tag_linearize(X, G, pts, K, D, pixel, extra, min_depth, h, H, M)
     return _contact_linearize(X, G, pts, extra, h, H, M)
@@ -192,27 +180,6 @@ def _mrm(M: np.ndarray, R: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def _cholesky(S: np.ndarray, L: np.ndarray) -> int:
-    """Lower Cholesky factor of ``S`` into ``L``; returns 0, or the 1-based leading minor that is not positive."""
-    n = S.shape[0]
-    L[:, :] = 0.0
-    for j in range(n):
-        s = S[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return j + 1
-        d = math.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            t = S[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / d
-    return 0
-
-
-@njit(cache=True)
 def _cho_solve(L: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``S^-1 B`` for ``S = L L^T``, ``B`` (n, c)."""
     n, c = B.shape
@@ -240,12 +207,12 @@ def _pd_above(P: np.ndarray, c: float) -> bool:
     A = P.copy()
     for i in range(n):
         A[i, i] -= c
-    return _cholesky(A, L) == 0
+    return cholesky_into(A, L) == 0
 
 
 @njit(cache=True)
-def _spd(P: np.ndarray) -> np.ndarray:
-    """Symmetrise and lift tiny negative eigenvalues to a floor, as ``fusion._spd``."""
+def spd(P: np.ndarray) -> np.ndarray:
+    """Symmetrise ``P`` and lift tiny negative eigenvalues (round-off) to the floor ``1e-15 max eigenvalue``."""
     P = 0.5 * (P + P.T)
     if _pd_above(P, 1e-15 * np.trace(P)):  # smallest eigenvalue > 1e-15 trace >= the floor: nothing to lift
         return P
@@ -260,7 +227,8 @@ def _spd(P: np.ndarray) -> np.ndarray:
 
 @njit(cache=True)
 def _prior_ok(X0: np.ndarray, P0: np.ndarray) -> bool:
-    """The checks of ``fusion.check_pose`` and ``fusion.check_noise_covariance`` (6x6), without messages."""
+    """The checks of :func:`ppoe_core.estimation.checks.check_pose` and
+    :func:`~ppoe_core.estimation.checks.check_noise_covariance` (6x6), without messages."""
     if not (np.all(np.isfinite(X0)) and np.all(np.isfinite(P0))):
         return False
     R = np.ascontiguousarray(X0[:3, :3])
@@ -289,8 +257,9 @@ def _prior_ok(X0: np.ndarray, P0: np.ndarray) -> bool:
 
 
 @njit(cache=True)
-def _reorthonormalise(T: np.ndarray) -> np.ndarray:
-    """Project the rotation block back onto SO(3), as ``fusion._reorthonormalise``."""
+def reorthonormalise(T: np.ndarray) -> np.ndarray:
+    """Project the rotation block back onto SO(3) (its polar factor ``U V^T``; one Newton-Schulz step for a
+    deviation below 1e-8): guards against round-off drift."""
     out = T.copy()
     R = np.ascontiguousarray(T[:3, :3])
     E = R.T @ R
@@ -309,7 +278,7 @@ def _reorthonormalise(T: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- the update
 @njit(cache=True)
 def _prior_at(Xi: np.ndarray, X0: np.ndarray, P0: np.ndarray, first: bool, e: np.ndarray) -> np.ndarray:
-    """``e = Log(X_i^-1 X_0)`` into ``e`` and ``P_i = Jr^-1(e) P_0 Jr^-T(e)``, as ``fusion._prior_at``."""
+    """The prior seen from the iterate: ``e = Log(X_i^-1 X_0)`` into ``e`` and ``P_i = Jr^-1(e) P_0 Jr^-T(e)``."""
     if first:
         e[:] = 0.0
         return P0
@@ -326,21 +295,24 @@ def _prior_at(Xi: np.ndarray, X0: np.ndarray, P0: np.ndarray, first: bool, e: np
 @njit(cache=True)
 def _posterior(K: np.ndarray, H: np.ndarray, Pi: np.ndarray, MRM: np.ndarray, d: np.ndarray,
                transport: bool) -> np.ndarray:
-    """Joseph form ``(I-KH) P (I-KH)^T + K MRM K^T``, moved with ``Jr(d)``, as ``fusion._posterior_covariance``."""
+    """Joseph form ``(I-KH) P (I-KH)^T + K MRM K^T`` (eq. 23), moved with ``Jr(d)`` to the new estimate."""
     A = np.eye(6) - mat_mul(K, H)
     P = sandwich(A, Pi) + sandwich(K, MRM)
     if transport:
         J = np.empty((6, 6))
         se3_right_jacobian_one(d, J)
         P = sandwich(J, P)
-    return _spd(P)
+    return spd(P)
 
 
 @njit(cache=True)
-def _posterior_cost(r: np.ndarray, MRM: np.ndarray, corr: np.ndarray, P0: np.ndarray) -> float:
-    """``r+^T (M R M^T)^-1 r+ + d^T P^+ d``, as ``updater.posterior_cost`` (NaN if ``M R M^T`` is singular)."""
+def posterior_cost(r: np.ndarray, MRM: np.ndarray, corr: np.ndarray, P0: np.ndarray) -> float:
+    """Cost of an iterated update's solution, ``r+^T (M R M^T)^-1 r+ + d^T P^+ d``: post-fit residual ``r+``, the
+    correction ``d = Log(X_0^-1 X+)`` (tangent at the prior), ``P^+`` the pseudo-inverse of the prior covariance
+    (eigenvalues above ``1e-12`` of the largest).  ``chi2(m)``-distributed for a linear Gaussian model (then equal to
+    the prior NIS); NaN if ``M R M^T`` is not positive definite."""
     L = np.empty_like(MRM)
-    if _cholesky(0.5 * (MRM + MRM.T), L) != 0:
+    if cholesky_into(0.5 * (MRM + MRM.T), L) != 0:
         return math.nan
     u = _cho_solve(L, r.reshape(-1, 1))
     s, U = np.linalg.eigh(0.5 * (P0 + P0.T))
@@ -358,30 +330,15 @@ def _posterior_cost(r: np.ndarray, MRM: np.ndarray, corr: np.ndarray, P0: np.nda
 
 
 @njit(cache=True)
-def _finish(kind: int, Xi: np.ndarray, X0: np.ndarray, P0: np.ndarray, z: np.ndarray, R: np.ndarray,
-            G: np.ndarray, pts: np.ndarray, K: np.ndarray, D: np.ndarray, pixel: bool, extra: bool,
-            min_depth: float, want_cost: bool, T_out: np.ndarray, res: np.ndarray, corr: np.ndarray,
-            fout: np.ndarray, iout: np.ndarray) -> int:
-    """Re-orthonormalised estimate, post-fit residual, correction ``Log(X_0^-1 X)`` and the posterior cost."""
-    Xf = _reorthonormalise(Xi)
-    m = z.shape[0]
-    h = np.empty(m)
-    H = np.empty((m, 6))
-    M = np.empty((m, R.shape[0]))
-    bad = _linearize(kind, Xf, G, pts, K, D, pixel, extra, min_depth, h, H, M)
-    if bad >= 0:
-        iout[2], fout[2] = bad, h[0]
-        return 2
-    for i in range(m):
-        res[i] = z[i] - h[i]
+def _finish(Xf: np.ndarray, X0: np.ndarray, P0: np.ndarray, res: np.ndarray, MRM: np.ndarray, want_cost: bool,
+            corr: np.ndarray, fout: np.ndarray) -> None:
+    """The correction ``Log(X_0^-1 X_f)`` and the posterior cost at the final estimate (``res``: its residual)."""
     Xinv = np.empty((4, 4))
     E = np.empty((4, 4))
     se3_inverse_one(X0, Xinv)
     se3_mul(Xinv, Xf, E)
     se3_log_one(E, corr)
-    fout[1] = _posterior_cost(res, _mrm(M, R), corr, P0) if want_cost else math.nan
-    T_out[:, :] = Xf
-    return 0
+    fout[1] = posterior_cost(res, MRM, corr, P0) if want_cost else math.nan
 
 
 def buffer_size(m: int, max_it: int) -> int:
@@ -405,62 +362,112 @@ def output_views(buf: np.ndarray, m: int, max_it: int) -> tuple[np.ndarray, np.n
 
 
 @njit(cache=True)
+def _residual(kind: int, X: np.ndarray, z: np.ndarray, G: np.ndarray, pts: np.ndarray, K: np.ndarray,
+              D: np.ndarray, pixel: bool, extra: bool, min_depth: float, ext_r: np.ndarray, ext_H: np.ndarray,
+              ext_M: np.ndarray, r: np.ndarray, H: np.ndarray, M: np.ndarray, iout: np.ndarray,
+              fout: np.ndarray) -> int:
+    """The residual ``z ominus h(X)``, ``H`` and ``M`` at ``X``: compiled (``-1``, or status 2), or the caller's."""
+    if kind == KIND_EXTERNAL:
+        r[:], H[:, :], M[:, :] = ext_r, ext_H, ext_M
+        return -1
+    bad = linearize(kind, X, G, pts, K, D, pixel, extra, min_depth, r, H, M)
+    if bad >= 0:
+        iout[2], fout[2] = bad, r[0]
+        return 2
+    for i in range(r.shape[0]):
+        r[i] = z[i] - r[i]
+    return -1
+
+
+@njit(cache=True)
+def _step(it: int, Xi: np.ndarray, X0: np.ndarray, P0: np.ndarray, r: np.ndarray, H: np.ndarray, M: np.ndarray,
+          R: np.ndarray, max_it: int, step_tol: float, gate: float, transport: bool, buf: np.ndarray,
+          iout: np.ndarray, m: int) -> int:
+    """Iteration ``it`` at ``Xi`` with its residual ``r``, ``H``, ``M``: the next iterate into ``Xi``; returns -1 to
+    go on, 0 when done (covariance, gain written), 1 rejected by the gate, 3 ``S`` not positive definite."""
+    _, cov_out, y0, S0, _, gain, H_last, _, steps, fout = output_views(buf, m, max_it)
+    e = np.empty(6)
+    Pi = _prior_at(Xi, X0, P0, it == 1, e)
+    MRM = _mrm(M, R)
+    HP = mat_mul(H, Pi)
+    S = mat_mul_t(HP, H) + MRM
+    S = 0.5 * (S + S.T)
+    L = np.empty((m, m))
+    minor = cholesky_into(S, L)
+    if minor:
+        iout[2] = minor
+        return 3
+    if it == 1:
+        y0[:], S0[:, :], H_last[:, :] = r, S, H
+        fout[0] = np.sum(r * _cho_solve(L, r.reshape(-1, 1))[:, 0])
+        if not fout[0] <= gate:
+            return 1
+    Kg = _cho_solve(L, HP).T.copy()  # P H^T S^-1
+    d = e + mat_mul(Kg, (r - mat_mul(H, e.reshape(6, 1))[:, 0]).reshape(-1, 1))[:, 0]
+    E = np.empty((4, 4))
+    Xn = np.empty((4, 4))
+    se3_exp_one(d, E)
+    se3_mul(Xi, E, Xn)
+    Xi[:, :] = Xn
+    steps[it - 1] = math.sqrt(np.sum(d * d))
+    if steps[it - 1] < step_tol or it == max_it:
+        iout[0], iout[1] = it, steps[it - 1] < step_tol
+        cov_out[:, :] = _posterior(Kg, H, Pi, MRM, d, transport)
+        gain[:, :], H_last[:, :] = Kg, H
+        return 0
+    return -1
+
+
+@njit(cache=True)
 def update_kernel(kind: int, X0: np.ndarray, P0_in: np.ndarray, z: np.ndarray, R: np.ndarray, G: np.ndarray,
                   pts: np.ndarray, K: np.ndarray, D: np.ndarray, pixel: bool, extra: bool, min_depth: float,
                   max_it: int, step_tol: float, gate: float, transport: bool, want_cost: bool, buf: np.ndarray,
-                  iout: np.ndarray) -> int:
-    """The iterated update of ``fusion.iterated_update`` for one tag / contact measurement (module docstring).
+                  iout: np.ndarray, ext_r: np.ndarray, ext_H: np.ndarray, ext_M: np.ndarray) -> int:
+    """The iterated update (module docstring), or its next part for :data:`KIND_EXTERNAL`.
 
     ``R`` is the checked noise covariance, ``G`` the model's ``T_camera_ref`` / ``T_plane_ref``, ``pts`` its points
     (n, 3), ``gate`` the NIS threshold (``inf``: no gating).  Outputs are written into ``buf`` (zeros of
-    :func:`buffer_size`, laid out by :func:`output_views`) and ``iout = [iterations, converged, error index]``.
+    :func:`buffer_size`, laid out by :func:`output_views`) and ``iout = [iterations, converged, error index, phase,
+    iteration]`` (zeros at the first call; phase 1: iterating, 2: finishing).  For :data:`KIND_EXTERNAL` every call
+    after a :data:`NEED_LINEARISATION` brings ``ext_r`` (m,) = ``z ominus h(T)``, ``ext_H`` (m, 6), ``ext_M``
+    (m, k) at the ``T`` of the buffer; ``z`` is not read.
     """
     m = z.shape[0]
-    T_out, cov_out, y0, S0, res, gain, H_last, corr, steps, fout = output_views(buf, m, max_it)
-    fout[:] = np.nan
-    if not _prior_ok(X0, P0_in):
-        return 4
-    if not np.all(np.isfinite(z)):
-        return 5
-    P0 = 0.5 * (P0_in + P0_in.T)
-    h = np.empty(m)
+    T_out, _, _, _, res, _, _, corr, _, fout = output_views(buf, m, max_it)
+    r = np.empty(m)
     H = np.empty((m, 6))
     M = np.empty((m, R.shape[0]))
-    L = np.empty((m, m))
-    e = np.empty(6)
-    E = np.empty((4, 4))
-    Xi = X0.copy()
-    Xn = np.empty((4, 4))
-    for it in range(1, max_it + 1):
-        bad = _linearize(kind, Xi, G, pts, K, D, pixel, extra, min_depth, h, H, M)
+    if iout[3] == 0:
+        fout[:] = np.nan
+        if not _prior_ok(X0, P0_in):
+            return 4
+        if kind != KIND_EXTERNAL and not np.all(np.isfinite(z)):
+            return 5
+        T_out[:, :] = X0
+        iout[3], iout[4] = 1, 1
+        if kind == KIND_EXTERNAL:
+            return NEED_LINEARISATION
+    P0 = 0.5 * (P0_in + P0_in.T)
+    while iout[3] == 1:
+        bad = _residual(kind, T_out, z, G, pts, K, D, pixel, extra, min_depth, ext_r, ext_H, ext_M, r, H, M, iout,
+                        fout)
         if bad >= 0:
-            iout[2], fout[2] = bad, h[0]
-            return 2
-        r = z - h
-        Pi = _prior_at(Xi, X0, P0, it == 1, e)
-        MRM = _mrm(M, R)
-        HP = mat_mul(H, Pi)
-        S = mat_mul_t(HP, H) + MRM
-        S = 0.5 * (S + S.T)
-        minor = _cholesky(S, L)
-        if minor:
-            iout[2] = minor
-            return 3
-        if it == 1:
-            y0[:], S0[:, :], H_last[:, :] = r, S, H
-            fout[0] = np.sum(r * _cho_solve(L, r.reshape(-1, 1))[:, 0])
-            if not fout[0] <= gate:
-                return 1
-        Kg = _cho_solve(L, HP).T.copy()  # P H^T S^-1
-        d = e + mat_mul(Kg, (r - mat_mul(H, e.reshape(6, 1))[:, 0]).reshape(-1, 1))[:, 0]
-        se3_exp_one(d, E)
-        se3_mul(Xi, E, Xn)
-        steps[it - 1] = math.sqrt(np.sum(d * d))
-        if steps[it - 1] < step_tol or it == max_it:
-            iout[0], iout[1] = it, steps[it - 1] < step_tol
-            cov_out[:, :] = _posterior(Kg, H, Pi, MRM, d, transport)
-            gain[:, :], H_last[:, :] = Kg, H
-            break
-        Xi[:, :] = Xn
-    return _finish(kind, Xn, X0, P0, z, R, G, pts, K, D, pixel, extra, min_depth, want_cost, T_out, res, corr,
-                   fout, iout)
+            return bad
+        status = _step(int(iout[4]), T_out, X0, P0, r, H, M, R, max_it, step_tol, gate, transport, buf, iout, m)
+        if status > 0:
+            return status
+        if status == 0:
+            T_out[:, :] = reorthonormalise(T_out)
+            iout[3] = 2
+        else:
+            iout[4] += 1
+        if kind == KIND_EXTERNAL:
+            return NEED_LINEARISATION
+    bad = _residual(kind, T_out, z, G, pts, K, D, pixel, extra, min_depth, ext_r, ext_H, ext_M, r, H, M, iout, fout)
+    if bad >= 0:
+        return bad
+    res[:] = r
+    _finish(T_out, X0, P0, r, _mrm(M, R), want_cost, corr, fout)
+    return 0
+
+

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import MeasurementError, PpoeError
-from ppoe_core.estimation.corrections import Measurement, ToolUpdate, _sym
+from ppoe_core.estimation.corrections import Measurement, ToolUpdate
 from ppoe_core.estimation.prior_buffer import Array, PriorSample
 
 # ----------------------------------------------------------------------------
@@ -120,8 +120,9 @@ class ModelUpdater:
         ``"prior"``: the NIS at the prior (``fusion.iterated_update``'s gate, exact for linear
         models).  ``"posterior"`` (default): the cost of the iterated solution,
         ``J = r+^T (M R M^T)^-1 r+ + d^T P^+ d`` with the post-fit residual ``r+`` and the
-        correction ``d = Log(X0^-1 X+)`` (``P^+`` pseudo-inverse of the prior covariance),
-        against the same chi-square quantile of the measurement dimension.  ``J`` equals the
+        correction ``d = Log(X0^-1 X+)`` (``P^+`` pseudo-inverse of the prior covariance;
+        :func:`ppoe_core.estimation.update_kernels.posterior_cost`), against the same chi-square
+        quantile of the measurement dimension.  ``J`` equals the
         prior NIS for a linear model, but does not blow up when the prior is wide compared
         with the sensor (tags seen through 5 deg of plate bending: see docs/fusion_node.md).
     camera_covariance : bool
@@ -295,47 +296,11 @@ class ModelUpdater:
         self.last_result = res
         if not posterior:
             return ToolUpdate(res.T, res.cov, bool(res.accepted), float(res.nis))
-        cost = res.cost  # computed by the compiled update; else here
-        if math.isnan(cost):
-            cost = posterior_cost(obs, res.T, res.residual, res.correction, cov_tool)
+        cost = res.cost  # the compiled update's posterior cost (NaN: M R M^T not positive definite -> rejected)
         gate = chi2_gate(obs.dim, self.gate_probability)
         if not cost <= gate:
             return ToolUpdate(np.asarray(T_base_tool, float), np.asarray(cov_tool, float), False, cost)
         return ToolUpdate(res.T, res.cov, True, cost)
-
-
-def posterior_cost(obs: Any, T_post: Array, residual: Array, correction: Array, cov_prior: Array) -> float:
-    """Cost of an iterated update's solution, ``r+^T (M R M^T)^-1 r+ + d^T P^+ d``.
-
-    Parameters
-    ----------
-    obs : measurement model (``ppoe_core.estimation.measurements``)
-    T_post : ndarray, shape (4, 4)
-        Posterior estimate.
-    residual : ndarray, shape (m,)
-        Post-fit residual ``z ominus h(T_post)``.
-    correction : ndarray, shape (6,)
-        ``Log(T_prior^-1 T_post)``, tangent space at the prior.
-    cov_prior : ndarray, shape (6, 6)
-        Prior covariance in the tangent space at the prior (tool frame); pseudo-inverted.
-
-    Returns
-    -------
-    float
-        ``chi2(m)``-distributed for a linear Gaussian model (then equal to the prior NIS).
-    """
-    M = obs.jacobian_noise(T_post)
-    if M is None:
-        from ppoe_core.estimation.fusion import numerical_jacobian_noise
-
-        M = numerical_jacobian_noise(obs, T_post)
-    MRM = _sym(M @ obs.noise_cov @ M.T)
-    r = np.asarray(residual, dtype=float)
-    d = np.asarray(correction, dtype=float)
-    s, U = np.linalg.eigh(_sym(cov_prior))
-    keep = s > 1e-12 * max(float(s.max()), 1e-300)
-    dU = U[:, keep].T @ d
-    return float(r @ np.linalg.solve(MRM, r) + dU @ (dU / s[keep]))
 
 
 #: Fusion settings with their defaults: the fusion node's parameters of the same names

@@ -32,7 +32,7 @@ T_POSE = "geometry_msgs/msg/PoseStamped"
 T_POINT = "geometry_msgs/msg/PointStamped"
 T_IMU = "sensor_msgs/msg/Imu"
 T_TEMPERATURE = "sensor_msgs/msg/Temperature"
-#: ``/temperature`` or ``/temperature/<name>`` (CONTRACT.md sec. 3): thermal effects' variable
+#: ``/temperature`` or ``/temperature/<name>`` (docs/conventions.md sec. 3): thermal effects' variable
 TOPIC_TEMPERATURE = "/temperature"
 T_POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 T_POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"
@@ -56,7 +56,7 @@ CONTRACT_TYPES: dict[str, str] = {
 #: distorted pixel (u, v), undistorted normalised coordinates (x = X/Z, y = Y/Z).
 TAG_OBSERVATION_FIELDS: tuple[str, ...] = ("id", "corner", "u", "v", "x", "y")
 
-_IMU_RE = re.compile(r"^/imu/[A-Za-z0-9_]+(/[A-Za-z0-9_]+)*$")
+IMU_TOPIC_RE = re.compile(r"^/imu/[A-Za-z0-9_]+(/[A-Za-z0-9_]+)*$")
 
 _TYPESTORE: Any = None
 
@@ -95,11 +95,11 @@ def header_msg(stamp_ns: int, frame_id: str) -> Any:
     return Header(stamp=_time_msg(stamp_ns), frame_id=str(frame_id))
 
 
-def _stamp_s(header: Any) -> float:
+def stamp_seconds(header: Any) -> float:
     return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
 
 
-def _pose_msg(T: np.ndarray) -> Any:
+def pose_message(T: np.ndarray) -> Any:
     types = typestore().types
     T = np.asarray(T, dtype=float)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
@@ -112,7 +112,7 @@ def _pose_msg(T: np.ndarray) -> Any:
     )
 
 
-def _vec3(v: Sequence[float] | np.ndarray, what: str) -> Any:
+def vector3_message(v: Sequence[float] | np.ndarray, what: str) -> Any:
     a = np.asarray(v, dtype=float).reshape(-1)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
         raise BagError(f"{what} must be 3 finite numbers, got {v!r}")
@@ -151,3 +151,8 @@ def deserialize(data: bytes | memoryview, msgtype: str, *, topic: str = "?") -> 
     if len(tail) > 8 and any(tail):
         raise BagError(f"topic {topic}: {len(tail)} unexpected trailing bytes after a {msgtype} message")
     return message
+
+
+# the underscore names, for io/writer.py (the faults helper's work in progress; test/test_architecture.py lists it):
+# remove once it imports the public names
+_IMU_RE, _pose_msg, _vec3 = IMU_TOPIC_RE, pose_message, vector3_message

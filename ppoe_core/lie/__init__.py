@@ -8,10 +8,11 @@ Conventions (docs/conventions.md section 1, paper section III):
   covariance ``E[xi xi^T]`` lives in the tangent space at ``Xbar`` (eq. 9).
 
 Every function broadcasts over leading batch axes, in the style of
-pytransform3d's ``trajectories`` module.  Small angles are handled with
-vectorised ``np.where`` and Taylor series (as in jaxlie's ``_so3.py``); the
-logarithm goes through a quaternion (Shepperd's method), which keeps it
-accurate at and near ``pi``.
+pytransform3d's ``trajectories`` module.  Exp, Log, the Jacobians, the inverse and
+the quaternions have one implementation, compiled (:mod:`ppoe_core.lie.kernels`,
+called for one pose or a flat batch; numba is imported on the first call): small
+angles by Taylor series, the logarithm through a quaternion (Shepperd's method),
+which keeps it accurate at and near ``pi``.
 """
 
 from __future__ import annotations

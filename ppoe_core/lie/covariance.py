@@ -7,7 +7,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ppoe_core.errors import CovarianceError
-from ppoe_core.lie.so3 import Array, _f, _kernels
+from ppoe_core.lie.compiled import Array, as_float, lie_kernels
 
 # ----------------------------------------------------------------------------
 # Covariances
@@ -16,9 +16,9 @@ from ppoe_core.lie.so3 import Array, _f, _kernels
 
 def _rotate(T: ArrayLike, cov: ArrayLike, inverse: bool) -> Array:
     """``B cov B^T`` (``B^T cov B`` with ``inverse``), ``B = blockdiag(R, R)``, broadcast over leading axes."""
-    kernels = _kernels()
-    T_a = T if type(T) is np.ndarray and T.dtype == np.float64 else _f(T)
-    cov_a = cov if type(cov) is np.ndarray and cov.dtype == np.float64 else _f(cov)
+    kernels = lie_kernels()
+    T_a = T if type(T) is np.ndarray and T.dtype == np.float64 else as_float(T)
+    cov_a = cov if type(cov) is np.ndarray and cov.dtype == np.float64 else as_float(cov)
     if T_a.shape == (4, 4) and cov_a.shape == (6, 6):  # one message: no batch reshaping, the same operations
         out1 = np.empty((6, 6))
         kernels.rotate_covariance_one(T_a, cov_a, inverse, out1)
@@ -109,10 +109,10 @@ def check_covariance(
     if size is not None and C.shape[-1] != size:
         raise CovarianceError(f"{name}: must be {size}x{size}, got {C.shape[-2]}x{C.shape[-1]}")
     if C.ndim == 2 and 0 < C.shape[0] <= 12:  # one message's covariance: the compiled quick pass
-        if _kernels().covariance_passes_kernel(np.ascontiguousarray(C), tol, tol if eig_tol is None else eig_tol):
+        if lie_kernels().covariance_passes_kernel(np.ascontiguousarray(C), tol, tol if eig_tol is None else eig_tol):
             return 0.5 * (C + C.T) if symmetrize else C
     elif C.ndim == 3 and 0 < C.shape[0] and 0 < C.shape[1] <= 12:  # a batch (all forward-kinematics priors of a bag)
-        if _kernels().covariances_pass_kernel(np.ascontiguousarray(C), tol, tol if eig_tol is None else eig_tol):
+        if lie_kernels().covariances_pass_kernel(np.ascontiguousarray(C), tol, tol if eig_tol is None else eig_tol):
             return 0.5 * (C + np.swapaxes(C, -1, -2)) if symmetrize else C
     # array methods instead of np.all / np.max: the same reductions without the dispatch
     # overhead (this runs once per message in the nodes)

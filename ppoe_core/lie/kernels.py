@@ -1,7 +1,14 @@
-"""Compiled (numba) loops of :mod:`ppoe_core.lie` for the per-message hot path of the nodes: quaternions of
-rotation matrices and the rotation of pose covariances into the ROS convention.  Each loops over a flat batch
-``(N, ...)``; the public functions in :mod:`ppoe_core.lie.so3` / :mod:`ppoe_core.lie.covariance` reshape and call
-them, for one pose or many."""
+"""THE implementation (compiled, numba) of the SO(3)/SE(3) maps of :mod:`ppoe_core.lie`: Exp/Log, left/right
+Jacobians and their inverses (paper eq. 3-9, Barfoot eq. 7.77, 7.86b), inverse, quaternions (Shepperd), the rotation
+of pose covariances into the ROS convention, the quick covariance check, and the Cholesky factorisation of the
+compiled updates.
+
+Each map has a one-element function (``*_one``, also called from the other compiled code: the measurement updates,
+the carried corrections, the kinematics node's per-message path) and a loop over a flat batch ``(N, ...)``
+(``*_kernel``).  The public numpy-facing functions of :mod:`ppoe_core.lie.so3`, :mod:`ppoe_core.lie.se3` and
+:mod:`ppoe_core.lie.covariance` reshape their input and call these, for one pose or many.  Small angles use Taylor
+series below ``theta^2 < 1e-6`` (``1e-4`` for the ``Q`` block), the logarithm goes through the quaternion (accurate at
+and near pi); the numpy references the tests compare with are ``test/lie_reference.py``."""
 
 from __future__ import annotations
 
@@ -11,16 +18,18 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "quat_from_matrix_kernel", "quat_from_matrix_one", "pose_fields_one", "pose_from_quat_one",
-    "rotate_covariance_kernel",
-    "rotate_covariance_one", "se3_exp_one", "se3_log_one", "so3_log_one",
-    "se3_right_jacobian_one", "se3_right_jacobian_inv_one", "se3_inverse_one", "se3_mul",
-    "covariance_passes_kernel", "covariances_pass_kernel", "mat_mul", "mat_mul_t", "sandwich",
+    "quat_into", "quat_from_matrix_kernel", "quat_from_matrix_one", "pose_fields_one", "pose_from_quat_one",
+    "matrix_from_quat_kernel", "rotate_covariance_into", "rotate_covariance_kernel", "rotate_covariance_one",
+    "so3_exp_kernel", "so3_log_kernel", "so3_log_one", "so3_left_jacobian_kernel", "so3_left_jacobian_inv_kernel",
+    "se3_exp_one", "se3_exp_kernel", "se3_log_one", "se3_log_kernel", "se3_left_jacobian_one",
+    "se3_left_jacobian_kernel", "se3_left_jacobian_inv_one", "se3_left_jacobian_inv_kernel",
+    "se3_right_jacobian_one", "se3_right_jacobian_inv_one", "se3_inverse_one", "se3_inverse_kernel", "se3_mul",
+    "cholesky_into", "covariance_passes_kernel", "covariances_pass_kernel", "mat_mul", "mat_mul_t", "sandwich",
 ]
 
 
 @njit(cache=True, inline="always")
-def _quat_into(R: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:
+def quat_into(R: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:
     """Shepperd's quaternion of one rotation ``R`` (3, 3) into ``out`` (4,); ``q`` (4,) scratch."""
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
@@ -56,41 +65,57 @@ def quat_from_matrix_kernel(R: np.ndarray, out: np.ndarray) -> None:
     is largest (the first one on ties; a NaN pivot wins, as ``np.argmax``), then normalised."""
     q = np.empty(4)
     for n in range(R.shape[0]):
-        _quat_into(R[n], q, out[n])
+        quat_into(R[n], q, out[n])
 
 
 @njit(cache=True)
 def quat_from_matrix_one(R: np.ndarray, out: np.ndarray) -> None:
     """:func:`quat_from_matrix_kernel` of one rotation ``R`` (3, 3) (any layout, e.g. ``T[:3, :3]``) into ``out``
     (4,) (an output argument: a returned array costs more than the arithmetic)."""
-    _quat_into(R, np.empty(4), out)
+    quat_into(R, np.empty(4), out)
 
 
 @njit(cache=True)
 def pose_fields_one(T: np.ndarray, out: np.ndarray) -> None:
     """A pose message's fields of ``T`` (4, 4) into ``out`` (7,): the quaternion ``(x, y, z, w)`` of
     :func:`quat_from_matrix_kernel` (the same floats) and the translation."""
-    _quat_into(T[:3, :3], np.empty(4), out[:4])
+    quat_into(T[:3, :3], np.empty(4), out[:4])
     out[4], out[5], out[6] = T[0, 3], T[1, 3], T[2, 3]
+
+
+@njit(cache=True, inline="always")
+def _rotation_of_quat(x: float, y: float, z: float, w: float, R: np.ndarray) -> None:
+    """Rotation matrix of the quaternion ``(x, y, z, w)`` (normalised here) into ``R`` (3, 3); a zero or non-finite
+    norm gives NaN entries."""
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not (0.0 < n < math.inf):
+        x = y = z = w = math.nan
+    else:
+        x, y, z, w = x / n, y / n, z / n, w / n
+    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
+
+
+@njit(cache=True)
+def matrix_from_quat_kernel(q: np.ndarray, out: np.ndarray) -> None:
+    """Rotation matrices ``out`` (N, 3, 3) of the quaternions ``q`` (N, 4) ``(x, y, z, w)``, each normalised."""
+    for n in range(q.shape[0]):
+        _rotation_of_quat(q[n, 0], q[n, 1], q[n, 2], q[n, 3], out[n])
 
 
 @njit(cache=True)
 def pose_from_quat_one(x: float, y: float, z: float, w: float, px: float, py: float, pz: float,
                        T: np.ndarray) -> None:
-    """Homogeneous (4, 4) of the quaternion ``(x, y, z, w)`` (normalised here) and translation ``(px, py, pz)``;
-    the operations of the one-quaternion path of :func:`ppoe_core.lie.so3.matrix_from_quat` (bit-identical,
-    tested), into ``T`` (4, 4).  A zero or non-finite norm gives NaN entries (the caller checks the norm first)."""
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    x, y, z, w = x / n, y / n, z / n, w / n
-    T[0, 0], T[0, 1], T[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)
-    T[1, 0], T[1, 1], T[1, 2] = 2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)
-    T[2, 0], T[2, 1], T[2, 2] = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
+    """Homogeneous (4, 4) of the quaternion ``(x, y, z, w)`` (normalised here, as :func:`matrix_from_quat_kernel`)
+    and translation ``(px, py, pz)`` into ``T``."""
+    _rotation_of_quat(x, y, z, w, T)
     T[0, 3], T[1, 3], T[2, 3] = px, py, pz
     T[3, 0], T[3, 1], T[3, 2], T[3, 3] = 0.0, 0.0, 0.0, 1.0
 
 
 @njit(cache=True, inline="always")
-def _rotate_cov_into(T: np.ndarray, cov: np.ndarray, inverse: bool, out: np.ndarray, A: np.ndarray,
+def rotate_covariance_into(T: np.ndarray, cov: np.ndarray, inverse: bool, out: np.ndarray, A: np.ndarray,
                      tmp: np.ndarray) -> None:
     """One pose: ``out = B cov B^T`` (``B^T cov B`` with ``inverse``); ``A``, ``tmp`` (3, 3) scratch."""
     for i in range(3):
@@ -114,26 +139,24 @@ def rotate_covariance_kernel(T: np.ndarray, cov: np.ndarray, inverse: bool, out:
     A = np.empty((3, 3))
     tmp = np.empty((3, 3))
     for n in range(T.shape[0]):
-        _rotate_cov_into(T[n], cov[n], inverse, out[n], A, tmp)
+        rotate_covariance_into(T[n], cov[n], inverse, out[n], A, tmp)
 
 
 @njit(cache=True)
 def rotate_covariance_one(T: np.ndarray, cov: np.ndarray, inverse: bool, out: np.ndarray) -> None:
     """:func:`rotate_covariance_kernel` of one pose ``T`` (4, 4) and covariance ``cov`` (6, 6) into ``out``
     (6, 6)."""
-    _rotate_cov_into(T, cov, inverse, out, np.empty((3, 3)), np.empty((3, 3)))
+    rotate_covariance_into(T, cov, inverse, out, np.empty((3, 3)), np.empty((3, 3)))
 
 
 # ----------------------------------------------------------------------------
-# SE(3) on one element, for the compiled measurement updates (ppoe_core.estimation.update_kernels).  The same
-# formulas, series thresholds and operation order as the numpy functions of ppoe_core.lie.se3 / so3 (tested to
-# agree to round-off); 3x3 products written out, no temporaries allocated.
+# SO(3) / SE(3) maps: one element (3x3 products written out) and a loop over a flat batch
 # ----------------------------------------------------------------------------
 
 
 @njit(cache=True, inline="always")
 def _abc(t2: float) -> tuple[float, float, float]:
-    """``sin t / t``, ``(1 - cos t) / t^2``, ``(t - sin t) / t^3`` with the series of ``so3._coeffs_abc``."""
+    """``sin t / t``, ``(1 - cos t) / t^2``, ``(t - sin t) / t^3`` (series below ``t^2 < 1e-6``)."""
     if t2 < 1e-6:
         return (1.0 - t2 / 6.0 + t2 * t2 / 120.0, 0.5 - t2 / 24.0 + t2 * t2 / 720.0,
                 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0)
@@ -157,10 +180,9 @@ def _mm3(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
             out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
 
 
-@njit(cache=True)
-def se3_exp_one(xi: np.ndarray, T: np.ndarray) -> None:
-    """``T = Exp(xi)`` (paper eq. 3) for one twist ``[rho; theta]`` (6,) into ``T`` (4, 4)."""
-    w0, w1, w2 = xi[3], xi[4], xi[5]
+@njit(cache=True, inline="always")
+def _exp_blocks(w0: float, w1: float, w2: float, R: np.ndarray, V: np.ndarray) -> None:
+    """``R = Exp(w) = I + A W + B W^2`` (Rodrigues) and ``V = J_l(w) = I + B W + C W^2`` into (3, 3) blocks."""
     A, B, C = _abc(w0 * w0 + w1 * w1 + w2 * w2)
     W = np.empty((3, 3))
     WW = np.empty((3, 3))
@@ -169,21 +191,51 @@ def se3_exp_one(xi: np.ndarray, T: np.ndarray) -> None:
     for i in range(3):
         for j in range(3):
             e = 1.0 if i == j else 0.0
-            T[i, j] = e + A * W[i, j] + B * WW[i, j]
-        v0 = (1.0 if i == 0 else 0.0) + B * W[i, 0] + C * WW[i, 0]
-        v1 = (1.0 if i == 1 else 0.0) + B * W[i, 1] + C * WW[i, 1]
-        v2 = (1.0 if i == 2 else 0.0) + B * W[i, 2] + C * WW[i, 2]
-        T[i, 3] = v0 * xi[0] + v1 * xi[1] + v2 * xi[2]
+            R[i, j] = e + A * W[i, j] + B * WW[i, j]
+            V[i, j] = e + B * W[i, j] + C * WW[i, j]
+
+
+@njit(cache=True)
+def se3_exp_one(xi: np.ndarray, T: np.ndarray) -> None:
+    """``T = Exp(xi)`` (paper eq. 3) for one twist ``[rho; theta]`` (6,) into ``T`` (4, 4)."""
+    V = np.empty((3, 3))
+    _exp_blocks(xi[3], xi[4], xi[5], T, V)
+    for i in range(3):
+        T[i, 3] = V[i, 0] * xi[0] + V[i, 1] * xi[1] + V[i, 2] * xi[2]
         T[3, i] = 0.0
     T[3, 3] = 1.0
 
 
 @njit(cache=True)
+def se3_exp_kernel(xi: np.ndarray, out: np.ndarray) -> None:
+    """:func:`se3_exp_one` of twists ``xi`` (N, 6) into ``out`` (N, 4, 4)."""
+    for n in range(xi.shape[0]):
+        se3_exp_one(xi[n], out[n])
+
+
+@njit(cache=True)
+def so3_exp_kernel(w: np.ndarray, out: np.ndarray) -> None:
+    """Rodrigues' ``Exp`` of rotation vectors ``w`` (N, 3) into ``out`` (N, 3, 3)."""
+    V = np.empty((3, 3))
+    for n in range(w.shape[0]):
+        _exp_blocks(w[n, 0], w[n, 1], w[n, 2], out[n], V)
+
+
+@njit(cache=True)
+def so3_left_jacobian_kernel(w: np.ndarray, out: np.ndarray) -> None:
+    """Left Jacobian of SO(3) ``I + B [w] + C [w]^2`` (Barfoot eq. 7.77) of ``w`` (N, 3) into ``out`` (N, 3, 3)."""
+    R = np.empty((3, 3))
+    for n in range(w.shape[0]):
+        _exp_blocks(w[n, 0], w[n, 1], w[n, 2], R, out[n])
+
+
+@njit(cache=True)
 def so3_log_one(R: np.ndarray, w: np.ndarray) -> None:
-    """Rotation vector ``w`` (3,) of ``R`` (3, 3) through the quaternion (exact near 0 and pi), as ``so3_log``."""
-    q = np.empty((1, 4))
-    quat_from_matrix_kernel(R.reshape(1, 3, 3), q)
-    v0, v1, v2, qw = q[0, 0], q[0, 1], q[0, 2], q[0, 3]
+    """Rotation vector ``w`` (3,) of ``R`` (3, 3), angle in ``[0, pi]``, through the quaternion (exact near 0 and
+    pi; at exactly pi the axis sign is arbitrary)."""
+    q = np.empty(4)
+    quat_into(R, np.empty(4), q)
+    v0, v1, v2, qw = q[0], q[1], q[2], q[3]
     s = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
     if s < 1e-2:
         r2 = (s / qw) ** 2
@@ -194,8 +246,16 @@ def so3_log_one(R: np.ndarray, w: np.ndarray) -> None:
 
 
 @njit(cache=True)
+def so3_log_kernel(R: np.ndarray, out: np.ndarray) -> None:
+    """:func:`so3_log_one` of rotations ``R`` (N, 3, 3) into ``out`` (N, 3)."""
+    for n in range(R.shape[0]):
+        so3_log_one(R[n], out[n])
+
+
+@njit(cache=True)
 def _so3_jl_inv_into(w0: float, w1: float, w2: float, out: np.ndarray) -> None:
-    """Inverse left Jacobian of SO(3) ``I - [w]/2 + D [w]^2`` into ``out`` (3, 3), as ``so3_left_jacobian_inv``."""
+    """Inverse left Jacobian of SO(3) ``I - [w]/2 + D [w]^2``, ``D = (1 - t sin t / (2 (1 - cos t))) / t^2``
+    (series below ``t^2 < 1e-6``), into ``out`` (3, 3)."""
     t2 = w0 * w0 + w1 * w1 + w2 * w2
     if t2 < 1e-6:
         D = 1.0 / 12.0 + t2 / 720.0 + t2 * t2 / 30240.0
@@ -212,10 +272,17 @@ def _so3_jl_inv_into(w0: float, w1: float, w2: float, out: np.ndarray) -> None:
 
 
 @njit(cache=True)
+def so3_left_jacobian_inv_kernel(w: np.ndarray, out: np.ndarray) -> None:
+    """Inverse left Jacobian of SO(3) of ``w`` (N, 3) into ``out`` (N, 3, 3)."""
+    for n in range(w.shape[0]):
+        _so3_jl_inv_into(w[n, 0], w[n, 1], w[n, 2], out[n])
+
+
+@njit(cache=True)
 def se3_log_one(T: np.ndarray, xi: np.ndarray) -> None:
     """``xi = Log(T)`` (paper eq. 4) for one pose (4, 4) into ``xi`` (6,)."""
     w = np.empty(3)
-    so3_log_one(np.ascontiguousarray(T[:3, :3]), w)
+    so3_log_one(T[:3, :3], w)
     Ji = np.empty((3, 3))
     _so3_jl_inv_into(w[0], w[1], w[2], Ji)
     for i in range(3):
@@ -224,8 +291,15 @@ def se3_log_one(T: np.ndarray, xi: np.ndarray) -> None:
 
 
 @njit(cache=True)
+def se3_log_kernel(T: np.ndarray, out: np.ndarray) -> None:
+    """:func:`se3_log_one` of poses ``T`` (N, 4, 4) into ``out`` (N, 6)."""
+    for n in range(T.shape[0]):
+        se3_log_one(T[n], out[n])
+
+
+@njit(cache=True)
 def _q_block(r0: float, r1: float, r2: float, w0: float, w1: float, w2: float, Q: np.ndarray) -> None:
-    """Barfoot's ``Q(rho, theta)`` block of the SE(3) left Jacobian (eq. 7.86b), as ``se3._q_matrix``."""
+    """Barfoot's ``Q(rho, theta)`` block of the SE(3) left Jacobian (eq. 7.86b); series below ``theta^2 < 1e-4``."""
     t2 = w0 * w0 + w1 * w1 + w2 * w2
     if t2 < 1e-4:
         c1 = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
@@ -263,46 +337,68 @@ def _q_block(r0: float, r1: float, r2: float, w0: float, w1: float, w2: float, Q
                        + c2 * (A1[i, j] + A2[i, j] - 3.0 * WPW[i, j]) + c3 * (A3[i, j] + A4[i, j]))
 
 
-@njit(cache=True)
-def se3_right_jacobian_one(xi: np.ndarray, J: np.ndarray) -> None:
-    """Right Jacobian ``J_r(xi) = J_l(-xi) = [[Jl, Q], [0, Jl]](-xi)`` of SE(3) into ``J`` (6, 6)."""
-    r0, r1, r2, w0, w1, w2 = -xi[0], -xi[1], -xi[2], -xi[3], -xi[4], -xi[5]
-    _, B, C = _abc(w0 * w0 + w1 * w1 + w2 * w2)
-    W = np.empty((3, 3))
-    WW = np.empty((3, 3))
-    Q = np.empty((3, 3))
-    _hat_into(w0, w1, w2, W)
-    _mm3(W, W, WW)
-    _q_block(r0, r1, r2, w0, w1, w2, Q)
+@njit(cache=True, inline="always")
+def _upper_block_triangular(A: np.ndarray, B: np.ndarray, J: np.ndarray) -> None:
+    """``J = [[A, B], [0, A]]`` (6, 6) of 3x3 blocks."""
     for i in range(3):
         for j in range(3):
-            v = (1.0 if i == j else 0.0) + B * W[i, j] + C * WW[i, j]
-            J[i, j] = v
-            J[3 + i, 3 + j] = v
-            J[i, 3 + j] = Q[i, j]
+            J[i, j] = A[i, j]
+            J[3 + i, 3 + j] = A[i, j]
+            J[i, 3 + j] = B[i, j]
             J[3 + i, j] = 0.0
 
 
 @njit(cache=True)
-def se3_right_jacobian_inv_one(xi: np.ndarray, J: np.ndarray) -> None:
-    """Inverse right Jacobian ``J_r^-1(xi) = [[Ji, -Ji Q Ji], [0, Ji]](-xi)`` of SE(3) into ``J`` (6, 6)."""
-    r0, r1, r2, w0, w1, w2 = -xi[0], -xi[1], -xi[2], -xi[3], -xi[4], -xi[5]
+def se3_left_jacobian_one(xi: np.ndarray, J: np.ndarray) -> None:
+    """Left Jacobian of SE(3) ``[[J_l, Q], [0, J_l]](xi)`` into ``J`` (6, 6): ``Exp(xi + d) ~ Exp(J d) Exp(xi)``."""
+    R = np.empty((3, 3))
+    V = np.empty((3, 3))
+    Q = np.empty((3, 3))
+    _exp_blocks(xi[3], xi[4], xi[5], R, V)
+    _q_block(xi[0], xi[1], xi[2], xi[3], xi[4], xi[5], Q)
+    _upper_block_triangular(V, Q, J)
+
+
+@njit(cache=True)
+def se3_left_jacobian_inv_one(xi: np.ndarray, J: np.ndarray) -> None:
+    """Inverse left Jacobian of SE(3) ``[[Ji, -Ji Q Ji], [0, Ji]](xi)`` into ``J`` (6, 6)."""
     Ji = np.empty((3, 3))
     Q = np.empty((3, 3))
     JQ = np.empty((3, 3))
     JQJ = np.empty((3, 3))
-    _so3_jl_inv_into(w0, w1, w2, Ji)
-    _q_block(r0, r1, r2, w0, w1, w2, Q)
+    _so3_jl_inv_into(xi[3], xi[4], xi[5], Ji)
+    _q_block(xi[0], xi[1], xi[2], xi[3], xi[4], xi[5], Q)
     for i in range(3):
         for j in range(3):
             JQ[i, j] = -Ji[i, 0] * Q[0, j] - Ji[i, 1] * Q[1, j] - Ji[i, 2] * Q[2, j]
     _mm3(JQ, Ji, JQJ)
-    for i in range(3):
-        for j in range(3):
-            J[i, j] = Ji[i, j]
-            J[3 + i, 3 + j] = Ji[i, j]
-            J[i, 3 + j] = JQJ[i, j]
-            J[3 + i, j] = 0.0
+    _upper_block_triangular(Ji, JQJ, J)
+
+
+@njit(cache=True)
+def se3_right_jacobian_one(xi: np.ndarray, J: np.ndarray) -> None:
+    """Right Jacobian of SE(3) ``J_r(xi) = J_l(-xi)`` into ``J`` (6, 6): ``Exp(xi + d) ~ Exp(xi) Exp(J d)``."""
+    se3_left_jacobian_one(-xi, J)
+
+
+@njit(cache=True)
+def se3_right_jacobian_inv_one(xi: np.ndarray, J: np.ndarray) -> None:
+    """Inverse right Jacobian of SE(3) ``J_r^-1(xi) = J_l^-1(-xi)`` into ``J`` (6, 6)."""
+    se3_left_jacobian_inv_one(-xi, J)
+
+
+@njit(cache=True)
+def se3_left_jacobian_kernel(xi: np.ndarray, out: np.ndarray) -> None:
+    """:func:`se3_left_jacobian_one` of twists ``xi`` (N, 6) into ``out`` (N, 6, 6)."""
+    for n in range(xi.shape[0]):
+        se3_left_jacobian_one(xi[n], out[n])
+
+
+@njit(cache=True)
+def se3_left_jacobian_inv_kernel(xi: np.ndarray, out: np.ndarray) -> None:
+    """:func:`se3_left_jacobian_inv_one` of twists ``xi`` (N, 6) into ``out`` (N, 6, 6)."""
+    for n in range(xi.shape[0]):
+        se3_left_jacobian_inv_one(xi[n], out[n])
 
 
 @njit(cache=True)
@@ -317,12 +413,41 @@ def se3_inverse_one(T: np.ndarray, out: np.ndarray) -> None:
 
 
 @njit(cache=True)
+def se3_inverse_kernel(T: np.ndarray, out: np.ndarray) -> None:
+    """:func:`se3_inverse_one` of poses ``T`` (N, 4, 4) into ``out`` (N, 4, 4)."""
+    for n in range(T.shape[0]):
+        se3_inverse_one(T[n], out[n])
+
+
+@njit(cache=True)
 def se3_mul(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
     """``out = A @ B`` for 4x4 poses (last rows ``[0, 0, 0, 1]``; ``out`` must not alias ``A`` or ``B``)."""
     for i in range(3):
         for j in range(4):
             out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j] + A[i, 3] * B[3, j]
     out[3, 0], out[3, 1], out[3, 2], out[3, 3] = 0.0, 0.0, 0.0, 1.0
+
+
+@njit(cache=True)
+def cholesky_into(S: np.ndarray, L: np.ndarray) -> int:
+    """THE Cholesky factorisation of the compiled code: lower ``L`` with ``S = L L^T`` (``S`` (n, n) symmetric, only
+    its lower triangle read); returns 0, or the 1-based leading minor that is not positive (``L`` then partial)."""
+    n = S.shape[0]
+    L[:, :] = 0.0
+    for j in range(n):
+        s = S[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return j + 1
+        d = math.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            t = S[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / d
+    return 0
 
 
 @njit(cache=True)
@@ -345,21 +470,7 @@ def covariance_passes_kernel(C: np.ndarray, tol: float, eig_tol: float) -> bool:
                 return False
             A[i, j] = 0.5 * (C[i, j] + C[j, i])
         A[i, i] += eig_tol * scale + 1e-300
-    for j in range(n):  # in-place lower Cholesky
-        s = A[j, j]
-        for k in range(j):
-            s -= A[j, k] * A[j, k]
-        if not s > 0.0:
-            return False
-        d = math.sqrt(s)
-        A[j, j] = d
-        for i in range(j + 1, n):
-            t = A[i, j]
-            for k in range(j):
-                t -= A[i, k] * A[j, k]
-            A[i, j] = t / d
-    return True
-
+    return cholesky_into(A, np.empty((n, n))) == 0
 
 
 @njit(cache=True)
@@ -371,6 +482,7 @@ def covariances_pass_kernel(C: np.ndarray, tol: float, eig_tol: float) -> bool:
         if not covariance_passes_kernel(C[k], tol, eig_tol):
             return False
     return True
+
 
 # ----------------------------------------------------------------------------
 # Small dense products without a BLAS call (the sizes of the measurement updates: 6x6, m x 6; a BLAS call and its
@@ -396,16 +508,7 @@ def mat_mul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 @njit(cache=True)
 def mat_mul_t(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A @ B^T`` (n, k) x (m, k)^T."""
-    n, k = A.shape
-    m = B.shape[0]
-    out = np.empty((n, m))
-    for i in range(n):
-        for j in range(m):
-            s = 0.0
-            for q in range(k):
-                s += A[i, q] * B[j, q]
-            out[i, j] = s
-    return out
+    return mat_mul(A, B.T)
 
 
 @njit(cache=True)

@@ -1,33 +1,25 @@
 """SE(3) with twists ``xi = [rho; theta]`` (translation first) and right perturbations ``X = Xbar Exp(xi)``
 (paper eq. 3-9, docs/conventions.md): Exp/Log, inverse, compose, oplus/ominus, adjoint, left/right Jacobians,
-rigid fits.  Batched over leading axes ``(..., 4, 4)`` / ``(..., 6)``."""
+rigid fits.  Batched over leading axes ``(..., 4, 4)`` / ``(..., 6)``; Exp, Log, the Jacobians and the inverse are
+the compiled maps of :mod:`ppoe_core.lie.kernels`."""
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from ppoe_core.errors import MeasurementError
-from ppoe_core.lie.so3 import (
-    _SMALL,
-    Array,
-    _coeffs_abc,
-    _f,
-    _theta2,
-    hat3,
-    matrix_from_rpy,
-    so3_left_jacobian,
-    so3_left_jacobian_inv,
-    so3_log,
-    vee3,
-)
+from ppoe_core.lie.compiled import Array, as_float, batched, lie_kernels
+from ppoe_core.lie.so3 import hat3, matrix_from_rpy, vee3
+
+__all__ = ["hat", "vee", "from_rt", "fit_rigid", "exp", "log", "inverse", "compose", "oplus", "ominus", "adjoint",
+           "curly_hat", "left_jacobian", "right_jacobian", "left_jacobian_inv", "right_jacobian_inv", "from_xyz_rpy",
+           "interpolate"]
 
 
 def hat(xi: ArrayLike) -> Array:
     """``xi^`` in se(3) (paper eq. 2): ``(..., 6) -> (..., 4, 4)``."""
-    xi = _f(xi)
+    xi = as_float(xi)
     out = np.zeros(xi.shape[:-1] + (4, 4))
     out[..., :3, :3] = hat3(xi[..., 3:])
     out[..., :3, 3] = xi[..., :3]
@@ -36,7 +28,7 @@ def hat(xi: ArrayLike) -> Array:
 
 def vee(X: ArrayLike) -> Array:
     """Inverse of :func:`hat`: ``(..., 4, 4) -> (..., 6)``."""
-    X = _f(X)
+    X = as_float(X)
     return np.concatenate([X[..., :3, 3], vee3(X[..., :3, :3])], axis=-1)
 
 
@@ -47,7 +39,7 @@ def vee(X: ArrayLike) -> Array:
 
 def from_rt(R: ArrayLike, t: ArrayLike) -> Array:
     """Pose from rotation ``(..., 3, 3)`` and translation ``(..., 3)`` (broadcast)."""
-    R, t = _f(R), _f(t)
+    R, t = as_float(R), as_float(t)
     shape = np.broadcast_shapes(R.shape[:-2], t.shape[:-1])
     T = np.zeros(shape + (4, 4))
     T[..., :3, :3] = R
@@ -81,7 +73,7 @@ def fit_rigid(P_src: ArrayLike, P_dst: ArrayLike) -> Array:
         Shapes differ or are not ``(..., n, 3)``, fewer than 3 point pairs, non-finite
         points, or a collinear point set (rotation about the line undetermined).
     """
-    P_src, P_dst = _f(P_src), _f(P_dst)
+    P_src, P_dst = as_float(P_src), as_float(P_dst)
     if P_src.shape != P_dst.shape or P_src.ndim < 2 or P_src.shape[-1] != 3:
         raise MeasurementError(f"fit_rigid: point sets must both be (..., n, 3), got {P_src.shape} and {P_dst.shape}")
     if P_src.shape[-2] < 3:
@@ -115,84 +107,50 @@ def exp(xi: ArrayLike) -> Array:
     ndarray, shape (..., 4, 4)
         ``[[Exp(theta), J_l(theta) rho], [0, 1]]``.
     """
-    xi = _f(xi)
-    if xi.shape == (6,):
-        return _exp_single(xi)
-    rho, w = xi[..., :3], xi[..., 3:]
-    A, B, C = _coeffs_abc(_theta2(w))
-    W = hat3(w)
-    WW = W @ W
-    eye = np.eye(3)
-    R = eye + A[..., None, None] * W + B[..., None, None] * WW
-    V = eye + B[..., None, None] * W + C[..., None, None] * WW
-    return from_rt(R, np.einsum("...ij,...j->...i", V, rho))
-
-
-def _exp_single(xi: Array) -> Array:
-    """:func:`exp` of one ``(6,)`` twist without the batch machinery (``np.where`` over both
-    series branches, broadcasting); bit-identical to the batched code (tested)."""
-    rho, w = xi[:3], xi[3:]
-    w0, w1, w2 = w.tolist()
-    t2 = float(_theta2(w))  # the batched code's reduction order
-    if not math.isfinite(t2):
-        return exp(xi[None])[0]
-    if t2 < _SMALL**2 * 100:
-        A = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
-        B = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
-        C = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
-    else:
-        t = math.sqrt(t2)
-        s, c = float(np.sin(t)), float(np.cos(t))  # numpy's sin/cos, as the batched code
-        A, B, C = s / t, (1.0 - c) / t2, (t - s) / (t2 * t)
-    W = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
-    WW = W @ W
-    eye = np.eye(3)
-    T = np.zeros((4, 4))
-    T[:3, :3] = eye + A * W + B * WW
-    V = eye + B * W + C * WW
-    T[:3, 3] = np.einsum("...ij,...j->...i", V, rho)
-    T[3, 3] = 1.0
-    return T
+    xi = as_float(xi)
+    if xi.shape == (6,):  # one twist (one message): no batch reshaping, the same operations
+        T = np.empty((4, 4))
+        lie_kernels().se3_exp_one(xi, T)
+        return T
+    return batched("se3_exp_kernel", xi, (6,), (4, 4))
 
 
 def log(T: ArrayLike) -> Array:
     """Logarithmic map ``Log: SE(3) -> R^6`` (paper eq. 4): ``(..., 4, 4) -> (..., 6)``."""
-    T = _f(T)
-    w = so3_log(T[..., :3, :3])
-    rho = np.einsum("...ij,...j->...i", so3_left_jacobian_inv(w), T[..., :3, 3])
-    return np.concatenate([rho, w], axis=-1)
+    T = as_float(T)
+    if T.shape == (4, 4):
+        xi = np.empty(6)
+        lie_kernels().se3_log_one(T, xi)
+        return xi
+    return batched("se3_log_kernel", T, (4, 4), (6,))
 
 
 def inverse(T: ArrayLike) -> Array:
     """Inverse pose ``[[R^T, -R^T t], [0, 1]]``: ``(..., 4, 4) -> (..., 4, 4)``."""
-    T = _f(T)
-    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    t = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
-    if T.shape == (4, 4):  # one pose: skip from_rt's broadcasting (same values)
-        out = np.zeros((4, 4))
-        out[:3, :3] = Rt
-        out[:3, 3] = t
-        out[3, 3] = 1.0
+    T = as_float(T)
+    if T.shape == (4, 4):
+        out = np.empty((4, 4))
+        lie_kernels().se3_inverse_one(T, out)
         return out
-    return from_rt(Rt, t)
+    return batched("se3_inverse_kernel", T, (4, 4), (4, 4))
 
 
 def compose(*Ts: ArrayLike) -> Array:
     """Product ``T_1 @ T_2 @ ...`` of poses, broadcasting batch axes."""
-    out = _f(Ts[0])
+    out = as_float(Ts[0])
     for T in Ts[1:]:
-        out = out @ _f(T)
+        out = out @ as_float(T)
     return out
 
 
 def oplus(T: ArrayLike, xi: ArrayLike) -> Array:
     """Right plus: ``T @ Exp(xi)`` (perturbation in the tangent space at ``T``)."""
-    return _f(T) @ exp(xi)
+    return as_float(T) @ exp(xi)
 
 
 def ominus(T1: ArrayLike, T0: ArrayLike) -> Array:
     """Right minus: ``Log(T0^-1 @ T1)``, a twist in the tangent space at ``T0``."""
-    return log(inverse(T0) @ _f(T1))
+    return log(inverse(T0) @ as_float(T1))
 
 
 def adjoint(T: ArrayLike) -> Array:
@@ -200,7 +158,7 @@ def adjoint(T: ArrayLike) -> Array:
 
     Maps a right (local) twist at ``T`` to a left (global) one: ``E_xi = Ad_T X_xi`` (eq. 6).
     """
-    T = _f(T)
+    T = as_float(T)
     R, t = T[..., :3, :3], T[..., :3, 3]
     out = np.zeros(T.shape[:-2] + (6, 6))
     out[..., :3, :3] = R
@@ -211,7 +169,7 @@ def adjoint(T: ArrayLike) -> Array:
 
 def curly_hat(xi: ArrayLike) -> Array:
     """``xi^curly = [[[theta]_x, [rho]_x], [0, [theta]_x]]`` (paper eq. 13), i.e. ad(xi)."""
-    xi = _f(xi)
+    xi = as_float(xi)
     out = np.zeros(xi.shape[:-1] + (6, 6))
     Wt = hat3(xi[..., 3:])
     out[..., :3, :3] = Wt
@@ -220,47 +178,12 @@ def curly_hat(xi: ArrayLike) -> Array:
     return out
 
 
-def _q_matrix(xi: Array) -> Array:
-    """Barfoot's ``Q(rho, theta)`` block of the SE(3) left Jacobian (eq. 7.86b)."""
-    rho, w = xi[..., :3], xi[..., 3:]
-    t2 = _theta2(w)
-    small = t2 < 1e-4
-    t2s = np.where(small, 1.0, t2)
-    t = np.sqrt(t2s)
-    s, c = np.sin(t), np.cos(t)
-    c1 = np.where(small, 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0, (t - s) / (t2s * t))
-    c2 = np.where(
-        small, 1.0 / 24.0 - t2 / 720.0 + t2 * t2 / 40320.0, (t2s + 2.0 * c - 2.0) / (2.0 * t2s * t2s)
-    )
-    c3 = np.where(
-        small,
-        1.0 / 120.0 - t2 / 2520.0 + t2 * t2 / 120960.0,
-        (2.0 * t - 3.0 * s + t * c) / (2.0 * t2s * t2s * t),
-    )
-    P, W = hat3(rho), hat3(w)
-    WP, PW = W @ P, P @ W
-    WPW = WP @ W
-    WW = W @ W
-    return (
-        0.5 * P
-        + c1[..., None, None] * (WP + PW + WPW)
-        + c2[..., None, None] * (WW @ P + PW @ W - 3.0 * WPW)
-        + c3[..., None, None] * (WPW @ W + W @ WPW)
-    )
-
-
 def left_jacobian(xi: ArrayLike) -> Array:
-    """Left Jacobian of SE(3) ``[[J, Q], [0, J]]``: ``(..., 6) -> (..., 6, 6)``.
+    """Left Jacobian of SE(3) ``[[J, Q], [0, J]]`` (Barfoot eq. 7.86): ``(..., 6) -> (..., 6, 6)``.
 
     ``Exp(xi + d) ~= Exp(J_l(xi) d) Exp(xi)`` for small ``d``.
     """
-    xi = _f(xi)
-    J = so3_left_jacobian(xi[..., 3:])
-    out = np.zeros(xi.shape[:-1] + (6, 6))
-    out[..., :3, :3] = J
-    out[..., 3:, 3:] = J
-    out[..., :3, 3:] = _q_matrix(xi)
-    return out
+    return batched("se3_left_jacobian_kernel", xi, (6,), (6, 6))
 
 
 def right_jacobian(xi: ArrayLike) -> Array:
@@ -268,18 +191,12 @@ def right_jacobian(xi: ArrayLike) -> Array:
 
     ``Exp(xi + d) ~= Exp(xi) Exp(J_r(xi) d)`` for small ``d``.
     """
-    return left_jacobian(-_f(xi))
+    return left_jacobian(-as_float(xi))
 
 
 def left_jacobian_inv(xi: ArrayLike) -> Array:
     """Inverse left Jacobian of SE(3) ``[[J^-1, -J^-1 Q J^-1], [0, J^-1]]``."""
-    xi = _f(xi)
-    Ji = so3_left_jacobian_inv(xi[..., 3:])
-    out = np.zeros(xi.shape[:-1] + (6, 6))
-    out[..., :3, :3] = Ji
-    out[..., 3:, 3:] = Ji
-    out[..., :3, 3:] = -Ji @ _q_matrix(xi) @ Ji
-    return out
+    return batched("se3_left_jacobian_inv_kernel", xi, (6,), (6, 6))
 
 
 def right_jacobian_inv(xi: ArrayLike) -> Array:
@@ -287,7 +204,7 @@ def right_jacobian_inv(xi: ArrayLike) -> Array:
 
     ``Log(Exp(xi) Exp(d)) ~= xi + J_r^-1(xi) d`` for small ``d``.
     """
-    return left_jacobian_inv(-_f(xi))
+    return left_jacobian_inv(-as_float(xi))
 
 
 def from_xyz_rpy(xyz: ArrayLike = (0.0, 0.0, 0.0), rpy: ArrayLike = (0.0, 0.0, 0.0)) -> Array:
@@ -297,6 +214,6 @@ def from_xyz_rpy(xyz: ArrayLike = (0.0, 0.0, 0.0), rpy: ArrayLike = (0.0, 0.0, 0
 
 def interpolate(T0: ArrayLike, T1: ArrayLike, s: ArrayLike) -> Array:
     """Geodesic interpolation ``T0 Exp(s Log(T0^-1 T1))``; ``s`` in [0, 1], broadcast as ``(...)``."""
-    T0 = _f(T0)
+    T0 = as_float(T0)
     d = ominus(T1, T0)
-    return T0 @ exp(_f(s)[..., None] * d)
+    return T0 @ exp(as_float(s)[..., None] * d)

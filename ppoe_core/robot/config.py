@@ -26,15 +26,15 @@ import numpy as np
 
 from ppoe_core.errors import ModelConfigError, UnknownJointError
 from ppoe_core.robot.config_checks import (
-    _check_keys,
-    _Ctx,
-    _kind,
-    _link,
-    _mapping,
-    _number,
-    _pose,
-    _sigma_or_cov,
-    _vector,
+    check_keys,
+    CheckContext,
+    kind_of,
+    check_link_name,
+    check_mapping,
+    check_number,
+    check_pose_entry,
+    sigma_or_covariance,
+    check_vector,
     low_rank_factor,
 )
 from ppoe_core.robot.config_types import (
@@ -52,7 +52,7 @@ from ppoe_core.robot.config_types import (
     TrackerConfig,
 )
 from ppoe_core.robot.urdf import Robot
-from ppoe_core.robot.yaml_io import _LDict, read_yaml_file, read_yaml_text
+from ppoe_core.robot.yaml_io import LineDict, read_yaml_file, read_yaml_text
 
 __all__ = [
     "Perturbation",
@@ -77,10 +77,10 @@ __all__ = [
 # ----------------------------------------------------------------------------
 
 
-def _perturbations(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, Perturbation]:
+def _perturbations(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> dict[str, Perturbation]:
     if sec is None:
         return {}
-    sec = _mapping(ctx, sec, top, "perturbations", "perturbations")
+    sec = check_mapping(ctx, sec, top, "perturbations", "perturbations")
     out = {}
     for jn, entry in sec.items():
         path = f"perturbations.{jn}"
@@ -88,16 +88,16 @@ def _perturbations(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str,
             raise UnknownJointError(
                 f"{ctx.at(sec, jn)}: {path}: unknown joint '{jn}' (not in URDF {robot.source})"
             )
-        entry = _mapping(ctx, entry, sec, jn, path)
-        cov = _sigma_or_cov(ctx, entry, path, f"joint '{jn}'")
+        entry = check_mapping(ctx, entry, sec, jn, path)
+        cov = sigma_or_covariance(ctx, entry, path, f"joint '{jn}'")
         out[str(jn)] = Perturbation(joint=str(jn), covariance=cov, factor=low_rank_factor(cov))
     return out
 
 
-def _joint_noise(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, float]:
+def _joint_noise(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> dict[str, float]:
     if sec is None:
         return {}
-    sec = _mapping(ctx, sec, top, "joint_noise", "joint_noise")
+    sec = check_mapping(ctx, sec, top, "joint_noise", "joint_noise")
     out = {}
     for jn, val in sec.items():
         path = f"joint_noise.{jn}"
@@ -105,7 +105,7 @@ def _joint_noise(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, f
             raise UnknownJointError(f"{ctx.at(sec, jn)}: {path}: unknown joint '{jn}' (not in URDF {robot.source})")
         if not robot.joints[jn].movable:
             raise ctx.error(sec, jn, path, f"joint '{jn}' is {robot.joints[jn].type}: it has no joint value")
-        out[str(jn)] = _number(ctx, val, sec, jn, path, minimum=0.0)
+        out[str(jn)] = check_number(ctx, val, sec, jn, path, minimum=0.0)
     return out
 
 
@@ -115,33 +115,34 @@ def _default_tool(robot: Robot) -> str | None:
     return leaves[0] if len(leaves) == 1 else None
 
 
-def _frames(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> Frames:
+def _frames(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> Frames:
     if sec is None:
         return Frames(base=robot.root, tool=_default_tool(robot))
-    sec = _mapping(ctx, sec, top, "frames", "frames")
-    _check_keys(ctx, sec, ("base", "tool"), "frames")
-    base = _link(ctx, robot, sec["base"], sec, "base", "frames.base") if "base" in sec else robot.root
-    tool = _link(ctx, robot, sec["tool"], sec, "tool", "frames.tool") if "tool" in sec else _default_tool(robot)
+    sec = check_mapping(ctx, sec, top, "frames", "frames")
+    check_keys(ctx, sec, ("base", "tool"), "frames")
+    base = check_link_name(ctx, robot, sec["base"], sec, "base", "frames.base") if "base" in sec else robot.root
+    tool = (check_link_name(ctx, robot, sec["tool"], sec, "tool", "frames.tool") if "tool" in sec
+            else _default_tool(robot))
     return Frames(base=base, tool=tool)
 
 
-def _camera(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> CameraConfig | None:
+def _camera(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> CameraConfig | None:
     if sec is None:
         return None
-    sec = _mapping(ctx, sec, top, "camera", "camera")
-    _check_keys(ctx, sec, ("frame", "pixel_sigma"), "camera", required=("frame",))
-    frame = _link(ctx, robot, sec["frame"], sec, "frame", "camera.frame")
+    sec = check_mapping(ctx, sec, top, "camera", "camera")
+    check_keys(ctx, sec, ("frame", "pixel_sigma"), "camera", required=("frame",))
+    frame = check_link_name(ctx, robot, sec["frame"], sec, "frame", "camera.frame")
     ps = 0.5
     if "pixel_sigma" in sec:
-        ps = _number(ctx, sec["pixel_sigma"], sec, "pixel_sigma", "camera.pixel_sigma", positive=True)
+        ps = check_number(ctx, sec["pixel_sigma"], sec, "pixel_sigma", "camera.pixel_sigma", positive=True)
     return CameraConfig(frame=frame, pixel_sigma=ps)
 
 
-def _tags(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> TagsConfig | None:
+def _tags(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> TagsConfig | None:
     if sec is None:
         return None
-    sec = _mapping(ctx, sec, top, "tags", "tags")
-    _check_keys(ctx, sec, ("family", "items"), "tags", required=("items",))
+    sec = check_mapping(ctx, sec, top, "tags", "tags")
+    check_keys(ctx, sec, ("family", "items"), "tags", required=("items",))
     family = sec.get("family", "tag36h11")
     if not isinstance(family, str):
         raise ctx.error(sec, "family", "tags.family", f"must be a string, got {family!r}")
@@ -152,53 +153,53 @@ def _tags(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> TagsConfig | None:
     seen: dict[int, str] = {}
     for i, it in enumerate(items_raw):
         path = f"tags.items[{i}]"
-        it = _mapping(ctx, it, items_raw, None, path)
-        _check_keys(ctx, it, ("id", "link", "size", "xyz", "rpy"), path, required=("id", "link", "size"))
+        it = check_mapping(ctx, it, items_raw, None, path)
+        check_keys(ctx, it, ("id", "link", "size", "xyz", "rpy"), path, required=("id", "link", "size"))
         tid = it["id"]
         if isinstance(tid, bool) or not isinstance(tid, int) or tid < 0:
             raise ctx.error(it, "id", path + ".id", f"must be a non-negative integer, got {tid!r}")
         if tid in seen:
             raise ctx.error(it, "id", path + ".id", f"duplicate tag id {tid} (also {seen[tid]})")
         seen[tid] = path
-        link = _link(ctx, robot, it["link"], it, "link", path + ".link")
-        size = _number(ctx, it["size"], it, "size", path + ".size", positive=True)
-        items.append(TagItem(id=tid, link=link, size=size, T_link_tag=_pose(ctx, it, path)))
+        link = check_link_name(ctx, robot, it["link"], it, "link", path + ".link")
+        size = check_number(ctx, it["size"], it, "size", path + ".size", positive=True)
+        items.append(TagItem(id=tid, link=link, size=size, T_link_tag=check_pose_entry(ctx, it, path)))
     return TagsConfig(family=family, items=tuple(items))
 
 
-def _contact(ctx: _Ctx, robot: Robot | None, sec: Any, top: Mapping) -> ContactConfig | None:
+def _contact(ctx: CheckContext, robot: Robot | None, sec: Any, top: Mapping) -> ContactConfig | None:
     if sec is None:
         return None
-    sec = _mapping(ctx, sec, top, "contact", "contact")
-    _check_keys(
+    sec = check_mapping(ctx, sec, top, "contact", "contact")
+    check_keys(
         ctx,
         sec,
         ("plane", "sigma", "covariance", "tool_point", "force_threshold", "release_threshold"),
         "contact",
         required=("plane", "tool_point"),
     )
-    plane = _mapping(ctx, sec["plane"], sec, "plane", "contact.plane")
-    _check_keys(ctx, plane, ("frame", "xyz", "rpy"), "contact.plane", required=("frame",))
-    frame = _link(ctx, robot, plane["frame"], plane, "frame", "contact.plane.frame")
-    T = _pose(ctx, plane, "contact.plane")
+    plane = check_mapping(ctx, sec["plane"], sec, "plane", "contact.plane")
+    check_keys(ctx, plane, ("frame", "xyz", "rpy"), "contact.plane", required=("frame",))
+    frame = check_link_name(ctx, robot, plane["frame"], plane, "frame", "contact.plane.frame")
+    T = check_pose_entry(ctx, plane, "contact.plane")
     cov_d = {k: sec[k] for k in ("sigma", "covariance") if k in sec}
     if not cov_d:
         raise ctx.error(sec, None, "contact", "give 'sigma' (6 numbers) or 'covariance' (6x6) of the contact")
-    cov_src = _LDict(cov_d)
-    cov_src.line = sec.line if isinstance(sec, _LDict) else None
-    cov_src.key_lines = {k: sec.key_lines.get(k) for k in cov_d} if isinstance(sec, _LDict) else {}
-    cov = _sigma_or_cov(ctx, cov_src, "contact", "contact plane")
-    tp = _mapping(ctx, sec["tool_point"], sec, "tool_point", "contact.tool_point")
-    _check_keys(ctx, tp, ("link", "xyz"), "contact.tool_point", required=("link",))
-    tlink = _link(ctx, robot, tp["link"], tp, "link", "contact.tool_point.link")
-    txyz = _vector(ctx, tp["xyz"], tp, "xyz", "contact.tool_point.xyz", 3) if "xyz" in tp else np.zeros(3)
+    cov_src = LineDict(cov_d)
+    cov_src.line = sec.line if isinstance(sec, LineDict) else None
+    cov_src.key_lines = {k: sec.key_lines.get(k) for k in cov_d} if isinstance(sec, LineDict) else {}
+    cov = sigma_or_covariance(ctx, cov_src, "contact", "contact plane")
+    tp = check_mapping(ctx, sec["tool_point"], sec, "tool_point", "contact.tool_point")
+    check_keys(ctx, tp, ("link", "xyz"), "contact.tool_point", required=("link",))
+    tlink = check_link_name(ctx, robot, tp["link"], tp, "link", "contact.tool_point.link")
+    txyz = check_vector(ctx, tp["xyz"], tp, "xyz", "contact.tool_point.xyz", 3) if "xyz" in tp else np.zeros(3)
     fth = (
-        _number(ctx, sec["force_threshold"], sec, "force_threshold", "contact.force_threshold", positive=True)
+        check_number(ctx, sec["force_threshold"], sec, "force_threshold", "contact.force_threshold", positive=True)
         if "force_threshold" in sec
         else 5.0
     )
     rth = (
-        _number(ctx, sec["release_threshold"], sec, "release_threshold", "contact.release_threshold", minimum=0.0)
+        check_number(ctx, sec["release_threshold"], sec, "release_threshold", "contact.release_threshold", minimum=0.0)
         if "release_threshold" in sec
         else min(2.0, fth)
     )
@@ -220,24 +221,25 @@ def _contact(ctx: _Ctx, robot: Robot | None, sec: Any, top: Mapping) -> ContactC
     )
 
 
-def _tracker(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> TrackerConfig | None:
+def _tracker(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> TrackerConfig | None:
     if sec is None:
         return None
-    sec = _mapping(ctx, sec, top, "tracker", "tracker")
+    sec = check_mapping(ctx, sec, top, "tracker", "tracker")
     return _tracker_entry(ctx, robot, sec, "tracker", ("link", "xyz", "sigma"), TOPIC_GT_POINT)
 
 
-def _tracker_entry(ctx: _Ctx, robot: Robot, sec: Mapping, path: str, keys: tuple, topic: str) -> TrackerConfig:
+def _tracker_entry(ctx: CheckContext, robot: Robot, sec: Mapping, path: str, keys: tuple, topic: str) -> TrackerConfig:
     """One reflector: ``link`` (required), ``xyz`` [m] (default 0), ``sigma`` [m] (default 0.0005)."""
-    _check_keys(ctx, sec, keys, path, required=("link",))
-    link = _link(ctx, robot, sec["link"], sec, "link", path + ".link")
-    xyz = _vector(ctx, sec["xyz"], sec, "xyz", path + ".xyz", 3) if "xyz" in sec else np.zeros(3)
-    sigma = _number(ctx, sec["sigma"], sec, "sigma", path + ".sigma", positive=True) if "sigma" in sec else 0.0005
+    check_keys(ctx, sec, keys, path, required=("link",))
+    link = check_link_name(ctx, robot, sec["link"], sec, "link", path + ".link")
+    xyz = check_vector(ctx, sec["xyz"], sec, "xyz", path + ".xyz", 3) if "xyz" in sec else np.zeros(3)
+    sigma = check_number(ctx, sec["sigma"], sec, "sigma", path + ".sigma", positive=True) if "sigma" in sec else 0.0005
     return TrackerConfig(link=link, xyz=xyz, sigma=sigma, topic=topic)
 
 
-def _trackers(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> tuple[TrackerConfig, ...]:
-    """``trackers`` (CONTRACT.md sec. 5): one entry per reflector, ``topic`` ``/ground_truth/point[/<name>]``."""
+def _trackers(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> tuple[TrackerConfig, ...]:
+    """``trackers`` (docs/conventions.md sec. 5): one entry per reflector, ``topic``
+    ``/ground_truth/point[/<name>]``."""
     if sec is None:
         return ()
     if "tracker" in top:
@@ -248,8 +250,8 @@ def _trackers(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> tuple[TrackerC
     seen: dict[str, str] = {}
     for i, entry in enumerate(sec):
         path = f"trackers[{i}]"
-        entry = _mapping(ctx, entry, sec, None, path)
-        _check_keys(ctx, entry, ("topic", "link", "xyz", "sigma"), path, required=("topic", "link"))
+        entry = check_mapping(ctx, entry, sec, None, path)
+        check_keys(ctx, entry, ("topic", "link", "xyz", "sigma"), path, required=("topic", "link"))
         topic = entry["topic"]
         if not isinstance(topic, str) or not (topic == TOPIC_GT_POINT or (
                 topic.startswith(TOPIC_GT_POINT + "/") and len(topic) > len(TOPIC_GT_POINT) + 1)):
@@ -262,31 +264,32 @@ def _trackers(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> tuple[TrackerC
     return tuple(out)
 
 
-def _imus(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> dict[str, ImuConfig]:
+def _imus(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> dict[str, ImuConfig]:
     if sec is None:
         return {}
-    sec = _mapping(ctx, sec, top, "imus", "imus")
+    sec = check_mapping(ctx, sec, top, "imus", "imus")
     out = {}
     for name, entry in sec.items():
         path = f"imus.{name}"
-        entry = _mapping(ctx, entry, sec, name, path)
-        _check_keys(ctx, entry, ("link", "sigma"), path, required=("link",))
-        link = _link(ctx, robot, entry["link"], entry, "link", path + ".link")
+        entry = check_mapping(ctx, entry, sec, name, path)
+        check_keys(ctx, entry, ("link", "sigma"), path, required=("link",))
+        link = check_link_name(ctx, robot, entry["link"], entry, "link", path + ".link")
         sigma = (
-            _number(ctx, entry["sigma"], entry, "sigma", path + ".sigma", positive=True) if "sigma" in entry else 0.0004
+            check_number(ctx, entry["sigma"], entry, "sigma", path + ".sigma", positive=True) if "sigma" in entry
+            else 0.0004
         )
         out[str(name)] = ImuConfig(name=str(name), link=link, sigma=sigma)
     return out
 
 
-def _naive(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> NaiveConfig | None:
+def _naive(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> NaiveConfig | None:
     if sec is None:
         return None
-    sec = _mapping(ctx, sec, top, "naive", "naive")
-    return NaiveConfig(covariance=_sigma_or_cov(ctx, sec, "naive", "naive tool covariance"))
+    sec = check_mapping(ctx, sec, top, "naive", "naive")
+    return NaiveConfig(covariance=sigma_or_covariance(ctx, sec, "naive", "naive tool covariance"))
 
 
-def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
+def _effects(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
     wheres: list[str] = ctx.effect_wheres
     if sec is None:
         return []
@@ -295,13 +298,13 @@ def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
     out = []
     for i, e in enumerate(sec):
         path = f"effects[{i}]"
-        e = _mapping(ctx, e, sec, None, path)
-        _check_keys(
+        e = check_mapping(ctx, e, sec, None, path)
+        check_keys(
             ctx,
             e,
-            # ci, sigma, share, measurement, frame: what ppoe diagnose adds to an entry (kept, not used)
-            ("name", "location", "parameters", "ci", "sigma", "share", "measurement", "frame", "variable",
-             "reference"),
+            # ci, sigma, share, measurement, frame, camera_info: what ppoe diagnose adds to an entry (kept, not used)
+            ("name", "location", "parameters", "ci", "sigma", "share", "measurement", "frame", "camera_info",
+             "variable", "reference"),
             path,
             required=("name", "location"),
         )
@@ -317,15 +320,15 @@ def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
                 e, "location", path + ".location", f"must be a joint, link, topic or frame name, got {loc!r}"
             )
         params = e.get("parameters", {}) or {}
-        params = _mapping(ctx, params, e, "parameters", path + ".parameters")
+        params = check_mapping(ctx, params, e, "parameters", path + ".parameters")
         pclean: dict[str, Any] = {}
         for k, v in params.items():
             if isinstance(v, (list, tuple)):
-                pclean[str(k)] = [_number(ctx, x, params, k, f"{path}.parameters.{k}") for x in v]
+                pclean[str(k)] = [check_number(ctx, x, params, k, f"{path}.parameters.{k}") for x in v]
             else:
-                pclean[str(k)] = _number(ctx, v, params, k, f"{path}.parameters.{k}")
+                pclean[str(k)] = check_number(ctx, v, params, k, f"{path}.parameters.{k}")
         entry: dict[str, Any] = {"name": name, "location": loc, "parameters": pclean}
-        for key in ("ci", "sigma", "share", "measurement", "frame"):
+        for key in ("ci", "sigma", "share", "measurement", "frame", "camera_info"):
             if key in e:
                 entry[key] = _plain(e[key])
         if "variable" in e:  # thermal_growth: name of the context variable (e.g. temperature)
@@ -333,7 +336,7 @@ def _effects(ctx: _Ctx, robot: Robot, sec: Any, top: Mapping) -> list[dict]:
                 raise ctx.error(e, "variable", path + ".variable", f"must be a string, got {e['variable']!r}")
             entry["variable"] = e["variable"]
         if "reference" in e:  # thermal_growth: reference value of that variable
-            entry["reference"] = _number(ctx, e["reference"], e, "reference", path + ".reference")
+            entry["reference"] = check_number(ctx, e["reference"], e, "reference", path + ".reference")
         wheres.append(ctx.at(e))
         out.append(entry)
     return out
@@ -397,10 +400,10 @@ def load_model_config(
         A non-symmetric or non-PSD covariance; names the joint (or section).
     """
     data, where = _read_yaml(source, is_text, "load_model_config")
-    ctx = _Ctx(where)
+    ctx = CheckContext(where)
     if not isinstance(data, Mapping):
-        raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {_kind(data)}")
-    _check_keys(ctx, data, tuple(_SECTIONS), "model")
+        raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {kind_of(data)}")
+    check_keys(ctx, data, tuple(_SECTIONS), "model")
     kwargs: dict[str, Any] = {name: fn(ctx, robot, data.get(name), data) for name, fn in _SECTIONS.items()}
     if kwargs["tracker"] is not None:
         kwargs["trackers"] = (kwargs["tracker"],)
@@ -463,7 +466,7 @@ def load_contact_config(
         A link name not in ``robot`` (only when ``robot`` is given).
     """
     data, where = _read_yaml(source, is_text, "load_contact_config")
-    ctx = _Ctx(where)
+    ctx = CheckContext(where)
     if not isinstance(data, Mapping):
-        raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {_kind(data)}")
+        raise ModelConfigError(f"{where}: model YAML must be a mapping at the top level, got {kind_of(data)}")
     return _contact(ctx, robot, data.get("contact"), data)

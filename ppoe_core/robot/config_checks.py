@@ -12,7 +12,7 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.errors import CovarianceError, ModelConfigError, UnknownFrameError
 from ppoe_core.robot.urdf import Robot
-from ppoe_core.robot.yaml_io import _LDict
+from ppoe_core.robot.yaml_io import LineDict
 
 # ----------------------------------------------------------------------------
 # YAML with line numbers
@@ -27,7 +27,7 @@ from ppoe_core.robot.yaml_io import _LDict
 # ----------------------------------------------------------------------------
 
 
-class _Ctx:
+class CheckContext:
     """Where we are: file + path of keys, for messages."""
 
     def __init__(self, source: str) -> None:
@@ -36,7 +36,7 @@ class _Ctx:
 
     def at(self, obj: Any = None, key: Any = None) -> str:
         line = None
-        if key is not None and isinstance(obj, _LDict):
+        if key is not None and isinstance(obj, LineDict):
             line = obj.key_lines.get(key)
         if line is None and obj is not None:
             line = getattr(obj, "line", None)
@@ -46,8 +46,8 @@ class _Ctx:
         return ModelConfigError(f"{self.at(obj, key)}: {path}: {msg}")
 
 
-def _kind(val: Any) -> str:
-    """What a YAML value is, in the user's words (no internal class names such as ``_LList``)."""
+def kind_of(val: Any) -> str:
+    """What a YAML value is, in the user's words (no internal class names such as ``LineList``)."""
     if val is None:
         return "nothing (null)"
     if isinstance(val, Mapping):
@@ -63,13 +63,13 @@ def _kind(val: Any) -> str:
     return type(val).__name__
 
 
-def _mapping(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str) -> Mapping:
+def check_mapping(ctx: CheckContext, val: Any, parent: Any, key: Any, path: str) -> Mapping:
     if not isinstance(val, Mapping):
-        raise ctx.error(parent, key, path, f"must be a mapping, got {_kind(val)}")
+        raise ctx.error(parent, key, path, f"must be a mapping, got {kind_of(val)}")
     return val
 
 
-def _check_keys(ctx: _Ctx, d: Mapping, allowed: tuple, path: str, required: tuple = ()) -> None:
+def check_keys(ctx: CheckContext, d: Mapping, allowed: tuple, path: str, required: tuple = ()) -> None:
     for k in d:
         if k not in allowed:
             raise ctx.error(
@@ -80,7 +80,7 @@ def _check_keys(ctx: _Ctx, d: Mapping, allowed: tuple, path: str, required: tupl
             raise ctx.error(d, None, path, f"missing required key '{k}'")
 
 
-def _number(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, minimum: float | None = None,
+def check_number(ctx: CheckContext, val: Any, parent: Any, key: Any, path: str, minimum: float | None = None,
             positive: bool = False) -> float:
     if isinstance(val, (bool, np.bool_)) or not isinstance(val, numbers.Real):
         raise ctx.error(parent, key, path, f"must be a number, got {val!r}")
@@ -94,26 +94,27 @@ def _number(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, minimum: floa
     return f
 
 
-def _vector(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, n: int, minimum: float | None = None) -> np.ndarray:
+def check_vector(ctx: CheckContext, val: Any, parent: Any, key: Any, path: str, n: int,
+                 minimum: float | None = None) -> np.ndarray:
     if isinstance(val, np.ndarray):
         val = val.tolist()
     if not isinstance(val, (list, tuple)) or len(val) != n:
         raise ctx.error(parent, key, path, f"must be a list of {n} numbers, got {val!r}")
-    return np.array([_number(ctx, v, parent, key, path, minimum) for v in val], dtype=float)
+    return np.array([check_number(ctx, v, parent, key, path, minimum) for v in val], dtype=float)
 
 
-def _matrix(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, n: int) -> np.ndarray:
+def check_matrix(ctx: CheckContext, val: Any, parent: Any, key: Any, path: str, n: int) -> np.ndarray:
     if isinstance(val, np.ndarray):
         val = val.tolist()
     if not isinstance(val, (list, tuple)) or len(val) != n or not all(
         isinstance(r, (list, tuple)) and len(r) == n for r in val
     ):
         raise ctx.error(parent, key, path, f"must be a {n}x{n} list of lists")
-    return np.array([[_number(ctx, v, parent, key, path) for v in r] for r in val], dtype=float)
+    return np.array([[check_number(ctx, v, parent, key, path) for v in r] for r in val], dtype=float)
 
 
-def _covariance(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, what: str) -> np.ndarray:
-    C = _matrix(ctx, val, parent, key, path, 6)
+def check_covariance_value(ctx: CheckContext, val: Any, parent: Any, key: Any, path: str, what: str) -> np.ndarray:
+    C = check_matrix(ctx, val, parent, key, path, 6)
     try:
         return lie.check_covariance(C, f"{ctx.at(parent, key)}: {path} ({what})", size=6)
     except CovarianceError:
@@ -122,14 +123,14 @@ def _covariance(ctx: _Ctx, val: Any, parent: Any, key: Any, path: str, what: str
         raise CovarianceError(f"{ctx.at(parent, key)}: {path} ({what}): {exc}") from None
 
 
-def _sigma_or_cov(ctx: _Ctx, d: Mapping, path: str, what: str) -> np.ndarray:
-    _check_keys(ctx, d, ("sigma", "covariance"), path)
+def sigma_or_covariance(ctx: CheckContext, d: Mapping, path: str, what: str) -> np.ndarray:
+    check_keys(ctx, d, ("sigma", "covariance"), path)
     if ("sigma" in d) == ("covariance" in d):
         raise ctx.error(d, None, path, "give exactly one of 'sigma' (6 numbers) or 'covariance' (6x6)")
     if "sigma" in d:
-        s = _vector(ctx, d["sigma"], d, "sigma", path + ".sigma", 6, minimum=0.0)
+        s = check_vector(ctx, d["sigma"], d, "sigma", path + ".sigma", 6, minimum=0.0)
         return np.diag(s**2)
-    return _covariance(ctx, d["covariance"], d, "covariance", path + ".covariance", what)
+    return check_covariance_value(ctx, d["covariance"], d, "covariance", path + ".covariance", what)
 
 
 def low_rank_factor(cov: np.ndarray, rel_tol: float = 1e-12) -> np.ndarray:
@@ -165,7 +166,7 @@ def low_rank_factor(cov: np.ndarray, rel_tol: float = 1e-12) -> np.ndarray:
     return V[:, keep] * np.sqrt(w[keep])
 
 
-def _link(ctx: _Ctx, robot: Robot | None, val: Any, parent: Any, key: Any, path: str) -> str:
+def check_link_name(ctx: CheckContext, robot: Robot | None, val: Any, parent: Any, key: Any, path: str) -> str:
     """A link name; checked against ``robot`` unless it is None (no URDF at hand)."""
     if not isinstance(val, str):
         raise ctx.error(parent, key, path, f"must be a link name, got {val!r}")
@@ -176,7 +177,13 @@ def _link(ctx: _Ctx, robot: Robot | None, val: Any, parent: Any, key: Any, path:
     return val
 
 
-def _pose(ctx: _Ctx, d: Mapping, path: str) -> np.ndarray:
-    xyz = _vector(ctx, d["xyz"], d, "xyz", path + ".xyz", 3) if "xyz" in d else np.zeros(3)
-    rpy = _vector(ctx, d["rpy"], d, "rpy", path + ".rpy", 3) if "rpy" in d else np.zeros(3)
+def check_pose_entry(ctx: CheckContext, d: Mapping, path: str) -> np.ndarray:
+    xyz = check_vector(ctx, d["xyz"], d, "xyz", path + ".xyz", 3) if "xyz" in d else np.zeros(3)
+    rpy = check_vector(ctx, d["rpy"], d, "rpy", path + ".rpy", 3) if "rpy" in d else np.zeros(3)
     return lie.from_xyz_rpy(xyz, rpy)
+
+
+# the underscore names, for the modules of other work in progress that still import them (robot/dh.py,
+# io/importers/csv_stops.py; test/test_architecture.py lists them): remove once they import the public names
+_Ctx = CheckContext
+_check_keys, _mapping, _number, _vector = check_keys, check_mapping, check_number, check_vector

@@ -236,5 +236,10 @@ class KinematicTree:
 # =============================================================================
 
 
-def _batch(q: Mapping[str, Any]) -> tuple[int, ...]:
+def batch_shape(q: Mapping[str, Any]) -> tuple[int, ...]:
     return np.broadcast_shapes(*[np.shape(v) for v in q.values()]) if q else ()
+
+
+#: the underscore name, for model/effects.py (the engine's rewrite; test/test_architecture.py lists it): remove once
+#: it imports :func:`batch_shape`
+_batch = batch_shape

@@ -19,14 +19,14 @@ from ppoe_core.errors import ModelConfigError, PpoeError
 __all__ = ["read_yaml_file", "read_yaml_text", "read_yaml_mapping"]
 
 
-class _LDict(dict):
+class LineDict(dict):
     """dict that remembers its own line and the line of each key (1-based)."""
 
     line: int | None = None
     key_lines: dict
 
 
-class _LList(list):
+class LineList(list):
     line: int | None = None
 
 
@@ -34,9 +34,9 @@ class _Loader(yaml.SafeLoader):
     pass
 
 
-def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> _LDict:
+def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> LineDict:
     loader.flatten_mapping(node)
-    out = _LDict()
+    out = LineDict()
     out.line = node.start_mark.line + 1
     out.key_lines = {}
     for knode, vnode in node.value:
@@ -52,8 +52,8 @@ def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> _LDict:
     return out
 
 
-def _construct_sequence(loader: _Loader, node: yaml.SequenceNode) -> _LList:
-    out = _LList(loader.construct_object(c, deep=True) for c in node.value)
+def _construct_sequence(loader: _Loader, node: yaml.SequenceNode) -> LineList:
+    out = LineList(loader.construct_object(c, deep=True) for c in node.value)
     out.line = node.start_mark.line + 1
     return out
 
@@ -70,7 +70,7 @@ _Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_SEQUENCE_TAG, _constr
 
 def read_yaml_text(text: str, where: str, what: str = "YAML",
                    error: type[PpoeError] = ModelConfigError) -> Any:
-    """Parse YAML text with line numbers (mappings are ``_LDict``, lists ``_LList``); ``None`` -> ``{}``.
+    """Parse YAML text with line numbers (mappings are ``LineDict``, lists ``LineList``); ``None`` -> ``{}``.
 
     Raises
     ------

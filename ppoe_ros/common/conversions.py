@@ -15,7 +15,7 @@ from std_msgs.msg import Header
 
 from ppoe_core import lie
 from ppoe_core.errors import PpoeError
-from ppoe_core.lie.so3 import _kernels
+from ppoe_core.lie.compiled import lie_kernels
 
 #: The generated message classes' private fields, as the fast builder of :func:`pose_cov_stamped_msg` fills them
 _MSG_SLOTS = {
@@ -84,7 +84,7 @@ def _matrix_from_quat_xyz(x: float, y: float, z: float, w: float, px: Any, py: A
         raise ValueError(f"pose quaternion {[x, y, z, w]} is not a rotation")
     # lie.matrix_from_quat's one-quaternion operations (normalising again) and the translation, compiled
     T = np.empty((4, 4))
-    _kernels().pose_from_quat_one(x / nq, y / nq, z / nq, w / nq, float(px), float(py), float(pz), T)
+    lie_kernels().pose_from_quat_one(x / nq, y / nq, z / nq, w / nq, float(px), float(py), float(pz), T)
     return T
 
 
@@ -126,7 +126,7 @@ def pose_cov_stamped_msg(T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp:
         msg.pose.covariance = cov.reshape(36).copy()  # the field's own type (float64[36]): no per-element check
         return msg
     fields = np.empty(7)
-    _kernels().pose_fields_one(np.asarray(T_parent_child, dtype=np.float64), fields)  # lie.quat_from_matrix's floats
+    lie_kernels().pose_fields_one(np.asarray(T_parent_child, dtype=np.float64), fields)  # lie.quat_from_matrix's floats
     qx, qy, qz, qw, px, py, pz = fields.tolist()
     header, pwc, pose, point, quat = _bare(Header), _bare(PoseWithCovariance), _bare(Pose), _bare(Point), \
         _bare(Quaternion)

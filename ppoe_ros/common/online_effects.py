@@ -188,6 +188,9 @@ class OnlineEffectsHook:
                                  lambda msg, name=str(name): self._point(msg, f"{IMU_TOPIC}{name}", name), qos)
         if self.p["online_write_period"] > 0 and self.p["online_model_out"]:
             node.create_timer(self.p["online_write_period"], self.write_model)
+        from ppoe_ros.common.services import add_save_model_service
+
+        add_save_model_service(node, self.write_model, self.p["online_model_out"])  # ~/save_model
 
     def set_model(self, model: Any) -> None:
         """Build the filter for ``model`` (the diagnosed PPOEModel), its input alignment and drift monitor."""

@@ -122,8 +122,7 @@ def warm_node_kernels() -> None:
 
     lie.quat_from_matrix(np.eye(3))
     lie.cov_ros_to_local(np.eye(4), lie.cov_local_to_ros(np.eye(4), np.eye(6)))
-    from ppoe_core.estimation.compiled_update import warm_kernels
-    from ppoe_core.estimation.pipeline import warm_pipeline
+    from ppoe_core.estimation.warmup import warm_kernels, warm_pipeline
     from ppoe_core.io import joint_pose
     from ppoe_ros.common.conversions import pose_cov_from_msg, pose_cov_stamped_msg
 

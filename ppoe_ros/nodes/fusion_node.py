@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -87,6 +88,7 @@ from ppoe_core.estimation.sources import parse_sources
 from ppoe_ros.common.fusion_sources import SOURCES_PARAM, LiveSources, source_names, source_specs
 from ppoe_ros.common.tag_cloud import observations_from_cloud
 from ppoe_ros.common.online_effects import ONLINE_PARAMS, OnlineEffectsHook
+from ppoe_ros.common.services import FusionServices
 from ppoe_ros.common.tf_broadcast import FusionTf
 
 __all__ = ["FusionNode", "PARAMS", "main"]
@@ -337,6 +339,7 @@ class FusionNode(Node):
         self.sources = LiveSources(self, parse_sources(p, names, f"node {self.get_fully_qualified_name()}"),
                                    self.stats, self.prefix, self._measure)
         self.sources.subscribe(qos)
+        self.commands = FusionServices(self, self.pipeline, self._measure, self.prefix, self.stats)
         self._last_prior_wall = time.monotonic()
         self.create_timer(
             0.1,
@@ -346,8 +349,6 @@ class FusionNode(Node):
 
         take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
         if self.model is None:
-            from diagnostic_msgs.msg import DiagnosticStatus
-
             self.diagnostics.set_status(DiagnosticStatus.ERROR, "no model: waiting for robot_description")
 
     # ------------------------------------------------------------------ model
@@ -536,8 +537,6 @@ class FusionNode(Node):
             return
         self._converging = converging
         if converging:
-            from diagnostic_msgs.msg import DiagnosticStatus
-
             self.diagnostics.set_status(
                 DiagnosticStatus.WARN, "converging: no measurement fused since start or the last clock reset; "
                 "the output is the uncorrected prior", converging=True)

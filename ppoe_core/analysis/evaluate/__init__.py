@@ -83,9 +83,9 @@ from ppoe_core.analysis.evaluate.options import (
     EvaluateOptions,
     Evaluation,
     load_fusion_params,
+    load_sources,
 )
 from ppoe_core.analysis.evaluate.replay import (
-    ProgressBar,
     contact_measurements,
     evaluate_bag,
     joint_matrix,
@@ -93,6 +93,7 @@ from ppoe_core.analysis.evaluate.replay import (
 from ppoe_core.analysis.evaluate.report import markdown_report, write_report
 from ppoe_core.analysis.evaluate.scoring import registration_split
 from ppoe_core.analysis.evaluate.tag_stream import tag_measurements
+from ppoe_core.io.progress import ProgressBar
 
 __all__ = [
     "registration_split",
@@ -114,4 +115,5 @@ __all__ = [
     "EVALUATE_SETTINGS",
     "REPLAY_SETTINGS",
     "load_fusion_params",
+    "load_sources",
 ]

@@ -88,12 +88,12 @@ def point_covariance(T_base_tool: np.ndarray, cov_tool: np.ndarray, p_tool: np.n
     return J @ np.asarray(cov_tool) @ np.swapaxes(J, -1, -2)
 
 
-def _regularised(cov: np.ndarray) -> np.ndarray:
+def regularised(cov: np.ndarray) -> np.ndarray:
     """``cov`` (..., n, n) symmetrised, plus ``_NEES_JITTER`` on the diagonal (same frame)."""
     return 0.5 * (cov + np.swapaxes(cov, -1, -2)) + _NEES_JITTER * np.eye(cov.shape[-1])
 
 
-def _nees(compute: Callable[[], np.ndarray], bag: str | Path, method: str) -> np.ndarray:
+def nees_named(compute: Callable[[], np.ndarray], bag: str | Path, method: str) -> np.ndarray:
     """NEES samples from ``ppoe_core.estimation.fusion``; a covariance that is not positive definite is an
     error naming the bag and the method (not a numpy traceback)."""
     try:

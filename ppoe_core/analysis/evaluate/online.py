@@ -169,7 +169,8 @@ def evaluate_online(bag: str | Path, model_path: str | Path, online_effects: Any
     """
     st = settings or OnlineSettings(online_effects, jump_probability)
     data = read_bag(bag, load_images=True)
-    model = PPOEModel.from_strings(data.require_robot_description(), Path(model_path))
+    model = PPOEModel.from_strings(data.require_robot_description(), Path(model_path),
+                                   urdf_source=f"bag {bag} /robot_description")
     fr = model.config.frames
     base = base or (fr.base if fr is not None and fr.base else model.robot.root)
     tool = tool or (fr.tool if fr is not None else None)

@@ -13,8 +13,8 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.analysis.evaluate.metrics import (
-    _nees,
-    _regularised,
+    nees_named,
+    regularised,
     error_stats,
     nees_stats,
     point_covariance,
@@ -93,9 +93,9 @@ def score_poses(summary: dict[str, Any], samples: dict[str, np.ndarray], run: Re
         rot = rotation_errors(Te, T_gt)
 
         def pose_nees(Te: np.ndarray = Te, Ce: np.ndarray = Ce) -> Any:
-            return fusion.nees(Te, _regularised(Ce), T_gt)
+            return fusion.nees(Te, regularised(Ce), T_gt)
 
-        ne = _nees(pose_nees, bag, m)
+        ne = nees_named(pose_nees, bag, m)
         samples.update(
             {
                 f"{m}_position_3d": e3,
@@ -187,9 +187,9 @@ def score_points(summary: dict[str, Any], samples: dict[str, np.ndarray], run: R
 
         # e^T C^-1 e of the reflector position error (fusion.nis: the same quadratic form)
         def point_nees(p_e: np.ndarray = p_e, Cp: np.ndarray = Cp) -> Any:
-            return fusion.nis(p_e - p_gt_base[sel], _regularised(Cp))
+            return fusion.nis(p_e - p_gt_base[sel], regularised(Cp))
 
-        ne = _nees(point_nees, bag, m)
+        ne = nees_named(point_nees, bag, m)
         samples.update(
             {
                 f"{m}_position_3d": e3,

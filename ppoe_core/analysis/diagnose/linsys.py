@@ -1,0 +1,360 @@
+"""The stacked, whitened linear system of all blocks, its nuisances eliminated, and its cross-validation folds.
+
+At the linearisation point (the current model), every residual component ``i`` of every block is
+``e_i - G_i dtheta - N_i dnu_s(i)`` (whitened), with ``G`` the columns of *all* candidate effects and ``N`` the
+nuisance columns of the component's segment (a tracker session's registration, ...).  The nuisances are
+eliminated exactly per segment (Schur complement): with ``A_s = N_s^T N_s``, ``M_s = N_s^T G_s``, ``g_s = N_s^T e_s``
+the reduced information and gradient are ``H = G^T G - sum_s M_s^T A_s^-1 M_s``, ``b = G^T e - sum_s M_s^T A_s^-1
+g_s``.  A model (a set of columns) is then a small solve ``H_SS dtheta_S = b_S``.
+
+Held out (:class:`Fold`): the nuisance of a test component's segment comes from the training components of that
+segment, ``dnu_s = A_s^-1 (g_s - M_s dtheta)``, so its residual ``e_V - G_V dtheta - N_V dnu_s`` is linear in
+``dtheta`` again: ``e~_V - G~_V dtheta`` with ``e~_V = e_V - N_V A_s^-1 g_s`` and ``G~_V = G_V - N_V A_s^-1 M_s``,
+precomputed once per fold for every column.  A segment without (enough) training components (a held-out file's
+station) is registered on its own ``reg`` components with ``dtheta`` fixed and scored on its ``score`` components
+that did not define it (the Hilti protocol; all of them when it has no separate scored rows).  Scoring any set of
+columns on every fold is then ``O(n |S| + |S|^3)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["NuisanceSet", "BlockPart", "LinearSystem", "Fold", "solve_scaled"]
+
+#: a segment's nuisance is determined when its information's smallest scaled eigenvalue exceeds this
+MIN_NUISANCE_EIG = 1e-9
+#: a parameter acts on a fit's data when the square root of its information exceeds this share of the largest's
+#: (units differ by many orders: rad vs rad/(N m)) -- below, it stays at zero (e.g. a spline piece without data)
+MIN_ACTIVE = 1e-12
+
+
+@dataclass
+class NuisanceSet:
+    """The nuisance columns of one block: component indices ``idx`` (m,) into the system, their nuisance rows
+    ``N`` (m, k), segment ids ``seg`` (m,) (block-local, ``n_segments`` of them) and the block's index."""
+
+    idx: np.ndarray
+    N: np.ndarray
+    seg: np.ndarray
+    block: int = 0
+    n_segments: int = 0
+
+
+@dataclass
+class BlockPart:
+    """Where one block's components sit in the system (``start`` .. ``stop``, ``d`` per row) and the whitening
+    ``W`` (n, d, d) of its rows (robust weights included): ``raw row = W^-1 whitened row``."""
+
+    index: int
+    start: int
+    stop: int
+    d: int
+    W: np.ndarray
+
+    def raw(self, e: np.ndarray) -> np.ndarray:
+        """Raw residual rows (n, d) of this block from whitened components ``e`` of the whole system."""
+        rows = e[self.start:self.stop].reshape(-1, self.d)
+        return np.linalg.solve(self.W, rows[..., None])[..., 0]
+
+
+@dataclass
+class LinearSystem:
+    """Whitened components of all blocks (module docstring).
+
+    Attributes
+    ----------
+    e : ndarray (n,)
+    G : ndarray (n, C)
+        Columns of all candidates (``cols[c]`` the slice of candidate ``c``).
+    unit : ndarray (n,) int
+        Robot pose (cluster) of each component, 0..U-1.
+    group : ndarray (n,) int
+    reg, score : ndarray (n,) bool
+        Stop roles of each component's row.
+    nuisances : list of NuisanceSet
+    parts : list of BlockPart
+    """
+
+    e: np.ndarray
+    G: np.ndarray
+    cols: list[slice]
+    unit: np.ndarray
+    n_units: int
+    group: np.ndarray
+    reg: np.ndarray
+    score: np.ndarray
+    nuisances: list[NuisanceSet] = field(default_factory=list)
+    parts: list[BlockPart] = field(default_factory=list)
+    _gram_cache: tuple[np.ndarray, np.ndarray, float] | None = field(default=None, init=False, repr=False)
+    _segments: list[tuple[NuisanceSet, list[np.ndarray]]] | None = field(default=None, init=False, repr=False)
+    _reduced_cache: tuple[np.ndarray, np.ndarray, float, list[tuple], np.ndarray] | None = field(
+        default=None, init=False, repr=False)
+    _absorbed: np.ndarray | None = field(default=None, init=False, repr=False)
+
+    @property
+    def n_columns(self) -> int:
+        return int(self.G.shape[1])
+
+    def _gram(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """``G^T G``, ``G^T e`` and ``e^T e`` of all components (computed once)."""
+        if self._gram_cache is None:
+            self._gram_cache = (self.G.T @ self.G, self.G.T @ self.e, float(self.e @ self.e))
+        return self._gram_cache
+
+    def segments(self) -> list[tuple[NuisanceSet, list[np.ndarray]]]:
+        """Per nuisance set, the positions (into ``idx``) of each segment's components (computed once)."""
+        if self._segments is None:
+            self._segments = []
+            for ns in self.nuisances:
+                order = np.argsort(ns.seg, kind="stable")
+                _, starts = np.unique(ns.seg[order], return_index=True)
+                self._segments.append((ns, np.split(order, starts[1:]) if order.size else []))
+        return self._segments
+
+    def _reduced(self) -> tuple[np.ndarray, np.ndarray, float, list[tuple], np.ndarray]:
+        """The information with every segment's nuisance eliminated on all its components, per segment its terms
+        ``(components, N, A^-1, M, g, A^-1 M, A^-1 g)`` and the mask of components in a segment (computed once; a
+        fold only corrects the segments it touches)."""
+        if self._reduced_cache is None:
+            gram, gb, gee = self._gram()
+            H, b, ee = gram.copy(), gb.copy(), gee
+            terms: list[tuple] = []
+            for ns, segs in self.segments():
+                for pos in segs:
+                    rows, N = ns.idx[pos], ns.N[pos]
+                    act = _active(N)
+                    if not _determined(N, act):
+                        terms.append((rows, N, act, None, None, None, None, None))
+                        continue
+                    A_inv = _ginv(N, act)
+                    M, g = N.T @ self.G[rows], N.T @ self.e[rows]
+                    AM, Ag = A_inv @ M, A_inv @ g
+                    H -= M.T @ AM
+                    b -= M.T @ Ag
+                    ee -= float(g @ Ag)
+                    terms.append((rows, N, act, A_inv, M, g, AM, Ag))
+            in_seg = np.zeros(self.e.size, dtype=bool)
+            for t in terms:
+                in_seg[t[0]] = True
+            self._reduced_cache = (H, b, ee, terms, in_seg)
+        return self._reduced_cache
+
+    def absorbed(self) -> np.ndarray:
+        """Per column (C,), the smallest share of its information the nuisances absorb in any block where it acts
+        (1: absorbed everywhere, e.g. a rigid motion of the whole arm against a tracker's registration; a column
+        that no block sees gets 1)."""
+        if self._absorbed is None:
+            _, _, _, terms, _ = self._reduced()
+            out = np.ones(self.G.shape[1])
+            for part in self.parts:
+                G = self.G[part.start:part.stop]
+                raw = np.einsum("ij,ij->j", G, G)
+                red = raw.copy()
+                for rows, _N, _act, A_inv, M, _g, AM, _Ag in terms:
+                    if A_inv is not None and part.start <= rows[0] < part.stop:
+                        red -= np.einsum("kj,kj->j", M, AM)
+                acts = raw > 1e-300
+                share = np.where(acts, 1.0 - red / np.where(acts, raw, 1.0), 1.0)
+                out = np.minimum(out, share)
+            self._absorbed = out
+        return self._absorbed
+
+    def fold(self, train: np.ndarray) -> Fold:
+        """:class:`Fold` with training components ``train`` (n,) bool; the others are held out.  A segment whose
+        training components cannot determine its nuisance does not train (it is scored as a held-out segment)."""
+        test = ~train
+        H0, b0, ee0, terms, in_seg = self._reduced()
+        if not test.any():
+            return Fold(H0, b0, ee0, np.zeros(0, dtype=int), np.zeros(0), np.zeros((0, self.G.shape[1])),
+                        np.zeros(0, dtype=int))
+        H, b, ee = H0.copy(), b0.copy(), ee0
+        free_out = np.flatnonzero(~train & ~in_seg)
+        Go, eo = self.G[free_out], self.e[free_out]
+        H -= Go.T @ Go
+        b -= Go.T @ eo
+        ee -= float(eo @ eo)
+        tidx = np.flatnonzero(test)
+        loc = np.full(self.e.size, -1)
+        loc[tidx] = np.arange(tidx.size)
+        e_v, G_v = self.e[tidx].copy(), self.G[tidx].copy()
+        scored = np.ones(tidx.size, dtype=bool)
+        for term in terms:
+            ee = self._fold_segment(term, train, test, H, b, ee, e_v, G_v, loc, scored)
+        keep = np.flatnonzero(scored)
+        return Fold(H, b, ee, tidx[keep], e_v[keep], G_v[keep], self.unit[tidx[keep]])
+
+    def _fold_segment(self, term: tuple, train: np.ndarray, test: np.ndarray, H: np.ndarray, b: np.ndarray,
+                      ee: float, e_v: np.ndarray, G_v: np.ndarray, loc: np.ndarray, scored: np.ndarray) -> float:
+        """One segment in a fold (in place on ``H``, ``b``; returns ``e^T e``): kept as reduced when all its
+        components train; else its reduction and its held-out components are taken out of the training system,
+        its training part (if it determines the nuisance) eliminated again, and its held-out components adjusted:
+        by that training part, or, without one, by the segment's ``reg`` test components, scored on the others
+        (``score`` and not ``reg``; every test component of the segment when it has no such split)."""
+        rows, N, act, A_inv, M, g, AM, Ag = term
+        tr = train[rows]
+        if A_inv is not None and tr.all():
+            return ee
+        te = test[rows]
+        if A_inv is not None:  # undo the all-components reduction of this segment
+            H += M.T @ AM
+            b += M.T @ Ag
+            ee += float(g @ Ag)
+        out_rows = rows[~tr]
+        Go, eo = self.G[out_rows], self.e[out_rows]
+        H -= Go.T @ Go
+        b -= Go.T @ eo
+        ee -= float(eo @ eo)
+        if tr.any() and _determined(N[tr], act):
+            fit_rows, fit_N, out, training = rows[tr], N[tr], te, True
+        else:
+            if tr.any():  # its training part cannot determine the nuisance: it does not train
+                Gt, et = self.G[rows[tr]], self.e[rows[tr]]
+                H -= Gt.T @ Gt
+                b -= Gt.T @ et
+                ee -= float(et @ et)
+            reg = te & self.reg[rows]
+            split = te & self.score[rows] & ~self.reg[rows]
+            out = split if split.any() else te
+            scored[loc[rows[te]]] = False
+            fit_rows, fit_N, training = rows[reg], N[reg], False
+            if not te.any() or not _determined(fit_N, act):
+                return ee
+            scored[loc[rows[out]]] = True
+        A2 = _ginv(fit_N, act)
+        M2, g2 = fit_N.T @ self.G[fit_rows], fit_N.T @ self.e[fit_rows]
+        AM2, Ag2 = A2 @ M2, A2 @ g2
+        if training:
+            H -= M2.T @ AM2
+            b -= M2.T @ Ag2
+            ee -= float(g2 @ Ag2)
+        if out.any():
+            li, No = loc[rows[out]], N[out]
+            e_v[li] -= No @ Ag2
+            G_v[li] -= No @ AM2
+        return ee
+
+    def full(self) -> Fold:
+        """All components as training (the in-sample fit); no held-out components."""
+        return self.fold(np.ones(self.e.size, dtype=bool))
+
+    def projected(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(e~, G~)``: residual and columns with every segment's nuisance projected out (all components), for
+        per-component in-sample residuals and clustered covariances."""
+        e_p, G_p = self.e.copy(), self.G.copy()
+        for ns in self.nuisances:
+            for s in np.unique(ns.seg):
+                m = ns.seg == s
+                rows, Ns = ns.idx[m], ns.N[m]
+                act = _active(Ns)
+                if not _determined(Ns, act):
+                    continue
+                A_inv = _ginv(Ns, act)
+                e_p[rows] -= Ns @ (A_inv @ (Ns.T @ self.e[rows]))
+                G_p[rows] -= Ns @ (A_inv @ (Ns.T @ self.G[rows]))
+        return e_p, G_p
+
+    def nuisance_step(self, dtheta: np.ndarray, columns: np.ndarray) -> dict[int, np.ndarray]:
+        """Per block (index) with nuisances, the step ``dnu`` (n_segments, k) that goes with ``dtheta`` on
+        ``columns`` (all components)."""
+        r = self.e - self.G[:, columns] @ dtheta
+        out = {}
+        for ns in self.nuisances:
+            step = np.zeros((ns.n_segments, ns.N.shape[1]))
+            for s in np.unique(ns.seg):
+                m = ns.seg == s
+                Ns = ns.N[m]
+                act = _active(Ns)
+                if _determined(Ns, act):
+                    step[s] = _ginv(Ns, act) @ (Ns.T @ r[ns.idx[m]])
+            out[ns.block] = step
+        return out
+
+
+def _active(N: np.ndarray) -> np.ndarray:
+    """The nuisance columns (k,) that act on a segment at all (a placement's tilt that is fixed by definition has a
+    zero column)."""
+    norm = np.sqrt(np.einsum("ij,ij->j", N, N))
+    return norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
+
+
+def _determined(N: np.ndarray, act: np.ndarray) -> bool:
+    """Whether nuisance rows ``N`` (m, k) determine the ``act`` columns (scaled information well conditioned)."""
+    Na = N[:, act]
+    if Na.shape[0] < Na.shape[1] or not act.any():
+        return bool(not act.any())
+    A = Na.T @ Na
+    d = np.sqrt(np.maximum(np.diag(A), 1e-300))
+    ev = np.linalg.eigvalsh(A / d[:, None] / d[None, :])
+    return bool(ev[0] > MIN_NUISANCE_EIG * max(ev[-1], 1e-300))
+
+
+def _ginv(N: np.ndarray, act: np.ndarray) -> np.ndarray:
+    """``(N^T N)^-1`` on the ``act`` columns, zero elsewhere (k, k)."""
+    out = np.zeros((N.shape[1], N.shape[1]))
+    Na = N[:, act]
+    out[np.ix_(act, act)] = np.linalg.inv(Na.T @ Na)
+    return out
+
+
+@dataclass
+class Fold:
+    """One cross-validation fold, precomputed for every column (module docstring): reduced training information
+    ``H`` (C, C), gradient ``b`` (C,), reduced ``e^T e`` of the training part, the scored held-out components
+    ``idx`` with their adjusted residual ``e`` and columns ``G``, and their units."""
+
+    H: np.ndarray
+    b: np.ndarray
+    ee: float
+    idx: np.ndarray
+    e: np.ndarray
+    G: np.ndarray
+    unit: np.ndarray
+
+    def fit(self, cols: np.ndarray, fixed: np.ndarray | None = None, fixed_values: np.ndarray | None = None,
+            ridge: float = 1e-10, scale: np.ndarray | None = None) -> np.ndarray:
+        """``dtheta`` on ``cols`` (training least squares) with the columns ``fixed`` held at ``fixed_values``
+        (``ridge``, ``scale``: :func:`solve_scaled`)."""
+        b = self.b[cols]
+        if fixed is not None and fixed.size:
+            b = b - self.H[np.ix_(cols, fixed)] @ fixed_values
+        return solve_scaled(self.H[np.ix_(cols, cols)], b, ridge, None if scale is None else scale[cols])
+
+    def heldout(self, cols: np.ndarray, dtheta: np.ndarray, fixed: np.ndarray | None = None,
+                fixed_values: np.ndarray | None = None) -> np.ndarray:
+        """Held-out residual of the scored components with ``dtheta`` on ``cols`` and ``fixed`` at ``fixed_values``."""
+        r = self.e - self.G[:, cols] @ dtheta
+        if fixed is not None and fixed.size:
+            r = r - self.G[:, fixed] @ fixed_values
+        return r
+
+
+def solve_scaled(H: np.ndarray, b: np.ndarray, ridge: float = 1e-10, scale: np.ndarray | None = None) -> np.ndarray:
+    """Solution of ``H x = b`` with column scaling (by ``sqrt(diag H)``, or ``scale``: e.g. the columns' norms over
+    all data, so that a column barely present in a fold's training data is not blown up) and a relative ridge.
+    Parameters whose information is below :data:`MIN_ACTIVE` of the largest stay 0."""
+    if b.size == 0:
+        return np.zeros(0)
+    d = np.sqrt(np.maximum(np.diag(H), 0.0))
+    if scale is not None:
+        d = np.where(d > MIN_ACTIVE * max(float(d.max(initial=0.0)), 1e-300), np.asarray(scale, dtype=float), 0.0)
+    act = d > MIN_ACTIVE * max(float(d.max(initial=0.0)), 1e-300)
+    x = np.zeros(b.size)
+    if not act.any():
+        return x
+    da = d[act]
+    Hs = H[np.ix_(act, act)] / da[:, None] / da[None, :]
+    Hs[np.diag_indices_from(Hs)] += ridge
+    try:
+        x[act] = np.linalg.solve(Hs, b[act] / da) / da
+    except np.linalg.LinAlgError:
+        x[act] = np.linalg.lstsq(Hs, b[act] / da, rcond=1e-12)[0] / da
+    return x
+
+
+def stack_components(parts: Sequence[np.ndarray]) -> np.ndarray:
+    """Concatenate per-block component arrays."""
+    return np.concatenate(list(parts)) if parts else np.zeros(0)
