@@ -220,6 +220,9 @@ class OnlineInputs:
         self.monitor = monitor
         self.base = base or _base(filt)
         self.names = list(model.joint_names)
+        # a measurement is taken up to reorder + temperature wait after its stamp (later, when the joint stream has a
+        # gap): its joints must still be kept then
+        keep_ns = max(int(keep_ns), 3 * int(reorder_ns) + int(temperature_wait_ns))
         self.joints = JointHistory(self.names, known=model.robot.joints, max_age_ns=joint_max_age_ns,
                                    keep_ns=keep_ns, policy=policy)
         self.temperatures = StampedHistory(keep_ns)
@@ -311,6 +314,8 @@ class OnlineInputs:
         i = bisect.bisect_right(stamps_ns, m.stamp_ns) - 1
         if i < 0:
             self.counts.no_joints += 1
+            self.notes.append(("no_joints", f"{m.source} at {m.stamp_ns * 1e-9:.6f} s: no joint state at or before "
+                                            "its stamp (kept); skipped"))
             return False
         if self.joint_gap_ns <= 0 or i + 1 >= len(stamps_ns) or stamps_ns[i + 1] - stamps_ns[i] <= self.joint_gap_ns:
             return True
