@@ -241,12 +241,18 @@ class OnlineEffectsHook:
         if isinstance(m.payload, (PointMeasurement, GravityMeasurement)) and topic in self._subscribed:
             return
         om = OnlineMeasurement(int(round(m.stamp * 1e9)), topic, frame[:-1] if frame else "", payload=m.payload)
-        self._publish(self.inputs.measurement(om))
+        try:  # never into the caller: the fusion node hands the same measurement to its pipeline next
+            self._publish(self.inputs.measurement(om))
+        except Exception as exc:  # noqa: BLE001 - counted and logged, the node's measurement goes on
+            self.stats.bad(str(m.source), f"online effects: {exc}", kind="online_bad")
 
     def camera_info(self, frame: str, K: Any, D: Any) -> None:
         """A camera's ``camera_info`` (a change mid-run is counted and logged)."""
         if self.inputs is not None:
-            self.inputs.camera_info(frame, K, D)
+            try:
+                self.inputs.camera_info(frame, K, D)
+            except Exception as exc:  # noqa: BLE001 - counted and logged, the node's camera_info goes on
+                self.stats.bad(frame, f"online effects: camera_info: {exc}", kind="online_bad")
             self._sync()
 
     def _publish(self, steps: list[OnlineStep]) -> None:

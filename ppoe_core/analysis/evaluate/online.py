@@ -168,9 +168,11 @@ def evaluate_online(bag: str | Path, model_path: str | Path, online_effects: Any
         Bad online config; a tracker frame without ``tracker_registration`` in the model.
     """
     st = settings or OnlineSettings(online_effects, jump_probability)
-    data = read_bag(bag, load_images=True)
+    data = read_bag(bag, load_images=False)
     model = PPOEModel.from_strings(data.require_robot_description(), Path(model_path),
                                    urdf_source=f"bag {bag} /robot_description")
+    if model.config.tags is not None and not len(data.tag_observations) and len(data.images):
+        data = read_bag(bag, load_images=True)  # tags are detected on the images
     fr = model.config.frames
     base = base or (fr.base if fr is not None and fr.base else model.robot.root)
     tool = tool or (fr.tool if fr is not None else None)
