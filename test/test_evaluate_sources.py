@@ -59,6 +59,9 @@ def _make_bag(path: Path, seed: int = 5) -> Path:
     t = 100.0
     with BagWriter(path) as w:
         w.write_robot_description(URDF.read_text(), 0.0)
+        q0 = [0.0] * len(ARM)
+        for j in range(150):  # 1.5 s of joint states first: the live nodes' subscriptions settle before the stops
+            w.write_joint_state(t - 1.7 + 0.01 * j, ARM, q0)
         for k in range(N_STOPS):
             q = {n: float(v) for n, v in zip(ARM, rng.uniform(-0.8, 0.8, len(ARM)))}
             q["finger_left_joint"] = 0.01

@@ -207,3 +207,15 @@ def test_evaluate_leaves_other_runs_files_names_them_and_logs_its_run(tmp_path, 
     assert len(runs) == 1 and runs[0]["command"] == "ppoe evaluate" and "evaluation.json" in runs[0]["wrote"]
     assert runs[0]["removed_stale"] == ["trajectory_recorded.tum"] and runs[0]["run_id"].endswith(f"-{os.getpid()}")
     assert not (out / ".ppoe.lock").exists()
+
+
+def test_urdf_from_dh_force_replaces_only_a_urdf_it_wrote(tmp_path, capsys):
+    table = CONFIG_ROBOTS / "arm5_dh.yaml"
+    mine = tmp_path / "robot.urdf"
+    mine.write_text((CONFIG_ROBOTS / "planar3.urdf").read_text())  # a hand-written URDF
+    assert main(["urdf", "from-dh", str(table), "--out", str(mine), "--force"]) == 2
+    assert f"--out {mine}: --force refused: the file was not written by ppoe" in capsys.readouterr().err
+    assert mine.read_text() == (CONFIG_ROBOTS / "planar3.urdf").read_text()
+    ours = tmp_path / "arm5.urdf"
+    assert main(["urdf", "from-dh", str(table), "--out", str(ours)]) == 0
+    assert main(["urdf", "from-dh", str(table), "--out", str(ours), "--force"]) == 0  # its own output: replaced

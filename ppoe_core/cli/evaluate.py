@@ -24,9 +24,6 @@ __all__ = ["add_arguments", "run"]
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``evaluate`` options (docs/conventions.md section 6 plus ours)."""
-    from ppoe_core.estimation.updater import FUSION_RANGES
-
-    iterations, gate = FUSION_RANGES["max_iterations"], FUSION_RANGES["gate_probability"]
     parser.add_argument("bag", metavar="BAG", help="contract bag directory")
     parser.add_argument("--model", required=True, metavar="MODEL.yaml", help="model YAML for the bag's robot")
     parser.add_argument("--base", default=None, help="reference frame (default: model YAML frames.base)")
@@ -51,25 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--fit-set", default="cross", choices=("cross", "square", "all"),
         help="stationing set for per-station tracker registration (bags with /dataset/stop roles)",
     )
-    parser.add_argument(
-        "--fusion-params", default=None, metavar="PARAMS.yaml",
-        help="a ROS 2 parameter file of the fusion node (buffer, gating, correction policy, and its sensor blocks "
-             "'sources': tracker points, 6D poses, accelerometers, replayed from the bag's topics; a /** file shared "
-             "by the nodes also sets corner_refinement and the contact node's force_threshold, release_threshold, "
-             "force_component); default: the nodes' defaults",
-    )
-    parser.add_argument(
-        "--set", dest="fusion_set", action="append", default=[], metavar="KEY=VALUE",
-        help="override one setting (a fusion node parameter, e.g. use_tag_corners=false, or corner_refinement, "
-             "force_threshold, release_threshold, force_component of the tag bearing / contact node); unknown keys "
-             "are an error; repeatable",
-    )
-    parser.add_argument("--iterations", type=int_range(int(iterations[0]), int(iterations[1])), default=None,
-                        help="override max_iterations of the LG-EKF update")
-    parser.add_argument("--gate", type=float_range(*gate), default=None,
-                        help=f"override gate_probability, in [{gate[0]:g}, {gate[1]:g}] (1 = no gate)")
-    parser.add_argument("--pixel-sigma", type=float_range(0.0), default=None,
-                        help="override pixel_sigma [px] (0: the model's)")
+    _add_fusion_options(parser)
     parser.add_argument("--online", action="store_true",
                         help="track drifting effects online (docs/online.md): tool error before / static / online, "
                              "online.json and online_parameters.png in --out")
@@ -85,6 +64,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="progress bar on stderr (default: only when stderr is a terminal)")
     bar.add_argument("--no-progress", dest="progress", action="store_false")
     bar.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+
+
+def _add_fusion_options(parser: argparse.ArgumentParser) -> None:
+    """The fusion settings of the replay: a parameter file, ``--set``, and three overrides (ranges of the node)."""
+    from ppoe_core.estimation.updater import FUSION_RANGES
+
+    iterations, gate = FUSION_RANGES["max_iterations"], FUSION_RANGES["gate_probability"]
+    parser.add_argument(
+        "--fusion-params", default=None, metavar="PARAMS.yaml",
+        help="a ROS 2 parameter file of the fusion node (buffer, gating, correction policy, its 'sources': tracker "
+             "points, 6D poses, accelerometers from the bag; a /** file shared by the nodes also sets "
+             "corner_refinement, force_threshold, release_threshold, force_component); default: the nodes' defaults",
+    )
+    parser.add_argument(
+        "--set", dest="fusion_set", action="append", default=[], metavar="KEY=VALUE",
+        help="override one setting (a fusion node parameter, e.g. use_tag_corners=false, or corner_refinement, "
+             "force_threshold, release_threshold, force_component of the tag bearing / contact node); unknown keys "
+             "are an error; repeatable",
+    )
+    parser.add_argument("--iterations", type=int_range(int(iterations[0]), int(iterations[1])), default=None,
+                        help="override max_iterations of the LG-EKF update")
+    parser.add_argument("--gate", type=float_range(*gate), default=None,
+                        help=f"override gate_probability, in [{gate[0]:g}, {gate[1]:g}] (1 = no gate)")
+    parser.add_argument("--pixel-sigma", type=float_range(0.0), default=None,
+                        help="override pixel_sigma [px] (0: the model's)")
 
 
 def run(args: argparse.Namespace) -> int:

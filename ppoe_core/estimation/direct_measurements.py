@@ -10,7 +10,7 @@ import scipy.linalg
 from ppoe_core import lie
 from ppoe_core.estimation.checks import check_noise_covariance, check_pose
 from ppoe_core.errors import CovarianceError, MeasurementError
-from ppoe_core.estimation.measurement_base import MeasurementModel
+from ppoe_core.estimation.update_types import MeasurementModel
 from ppoe_core.robot.tree import GRAVITY
 
 

@@ -116,15 +116,13 @@ def numerical_jacobian_noise(
 def _linearize(
     model: MeasurementModelLike, T: np.ndarray, jacobians: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(h(T), H, M)``; uses ``model.linearize`` when the model has it (shared work)."""
+    """``(h(T), H, M)`` by ``model.linearize`` (central differences for a None Jacobian, or all with
+    ``jacobians="numerical"``)."""
     H = M = None
-    if jacobians != "numerical" and hasattr(model, "linearize"):
+    if jacobians != "numerical":
         z_pred, H, M = model.linearize(T)
     else:
         z_pred = model.h(T)
-        if jacobians != "numerical":
-            H = model.jacobian_state(T)
-            M = model.jacobian_noise(T)
     if jacobians == "analytic" and (H is None or M is None):
         raise MeasurementError(f"{model.name}: no analytic Jacobian available")
     if H is None:
@@ -208,7 +206,7 @@ def iterated_update(
         raise PpoeError(f"iterated_update: jacobians must be auto, analytic or numerical, not {jacobians!r}")
     if max_iterations < 1:
         raise PpoeError(f"iterated_update: max_iterations must be >= 1, got {max_iterations}")
-    R = model.noise_cov if getattr(model, "noise_checked", False) else check_noise_covariance(
+    R = model.noise_cov if model.noise_checked else check_noise_covariance(
         model.noise_cov, model.noise_dim, f"{model.name}: noise covariance")
     R = np.ascontiguousarray(R, dtype=np.float64)
     spec = model.compiled if jacobians != "numerical" else None

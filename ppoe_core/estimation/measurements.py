@@ -67,7 +67,7 @@ from ppoe_core.errors import CovarianceError, MeasurementError
 from ppoe_core.estimation.camera import distortion_coefficients, project_points_jacobian
 from ppoe_core.estimation.composite_measurements import ChainedObservation, StackedObservation
 from ppoe_core.estimation.direct_measurements import GravityObservation, PointObservation, PoseObservation
-from ppoe_core.estimation.measurement_base import MeasurementModel
+from ppoe_core.estimation.update_types import MeasurementModel
 from ppoe_core.estimation.update_types import KIND_CONTACT, KIND_TAG, CompiledModel
 from ppoe_core.lie.compiled import compiled
 

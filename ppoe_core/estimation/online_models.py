@@ -33,7 +33,7 @@ import numpy as np
 
 from ppoe_core.errors import MeasurementError
 from ppoe_core.estimation.direct_measurements import GravityObservation, PointObservation, PoseObservation
-from ppoe_core.estimation.measurement_base import MeasurementModel
+from ppoe_core.estimation.update_types import MeasurementModel
 from ppoe_core.estimation.measurements import ContactPlaneModel, TagBearingModel, tag_points
 from ppoe_core.estimation.source_updater import (
     GravityMeasurement,

@@ -6,7 +6,7 @@ What the Python path does step by step (:func:`ppoe_core.io.cdr.parse_joint_stat
 <ppoe_core.model.ppoe.PPOEModel.fk>`, :func:`ppoe_core.lie.quat_from_matrix`, :func:`ppoe_core.lie.cov_local_to_ros`,
 :class:`ppoe_core.io.cdr.PoseCovarianceWriter`) costs about 30 us per message in Python and numpy dispatch;
 the arithmetic is a few microseconds.  :class:`JointPoseFastPath` runs the same steps with the same compiled
-pieces (:func:`ppoe_core.model.chain_kernel.eval_chain`, the quaternion and covariance kernels of
+pieces (:func:`ppoe_core.model.chain_kernel.fk_one`, the quaternion and covariance kernels of
 :mod:`ppoe_core.lie.kernels`, the writer's own buffer) in one numba call, for the messages where nothing is
 unusual: a name layout seen before (the bytes of the name sequence equal a learned one), every position finite,
 the stamp not older than the last one nor beyond the future limit, the chain's joints all known and fresh (the
@@ -28,7 +28,7 @@ from ppoe_core.model.joint_history import NEVER_NS, JointHistory, fresh_vector, 
 from ppoe_core.io import cdr
 from ppoe_core.io.cdr import PoseCovarianceWriter
 from ppoe_core.lie.kernels import quat_into, rotate_covariance_into
-from ppoe_core.model.chain_kernel import eval_chain
+from ppoe_core.model.chain_kernel import FOURTH_WORK, fk_one
 
 __all__ = ["JointPoseFastPath", "joint_state_pose", "chain_pose_cdr", "MAX_LAYOUTS"]
 
@@ -119,34 +119,31 @@ def _merge(d: Any, pos: int, count: int, src: np.ndarray, dst: np.ndarray, stamp
 
 @njit(cache=True)
 def chain_pose_cdr(q: np.ndarray, motion_col: np.ndarray, mult: np.ndarray, off: np.ndarray, program: tuple,
-                   order: int, stamp: int, out_u8: np.ndarray, out_f8: np.ndarray) -> bool:
+                   order: int, fourth: np.ndarray | None, stamp: int, out_u8: np.ndarray, out_f8: np.ndarray) -> bool:
     """One pose message of the chain ``program`` at the joint vector ``q`` into a
     :class:`~ppoe_core.io.cdr.PoseCovarianceWriter`'s buffer (``raw``, ``fields``): ``model.fk`` (one
     configuration), the quaternion, the ROS-convention covariance and ``header.stamp``; False (nothing written)
-    for a non-finite joint value or a stamp whose seconds do not fit ``int32``."""
+    for a non-finite joint value or a stamp whose seconds do not fit ``int32``.  ``fourth``: the fourth-order work
+    array of :func:`~ppoe_core.model.chain_kernel.fk_one` for ``order`` 4, None for order 2 (the fourth-order code
+    is then not compiled in)."""
     sec = stamp // 1_000_000_000
     nsec = stamp - sec * 1_000_000_000
     if sec < -(2**31) or sec >= 2**31:
         return False
-    theta = np.empty((motion_col.shape[0], 1))
-    for i in range(motion_col.shape[0]):
-        theta[i, 0] = q[motion_col[i]] * mult[i] + off[i]
-        if not np.isfinite(theta[i, 0]):
-            return False
     F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start = program
-    T = np.empty((1, 4, 4))
-    cov = np.zeros((1, 6, 6))
-    eval_chain(F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start, theta, np.zeros((0, 4, 4, 1)),
-               order if col_pos.shape[0] > 0 else 0, T, cov, np.empty((col_pos.shape[0], 6, 0)),
-               np.empty((mot_pos.shape[0], 6, 0)))
+    T = np.empty((4, 4))
+    cov = np.zeros((6, 6))
+    if not fk_one(F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start, q, motion_col, mult, off, order, T, cov,
+                  fourth):
+        return False
     usec = sec + 2**32 if sec < 0 else sec
     for k in range(4):
         out_u8[4 + k] = (usec >> (8 * k)) & 0xFF
         out_u8[8 + k] = (nsec >> (8 * k)) & 0xFF
-    out_f8[0], out_f8[1], out_f8[2] = T[0, 0, 3], T[0, 1, 3], T[0, 2, 3]
-    quat_into(T[0, :3, :3], np.empty(4), out_f8[3:7])
+    out_f8[0], out_f8[1], out_f8[2] = T[0, 3], T[1, 3], T[2, 3]
+    quat_into(T[:3, :3], np.empty(4), out_f8[3:7])
     ros = np.empty((6, 6))
-    rotate_covariance_into(T[0], cov[0], False, ros, np.empty((3, 3)), np.empty((3, 3)))
+    rotate_covariance_into(T, cov, False, ros, np.empty((3, 3)), np.empty((3, 3)))
     for i in range(6):
         for j in range(6):
             out_f8[7 + 6 * i + j] = ros[i, j]
@@ -157,7 +154,8 @@ def chain_pose_cdr(q: np.ndarray, motion_col: np.ndarray, mult: np.ndarray, off:
 def joint_state_pose(d: Any, lay: np.ndarray, blob: np.ndarray, src: np.ndarray, dst: np.ndarray,
                      values: np.ndarray, stamps: np.ndarray, max_age: int, clock: np.ndarray, limit: int,
                      model_dst: np.ndarray, q: np.ndarray, motion_col: np.ndarray, mult: np.ndarray, off: np.ndarray,
-                     program: tuple, order: int, out_u8: np.ndarray, out_f8: np.ndarray) -> int:
+                     program: tuple, order: int, fourth: np.ndarray | None, out_u8: np.ndarray,
+                     out_f8: np.ndarray) -> int:
     """The whole per-message path for the first target (module docstring): 1 when the pose message is in
     ``out_u8`` (``q`` holds the joint vector, ``clock`` = ``[last stamp ns, has one]`` the message's stamp), 0 when
     the message is left to the Python path (also a stamp after ``limit``, the clock plus the future tolerance)."""
@@ -174,7 +172,7 @@ def joint_state_pose(d: Any, lay: np.ndarray, blob: np.ndarray, src: np.ndarray,
     q[:] = 0.0
     for j in range(model_dst.shape[0]):
         q[model_dst[j]] = values[j]
-    if not chain_pose_cdr(q, motion_col, mult, off, program, order, stamp, out_u8, out_f8):
+    if not chain_pose_cdr(q, motion_col, mult, off, program, order, fourth, stamp, out_u8, out_f8):
         return 0  # an overflowing joint value or seconds beyond int32: the Python path reports it
     clock[0] = stamp
     clock[1] = 1
@@ -202,6 +200,7 @@ class JointPoseFastPath:
         self._model_dst = np.ascontiguousarray(model_dst, dtype=np.int64)
         self._q = np.zeros(n_joints)
         self._order = int(order)
+        self._fourth = np.empty(FOURTH_WORK + (1,)) if self._order == 4 else None
         self._targets = [(lean.program, lean.motion_col, lean.mult, lean.off, w.raw, w.fields) for lean, w in targets]
         self._layouts: dict[bytes, tuple[int, np.ndarray, np.ndarray]] = {}
         self._lay = np.zeros((0, 5), dtype=np.int64)
@@ -216,10 +215,11 @@ class JointPoseFastPath:
         h = self._history
         if not joint_state_pose(data, self._lay, self._blob, self._src, self._dst, h.values, h.stamps, h.max_age_ns,
                                 h.clock, limit_ns, self._model_dst, self._q, col, mult, off, program, self._order,
-                                raw, fields):
+                                self._fourth, raw, fields):
             return False
         for program, col, mult, off, raw, fields in self._targets[1:]:
-            if not chain_pose_cdr(self._q, col, mult, off, program, self._order, int(h.clock[0]), raw, fields):
+            if not chain_pose_cdr(self._q, col, mult, off, program, self._order, self._fourth, int(h.clock[0]), raw,
+                                  fields):
                 return False  # (an overflowing mimic joint) the Python path redoes the message: same stamp, same merge
         return True
 
@@ -254,7 +254,8 @@ class JointPoseFastPath:
         probe = bytes(cdr.CDR_LE_HEADER) + bytes(8) + b"\x01\x00\x00\x00\x00\x00\x00\x00" + bytes(8)
         self.run(probe)
         program, col, mult, off, raw, fields = self._targets[0]
-        chain_pose_cdr(np.full(self._q.shape, np.nan), col, mult, off, program, self._order, 0, raw, fields)
+        chain_pose_cdr(np.full(self._q.shape, np.nan), col, mult, off, program, self._order, self._fourth, 0, raw,
+                       fields)
 
 
 def warm_kernels() -> None:

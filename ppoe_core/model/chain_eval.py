@@ -8,7 +8,7 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.model.chain import OP_EFFECT, OP_ROT_Z, OP_STATIC, OP_TRANS_Z, Array, Chain
 
-__all__ = ["evaluate", "forward_product", "exp_batch_last", "rows_to_poses"]
+__all__ = ["evaluate", "evaluate_one", "forward_product", "exp_batch_last", "rows_to_poses"]
 
 # ----------------------------------------------------------------------------
 # Chain evaluation
@@ -16,6 +16,28 @@ __all__ = ["evaluate", "forward_product", "exp_batch_last", "rows_to_poses"]
 
 
 _NO_D = np.zeros((0, 4, 4, 1))
+#: the compiled kernel, imported on first use (numba is loaded then, not by ``import ppoe_core``); a list so that
+#: the per-call lookup is one index, not an import statement
+_KERNEL: list = []
+_ONE: list = []
+
+
+def _one_kernel() -> tuple:
+    """``(fk_one, FOURTH_WORK)`` of :mod:`ppoe_core.model.chain_kernel`."""
+    if not _ONE:
+        from ppoe_core.model.chain_kernel import FOURTH_WORK, fk_one
+
+        _ONE.append((fk_one, FOURTH_WORK))
+    return _ONE[0]
+
+
+def _kernel() -> tuple:
+    """``(eval_chain, CHUNK, FOURTH_WORK)`` of :mod:`ppoe_core.model.chain_kernel`."""
+    if not _KERNEL:
+        from ppoe_core.model.chain_kernel import CHUNK, FOURTH_WORK, eval_chain
+
+        _KERNEL.append((eval_chain, CHUNK, FOURTH_WORK))
+    return _KERNEL[0]
 
 
 def evaluate(ch: Chain, theta: Array, D: Array | None, order: int = 2, want_cols: bool = False,
@@ -47,8 +69,7 @@ def evaluate(ch: Chain, theta: Array, D: Array | None, order: int = 2, want_cols
     J : ndarray, shape (n_motion, 6, N), or None
         Local columns of unit joint motions (before the joint's sign / multiplier).
     """
-    from ppoe_core.model.chain_kernel import eval_chain  # numba loaded on first use, not by `import ppoe_core`
-
+    eval_chain, CHUNK, FOURTH_WORK = _kernel()
     N = theta.shape[1]
     F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start = ch.program
     m = col_pos.shape[0]
@@ -57,9 +78,38 @@ def evaluate(ch: Chain, theta: Array, D: Array | None, order: int = 2, want_cols
     G = np.empty((m, 6, N if want_cols else 0))
     J = np.empty((mot_pos.shape[0], 6, N if want_jac else 0))
     Dc = _NO_D if D is None or D.shape[0] == 0 else np.ascontiguousarray(D, dtype=float)
+    # the fourth-order code is compiled only into the specialisation that gets its work array
+    fourth = np.empty(FOURTH_WORK + (min(N, CHUNK),)) if order == 4 and m > 0 else None
     eval_chain(F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start, np.ascontiguousarray(theta, dtype=float),
-               Dc, order if m > 0 else 0, T, cov, G, J)
+               Dc, order if m > 0 else 0, T, cov, G, J, fourth)
     return T, (cov if order else None), (G if want_cols else None), (J if want_jac else None)
+
+
+def evaluate_one(ch: Chain, q: Array, motion_col: Array, order: int) -> tuple[Array, Array] | None:
+    """:func:`evaluate` of ONE configuration without effects from joint values, with as little Python around the
+    kernel as possible (:func:`ppoe_core.model.chain_kernel.fk_one`; the one-configuration path of
+    :meth:`PPOEModel.fk <ppoe_core.model.ppoe.PPOEModel.fk>`).
+
+    Parameters
+    ----------
+    q : ndarray, shape (n,), float64
+        Joint values; motion ``i`` takes ``q[motion_col[i]] * mult[i] + off[i]`` (mimic multiplier, offset, sign).
+    motion_col : ndarray, shape (n_motion,), int64
+    order : {0, 2, 4}
+
+    Returns
+    -------
+    (T, cov) : ndarrays, shapes (4, 4) / (6, 6), or None when a motion value is not finite
+        ``cov`` is zero for order 0 or a chain without perturbations, else in the tangent space at ``T``.
+    """
+    fk_one, FOURTH_WORK = _one_kernel()
+    T = np.empty((4, 4))
+    cov = np.zeros((6, 6))
+    F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start = ch.program
+    if not fk_one(F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start, q, motion_col, ch.motion_mult,
+                  ch.motion_off, order, T, cov, np.empty(FOURTH_WORK + (1,)) if order == 4 else None):
+        return None
+    return T, cov
 
 
 def forward_product(ch: Chain, theta: Array, D: Array | None, pert: list) -> Array:

@@ -17,6 +17,13 @@ Program arrays (:class:`ppoe_core.model.chain.ChainProgram`, built once per chai
 * ``mot_pos`` (n_motion,): factor index of each motion; ``mot_kind``: 1 revolute, 2 prismatic;
 * ``site_start`` (n_sites + 1,): first column of each perturbation site (columns are grouped by site, chain
   order), for the fourth-order compounding.
+
+Compile time and speed (docs/performance.md): the fourth-order code is compiled only into the specialisations
+that are given its work array (``fourth``): numba prunes the ``fourth is None`` branch when the argument's type is
+``none``, so a second-order caller (the kinematics node's default) never compiles it (about half of the cold
+compile).  The working set of a call is sized ``min(N, CHUNK)`` (one configuration allocates 3 KB, not 100 KB), the
+covariance accumulates in two vectorised passes per column (the column into ``g``, then the 21 products), and
+``fastmath={"contract"}`` lets LLVM fuse multiply-adds (results differ from separate rounding in the last bit).
 """
 
 from __future__ import annotations
@@ -26,13 +33,17 @@ from numba import njit
 
 from ppoe_core.model.fourth_order import compound_chunk
 
-__all__ = ["CHUNK", "eval_chain"]
+__all__ = ["CHUNK", "FOURTH_WORK", "eval_chain", "fk_one"]
 
 #: configurations per chunk (the working set ``(n_f + 1, 3, 4, CHUNK)`` stays in cache)
 CHUNK = 64
+#: leading shape of the fourth-order work array ``fourth`` of :func:`eval_chain` (its last axis: >= min(N, CHUNK))
+FOURTH_WORK = (29, 3, 3)
+#: floating-point flags of every kernel here: fused multiply-add allowed, nothing else (no reassociation)
+FASTMATH = {"contract"}
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _static(Fk: np.ndarray, nx: np.ndarray, out: np.ndarray, C: int) -> None:
     """``out = F_k @ nx`` for a constant factor (rows ``(3, 4, C)``)."""
     for i in range(3):
@@ -44,7 +55,7 @@ def _static(Fk: np.ndarray, nx: np.ndarray, out: np.ndarray, C: int) -> None:
             out[i, 3, n] += f3
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _rot_z(th: np.ndarray, n0: int, nx: np.ndarray, out: np.ndarray, C: int) -> None:
     """``out = Rz(theta) @ nx`` for the configurations ``n0 .. n0 + C``."""
     for n in range(C):
@@ -58,7 +69,7 @@ def _rot_z(th: np.ndarray, n0: int, nx: np.ndarray, out: np.ndarray, C: int) -> 
             out[2, j, n] = nx[2, j, n]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _general(Dk: np.ndarray, n0: int, nx: np.ndarray, out: np.ndarray, C: int) -> None:
     """``out = D_k @ nx`` for per-configuration factors ``Dk`` (4, 4, N)."""
     for i in range(3):
@@ -70,7 +81,7 @@ def _general(Dk: np.ndarray, n0: int, nx: np.ndarray, out: np.ndarray, C: int) -
             out[i, 3, n] += Dk[i, 3, n0 + n]
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _suffixes(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, theta: np.ndarray, D: np.ndarray, n0: int,
               C: int, S: np.ndarray) -> None:
     """Suffix products ``S[k]`` (rows ``(3, 4, C)``) of the chain for configurations ``n0 .. n0 + C``."""
@@ -96,7 +107,7 @@ def _suffixes(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, theta: np.ndarra
             _general(D[arg[k]], n0, S[k + 1], S[k], C)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _column(B: np.ndarray, n: int, X: np.ndarray, c: int) -> tuple[float, float, float, float, float, float]:
     """Local covariance column ``c`` of configuration ``n``: ``Ad_{B^-1} [v; w] = [R^T (v + w x t); R^T w]`` for
     the suffix ``B = [R t]`` (rows ``(3, 4, C)``) and the factor column ``X[c]`` = rows ``[v^T; w^T]``."""
@@ -112,33 +123,57 @@ def _column(B: np.ndarray, n: int, X: np.ndarray, c: int) -> tuple[float, float,
             w0 * B[0, 2, n] + w1 * B[1, 2, n] + w2 * B[2, 2, n])
 
 
-@njit(cache=True)
-def _cov_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, C: int, acc: np.ndarray) -> None:
-    """Upper triangle of ``G^T G`` (21 entries per configuration, row by row) into ``acc`` (21, C)."""
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _column_rows(B: np.ndarray, X: np.ndarray, c: int, C: int, g: np.ndarray, n0: int) -> None:
+    """Local covariance column ``c`` (:func:`_column`) of the configurations ``0 .. C`` of the chunk into
+    ``g[:, n0 + n]`` (6 rows)."""
+    for n in range(C):
+        g0, g1, g2, g3, g4, g5 = _column(B, n, X, c)
+        g[0, n0 + n] = g0
+        g[1, n0 + n] = g1
+        g[2, n0 + n] = g2
+        g[3, n0 + n] = g3
+        g[4, n0 + n] = g4
+        g[5, n0 + n] = g5
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _cov_one(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, acc: np.ndarray) -> None:
+    """:func:`_cov_chunk` for a chunk of ONE configuration: the 21 sums accumulate column by column without the
+    loops over configurations (which cost more than the arithmetic for one)."""
+    acc[:, 0] = 0.0
+    for c in range(col_pos.shape[0]):
+        g = _column(S[col_pos[c]], 0, X, c)
+        k = 0
+        for i in range(6):
+            for j in range(i, 6):
+                acc[k, 0] += g[i] * g[j]
+                k += 1
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _cov_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, C: int, acc: np.ndarray, g: np.ndarray) -> None:
+    """Upper triangle of ``G^T G`` (21 entries per configuration, row by row) into ``acc`` (21, C): per column, the
+    column into ``g`` (6, C), then the 21 products (two simple loops over the configurations, both vectorised)."""
     acc[:, :C] = 0.0
     for c in range(col_pos.shape[0]):
-        B = S[col_pos[c]]
-        for n in range(C):
-            g = _column(B, n, X, c)
-            k = 0
-            for i in range(6):
-                for j in range(i, 6):
-                    acc[k, n] += g[i] * g[j]
-                    k += 1
+        _column_rows(S[col_pos[c]], X, c, C, g, 0)
+        k = 0
+        for i in range(6):
+            for j in range(i, 6):
+                for n in range(C):
+                    acc[k, n] += g[i, n] * g[j, n]
+                k += 1
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _columns_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, n0: int, C: int, G: np.ndarray) -> None:
     """Local covariance columns ``Ad_{B_k^-1} L_k`` into ``G`` (m, 6, N)."""
     for c in range(col_pos.shape[0]):
-        B = S[col_pos[c]]
-        for n in range(C):
-            g = _column(B, n, X, c)
-            for i in range(6):
-                G[c, i, n0 + n] = g[i]
+        _column_rows(S[col_pos[c]], X, c, C, G[c], n0)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _motion_chunk(S: np.ndarray, mot_pos: np.ndarray, mot_kind: np.ndarray, n0: int, C: int,
                   J: np.ndarray) -> None:
     """Local columns of unit joint motions into ``J`` (n_motion, 6, N): ``Ad_{B^-1}`` of ``[0; e_z]`` (revolute)
@@ -155,7 +190,7 @@ def _motion_chunk(S: np.ndarray, mot_pos: np.ndarray, mot_kind: np.ndarray, n0: 
                     J[i, 3 + j, n0 + n] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def _write_chunk(S: np.ndarray, acc: np.ndarray, want_cov: bool, n0: int, C: int, T: np.ndarray,
                  cov: np.ndarray) -> None:
     """Mean poses (and covariances from ``acc``) of the chunk into ``T`` (N, 4, 4) and ``cov`` (N, 6, 6)."""
@@ -176,7 +211,7 @@ def _write_chunk(S: np.ndarray, acc: np.ndarray, want_cov: bool, n0: int, C: int
                     k += 1
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH)
 def _fourth_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, site_start: np.ndarray, C: int,
                   Gc: np.ndarray, Sk: np.ndarray, cov4: np.ndarray, W: np.ndarray) -> None:
     """Fourth-order covariance (Barfoot & Furgale 2014) of the chunk into ``cov4`` (6, 6, C): the local site
@@ -198,10 +233,11 @@ def _fourth_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, site_start:
             compound_chunk(cov4, Sk, cov4, C, W)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH)
 def eval_chain(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, col_pos: np.ndarray, X: np.ndarray,
                mot_pos: np.ndarray, mot_kind: np.ndarray, site_start: np.ndarray, theta: np.ndarray,
-               D: np.ndarray, order: int, T: np.ndarray, cov: np.ndarray, G: np.ndarray, J: np.ndarray) -> None:
+               D: np.ndarray, order: int, T: np.ndarray, cov: np.ndarray, G: np.ndarray, J: np.ndarray,
+               fourth: np.ndarray | None) -> None:
     """Evaluate a chain program for ``N`` configurations (the module docstring gives the program arrays).
 
     Parameters
@@ -211,34 +247,102 @@ def eval_chain(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, col_pos: np.nda
     D : ndarray, shape (n_d, 4, 4, N)
         Effect factors ``Exp(dxi)`` per effect slot (``n_d = 0`` without effects).
     order : int
-        0: no covariance; 2: ``cov = G^T G`` (eq. 15/18); 4: fourth order.  ``cov`` (N, 6, 6) lives in the
-        tangent space at ``T`` (frame of the chain's end, right perturbation).
+        0: no covariance; 2: ``cov = G^T G`` (eq. 15/18); 4: fourth order (needs ``fourth``).  ``cov`` (N, 6, 6)
+        lives in the tangent space at ``T`` (frame of the chain's end, right perturbation).
     T : ndarray, shape (N, 4, 4)
         Output mean poses.
     G, J : ndarray, shapes (m, 6, N) / (n_motion, 6, N), or with a last axis of 0 to skip them
         Output local covariance columns / joint-motion columns.
+    fourth : ndarray, shape (*FOURTH_WORK, >= min(N, CHUNK)), or None
+        Work array of the fourth-order compounding; None: this specialisation has no fourth-order code (order 4
+        then gives no covariance: the caller must not ask for it).
     """
     N = theta.shape[1]
-    S = np.empty((F.shape[0] + 1, 3, 4, CHUNK))
-    acc = np.zeros((21, CHUNK))
-    if order == 4:
-        Gc = np.empty((col_pos.shape[0], 6, CHUNK))
-        Sk = np.empty((6, 6, CHUNK))
-        cov4 = np.empty((6, 6, CHUNK))
-        W = np.empty((29, 3, 3, CHUNK))
+    C0 = min(N, CHUNK)
+    S = np.empty((F.shape[0] + 1, 3, 4, C0))
+    acc = np.zeros((21, C0))
+    g = np.empty((6, C0))
     for n0 in range(0, N, CHUNK):
         C = min(CHUNK, N - n0)
         _suffixes(F, kind, arg, theta, D, n0, C, S)
-        if order == 2:
-            _cov_chunk(S, col_pos, X, C, acc)
+        if order == 2 and C == 1:
+            _cov_one(S, col_pos, X, acc)
+        elif order == 2:
+            _cov_chunk(S, col_pos, X, C, acc, g)
         if G.shape[2]:
             _columns_chunk(S, col_pos, X, n0, C, G)
         if J.shape[2]:
             _motion_chunk(S, mot_pos, mot_kind, n0, C, J)
         _write_chunk(S, acc, order == 2, n0, C, T, cov)
-        if order == 4:
-            _fourth_chunk(S, col_pos, X, site_start, C, Gc, Sk, cov4, W)
-            for n in range(C):
-                for i in range(6):
-                    for j in range(6):
-                        cov[n0 + n, i, j] = cov4[i, j, n]
+        if fourth is not None and order == 4:
+            _fourth_into(S, col_pos, X, site_start, n0, C, fourth, cov)
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def _fourth_into(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, site_start: np.ndarray, n0: int, C: int,
+                 W: np.ndarray, cov: np.ndarray) -> None:
+    """Fourth-order covariances of the chunk (:func:`_fourth_chunk`) into ``cov[n0 : n0 + C]``."""
+    Gc = np.empty((col_pos.shape[0], 6, C))
+    Sk = np.empty((6, 6, C))
+    cov4 = np.empty((6, 6, C))
+    _fourth_chunk(S, col_pos, X, site_start, C, Gc, Sk, cov4, W)
+    for n in range(C):
+        for i in range(6):
+            for j in range(6):
+                cov[n0 + n, i, j] = cov4[i, j, n]
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def fk_one(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, col_pos: np.ndarray, X: np.ndarray,
+           mot_pos: np.ndarray, mot_kind: np.ndarray, site_start: np.ndarray, q: np.ndarray, motion_col: np.ndarray,
+           mult: np.ndarray, off: np.ndarray, order: int, T: np.ndarray, cov: np.ndarray,
+           fourth: np.ndarray | None) -> bool:
+    """:func:`eval_chain` of ONE configuration without effects, from the joint values: the one-configuration path of
+    :meth:`PPOEModel.fk <ppoe_core.model.ppoe.PPOEModel.fk>` and of the kinematics node's compiled per-message path
+    (:mod:`ppoe_core.io.joint_pose`).
+
+    Parameters
+    ----------
+    q, motion_col, mult, off : ndarray
+        ``theta[i] = q[motion_col[i]] * mult[i] + off[i]`` (the chain's :class:`~ppoe_core.model.chain.LeanChain`).
+    order : {0, 2, 4}
+        As :func:`eval_chain` (order 4 needs ``fourth``, shape ``(*FOURTH_WORK, >= 1)``).
+    T, cov : ndarray, shapes (4, 4) / (6, 6)
+        Outputs (``cov`` untouched for order 0 or a chain without perturbation columns).
+
+    Returns
+    -------
+    bool
+        False (outputs untouched) when a motion value is not finite: the caller's general path names the joint.
+    """
+    n_mot = motion_col.shape[0]
+    theta = np.empty((n_mot, 1))
+    for i in range(n_mot):
+        theta[i, 0] = q[motion_col[i]] * mult[i] + off[i]
+        if not np.isfinite(theta[i, 0]):
+            return False
+    S = np.empty((F.shape[0] + 1, 3, 4, 1))
+    acc = np.zeros((21, 1))
+    _suffixes(F, kind, arg, theta, np.zeros((0, 4, 4, 1)), 0, 1, S)
+    for i in range(3):
+        for j in range(4):
+            T[i, j] = S[0, i, j, 0]
+    T[3, 0] = 0.0
+    T[3, 1] = 0.0
+    T[3, 2] = 0.0
+    T[3, 3] = 1.0
+    if col_pos.shape[0] == 0 or order == 0:
+        return True
+    if order == 2:
+        _cov_one(S, col_pos, X, acc)
+        k = 0
+        for i in range(6):
+            for j in range(i, 6):
+                cov[i, j] = acc[k, 0]
+                cov[j, i] = acc[k, 0]
+                k += 1
+    elif fourth is not None:
+        cov1 = np.empty((1, 6, 6))
+        _fourth_into(S, col_pos, X, site_start, 0, 1, fourth, cov1)
+        cov[:, :] = cov1[0]
+    return True

@@ -52,7 +52,7 @@ from numpy.typing import ArrayLike
 
 from ppoe_core.errors import JointValueError, ModelConfigError, UnknownFrameError, UnknownJointError
 from ppoe_core.model.chain import Array, Chain, LeanChain, compile_chain
-from ppoe_core.model.chain_eval import evaluate, exp_batch_last, forward_product, rows_to_poses
+from ppoe_core.model.chain_eval import evaluate, evaluate_one, exp_batch_last, forward_product, rows_to_poses
 from ppoe_core.robot.config import ModelConfig, load_model_config
 from ppoe_core.robot.urdf import Robot, parse_urdf
 
@@ -100,6 +100,8 @@ class PPOEModel:
         self._index = {n: i for i, n in enumerate(self.joint_names)}
         self._chains: dict[tuple[str, str, bool], Chain] = {}
         self._effects: list | None = list(effects) if effects is not None else None
+        # per chain (by id; the chains live in _chains as long as the model): the one-configuration path's constants
+        self._single_consts: dict[int, tuple[list[str], Array]] = {}
 
     # -- construction -----------------------------------------------------------
     @classmethod
@@ -262,27 +264,36 @@ class PPOEModel:
             self._chains[(frm, to, with_effects)] = ch
         return ch
 
-    def _single_theta(self, joints: Joints, ch: Chain) -> Array | None:
-        """Lean path: motion values of ONE configuration without effects, or None (use the
-        general path, which also produces the error messages)."""
+    def _single(self, joints: Joints, ch: Chain, order: int) -> tuple[Array, Array] | None:
+        """Lean path: ``(T, cov)`` of ONE configuration without effects, or None (use the general path, which also
+        produces the error messages): a dict becomes one array of the motions' masters, an array is used as it is,
+        and one compiled call (:func:`~ppoe_core.model.chain_eval.evaluate_one`) does the rest, checks included."""
         if self._effects:
             return None
         if type(joints) is np.ndarray:
-            if joints.ndim != 1 or joints.shape[0] != len(self.joint_names) or joints.dtype.kind != "f":
+            if (joints.ndim != 1 or joints.shape[0] != len(self.joint_names) or joints.dtype != np.float64
+                    or not joints.flags.c_contiguous):
                 return None
-            th = joints[ch.motion_col]
-        elif isinstance(joints, dict):
-            try:
-                th = np.array([joints[n] for n in ch.motion_master], dtype=float)
-            except (KeyError, TypeError, ValueError):
-                return None
-            if th.ndim != 1:
-                return None
-        else:
+            return evaluate_one(ch, joints, ch.motion_col, order)
+        if not isinstance(joints, dict):
             return None
-        if not np.isfinite(th).all():
+        single = self._single_of(ch)
+        try:
+            qm = np.array([joints[n] for n in single[0]], dtype=float)
+        except (KeyError, TypeError, ValueError):
             return None
-        return th * ch.motion_mult + ch.motion_off
+        if qm.ndim != 1:
+            return None
+        return evaluate_one(ch, qm, single[1], order)
+
+    def _single_of(self, ch: Chain) -> tuple[list[str], Array]:
+        """The one-configuration path's per-chain constants (made on first use): the master of each motion and
+        ``arange(n_motion)`` (the dict path's joint array holds the motions' masters in order)."""
+        single = self._single_consts.get(id(ch))
+        if single is None:
+            single = self._single_consts[id(ch)] = (list(ch.motion_master),
+                                                    np.arange(len(ch.motion_master), dtype=np.int64))
+        return single
 
     def lean_program(self, frm: str | None, to: str | None) -> LeanChain | None:
         """What the one-configuration path of :meth:`fk` evaluates for ``frm -> to``, for a compiled caller
@@ -353,9 +364,9 @@ class PPOEModel:
         ndarray, shape (..., 4, 4)
         """
         ch = self._lookup(frm, to)
-        th = self._single_theta(joints, ch)
-        if th is not None:
-            return evaluate(ch, th[:, None], None, order=0)[0][0]
+        one = self._single(joints, ch, 0)
+        if one is not None:
+            return one[0]
         ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
         T = evaluate(ch, theta, D, order=0)[0]
         return T.reshape(shape + (4, 4))
@@ -395,11 +406,9 @@ class PPOEModel:
         if order != 2 and order != 4:
             raise ModelConfigError(f"fk: order must be 2 or 4, got {order!r}")
         ch = self._lookup(frm, to)
-        th = self._single_theta(joints, ch)
-        if th is not None:
-            T, cov, _, _ = evaluate(ch, th[:, None], None, order=order)
-            assert cov is not None
-            return T[0], cov[0]
+        one = self._single(joints, ch, order)
+        if one is not None:
+            return one
         ch, theta, D, shape, N = self._prepare(joints, frm, to, context)
         T, cov, _, _ = evaluate(ch, theta, D, order=order)
         assert cov is not None

@@ -238,7 +238,8 @@ def _tracker_entry(ctx: CheckContext, robot: Robot, sec: Mapping, path: str, key
 
 
 def _trackers(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> tuple[TrackerConfig, ...]:
-    """``trackers`` (CONTRACT.md sec. 5): one entry per reflector, ``topic`` ``/ground_truth/point[/<name>]``."""
+    """``trackers`` (docs/conventions.md sec. 5): one entry per reflector, ``topic``
+    ``/ground_truth/point[/<name>]``."""
     if sec is None:
         return ()
     if "tracker" in top:

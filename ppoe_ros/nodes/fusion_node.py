@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -348,8 +349,6 @@ class FusionNode(Node):
 
         take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
         if self.model is None:
-            from diagnostic_msgs.msg import DiagnosticStatus
-
             self.diagnostics.set_status(DiagnosticStatus.ERROR, "no model: waiting for robot_description")
 
     # ------------------------------------------------------------------ model
@@ -538,8 +537,6 @@ class FusionNode(Node):
             return
         self._converging = converging
         if converging:
-            from diagnostic_msgs.msg import DiagnosticStatus
-
             self.diagnostics.set_status(
                 DiagnosticStatus.WARN, "converging: no measurement fused since start or the last clock reset; "
                 "the output is the uncorrected prior", converging=True)

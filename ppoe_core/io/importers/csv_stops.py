@@ -132,17 +132,21 @@ def read_csv_rows(path: str | Path) -> tuple[list[CsvRow], list[str]]:
     ------
     DatasetError
         Unreadable file, no header or no data rows, a column named twice in the header, a row with more or
-        fewer cells than the header (``FILE:LINE``).
+        fewer cells than the header, a NUL character (``FILE:LINE``).
     """
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)
             first = next(reader, None)
             header = [h.strip() for h in first or []]
+            if any("\x00" in h for h in header):
+                raise DatasetError(f"{path}:1: a NUL character: not a text CSV (binary or damaged file?)")
             _check_header(path, header)
             rows: list[CsvRow] = []
             line = reader.line_num + 1
             for cells in reader:
+                if any("\x00" in c for c in cells):
+                    raise DatasetError(f"{path}:{line}: a NUL character: not a text CSV (binary or damaged file?)")
                 if cells and len(cells) != len(header):
                     raise DatasetError(f"{path}:{line}: {len(cells)} cells but the header has {len(header)} "
                                        f"columns; every row must have one cell per column (empty cells allowed)")
