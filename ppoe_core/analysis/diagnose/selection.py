@@ -11,7 +11,9 @@ parameter (``U`` scored poses; a BIC-like price).
   intrinsics level more) and every group move (one kind on every joint of a measured chain) is
   scored; of those that lower ``L`` with significant per-pose held-out gains in some measurement block (paired t
   or one-sided signed-rank z >= ``min_t`` over the poses of that block: a tracker's gain is not drowned by the
-  scatter of a camera's pixels) and a relative gain >= ``min_gain``, the one that lowers ``L`` most is added.
+  scatter of a camera's pixels; a nested extension of a held term at :data:`NESTED_T`, the structure tests' level:
+  a round scores a handful of extensions against about a hundred additions) and a relative gain >= ``min_gain``,
+  the one that lowers ``L`` most is added.
 * **Confirmation**: the new model is refitted on the full nonlinear chain (:meth:`Problem.refit`); every candidate
   is linearised again there unless the refitted cost is the one the current linearisation predicted.
 * **Backward**, after every addition until nothing changes: for every term, its removal, each nested simpler term
@@ -50,6 +52,10 @@ SWAP_MIN_PARAMS = 3
 #: a backward move is not taken when it makes the held-out fit significantly worse: the per-pose losses' paired t
 #: and signed-rank z both reach this (one-sided 2.3 %)
 BACKWARD_T = 2.0
+#: significance (paired t or signed-rank z) of a nested extension of a held term (an intrinsics level, a parameter
+#: more): a round scores a handful of them (about a hundred additions, judged at ``min_t``), the level at which the
+#: structure tests flag what is left (significance.STRUCTURE_T)
+NESTED_T = 3.0
 #: iterations of the backward pass at one linearisation (each removes or simplifies one term)
 MAX_BACKWARD = 200
 
@@ -171,7 +177,7 @@ class Selector:
         return self._variance[key]
 
     # -- forward --------------------------------------------------------------------------------------
-    def admissible(self, model: tuple[Term, ...], term: Term) -> Term | None:
+    def admissible(self, model: tuple[Term, ...], term: Term, record: bool = True) -> Term | None:
         """``term`` reduced to what can be identified with ``model`` (components taken one by one, those that
         explain the most in-sample first, each kept if still identifiable: of a far camera's nearly equivalent
         shift and turn, the one the data show) and physically signed; None (reason recorded) if nothing is left."""
@@ -181,7 +187,8 @@ class Selector:
         idf = self.lin.identifiable(model, [term], o.max_condition, o.max_absorbed)
         if not idf.ok:
             if len(term.comps) == 1 or "act" in idf.reason:
-                self.rejected[key] = idf.reason
+                if record:
+                    self.rejected[key] = idf.reason
                 return None
             keep: list[int] = []
             singles = [Term(term.cand, (c,)) for c in term.comps]  # the components that explain most go first
@@ -191,7 +198,8 @@ class Selector:
                 if self.lin.identifiable(model, [trial], o.max_condition, o.max_absorbed).ok:
                     keep.append(c)
             if not keep:
-                self.rejected[key] = idf.reason
+                if record:
+                    self.rejected[key] = idf.reason
                 return None
             term = Term(term.cand, tuple(sorted(keep)))
         return self._signed(model, term)
@@ -222,11 +230,8 @@ class Selector:
         for t in model:  # a held term grown by a nested step (a parameter more, an intrinsics level more)
             rest = tuple(x for x in model if x != t)
             for r in self.catalogue.richer(t):
-                assert self.lin is not None
-                if not self.lin.identifiable(rest, [r], self.options.max_condition, self.options.max_absorbed).ok:
-                    continue
-                r2 = self._signed(rest, r)
-                if r2 is None or r2 == t or model_key([*rest, r2]) in self.visited:
+                r2 = self.admissible(rest, r, record=False)  # what of it can be identified (k2 next to k1 may not)
+                if r2 is None or r2 == t or not set(t.comps) < set(r2.comps) or model_key([*rest, r2]) in self.visited:
                     continue
                 moves.append(self.score(model, model_key([*rest, r2]), "extend", self.catalogue.describe(r2)))
         for cand in range(len(self.catalogue)):
@@ -264,7 +269,8 @@ class Selector:
         ok = np.isfinite(d0) & np.isfinite(m.d)
         total = float(d0[ok].sum())
         rel = float((d0[ok] - m.d[ok]).sum()) / total if total > 0 else 0.0
-        return m.delta_L < 0.0 and max(m.t, m.z) >= o.min_t and rel >= o.min_gain
+        need = min(o.min_t, NESTED_T) if m.action == "extend" else o.min_t
+        return m.delta_L < 0.0 and max(m.t, m.z) >= need and rel >= o.min_gain
 
     def best(self, moves: Sequence[Move], model: tuple[Term, ...]) -> Move:
         """The move that lowers ``L`` most; equal ones (to rounding) go by fewer parameters, then by catalogue order
