@@ -254,6 +254,9 @@ def test_live_camera_only_equals_offline_and_bad_camera_input(runs, bags, tmp_pa
 
     live = _live(bag, "cobot6_camera_tilt", tmp_path, {}, rate=5.0, after=bad_input)
     _assert_equal({**live, "est": live["est"][:len(ev.stamps)]}, ev)
+    err = _live_tool_errors(live["est"][:len(ev.stamps)], ev, bag, ONLINE / "cobot6_camera_model.yaml",
+                            tmp_path / "online_model.yaml")
+    np.testing.assert_allclose(err, ev.position_error["online"], rtol=1e-6, atol=1e-9)
     d = live["after"]
     assert int(d["online_camera_info_changed"]) == 1 and int(d["online_tags_seen_twice"]) >= 1
     assert int(d["online_bad"]) == 0
