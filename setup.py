@@ -118,6 +118,8 @@ setup(
             "fusion_node = ppoe_ros.nodes.fusion_node:main",
             "ppoe_container = ppoe_ros.nodes.container:main",
             "ppoe_markers = ppoe_ros.common.markers:main",
+            "ppoe_calibration = ppoe_ros.common.calibration:main",
+            "ppoe_managed = ppoe_ros.common.lifecycle:main",
         ],
     },
 )

@@ -1,99 +1,140 @@
-"""Solver choice for the joint tracker + pixel fit: scipy ``least_squares`` vs a GTSAM factor graph.
+"""Solver choice of the diagnose engine: its own Gauss-Newton / LM with the nuisances eliminated (Schur) vs scipy
+``least_squares`` vs a GTSAM factor graph, on the same whitened problem.
 
-The same problem (:class:`ppoe_core.analysis.diagnose.joint_fit.JointProblem`, plain least squares, the
-declared sensor noise) is solved by ``scipy.optimize.least_squares`` (``trf``, analytic dense Jacobian) and,
-if ``gtsam`` imports, by GTSAM Levenberg-Marquardt (:mod:`ppoe_core.analysis.diagnose.joint_gtsam`,
-``CustomFactor`` per residual block, ``Marginals``).  Prints the time and final cost of each, the largest
-parameter difference in units of the parameter sigma, and the ratio of the marginal sigmas.
+The engine's :meth:`~ppoe_core.analysis.diagnose.solver.Problem.refit` runs every confirmation step of the
+selection; scipy (``trf``, analytic dense Jacobian) and GTSAM (Levenberg-Marquardt, one ``CustomFactor`` per robot
+pose, ``Marginals``; skipped if ``gtsam`` does not import) solve the same residuals as one flat function
+(``bench/solver_flat.py``, ``bench/solver_gtsam.py``).  Prints per solver the time, the final whitened cost
+(``sum r^2``), the iterations, and the largest difference of the effect parameters from the engine's in units of
+their standard deviation (and GTSAM's marginal sigmas against the engine's ``H^-1``).
 
-Problem: the Motoman 6x6x6 file (right arm, tracker + both cameras; effects ``link_error@U1_dh``, the two
-cameras' ``camera_extrinsics``) if ``$PPOE_DATASETS/motoman_leica`` exists (or ``--synthetic``), else the
-synthetic arm7 one (:mod:`ppoe_core.analysis.diagnose.joint_synthetic`).  Usage:
-``python bench/bench_solver.py [--synthetic] [--repeat N]``.
+Problems: the Motoman right arm 6x6x6 (tracker + two cameras; ``link_error@U1_dh``, both cameras' extrinsics and
+``camera_intrinsics`` fx..cy) when ``$PPOE_DATASETS/motoman_leica`` is there, and the synthetic arm7 (tracker + one
+camera, ``test/synthetic_arm7.py``).  Usage: ``python bench/bench_solver.py [--synthetic] [--repeat N]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import os
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+for p in (REPO, REPO / "bench", REPO / "test"):
+    if str(p) not in sys.path:
+        sys.path.insert(0, str(p))
 
-from ppoe_core.analysis.diagnose.joint_fit import JointProblem  # noqa: E402
+from solver_flat import FlatProblem  # noqa: E402
+
+from ppoe_core.analysis.diagnose import DiagnoseOptions, Measurements, Problem  # noqa: E402
+from ppoe_core.analysis.diagnose.engine import build_blocks  # noqa: E402
+from ppoe_core.model.effects import make_effect  # noqa: E402
 from ppoe_core.robot.tree import KinematicTree  # noqa: E402
 from ppoe_core.robot.urdf import parse_urdf  # noqa: E402
 
+DATA = Path(os.environ.get("PPOE_DATASETS", "/work/shared/datasets"))
+CACHE = Path(os.environ.get("PPOE_BENCH_CACHE", "/tmp/ppoe_bench_diagnose"))
 
-def problem(synthetic: bool) -> tuple[str, JointProblem]:
-    """The bench problem (label, JointProblem at zero effects)."""
-    from ppoe_core.model.effects import make_effect
 
-    d = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets")) / "motoman_leica"
-    if not synthetic and d.exists():
-        from ppoe_core.analysis.diagnose import pixel_candidates
-        from ppoe_core.cli.datasets import pixels_from_motoman, stops_from_motoman
-
-        robot = parse_urdf(d / "motoman_right.urdf")
-        tree = KinematicTree(robot)
-        f = d / "leica_right_hand_6x6x6_dataset.mat"
-        stops, obs = stops_from_motoman(f, robot), pixels_from_motoman(f, robot, d / "model.yaml")
-        effects = [make_effect("link_error", "U1_dh", tree),
-                   *[e for e in pixel_candidates(robot, obs) if e.name == "camera_extrinsics"]]
-        return "motoman 6x6x6", JointProblem(tree, effects, stops, obs)
-    from ppoe_core.analysis.diagnose.joint_synthetic import arm7_joint_data, arm7_truth
+def synthetic() -> tuple[str, Problem, list[Any]]:
+    from synthetic_arm7 import arm7_joint_data, arm7_truth
 
     robot = parse_urdf(REPO / "config" / "robots" / "arm7.urdf")
     truth = arm7_truth(robot)
     stops, obs = arm7_joint_data(robot, truth, n=40, seed=0)
-    return "synthetic arm7", JointProblem(KinematicTree(robot), [e.with_params(np.zeros(e.n_params)) for e in truth],
-                                          stops, obs)
+    tree = KinematicTree(robot)
+    blocks = build_blocks(tree, Measurements(stops=stops, pixels=obs), (), DiagnoseOptions())
+    return "synthetic arm7", Problem(blocks), [e.with_params(np.zeros(e.n_params)) for e in truth]
 
 
-def main() -> None:
+def motoman() -> tuple[str, Problem, list[Any]]:
+    from ppoe_core.analysis.diagnose.files import LoadOptions, load_measurements, read_robot
+    from ppoe_core.analysis.diagnose.report import load_model
+    from ppoe_ros.cli import main
+
+    d = DATA / "motoman_leica"
+    bag = CACHE / "motoman_666"
+    if not bag.exists():
+        CACHE.mkdir(parents=True, exist_ok=True)
+        with contextlib.redirect_stdout(io.StringIO()):
+            main(["import", "motoman", str(d / "leica_right_hand_6x6x6_dataset.mat"), "--model-yaml",
+                  str(d / "model.yaml"), "--out", str(bag)])
+    model = f"{bag}.model.yaml"
+    _, robot = read_robot(bag)
+    cfg, declared, pert, jnoise = load_model(model, robot)
+    data = load_measurements([bag], robot, cfg, LoadOptions(), model)
+    tree = KinematicTree(robot)
+    blocks = build_blocks(tree, data, declared, DiagnoseOptions())
+    effects = [make_effect("link_error", "U1_dh", tree)]
+    for b in blocks:
+        for joint, frame in b.camera_mounts().items():
+            effects.append(make_effect("camera_extrinsics", joint, tree))
+            effects.append(make_effect("camera_intrinsics", frame, tree, components=("fx", "fy", "cx", "cy")))
+    return "motoman 6x6x6", Problem(blocks, declared, pert, jnoise), effects
+
+
+def best_time(fn: Any, repeat: int) -> tuple[float, Any]:
+    times, out = [], None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return min(times), out
+
+
+def compare(label: str, problem: Problem, effects: list[Any], repeat: int) -> None:
     from scipy.optimize import least_squares
 
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--synthetic", action="store_true", help="the synthetic arm7 problem even with the dataset")
-    ap.add_argument("--repeat", type=int, default=1, help="solves per solver (best time printed)")
-    args = ap.parse_args()
-    label, prob = problem(args.synthetic)
-    x0 = prob.x0()
-    print(f"problem: {label}, {prob.residuals(x0).size} residuals, {x0.size} unknowns "
-          f"({prob.P} effect parameters, {len(prob.sessions)} registrations)")
-    times = []
-    for _ in range(args.repeat):
-        t0 = time.perf_counter()
-        sol = least_squares(prob.residuals, x0, jac=prob.jacobian, method="trf", x_scale=1.0, xtol=1e-12,
-                            ftol=1e-12, gtol=1e-12, max_nfev=200)
-        times.append(time.perf_counter() - t0)
-    J = prob.jacobian(sol.x)
-    cov = np.linalg.pinv(J.T @ J)[:prob.P, :prob.P]
-    print(f"scipy least_squares trf: {min(times):.3f} s, cost {sol.cost:.6g}, nfev {sol.nfev}, njev {sol.njev}")
+    flat = FlatProblem(problem, effects)
+    x0 = flat.x0()
+    print(f"problem: {label}, {flat.residuals(x0).size} residuals, {x0.size} unknowns ({flat.P} effect parameters, "
+          f"{flat.K} nuisance)")
+
+    def engine() -> Any:
+        for b, st in zip(problem.blocks, flat.start):
+            b.set_nuisance_state(st)
+        return problem.refit(effects, max_iterations=50)
+
+    t, fit = best_time(engine, repeat)
+    theta = np.concatenate([e.params for e in fit.effects])
+    H = problem.system(fit.effects, fit.effects, rewhiten=False).full().H
+    sd = np.sqrt(np.diag(np.linalg.pinv(H)))
+    print(f"  engine Gauss-Newton/LM (Schur): {t:.3f} s, cost {fit.cost:.8g}, iterations {fit.iterations}")
+    t, sol = best_time(lambda: least_squares(flat.residuals, x0, jac=flat.jacobian, method="trf", xtol=1e-12,
+                                             ftol=1e-12, gtol=1e-12, max_nfev=200), repeat)
+    dz = np.max(np.abs(sol.x[:flat.P] - theta) / sd)
+    print(f"  scipy least_squares trf: {t:.3f} s, cost {2 * sol.cost:.8g}, nfev {sol.nfev}, "
+          f"max |theta - engine| / sigma {dz:.2e}")
     try:
         import gtsam  # noqa: F401
     except ImportError:
-        print("gtsam: not importable, comparison skipped")
+        print("  gtsam: not importable, skipped")
         return
-    from ppoe_core.analysis.diagnose.joint_gtsam import solve_gtsam
+    from solver_gtsam import solve_gtsam
 
-    times = []
-    for _ in range(args.repeat):
-        t0 = time.perf_counter()
-        g = solve_gtsam(prob, x0)
-        times.append(time.perf_counter() - t0)
-    sig = np.sqrt(np.diag(cov))
-    dz = np.abs(g["x"][:prob.P] - sol.x[:prob.P]) / sig
-    ratio = np.sqrt(np.diag(g["cov_theta"])) / sig
-    print(f"gtsam LM + Marginals: {min(times):.3f} s, cost {g['cost']:.6g}, iterations {g['iterations']}")
-    print(f"agreement: max |theta_gtsam - theta_scipy| / sigma = {dz.max():.2e}; marginal sigma ratio "
-          f"gtsam / scipy in [{ratio.min():.4f}, {ratio.max():.4f}]; "
-          f"{'AGREE' if dz.max() < 1e-2 and np.allclose(ratio, 1.0, atol=1e-3) else 'DISAGREE'}")
+    t, g = best_time(lambda: solve_gtsam(flat), repeat)
+    dz = np.max(np.abs(g["x"][:flat.P] - theta) / sd)
+    ratio = np.sqrt(np.diag(g["cov_theta"])) / sd
+    print(f"  gtsam LM + Marginals: {t:.3f} s, cost {2 * g['cost']:.8g}, iterations {g['iterations']}, "
+          f"max |theta - engine| / sigma {dz:.2e}, marginal sigma / engine's in [{ratio.min():.4f}, "
+          f"{ratio.max():.4f}]")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--synthetic", action="store_true", help="only the synthetic arm7 problem")
+    ap.add_argument("--repeat", type=int, default=1, help="solves per solver (best time printed)")
+    args = ap.parse_args()
+    compare(*synthetic(), args.repeat)
+    if not args.synthetic and (DATA / "motoman_leica").exists():
+        compare(*motoman(), args.repeat)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,10 @@ Arguments
     use_sim_time  true when a bag is replayed with ``ppoe play --clock`` (default false)
     kinematics, tag_bearing, contact, fusion
                   start that node (default true each)
+    lifecycle     start the managed (lifecycle) variants (``ppoe_managed NODE``, ppoe_ros/common/lifecycle.py):
+                  unconfigured first; with ``autostart`` (default true) the launch configures each one and activates
+                  it once it is inactive, else a lifecycle manager does (default false)
+    autostart     with ``lifecycle``: configure and activate the nodes (default true)
     markers       also start ppoe_markers: the raw and fused position ellipsoids on ``ppoe/markers`` (default false)
     rviz          also start rviz2 with ``share/ppoe_ros/config/rviz/ppoe.rviz`` (default false)
 
@@ -76,6 +80,8 @@ ARGUMENTS = {
     "tag_bearing": ("true", "start tag_bearing_node"),
     "contact": ("true", "start contact_node"),
     "fusion": ("true", "start fusion_node"),
+    "lifecycle": ("false", "start the managed (lifecycle) variants of the nodes"),
+    "autostart": ("true", "with lifecycle: configure and activate them"),
     "markers": ("false", "start ppoe_markers (covariance ellipsoids on ppoe/markers for RViz)"),
     "rviz": ("false", "start rviz2 with config/rviz/ppoe.rviz"),
 }
@@ -148,12 +154,16 @@ def launch_nodes(context: object, *args: object, **kwargs: object) -> list:
     nodes = []
     if _true(value("robot_state_publisher")):
         nodes.append(_robot_state_publisher(overrides, common))
+    managed = _true(value("lifecycle"))
     for executable, switch, keys in NODE_OVERRIDES:
         if not _true(value(switch)):
             continue
-        defaults = str(share / "config" / "nodes" / f"{executable}.yaml")
-        nodes.append(Node(package=PACKAGE, executable=executable, name=executable, **common,
-                          parameters=[defaults, *user_params, {k: overrides[k] for k in keys}]))
+        params = [str(share / "config" / "nodes" / f"{executable}.yaml"), *user_params,
+                  {k: overrides[k] for k in keys}]
+        if managed:
+            nodes += _managed_node(executable, common, params, _true(value("autostart")))
+        else:
+            nodes.append(Node(package=PACKAGE, executable=executable, name=executable, **common, parameters=params))
     if _true(value("markers")):
         nodes.append(Node(package=PACKAGE, executable="ppoe_markers", name="ppoe_markers", **common,
                           parameters=[{"use_sim_time": overrides["use_sim_time"]}]))
@@ -163,6 +173,30 @@ def launch_nodes(context: object, *args: object, **kwargs: object) -> list:
                           arguments=["-d", str(share / "config" / "rviz" / "ppoe.rviz")],
                           parameters=[{"use_sim_time": overrides["use_sim_time"]}]))
     return nodes
+
+
+def _managed_node(executable: str, common: dict, params: list, autostart: bool) -> list:
+    """The lifecycle variant of ``executable`` (``ppoe_managed``) and, with ``autostart``, the events that configure
+    it and activate it once it is inactive (the pattern of launch_ros' lifecycle examples)."""
+    from launch.actions import EmitEvent, RegisterEventHandler
+    from launch.events import matches_action
+    from launch_ros.actions import LifecycleNode
+    from launch_ros.event_handlers import OnStateTransition
+    from launch_ros.events.lifecycle import ChangeState
+    from lifecycle_msgs.msg import Transition
+
+    node = LifecycleNode(package=PACKAGE, executable="ppoe_managed", name=executable, arguments=[executable],
+                         parameters=params, **common)
+    if not autostart:
+        return [node]
+
+    def change(transition: int) -> "EmitEvent":
+        return EmitEvent(event=ChangeState(lifecycle_node_matcher=matches_action(node), transition_id=transition))
+
+    activate = RegisterEventHandler(OnStateTransition(target_lifecycle_node=node, start_state="configuring",
+                                                      goal_state="inactive",
+                                                      entities=[change(Transition.TRANSITION_ACTIVATE)]))
+    return [node, activate, change(Transition.TRANSITION_CONFIGURE)]
 
 
 def _require(package: str, why: str, apt: str) -> None:

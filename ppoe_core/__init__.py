@@ -1,4 +1,4 @@
-"""ppoe_core: the Probabilistic Product-of-Exponentials robot model (pure Python + numpy).
+"""ppoe_core: the Probabilistic Product-of-Exponentials robot model, its estimation and analysis (no ROS).
 
 Public API::
 
@@ -6,7 +6,10 @@ Public API::
     model = PPOEModel.from_files("config/robots/arm7.urdf", "config/robots/arm7_model.yaml")
     T_base_tool, cov_tool = model.fk({"joint_1": 0.1, ...}, "base_link", "tool0")
 
-No ROS import anywhere in this package.
+No ROS import anywhere in this package.  It needs numpy and PyYAML; the compiled maps and updates need numba
+(imported on the first call, its kernel cache configured by :mod:`ppoe_core.compile_cache`), the measurement update
+and the statistics scipy, tag detection and image decoding OpenCV, bag reading and writing rosbags (and the plots
+matplotlib): each is imported by the module that uses it, not by ``import ppoe_core``.
 """
 
 from __future__ import annotations

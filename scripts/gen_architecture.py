@@ -75,9 +75,25 @@ def _resolve_relative(module: str, is_package: bool, level: int, target: str | N
     return ".".join(base + ([target] if target else []))
 
 
+#: functions that load a module by its name (a lazily imported compiled module): ``compiled("ppoe_core.x")``
+LOADERS = ("compiled", "import_module")
+
+
+def loaded_by_name(node: ast.AST) -> str | None:
+    """The module a call like ``compiled("ppoe_core.x")`` / ``importlib.import_module("ppoe_core.x")`` loads (a
+    string literal of one of our packages), else None."""
+    if not (isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant)):
+        return None
+    f = node.func
+    name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else ""
+    arg = node.args[0].value
+    return arg if name in LOADERS and isinstance(arg, str) and arg.split(".")[0] in PACKAGES else None
+
+
 def imports_of(source: str, module: str, is_package: bool = False,
                exists: Callable[[str], bool] | None = None) -> set[str]:
-    """Dotted names of every module ``source`` imports (anywhere in the file, also inside functions).
+    """Dotted names of every module ``source`` imports (anywhere in the file, also inside functions), and of the
+    modules it loads by name (:func:`loaded_by_name`).
 
     ``from a.b import c`` gives ``a.b.c`` when ``exists("a.b.c")`` says that is a module, else
     ``a.b`` (``c`` is a name defined in ``a.b``).  ``exists`` defaults to "is a module of this
@@ -87,7 +103,10 @@ def imports_of(source: str, module: str, is_package: bool = False,
         exists = _module_exists
     found: set[str] = set()
     for node in ast.walk(ast.parse(source)):
-        if isinstance(node, ast.Import):
+        by_name = loaded_by_name(node)
+        if by_name is not None:
+            found.add(by_name)
+        elif isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
             base = (_resolve_relative(module, is_package, node.level, node.module)

@@ -43,10 +43,14 @@ class _LaunchConfiguration(_Rec):
 def _stub_modules() -> dict[str, types.ModuleType]:
     names = {
         "launch": ["LaunchDescription"],
-        "launch.actions": ["DeclareLaunchArgument", "OpaqueFunction"],
+        "launch.actions": ["DeclareLaunchArgument", "OpaqueFunction", "EmitEvent", "RegisterEventHandler"],
         "launch.substitutions": [],
+        "launch.events": [],
         "launch_ros": [],
-        "launch_ros.actions": ["Node"],
+        "launch_ros.actions": ["Node", "LifecycleNode"],
+        "launch_ros.event_handlers": ["OnStateTransition"],
+        "launch_ros.events": [],
+        "launch_ros.events.lifecycle": ["ChangeState"],
     }
     mods = {}
     for mod_name, classes in names.items():
@@ -55,6 +59,7 @@ def _stub_modules() -> dict[str, types.ModuleType]:
             setattr(mod, cls, type(cls, (_Rec,), {}))
         mods[mod_name] = mod
     mods["launch.substitutions"].LaunchConfiguration = _LaunchConfiguration  # type: ignore[attr-defined]
+    mods["launch.events"].matches_action = lambda action: ("matches", action)  # type: ignore[attr-defined]
     return mods
 
 
@@ -90,10 +95,24 @@ def launch_context(module: Any, **values: str) -> dict[str, str]:
     return {**{k: d for k, (d, _) in module.ARGUMENTS.items()}, **values}
 
 
+def console_scripts() -> dict[str, str]:
+    """console_scripts of setup.py, read with ast: name -> module (``ppoe_ros.nodes.kinematics_node``)."""
+    import ast
+
+    tree = ast.parse((REPO / "setup.py").read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.keyword) and node.arg == "entry_points":
+            scripts = ast.literal_eval(node.value)["console_scripts"]
+            return {k.strip(): v.strip().split(":")[0] for k, v in (s.split("=", 1) for s in scripts)}
+    raise AssertionError("setup.py has no entry_points")
+
+
 def node_command(node: Any, tmp_dir: Path) -> list[str]:
-    """The command line launch_ros runs for the recorded ``Node`` action ``node`` (see the module docstring)."""
+    """The command line launch_ros runs for the recorded ``Node`` / ``LifecycleNode`` action ``node`` (see the
+    module docstring); the executable as ``python -m`` of its console script's module."""
     kw = node.kwargs
-    cmd = [sys.executable, "-m", f"ppoe_ros.nodes.{kw['executable']}", "--ros-args", *kw.get("ros_arguments", [])]
+    module = console_scripts()[kw["executable"]]
+    cmd = [sys.executable, "-m", module, *kw.get("arguments", []), "--ros-args", *kw.get("ros_arguments", [])]
     cmd += ["-r", f"__node:={kw['name']}"]
     if kw.get("namespace"):
         cmd += ["-r", f"__ns:=/{kw['namespace'].strip('/')}"]

@@ -1,4 +1,5 @@
-"""read_bag's raw-CDR parsers (ppoe_core/io/cdr_rows.py) against rosbags' typed deserialisation.
+"""read_bag's raw-CDR field reading (the table-driven reader of ppoe_core/io/cdr.py) against rosbags' typed
+deserialisation.
 
 * every message of every shipped bag (and of a bag with every hot type written here): the raw parser reads the
   fields the typed path reads, bit for bit, and ``read_bag`` returns identical series with and without it;
@@ -18,7 +19,7 @@ import pytest
 
 from ppoe_core.errors import BagError
 from ppoe_core.io import bagio, reader
-from ppoe_core.io.cdr_rows import PARSE_ERRORS
+from ppoe_core.io.cdr import PARSE_ERRORS
 from ppoe_core.io.messages import deserialize
 from ppoe_core.io.rows import row_kind
 

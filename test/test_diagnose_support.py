@@ -71,9 +71,9 @@ def test_base_tilt_context_is_the_tilt_minus_its_session_mean():
 
 def test_rocking_base_is_named_with_gain_one_in_ci_and_transfers(arm7):
     stops = _rocking(arm7, 1.0, seed=41)
-    res = diagnose(arm7, stops, options=DiagnoseOptions(max_effects=3))
-    assert [(e["name"], e["location"]) for e in res.effects] == [("base_tilt", arm7.root)], res.summary
-    entry = res.effects[0]
+    res = diagnose(arm7, stops, options=DiagnoseOptions())
+    assert [(e["name"], e["location"]) for e in res.to_json()["effects"]] == [("base_tilt", arm7.root)], res.summary
+    entry = res.to_json()["effects"][0]
     assert entry["variable"] == "measured"
     lo, hi = entry["ci"]["gain"]
     assert lo <= 1.0 <= hi and hi - lo < 0.1
@@ -86,8 +86,8 @@ def test_rocking_base_is_named_with_gain_one_in_ci_and_transfers(arm7):
 
 
 def test_no_rocking_finds_nothing(arm7):
-    res = diagnose(arm7, _rocking(arm7, 0.0, seed=43), options=DiagnoseOptions(max_effects=3))
-    assert res.effects == [], res.summary
+    res = diagnose(arm7, _rocking(arm7, 0.0, seed=43), options=DiagnoseOptions())
+    assert not res.effects, res.summary
 
 
 LIFT_URDF = """<robot name="lift">
@@ -125,9 +125,9 @@ def test_telescopic_bending_growing_with_extension_is_named_with_truth_in_ci():
     robot = parse_urdf(LIFT_URDF)
     truth = {"compliance_x": 1e-5, "compliance_y": 2e-5, "extension_x": 3e-5, "extension_y": 2e-5}
     eff = make_effect("mount_bending", "lift", robot, list(truth.values()), components=tuple(truth))
-    res = diagnose(robot, _telescope(robot, [eff], seed=44), options=DiagnoseOptions(max_effects=2))
-    assert [(e["name"], e["location"]) for e in res.effects] == [("mount_bending", "lift")], res.summary
-    entry = res.effects[0]
+    res = diagnose(robot, _telescope(robot, [eff], seed=44), options=DiagnoseOptions())
+    assert [(e["name"], e["location"]) for e in res.to_json()["effects"]] == [("mount_bending", "lift")], res.summary
+    entry = res.to_json()["effects"][0]
     assert set(entry["parameters"]) == set(truth)
     assert all(entry["ci"][k][0] <= v <= entry["ci"][k][1] for k, v in truth.items()), entry
     assert res.residual_after < 1.5 * res.noise_floor
@@ -137,10 +137,11 @@ def test_constant_bending_at_a_telescopic_stage_keeps_two_parameters():
     """Parsimony: a compliance that does not change with the extension is the two-parameter effect."""
     robot = parse_urdf(LIFT_URDF)
     eff = make_effect("mount_bending", "lift", robot, [2e-5, 3e-5])
-    res = diagnose(robot, _telescope(robot, [eff], seed=45), options=DiagnoseOptions(max_effects=2))
-    assert [(e["name"], e["location"]) for e in res.effects] == [("mount_bending", "lift")], res.summary
-    assert set(res.effects[0]["parameters"]) == {"compliance_x", "compliance_y"}
-    assert res.effects[0]["ci"]["compliance_x"][0] <= 2e-5 <= res.effects[0]["ci"]["compliance_x"][1]
+    res = diagnose(robot, _telescope(robot, [eff], seed=45), options=DiagnoseOptions())
+    assert [(e["name"], e["location"]) for e in res.to_json()["effects"]] == [("mount_bending", "lift")], res.summary
+    assert set(res.to_json()["effects"][0]["parameters"]) == {"compliance_x", "compliance_y"}
+    ci = res.to_json()["effects"][0]["ci"]["compliance_x"]
+    assert ci[0] <= 2e-5 <= ci[1]
 
 
 def test_measured_base_tilt_without_a_measurement_changes_nothing(arm7):

@@ -175,7 +175,38 @@ def test_config_round_trip(tree):
     sub = effect_from_config({"name": "link_error", "location": "joint_3",
                               "parameters": {"x": 0.001, "rz": 0.002}}, tree.robot)
     assert sub.param_names == ("x", "rz")
-    assert set(EFFECT_NAMES) == {c[0] for c in CASES} | {"tracker_registration"}
+    assert set(EFFECT_NAMES) == {c[0] for c in CASES} | {"tracker_registration"} | set(SENSOR_CASES)
+    for name, (loc, params) in SENSOR_CASES.items():  # sensor effects: the components listed, no chain change
+        eff = effect_from_config({"name": name, "location": loc, "parameters": params}, tree.robot)
+        assert eff.param_names == tuple(params) and eff.sensor
+        assert effect_from_config(eff.to_config(), tree.robot).key == eff.key
+        q = _random_q(tree, np.random.default_rng(4), 2)
+        assert sum_effect_corrections([eff], q, {}) == ({}, {})
+
+
+#: sensor effects: location and a parameter subset (corrections of camera_info; a tag's pose on its link)
+SENSOR_CASES = {"camera_intrinsics": ("camera_optical_frame", {"cx": 2.0, "cy": -1.5}),
+                "tag_offset": ("tag_10", {"x": 0.002, "rz": 0.01})}
+
+
+def test_sensor_effects_correct_their_sensor(tree):
+    """camera_intrinsics adds to K and D; tag_offset composes Exp(delta) on the right of T_link_tag; a tag
+    location that is neither tag_<id> nor an id is refused, naming it."""
+    from ppoe_core import lie
+
+    K = np.array([[500.0, 0.0, 320.0], [0.0, 510.0, 240.0], [0.0, 0.0, 1.0]])
+    eff = make_effect("camera_intrinsics", "camera_optical_frame", tree, np.arange(1.0, 10.0))
+    K2, D2 = eff.corrected(K, np.array([0.1, 0.0, 0.0, 0.0]))
+    np.testing.assert_allclose(K2, [[501.0, 0.0, 323.0], [0.0, 512.0, 244.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(D2, [5.1, 6.0, 7.0, 8.0, 9.0])
+    T = lie.from_xyz_rpy([0.1, 0.0, 0.2], [0.0, 1.0, 0.0])
+    tag = make_effect("tag_offset", "12", tree, [0.01, 0.0, 0.0, 0.0, 0.0, 0.1])
+    assert tag.location == "tag_12"
+    np.testing.assert_allclose(tag.corrected(T), T @ lie.exp(np.array([0.01, 0, 0, 0, 0, 0.1])))
+    with pytest.raises(ModelConfigError, match="tag_offset: location 'gripper'"):
+        make_effect("tag_offset", "gripper", tree)
+    with pytest.raises(ModelConfigError, match="not a link"):
+        make_effect("camera_intrinsics", "no_camera", tree)
 
 
 @pytest.mark.parametrize("entry,err,word", [
@@ -223,3 +254,26 @@ def test_ppoe_model_applies_effects_like_the_tree():
     T_model = model.fk_mean(q, "base_link", "tool0")
     np.testing.assert_allclose(T_model, T_tree, atol=1e-12)
     assert np.abs(T_tree - tree.link_poses(q)["tool0"]).max() > 1e-3  # the effects do act
+
+
+def test_intrinsics_jacobian_matches_finite_differences():
+    """d uv / d (fx, fy, cx, cy, k1, k2, p1, p2, k3) and d uv / d P of the intrinsics Jacobian module against
+    central differences of the one projection (ppoe_core.estimation.camera.project_points), skew kept."""
+    from ppoe_core.estimation.camera import project_points
+    from ppoe_core.estimation.camera_intrinsics import project_with_intrinsics_jacobian
+
+    rng = np.random.default_rng(5)
+    P = np.column_stack([rng.uniform(-0.4, 0.4, (6, 2)), rng.uniform(0.8, 2.0, 6)])
+    K = np.array([[800.0, 1.5, 330.0], [0.0, 790.0, 250.0], [0.0, 0.0, 1.0]])
+    D = np.array([-0.2, 0.05, 0.001, -0.002, 0.01])
+    uv, J_point, J_k = project_with_intrinsics_jacobian(P, K, D)
+    np.testing.assert_allclose(uv, project_points(P, K, D), atol=1e-12)
+
+    def with_k(k):
+        K2 = K.copy()
+        K2[0, 0], K2[1, 1], K2[0, 2], K2[1, 2] = K[0, 0] + k[0], K[1, 1] + k[1], K[0, 2] + k[2], K[1, 2] + k[3]
+        return project_points(P, K2, D + k[4:])
+
+    check_jacobian(with_k, np.zeros(9), J_k, atol=1e-6, rtol=1e-7, err_msg="intrinsics")
+    for i in range(len(P)):
+        check_jacobian(lambda p: project_points(p, K, D), P[i], J_point[i], atol=1e-5, err_msg=f"point {i}")

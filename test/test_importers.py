@@ -483,9 +483,79 @@ def test_left_arm_marker_pixels_go_through_the_pixel_stage(tmp_path, capsys):
     doc = json.loads(capsys.readouterr().out)
     pix = doc["pixels"]
     assert set(pix["pixel_rms_before"]) <= {"camera_1_optical_frame", "camera_2_optical_frame"}
-    assert all(v < 0.5 for v in pix["pixel_rms_declared_only"].values()), pix["pixel_rms_declared_only"]
+    # the nominal model's reprojection (in-sample, no effect), per camera
+    assert all(v < 0.5 for v in pix["pixel_rms_before_insample"].values()), pix["pixel_rms_before_insample"]
     assert not [e for e in doc["effects"] if e["name"] == "camera_extrinsics"]
     # evaluate too: the right arm's joints, never in this bag, are off every chain it uses
     assert main(["evaluate", str(tmp_path / "bag"), "--model", res["model"], "--json", "--no-progress"]) == 0
     ev = json.loads(capsys.readouterr().out)
     assert ev["methods"]["fk"]["position_3d"]["n"] > 5 and ev["methods"]["ppoe"]["measurements"]["counts"]
+
+
+# ----------------------------------------------------------------------------- a file cut short (issue 25)
+
+
+def _two_heights_doc(spaces_at_last=(0, 7), evaluations_at_last=1):
+    """Two column heights with solution spaces 0 and 7 each, as the real files repeat one pattern per height."""
+    doc = _hilti_doc()
+    t = [200.0]
+
+    def wps(n):
+        out = []
+        for _ in range(n):
+            t[0] += 10.0
+            out.append(dict(_HILTI_WAYPOINT, id=int(t[0]), time=t[0]))
+        return out
+
+    doc["column_heights"][2.0]["solution_spaces"][7] = {"stationing_measurements": wps(1),
+                                                         "evaluation_measurements": wps(2)}
+    doc["column_heights"][2.5] = {"solution_spaces": {
+        sp: {"stationing_measurements": wps(1), "evaluation_measurements": wps(2 if sp != spaces_at_last[-1]
+                                                                             else evaluations_at_last)}
+        for sp in spaces_at_last}}
+    return doc
+
+
+def test_hilti_file_cut_short_is_refused_with_counts_then_imported_with_a_warning(tmp_path, capsys):
+    """Was: a file cut on a line boundary imported what was left, exit 0, no note."""
+    from ppoe_ros.cli import main
+
+    assert hi.load_hilti(_write_yaml(tmp_path / "whole.yaml", _two_heights_doc(evaluations_at_last=2))).truncated \
+        == []
+    f = _write_yaml(tmp_path / "cut.yaml", _two_heights_doc(spaces_at_last=(0,)))
+    with pytest.raises(DatasetError) as ei:
+        hi.load_hilti(f)
+    msg = str(ei.value)
+    assert f"{f}: the file looks cut short (column height 2.5, the last in the file, lacks solution space(s) 7 " \
+        "that every other height has); it holds 7 stops in 3 stations (the format declares no total); pass " \
+        "--allow-incomplete" in msg, msg
+    f2 = _write_yaml(tmp_path / "cut2.yaml", _two_heights_doc(evaluations_at_last=1))
+    assert hi.load_hilti(f2, allow_incomplete=True).truncated == [
+        "its last station h2.5_s7 has 1 evaluation stops where solution space 7 has 2-2 at the other heights"]
+    urdf = tmp_path / "r.urdf"
+    urdf.write_text('<robot name="r"><link name="base_link"/></robot>')
+    assert main(["import", "hilti", str(f2), "--out", str(tmp_path / "b"), "--urdf", str(urdf)]) == 2
+    assert "looks cut short" in capsys.readouterr().err and not (tmp_path / "b").exists()
+    assert main(["import", "hilti", str(f2), "--out", str(tmp_path / "b"), "--urdf", str(urdf),
+                 "--allow-incomplete"]) == 0
+    err = capsys.readouterr().err
+    assert "warning" in err and "has 1 evaluation stops" in err
+    assert f"{f2}: 10 stops in 4 stations imported (the Hilti format declares no total)" in err, err
+
+
+def _write_yaml(path: Path, doc) -> Path:
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))  # the file order matters: the last list is the cut one
+    return path
+
+
+@pytest.mark.datasets
+@needs_data
+def test_hilti_flat_cut_after_199_stops_is_refused(tmp_path):
+    """The case of the issue: flat.yaml cut on a line boundary after waypoint 198 (199 of 444 stops)."""
+    lines = (HILTI / "flat.yaml").read_text().splitlines(keepends=True)
+    cut = next(i for i, line in enumerate(lines) if line.strip() == "- id: 199")
+    f = tmp_path / "flat_cut.yaml"
+    f.write_text("".join(lines[:cut]))
+    with pytest.raises(DatasetError, match=r"looks cut short .* it holds 199 stops in 7 stations"):
+        hi.load_hilti(f)
+    assert len(hi.load_hilti(f, allow_incomplete=True).stops) == 199

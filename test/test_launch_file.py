@@ -179,6 +179,37 @@ def test_launch_markers_and_rviz(monkeypatch: pytest.MonkeyPatch, tmp_path: Path
     assert config.is_file()
 
 
+def test_launch_lifecycle_nodes_and_autostart(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """lifecycle:=true starts ppoe_managed NODE as a LifecycleNode with the same parameters, and (autostart) the
+    configure event plus an activate once the node went configuring -> inactive; autostart:=false leaves them to a
+    lifecycle manager."""
+    from lifecycle_msgs.msg import Transition
+
+    module = _load_launch(monkeypatch, tmp_path / "prefix")
+    model = tmp_path / "m.yaml"
+    model.write_text("perturbations: {}\n")
+    ctx = _context(module, model=str(model), tag_bearing="false", contact="false", lifecycle="true", namespace="r1")
+    actions = module.launch_nodes(ctx)
+    kinds = [type(a).__name__ for a in actions]
+    assert kinds == ["LifecycleNode", "RegisterEventHandler", "EmitEvent"] * 2
+    plain = module.launch_nodes({**ctx, "lifecycle": "false"})
+    for node, twin in zip(actions[::3], plain):
+        kw = node.kwargs
+        assert (kw["executable"], kw["arguments"]) == ("ppoe_managed", [twin.kwargs["executable"]])
+        assert kw["name"] == twin.kwargs["executable"] and kw["namespace"] == "r1"
+        assert kw["parameters"] == twin.kwargs["parameters"]
+    handler, configure = actions[1].args[0], actions[2].kwargs["event"]
+    assert configure.kwargs["transition_id"] == Transition.TRANSITION_CONFIGURE
+    assert configure.kwargs["lifecycle_node_matcher"] == ("matches", actions[0])
+    assert handler.kwargs["target_lifecycle_node"] is actions[0]
+    assert (handler.kwargs["start_state"], handler.kwargs["goal_state"]) == ("configuring", "inactive")
+    (activate,) = handler.kwargs["entities"]
+    assert activate.kwargs["event"].kwargs["transition_id"] == Transition.TRANSITION_ACTIVATE
+    manual = module.launch_nodes({**ctx, "autostart": "false"})
+    assert [type(a).__name__ for a in manual] == ["LifecycleNode"] * 2
+    assert "ppoe_managed" in _console_scripts()
+
+
 def test_config_files_exist_for_every_node() -> None:
     missing = [f"{n}.yaml" for n in NODES if not (REPO / "config" / "nodes" / f"{n}.yaml").is_file()]
     assert not missing, missing

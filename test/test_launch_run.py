@@ -111,3 +111,36 @@ def test_parameter_file_relative_model_from_any_directory(tmp_path: Path) -> Non
             probe.spin_until(lambda: "model from topic" in proc.output(), 30, proc, "the model")
             _publish_until(probe, js, lambda: len(poses) >= 1, proc, proc)
     assert np.all(np.diag(np.array(poses[-1].pose.covariance).reshape(6, 6)) > 0)
+
+
+def test_lifecycle_launch_brings_the_nodes_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """lifecycle:=true: the described managed kinematics node, started with launch_ros' command line, is driven
+    through the transitions the launch's events describe (configure, then activate once inactive) and then
+    publishes poses; before activate it subscribes nothing."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from lifecycle_msgs.msg import Transition
+    from lifecycle_msgs.srv import ChangeState
+    from sensor_msgs.msg import JointState
+
+    module = load_launch(monkeypatch, tmp_path / "install")
+    ctx = launch_context(module, model="package://ppoe_ros/config/robots/arm7_model.yaml",
+                         urdf="package://ppoe_ros/config/robots/arm7.urdf", tag_bearing="false", contact="false",
+                         fusion="false", lifecycle="true")
+    node_action, handler, configure = module.launch_nodes(ctx)
+    env = ros_env(tmp_path)
+    env["AMENT_PREFIX_PATH"] = str(tmp_path / "install")
+    with Probe(env) as probe, NodeProcess(node_command(node_action, tmp_path), env, tmp_path / "managed.log") as proc:
+        poses = probe.collect("/ppoe/pose", PoseWithCovarianceStamped)
+        js = probe.publisher("/joint_states", JointState, 100)
+        client = probe.node.create_client(ChangeState, "/kinematics_node/change_state")
+        probe.spin_until(client.service_is_ready, 60, proc, "the lifecycle services")
+        for event in (configure.kwargs["event"], handler.args[0].kwargs["entities"][0].kwargs["event"]):
+            if event.kwargs["transition_id"] == Transition.TRANSITION_ACTIVATE:
+                assert js.get_subscription_count() == 0
+            future = client.call_async(ChangeState.Request(transition=Transition(id=event.kwargs["transition_id"])))
+            probe.spin_until(future.done, 60, proc, f"transition {event.kwargs['transition_id']}")
+            assert future.result().success, proc.output()[-2000:]
+        probe.wait_for_subscribers(js, proc)
+        _publish_until(probe, js, lambda: len(poses) >= 3, proc)
+    cov = np.array(poses[-1].pose.covariance).reshape(6, 6)
+    assert np.all(np.diag(cov) > 0)

@@ -5,6 +5,7 @@ Was: ``shutil.rmtree`` of whatever ``--out`` named, and a raw ``NotADirectoryErr
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -150,3 +151,71 @@ def test_record_keeps_the_old_bag_when_it_records_nothing_and_refuses_a_users_fo
     mine = _user_folder(tmp_path / "mine")
     rec = NodeProcess.ppoe(["record", "--out", str(mine), "--force", "--duration", "0.5", "/x"], env, tmp_path, "r2")
     assert rec.wait(60) == 2 and "--force refused" in rec.output() and (mine / "notes.txt").exists(), rec.output()
+
+
+# ----------------------------------------------------------------------------- report folders (--out of evaluate)
+
+
+def _evaluate(out: Path, *extra: str) -> int:
+    return main(["evaluate", str(BAGS / "no_effect"), "--model", str(CONFIG_ROBOTS / "arm7_model.yaml"), "--json",
+                 "--out", str(out), *extra])
+
+
+def test_a_second_run_into_a_locked_folder_is_refused_naming_the_lock(tmp_path, capsys):
+    import json
+    import subprocess
+    import sys
+
+    from ppoe_core.cli.output import LOCK_NAME
+
+    out = tmp_path / "report"
+    out.mkdir()
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        import socket
+
+        (out / LOCK_NAME).write_text(json.dumps({"pid": other.pid, "host": socket.gethostname(),
+                                                 "command": "ppoe evaluate", "run_id": "R1", "started": "then"}))
+        assert _evaluate(out) == 2
+        err = capsys.readouterr().err
+        assert f"--out {out}: another run is writing there (lock {out / LOCK_NAME}: ppoe evaluate pid {other.pid}" \
+            in err and "run R1" in err, err
+        assert not (out / "evaluation.json").exists()
+    finally:
+        other.kill()
+        other.wait()
+    # its process is gone: a stale lock, taken over with a warning
+    assert _evaluate(out) == 0
+    cap = capsys.readouterr()
+    assert "took over the lock of run R1" in cap.err and not (out / LOCK_NAME).exists(), cap.err
+
+
+def test_evaluate_leaves_other_runs_files_names_them_and_logs_its_run(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "report"
+    out.mkdir()
+    for name in ("online.json", "online_parameters.png", "notes.txt", "trajectory_recorded.tum"):
+        (out / name).write_text("an earlier run's\n")
+    assert _evaluate(out) == 0
+    err = capsys.readouterr().err
+    assert f"--out {out} also holds 3 file(s) this run does not write (notes.txt, online.json, " \
+        "online_parameters.png): left as they are" in err, err
+    assert (out / "online.json").read_text() == "an earlier run's\n" and (out / "notes.txt").exists()
+    assert not (out / "trajectory_recorded.tum").exists()  # of our kind, not rewritten: an older run's, removed
+    runs = [json.loads(line) for line in (out / "ppoe_runs.jsonl").read_text().splitlines()]
+    assert len(runs) == 1 and runs[0]["command"] == "ppoe evaluate" and "evaluation.json" in runs[0]["wrote"]
+    assert runs[0]["removed_stale"] == ["trajectory_recorded.tum"] and runs[0]["run_id"].endswith(f"-{os.getpid()}")
+    assert not (out / ".ppoe.lock").exists()
+
+
+def test_urdf_from_dh_force_replaces_only_a_urdf_it_wrote(tmp_path, capsys):
+    table = CONFIG_ROBOTS / "arm5_dh.yaml"
+    mine = tmp_path / "robot.urdf"
+    mine.write_text((CONFIG_ROBOTS / "planar3.urdf").read_text())  # a hand-written URDF
+    assert main(["urdf", "from-dh", str(table), "--out", str(mine), "--force"]) == 2
+    assert f"--out {mine}: --force refused: the file was not written by ppoe" in capsys.readouterr().err
+    assert mine.read_text() == (CONFIG_ROBOTS / "planar3.urdf").read_text()
+    ours = tmp_path / "arm5.urdf"
+    assert main(["urdf", "from-dh", str(table), "--out", str(ours)]) == 0
+    assert main(["urdf", "from-dh", str(table), "--out", str(ours), "--force"]) == 0  # its own output: replaced

@@ -41,8 +41,9 @@ PIP_NAMES = {"numpy": "numpy", "scipy": "scipy", "yaml": "PyYAML", "ruamel": "ru
 OPTIONAL = {"gtsam": "diagnose's GTSAM cross-check (ppoe_core/analysis/diagnose/joint_gtsam.py)",
             "xacro": "a .xacro urdf in launch/ppoe.launch.py (listed in package.xml all the same)"}
 
-#: package.xml keys that are not imports: executables the launch file starts
-EXECUTABLES = {"robot_state_publisher"}
+#: package.xml keys that are not imports: executables the launch file starts, and lifecycle_msgs, which
+#: rclpy.lifecycle (ppoe_ros/common/lifecycle.py) needs at run time
+EXECUTABLES = {"robot_state_publisher", "lifecycle_msgs"}
 
 
 def _imports() -> dict[str, set[str]]:

@@ -16,6 +16,7 @@ import sys
 
 import yaml
 
+from ppoe_core.cli.checks import check_online_entries, float_range, int_range
 from ppoe_core.errors import ModelConfigError
 
 __all__ = ["add_arguments", "run"]
@@ -47,11 +48,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--fit-set", default="cross", choices=("cross", "square", "all"),
         help="stationing set for per-station tracker registration (bags with /dataset/stop roles)",
     )
+    _add_fusion_options(parser)
+    parser.add_argument("--online", action="store_true",
+                        help="track drifting effects online (docs/online.md): tool error before / static / online, "
+                             "online.json and online_parameters.png in --out")
+    parser.add_argument("--online-config", default=None, metavar="ONLINE.yaml",
+                        help="with --online: online_effects list (process noise per parameter [unit/sqrt(s)]), "
+                             "jump_probability, the drift monitor, or a node parameter file (its online_* parameters "
+                             "and sources); default: the model's trackable effects and the base tilt when a stream "
+                             "sees it, the monitor on (docs/online.md)")
+    parser.add_argument("--truth", default=None, metavar="BAG.truth.yaml",
+                        help="with --online: the simulation truth (ppoe simulate) to compare the estimate with")
+    bar = parser.add_mutually_exclusive_group()
+    bar.add_argument("--progress", dest="progress", action="store_true", default=None,
+                     help="progress bar on stderr (default: only when stderr is a terminal)")
+    bar.add_argument("--no-progress", dest="progress", action="store_false")
+    bar.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
+
+
+def _add_fusion_options(parser: argparse.ArgumentParser) -> None:
+    """The fusion settings of the replay: a parameter file, ``--set``, and three overrides (ranges of the node)."""
+    from ppoe_core.estimation.updater import FUSION_RANGES
+
+    iterations, gate = FUSION_RANGES["max_iterations"], FUSION_RANGES["gate_probability"]
     parser.add_argument(
         "--fusion-params", default=None, metavar="PARAMS.yaml",
-        help="a ROS 2 parameter file of the fusion node (buffer, gating, correction policy; a /** file shared by the "
-             "nodes also sets corner_refinement and the contact node's force_threshold, release_threshold, "
-             "force_component); default: the nodes' defaults",
+        help="a ROS 2 parameter file of the fusion node (buffer, gating, correction policy, its 'sources': tracker "
+             "points, 6D poses, accelerometers from the bag; a /** file shared by the nodes also sets "
+             "corner_refinement, force_threshold, release_threshold, force_component); default: the nodes' defaults",
     )
     parser.add_argument(
         "--set", dest="fusion_set", action="append", default=[], metavar="KEY=VALUE",
@@ -59,39 +83,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
              "force_threshold, release_threshold, force_component of the tag bearing / contact node); unknown keys "
              "are an error; repeatable",
     )
-    parser.add_argument("--iterations", type=int, default=None, help="override max_iterations of the LG-EKF update")
-    parser.add_argument("--gate", type=float, default=None, help="override gate_probability (>= 1 = no gate)")
-    parser.add_argument("--pixel-sigma", type=float, default=None, help="override pixel_sigma [px]")
-    parser.add_argument("--online", action="store_true",
-                        help="track drifting effects online (docs/online.md): tool error before / static / online, "
-                             "online.json and online_parameters.png in --out")
-    parser.add_argument("--online-config", default=None, metavar="ONLINE.yaml",
-                        help="with --online: online_effects list (process noise per parameter [unit/sqrt(s)]) and "
-                             "jump_probability; default: base tilt and the model's trackable effects")
-    parser.add_argument("--truth", default=None, metavar="BAG.truth.yaml",
-                        help="with --online: the simulation truth (ppoe simulate) to compare the estimate with")
-    bar = parser.add_mutually_exclusive_group()
-    bar.add_argument("--progress", dest="progress", action="store_true", default=None,
-                     help="progress bar on stderr (default: only when stderr is a terminal)")
-    bar.add_argument("--no-progress", dest="progress", action="store_false")
+    parser.add_argument("--iterations", type=int_range(int(iterations[0]), int(iterations[1])), default=None,
+                        help="override max_iterations of the LG-EKF update")
+    parser.add_argument("--gate", type=float_range(*gate), default=None,
+                        help=f"override gate_probability, in [{gate[0]:g}, {gate[1]:g}] (1 = no gate)")
+    parser.add_argument("--pixel-sigma", type=float_range(0.0), default=None,
+                        help="override pixel_sigma [px] (0: the model's)")
 
 
 def run(args: argparse.Namespace) -> int:
-    """Evaluate, print and optionally write the report; returns 0."""
+    """Evaluate, print and optionally write the report; returns 0.
+
+    ``--out`` is checked and locked before the run (:mod:`ppoe_core.cli.output`); the lock goes at the end,
+    also on an error."""
+    from ppoe_core.cli.output import prepare_out_dir, release_out_dir
+
+    online = bool(args.online or args.online_config or args.truth)
+    if args.out:  # checked before the run, not after it
+        prepare_out_dir(args.out, kind="evaluate --online" if online else "evaluate")
+    try:
+        return _run_online(args) if online else _run_offline(args)
+    finally:
+        if args.out:
+            release_out_dir(args.out)
+
+
+def _run_offline(args: argparse.Namespace) -> int:
+    """Replay the bag through the nodes' core code and score it (the default)."""
     from ppoe_core.analysis.evaluate import (
         EvaluateOptions,
         evaluate_bag,
         load_fusion_params,
+        load_sources,
         markdown_report,
         write_report,
     )
-    from ppoe_core.cli.output import prepare_out_dir
+    from ppoe_core.io.progress import progress_wanted
 
-    if args.out:  # checked before the run, not after it
-        prepare_out_dir(args.out)
-    if args.online or args.online_config or args.truth:
-        return _run_online(args)
-    progress = sys.stderr.isatty() if args.progress is None else bool(args.progress)
+    progress = progress_wanted(args.quiet, args.progress)
     fusion = load_fusion_params(args.fusion_params) if args.fusion_params else {}
     for key, value in (("max_iterations", args.iterations), ("gate_probability", args.gate),
                        ("pixel_sigma", args.pixel_sigma)):
@@ -105,15 +134,13 @@ def run(args: argparse.Namespace) -> int:
     opts = EvaluateOptions(
         base=args.base, tool=args.tool, order=args.order, fit_set=args.fit_set, fusion=fusion,
         ground_truth=args.ground_truth, progress=progress, accept_partial=args.accept_partial, urdf=args.urdf,
-        estimate=args.estimate,
+        estimate=args.estimate, sources=load_sources(args.fusion_params) if args.fusion_params else [],
     )
     ev = evaluate_bag(args.bag, args.model, opts)
     for note in ev.summary.get("bag_notes", []):
         print(f"ppoe evaluate: warning: {note}", file=sys.stderr)
     if args.out:
-        paths = write_report(ev, args.out)
-        if not args.json:
-            print("wrote " + ", ".join(str(p) for p in paths), file=sys.stderr)
+        _written(args, write_report(ev, args.out))
     if args.json:
         json.dump(ev.to_dict(), sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
@@ -122,11 +149,20 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _written(args: argparse.Namespace, paths: list) -> None:
+    """Finish ``--out`` (stale files of this kind removed, run logged, lock released) and say what was written."""
+    from ppoe_core.cli.output import finish_out_dir
+
+    run_id = finish_out_dir(args.out, paths)
+    if not args.json:
+        print("wrote " + ", ".join(str(p) for p in paths) + f" (run {run_id})", file=sys.stderr)
+
+
 def _run_online(args: argparse.Namespace) -> int:
     """``--online``: replay with the online effect filter, print the before / static / online table (or JSON)."""
     from ppoe_core.analysis.evaluate.online import (
         evaluate_online,
-        load_online_config,
+        load_online_settings,
         markdown_online,
         write_online_report,
     )
@@ -134,13 +170,12 @@ def _run_online(args: argparse.Namespace) -> int:
 
     if not args.online:
         raise ModelConfigError("--online-config and --truth need --online")
-    entries, jump = load_online_config(args.online_config)
+    settings = load_online_settings(args.online_config)
+    check_online_entries(settings.entries, settings.jump_probability, args.online_config)  # naming the file
     truth = read_yaml_file(args.truth, "truth file", ModelConfigError)[0] if args.truth else None
-    ev = evaluate_online(args.bag, args.model, entries, jump, truth=truth, base=args.base, tool=args.tool)
+    ev = evaluate_online(args.bag, args.model, truth=truth, base=args.base, tool=args.tool, settings=settings)
     if args.out:
-        paths = write_online_report(ev, args.out, args.model)
-        if not args.json:
-            print("wrote " + ", ".join(str(p) for p in paths), file=sys.stderr)
+        _written(args, write_online_report(ev, args.out, args.model))
     if args.json:
         json.dump(ev.to_dict(), sys.stdout, allow_nan=False)
         sys.stdout.write("\n")

@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--ppoe-model", default=None, metavar="OUT.yaml", help="where to write the ppoe model (default: BAG.model.yaml)"
     )
     h.add_argument("--allow-incomplete", action="store_true",
-                   help="import a file in which some stations lack stationing or evaluation measurements")
+                   help="import a file in which some stations lack stationing or evaluation measurements, or that "
+                        "looks cut short")
     m = sub.add_parser("motoman", help="Motoman Leica .mat -> contract bag + ppoe model YAML")
     m.add_argument("file", metavar="FILE.mat", help="dataset file, e.g. leica_right_hand_6x6x6_dataset.mat")
     m.add_argument("--model-yaml", required=True, metavar="MODEL.yaml", help="the dataset's model.yaml")
@@ -75,8 +76,10 @@ def run(args: argparse.Namespace) -> int:
 
         res = import_hilti(args.file, args.out, urdf=args.urdf, overwrite=args.force, ppoe_model_out=args.ppoe_model,
                            allow_incomplete=args.allow_incomplete)
-        for line in res["incomplete"]:
+        for line in res["incomplete"] + res["truncated"]:
             print(f"ppoe import: warning: {args.file}: {line}", file=sys.stderr)
+        print(f"ppoe import: {args.file}: {res['stops']} stops in {res['stations']} stations imported (the Hilti "
+              "format declares no total)", file=sys.stderr)
         result = {"bag": args.out, **res}
     else:
         from ppoe_core.io.importers.motoman import import_motoman

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import yaml
 
+from ppoe_core.cli.checks import int_range
+
 __all__ = ["add_arguments", "run", "TRUTH_HEADER"]
 
 #: first characters of the truth YAML written here: ``--force`` replaces only a file starting with them
@@ -26,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the ``ppoe simulate`` options to ``parser``."""
     parser.add_argument("scenario", nargs="?", metavar="SCENARIO.yaml", help="scenario file (see --help-scenario)")
     parser.add_argument("--out", metavar="BAG", help="bag directory to create")
-    parser.add_argument("--seed", type=int, default=None, help="RNG seed (overrides the scenario's seed)")
+    parser.add_argument("--seed", type=int_range(0), default=None, help="RNG seed >= 0 (overrides the scenario's)")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage (default mcap)")
     parser.add_argument("--force", action="store_true",
                         help="replace an existing bag directory (only one holding nothing but bag files) and its "

@@ -50,12 +50,8 @@ def distortion_coefficients(D: Sequence[float] | np.ndarray | None, name: str = 
     return out
 
 
-def project_points_jacobian(
-    p_camera: np.ndarray,
-    K: np.ndarray | None,
-    D: np.ndarray | Sequence[float] | None,
-    mode: str = "pixel",
-) -> tuple[np.ndarray, np.ndarray]:
+def project_points_jacobian(p_camera: np.ndarray, K: np.ndarray | None, D: np.ndarray | Sequence[float] | None,
+                            mode: str = "pixel") -> tuple[np.ndarray, np.ndarray]:
     """Project camera-frame points and return the Jacobian w.r.t. the 3D point (the compiled projection,
     :func:`ppoe_core.estimation.camera_kernel.project_one`).
 

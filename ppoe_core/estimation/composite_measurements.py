@@ -13,7 +13,7 @@ from ppoe_core import lie
 from ppoe_core.estimation.checks import check_noise_covariance, check_pose
 from ppoe_core.errors import MeasurementError
 from ppoe_core.estimation.direct_measurements import PoseObservation
-from ppoe_core.estimation.measurement_base import MeasurementModel
+from ppoe_core.estimation.update_types import MeasurementModel
 
 
 # --------------------------------------------------------------------------- composition

@@ -11,14 +11,7 @@ import numpy as np
 from numba import njit
 
 from ppoe_core.lie.kernels import (
-    covariance_passes_kernel,
-    mat_mul,
-    mat_mul_t,
-    sandwich,
-    se3_exp_one,
-    se3_inverse_one,
-    se3_log_one,
-    se3_mul,
+    covariance_passes_kernel, mat_mul, mat_mul_t, sandwich, se3_exp_one, se3_inverse_one, se3_log_one, se3_mul,
 )
 
 __all__ = [

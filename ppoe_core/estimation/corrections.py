@@ -210,13 +210,8 @@ class CarriedCorrection:
             object.__setattr__(self, name, np.ascontiguousarray(getattr(self, name), dtype=np.float64))
 
     @staticmethod
-    def from_update(
-        anchor: PriorSample,
-        T_post: Array,
-        cov_post: Array,
-        T_pre: Array | None = None,
-        cov_pre: Array | None = None,
-    ) -> CarriedCorrection | None:
+    def from_update(anchor: PriorSample, T_post: Array, cov_post: Array, T_pre: Array | None = None,
+                    cov_pre: Array | None = None) -> CarriedCorrection | None:
         """Build the correction that turns ``(T_pre, cov_pre)`` into ``(T_post, cov_post)``.
 
         ``(T_pre, cov_pre)`` is the estimate the update started from (default: the raw
@@ -350,16 +345,6 @@ class MeasurementOutcome:
 
 
 COUNT_KEYS = (
-    "priors",
-    "priors_late",
-    "priors_out_of_order",
-    "resets",
-    "measurements",
-    "accepted",
-    "rejected",
-    "dropped_stale",
-    "dropped_no_prior",
-    "bad",
-    "corrections_dropped",
-    "throttled",
+    "priors", "priors_late", "priors_out_of_order", "resets", "measurements", "accepted", "rejected", "dropped_stale",
+    "dropped_no_prior", "bad", "corrections_dropped", "throttled",
 )

@@ -10,7 +10,7 @@ import scipy.linalg
 from ppoe_core import lie
 from ppoe_core.estimation.checks import check_noise_covariance, check_pose
 from ppoe_core.errors import CovarianceError, MeasurementError
-from ppoe_core.estimation.measurement_base import MeasurementModel
+from ppoe_core.estimation.update_types import MeasurementModel
 from ppoe_core.robot.tree import GRAVITY
 
 
@@ -35,14 +35,8 @@ class PointObservation(MeasurementModel):
         Sensor pose in ``ref`` and its covariance (sensor frame).
     """
 
-    def __init__(
-        self,
-        point_link: Any,
-        sigma: Any,
-        T_ref_sensor: Any = None,
-        cov_sensor: Any = None,
-        name: str = "point",
-    ) -> None:
+    def __init__(self, point_link: Any, sigma: Any, T_ref_sensor: Any = None, cov_sensor: Any = None,
+                 name: str = "point") -> None:
         self.name = name
         p = np.asarray(point_link, dtype=float)
         if p.shape != (3,) or not np.all(np.isfinite(p)):
@@ -55,9 +49,7 @@ class PointObservation(MeasurementModel):
             cov_point = np.eye(3) * float(sig) ** 2
         else:
             cov_point = check_noise_covariance(sig, 3, f"{name}: point covariance")
-        self.T_ref_sensor = (
-            np.eye(4) if T_ref_sensor is None else check_pose(T_ref_sensor, f"{name}: T_ref_sensor")
-        )
+        self.T_ref_sensor = (np.eye(4) if T_ref_sensor is None else check_pose(T_ref_sensor, f"{name}: T_ref_sensor"))
         self.T_sensor_ref = lie.inverse(self.T_ref_sensor)
         blocks = [cov_point]
         self.has_sensor_noise = cov_sensor is not None
@@ -156,14 +148,8 @@ class GravityObservation(MeasurementModel):
         Magnitude [m/s^2].
     """
 
-    def __init__(
-        self,
-        sigma: float,
-        R_link_sensor: Any = None,
-        up_ref: Any = (0.0, 0.0, 1.0),
-        gravity: float = GRAVITY,
-        name: str = "gravity",
-    ) -> None:
+    def __init__(self, sigma: float, R_link_sensor: Any = None, up_ref: Any = (0.0, 0.0, 1.0), gravity: float = GRAVITY,
+                 name: str = "gravity") -> None:
         self.name = name
         if not (np.isfinite(sigma) and sigma > 0):
             raise CovarianceError(f"{name}: sigma must be > 0, got {sigma}")

@@ -53,18 +53,8 @@ from ppoe_core.estimation.compiled_update import run_update
 from ppoe_core.estimation.update_types import MeasurementModelLike, UpdateResult
 
 __all__ = [
-    "MeasurementModelLike",
-    "UpdateResult",
-    "iterated_update",
-    "numerical_jacobian_state",
-    "numerical_jacobian_noise",
-    "check_noise_covariance",
-    "check_pose",
-    "nees",
-    "nis",
-    "nees_bounds",
-    "nis_bounds",
-    "chi2_gate",
+    "MeasurementModelLike", "UpdateResult", "iterated_update", "numerical_jacobian_state", "numerical_jacobian_noise",
+    "check_noise_covariance", "check_pose", "nees", "nis", "nees_bounds", "nis_bounds", "chi2_gate",
 ]
 
 
@@ -116,15 +106,13 @@ def numerical_jacobian_noise(
 def _linearize(
     model: MeasurementModelLike, T: np.ndarray, jacobians: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(h(T), H, M)``; uses ``model.linearize`` when the model has it (shared work)."""
+    """``(h(T), H, M)`` by ``model.linearize`` (central differences for a None Jacobian, or all with
+    ``jacobians="numerical"``)."""
     H = M = None
-    if jacobians != "numerical" and hasattr(model, "linearize"):
+    if jacobians != "numerical":
         z_pred, H, M = model.linearize(T)
     else:
         z_pred = model.h(T)
-        if jacobians != "numerical":
-            H = model.jacobian_state(T)
-            M = model.jacobian_noise(T)
     if jacobians == "analytic" and (H is None or M is None):
         raise MeasurementError(f"{model.name}: no analytic Jacobian available")
     if H is None:
@@ -208,7 +196,7 @@ def iterated_update(
         raise PpoeError(f"iterated_update: jacobians must be auto, analytic or numerical, not {jacobians!r}")
     if max_iterations < 1:
         raise PpoeError(f"iterated_update: max_iterations must be >= 1, got {max_iterations}")
-    R = model.noise_cov if getattr(model, "noise_checked", False) else check_noise_covariance(
+    R = model.noise_cov if model.noise_checked else check_noise_covariance(
         model.noise_cov, model.noise_dim, f"{model.name}: noise covariance")
     R = np.ascontiguousarray(R, dtype=np.float64)
     spec = model.compiled if jacobians != "numerical" else None
@@ -294,10 +282,7 @@ def nees_bounds(dim: int = 6, n_trials: int = 1, probability: float = 0.95) -> t
     """
     a = (1.0 - probability) / 2.0
     dof = n_trials * dim
-    return (
-        float(scipy.stats.chi2.ppf(a, dof) / n_trials),
-        float(scipy.stats.chi2.ppf(1.0 - a, dof) / n_trials),
-    )
+    return (float(scipy.stats.chi2.ppf(a, dof) / n_trials), float(scipy.stats.chi2.ppf(1.0 - a, dof) / n_trials))
 
 
 def nis_bounds(dim: int, n_trials: int = 1, probability: float = 0.95) -> tuple[float, float]:

@@ -67,20 +67,13 @@ from ppoe_core.errors import CovarianceError, MeasurementError
 from ppoe_core.estimation.camera import distortion_coefficients, project_points_jacobian
 from ppoe_core.estimation.composite_measurements import ChainedObservation, StackedObservation
 from ppoe_core.estimation.direct_measurements import GravityObservation, PointObservation, PoseObservation
-from ppoe_core.estimation.measurement_base import MeasurementModel
+from ppoe_core.estimation.update_types import MeasurementModel
 from ppoe_core.estimation.update_types import KIND_CONTACT, KIND_TAG, CompiledModel
 from ppoe_core.lie.compiled import compiled
 
 __all__ = [
-    "MeasurementModel",
-    "TagBearingModel",
-    "ContactPlaneModel",
-    "PointObservation",
-    "PoseObservation",
-    "GravityObservation",
-    "ChainedObservation",
-    "StackedObservation",
-    "tag_points",
+    "MeasurementModel", "TagBearingModel", "ContactPlaneModel", "PointObservation", "PoseObservation",
+    "GravityObservation", "ChainedObservation", "StackedObservation", "tag_points",
 ]
 
 
@@ -291,14 +284,8 @@ class ContactPlaneModel(MeasurementModel):
         Extra 1-sigma noise of the distance itself [m] (contact detection); 0 = none.
     """
 
-    def __init__(
-        self,
-        T_ref_plane: Any,
-        cov_plane: Any,
-        point_tool: Any = (0.0, 0.0, 0.0),
-        distance_sigma: float = 0.0,
-        name: str = "contact plane",
-    ) -> None:
+    def __init__(self, T_ref_plane: Any, cov_plane: Any, point_tool: Any = (0.0, 0.0, 0.0), distance_sigma: float = 0.0,
+                 name: str = "contact plane") -> None:
         self.name = name
         self.T_ref_plane = check_pose(T_ref_plane, f"{name}: T_ref_plane")
         self.T_plane_ref = lie.inverse(self.T_ref_plane)

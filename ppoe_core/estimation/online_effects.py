@@ -1,24 +1,25 @@
-"""Online estimation of drifting effects (issue 11 item 1; the paper's future work): an augmented-state EKF.
+"""Online estimation of drifting effects (issue 11 item 1, issue 22; the paper's future work): an augmented-state EKF.
 
 The state is the stacked parameter vector ``theta`` of a few effects of the catalogue
 (:mod:`ppoe_core.model.effects`: per-placement ``base_tilt``, ``thermal_growth`` with the temperature as its
 variable, a ``gravity_compliance``, ``camera_extrinsics``, ...) with covariance ``P``; every other effect of the
 diagnosed model stays fixed.  Between measurements each parameter is a random walk,
 ``P += diag(q^2) dt`` with ``q`` the process noise in *parameter unit per sqrt(s)*: the rule for how fast a
-parameter may drift.  A tracker point on a link (``/ground_truth/point[/<name>]`` in the tracker frame, the
-registration ``T_tracker_base`` known from the diagnosed model's ``tracker_registration`` effect) updates it::
+parameter may drift.
 
-    z = T_tracker_root p_root(q; theta) + v,   H = R_tracker_root dp_root/dtheta,
-    S = H P H^T + R_tracker_root (Sigma_ppoe + sigma^2 I) R_tracker_root^T,   K = P H^T S^-1
+Every measurement (:class:`~ppoe_core.estimation.online_models.OnlineRow`) is one or more measurement models on a
+pose ``X = T_ref_link`` of the robot (:mod:`ppoe_core.estimation.online_models`: tracker points, accelerometers, tag
+pixels, 6D poses, contact planes).  ``X`` is the chain of eq. 16 with the effects' corrections
+(``Exp(p_i) Exp(dxi_i) Exp(xi_i) Exp(zeta_i (q_i + dq_i))``, :meth:`KinematicTree.link_poses`) at the current
+estimate, and the update is::
 
-(an accelerometer at rest on a link updates it through the same step with the existing gravity model,
-:meth:`OnlineEffects.update_gravity`: it sees a tilt without any registration)
-where ``p_root`` is the reflector on the chain of eq. 16 with the effects' corrections
-(``Exp(p_i) Exp(dxi_i) Exp(xi_i) Exp(zeta_i (q_i + dq_i))``, :meth:`KinematicTree.link_poses`),
-``dp_root/dtheta`` the chain Jacobian (:meth:`KinematicTree.point_jacobian`) times the effects' exact bases
-(:meth:`Effect.basis`) and ``Sigma_ppoe`` the PPOE covariance of the point (paper eq. 18), i.e. the random
-errors of the model act as measurement noise.  A placement change (the base moved onto another floor) is a jump,
-not a drift: with ``jump_probability`` set, an innovation whose NIS exceeds that chi-square quantile re-opens the
+    nu = z ominus h(X),   H = H_X J_theta,   S = H P H^T + M R M^T + H_X Sigma_ppoe H_X^T,   K = P H^T S^-1
+
+with ``H_X = dh/dxi`` of the model, ``J_theta = d xi_rel / d theta`` the chain Jacobian of ``T_ref_link``
+(:meth:`KinematicTree.frame_jacobian` of both frames) times the effects' exact bases (:meth:`Effect.basis`), and
+``Sigma_ppoe`` the PPOE covariance of ``T_ref_link`` (paper eq. 18): the model's random errors act as measurement
+noise.  A placement change (the base moved onto another floor) is a jump, not a drift: with ``jump_probability``
+set, an innovation whose NIS exceeds that chi-square quantile (of the measurement's dimension) re-opens the
 covariance of the tracked parameters to their initial sigma before the update (counted in ``jumps``).
 
 The fused tool pose uses the current estimate: the mean of the chain with all effects, and the covariance
@@ -38,15 +39,26 @@ from scipy.stats import chi2
 
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, ModelConfigError
-from ppoe_core.estimation.direct_measurements import GravityObservation
-from ppoe_core.model.effects import Effect, effect_from_config, sum_effect_corrections
+from ppoe_core.estimation.online_config import (
+    DEFAULT_INITIAL_SIGMA,
+    DEFAULT_PROCESS_NOISE,
+    ONLINE_EFFECT_NAMES,
+    TrackedEffect,
+    entries_from_flat,
+    parse_online_config,
+)
+from ppoe_core.estimation.online_models import OnlineRow, imu_parts, tracker_parts
+from ppoe_core.model.effects import Effect, sum_effect_corrections
 from ppoe_core.robot.tree import KinematicTree
 
 __all__ = [
     "DEFAULT_INITIAL_SIGMA",
     "DEFAULT_PROCESS_NOISE",
     "ONLINE_EFFECT_NAMES",
+    "FrameChain",
     "OnlineEffects",
+    "OnlineUpdate",
+    "PartLinearization",
     "PointUpdate",
     "TrackedEffect",
     "entries_from_flat",
@@ -54,145 +66,69 @@ __all__ = [
     "replace_effects",
 ]
 
-#: process noise per parameter of each trackable effect [parameter unit / sqrt(s)]
-DEFAULT_PROCESS_NOISE: dict[str, float] = {
-    "base_tilt": 1e-4,            # rad/sqrt(s)
-    "thermal_growth": 1e-7,       # (1/K)/sqrt(s)
-    "gravity_compliance": 1e-6,   # rad/(N m)/sqrt(s)
-    "mount_bending": 1e-6,        # rad/(N m)/sqrt(s)
-    "camera_extrinsics": 1e-4,    # m/sqrt(s) and rad/sqrt(s)
-    "joint_offset": 1e-5,         # rad/sqrt(s)
-    "link_error": 1e-5,           # m/sqrt(s) and rad/sqrt(s)
-}
-#: prior 1-sigma of a tracked parameter that the diagnosed model does not hold (and after a jump) [parameter unit]
-DEFAULT_INITIAL_SIGMA: dict[str, float] = {
-    "base_tilt": 0.005, "thermal_growth": 1e-4, "gravity_compliance": 1e-3, "mount_bending": 1e-3,
-    "camera_extrinsics": 0.01, "joint_offset": 0.005, "link_error": 0.002,
-}
-ONLINE_EFFECT_NAMES = tuple(DEFAULT_PROCESS_NOISE)
-_ENTRY_KEYS = ("name", "location", "process_noise", "initial_sigma", "variable", "reference", "parameters")
-
 
 @dataclass
-class TrackedEffect:
-    """One effect whose parameters are estimated online.
+class OnlineUpdate:
+    """Outcome of one update.
 
     Attributes
     ----------
-    effect : Effect
-        Catalogue object; its ``params`` are the initial estimate (the diagnosed value, or zeros).
-    process_noise : ndarray (P,)
-        Random-walk intensity per parameter [parameter unit / sqrt(s)].
-    initial_sigma : ndarray (P,)
-        Prior 1-sigma [parameter unit]; also the covariance re-opened after a jump.
+    innovation : ndarray (m,)
+        ``z ominus h`` at the estimate before the update [the measurement's units].
+    nis : float
+        ``nu^T S^-1 nu`` with the covariance before the update.
+    jump : bool
+        The jump rule re-opened the covariance.
+    dim : int
+        ``m``, the chi-square degrees of freedom of ``nis``.
+    nis_monitor : float
+        The NIS the drift monitor tests: ``nis``, or after a jump the NIS with the re-opened covariance (a jump of
+        the tracked effects that they can explain is not a drift they fail to explain).
     """
-
-    effect: Effect
-    process_noise: np.ndarray
-    initial_sigma: np.ndarray
-
-
-@dataclass
-class PointUpdate:
-    """Outcome of one update: innovation (3,) [m or m/s^2], NIS, whether a jump re-opened the covariance."""
 
     innovation: np.ndarray
     nis: float
     jump: bool
+    dim: int = 3
+    nis_monitor: float = float("nan")
 
 
-def _vector(raw: Any, n: int, default: float, where: str) -> np.ndarray:
-    if raw is None:
-        return np.full(n, default)
-    v = np.atleast_1d(np.asarray(raw, dtype=float)) if not isinstance(raw, str) else np.array([np.nan])
-    if v.shape == (1,):
-        v = np.full(n, v[0])
-    if v.shape != (n,) or not np.all(np.isfinite(v)) or np.any(v < 0):
-        raise ModelConfigError(f"{where}: expected {n} non-negative numbers (or one), got {raw!r}")
-    return v
+#: the name of :class:`OnlineUpdate` before issue 22 (tracker points only)
+PointUpdate = OnlineUpdate
 
 
-def parse_online_config(raw: Any, model: Any, where: str = "online_effects") -> list[TrackedEffect]:
-    """The ``online_effects`` list (of a node YAML or ``ppoe evaluate --online-config``) -> tracked effects.
+@dataclass
+class FrameChain:
+    """``T_ref_link`` (4, 4) on the chain with effects and its Jacobians w.r.t. the eq. 16 insertions, right tangent
+    at the link: ``Jq`` joint -> (6,), ``Jx`` joint -> (6, 6); ``nominal`` the link poses without effects (the
+    effects' bases are taken there)."""
 
-    Each entry is ``{name, location[, process_noise, initial_sigma, variable, reference]}``: ``process_noise``
-    [parameter unit / sqrt(s)] and ``initial_sigma`` [parameter unit] are one number or one per parameter.  An
-    effect the model already holds starts at the model's values; a new one at zero.  ``None`` tracks every
-    effect of the model whose name is in :data:`ONLINE_EFFECT_NAMES`, and ``base_tilt`` at the root link.
-
-    Raises
-    ------
-    ModelConfigError
-        Unknown keys, names or parameters, bad numbers, an effect listed twice; the message names the entry.
-    """
-    if raw is None:
-        raw = [{"name": "base_tilt", "location": model.robot.root}] + [
-            {"name": e.name, "location": e.location} for e in model.effects
-            if e.name in ONLINE_EFFECT_NAMES and not (e.name == "base_tilt")]
-    if not isinstance(raw, Sequence) or isinstance(raw, str):
-        raise ModelConfigError(f"{where} must be a list of {{name, location, process_noise, initial_sigma}}")
-    out: list[TrackedEffect] = []
-    for i, entry in enumerate(raw):
-        w = f"{where}[{i}]"
-        if not isinstance(entry, Mapping) or set(entry) - set(_ENTRY_KEYS):
-            raise ModelConfigError(f"{w}: an entry is a mapping with keys {list(_ENTRY_KEYS)}, got {entry!r}")
-        name = entry.get("name")
-        if name not in ONLINE_EFFECT_NAMES:
-            raise ModelConfigError(f"{w}: effect {name!r} cannot be tracked online (can: {list(ONLINE_EFFECT_NAMES)})")
-        held = next((e for e in model.effects if e.name == name and e.location == str(entry.get("location"))), None)
-        if held is not None:
-            eff = held
-        else:
-            cfg = {k: entry[k] for k in ("name", "location", "variable", "reference", "parameters") if k in entry}
-            cfg.setdefault("parameters", {})
-            eff = effect_from_config(cfg, model.robot, where=w)
-        if any(t.effect.name == eff.name and t.effect.location == eff.location for t in out):
-            raise ModelConfigError(f"{w}: effect {eff.describe()} is listed twice")
-        out.append(TrackedEffect(
-            eff, _vector(entry.get("process_noise"), eff.n_params, DEFAULT_PROCESS_NOISE[name], w + ".process_noise"),
-            _vector(entry.get("initial_sigma"), eff.n_params, DEFAULT_INITIAL_SIGMA[name], w + ".initial_sigma")))
-    return out
+    T: np.ndarray
+    Jq: dict[str, np.ndarray]
+    Jx: dict[str, np.ndarray]
+    nominal: dict[str, np.ndarray]
 
 
-def entries_from_flat(names: Sequence[str], process_noise: Sequence[float], initial_sigma: Sequence[float],
-                      thermal_reference: float, where: str = "online_effects") -> list[dict[str, Any]] | None:
-    """The flat form of a node parameter file -> ``online_effects`` entries for :func:`parse_online_config`.
+@dataclass
+class PartLinearization:
+    """One :class:`~ppoe_core.estimation.online_models.FramePart` at an estimate: residual (m,), ``H_X`` (m, 6),
+    noise covariance (m, m) (sensor plus the PPOE covariance of ``T_ref_link``) and the frame chain."""
 
-    ``names`` are ``"<name>:<location>"`` (empty: None, the default set); ``process_noise`` [parameter unit /
-    sqrt(s)] and ``initial_sigma`` [parameter unit] hold one number per effect (or are empty: defaults);
-    a ``thermal_growth`` uses the temperature with ``thermal_reference`` [deg C] as its variable.
-
-    Raises
-    ------
-    ModelConfigError
-        A name without ``:``, or a list whose length is not the number of effects.
-    """
-    if not names:
-        return None
-    out: list[dict[str, Any]] = []
-    for i, nl in enumerate(names):
-        name, sep, loc = str(nl).partition(":")
-        if not sep or not name or not loc:
-            raise ModelConfigError(f"{where}[{i}]: expected '<effect name>:<location>', got {nl!r}")
-        out.append({"name": name, "location": loc})
-        if name == "thermal_growth":
-            out[-1].update(variable="temperature", reference=float(thermal_reference))
-    for key, vals in (("process_noise", process_noise), ("initial_sigma", initial_sigma)):
-        if len(vals) and len(vals) != len(out):
-            raise ModelConfigError(f"online_{key}: one number per entry of {where} ({len(out)}), got {len(vals)}")
-        for e, v in zip(out, vals):
-            e[key] = float(v)
-    return out
+    residual: np.ndarray
+    H_state: np.ndarray
+    noise: np.ndarray
+    chain: FrameChain
 
 
 @dataclass
 class _Counts:
     points: int = 0
     gravity: int = 0
+    updates: int = 0
     jumps: int = 0
     waiting_for_temperature: int = 0
     temperatures: int = 0
-    extra: dict[str, int] = field(default_factory=dict)
+    by_kind: dict[str, int] = field(default_factory=dict)
 
 
 class OnlineEffects:
@@ -205,7 +141,7 @@ class OnlineEffects:
     tracked : list of TrackedEffect
         :func:`parse_online_config`.
     jump_probability : float or None
-        NIS quantile above which a tracker point is taken as a jump of the tracked parameters (None: off).
+        NIS tail probability above which a measurement is taken as a jump of the tracked parameters (None: off).
     """
 
     def __init__(self, model: Any, tracked: Sequence[TrackedEffect], jump_probability: float | None = 1e-6) -> None:
@@ -213,24 +149,25 @@ class OnlineEffects:
             raise ModelConfigError("online effects: nothing to track (empty online_effects list)")
         self.model = model
         self.tree = KinematicTree(model.robot)
-        self.tracked = list(tracked)
-        keys = {(t.effect.name, t.effect.location) for t in self.tracked}
+        self.tracked: list[TrackedEffect] = []
+        keys = {(t.effect.name, t.effect.location) for t in tracked}
         self.fixed = [e for e in model.effects
                       if (e.name, e.location) not in keys and e.name != "tracker_registration"]
         self.registrations = {e.location: e.transform() for e in model.effects if e.name == "tracker_registration"}
-        self.static_model = model.with_effects(self.fixed + [t.effect for t in self.tracked])
+        self.theta = np.zeros(0)
+        self.P = np.zeros((0, 0))
+        self.sigma0 = np.zeros(0)
+        self.q = np.zeros(0)
         self.slices: list[slice] = []
-        k = 0
-        for t in self.tracked:
-            self.slices.append(slice(k, k + t.effect.n_params))
-            k += t.effect.n_params
-        self.theta = np.concatenate([t.effect.params for t in self.tracked])
-        self.sigma0 = np.concatenate([t.initial_sigma for t in self.tracked])
-        self.q = np.concatenate([t.process_noise for t in self.tracked])
-        self.P = np.diag(self.sigma0 ** 2)
+        self.add_effects(tracked)
+        #: the effects of the diagnosed model as the run began (the tracked ones at their initial values)
+        self.diagnosed_effects: list[Effect] = list(self._static.effects)
         self.stamp: float | None = None
         self.context: dict[str, Any] = {}
-        self.jump_nis = None if not jump_probability else float(chi2.isf(jump_probability, 3))
+        #: the first temperature seen [deg C]: the diagnosed model holds there (reference of a named thermal effect)
+        self.reference_temperature: float | None = None
+        self.jump_probability = jump_probability or None
+        self._gates: dict[int, float] = {}
         self.counts = _Counts()
 
     # -- state ---------------------------------------------------------------------
@@ -239,9 +176,40 @@ class OnlineEffects:
         """``"<name>@<location>/<parameter>"`` of each state entry, in state order."""
         return [f"{t.effect.name}@{t.effect.location}/{p}" for t in self.tracked for p in t.effect.param_names]
 
-    def effects(self) -> list[Effect]:
-        """Every effect at the current estimate: the fixed ones and the tracked ones."""
-        return self.fixed + [t.effect.with_params(self.theta[s]) for t, s in zip(self.tracked, self.slices)]
+    @property
+    def static_model(self) -> Any:
+        """The diagnosed model with the tracked effects at their initial values (its covariance is the noise)."""
+        return self._static
+
+    def effects(self, theta: np.ndarray | None = None) -> list[Effect]:
+        """Every effect at the estimate ``theta`` (default: the current one): the fixed ones and the tracked ones."""
+        th = self.theta if theta is None else theta
+        return self.fixed + [t.effect.with_params(th[s]) for t, s in zip(self.tracked, self.slices)]
+
+    def add_effects(self, new: Sequence[TrackedEffect], P_new: np.ndarray | None = None) -> None:
+        """Append tracked effects to the state (their ``effect.params`` the initial estimate; covariance ``P_new``, or
+        their initial sigma squared), e.g. an effect the drift monitor named.  A fixed effect of the same name and
+        location leaves the fixed set (its value is the new effect's start)."""
+        keys = {(t.effect.name, t.effect.location) for t in self.tracked}
+        for t in new:
+            if (t.effect.name, t.effect.location) in keys:
+                raise ModelConfigError(f"online effects: {t.effect.describe()} is tracked already")
+        n0 = self.theta.shape[0]
+        k = n0
+        for t in new:
+            self.tracked.append(t)
+            self.slices.append(slice(k, k + t.effect.n_params))
+            k += t.effect.n_params
+        add_keys = {(t.effect.name, t.effect.location) for t in new}
+        self.fixed = [e for e in self.fixed if (e.name, e.location) not in add_keys]
+        self.theta = np.concatenate([self.theta] + [t.effect.params for t in new])
+        self.sigma0 = np.concatenate([self.sigma0] + [t.initial_sigma for t in new])
+        self.q = np.concatenate([self.q] + [t.process_noise for t in new])
+        P = np.zeros((k, k))
+        P[:n0, :n0] = self.P
+        P[n0:, n0:] = np.diag(self.sigma0[n0:] ** 2) if P_new is None else P_new
+        self.P = P
+        self._static = self.model.with_effects(self.fixed + [t.effect for t in self.tracked])
 
     def predict(self, stamp: float) -> None:
         """Random walk to ``stamp`` [s]: ``P += diag(q^2) dt`` (a stamp before the last one changes nothing)."""
@@ -249,12 +217,15 @@ class OnlineEffects:
             self.P = self.P + np.diag(self.q ** 2) * (stamp - self.stamp)
         if self.stamp is None or stamp > self.stamp:
             self.stamp = float(stamp)
+        self.context["time"] = self.stamp
 
     def set_temperature(self, stamp: float, value: float) -> None:
         """The latest temperature [deg C], the variable of tracked or fixed ``thermal_growth``."""
         if not np.isfinite(value):
             raise MeasurementError(f"online effects: temperature {value!r} at {stamp} is not finite")
         self.context["temperature"] = float(value)
+        if self.reference_temperature is None:
+            self.reference_temperature = float(value)
         self.counts.temperatures += 1
 
     def needs_temperature(self) -> bool:
@@ -263,41 +234,71 @@ class OnlineEffects:
             getattr(e, "variable", None) == "temperature" for e in self.effects())
 
     # -- chain and Jacobians ----------------------------------------------------------
-    def _chain(self, q: Mapping[str, float], effects: Sequence[Effect] | None = None
-               ) -> tuple[dict, dict, dict, dict]:
-        """Corrections of ``effects`` (default: current), corrected and nominal link poses."""
+    def frame_chain(self, q: Mapping[str, float], ref: str, link: str, effects: Sequence[Effect] | None = None,
+                    context: Mapping[str, Any] | None = None) -> FrameChain:
+        """``T_ref_link`` with ``effects`` (default: at the current estimate) and its insertion Jacobians: the
+        right perturbation of ``T_ref_link`` is ``xi_link - Ad(T_ref_link^-1) xi_ref`` (both of the root)."""
+        ctx = self.context if context is None else context
         nominal = self.tree.link_poses(q)
-        dq, dxi = sum_effect_corrections(self.effects() if effects is None else effects, q, self.context, nominal)
-        return dq, dxi, self.tree.link_poses(q, dq, dxi), nominal
+        dq, dxi = sum_effect_corrections(self.effects() if effects is None else effects, q, ctx, nominal)
+        poses = self.tree.link_poses(q, dq, dxi)
+        T = lie.inverse(poses[ref]) @ poses[link]
+        Jq, Jx = self.tree.frame_jacobian(q, link, poses, dq, dxi)
+        if ref != self.model.robot.root:
+            Ad = lie.adjoint(lie.inverse(T))
+            Jqb, Jxb = self.tree.frame_jacobian(q, ref, poses, dq, dxi)
+            Jq, Jx = _minus(Jq, Jqb, Ad), _minus(Jx, Jxb, Ad)
+        return FrameChain(T, Jq, Jx, nominal)
 
-    def _param_jacobian(self, q: Mapping[str, float], J_dq: Mapping[str, np.ndarray],
-                        J_dxi: Mapping[str, np.ndarray], nominal: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Chain rule: chain Jacobian w.r.t. the insertions ``(J_dq: joint -> (m,), J_dxi: joint -> (m, 6))``
-        times each tracked effect's basis -> (m, P)."""
-        m = next(iter(J_dxi.values())).shape[0] if J_dxi else next(iter(J_dq.values())).shape[0]
-        H = np.zeros((m, self.theta.shape[0]))
-        for t, s in zip(self.tracked, self.slices):
-            Bq, Bx = t.effect.basis(q, self.context, nominal)
+    def pose(self, q: Mapping[str, float], ref: str, link: str, effects: Sequence[Effect] | None = None,
+             context: Mapping[str, Any] | None = None) -> np.ndarray:
+        """``T_ref_link`` (4, 4) on the chain with ``effects`` (default: at the current estimate), no Jacobians."""
+        ctx = self.context if context is None else context
+        nominal = self.tree.link_poses(q)
+        dq, dxi = sum_effect_corrections(self.effects() if effects is None else effects, q, ctx, nominal)
+        poses = self.tree.link_poses(q, dq, dxi)
+        return lie.inverse(poses[ref]) @ poses[link]
+
+    def param_jacobian(self, q: Mapping[str, float], chain: FrameChain, effects: Sequence[Effect] | None = None,
+                       context: Mapping[str, Any] | None = None) -> np.ndarray:
+        """Chain rule: the chain's insertion Jacobians times each effect's basis -> (6, sum of n_params); default
+        ``effects``: the tracked ones (the state order)."""
+        effs = [t.effect for t in self.tracked] if effects is None else list(effects)
+        ctx = self.context if context is None else context
+        cols = []
+        for e in effs:
+            Bq, Bx = e.basis(q, ctx, chain.nominal)
+            Hc = np.zeros((6, e.n_params))
             for k, b in Bq.items():
-                if k in J_dq:
-                    H[:, s] += np.outer(J_dq[k], b)
+                if k in chain.Jq:
+                    Hc += np.outer(chain.Jq[k], b)
             for k, b in Bx.items():
-                if k in J_dxi:
-                    H[:, s] += J_dxi[k] @ b
-        return H
+                if k in chain.Jx:
+                    Hc += chain.Jx[k] @ b
+            cols.append(Hc)
+        return np.concatenate(cols, axis=1) if cols else np.zeros((6, 0))
 
     def point(self, q: Mapping[str, float], link: str, xyz: Any) -> tuple[np.ndarray, np.ndarray]:
         """Root-frame position (3,) of ``xyz`` on ``link`` at the current estimate and its Jacobian (3, P)."""
-        dq, dxi, poses, nominal = self._chain(q)
-        Jq, Jx = self.tree.point_jacobian(q, link, xyz, poses, dq, dxi)
-        p_root = (poses[link] @ np.append(np.asarray(xyz, float), 1.0))[:3]
-        return p_root, self._param_jacobian(q, Jq, Jx, nominal)
+        ch = self.frame_chain(q, self.model.robot.root, link)
+        p = np.asarray(xyz, dtype=float)
+        R = ch.T[:3, :3]
+        return ch.T[:3, :3] @ p + ch.T[:3, 3], np.hstack([R, -R @ lie.hat3(p)]) @ self.param_jacobian(q, ch)
 
-    def _point_cov_ppoe(self, q: Mapping[str, float], link: str, xyz: Any) -> np.ndarray:
-        """PPOE covariance (3, 3) of the point in the root frame (eq. 18 at the link, moved to the point)."""
-        T, cov = self.static_model.fk(q, self.model.robot.root, link, context=self.context)
-        B = np.concatenate([T[:3, :3], -T[:3, :3] @ lie.hat3(np.asarray(xyz, float))], axis=1)
-        return B @ cov @ B.T
+    def linearize(self, row: OnlineRow, effects: Sequence[Effect] | None = None) -> list[PartLinearization]:
+        """Every part of ``row`` at ``effects`` (default: the current estimate), in the row's context."""
+        out = []
+        ctx = {**self.context, **row.context}
+        for part in row.parts:
+            ch = self.frame_chain(row.q, part.ref, part.link, effects, ctx)
+            obs = part.obs
+            Hs, M = obs.jacobian_state(ch.T), obs.jacobian_noise(ch.T)
+            if Hs is None or M is None:
+                raise MeasurementError(f"{obs.name}: the online filter needs analytic Jacobians")
+            _, cov = self._static.fk(row.q, part.ref, part.link, context=ctx)
+            noise = M @ obs.noise_cov @ M.T + Hs @ cov @ Hs.T
+            out.append(PartLinearization(np.asarray(obs.residual(part.z, obs.h(ch.T)), float), Hs, noise, ch))
+        return out
 
     # -- measurement -------------------------------------------------------------------
     def registration(self, frame_id: str, topic: str) -> np.ndarray:
@@ -316,78 +317,92 @@ class OnlineEffects:
             f"online effects: no tracker_registration effect for tracker frame {frame_id!r} (topic {topic}) in the "
             f"model; known: {sorted(self.registrations)}")
 
-    def update_point(self, stamp: float, q: Mapping[str, float], link: str, xyz: Any, p_tracker: Any,
-                     T_tracker_root: np.ndarray, sigma: float) -> PointUpdate | None:
-        """One tracker point ``p_tracker`` (3,) [m] of the reflector ``xyz`` on ``link``, noise ``sigma`` [m];
-        None (counted in ``counts.waiting_for_temperature``) while a thermal effect has no temperature yet."""
-        z = np.asarray(p_tracker, dtype=float).reshape(3)
-        if not np.all(np.isfinite(z)):
-            raise MeasurementError(f"online effects: tracker point {z} at {stamp} is not finite")
+    def update(self, row: OnlineRow, kind: str = "") -> OnlineUpdate | None:
+        """One measurement (all its parts in one update); None (counted in ``counts.waiting_for_temperature``) while
+        a thermal effect has no temperature yet.  ``kind`` names the measurement kind in ``counts.by_kind``."""
         if self.needs_temperature():
             self.counts.waiting_for_temperature += 1
             return None
-        self.predict(stamp)
-        p_root, J = self.point(q, link, xyz)
-        R_tr = T_tracker_root[:3, :3]
-        nu = z - (R_tr @ p_root + T_tracker_root[:3, 3])
-        Rm = R_tr @ (self._point_cov_ppoe(q, link, xyz) + sigma ** 2 * np.eye(3)) @ R_tr.T
-        self.counts.points += 1
-        return self._kalman(nu, R_tr @ J, Rm)
+        self.predict(row.stamp)
+        row.context = {**self.context, **row.context}
+        lins = self.linearize(row)
+        nu = np.concatenate([lin.residual for lin in lins])
+        H = np.concatenate([lin.H_state @ self.param_jacobian(row.q, lin.chain) for lin in lins])
+        m = nu.shape[0]
+        Rm = np.zeros((m, m))
+        i = 0
+        for lin in lins:
+            k = lin.residual.shape[0]
+            Rm[i:i + k, i:i + k] = lin.noise
+            i += k
+        self.counts.updates += 1
+        if kind:
+            self.counts.by_kind[kind] = self.counts.by_kind.get(kind, 0) + 1
+        return self._kalman(nu, H, Rm)
+
+    def update_point(self, stamp: float, q: Mapping[str, float], link: str, xyz: Any, p_tracker: Any,
+                     T_tracker_root: np.ndarray, sigma: float) -> OnlineUpdate | None:
+        """One tracker point ``p_tracker`` (3,) [m] of the reflector ``xyz`` on ``link``, noise ``sigma`` [m];
+        None while a thermal effect has no temperature yet."""
+        z = np.asarray(p_tracker, dtype=float).reshape(3)
+        if not np.all(np.isfinite(z)):
+            raise MeasurementError(f"online effects: tracker point {z} at {stamp} is not finite")
+        parts = tracker_parts(self.model.robot.root, link, xyz, z, T_tracker_root, sigma, "tracker point")
+        up = self.update(OnlineRow(float(stamp), "tracker", dict(q), parts), "tracker")
+        self.counts.points += up is not None
+        return up
 
     def update_gravity(self, stamp: float, q: Mapping[str, float], link: str, accel_link: Any,
-                       sigma: float) -> PointUpdate | None:
+                       sigma: float) -> OnlineUpdate | None:
         """One accelerometer at rest on ``link`` (specific force (3,) [m/s^2] in the link axes, noise ``sigma``
         [m/s^2]): the link's tilt, through :class:`~ppoe_core.estimation.direct_measurements.GravityObservation`
         (gravity is -z of the root); needs no registration.  None while waiting for a temperature."""
         z = np.asarray(accel_link, dtype=float).reshape(3)
         if not np.all(np.isfinite(z)):
             raise MeasurementError(f"online effects: acceleration {z} at {stamp} on {link} is not finite")
-        if self.needs_temperature():
-            self.counts.waiting_for_temperature += 1
-            return None
-        self.predict(stamp)
-        root = self.model.robot.root
-        T_link, J = self.tool_jacobian(q, root, link)
-        obs = GravityObservation(sigma)
-        Hs = obs.jacobian_state(T_link)
-        _, cov_link = self.static_model.fk(q, root, link, context=self.context)
-        self.counts.gravity += 1
-        return self._kalman(z - obs.h(T_link), Hs @ J, obs.noise_cov + Hs @ cov_link @ Hs.T)
+        parts = imu_parts(self.model.robot.root, link, z, sigma, f"accelerometer on {link}")
+        up = self.update(OnlineRow(float(stamp), "imu", dict(q), parts), "imu")
+        self.counts.gravity += up is not None
+        return up
 
-    def _kalman(self, nu: np.ndarray, H: np.ndarray, Rm: np.ndarray) -> PointUpdate:
-        """EKF update with innovation ``nu`` (3,), ``H`` (3, P), noise ``Rm`` (3, 3); the jump rule first."""
+    def _jump_gate(self, dim: int) -> float | None:
+        if self.jump_probability is None:
+            return None
+        if dim not in self._gates:
+            self._gates[dim] = float(chi2.isf(self.jump_probability, dim))
+        return self._gates[dim]
+
+    def _kalman(self, nu: np.ndarray, H: np.ndarray, Rm: np.ndarray) -> OnlineUpdate:
+        """EKF update with innovation ``nu`` (m,), ``H`` (m, P), noise ``Rm`` (m, m); the jump rule first."""
         S = H @ self.P @ H.T + Rm
         nis = float(nu @ np.linalg.solve(S, nu))
-        jump = self.jump_nis is not None and nis > self.jump_nis
+        gate = self._jump_gate(nu.shape[0])
+        jump = gate is not None and nis > gate
+        nis_monitor = nis
         if jump:
             self.P = self.P + np.diag(self.sigma0 ** 2)
             S = H @ self.P @ H.T + Rm
+            nis_monitor = float(nu @ np.linalg.solve(S, nu))
             self.counts.jumps += 1
         K = np.linalg.solve(S, H @ self.P).T
         self.theta = self.theta + K @ nu
         IKH = np.eye(self.theta.shape[0]) - K @ H
         self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T  # Joseph form
-        return PointUpdate(nu, nis, bool(jump))
+        return OnlineUpdate(nu, nis, bool(jump), int(nu.shape[0]), nis_monitor)
 
     # -- outputs -------------------------------------------------------------------------
     def tool_pose(self, q: Mapping[str, float], base: str, tool: str) -> tuple[np.ndarray, np.ndarray]:
         """Fused ``T_base_tool`` (4, 4) at the current estimate and its covariance (6, 6) in the tool's tangent
         space: the PPOE covariance plus ``J P J^T`` of the parameters' uncertainty."""
         T, J = self.tool_jacobian(q, base, tool)
-        _, cov = self.static_model.fk(q, base, tool, context=self.context)
+        _, cov = self._static.fk(q, base, tool, context=self.context)
         return T, cov + J @ self.P @ J.T
 
     def tool_jacobian(self, q: Mapping[str, float], base: str, tool: str) -> tuple[np.ndarray, np.ndarray]:
         """``T_base_tool`` (4, 4) at the current estimate and ``d xi_tool / d theta`` (6, P), right tangent at the
         tool (``xi_rel = xi_tool - Ad(T_base_tool^-1) xi_base`` when the base is not the root)."""
-        dq, dxi, poses, nominal = self._chain(q)
-        T = lie.inverse(poses[base]) @ poses[tool]
-        Jq, Jx = self.tree.frame_jacobian(q, tool, poses, dq, dxi)
-        J = self._param_jacobian(q, Jq, Jx, nominal)
-        if base != self.model.robot.root:
-            Jqb, Jxb = self.tree.frame_jacobian(q, base, poses, dq, dxi)
-            J = J - lie.adjoint(lie.inverse(T)) @ self._param_jacobian(q, Jqb, Jxb, nominal)
-        return T, J
+        ch = self.frame_chain(q, base, tool)
+        return ch.T, self.param_jacobian(q, ch)
 
     def sigmas(self) -> np.ndarray:
         """1-sigma of each tracked parameter (P,)."""
@@ -416,3 +431,11 @@ def replace_effects(model_raw: Mapping[str, Any], entries: Sequence[Mapping[str,
     keys = {(e["name"], str(e["location"])) for e in entries}
     kept = [e for e in (model_raw.get("effects") or []) if (e.get("name"), str(e.get("location"))) not in keys]
     return {**dict(model_raw), "effects": kept + [dict(e) for e in entries]}
+
+
+def _minus(J_link: Mapping[str, np.ndarray], J_ref: Mapping[str, np.ndarray], Ad: np.ndarray) -> dict[str, np.ndarray]:
+    """``J_link - Ad J_ref`` per joint (a joint missing on one side contributes zero)."""
+    out = dict(J_link)
+    for k, v in J_ref.items():
+        out[k] = out[k] - Ad @ v if k in out else -(Ad @ v)
+    return out

@@ -46,54 +46,20 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, PpoeError
 from ppoe_core.estimation.corrections import (
-    COUNT_KEYS,
-    CarriedCorrection,
-    CorrectionPolicy,
-    FusedEstimate,
-    Measurement,
-    MeasurementOutcome,
-    MeasurementUpdater,
-    ToolUpdate,
-    correction_kernels,
-    symmetric,
-    apply_carried_corrections,
+    COUNT_KEYS, CarriedCorrection, CorrectionPolicy, FusedEstimate, Measurement, MeasurementOutcome, MeasurementUpdater,
+    ToolUpdate, correction_kernels, symmetric, apply_carried_corrections,
 )
 from ppoe_core.model.stamp_policy import StampResetPolicy
-from ppoe_core.estimation.prior_buffer import (
-    Array,
-    LookupStatus,
-    PriorBuffer,
-    PriorSample,
-)
+from ppoe_core.estimation.prior_buffer import Array, LookupStatus, PriorBuffer, PriorSample
 from ppoe_core.estimation.updater import (
-    FUSION_SETTINGS,
-    ContactMeasurement,
-    ModelUpdater,
-    TagMeasurement,
-    make_updater,
+    FUSION_SETTINGS, ContactMeasurement, ModelUpdater, TagMeasurement, make_updater,
 )
 
 __all__ = [
-    "PriorSample",
-    "PriorBuffer",
-    "LookupStatus",
-    "Measurement",
-    "ToolUpdate",
-    "MeasurementUpdater",
-    "CorrectionPolicy",
-    "CarriedCorrection",
-    "FusedEstimate",
-    "MeasurementOutcome",
-    "FusionPipeline",
-    "TagMeasurement",
-    "ContactMeasurement",
-    "ModelUpdater",
-    "COUNT_KEYS",
-    "apply_carried_corrections",
-    "FUSION_SETTINGS",
-    "make_pipeline",
-    "make_updater",
-    "source_key",
+    "PriorSample", "PriorBuffer", "LookupStatus", "Measurement", "ToolUpdate", "MeasurementUpdater", "CorrectionPolicy",
+    "CarriedCorrection", "FusedEstimate", "MeasurementOutcome", "FusionPipeline", "TagMeasurement",
+    "ContactMeasurement", "ModelUpdater", "COUNT_KEYS", "apply_carried_corrections", "FUSION_SETTINGS", "make_pipeline",
+    "make_updater", "source_key",
 ]
 
 
@@ -137,17 +103,10 @@ class FusionPipeline:
     the same camera-chain error, does not count its (systematic) error again and again.
     """
 
-    def __init__(
-        self,
-        updater: MeasurementUpdater | Callable[[Array, Array, Measurement, PriorSample], ToolUpdate],
-        buffer_duration: float = 1.0,
-        max_gap: float = 0.2,
-        max_hold: float = 0.5,
-        policy: CorrectionPolicy | None = None,
-        max_pending: int = 200,
-        reset_jump: float = 2.0,
-        min_interval: float = 0.0,
-    ) -> None:
+    def __init__(self, updater: MeasurementUpdater | Callable[[Array, Array, Measurement, PriorSample], ToolUpdate],
+                 buffer_duration: float = 1.0, max_gap: float = 0.2, max_hold: float = 0.5,
+                 policy: CorrectionPolicy | None = None, max_pending: int = 200, reset_jump: float = 2.0,
+                 min_interval: float = 0.0) -> None:
         self.updater = updater
         self.buffer = PriorBuffer(buffer_duration, max_gap, max_hold)
         self.policy = policy if policy is not None else CorrectionPolicy()
@@ -508,13 +467,8 @@ def source_key(topic: str, frame_id: str) -> str:
     return f"{topic} [{frame_id}]" if frame_id else topic
 
 
-def make_pipeline(
-    model: Any,
-    base_frame: str,
-    tool_frame: str,
-    settings: dict[str, Any] | None = None,
-    updater: Any = None,
-) -> FusionPipeline:
+def make_pipeline(model: Any, base_frame: str, tool_frame: str, settings: dict[str, Any] | None = None,
+                  updater: Any = None) -> FusionPipeline:
     """A :class:`FusionPipeline` with a :class:`ModelUpdater`, configured by ``settings``.
 
     Parameters
@@ -541,13 +495,9 @@ def make_pipeline(
         s.update(settings)
     if updater is None:
         updater = make_updater(model, base_frame, tool_frame, s)
-    policy = CorrectionPolicy(
-        timeout=float(s["correction_timeout"]), joint_motion=float(s["correction_joint_motion"]),
-        tool_translation=float(s["correction_tool_translation"]),
-        tool_rotation=float(s["correction_tool_rotation"]), decay=str(s["correction_decay"]),
-    )
-    return FusionPipeline(
-        updater, buffer_duration=float(s["buffer_duration"]), max_gap=float(s["max_gap"]),
-        max_hold=float(s["max_hold"]), policy=policy, max_pending=int(s["max_pending"]),
-        min_interval=float(s["min_interval"]),
-    )
+    policy = CorrectionPolicy(timeout=float(s["correction_timeout"]), joint_motion=float(s["correction_joint_motion"]),
+                              tool_translation=float(s["correction_tool_translation"]),
+                              tool_rotation=float(s["correction_tool_rotation"]), decay=str(s["correction_decay"]))
+    return FusionPipeline(updater, buffer_duration=float(s["buffer_duration"]), max_gap=float(s["max_gap"]),
+                          max_hold=float(s["max_hold"]), policy=policy, max_pending=int(s["max_pending"]),
+                          min_interval=float(s["min_interval"]))

@@ -22,17 +22,13 @@ from ppoe_core.errors import MeasurementError
 from ppoe_core.estimation.composite_measurements import ChainedObservation
 from ppoe_core.estimation.corrections import Measurement, ToolUpdate
 from ppoe_core.estimation.direct_measurements import GravityObservation, PointObservation, PoseObservation
-from ppoe_core.estimation.measurement_base import MeasurementModel
+from ppoe_core.estimation.update_types import MeasurementModel
 from ppoe_core.estimation.prior_buffer import Array, PriorSample
 from ppoe_core.estimation.updater import ModelUpdater
 from ppoe_core.robot.tree import GRAVITY
 
 __all__ = [
-    "PointMeasurement",
-    "PoseMeasurement",
-    "GravityMeasurement",
-    "SOURCE_PAYLOADS",
-    "SelectedObservation",
+    "PointMeasurement", "PoseMeasurement", "GravityMeasurement", "SOURCE_PAYLOADS", "SelectedObservation",
     "SourceUpdater",
 ]
 

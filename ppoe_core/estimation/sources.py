@@ -32,10 +32,7 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, ModelConfigError
 from ppoe_core.estimation.source_updater import (
-    GravityMeasurement,
-    PointMeasurement,
-    PoseMeasurement,
-    pose_from_xyz_rpy,
+    GravityMeasurement, PointMeasurement, PoseMeasurement, pose_from_xyz_rpy,
 )
 from ppoe_core.robot.tree import GRAVITY
 

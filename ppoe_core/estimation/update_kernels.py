@@ -36,16 +36,8 @@ from numba import njit
 from ppoe_core.estimation.camera_kernel import project_one
 from ppoe_core.estimation.update_types import KIND_CONTACT, KIND_TAG
 from ppoe_core.lie.kernels import (
-    cholesky_into,
-    mat_mul,
-    mat_mul_t,
-    sandwich,
-    se3_exp_one,
-    se3_inverse_one,
-    se3_log_one,
-    se3_mul,
-    se3_right_jacobian_inv_one,
-    se3_right_jacobian_one,
+    cholesky_into, mat_mul, mat_mul_t, sandwich, se3_exp_one, se3_inverse_one, se3_log_one, se3_mul,
+    se3_right_jacobian_inv_one, se3_right_jacobian_one,
 )
 
 __all__ = ["KIND_TAG", "KIND_CONTACT", "KIND_EXTERNAL", "NEED_LINEARISATION", "update_kernel", "buffer_size",

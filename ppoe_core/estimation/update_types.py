@@ -1,14 +1,17 @@
 """What the iterated measurement update takes and gives (:func:`ppoe_core.estimation.fusion.iterated_update`): the
-measurement-model interface, the description of a model whose linearisation is compiled, and the result."""
+measurement model (interface and base class), the description of a model whose linearisation is compiled, and the
+result."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple, Protocol, runtime_checkable
+from typing import Any, NamedTuple
 
 import numpy as np
 
-__all__ = ["KIND_TAG", "KIND_CONTACT", "CompiledModel", "MeasurementModelLike", "UpdateResult"]
+from ppoe_core.errors import MeasurementError
+
+__all__ = ["KIND_TAG", "KIND_CONTACT", "CompiledModel", "MeasurementModel", "MeasurementModelLike", "UpdateResult"]
 
 #: compiled linearisations (:mod:`ppoe_core.estimation.update_kernels`): tag bearing, contact plane
 KIND_TAG = 0
@@ -48,9 +51,11 @@ class CompiledModel(NamedTuple):
     min_depth: float
 
 
-@runtime_checkable
-class MeasurementModelLike(Protocol):
-    """What :func:`~ppoe_core.estimation.fusion.iterated_update` needs from a measurement model.
+class MeasurementModel:
+    """The measurement model ``z = h(X, v)`` of the LG-EKF (paper eq. 19-24): what
+    :func:`~ppoe_core.estimation.fusion.iterated_update` needs, and the base class of the project's models (a vector
+    measurement of shape ``(dim,)`` with the residual ``z - z_pred``).  ``H = dh/dxi`` at the state ``X`` (right
+    perturbation, tangent ``[rho; theta]``), ``M = dh/dv`` (docs/conventions.md).
 
     Attributes
     ----------
@@ -65,34 +70,66 @@ class MeasurementModelLike(Protocol):
     noise_checked : bool
         ``noise_cov`` was built from checked blocks (no need to check it again).
     compiled : CompiledModel or None
-        The model's compiled linearisation (the whole update is then one compiled call), None: the update calls
-        :meth:`linearize` (or ``h`` / the Jacobians) at every iterate.
+        The model's compiled linearisation (the whole update is then one compiled call); None: the update calls
+        :meth:`linearize` at every iterate.
 
-    A model may also have ``linearize(T_state) -> (h(T), H, M)`` (H or M None = numerical) to share work between the
-    prediction and its Jacobians.
+    Subclasses implement :meth:`h` and, unless ``None`` (central differences), :meth:`jacobian_state` /
+    :meth:`jacobian_noise`, or :meth:`linearize` to share work between the prediction and its Jacobians.
     """
 
-    name: str
-    dim: int
-    noise_dim: int
-    noise_cov: np.ndarray
-    noise_checked: bool
-    compiled: CompiledModel | None
+    name: str = "measurement"
+    dim: int = 0
+    noise_dim: int = 0
+    noise_cov: np.ndarray = np.zeros((0, 0))
+    noise_checked: bool = False
+    compiled: CompiledModel | None = None
 
     def validate(self, z: Any) -> np.ndarray:
-        """Return ``z`` as an array of the model's shape or raise MeasurementError."""
-
-    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
-        """Predicted measurement for state ``T_state`` (4, 4) and noise ``v`` (k,)."""
+        """Return ``z`` as a float array of shape ``(dim,)``; MeasurementError otherwise."""
+        try:
+            arr = np.asarray(z, dtype=float)
+        except (TypeError, ValueError):
+            raise MeasurementError(f"{self.name}: measurement is not numeric") from None
+        if arr.shape != (self.dim,):
+            raise MeasurementError(f"{self.name}: measurement has shape {arr.shape}, expected ({self.dim},)")
+        if not np.all(np.isfinite(arr)):
+            bad = np.flatnonzero(~np.isfinite(arr)).tolist()
+            raise MeasurementError(f"{self.name}: measurement contains NaN/inf at index {bad}")
+        return arr
 
     def residual(self, z: np.ndarray, z_pred: np.ndarray) -> np.ndarray:
-        """``z ominus z_pred`` as a vector (m,); ``z - z_pred`` for vector measurements."""
+        """``z ominus z_pred`` as a vector (m,): ``z - z_pred`` here."""
+        return np.asarray(z, dtype=float) - np.asarray(z_pred, dtype=float)
+
+    def h(self, T_state: np.ndarray, v: np.ndarray | None = None) -> np.ndarray:
+        """Predicted measurement for state ``T_state`` (4, 4) and noise ``v`` (k,) (None: zero)."""
+        raise NotImplementedError
 
     def jacobian_state(self, T_state: np.ndarray) -> np.ndarray | None:
         """``H`` (m, 6) w.r.t. the right perturbation of the state, or None (numerical)."""
+        return None
 
     def jacobian_noise(self, T_state: np.ndarray) -> np.ndarray | None:
         """``M`` (m, k) w.r.t. the noise at ``v = 0``, or None (numerical)."""
+        return None
+
+    def linearize(self, T_state: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """``(h(T), H, M)`` in one call (models override it to share work); H or M may be None (numerical)."""
+        return self.h(T_state), self.jacobian_state(T_state), self.jacobian_noise(T_state)
+
+    def noise_vector(self, v: np.ndarray | None) -> np.ndarray:
+        """``v`` as the model's noise vector (zeros for None); MeasurementError for a wrong shape."""
+        if v is None:
+            return np.zeros(self.noise_dim)
+        v = np.asarray(v, dtype=float)
+        if v.shape != (self.noise_dim,):
+            raise MeasurementError(f"{self.name}: noise vector has shape {v.shape}, expected ({self.noise_dim},)")
+        return v
+
+
+#: what :func:`~ppoe_core.estimation.fusion.iterated_update` takes: a :class:`MeasurementModel` (or any object with
+#: its members)
+MeasurementModelLike = MeasurementModel
 
 
 @dataclass(frozen=True)

@@ -133,20 +133,10 @@ class ModelUpdater:
         Extra 1-sigma noise of the contact distance [m].
     """
 
-    def __init__(
-        self,
-        model: Any,
-        base_frame: str,
-        tool_frame: str,
-        pixel_sigma: float | None = None,
-        max_iterations: int = 5,
-        gate_probability: float | None = 0.9973,
-        gating: str = "posterior",
-        camera_covariance: bool = True,
-        use_centre: bool = True,
-        use_corners: bool = True,
-        contact_distance_sigma: float = 0.0,
-    ) -> None:
+    def __init__(self, model: Any, base_frame: str, tool_frame: str, pixel_sigma: float | None = None,
+                 max_iterations: int = 5, gate_probability: float | None = 0.9973, gating: str = "posterior",
+                 camera_covariance: bool = True, use_centre: bool = True, use_corners: bool = True,
+                 contact_distance_sigma: float = 0.0) -> None:
         if not (use_centre or use_corners):
             raise PpoeError("ModelUpdater: use_centre and use_corners are both false: no tag point would be used")
         self.model = model
@@ -266,13 +256,8 @@ class ModelUpdater:
         T_base_frame = self.model.fk_mean(joints, self.base_frame, p.frame)
         T_tool_contact = self.model.fk_mean(joints, self.tool_frame, self.contact.tool_link)
         point_tool = T_tool_contact[:3, :3] @ self.contact.tool_xyz + T_tool_contact[:3, 3]
-        obs = mm.ContactPlaneModel(
-            T_base_frame @ np.asarray(p.T_frame_plane, float),
-            p.cov_plane,
-            point_tool,
-            distance_sigma=self.contact_distance_sigma,
-            name=where,
-        )
+        obs = mm.ContactPlaneModel(T_base_frame @ np.asarray(p.T_frame_plane, float), p.cov_plane, point_tool,
+                                   distance_sigma=self.contact_distance_sigma, name=where)
         return obs, np.zeros(1)
 
     def __call__(
@@ -284,15 +269,8 @@ class ModelUpdater:
         obs, z = self.build(measurement, prior)
         prior_gate = self.gate_probability if self.gating == "prior" else None
         posterior = self.gating == "posterior" and self.gate_probability is not None
-        res = iterated_update(
-            T_base_tool,
-            cov_tool,
-            z,
-            obs,
-            max_iterations=self.max_iterations,
-            gate_probability=prior_gate,
-            with_cost=posterior,
-        )
+        res = iterated_update(T_base_tool, cov_tool, z, obs, max_iterations=self.max_iterations,
+                              gate_probability=prior_gate, with_cost=posterior)
         self.last_result = res
         if not posterior:
             return ToolUpdate(res.T, res.cov, bool(res.accepted), float(res.nis))

@@ -1,33 +1,278 @@
-"""Hand-written CDR for the two messages on the kinematics node's hot path: ``sensor_msgs/JointState`` in,
-``geometry_msgs/PoseWithCovarianceStamped`` out (ROS 2 XCDR1, little endian, as rclpy / Fast DDS write them).
+"""THE CDR reader and writer of the messages ppoe handles as raw bytes (ROS 2 XCDR1, little endian, as rclpy /
+Fast DDS write them): table-driven, one schema per message type (:data:`SCHEMAS`), one reader (:func:`read`) and one
+writer (:func:`write`) walking it.
 
-rclpy's typed messages cost more per message than the PPOE model itself at 1 kHz (deserialising a
-``JointState`` about 30 us, building and serialising a pose 20-30 us); parsing and writing the bytes with
-``struct`` takes a few microseconds.  Layout (OMG CDR): a 4-byte encapsulation header (``00 01 00 00`` =
-CDR little endian), then the fields, each aligned to its size (4 for lengths and ``int32``, 8 for ``float64``)
-relative to the end of the header; a string is ``uint32 length`` (with the terminating NUL) + bytes + NUL;
-a sequence is ``uint32 count`` + elements.  Fast DDS may pad the end of a message to 4 or 8 bytes: readers
-here never rely on the total length.
+Typed messages cost more than the work on them: rclpy's ``JointState`` deserialisation about 30 us, rosbags' about
+60 us per message, building and serialising a pose 20-30 us; walking the bytes with ``struct`` takes a few.  Users:
+the kinematics node (``JointState`` in, ``PoseWithCovarianceStamped`` out: :func:`parse_joint_state`,
+:class:`PoseCovarianceWriter`), TF (``tf2_msgs/TFMessage`` out, :func:`tf_message`), and the bag reader
+(:func:`parse_fields`: the fields of ``JointState``, ``CompressedImage``, ``PoseStamped``, ``PointStamped``,
+``WrenchStamped``, ``PoseWithCovarianceStamped``).  The kinematics node's compiled per-message path
+(:mod:`ppoe_core.io.joint_pose`) reads the ``JointState`` header and names itself, with :func:`align`'s rule; it is
+tested to give the same bytes out.
 
-Both are checked against rclpy's own serialisation in ``test/test_cdr.py``.
+Layout (OMG CDR): a 4-byte encapsulation header (``00 01 00 00`` = CDR little endian), then the fields, each aligned to
+its size (4 for lengths and ``int32``, 8 for ``float64``) relative to the end of the header; a string is ``uint32
+length`` (with the terminating NUL) + bytes; a sequence ``uint32 count`` + elements (``float64`` elements aligned to 8
+only when there are any).  The reader accepts a strict subset of what rosbags accepts: every length inside the bytes,
+strings NUL-terminated UTF-8; after the last field at most 8 trailing bytes of padding or only zero bytes (the rule of
+``ppoe_core.io.messages.deserialize``, :func:`check_end`).  Anything else raises :class:`CdrError` naming the field
+and the byte offset (the bag reader then runs the typed deserialiser, which accepts or refuses with its own error).
+Checked against rclpy's and rosbags' serialisation in ``test/test_cdr.py`` and ``test/test_cdr_rows.py``.
 """
 
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ppoe_core.errors import MeasurementError
 
-__all__ = ["JointStateCdr", "parse_joint_state", "joint_state_names_block", "PoseCovarianceWriter"]
+__all__ = ["CDR_LE_HEADER", "SCHEMAS", "CdrError", "PARSE_ERRORS", "align", "read", "write", "check_end",
+           "parse_fields", "parse_joint_state", "JointStateCdr", "joint_state_names_block", "PoseCovarianceWriter",
+           "tf_message", "as_bytes"]
 
+CDR_LE_HEADER = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
 _STAMP = struct.Struct("<iI")
-CDR_LE_HEADER = b"\x00\x01\x00\x00"
+_F64 = {n: struct.Struct(f"<{n}d") for n in (3, 6, 7)}
+
+#: field kinds of a schema: a header (stamp + frame_id), a string, a sequence of strings / float64 / uint8,
+#: ``n`` float64 values in a row (a point 3, a wrench 6, a pose 7 = position + quaternion xyzw, a covariance 36), and
+#: a sequence of elements of a nested schema (``("seq", schema)``)
+HEADER, STRING, STRINGS, F64S, U8S = "header", "string", "string[]", "float64[]", "uint8[]"
+
+_TRANSFORM_STAMPED = (HEADER, STRING, 7)
+#: the message types read or written as raw bytes
+SCHEMAS: dict[str, tuple[Any, ...]] = {
+    "sensor_msgs/msg/JointState": (HEADER, STRINGS, F64S, F64S, F64S),
+    "sensor_msgs/msg/CompressedImage": (HEADER, STRING, U8S),
+    "geometry_msgs/msg/PoseStamped": (HEADER, 7),
+    "geometry_msgs/msg/PointStamped": (HEADER, 3),
+    "geometry_msgs/msg/WrenchStamped": (HEADER, 6),
+    "geometry_msgs/msg/PoseWithCovarianceStamped": (HEADER, 7, 36),
+    "tf2_msgs/msg/TFMessage": (("seq", _TRANSFORM_STAMPED),),
+}
+_JOINT_STATE = SCHEMAS["sensor_msgs/msg/JointState"]
+_EMPTY = np.zeros(0)
+_EMPTY.flags.writeable = False
 
 
+class CdrError(MeasurementError):
+    """Bytes that are not a message of the schema (names the field and the byte offset)."""
+
+
+#: errors of :func:`parse_fields` that mean "use the typed deserialiser" (never a contract violation)
+PARSE_ERRORS = (CdrError, struct.error, UnicodeDecodeError, ValueError, IndexError)
+
+
+def align(pos: int, a: int) -> int:
+    """``pos`` (absolute) rounded up to a multiple of ``a`` relative to the end of the 4-byte header."""
+    return pos + (-(pos - 4)) % a
+
+
+def as_bytes(data: Any) -> bytes:
+    """The message bytes as ``bytes`` (the readers give ``bytes`` or a ``memoryview``)."""
+    return data if type(data) is bytes else bytes(data)
+
+
+# ------------------------------------------------------------------------------------------------ reading
+def _u32(raw: bytes, pos: int, what: str) -> tuple[int, int]:
+    """The ``uint32`` at ``pos`` (aligned here) and the position after it."""
+    pos = align(pos, 4)
+    if pos + 4 > len(raw):
+        raise CdrError(f"{what}: truncated at byte {pos} of {len(raw)}")
+    return _U32.unpack_from(raw, pos)[0], pos + 4
+
+
+def _string(raw: bytes, pos: int, what: str) -> tuple[str, int]:
+    """One string at ``pos`` -> (text, position after it)."""
+    n, start = _u32(raw, pos, what)
+    end = start + n
+    if n == 0 or end > len(raw) or raw[end - 1] != 0:
+        raise CdrError(f"{what} has length {n} at byte {start - 4} of {len(raw)} (or is not NUL-terminated)")
+    return raw[start:end - 1].decode("utf-8"), end
+
+
+_names_cache: dict[bytes, tuple[str, ...]] = {}
+
+
+def _strings(raw: bytes, pos: int, what: str) -> tuple[tuple[str, ...], int]:
+    """A string sequence (a publisher sends the same joint names every time: cached by their bytes)."""
+    count, start = _u32(raw, pos, what)
+    pos = start
+    for k in range(count):
+        n, p = _u32(raw, pos, f"{what}[{k}]")
+        pos = p + n
+        if n == 0 or pos > len(raw):
+            raise CdrError(f"{what}[{k}] has length {n} at byte {p - 4} of {len(raw)}")
+    key = raw[start:pos]
+    names = _names_cache.get(key)
+    if names is None:
+        out, p = [], start
+        for k in range(count):
+            name, p = _string(raw, p, f"{what}[{k}]")
+            out.append(name)
+        names = tuple(out)
+        if len(_names_cache) > 64:
+            _names_cache.clear()
+        _names_cache[key] = names
+    return names, pos
+
+
+def _seq(raw: bytes, pos: int, what: str, itemsize: int) -> tuple[tuple[int, int], int]:
+    """A sequence of ``itemsize``-byte numbers -> ((data offset, count), position after it)."""
+    n, pos = _u32(raw, pos, what)
+    if n and itemsize == 8:
+        pos = align(pos, 8)
+    if pos + itemsize * n > len(raw):
+        raise CdrError(f"{what}: {n} values do not fit in {len(raw)} bytes")
+    return (pos, n), pos + itemsize * n
+
+
+def _field(kind: Any, raw: bytes, pos: int, what: str, spans: list[tuple[int, int, int]] | None = None
+           ) -> tuple[Any, int]:
+    """One field of a schema at ``pos`` -> (value, position after it); a number sequence appends ``(count offset,
+    data offset, count)`` to ``spans``."""
+    if kind == HEADER:
+        pos = align(pos, 4)
+        if pos + 8 > len(raw):
+            raise CdrError(f"{what}.stamp: truncated at byte {pos} of {len(raw)}")
+        sec, nsec = _STAMP.unpack_from(raw, pos)
+        frame, pos = _string(raw, pos + 8, f"{what}.frame_id")
+        return (sec, nsec, frame), pos
+    if kind == STRING:
+        return _string(raw, pos, what)
+    if kind == STRINGS:
+        return _strings(raw, pos, what)
+    if kind in (F64S, U8S):
+        (start, n), end = _seq(raw, pos, what, 8 if kind == F64S else 1)
+        if spans is not None:
+            spans.append((align(pos, 4), start, n))
+        if kind == U8S:
+            return memoryview(raw)[start:end], end
+        return (np.frombuffer(raw, dtype="<f8", count=n, offset=start) if n else _EMPTY), end
+    if isinstance(kind, int):
+        pos = align(pos, 8)
+        if pos + 8 * kind > len(raw):
+            raise CdrError(f"{what}: {kind} float64 do not fit in {len(raw)} bytes")
+        st = _F64.get(kind)
+        return (st.unpack_from(raw, pos) if st is not None else np.frombuffer(raw, "<f8", kind, pos)), pos + 8 * kind
+    count, pos = _u32(raw, pos, what)  # ("seq", element schema)
+    items = []
+    for k in range(count):
+        item, pos = _fields(kind[1], raw, pos, f"{what}[{k}]", len(kind[1]))
+        items.append(item)
+    return items, pos
+
+
+def _fields(schema: Sequence[Any], raw: bytes, pos: int, what: str, upto: int,
+            spans: list[tuple[int, int, int]] | None = None) -> tuple[list[Any], int]:
+    out = []
+    for i, kind in enumerate(schema[:upto]):
+        value, pos = _field(kind, raw, pos, f"{what} field {i}", spans)
+        out.append(value)
+    return out, pos
+
+
+def read(schema: Sequence[Any], raw: bytes, upto: int | None = None, what: str = "CDR",
+         spans: list[tuple[int, int, int]] | None = None) -> tuple[list[Any], int]:
+    """The fields of ``raw`` by ``schema`` (the first ``upto``), and the position after the last read: a header as
+    ``(sec, nsec, frame_id)``, a string, a tuple of strings, a read-only float64 view, a ``memoryview`` of bytes,
+    a tuple of ``n`` float64 (a float64 view for 36), a list of nested field lists.
+
+    Raises
+    ------
+    CdrError
+        Not little-endian CDR, or a length that does not fit (names ``what``, the field and the byte offset).
+    """
+    if len(raw) < 4 or raw[:2] != CDR_LE_HEADER[:2]:
+        raise CdrError(f"{what}: {len(raw)} bytes without the little-endian CDR header")
+    return _fields(schema, raw, 4, what, len(schema) if upto is None else upto, spans)
+
+
+def check_end(raw: bytes, pos: int) -> None:
+    """``deserialize``'s rule after the last field: at most 8 trailing bytes of any content, or only zeros."""
+    if pos > len(raw) or (len(raw) - pos > 8 and any(raw[pos:])):
+        raise CdrError(f"{len(raw) - pos} trailing bytes after the last field")
+
+
+# ------------------------------------------------------------------------------------------------ writing
+def _put(kind: Any, value: Any, buf: bytearray) -> None:
+    if kind == HEADER:
+        stamp_ns, frame = value
+        buf += bytes(-(len(buf) - 4) % 4)
+        buf += _STAMP.pack(*divmod(int(stamp_ns), 1_000_000_000))
+        _put(STRING, frame, buf)
+    elif kind == STRING:
+        raw = value.encode("utf-8") + b"\x00"
+        buf += bytes(-(len(buf) - 4) % 4) + _U32.pack(len(raw)) + raw
+    elif isinstance(kind, int):
+        buf += bytes(-(len(buf) - 4) % 8)
+        buf += np.asarray(value, dtype="<f8").reshape(kind).tobytes()
+    else:  # ("seq", element schema)
+        buf += bytes(-(len(buf) - 4) % 4) + _U32.pack(len(value))
+        for item in value:
+            for k, v in zip(kind[1], item):
+                _put(k, v, buf)
+
+
+def write(schema: Sequence[Any], values: Sequence[Any]) -> bytes:
+    """A message's bytes from its field values (a header as ``(stamp_ns, frame_id)``; strings, float64 blocks and
+    sequences of nested field tuples)."""
+    buf = bytearray(CDR_LE_HEADER)
+    for kind, value in zip(schema, values):
+        _put(kind, value, buf)
+    return bytes(buf)
+
+
+def tf_message(frames: Sequence[tuple[str, str, np.ndarray]], stamp_ns: int) -> bytes:
+    """``tf2_msgs/TFMessage`` of ``(parent, child, pose (7,) = x y z qx qy qz qw)`` transforms, all at
+    ``stamp_ns``."""
+    return write(SCHEMAS["tf2_msgs/msg/TFMessage"],
+                 [[((stamp_ns, parent), child, pose) for parent, child, pose in frames]])
+
+
+class PoseCovarianceWriter:
+    """``geometry_msgs/PoseWithCovarianceStamped`` with a fixed ``header.frame_id``, written into one buffer.
+
+    Parameters
+    ----------
+    frame_id : str
+        ``header.frame_id`` of every message.
+    """
+
+    def __init__(self, frame_id: str) -> None:
+        self._buf = bytearray(write(SCHEMAS["geometry_msgs/msg/PoseWithCovarianceStamped"],
+                                    [(0, frame_id), np.zeros(7), np.zeros(36)]))
+        # position (3), orientation x y z w (4), covariance (36, row-major, ROS convention)
+        self._values = np.frombuffer(self._buf, dtype="<f8", count=43, offset=len(self._buf) - 8 * 43)
+        #: the message buffer as bytes (uint8) and its 43 doubles, for a compiled writer
+        #: (:mod:`ppoe_core.io.joint_pose`); :meth:`message` copies out what it wrote
+        self.raw = np.frombuffer(self._buf, dtype=np.uint8)
+        self.fields = self._values
+        self.frame_id = frame_id
+
+    def message(self) -> bytes:
+        """The bytes of the buffer as last written (by :meth:`serialize` or a compiled writer)."""
+        return bytes(self._buf)
+
+    def serialize(self, stamp_ns: int, position: np.ndarray, quat_xyzw: np.ndarray, cov_ros: np.ndarray) -> bytes:
+        """The message bytes: ``header.stamp`` (integer ns), position (3,), quaternion (4,) and the ROS-convention
+        covariance (6, 6) or (36,) (docs/conventions.md sec. 2)."""
+        _STAMP.pack_into(self._buf, 4, *divmod(int(stamp_ns), 1_000_000_000))
+        v = self._values
+        v[0:3] = position
+        v[3:7] = quat_xyzw
+        v[7:43] = cov_ros.reshape(36)
+        return bytes(self._buf)
+
+
+# ------------------------------------------------------------------------------------------------ JointState
 @dataclass(frozen=True)
 class JointStateCdr:
     """What :func:`parse_joint_state` returns (velocities and efforts are not read).
@@ -48,138 +293,80 @@ class JointStateCdr:
     positions: np.ndarray
 
 
-def align(pos: int, a: int) -> int:
-    """``pos`` (absolute) rounded up to a multiple of ``a`` relative to the end of the 4-byte header."""
-    return pos + (-(pos - 4)) % a
-
-
-def _string(data: bytes, pos: int, what: str) -> tuple[str, int]:
-    """One CDR string at ``pos`` (aligned) -> (text, position after it)."""
-    (n,) = _U32.unpack_from(data, pos)
-    end = pos + 4 + n
-    if n == 0 or end > len(data) or data[end - 1] != 0:
-        raise MeasurementError(f"JointState CDR: {what} has length {n} at byte {pos} of {len(data)} "
-                               "(or is not NUL-terminated)")
-    return data[pos + 4:end - 1].decode("utf-8"), end
-
-
-_names_cache: dict[bytes, tuple[str, ...]] = {}
-_last_names: list[tuple[int, bytes, tuple[str, ...]] | None] = [None]  # (count, name bytes, names) of the last call
-
-
-def _names_end(data: bytes, pos: int, count: int) -> int:
-    """Position after the ``count`` strings of a name sequence whose first string is at ``pos``."""
-    for _ in range(count):
-        pos = align(pos, 4)
-        (n,) = _U32.unpack_from(data, pos)
-        pos += 4 + n
-        if n == 0 or pos > len(data):
-            raise MeasurementError(f"JointState CDR: a name has length {n} at byte {pos - n - 4} of {len(data)}")
-    return pos
-
-
-def joint_state_names_block(data: bytes) -> tuple[int, bytes]:
-    """``(count, bytes of the name strings)`` of a serialised ``JointState`` that :func:`parse_joint_state`
-    accepted: the name sequence as it is on the wire (what identifies a publisher's name layout)."""
-    (n,) = _U32.unpack_from(data, 12)
-    pos = align(16 + n, 4)
-    (count,) = _U32.unpack_from(data, pos)
-    return count, bytes(data[pos + 4:_names_end(data, pos + 4, count)])
-
-
-def _names(data: bytes, pos: int) -> tuple[tuple[str, ...], int]:
-    """The ``name`` sequence at ``pos`` (aligned to 4); the parsed tuple is cached by its bytes (a publisher
-    sends the same names every time)."""
-    (count,) = _U32.unpack_from(data, pos)
-    start = pos = pos + 4
-    last = _last_names[0]
-    if last is not None and last[0] == count and data[start:start + len(last[1])] == last[1]:
-        return last[2], start + len(last[1])  # the same names as the previous message
-    pos = _names_end(data, start, count)
-    key = data[start:pos]
-    names = _names_cache.get(key)
-    if names is None:
-        out, p = [], start
-        for k in range(count):
-            name, p = _string(data, align(p, 4), f"name[{k}]")
-            out.append(name)
-        names = tuple(out)
-        if len(_names_cache) > 64:
-            _names_cache.clear()
-        _names_cache[key] = names
-    _last_names[0] = (count, key, names)
-    return names, pos
-
-
 def parse_joint_state(data: bytes) -> JointStateCdr:
-    """Stamp, frame, names and positions of a serialised ``sensor_msgs/JointState`` (CDR little endian).
+    """Stamp, frame, names and positions of a serialised ``sensor_msgs/JointState`` (the kinematics node's input).
 
     Raises
     ------
-    MeasurementError
+    CdrError
         Not little-endian CDR, or truncated (names the field and the byte offset).
     """
-    if len(data) < 16 or data[:2] != CDR_LE_HEADER[:2]:
-        raise MeasurementError(f"JointState CDR: {len(data)} bytes without the little-endian CDR header")
     try:
-        sec, nsec = _STAMP.unpack_from(data, 4)
-        frame_id, pos = _string(data, 12, "header.frame_id")
-        names, pos = _names(data, align(pos, 4))
-        pos = align(pos, 4)
-        (n_pos,) = _U32.unpack_from(data, pos)
-        pos = align(pos + 4, 8) if n_pos else pos + 4
-        if pos + 8 * n_pos > len(data):
-            raise MeasurementError(f"JointState CDR: {n_pos} positions do not fit in {len(data)} bytes")
-        positions = np.frombuffer(data, dtype="<f8", count=n_pos, offset=pos)
-    except struct.error as exc:
-        raise MeasurementError(f"JointState CDR: truncated message of {len(data)} bytes ({exc})") from None
+        (sec, nsec, frame), names, positions = read(_JOINT_STATE, data, 3, "JointState CDR")[0]
     except UnicodeDecodeError as exc:
-        raise MeasurementError(f"JointState CDR: a string is not UTF-8 ({exc})") from None
-    return JointStateCdr(sec * 1_000_000_000 + nsec, frame_id, names, positions)
+        raise CdrError(f"JointState CDR: a string is not UTF-8 ({exc})") from None
+    return JointStateCdr(sec * 1_000_000_000 + nsec, frame, names, positions)
 
 
-class PoseCovarianceWriter:
-    """Serialises ``geometry_msgs/PoseWithCovarianceStamped`` with a fixed ``header.frame_id`` into bytes.
+def joint_state_names_block(data: bytes) -> tuple[int, bytes]:
+    """``(count, bytes of the name strings)`` of a serialised ``JointState`` that :func:`parse_joint_state` accepted:
+    the name sequence as it is on the wire (what identifies a publisher's name layout)."""
+    _, pos = read(_JOINT_STATE, data, 1)
+    count, start = _u32(data, pos, "name")
+    return count, bytes(data[start:_strings(data, pos, "name")[1]])
 
-    Parameters
-    ----------
-    frame_id : str
-        ``header.frame_id`` of every message.
+
+class _Layout(NamedTuple):
+    """Where the fields of a ``JointState`` lie: a message of the same size and the same bytes but for the stamp and
+    the float64 values (same encapsulation, frame_id, names and value counts) has its fields there."""
+
+    size: int
+    head: bytes  # encapsulation header
+    body: bytes  # from frame_id up to the position count included
+    frame: str
+    names: tuple[str, ...]
+    spans: tuple[tuple[int, int, int], ...]  # (count offset, data offset, count) of position, velocity, effort
+    end: int
+
+
+#: the layout of the last JointState read in full
+_last_layout: list[_Layout | None] = [None]
+
+
+def _values(raw: bytes, span: tuple[int, int, int]) -> np.ndarray:
+    return np.frombuffer(raw, dtype="<f8", count=span[2], offset=span[1]) if span[2] else _EMPTY
+
+
+def _joint_state_fields(raw: bytes) -> tuple[Any, ...]:
+    lay = _last_layout[0]
+    if lay is not None and len(raw) == lay.size and raw.startswith(lay.body, 12) and raw.startswith(lay.head):
+        p, v, e = lay.spans
+        if _U32.unpack_from(raw, v[0])[0] == v[2] and _U32.unpack_from(raw, e[0])[0] == e[2]:
+            check_end(raw, lay.end)
+            sec, nsec = _STAMP.unpack_from(raw, 4)
+            return (float(sec) + 1e-9 * float(nsec), lay.frame, lay.names, _values(raw, p), _values(raw, v),
+                    _values(raw, e))
+    spans: list[tuple[int, int, int]] = []
+    values, end = read(_JOINT_STATE, raw, spans=spans)
+    check_end(raw, end)
+    (sec, nsec, frame), *rest = values
+    _last_layout[0] = _Layout(len(raw), raw[:4], raw[12:spans[0][0] + 4], frame, values[1], tuple(spans), end)
+    return (float(sec) + 1e-9 * float(nsec), frame, *rest)
+
+
+def parse_fields(msgtype: str, raw: bytes) -> tuple[Any, ...]:
+    """The fields of a message of :data:`SCHEMAS` for the bag reader: ``(stamp [s], frame_id, the other fields as
+    :func:`read` gives them)`` (``JointState`` messages laid out as the previous one are read at its offsets, after
+    comparing the bytes that decide them); the trailing bytes checked (:func:`check_end`).
+
+    Raises
+    ------
+    CdrError, struct.error, UnicodeDecodeError, ValueError, IndexError
+        :data:`PARSE_ERRORS`: the typed deserialiser decides.
     """
-
-    def __init__(self, frame_id: str) -> None:
-        frame = frame_id.encode("utf-8") + b"\x00"
-        head = bytearray(CDR_LE_HEADER + bytes(8) + _U32.pack(len(frame)) + frame)
-        self._offset = align(len(head), 8)
-        self._buf = head + bytes(self._offset - len(head) + 8 * 43)
-        # position (3), orientation x y z w (4), covariance (36, row-major, ROS convention)
-        self._values = np.frombuffer(self._buf, dtype="<f8", count=43, offset=self._offset)
-        #: the message buffer as bytes (uint8) and its 43 doubles, for a compiled writer
-        #: (:mod:`ppoe_core.io.joint_pose`); :meth:`message` copies out what it wrote
-        self.raw = np.frombuffer(self._buf, dtype=np.uint8)
-        self.fields = self._values
-        self.frame_id = frame_id
-
-    def message(self) -> bytes:
-        """The bytes of the buffer as last written (by :meth:`serialize` or a compiled writer)."""
-        return bytes(self._buf)
-
-    def serialize(self, stamp_ns: int, position: np.ndarray, quat_xyzw: np.ndarray, cov_ros: np.ndarray) -> bytes:
-        """The message bytes.
-
-        Parameters
-        ----------
-        stamp_ns : int
-            ``header.stamp`` in integer nanoseconds (>= 0).
-        position : ndarray, shape (3,)
-        quat_xyzw : ndarray, shape (4,)
-        cov_ros : ndarray, shape (6, 6) or (36,)
-            ROS-convention covariance (docs/conventions.md sec. 2).
-        """
-        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-        _STAMP.pack_into(self._buf, 4, sec, nsec)
-        v = self._values
-        v[0:3] = position
-        v[3:7] = quat_xyzw
-        v[7:43] = cov_ros.reshape(36)
-        return bytes(self._buf)
+    if msgtype == "sensor_msgs/msg/JointState":
+        return _joint_state_fields(raw)
+    values, end = read(SCHEMAS[msgtype], raw)
+    check_end(raw, end)
+    sec, nsec, frame = values[0]
+    return (float(sec) + 1e-9 * float(nsec), frame, *values[1:])

@@ -32,7 +32,7 @@ T_POSE = "geometry_msgs/msg/PoseStamped"
 T_POINT = "geometry_msgs/msg/PointStamped"
 T_IMU = "sensor_msgs/msg/Imu"
 T_TEMPERATURE = "sensor_msgs/msg/Temperature"
-#: ``/temperature`` or ``/temperature/<name>`` (CONTRACT.md sec. 3): thermal effects' variable
+#: ``/temperature`` or ``/temperature/<name>`` (docs/conventions.md sec. 3): thermal effects' variable
 TOPIC_TEMPERATURE = "/temperature"
 T_POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 T_POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"

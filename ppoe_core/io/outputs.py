@@ -7,8 +7,8 @@ Rules (issue 25: ``--force`` used to ``rmtree`` any folder):
   and sqlite's ``-wal``/``-shm``/``-journal`` files); an empty directory is ours too.  Anything else (a
   ``notes.txt``, a sub-folder) makes :func:`check_bag_target` refuse it, naming what it found;
 * an existing **file** where a bag directory should go is refused: ``--force`` replaces bag directories only;
-* a **generated file** (a model or truth YAML) is replaced only when its first line is the header we write
-  (:func:`check_generated_file`).
+* a **generated file** (a model or truth YAML, a URDF from a DH table) is replaced only when its first lines
+  hold the marker we write (:func:`check_generated_file`).
 
 :class:`BagReplacement` writes the new bag into ``<parent>/.<name>.ppoe-new-<random>/<name>`` and, on
 :meth:`~BagReplacement.commit`, renames the old bag aside, the new one into place, and removes the old; on
@@ -31,6 +31,8 @@ BAG_FILE_SUFFIXES = (".mcap", ".db3", ".db3-wal", ".db3-shm", ".db3-journal")
 BAG_FILE_NAMES = ("metadata.yaml", "metadata.yaml.tmp")
 #: at most this many foreign entries are named in a message
 NAMED_AT_MOST = 5
+#: a generated file carries its marker in one of its first this many lines
+MARKER_LINES = 3
 
 
 def foreign_entries(directory: Path) -> list[str]:
@@ -74,8 +76,8 @@ def check_bag_target(path: Path, overwrite: bool, option: str = "--force") -> bo
 
 
 def check_generated_file(path: Path, overwrite: bool, header: str, what: str, option: str = "--force") -> None:
-    """Refuse to write ``path`` over a file that exists (without ``overwrite``) or that we did not write (its
-    first line does not start with ``header``).
+    """Refuse to write ``path`` over a file that exists (without ``overwrite``) or that we did not write (none of
+    its first :data:`MARKER_LINES` lines holds ``header``).
 
     Raises
     ------
@@ -90,12 +92,12 @@ def check_generated_file(path: Path, overwrite: bool, header: str, what: str, op
         raise PpoeError(f"{what} {path} exists already (pass {option} to replace it)")
     try:
         with open(path, encoding="utf-8", errors="replace") as f:
-            first = f.readline()
+            first = [f.readline() for _ in range(MARKER_LINES)]
     except OSError as exc:
         raise PpoeError(f"{what} {path}: cannot read it ({exc.strerror or exc})") from None
-    if not first.startswith(header):
-        raise PpoeError(f"{what} {path}: {option} refused: the file was not written by ppoe (its first line is not "
-                        f"'{header.strip()}...'); choose another path")
+    if not any(header in line for line in first):
+        raise PpoeError(f"{what} {path}: {option} refused: the file was not written by ppoe (its first lines do not "
+                        f"hold '{header.strip()}'); choose another path")
 
 
 class BagReplacement:

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from ppoe_core.errors import BagError
-from ppoe_core.io.cdr_rows import PARSE_ERRORS, as_bytes
+from ppoe_core.io.cdr import PARSE_ERRORS, as_bytes
 from ppoe_core.io.messages import T_POSE_COV, TOPIC_ROBOT_DESCRIPTION, deserialize, typestore
 from ppoe_core.io.recovery import RecoveredMcap, ReadStatus, account, lost_messages, recording_in_progress
 from ppoe_core.io.rows import RowKind, expected_type, finish, row_kind

@@ -3,53 +3,33 @@
 
 Every topic has a :class:`RowKind`: ``fields`` takes a typed (rosbags) message apart, ``build`` checks the
 fields and makes the row.  The hot topics also have ``parse``, which reads the same fields from the raw
-CDR bytes (:mod:`ppoe_core.io.cdr_rows`); where it cannot, the reader deserialises the typed message, so both
+CDR bytes (:func:`ppoe_core.io.cdr.parse_fields`); where it cannot, the reader deserialises the typed message, so both
 paths build the same rows through the same checks and error messages.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from ppoe_core import lie
-from ppoe_core.errors import BagError
-from ppoe_core.io import cdr_rows
+from ppoe_core.lie.compiled import lie_kernels
+from ppoe_core.errors import BagError, MeasurementError
+from ppoe_core.io import cdr
 from ppoe_core.io.messages import (
-    IMU_TOPIC_PREFIX,
-    T_POINT,
-    T_POSE_COV,
-    T_TEMPERATURE,
-    TAG_OBSERVATION_FIELDS,
-    TOPIC_CAMERA_INFO,
-    TOPIC_COMPRESSED_IMAGE,
-    TOPIC_GT_POINT,
-    TOPIC_GT_POSE,
-    TOPIC_IMAGE,
-    TOPIC_JOINT_STATES,
-    TOPIC_TAG_OBSERVATIONS,
-    TOPIC_TEMPERATURE,
-    TOPIC_WRENCH,
-    stamp_seconds,
+    IMU_TOPIC_PREFIX, T_COMPRESSED_IMAGE, T_JOINT_STATE, T_POINT, T_POSE, T_POSE_COV, T_TEMPERATURE, T_WRENCH,
+    TAG_OBSERVATION_FIELDS, TOPIC_CAMERA_INFO, TOPIC_COMPRESSED_IMAGE, TOPIC_GT_POINT, TOPIC_GT_POSE, TOPIC_IMAGE,
+    TOPIC_JOINT_STATES, TOPIC_TAG_OBSERVATIONS, TOPIC_TEMPERATURE, TOPIC_WRENCH, stamp_seconds,
 )
 from ppoe_core.io.series import (
-    BagData,
-    CameraInfos,
-    Images,
-    ImuSeries,
-    JointStates,
-    PointSeries,
-    PoseCovSeries,
-    PoseSeries,
-    TagObservationRows,
-    TemperatureSeries,
-    Wrenches,
+    BagData, CameraInfos, Images, ImuSeries, JointStates, PointSeries, PoseCovSeries, PoseSeries, TagObservationRows,
+    TemperatureSeries, Wrenches,
 )
 
-__all__ = ["RowKind", "row_kind", "finish", "expected_type", "named"]
+__all__ = ["RowKind", "row_kind", "finish", "expected_type", "named", "tag_rows_from_cloud"]
 
 
 def expected_type(topic: str) -> str | None:
@@ -74,14 +54,12 @@ def named(topic: str, prefix: str) -> bool:
 
 def _pose_to_T(v: tuple[float, ...]) -> np.ndarray:
     """``(px, py, pz, qx, qy, qz, qw)`` -> (4, 4); ValueError for a zero or non-finite quaternion."""
-    q = np.array(v[3:7], dtype=float)
-    if not (math.isfinite(v[3]) and math.isfinite(v[4]) and math.isfinite(v[5]) and math.isfinite(v[6])) \
-            or np.linalg.norm(q) < 1e-9:
-        raise ValueError(f"invalid quaternion {q}")
+    x, y, z, w = (float(c) for c in v[3:7])
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z) and math.isfinite(w)) \
+            or math.sqrt(x * x + y * y + z * z + w * w) < 1e-9:
+        raise ValueError(f"invalid quaternion {np.array(v[3:7])}")
     T = np.empty((4, 4))
-    T[:3, :3] = lie.matrix_from_quat(q)
-    T[:3, 3] = v[:3]
-    T[3] = (0.0, 0.0, 0.0, 1.0)
+    lie_kernels().pose_from_quat_one(x, y, z, w, float(v[0]), float(v[1]), float(v[2]), T)  # lie.matrix_from_quat's
     return T
 
 
@@ -94,31 +72,38 @@ def _v3(v: Any) -> list[float]:
     return [float(v.x), float(v.y), float(v.z)]
 
 
-def _parse_cloud(msg: Any, topic: str, k: int) -> np.ndarray:
-    """PointCloud2 -> (P, 6) float array in TAG_OBSERVATION_FIELDS order."""
-    dt = {7: "f4", 8: "f8"}
-    offsets: dict[str, tuple[int, str]] = {}
-    for f in msg.fields:
-        if f.name in TAG_OBSERVATION_FIELDS:
-            if f.datatype not in dt:
-                raise BagError(f"topic {topic}: message {k} field {f.name!r} must be FLOAT32/FLOAT64")
-            offsets[f.name] = (int(f.offset), dt[f.datatype])
-    missing = [n for n in TAG_OBSERVATION_FIELDS if n not in offsets]
-    if missing:
-        raise BagError(f"topic {topic}: message {k} lacks PointCloud2 fields {missing}")
-    n = int(msg.width) * int(msg.height)
+def tag_rows_from_cloud(msg: Any) -> np.ndarray:
+    """A ``/tag_bearing/observations`` ``PointCloud2`` (a ROS or a rosbags message: its fields read as attributes)
+    -> (n, 6) float rows in :data:`~ppoe_core.io.messages.TAG_OBSERVATION_FIELDS` order ``[id, corner, u, v, x,
+    y]``.  Fields are read by name and offset (FLOAT64 or FLOAT32), so a producer may order them differently or add
+    fields.
+
+    Raises
+    ------
+    MeasurementError
+        A required field is missing or not float, or the data size does not match.
+    """
+    by_name = {f.name: f for f in msg.fields}
+    n, step = int(msg.width) * int(msg.height), int(msg.point_step)
     raw = np.asarray(msg.data, dtype=np.uint8).tobytes()
-    step = int(msg.point_step)
     if len(raw) < n * step:
-        raise BagError(f"topic {topic}: message {k} has {len(raw)} data bytes for {n} points of {step}")
+        raise MeasurementError(f"PointCloud2 has {len(raw)} bytes for {n} points of {step} bytes")
     endian = ">" if msg.is_bigendian else "<"
-    out = np.empty((n, len(TAG_OBSERVATION_FIELDS)))
     buf = np.frombuffer(raw[: n * step], dtype=np.uint8).reshape(n, step) if n else np.zeros((0, step), np.uint8)
+    out = np.empty((n, len(TAG_OBSERVATION_FIELDS)))
     for j, name in enumerate(TAG_OBSERVATION_FIELDS):
-        off, code = offsets[name]
-        size = int(code[1])
+        f = by_name.get(name)
+        if f is None:
+            raise MeasurementError(f"PointCloud2 has no field '{name}' (fields: {sorted(by_name)})")
+        code = {7: "f4", 8: "f8"}.get(int(f.datatype))
+        if code is None:
+            raise MeasurementError(f"PointCloud2 field '{name}' has datatype {f.datatype}, expected FLOAT64/FLOAT32")
+        off, size = int(f.offset), int(code[1])
+        if off + size > step:
+            raise MeasurementError(f"PointCloud2 field '{name}' offset {off} outside point_step {step}")
         out[:, j] = np.ascontiguousarray(buf[:, off:off + size]).view(endian + code).reshape(-1)
     return out
+
 
 # -- per-topic rows: fields of a typed message (``fields``) or of the raw bytes (``parse``) -> row (``build``) ---------
 
@@ -218,7 +203,11 @@ def _row_imu(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
 
 
 def _row_tag_cloud(msg: Any, topic: str, k: int, load_images: bool) -> tuple:
-    return (stamp_seconds(msg.header), msg.header.frame_id, _parse_cloud(msg, topic, k))
+    try:
+        rows = tag_rows_from_cloud(msg)
+    except MeasurementError as exc:
+        raise BagError(f"topic {topic}: message {k}: {exc}") from None
+    return (stamp_seconds(msg.header), msg.header.frame_id, rows)
 
 
 def _pose_cov_fields(msg: Any) -> tuple:
@@ -246,19 +235,25 @@ def _typed(build: Callable[[Any, str, int, bool], tuple]) -> RowKind:
     return RowKind(None, _itself, build)
 
 
-_JOINT_STATE = RowKind(cdr_rows.parse_joint_state, _js_fields, _js_row)
-_POINT = RowKind(cdr_rows.parse_point, _point_fields, _point_row)
-_POSE_COV = RowKind(cdr_rows.parse_pose_cov, _pose_cov_fields, _pose_cov_row)
+def _raw(msgtype: str) -> Callable[[bytes], tuple]:
+    """Raw bytes -> the fields the typed path gives (stamp [s] as :func:`stamp_seconds`, frame_id, the rest), by
+    the one CDR reader (:func:`ppoe_core.io.cdr.parse_fields`)."""
+    return functools.partial(cdr.parse_fields, msgtype)
+
+
+_JOINT_STATE = RowKind(_raw(T_JOINT_STATE), _js_fields, _js_row)
+_POINT = RowKind(_raw(T_POINT), _point_fields, _point_row)
+_POSE_COV = RowKind(_raw(T_POSE_COV), _pose_cov_fields, _pose_cov_row)
 _IMU = _typed(_row_imu)
 _TEMPERATURE = _typed(_row_temperature)
 #: topic -> its rows (``/imu/<name>``, point, temperature and pose-with-covariance topics by prefix / type)
 _KINDS: dict[str, RowKind] = {
     TOPIC_JOINT_STATES: _JOINT_STATE,
     TOPIC_CAMERA_INFO: _typed(_row_camera_info),
-    TOPIC_COMPRESSED_IMAGE: RowKind(cdr_rows.parse_compressed_image, _compressed_fields, _compressed_row),
+    TOPIC_COMPRESSED_IMAGE: RowKind(_raw(T_COMPRESSED_IMAGE), _compressed_fields, _compressed_row),
     TOPIC_IMAGE: _typed(_row_image),
-    TOPIC_WRENCH: RowKind(cdr_rows.parse_wrench, _wrench_fields, _wrench_row),
-    TOPIC_GT_POSE: RowKind(cdr_rows.parse_pose, _pose_fields, _pose_row),
+    TOPIC_WRENCH: RowKind(_raw(T_WRENCH), _wrench_fields, _wrench_row),
+    TOPIC_GT_POSE: RowKind(_raw(T_POSE), _pose_fields, _pose_row),
     TOPIC_GT_POINT: _POINT,
     TOPIC_TAG_OBSERVATIONS: _typed(_row_tag_cloud),
 }

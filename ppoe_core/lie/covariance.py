@@ -75,10 +75,8 @@ def cov_ros_to_local(T: ArrayLike, cov_ros: ArrayLike) -> Array:
     return _rotate(T, cov_ros, True)
 
 
-def check_covariance(
-    cov: ArrayLike, name: str = "covariance", size: int | None = None, tol: float = 1e-9,
-    eig_tol: float | None = None, symmetrize: bool = False,
-) -> Array:
+def check_covariance(cov: ArrayLike, name: str = "covariance", size: int | None = None, tol: float = 1e-9,
+                     eig_tol: float | None = None, symmetrize: bool = False) -> Array:
     """Validate a covariance matrix and return it as a float array.
 
     Parameters

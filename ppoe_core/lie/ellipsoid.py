@@ -60,7 +60,7 @@ def sigma_scale(probability: float) -> float:
 
 def position_covariance_from_local(T: np.ndarray, cov_local: np.ndarray) -> np.ndarray:
     """(..., 3, 3) position covariance in the parent axes, ``R S_rho R^T``, from a local covariance (..., 6, 6)
-    at ``T`` (..., 4, 4): the translation block of ``cov_local_to_ros`` (first order, CONTRACT.md sec. 2)."""
+    at ``T`` (..., 4, 4): the translation block of ``cov_local_to_ros`` (first order, docs/conventions.md sec. 2)."""
     R = np.asarray(T, dtype=float)[..., :3, :3]
     S = np.asarray(cov_local, dtype=float)[..., :3, :3]
     return R @ S @ np.swapaxes(R, -1, -2)

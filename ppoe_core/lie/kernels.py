@@ -337,6 +337,17 @@ def _q_block(r0: float, r1: float, r2: float, w0: float, w1: float, w2: float, Q
                        + c2 * (A1[i, j] + A2[i, j] - 3.0 * WPW[i, j]) + c3 * (A3[i, j] + A4[i, j]))
 
 
+@njit(cache=True, inline="always")
+def _upper_block_triangular(A: np.ndarray, B: np.ndarray, J: np.ndarray) -> None:
+    """``J = [[A, B], [0, A]]`` (6, 6) of 3x3 blocks."""
+    for i in range(3):
+        for j in range(3):
+            J[i, j] = A[i, j]
+            J[3 + i, 3 + j] = A[i, j]
+            J[i, 3 + j] = B[i, j]
+            J[3 + i, j] = 0.0
+
+
 @njit(cache=True)
 def se3_left_jacobian_one(xi: np.ndarray, J: np.ndarray) -> None:
     """Left Jacobian of SE(3) ``[[J_l, Q], [0, J_l]](xi)`` into ``J`` (6, 6): ``Exp(xi + d) ~ Exp(J d) Exp(xi)``."""
@@ -345,12 +356,7 @@ def se3_left_jacobian_one(xi: np.ndarray, J: np.ndarray) -> None:
     Q = np.empty((3, 3))
     _exp_blocks(xi[3], xi[4], xi[5], R, V)
     _q_block(xi[0], xi[1], xi[2], xi[3], xi[4], xi[5], Q)
-    for i in range(3):
-        for j in range(3):
-            J[i, j] = V[i, j]
-            J[3 + i, 3 + j] = V[i, j]
-            J[i, 3 + j] = Q[i, j]
-            J[3 + i, j] = 0.0
+    _upper_block_triangular(V, Q, J)
 
 
 @njit(cache=True)
@@ -366,12 +372,7 @@ def se3_left_jacobian_inv_one(xi: np.ndarray, J: np.ndarray) -> None:
         for j in range(3):
             JQ[i, j] = -Ji[i, 0] * Q[0, j] - Ji[i, 1] * Q[1, j] - Ji[i, 2] * Q[2, j]
     _mm3(JQ, Ji, JQJ)
-    for i in range(3):
-        for j in range(3):
-            J[i, j] = Ji[i, j]
-            J[3 + i, 3 + j] = Ji[i, j]
-            J[i, 3 + j] = JQJ[i, j]
-            J[3 + i, j] = 0.0
+    _upper_block_triangular(Ji, JQJ, J)
 
 
 @njit(cache=True)

@@ -143,9 +143,5 @@ def rpy_from_matrix(R: ArrayLike) -> Array:
     pitch = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 0, 0], R[..., 1, 0]))  # accurate near +-pi/2 too
     gimbal = np.abs(R[..., 2, 0]) > 1.0 - 1e-12
     roll = np.where(gimbal, 0.0, np.arctan2(R[..., 2, 1], R[..., 2, 2]))
-    yaw = np.where(
-        gimbal,
-        np.arctan2(-R[..., 0, 1], R[..., 1, 1]),
-        np.arctan2(R[..., 1, 0], R[..., 0, 0]),
-    )
+    yaw = np.where(gimbal, np.arctan2(-R[..., 0, 1], R[..., 1, 1]), np.arctan2(R[..., 1, 0], R[..., 0, 0]))
     return np.stack([roll, pitch, yaw], axis=-1)

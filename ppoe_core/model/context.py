@@ -5,8 +5,8 @@ start of the recording, or a temperature) and ``time_offset`` (joint velocities)
 configuration: ``ppoe diagnose`` builds their context from a bag's joint states, and the same rules apply
 where a diagnosed model is used again: :func:`batch_context` for ``ppoe evaluate`` (a whole bag at once)
 and :class:`LiveContext` for the nodes (one joint state at a time).  ``time`` is seconds since the first
-joint state; ``motion_sign`` the sign of each joint's last change above ``threshold``; the FK of the
-joint-state stream itself is no sensor's, so a sensor's ``time_offset`` shifts nothing there
+joint state; ``motion_sign`` the sign of each joint's last motion out of a dead band (:func:`motion_signs`);
+the FK of the joint-state stream itself is no sensor's, so a sensor's ``time_offset`` shifts nothing there
 (context ``sensor`` is empty).
 """
 
@@ -19,37 +19,63 @@ import numpy as np
 
 from ppoe_core.errors import ModelConfigError
 
-__all__ = ["LiveContext", "batch_context", "motion_signs", "needed_context", "sample_series", "temperature_at"]
+__all__ = ["LiveContext", "batch_context", "follow", "motion_band", "motion_signs", "needed_context", "sample_series",
+           "temperature_at"]
 
-#: Changes between consecutive joint samples below this [rad or m] are not motion.
+#: Half-width of the dead band [rad or m] a joint must leave to count as moving (no noise: a change this small).
 MOTION_THRESHOLD = 1e-5
+#: the dead band of a noisy encoder, in its noise sigmas (jitter at rest stays inside it)
+NOISE_BANDS = 5.0
 
 
 def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
-                 threshold: float = MOTION_THRESHOLD) -> np.ndarray:
+                 threshold: float | np.ndarray = MOTION_THRESHOLD) -> np.ndarray:
     """Sign of each joint's last motion before each time ``at`` (backlash context).
+
+    A joint has moved when its value leaves a dead band of half-width ``threshold`` around a follower that trails
+    it (the follower is pulled along by the motion, so jitter inside the band at rest changes nothing; a reversal
+    needs a motion of twice the band): :func:`motion_band` gives a band above the encoder noise of a recording.
 
     Parameters
     ----------
     stamps : (M,) joint-state times [s], increasing
     positions : (M, J) joint values
     at : (N,) query times [s]
-    threshold : float
-        Changes between consecutive samples below this [rad or m] are not motion.
+    threshold : float or (J,)
+        Half-width of the dead band [rad or m].
 
     Returns
     -------
     ndarray (N, J) of -1, 0, +1 (0: no motion seen yet).
     """
-    d = np.diff(positions, axis=0)
-    s = np.where(np.abs(d) > threshold, np.sign(d), 0.0)
+    band = np.broadcast_to(np.asarray(threshold, dtype=float), positions.shape[1:])
     last = np.zeros_like(positions)
     cur = np.zeros(positions.shape[1])
+    ref = positions[0].copy() if len(positions) else cur
     for k in range(1, positions.shape[0]):
-        cur = np.where(s[k - 1] != 0, s[k - 1], cur)
+        cur, ref = follow(positions[k], ref, cur, band)
         last[k] = cur
     idx = np.clip(np.searchsorted(stamps, at, side="right") - 1, 0, len(stamps) - 1)
     return last[idx]
+
+
+def follow(q: np.ndarray, ref: np.ndarray, sign: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One step of the dead-band follower of :func:`motion_signs`: the new (sign, follower) at joint values ``q``."""
+    up, down = q > ref + band, q < ref - band
+    return (np.where(up, 1.0, np.where(down, -1.0, sign)),
+            np.where(up, q - band, np.where(down, q + band, ref)))
+
+
+def motion_band(positions: np.ndarray, threshold: float = MOTION_THRESHOLD) -> np.ndarray:
+    """Half-width (J,) of the motion dead band of a recording: :data:`NOISE_BANDS` times the encoder noise of each
+    joint (from the low tail of its second differences, where the joint rests: the 10 % quantile of a half-normal
+    is 0.126 of its sigma, and a second difference of white noise has sigma sqrt(6) of it), at least
+    ``threshold``."""
+    if positions.shape[0] < 3:
+        return np.full(positions.shape[1:], threshold)
+    d2 = np.abs(np.diff(positions, n=2, axis=0))
+    noise = np.quantile(d2, 0.1, axis=0) / (0.126 * np.sqrt(6.0))
+    return np.maximum(threshold, NOISE_BANDS * noise)
 
 
 def sample_series(t: np.ndarray, v: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -143,6 +169,7 @@ class LiveContext:
         self._t0: float | None = None
         self._last: tuple[float, np.ndarray] | None = None
         self._sign = np.zeros(len(self.names))
+        self._ref: np.ndarray | None = None
         self.temperature: float | None = None
 
     def __bool__(self) -> bool:
@@ -157,7 +184,8 @@ class LiveContext:
         if self._last is not None:
             t_prev, q_prev = self._last
             d = q - q_prev
-            self._sign = np.where(np.abs(d) > MOTION_THRESHOLD, np.sign(d), self._sign)
+            self._sign, self._ref = follow(q, q_prev if self._ref is None else self._ref, self._sign,
+                                           np.full(len(self.names), MOTION_THRESHOLD))
             if stamp > t_prev:
                 vel = d / (stamp - t_prev)
         if self._t0 is None:

@@ -32,15 +32,8 @@ from ppoe_core.errors import JointValueError
 from ppoe_core.model.stamp_policy import BACKWARD, FUTURE, NEW_TIMELINE, StampCheck, StampRefused, StampResetPolicy
 
 __all__ = [
-    "NEVER_NS",
-    "StampResetPolicy",
-    "StampCheck",
-    "StampRefused",
-    "JointUpdate",
-    "JointHistory",
-    "StampedHistory",
-    "merge_into",
-    "fresh_vector",
+    "NEVER_NS", "StampResetPolicy", "StampCheck", "StampRefused", "JointUpdate", "JointHistory", "StampedHistory",
+    "merge_into", "fresh_vector",
 ]
 
 #: the stamp of a joint never seen

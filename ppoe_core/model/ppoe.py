@@ -371,14 +371,8 @@ class PPOEModel:
         T = evaluate(ch, theta, D, order=0)[0]
         return T.reshape(shape + (4, 4))
 
-    def fk(
-        self,
-        joints: Joints,
-        frm: str | None = None,
-        to: str | None = None,
-        order: int = 2,
-        context: Mapping[str, Any] | None = None,
-    ) -> tuple[Array, Array]:
+    def fk(self, joints: Joints, frm: str | None = None, to: str | None = None, order: int = 2,
+           context: Mapping[str, Any] | None = None) -> tuple[Array, Array]:
         """Mean pose and covariance of ``T_frm_to`` (paper eq. 15-18).
 
         Parameters
@@ -465,15 +459,8 @@ class PPOEModel:
         T = np.stack(Ts, axis=1)
         return T.reshape(shape + (k, 4, 4)), cov.reshape(shape + (6 * k, 6 * k))
 
-    def sample(
-        self,
-        joints: Joints,
-        frm: str | None = None,
-        to: str | None = None,
-        n: int = 1000,
-        rng: np.random.Generator | None = None,
-        context: Mapping[str, Any] | None = None,
-    ) -> Array:
+    def sample(self, joints: Joints, frm: str | None = None, to: str | None = None, n: int = 1000,
+               rng: np.random.Generator | None = None, context: Mapping[str, Any] | None = None) -> Array:
         """Monte-Carlo samples of ``T_frm_to`` from the same model.
 
         Every perturbation ``xi_k ~ N(0, Sigma_k)`` (and joint noise) is drawn independently

@@ -27,15 +27,11 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.model.joint_history import NEVER_NS, JointHistory
 from ppoe_core.model.stamp_policy import StampResetPolicy
+from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.model.effects import sum_effect_corrections
 
 __all__ = [
-    "STATIC_EFFECTS",
-    "TfFrame",
-    "JointFrames",
-    "camera_mount_joint",
-    "camera_mount_parent",
-    "calibrated_camera_frames",
+    "STATIC_EFFECTS", "TfFrame", "JointFrames", "camera_mount_joint", "camera_mount_parent", "calibrated_camera_frames",
     "urdf_collision",
 ]
 
@@ -138,64 +134,47 @@ class JointFrames:
     model : PPOEModel
         Its URDF joints and its effects: static ones are folded into the joint origins once, the
         others are evaluated at every joint state on the latest value of every joint.
+    policy : the stamp rule of the joint states (:class:`~ppoe_core.model.stamp_policy.StampResetPolicy`)
     """
 
     def __init__(self, model: Any, policy: StampResetPolicy | None = None) -> None:
         robot = self.robot = model.robot
+        self.tree = KinematicTree(robot)
         self.independent = list(robot.independent_joints)
-        zeros = {n: np.zeros(()) for n in self.independent}
-        static = [e for e in model.effects if e.name in STATIC_EFFECTS]
+        zeros = self.tree.joint_values({n: np.zeros(()) for n in self.independent})
         self.dynamic = [e for e in model.effects if e.name not in STATIC_EFFECTS]
-        dq0, dxi0 = sum_effect_corrections(static, self._with_mimic(zeros), {})
+        dq0, dxi0 = sum_effect_corrections([e for e in model.effects if e.name in STATIC_EFFECTS], zeros, {})
         self.dq0 = {k: float(np.asarray(v)) for k, v in dq0.items()}
         self.dxi0 = {k: np.asarray(v, dtype=float).reshape(6) for k, v in dxi0.items()}
-        dq_dyn, dxi_dyn = sum_effect_corrections(self.dynamic, self._with_mimic(zeros), {})
+        dq_dyn, dxi_dyn = sum_effect_corrections(self.dynamic, zeros, {})
         #: joints whose transform a configuration-dependent effect changes: published only once the whole
         #: configuration is known, at every joint state
         self.dynamic_joints = set(dq_dyn) | set(dxi_dyn)
-        self.movable = [j for j in robot.joints.values() if j.movable]
-        self._row = {j.name: i for i, j in enumerate(self.movable)}
-        self._origins = np.stack([j.origin @ lie.exp(self.dxi0.get(j.name, np.zeros(6))) for j in self.movable]) \
-            if self.movable else np.zeros((0, 4, 4))
-        axes = np.array([j.axis for j in self.movable], dtype=float).reshape(-1, 3)
-
-        prismatic = np.array([j.type == "prismatic" for j in self.movable], dtype=bool)
-        #: unit twist of each movable joint's motion, ``Exp(zeta v)`` (paper eq. 3)
-        self._zeta = np.zeros((len(self.movable), 6))
-        self._zeta[prismatic, :3] = axes[prismatic]
-        self._zeta[~prismatic, 3:] = axes[~prismatic]
-        # independent joint -> rows of the movable joints its value moves (itself and its mimic followers)
-        self._driven: dict[str, list[int]] = {n: [] for n in self.independent}
-        for j in self.movable:
-            master = j.mimic_root[0] if j.mimic_root is not None else j.name
-            self._driven.setdefault(master, []).append(self._row[j.name])
+        self.movable = [j.name for j in robot.joints.values() if j.movable]
+        # independent joint -> the movable joints its value moves (itself and its mimic followers)
+        self._driven: dict[str, list[str]] = {n: [] for n in self.independent}
+        for jn in self.movable:
+            root = robot.joints[jn].mimic_root
+            self._driven.setdefault(root[0] if root is not None else jn, []).append(jn)
         #: the latest value of every joint (no age limit: TF shows the last known configuration)
         self.history = JointHistory(self.independent, needed=[], policy=policy)
         self.latest: dict[str, float] = {}
-        self._layout: tuple[tuple[str, ...], np.ndarray, np.ndarray] | None = None
+        self._origins: dict[str, np.ndarray] = {}
 
-    def _with_mimic(self, q: Mapping[str, Any]) -> dict[str, Any]:
-        """Joint values with the mimic joints' values added (as :class:`PPOEModel` hands them to effects)."""
-        out = dict(q)
-        for j in self.robot.joints.values():
-            if j.mimic_root is not None and j.mimic_root[0] in q:
-                m, mult, off = j.mimic_root
-                out[j.name] = mult * np.asarray(q[m]) + off
-        return out
+    def _origin(self, jn: str, dxi: Mapping[str, Any]) -> np.ndarray:
+        """``origin Exp(dxi)`` of joint ``jn`` (the static effects' ``dxi`` and the configuration-dependent one)."""
+        if jn not in dxi and jn in self._origins:
+            return self._origins[jn]
+        T = self.robot.joints[jn].origin @ lie.exp(self.dxi0.get(jn, np.zeros(6)) + np.asarray(dxi.get(
+            jn, np.zeros(6)), dtype=float))
+        if jn not in dxi:
+            self._origins[jn] = T
+        return T
 
     def static_frames(self) -> list[TfFrame]:
         """Every fixed joint that no configuration-dependent effect touches: child in parent (``/tf_static``)."""
-        return [TfFrame(j.parent, j.child, j.origin @ lie.exp(self.dxi0.get(j.name, np.zeros(6))))
+        return [TfFrame(j.parent, j.child, self._origin(j.name, {}))
                 for j in self.robot.joints.values() if not j.movable and j.name not in self.dynamic_joints]
-
-    def _rows_of(self, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-        """Indices into ``names`` of the independent joints, and the rows of the joints they drive (cached)."""
-        key = tuple(names)
-        if self._layout is None or self._layout[0] != key:
-            src = [i for i, n in enumerate(key) if n in self._driven]
-            rows = sorted({r for i in src for r in self._driven[key[i]]})
-            self._layout = (key, np.array(src, dtype=np.intp), np.array(rows, dtype=np.intp))
-        return self._layout[1], self._layout[2]
 
     def frames(self, names: Sequence[str], positions: Sequence[float], stamp_ns: int = 0) -> list[TfFrame]:
         """The transforms a joint state changes: the movable joints it carries values for (and their mimic
@@ -206,49 +185,24 @@ class JointFrames:
         """
         h = self.history
         h.update(names, positions, stamp_ns)
-        src, rows = self._rows_of(names)
         pos = np.asarray(positions, dtype=float)
-        finite = np.isfinite(pos[src])
-        if not finite.all():  # a joint without a value in this message: none of the joints it drives
-            src = src[finite]
-            rows = np.array(sorted({r for i in src for r in self._driven[names[i]]}), dtype=np.intp)
+        moved = {jn for n, v in zip(names, pos) if n in self._driven and np.isfinite(v) for jn in self._driven[n]}
         self.latest = {n: float(v) for n, v, st in zip(self.independent, h.values, h.stamps) if st != NEVER_NS}
         dq: dict[str, Any] = {}
         dxi: dict[str, Any] = {}
         complete = len(self.latest) == len(self.independent)
         if self.dynamic and complete:
-            dq, dxi = sum_effect_corrections(self.dynamic, self._with_mimic(self.latest), {})
-            rows = np.union1d(rows, [self._row[n] for n in self.dynamic_joints if n in self._row]).astype(np.intp)
+            dq, dxi = sum_effect_corrections(self.dynamic, self.tree.joint_values(self.latest), {})
+            moved |= self.dynamic_joints
         elif self.dynamic:
-            rows = np.array([r for r in rows if self.movable[r].name not in self.dynamic_joints], dtype=np.intp)
-        out = self._movable_frames(rows, dq, dxi)
+            moved -= self.dynamic_joints
+        dq_all = {k: self.dq0.get(k, 0.0) + float(np.asarray(dq.get(k, 0.0))) for k in set(self.dq0) | set(dq)}
+        rows = [jn for jn in self.movable if jn in moved and (self.robot.joints[jn].mimic_root or (jn,))[0]
+                in self.latest]
+        values = self.tree.joint_values(self.latest, dq_all, rows)
+        out = [TfFrame(self.robot.joints[jn].parent, self.robot.joints[jn].child,
+                       self._origin(jn, dxi) @ lie.exp(self.robot.joints[jn].twist * values[jn])) for jn in rows]
         if dxi and complete:
-            for jn in sorted(self.dynamic_joints):
-                j = self.robot.joints[jn]
-                if not j.movable:
-                    xi = self.dxi0.get(jn, np.zeros(6)) + np.asarray(dxi.get(jn, np.zeros(6)), dtype=float)
-                    out.append(TfFrame(j.parent, j.child, j.origin @ lie.exp(xi)))
+            out += [TfFrame(self.robot.joints[jn].parent, self.robot.joints[jn].child, self._origin(jn, dxi))
+                    for jn in sorted(self.dynamic_joints) if not self.robot.joints[jn].movable]
         return out
-
-    def _movable_frames(self, rows: np.ndarray, dq: Mapping[str, Any], dxi: Mapping[str, Any]) -> list[TfFrame]:
-        """``T_parent_child = origin Exp(dxi) Exp(zeta (q + dq))`` of the movable joints ``rows`` (paper eq. 16)."""
-        values = np.empty(len(rows))
-        origins = self._origins[rows]
-        for k, r in enumerate(rows):
-            j = self.movable[r]
-            if j.mimic_root is not None:
-                m, mult, off = j.mimic_root
-                if m not in self.latest:
-                    values[k] = np.nan
-                    continue
-                v = mult * (self.latest[m] + self.dq0.get(m, 0.0) + float(np.asarray(dq.get(m, 0.0)))) + off
-                v += self.dq0.get(j.name, 0.0) + float(np.asarray(dq.get(j.name, 0.0)))
-            else:
-                v = self.latest.get(j.name, np.nan) + self.dq0.get(j.name, 0.0) + float(np.asarray(dq.get(j.name, 0.0)))
-            values[k] = v
-            if j.name in dxi:
-                origins[k] = j.origin @ lie.exp(self.dxi0.get(j.name, np.zeros(6)) + np.asarray(dxi[j.name]))
-        ok = np.isfinite(values)
-        rows, v = rows[ok], values[ok]
-        T = origins[ok] @ lie.exp(self._zeta[rows] * v[:, None])
-        return [TfFrame(self.movable[r].parent, self.movable[r].child, T[k]) for k, r in enumerate(rows)]

@@ -238,7 +238,8 @@ def _tracker_entry(ctx: CheckContext, robot: Robot, sec: Mapping, path: str, key
 
 
 def _trackers(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> tuple[TrackerConfig, ...]:
-    """``trackers`` (CONTRACT.md sec. 5): one entry per reflector, ``topic`` ``/ground_truth/point[/<name>]``."""
+    """``trackers`` (docs/conventions.md sec. 5): one entry per reflector, ``topic``
+    ``/ground_truth/point[/<name>]``."""
     if sec is None:
         return ()
     if "tracker" in top:
@@ -301,9 +302,9 @@ def _effects(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> list[di
         check_keys(
             ctx,
             e,
-            # ci, sigma, share, measurement, frame: what ppoe diagnose adds to an entry (kept, not used)
-            ("name", "location", "parameters", "ci", "sigma", "share", "measurement", "frame", "variable",
-             "reference"),
+            # ci, sigma, share, measurement, frame, camera_info: what ppoe diagnose adds to an entry (kept, not used)
+            ("name", "location", "parameters", "ci", "sigma", "share", "measurement", "frame", "camera_info",
+             "variable", "reference"),
             path,
             required=("name", "location"),
         )
@@ -327,7 +328,7 @@ def _effects(ctx: CheckContext, robot: Robot, sec: Any, top: Mapping) -> list[di
             else:
                 pclean[str(k)] = check_number(ctx, v, params, k, f"{path}.parameters.{k}")
         entry: dict[str, Any] = {"name": name, "location": loc, "parameters": pclean}
-        for key in ("ci", "sigma", "share", "measurement", "frame"):
+        for key in ("ci", "sigma", "share", "measurement", "frame", "camera_info"):
             if key in e:
                 entry[key] = _plain(e[key])
         if "variable" in e:  # thermal_growth: name of the context variable (e.g. temperature)

@@ -19,6 +19,8 @@ EFFECT_NAMES = (
     "thermal_growth",
     "time_offset",
     "camera_extrinsics",
+    "camera_intrinsics",
+    "tag_offset",
     "tracker_registration",
 )
 
@@ -123,7 +125,7 @@ class ContactConfig:
     release_threshold: float = 2.0
 
 
-#: topic of a single tracker's points (CONTRACT.md sec. 3); several reflectors use ``<this>/<name>``
+#: topic of a single tracker's points (docs/conventions.md sec. 3); several reflectors use ``<this>/<name>``
 TOPIC_GT_POINT = "/ground_truth/point"
 
 
@@ -172,7 +174,7 @@ class ModelConfig:
     camera, tags, contact, tracker, naive : optional sections (None if absent); ``tracker`` is also
         set when ``trackers`` has exactly one entry
     trackers : tuple[TrackerConfig, ...]
-        Every reflector (CONTRACT.md sec. 5); a ``tracker`` section gives one entry with topic
+        Every reflector (docs/conventions.md sec. 5); a ``tracker`` section gives one entry with topic
         ``/ground_truth/point``.
     imus : dict[str, ImuConfig]
     effects : list[dict]

@@ -118,7 +118,7 @@ def dh_to_urdf(source: str | os.PathLike[str]) -> str:
     convention = top.get("convention", "standard")
     if convention not in ("standard", "modified"):
         raise ctx.error(top, "convention", "convention", f"must be standard or modified, got {convention!r}")
-    base = str(top.get("base_link", "base_link"))
+    base = _name(ctx, top, "base_link", "base_link", "base_link")
     tree = _Tree(ctx, base)
     if "joints" in top:
         _chain(ctx, tree, convention, top, "", base, None)
@@ -129,7 +129,7 @@ def dh_to_urdf(source: str | os.PathLike[str]) -> str:
         ch = _mapping(ctx, ch, chains, None, f"chains[{k}]")
         _check_keys(ctx, ch, _CHAIN_KEYS, f"chains[{k}]", required=("name", "joints"))
         parent = tree.parent(ch, "parent", f"chains[{k}].parent", ch.get("parent", base))
-        _chain(ctx, tree, convention, ch, f"chains[{k}].", parent, str(ch["name"]))
+        _chain(ctx, tree, convention, ch, f"chains[{k}].", parent, _name(ctx, ch, "name", f"chains[{k}].name"))
     frames = top.get("frames", [])
     if not isinstance(frames, list):
         raise ctx.error(top, "frames", "frames", "must be a list of fixed frames")
@@ -138,7 +138,7 @@ def dh_to_urdf(source: str | os.PathLike[str]) -> str:
         _check_keys(ctx, fr, _FIXED_KEYS + ("parent",), f"frames[{k}]", required=("name", "parent"))
         parent = tree.parent(fr, "parent", f"frames[{k}].parent", fr["parent"])
         _fixed(ctx, tree, {k_: v for k_, v in fr.items() if k_ != "parent"}, fr, f"frames[{k}]", parent)
-    head = [f"<robot name={quoteattr(str(top.get('name', 'dh_robot')))}>",
+    head = [f"<robot name={quoteattr(_name(ctx, top, 'name', 'name', 'dh_robot'))}>",
             f"  <!-- from the {convention} DH table {where} by ppoe urdf from-dh -->"]
     return "\n".join(head + tree.lines + ["</robot>", ""])
 
@@ -178,8 +178,8 @@ def _fixed(ctx: _Ctx, tree: _Tree, fr: Mapping, obj: Any, path: str, parent: str
     _check_keys(ctx, fr, _FIXED_KEYS, path, required=("name",))
     xyz = _vector(ctx, fr["xyz"], fr, "xyz", f"{path}.xyz", 3) if "xyz" in fr else np.zeros(3)
     rpy = _vector(ctx, fr["rpy"], fr, "rpy", f"{path}.rpy", 3) if "rpy" in fr else np.zeros(3)
-    link = str(fr["name"])
-    joint = str(fr.get("joint", f"{link}_joint"))
+    link = _name(ctx, fr, "name", f"{path}.name")
+    joint = _name(ctx, fr, "joint", f"{path}.joint", f"{link}_joint")
     tree.add(fr, "name", path, link, joint)
     tree.lines += _link(link, _mass(ctx, fr, path))
     tree.lines += _joint(joint, "fixed", parent, link, lie.from_xyz_rpy(xyz, rpy), {})
@@ -216,7 +216,8 @@ def _row(ctx: _Ctx, row: Any, rows: list, i: int, prefix: str = "", chain: str |
     if jtype not in ("revolute", "continuous", "prismatic"):
         raise ctx.error(row, "type", path + ".type", f"must be revolute, continuous or prismatic, got {jtype!r}")
     default_link = f"link_{i + 1}" if chain is None else f"{chain}_link_{i + 1}"
-    out: dict[str, Any] = {"name": str(row["name"]), "type": jtype, "link": str(row.get("link", default_link))}
+    out: dict[str, Any] = {"name": _name(ctx, row, "name", path + ".name"), "type": jtype,
+                           "link": _name(ctx, row, "link", path + ".link", default_link)}
     for k in ("a", "alpha", "d", "theta"):
         out[k] = _number(ctx, row[k], row, k, f"{path}.{k}") if k in row else 0.0
     for k in ("lower", "upper"):
@@ -227,6 +228,15 @@ def _row(ctx: _Ctx, row: Any, rows: list, i: int, prefix: str = "", chain: str |
     if "lower" in out and out["lower"] > out["upper"]:
         raise ctx.error(row, "lower", path + ".lower", f"lower {out['lower']} > upper {out['upper']}")
     return {**out, **_mass(ctx, row, path)}
+
+
+def _name(ctx: _Ctx, obj: Mapping, key: str, path: str, default: str | None = None) -> str:
+    """A link, joint, chain or robot name: non-empty text without spaces (issue 25: ``name: null`` became "None",
+    an empty name an error in a line of the generated URDF)."""
+    value = obj.get(key, default)
+    if not isinstance(value, str) or not value or value != value.strip() or any(c.isspace() for c in value):
+        raise ctx.error(obj, key, path, f"must be a name (non-empty text without spaces), got {value!r}")
+    return value
 
 
 def _fmt(v: np.ndarray) -> str:

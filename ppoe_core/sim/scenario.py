@@ -124,6 +124,8 @@ ground_truth:
     sigma_xyz: 0.0001      # tracker position noise 1-sigma [m] [0.0001]
     sigma_rot: 0.0002      # tracker rotation noise 1-sigma [rad] [0.0002]
     rate: 0.0              # [Hz]; 0 = once per stop [0.0]
+    covariance_topic: /mocap/tool  # also as PoseWithCovarianceStamped here, an independent noise draw with its
+                           # covariance: a 6D pose sensor to fuse while /ground_truth/pose scores [none]
   point:                   # /ground_truth/point, optional [none]
     link: tool0            # link carrying the reflector [model tracker.link]
     xyz: [0, 0, 0.02]      # reflector in that link [m] [model tracker.xyz]

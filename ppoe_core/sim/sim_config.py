@@ -221,7 +221,8 @@ class _SimConfig:
     def _parse_gt_pose(self, raw_gt: Any) -> dict[str, Any]:
         """Scenario ``ground_truth.pose``: tracked frame and target, noise, rate."""
         P, m = self.path, self.model
-        g = _check_keys(raw_gt, ("frame", "target", "sigma_xyz", "sigma_rot", "rate"), P, "ground_truth.pose")
+        g = _check_keys(raw_gt, ("frame", "target", "sigma_xyz", "sigma_rot", "rate", "covariance_topic"), P,
+                        "ground_truth.pose")
         frame = g.get("frame") or (m.frames.base if m.frames else self.robot.root)
         target = g.get("target") or (m.frames.tool if m.frames else None)
         for k, v in (("frame", frame), ("target", target)):
@@ -233,6 +234,7 @@ class _SimConfig:
             "sx": _num(g, "sigma_xyz", 1e-4, P, "ground_truth.pose", minimum=0.0),
             "sr": _num(g, "sigma_rot", 2e-4, P, "ground_truth.pose", minimum=0.0),
             "rate": _num(g, "rate", 0.0, P, "ground_truth.pose", minimum=0.0),
+            "cov_topic": str(g.get("covariance_topic") or ""),
         }
 
     def _parse_gt_point(self, raw_gt: Any, where: str = "ground_truth.point") -> dict[str, Any]:

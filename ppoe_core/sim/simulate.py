@@ -393,9 +393,13 @@ class _Sim(_SimConfig):
         noise = np.concatenate(
             [g["sx"] * self.rng.standard_normal((len(ts), 3)), g["sr"] * self.rng.standard_normal((len(ts), 3))], axis=1
         )
-        T = T @ lie.exp(noise)
         for i, t in enumerate(ts):
-            events.append((float(t), 2, "gtpose", (T[i],)))
+            events.append((float(t), 2, "gtpose", (T[i] @ lie.exp(noise[i]),)))
+        if g["cov_topic"]:  # a second pose sensor: an independent draw, with its covariance (ROS convention)
+            other = np.concatenate([g["sx"] * self.rng.standard_normal((len(ts), 3)),
+                                    g["sr"] * self.rng.standard_normal((len(ts), 3))], axis=1)
+            cov = np.diag([g["sx"] ** 2] * 3 + [g["sr"] ** 2] * 3)
+            events += [(float(t), 2, "gtposecov", (T[i] @ lie.exp(other[i]), cov)) for i, t in enumerate(ts)]
 
     def _gt_point_events(self, events: list[tuple[float, int, str, tuple]]) -> None:
         """Tracker measurements of each reflector in its tracker frame, with noise."""
@@ -458,6 +462,8 @@ class _Sim(_SimConfig):
                     bag.write_tag_observations(t, cam_frame, r[:, 0], r[:, 1], r[:, 2:4], r[:, 4:6])
                 elif kind == "gtpose":
                     bag.write_ground_truth_pose(t, self.gt_pose["frame"], pl[0])
+                elif kind == "gtposecov":
+                    bag.write_pose_with_covariance(self.gt_pose["cov_topic"], t, self.gt_pose["frame"], *pl)
                 elif kind == "gtpoint":
                     gp = self.gt_points[pl[1]]
                     bag.write_ground_truth_point(t, gp["frame"], pl[0], topic=gp["topic"])

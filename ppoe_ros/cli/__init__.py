@@ -57,10 +57,7 @@ class StopFlag:
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """Build the parser; only the module of ``command`` is imported."""
-    parser = argparse.ArgumentParser(
-        prog="ppoe",
-        description="Probabilistic Product-of-Exponentials kinematics tools.",
-    )
+    parser = argparse.ArgumentParser(prog="ppoe", description="Probabilistic Product-of-Exponentials kinematics tools.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (module_name, help_text) in SUBCOMMANDS.items():

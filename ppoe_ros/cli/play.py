@@ -36,6 +36,7 @@ import sys
 import time
 from typing import Any
 
+from ppoe_core.cli.checks import float_range
 from ppoe_core.errors import BagError, PpoeError
 from ppoe_core.io import bagio
 
@@ -51,28 +52,22 @@ GLOBAL_TOPICS = ("/clock", "/tf", "/tf_static", "/diagnostics", "/rosout", "/par
 _VOLATILE_DEPTH = 1000
 
 
-def _positive(text: str) -> float:
-    v = float(text)
-    if not v > 0.0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return v
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``ppoe play``."""
     parser.add_argument("bag", metavar="BAG", help="rosbag2 directory (mcap or sqlite3)")
-    parser.add_argument("--rate", type=_positive, default=1.0, help="playback speed factor (default 1.0)")
+    parser.add_argument("--rate", type=float_range(0.0, min_open=True), default=1.0,
+                        help="playback speed factor (default 1.0)")
     parser.add_argument("--clock", action="store_true", help="publish the bag time on /clock")
-    parser.add_argument("--clock-hz", type=_positive, default=100.0,
+    parser.add_argument("--clock-hz", type=float_range(0.0, min_open=True), default=100.0,
                         help="/clock rate between messages [Hz] (default 100)")
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="play only these topics (default: all)")
     parser.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
-    parser.add_argument("--delay", type=float, default=0.5,
+    parser.add_argument("--delay", type=float_range(0.0), default=0.5,
                         help="seconds to wait after creating the publishers, for discovery (default 0.5)")
     parser.add_argument("--accept-partial", action="store_true",
                         help="play what can be read of a damaged bag (default: refuse it, naming per topic "
                              "what was lost)")
-    parser.add_argument("--wait-for-subscribers", type=float, default=0.0, metavar="SECONDS",
+    parser.add_argument("--wait-for-subscribers", type=float_range(0.0), default=0.0, metavar="SECONDS",
                         help="before playing, wait up to SECONDS until every played topic has a subscriber")
     add_ros_args(parser)
 

@@ -39,6 +39,7 @@ import sys
 import time
 from typing import Any
 
+from ppoe_core.cli.checks import float_range, int_range
 from ppoe_core.errors import PpoeError
 from ppoe_core.io.bagio import BagWriter
 from ppoe_ros.cli import StopFlag
@@ -52,13 +53,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("topics", nargs="+", metavar="TOPIC", help="topics to record")
     parser.add_argument("--out", "-o", required=True, metavar="BAG", help="bag directory to create")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="storage plugin (default mcap)")
-    parser.add_argument("--duration", type=float, default=0.0, metavar="SECONDS",
+    parser.add_argument("--duration", type=float_range(0.0), default=0.0, metavar="SECONDS",
                         help="stop after this many seconds (default: until interrupted)")
-    parser.add_argument("--max-messages", type=int, default=0, metavar="N",
+    parser.add_argument("--max-messages", type=int_range(0), default=0, metavar="N",
                         help="stop once N messages (all topics together) are written (default 0: no limit)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing bag directory")
     parser.add_argument("--use-sim-time", action="store_true", help="log times from /clock")
-    parser.add_argument("--flush-period", type=float, default=0.5, metavar="SECONDS",
+    parser.add_argument("--flush-period", type=float_range(0.0, min_open=True), default=0.5, metavar="SECONDS",
                         help="write the messages to disk at least this often, with metadata.yaml, so that a "
                              "recorder killed with -9 leaves a readable bag (mcap; default 0.5)")
     add_ros_args(parser)

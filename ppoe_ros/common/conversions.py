@@ -163,7 +163,7 @@ def pose_cov_from_msg(msg: PoseWithCovarianceStamped) -> tuple[np.ndarray, np.nd
 
 def pose_cov_from_cdr(raw: bytes) -> tuple[np.ndarray, np.ndarray, int, str]:
     """:func:`pose_cov_from_msg` of a serialised ``PoseWithCovarianceStamped`` (a raw subscription's bytes), without
-    building the typed message: the fields by :func:`ppoe_core.io.cdr_rows.parse_pose_cov` (the bag reader's), the
+    building the typed message: the fields by :func:`ppoe_core.io.cdr.parse_fields` (the bag reader's), the
     stamp in integer nanoseconds from the header's bytes; anything that reader leaves to the typed path (big endian
     ...) takes it.
 
@@ -172,11 +172,11 @@ def pose_cov_from_cdr(raw: bytes) -> tuple[np.ndarray, np.ndarray, int, str]:
     MeasurementError
         Bytes that are not a ``PoseWithCovarianceStamped``.
     """
-    from ppoe_core.io import cdr_rows
+    from ppoe_core.io import cdr
 
     try:
-        _, frame, (px, py, pz, qx, qy, qz, qw), cov = cdr_rows.parse_pose_cov(raw)
-    except (cdr_rows.Fallback, ValueError, IndexError, struct.error):
+        _, frame, (px, py, pz, qx, qy, qz, qw), cov = cdr.parse_fields(_POSE_COV_TYPE, raw)
+    except cdr.PARSE_ERRORS:
         from rclpy.serialization import deserialize_message
 
         try:
@@ -186,6 +186,9 @@ def pose_cov_from_cdr(raw: bytes) -> tuple[np.ndarray, np.ndarray, int, str]:
     sec, nsec = _STAMP.unpack_from(raw, 4)
     T = _matrix_from_quat_xyz(qx, qy, qz, qw, px, py, pz)
     return T, np.array(cov, dtype=float).reshape(6, 6), sec * 1_000_000_000 + nsec, frame
+
+
+_POSE_COV_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 
 
 class PoseCovarianceCdr:

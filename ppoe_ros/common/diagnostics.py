@@ -153,9 +153,7 @@ class DiagnosticsPublisher:
         self._extra: dict[str, str] = {}
         self._problems: dict[str, tuple[bytes, str]] = {}
         self._watched: list[list[Any]] = []  # [topic, counter key, timeout s, last count, steady time of growth]
-        self._timer = node.create_timer(
-            float(period), self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME)
-        )
+        self._timer = node.create_timer(float(period), self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def set_hardware_id(self, hardware_id: str) -> None:
         """Report ``hardware_id`` from now on (the robot's name), instead of the one looked up."""

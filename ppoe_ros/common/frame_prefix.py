@@ -10,7 +10,7 @@ As robot_state_publisher (Jazzy) does it:
   and the model YAML keep the plain names.  With ``frame_prefix: robot1/`` the tool frame is ``robot1/tool0``
   on the wire.
 
-A bag keeps the absolute contract topics (CONTRACT.md sec. 3): ``ppoe play`` publishes ``/joint_states`` ...,
+A bag keeps the absolute contract topics (docs/conventions.md sec. 3): ``ppoe play`` publishes ``/joint_states`` ...,
 which nodes in the root namespace (the default) receive unchanged.
 """
 

@@ -24,13 +24,7 @@ from sensor_msgs.msg import Imu
 from ppoe_core.estimation.corrections import Measurement
 from ppoe_core.estimation.pipeline import source_key
 from ppoe_core.estimation.sources import (
-    SOURCE_KEYS,
-    SourceConfig,
-    UnknownFrame,
-    check_source_names,
-    complete_source,
-    imu_payload,
-    point_payload,
+    SOURCE_KEYS, SourceConfig, UnknownFrame, check_source_names, complete_source, imu_payload, point_payload,
     pose_payload,
 )
 from ppoe_ros.common.conversions import pose_cov_from_msg, stamp_to_ns

@@ -8,11 +8,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    ParameterType,
-    SetParametersResult,
+    FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType, SetParametersResult,
 )
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -90,9 +86,7 @@ class ParamSpec:
         """The descriptor shown by ``ros2 param describe``."""
         ptype = self.parameter_type()
         text = self.description + (f" [{self.unit}]" if self.unit else "")
-        desc = ParameterDescriptor(
-            name=self.name, type=ptype, description=text, read_only=self.read_only
-        )
+        desc = ParameterDescriptor(name=self.name, type=ptype, description=text, read_only=self.read_only)
         if self.min_value is not None or self.max_value is not None:
             lo = -math.inf if self.min_value is None else self.min_value
             hi = math.inf if self.max_value is None else self.max_value

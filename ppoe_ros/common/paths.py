@@ -21,8 +21,8 @@ from ppoe_core.io.paths import package_share_directory, resolve_path
 
 __all__ = ["PATH_PARAMETERS", "params_file_dirs", "resolve_path_parameters"]
 
-#: node parameters that name a file (read: model_file; written: online_model_out)
-PATH_PARAMETERS = ("model_file", "online_model_out")
+#: node parameters that name a file or directory (read: model_file; written: online_model_out, calibration_out)
+PATH_PARAMETERS = ("model_file", "online_model_out", "calibration_out")
 
 
 def params_file_dirs(argv: Sequence[str] | None = None) -> list[Path]:

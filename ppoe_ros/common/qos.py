@@ -2,12 +2,7 @@
 
 from __future__ import annotations
 
-from rclpy.qos import (
-    DurabilityPolicy,
-    HistoryPolicy,
-    QoSProfile,
-    ReliabilityPolicy,
-)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 # --------------------------------------------------------------------------- QoS
 
@@ -20,28 +15,16 @@ def sensor_qos(depth: int = 100) -> QoSProfile:
     callback is late by 5 ms).  A best-effort subscription matches both reliable
     and best-effort publishers.
     """
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=int(depth),
-        reliability=ReliabilityPolicy.BEST_EFFORT,
-        durability=DurabilityPolicy.VOLATILE,
-    )
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth), reliability=ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.VOLATILE)
 
 
 def reliable_qos(depth: int = 100) -> QoSProfile:
     """Reliable, volatile, keep last ``depth``: the default for the nodes' outputs."""
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST,
-        depth=int(depth),
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.VOLATILE,
-    )
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth), reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
 
 
 #: Transient-local ("latched") QoS of ``/robot_description``, as robot_state_publisher uses.
-LATCHED_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=1,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
-from ppoe_core.errors import MeasurementError
+from ppoe_core.io.rows import tag_rows_from_cloud
 from ppoe_core.sensing.tag_rows import OBSERVATION_FIELDS
 
 __all__ = ["cloud_from_observations", "observations_from_cloud"]
@@ -35,36 +35,7 @@ def cloud_from_observations(rows: np.ndarray, header: Any) -> PointCloud2:
 
 
 def observations_from_cloud(msg: Any) -> dict[str, np.ndarray]:
-    """``PointCloud2`` of ``/tag_bearing/observations`` -> ``{field: (n,) float64}``.
-
-    Fields are read by name and offset (FLOAT64 or FLOAT32), so a producer may order them
-    differently or add fields.
-
-    Raises
-    ------
-    MeasurementError
-        A required field is missing or not float, or the data size does not match.
-    """
-    by_name = {f.name: f for f in msg.fields}
-    n = int(msg.width) * int(msg.height)
-    step = int(msg.point_step)
-    data = bytes(msg.data)
-    if len(data) < n * step:
-        raise MeasurementError(f"PointCloud2 has {len(data)} bytes for {n} points of {step} bytes")
-    out: dict[str, np.ndarray] = {}
-    endian = ">" if msg.is_bigendian else "<"
-    for name in OBSERVATION_FIELDS:
-        f = by_name.get(name)
-        if f is None:
-            raise MeasurementError(f"PointCloud2 has no field '{name}' (fields: {sorted(by_name)})")
-        if f.datatype == PointField.FLOAT64:
-            dt, size = np.dtype(endian + "f8"), 8
-        elif f.datatype == PointField.FLOAT32:
-            dt, size = np.dtype(endian + "f4"), 4
-        else:
-            raise MeasurementError(f"PointCloud2 field '{name}' has datatype {f.datatype}, expected FLOAT64")
-        if f.offset + size > step:
-            raise MeasurementError(f"PointCloud2 field '{name}' offset {f.offset} outside point_step {step}")
-        buf = np.frombuffer(data, np.uint8, count=n * step).reshape(n, step)[:, f.offset:f.offset + size]
-        out[name] = np.ascontiguousarray(buf).view(dt).reshape(n).astype(np.float64)
-    return out
+    """``PointCloud2`` of ``/tag_bearing/observations`` -> ``{field: (n,) float64}`` (the bag reader's rule,
+    :func:`ppoe_core.io.rows.tag_rows_from_cloud`; MeasurementError naming a missing or bad field)."""
+    rows = tag_rows_from_cloud(msg)
+    return {name: rows[:, j] for j, name in enumerate(OBSERVATION_FIELDS)}

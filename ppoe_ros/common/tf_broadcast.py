@@ -1,4 +1,4 @@
-"""TF output of the nodes: ``/tf`` and ``/tf_static`` (``tf2_msgs/msg/TFMessage``, CONTRACT.md sec. 4).
+"""TF output of the nodes: ``/tf`` and ``/tf_static`` (``tf2_msgs/msg/TFMessage``, docs/conventions.md sec. 4).
 
 Published as tf2_ros' broadcasters do (no tf2_ros needed): ``/tf`` reliable, volatile, keep last 100;
 ``/tf_static`` reliable, transient local, keep last 1, every static transform of the node in one message
@@ -17,7 +17,6 @@ install where ``scripts/build_tf2_msgs.py`` was not run) TF is off with one log 
 
 from __future__ import annotations
 
-import struct
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -28,19 +27,13 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ppoe_core import lie
+from ppoe_core.io.cdr import tf_message
 from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats
 from ppoe_core.model.tf_frames import JointFrames, TfFrame, calibrated_camera_frames, urdf_collision
 
 __all__ = [
-    "TF_TOPIC",
-    "TF_STATIC_TOPIC",
-    "TF2_MSGS_HINT",
-    "tf_message_class",
-    "transform_msg",
-    "tf_message_cdr",
-    "TfBroadcaster",
-    "FusionTf",
-    "KinematicsTf",
+    "TF_TOPIC", "TF_STATIC_TOPIC", "TF2_MSGS_HINT", "tf_message_class", "transform_msg", "tf_message_cdr",
+    "TfBroadcaster", "FusionTf", "KinematicsTf",
 ]
 
 TF_TOPIC = "/tf"
@@ -81,44 +74,17 @@ def transform_msg(frame: TfFrame, stamp: TimeMsg) -> TransformStamped:
     return msg
 
 
-_U32 = struct.Struct("<I")
-_STAMP = struct.Struct("<iI")
-_POSE = struct.Struct("<7d")
-_names: dict[str, bytes] = {}
-
-
-def _cdr_string(text: str) -> bytes:
-    """A CDR string: length (with the terminating NUL), UTF-8 bytes, NUL (cached per frame name)."""
-    b = _names.get(text)
-    if b is None:
-        raw = text.encode("utf-8") + b"\x00"
-        b = _names[text] = _U32.pack(len(raw)) + raw
-    return b
-
-
 def tf_message_cdr(frames: Sequence[TfFrame], stamp_ns: int) -> bytes:
-    """``tf2_msgs/TFMessage`` of ``frames``, all at ``stamp_ns``, as CDR bytes (little endian, what rclpy's
-    ``serialize_message`` gives; ``test/test_tf.py`` checks it): the per-joint-state path of the kinematics node
-    builds no typed message."""
-    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-    stamp = _STAMP.pack(sec, nsec)
+    """``tf2_msgs/TFMessage`` of ``frames``, all at ``stamp_ns``, as CDR bytes (:func:`ppoe_core.io.cdr.tf_message`,
+    what rclpy's ``serialize_message`` gives; ``test/test_tf.py`` checks it): the per-joint-state path of the
+    kinematics node builds no typed message."""
     if len(frames) == 1:  # the fusion node's corrected tool, at every prior: no stacking
         T1 = np.asarray(frames[0].T_parent_child, dtype=float)
-        pose = [T1[:3, 3].tolist() + lie.quat_from_matrix(T1[:3, :3]).tolist()]
+        poses = np.concatenate([T1[:3, 3], lie.quat_from_matrix(T1[:3, :3])])[None]
     else:
         T = np.stack([f.T_parent_child for f in frames]) if frames else np.zeros((0, 4, 4))
-        pose = np.concatenate([T[:, :3, 3], lie.quat_from_matrix(T[:, :3, :3])], axis=1).tolist()
-    buf = bytearray(b"\x00\x01\x00\x00")  # CDR little endian; alignment counts from the end of this
-    buf += _U32.pack(len(frames))
-    for k, f in enumerate(frames):
-        buf += bytes(-len(buf) % 4)
-        buf += stamp
-        buf += _cdr_string(f.parent)
-        buf += bytes(-len(buf) % 4)
-        buf += _cdr_string(f.child)
-        buf += bytes(-(len(buf) - 4) % 8)
-        buf += _POSE.pack(*pose[k])
-    return bytes(buf)
+        poses = np.concatenate([T[:, :3, 3], lie.quat_from_matrix(T[:, :3, :3])], axis=1)
+    return tf_message([(f.parent, f.child, p) for f, p in zip(frames, poses)], stamp_ns)
 
 
 class TfBroadcaster:

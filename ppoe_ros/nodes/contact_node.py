@@ -43,11 +43,7 @@ from ppoe_core.robot.config import load_contact_config
 from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_core.model.stamp_policy import BACKWARD, NEW_TIMELINE, StampRefused, StampResetPolicy
 from ppoe_core.sensing.contact import (
-    DEFAULT_FORCE_THRESHOLD,
-    DEFAULT_RELEASE_THRESHOLD,
-    FORCE_COMPONENTS,
-    ContactDetector,
-    force_measure,
+    DEFAULT_FORCE_THRESHOLD, DEFAULT_RELEASE_THRESHOLD, FORCE_COMPONENTS, ContactDetector, force_measure,
     plane_from_config,
 )
 from ppoe_ros.common.conversions import pose_cov_stamped_msg, stamp_to_ns, wrench_to_numpy

@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -61,17 +62,8 @@ from std_msgs.msg import String
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, ModelConfigError, PpoeError
 from ppoe_core.estimation.pipeline import (
-    FUSION_SETTINGS,
-    ContactMeasurement,
-    Measurement,
-    MeasurementOutcome,
-    ModelUpdater,
-    PriorSample,
-    TagMeasurement,
-    ToolUpdate,
-    make_pipeline,
-    make_updater,
-    source_key,
+    FUSION_SETTINGS, ContactMeasurement, Measurement, MeasurementOutcome, ModelUpdater, PriorSample, TagMeasurement,
+    ToolUpdate, make_pipeline, make_updater, source_key,
 )
 from ppoe_core.model.joint_history import JointHistory
 from ppoe_core.estimation.source_updater import SourceUpdater
@@ -93,6 +85,7 @@ from ppoe_core.estimation.sources import parse_sources
 from ppoe_ros.common.fusion_sources import SOURCES_PARAM, LiveSources, source_names, source_specs
 from ppoe_ros.common.tag_cloud import observations_from_cloud
 from ppoe_ros.common.online_effects import ONLINE_PARAMS, OnlineEffectsHook
+from ppoe_ros.common.services import FusionServices
 from ppoe_ros.common.tf_broadcast import FusionTf
 
 __all__ = ["FusionNode", "PARAMS", "main"]
@@ -103,12 +96,8 @@ _D = FUSION_SETTINGS
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("model_file", "", "model YAML: tags, camera, contact, perturbations (required)", check=check_nonempty),
     ParamSpec("robot_description", "", "URDF XML; empty = take it from robot_description_topic"),
-    ParamSpec(
-        "robot_description_topic",
-        "robot_description",
-        "latched std_msgs/String topic carrying the URDF",
-        check=check_nonempty,
-    ),
+    ParamSpec("robot_description_topic", "robot_description", "latched std_msgs/String topic carrying the URDF",
+              check=check_nonempty),
     ParamSpec("base_frame", "", "frame of the prior (its header.frame_id); empty = model YAML frames.base"),
     ParamSpec("tool_frame", "", "frame whose pose the prior is; empty = model YAML frames.tool"),
     ParamSpec("prior_topic", "ppoe/pose", "kinematics prior (PoseWithCovarianceStamped)", check=check_nonempty),
@@ -119,129 +108,43 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("joint_max_age", 0.5, "a joint value a split joint-state message lacks is held this long (as the "
               "kinematics node's joint_max_age); 0 = no limit", unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("fused_topic", "ppoe/fused_pose", "output topic (PoseWithCovarianceStamped)", check=check_nonempty),
-    ParamSpec(
-        "buffer_duration",
-        _D["buffer_duration"],
-        "history of priors kept; older measurements are dropped",
-        unit="s",
-        min_value=1e-3,
-        max_value=3600.0,
-    ),
-    ParamSpec(
-        "max_gap",
-        _D["max_gap"],
-        "neighbouring priors further apart are not interpolated between",
-        unit="s",
-        min_value=1e-6,
-        max_value=3600.0,
-    ),
-    ParamSpec(
-        "max_hold",
-        _D["max_hold"],
-        "max distance to the nearest prior when interpolation is impossible",
-        unit="s",
-        min_value=0.0,
-        max_value=3600.0,
-    ),
-    ParamSpec(
-        "max_pending",
-        _D["max_pending"],
-        "measurements newer than the newest prior kept waiting",
-        min_value=0,
-        max_value=100000,
-    ),
-    ParamSpec(
-        "min_interval",
-        _D["min_interval"],
-        "per source (topic + frame_id): a measurement less than this after the last one "
-        "processed is skipped (counted as throttled); 0 = process all",
-        unit="s",
-        min_value=0.0,
-        max_value=3600.0,
-    ),
-    ParamSpec(
-        "pending_timeout",
-        1.0,
-        "when no prior arrived for this long (steady clock), pending measurements "
-        "are processed with the newest prior (hold) or dropped",
-        unit="s",
-        min_value=0.0,
-        max_value=3600.0,
-    ),
-    ParamSpec(
-        "correction_timeout",
-        _D["correction_timeout"],
-        "a carried correction fades over / is dropped after this; <= 0 = off",
-        unit="s",
-        max_value=1e6,
-    ),
-    ParamSpec(
-        "correction_joint_motion",
-        _D["correction_joint_motion"],
-        "... after this max-abs joint motion; <= 0 = off",
-        unit="rad or m",
-        max_value=1e6,
-    ),
-    ParamSpec(
-        "correction_tool_translation",
-        _D["correction_tool_translation"],
-        "... after this tool translation; <= 0 = off",
-        unit="m",
-        max_value=1e6,
-    ),
-    ParamSpec(
-        "correction_tool_rotation",
-        _D["correction_tool_rotation"],
-        "... after this tool rotation; <= 0 = off",
-        unit="rad",
-        max_value=1e6,
-    ),
-    ParamSpec(
-        "correction_decay",
-        _D["correction_decay"],
-        "linear: weight 1 - ratio; step: full weight until dropped",
-        check=lambda v: None if v in ("linear", "step") else f"must be 'linear' or 'step', got {v!r}",
-    ),
-    ParamSpec(
-        "max_iterations",
-        _D["max_iterations"],
-        "relinearisations of the iterated LG-EKF update (1 = plain LG-EKF)",
-        min_value=1,
-        max_value=100,
-    ),
-    ParamSpec(
-        "gate_probability",
-        _D["gate_probability"],
-        "chi-square gate probability; 1.0 = no gating",
-        min_value=0.5,
-        max_value=1.0,
-    ),
-    ParamSpec(
-        "gating",
-        _D["gating"],
-        "posterior: cost of the iterated solution; prior: NIS at the prior",
-        check=lambda v: None if v in ("posterior", "prior") else f"must be 'posterior' or 'prior', got {v!r}",
-    ),
-    ParamSpec(
-        "pixel_sigma",
-        _D["pixel_sigma"],
-        "1-sigma pixel noise; <= 0 = model YAML camera.pixel_sigma",
-        unit="px",
-        max_value=1e6,
-    ),
+    ParamSpec("buffer_duration", _D["buffer_duration"], "history of priors kept; older measurements are dropped",
+              unit="s", min_value=1e-3, max_value=3600.0),
+    ParamSpec("max_gap", _D["max_gap"], "neighbouring priors further apart are not interpolated between", unit="s",
+              min_value=1e-6, max_value=3600.0),
+    ParamSpec("max_hold", _D["max_hold"], "max distance to the nearest prior when interpolation is impossible",
+              unit="s", min_value=0.0, max_value=3600.0),
+    ParamSpec("max_pending", _D["max_pending"], "measurements newer than the newest prior kept waiting", min_value=0,
+              max_value=100000),
+    ParamSpec("min_interval", _D["min_interval"], "per source (topic + frame_id): a measurement less than this after "
+              "the last one processed is skipped (counted as throttled); 0 = process all", unit="s", min_value=0.0,
+              max_value=3600.0),
+    ParamSpec("pending_timeout", 1.0, "when no prior arrived for this long (steady clock), pending measurements "
+              "are processed with the newest prior (hold) or dropped", unit="s", min_value=0.0, max_value=3600.0),
+    ParamSpec("correction_timeout", _D["correction_timeout"],
+              "a carried correction fades over / is dropped after this; <= 0 = off", unit="s", max_value=1e6),
+    ParamSpec("correction_joint_motion", _D["correction_joint_motion"],
+              "... after this max-abs joint motion; <= 0 = off", unit="rad or m", max_value=1e6),
+    ParamSpec("correction_tool_translation", _D["correction_tool_translation"],
+              "... after this tool translation; <= 0 = off", unit="m", max_value=1e6),
+    ParamSpec("correction_tool_rotation", _D["correction_tool_rotation"], "... after this tool rotation; <= 0 = off",
+              unit="rad", max_value=1e6),
+    ParamSpec("correction_decay", _D["correction_decay"], "linear: weight 1 - ratio; step: full weight until dropped",
+              check=lambda v: None if v in ("linear", "step") else f"must be 'linear' or 'step', got {v!r}"),
+    ParamSpec("max_iterations", _D["max_iterations"],
+              "relinearisations of the iterated LG-EKF update (1 = plain LG-EKF)", min_value=1, max_value=100),
+    ParamSpec("gate_probability", _D["gate_probability"], "chi-square gate probability; 1.0 = no gating", min_value=0.5,
+              max_value=1.0),
+    ParamSpec("gating", _D["gating"], "posterior: cost of the iterated solution; prior: NIS at the prior",
+              check=lambda v: None if v in ("posterior", "prior") else f"must be 'posterior' or 'prior', got {v!r}"),
+    ParamSpec("pixel_sigma", _D["pixel_sigma"], "1-sigma pixel noise; <= 0 = model YAML camera.pixel_sigma", unit="px",
+              max_value=1e6),
     ParamSpec("use_tag_centre", _D["use_tag_centre"], "use the tag centres (corner 0)"),
     ParamSpec("use_tag_corners", _D["use_tag_corners"], "use the tag corners 1..4"),
-    ParamSpec(
-        "camera_covariance", _D["camera_covariance"], "let the PPOE covariance of the camera chain enter the tag model"
-    ),
-    ParamSpec(
-        "contact_distance_sigma",
-        _D["contact_distance_sigma"],
-        "extra 1-sigma noise of the contact distance",
-        unit="m",
-        min_value=0.0,
-        max_value=1e3,
-    ),
+    ParamSpec("camera_covariance", _D["camera_covariance"],
+              "let the PPOE covariance of the camera chain enter the tag model"),
+    ParamSpec("contact_distance_sigma", _D["contact_distance_sigma"], "extra 1-sigma noise of the contact distance",
+              unit="m", min_value=0.0, max_value=1e3),
     SOURCES_PARAM,
     FRAME_PREFIX_PARAM,
     ParamSpec("publish_tf", True, "publish the fused pose on /tf and the calibrated cameras on /tf_static"),
@@ -270,24 +173,9 @@ PARAMS: tuple[ParamSpec, ...] = (
 ) + ONLINE_PARAMS  # online effects (docs/online.md)
 
 _STAT_KEYS = (
-    "received",
-    "published",
-    "bad",
-    "priors",
-    "measurements",
-    "accepted",
-    "rejected",
-    "dropped",
-    "dropped_stale",
-    "dropped_no_prior",
-    "dropped_no_model",
-    "throttled",
-    "corrections_dropped",
-    "pending",
-    "empty_observations",
-    "resets",
-    "priors_late",
-    "priors_out_of_order",
+    "received", "published", "bad", "priors", "measurements", "accepted", "rejected", "dropped", "dropped_stale",
+    "dropped_no_prior", "dropped_no_model", "throttled", "corrections_dropped", "pending", "empty_observations",
+    "resets", "priors_late", "priors_out_of_order",
 )
 
 
@@ -326,7 +214,8 @@ class FusionNode(Node):
         self.diagnostics = DiagnosticsPublisher(self, self.stats, p["diagnostics_period"])
         self.diagnostics.watch_input("input (prior or measurement)", "received", p["input_timeout"])
         self.tf = FusionTf(self, p, self.diagnostics)
-        self.online = OnlineEffectsHook(self, p, self.stats, p["model_file"]) if p["online_enable"] else None
+        self.online = (OnlineEffectsHook(self, p, self.stats, p["model_file"], self.diagnostics)
+                       if p["online_enable"] else None)
         qos = sensor_qos(p["qos_depth"])
         rel = reliable_qos(p["qos_depth"])
 
@@ -343,17 +232,13 @@ class FusionNode(Node):
         self.sources = LiveSources(self, parse_sources(p, names, f"node {self.get_fully_qualified_name()}"),
                                    self.stats, self.prefix, self._measure)
         self.sources.subscribe(qos)
+        self.commands = FusionServices(self, self.pipeline, self._measure, self.prefix, self.stats)
         self._last_prior_wall = time.monotonic()
-        self.create_timer(
-            0.1,
-            guarded(self.stats, "pending measurements")(self._expire_pending),
-            clock=Clock(clock_type=ClockType.STEADY_TIME),
-        )
+        self.create_timer(0.1, guarded(self.stats, "pending measurements")(self._expire_pending),
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
 
         take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
         if self.model is None:
-            from diagnostic_msgs.msg import DiagnosticStatus
-
             self.diagnostics.set_status(DiagnosticStatus.ERROR, "no model: waiting for robot_description")
 
     # ------------------------------------------------------------------ model
@@ -408,6 +293,9 @@ class FusionNode(Node):
         if not (math.isfinite(fx) and math.isfinite(fy) and fx > 0 and fy > 0):
             raise MeasurementError(f"camera_info K has fx = {fx}, fy = {fy}")
         self.focal[msg.header.frame_id] = (fx, fy)
+        if self.online is not None:  # a change of the intrinsics mid-run is counted and logged by the hook
+            self.online.camera_info(unprefixed(self.prefix, msg.header.frame_id, self.params["camera_info_topic"]),
+                                    np.asarray(msg.k, float).reshape(3, 3), np.asarray(msg.d, float))
 
     def _joint_state(self, data: bytes) -> None:
         if self.model is None:
@@ -448,15 +336,9 @@ class FusionNode(Node):
             return
         frame = msg.header.frame_id
         fx, fy = self.focal.get(frame, (None, None))
-        payload = TagMeasurement(
-            unprefixed(self.prefix, frame, self.params["observations_topic"]),
-            d["id"].astype(int),
-            d["corner"].astype(int),
-            np.column_stack([d["x"], d["y"]]),
-            np.column_stack([d["u"], d["v"]]),
-            fx,
-            fy,
-        )
+        payload = TagMeasurement(unprefixed(self.prefix, frame, self.params["observations_topic"]), d["id"].astype(int),
+                                 d["corner"].astype(int), np.column_stack([d["x"], d["y"]]),
+                                 np.column_stack([d["u"], d["v"]]), fx, fy)
         source = source_key(self.params["observations_topic"], frame)
         self._measure(Measurement(stamp_to_ns(msg.header.stamp) * 1e-9, source, payload))
 
@@ -475,6 +357,8 @@ class FusionNode(Node):
         if self.updater is None:
             self.stats.bad(m.source, "no robot model yet (waiting for robot_description)", kind="dropped_no_model")
             return
+        if self.online is not None:  # every measurement kind also updates the online effects
+            self.online.measure(m)
         self._report(self.pipeline.add_measurement(m))
         self._sync_counts()
 
@@ -513,17 +397,8 @@ class FusionNode(Node):
 
     def _sync_counts(self) -> None:
         c, s = self.pipeline.counts, self.stats.counts
-        for k in (
-            "priors",
-            "measurements",
-            "accepted",
-            "rejected",
-            "dropped_stale",
-            "dropped_no_prior",
-            "corrections_dropped",
-            "resets",
-            "throttled",
-        ):
+        for k in ("priors", "measurements", "accepted", "rejected", "dropped_stale", "dropped_no_prior",
+                  "corrections_dropped", "resets", "throttled"):
             s[k] = c[k]
         s["dropped"] = c["dropped_stale"] + c["dropped_no_prior"]
         s["pending"] = len(self.pipeline.pending)
@@ -537,8 +412,6 @@ class FusionNode(Node):
             return
         self._converging = converging
         if converging:
-            from diagnostic_msgs.msg import DiagnosticStatus
-
             self.diagnostics.set_status(
                 DiagnosticStatus.WARN, "converging: no measurement fused since start or the last clock reset; "
                 "the output is the uncorrected prior", converging=True)

@@ -219,7 +219,7 @@ class KinematicsNode(Node):
         try:
             # the model YAML from its file (a Path), so that errors name file and line (a dict would not)
             model_file = self.params["model_file"]
-            model = PPOEModel.from_strings(urdf_xml, Path(model_file) if model_file else None)
+            model = PPOEModel.from_strings(urdf_xml, Path(model_file) if model_file else None, urdf_source=where)
             reference = self.params["reference_frame"] or self._frames.get("base") or model.robot.root
             model.robot.check_link(reference)  # check the frames now, not at the first joint state
             live = LiveContext(model.effects, model.joint_names)  # effects that read time, motion, temperature

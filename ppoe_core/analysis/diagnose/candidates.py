@@ -1,9 +1,10 @@
-"""Candidate effects (catalogue x plausible locations) and their linearised measurement Jacobians."""
+"""Candidate effects of a tracker or pose measurement (catalogue x plausible locations of the measured chain), the
+nominal prediction of its rows and their chain Jacobians."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -12,33 +13,11 @@ from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.model.effects import Effect, make_effect, sum_effect_corrections
 from ppoe_core.robot.tree import KinematicTree
 
-# =============================================================================
-# Candidates and the linearised problem
-# =============================================================================
-
-
-@dataclass
-class Candidate:
-    """A candidate effect with its linearised measurement Jacobian.
-
-    ``G``: (N, dim, P) derivative of the predicted measurement (position in the base frame,
-    then for poses the right-tangent rotation of the tool) w.r.t. the effect parameters.
-    """
-
-    effect: Effect
-    G: np.ndarray
-
-    @property
-    def key(self) -> str:
-        listed = self.effect.name == "link_error" or any(n.startswith("extension") for n in self.effect.param_names)
-        comps = "[" + ",".join(self.effect.param_names) + "]" if listed else ""
-        return f"{self.effect.name}@{self.effect.location}{comps}"
-
-
 _BENDING_EXTENSION = ("compliance_x", "compliance_y", "extension_x", "extension_y")
 
 
-def _carried_mass(tree: KinematicTree, joint: str) -> float:
+def carried_mass(tree: KinematicTree, joint: str) -> float:
+    """Mass [kg] of everything ``joint`` carries (URDF inertials)."""
     m = 0.0
     for ln in tree.subtree_links(joint):
         inert = tree.robot.links[ln].inertial
@@ -68,39 +47,48 @@ def candidate_effects(tree: KinematicTree, stops: Stops) -> list[Effect]:
       ``base_tilt``): the root rotated by the tilt that accelerometer measures at each stop (minus its
       session mean, which the registration absorbs), times one ``gain``: a robot rocking on its support.
 
-    A constant ``base_tilt`` is fitted by the accelerometer stage (:func:`diagnose_imu`) and
-    ``camera_extrinsics`` by the pixel stage (:func:`diagnose_pixels`); ``tracker_registration``
-    is always estimated per session.
+    A constant ``base_tilt`` is a nuisance of the accelerometer block (per placement), ``camera_extrinsics``,
+    ``camera_intrinsics`` and ``tag_offset`` are candidates of the pixel block; ``tracker_registration`` is always
+    estimated per session.
     """
     robot = tree.robot
     path = stops.chain_joints(robot)
     if stops.kind == "pose" and stops.base and stops.base != robot.root:
         base_path = set(robot.path_from_root(stops.base))
         path = [j for j in path if j not in base_path]
+    return chain_candidates(tree, path, stops.context, point=stops.kind == "point", stream_offset=True)
+
+
+def chain_candidates(tree: KinematicTree, joints: Sequence[str], context: Mapping[str, Any], point: bool = True,
+                     stream_offset: bool = False) -> list[Effect]:
+    """The chain effects of :func:`candidate_effects` at ``joints`` (``context``: the rows' effect context);
+    ``point``: a point measurement (a measured base tilt is offered with a ``base_tilt`` context);
+    ``stream_offset``: offer the joint-state stream's ``time_offset``."""
+    robot = tree.robot
     out: list[Effect] = []
-    signs = stops.context.get("motion_sign", {})
-    vel = stops.context.get("joint_velocity", {})
-    for jn in path:
+    signs = context.get("motion_sign", {})
+    vel = context.get("joint_velocity", {})
+    for jn in joints:
         j = robot.joints[jn]
         if j.movable:
             out.append(make_effect("joint_offset", jn, tree))
         out.append(make_effect("link_error", jn, tree))
-        mass = _carried_mass(tree, jn)
+        mass = carried_mass(tree, jn)
         if j.movable and mass > 0.0:
             out.append(make_effect("gravity_compliance", jn, tree))
         if j.movable and j.type != "prismatic" and mass > 0.0:
             out.append(make_effect("lateral_compliance", jn, tree))
-        if (not j.movable or j.type == "prismatic") and mass > 0.0:
+        if not j.movable and mass > 0.0:
             out.append(make_effect("mount_bending", jn, tree))
-        if j.type == "prismatic" and mass > 0.0:  # telescopic: compliance growing with the extension
-            out.append(make_effect("mount_bending", jn, tree, components=_BENDING_EXTENSION))
+        if j.type == "prismatic" and mass > 0.0:  # telescopic: compliance growing with the extension (nested in it:
+            out.append(make_effect("mount_bending", jn, tree, components=_BENDING_EXTENSION))  # the constant one)
         if j.independent and jn in signs and np.ptp(signs[jn]) > 0:
             out.append(make_effect("backlash", jn, tree))
         if np.linalg.norm(j.origin[:3, 3]) > 0.05:
-            out.extend(_thermal(tree, jn, stops.context))
-    if vel and max(float(np.max(np.abs(v))) for v in vel.values()) > 1e-6:
+            out.extend(_thermal(tree, jn, context))
+    if stream_offset and vel and max(float(np.max(np.abs(v))) for v in vel.values()) > 1e-6:
         out.append(make_effect("time_offset", "/joint_states", tree))
-    if stops.kind == "point" and "base_tilt" in stops.context:
+    if point and "base_tilt" in context:
         out.append(make_effect("base_tilt", robot.root, tree, variable="measured"))
     return out
 
@@ -117,10 +105,12 @@ def _thermal(tree: KinematicTree, joint: str, context: Mapping) -> list[Effect]:
     return []
 
 
-def predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect]
-                     ) -> tuple[np.ndarray, np.ndarray | None, dict, dict, dict]:
-    """Nominal prediction with the declared effects; returns x0 (N,3), R0, poses, dq, dxi."""
-    dq, dxi = sum_effect_corrections(declared, stops.q, stops.context)
+def predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect],
+                    corrections: tuple[dict, dict] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray | None, dict, dict, dict]:
+    """Prediction of the measured points (and tool rotations for poses) with the effects ``declared`` (or their
+    ``corrections`` ``(dq, dxi)`` if the caller has them); returns x0 (N,3), R0, poses, dq, dxi."""
+    dq, dxi = corrections if corrections is not None else sum_effect_corrections(declared, stops.q, stops.context)
     poses = tree.link_poses(stops.q, dq, dxi)
     T = measured_link_poses(stops, poses)
     if stops.kind == "pose" and stops.base and stops.base != tree.root:
@@ -169,25 +159,3 @@ def chain_jacobians(tree: KinematicTree, stops: Stops, poses: Mapping[str, np.nd
                 masked = np.where(m.reshape((n,) + (1,) * len(tail)), np.broadcast_to(v, (n, *tail)), 0.0)
                 acc[k] = acc[k] + masked if k in acc else masked
     return out
-
-
-def measurement_jacobian(tree: KinematicTree, stops: Stops, eff: Effect, nominal: Mapping,
-                          chain: tuple, base_R: np.ndarray | None) -> np.ndarray:
-    """(N, dim, P): derivative of the predicted measurement w.r.t. the effect parameters."""
-    Jq, Jx, Fq, Fx = chain
-    Bq, Bx = eff.basis(stops.q, stops.context, nominal)
-    n = len(stops)
-    G = np.zeros((n, stops.dim, eff.n_params))
-    for k, b in Bq.items():
-        if k in Jq:
-            G[:, :3] += Jq[k][:, :, None] * b[:, None, :]
-            if stops.dim == 6:
-                G[:, 3:] += Fq[k][:, 3:, None] * b[:, None, :]
-    for k, b in Bx.items():
-        if k in Jx:
-            G[:, :3] += Jx[k] @ b
-            if stops.dim == 6:
-                G[:, 3:] += Fx[k][:, 3:] @ b
-    if base_R is not None:  # position derivative into the pose's base frame
-        G[:, :3] = np.einsum("nji,njp->nip", base_R, G[:, :3])
-    return G

@@ -1,119 +1,312 @@
-"""The diagnose engine: forward selection of effects on tracker points or poses, final fit, CIs, sigma refit."""
+"""``diagnose()``: every measurement block in one problem, effects selected, fitted, tested and reported.
+
+1. **Blocks** (:mod:`block`): tracker points or 6D poses, tag pixels, accelerometer tilts, contact distances, each
+   with its nuisances (registration per tracker session, placement tilt per accelerometer group) and noise model.
+2. **Noise**: each block's sensor and prior scales are estimated from the residual of the current fit
+   (:mod:`noise`), not taken from the declaration; the whitening follows them.
+3. **Candidates** (:mod:`terms`): every catalogue effect at every location some block can see, with nested simpler
+   variants and group moves.
+4. **Selection** (:mod:`selection`): stepwise by penalised held-out likelihood, cross-validated over robot poses or
+   bags (:mod:`crossval`), every accepted step refitted on the full nonlinear chain (:mod:`solver`), a backward pass
+   after each.  ``options.effects`` fits a declared set instead.
+5. **Result** (:mod:`outcome`): CIs (:mod:`covariance`), held-out residuals per block, the structure left in them
+   (:mod:`significance`), summary.
+"""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
-
+from pathlib import Path
 import numpy as np
+import yaml
 
-from ppoe_core.analysis.diagnose.candidates import (
-    Candidate,
-    candidate_effects,
-    chain_jacobians,
-    measurement_jacobian,
-    predict_nominal,
-)
-from ppoe_core.analysis.diagnose.imu import _imu_cost, diagnose_imu, imu_tilt_residuals
-from ppoe_core.analysis.diagnose.linear import FitResult, LinearProblem, _identifiable_subset, _ssr, _stack, make_folds
-from ppoe_core.analysis.diagnose.parsimony import simplify
+from ppoe_core.analysis.diagnose.block import ResidualBlock
+from ppoe_core.analysis.diagnose.block_imu import ImuBlock, at_rest
+from ppoe_core.analysis.diagnose.block_pixels import PixelBlock
+from ppoe_core.analysis.diagnose.block_pose import PoseBlock
+from ppoe_core.analysis.diagnose.block_tracker import TrackerBlock
+from ppoe_core.analysis.diagnose.block_contact import ContactBlock, Contacts
+from ppoe_core.analysis.diagnose.crossval import Linearised, assign_folds
+from ppoe_core.analysis.diagnose.noise import estimate_scales
+from ppoe_core.analysis.diagnose.outcome import build_result
+from ppoe_core.analysis.diagnose.pixels import PixelObs
 from ppoe_core.analysis.diagnose.results import DiagnoseOptions, DiagnoseResult
-from ppoe_core.analysis.diagnose.stats import (
-    _paired_t,
-    _point_covariance,
-    _rms3,
-    _rms_m,
-    _rotation_covariance,
-    _signed_rank_z,
-)
+from ppoe_core.analysis.diagnose.selection import Selection, SelectionOptions, select
+from ppoe_core.analysis.diagnose.solver import Problem
 from ppoe_core.analysis.diagnose.stops import Stops
-from ppoe_core.errors import MeasurementError, PpoeError
-from ppoe_core.model.effects import Effect
+from ppoe_core.analysis.diagnose.terms import Catalogue, Term, model_key
+from ppoe_core.errors import MeasurementError, ModelConfigError, PpoeError, UnknownJointError
+from ppoe_core.model.effects import Effect, make_effect
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
+__all__ = ["Measurements", "build_blocks", "diagnose"]
 
-def diagnose(robot: Robot, stops: Stops, declared: Sequence[Effect] = (),
-             perturbation_cov: Mapping[str, np.ndarray] | None = None,
-             joint_noise: Mapping[str, float] | None = None,
+#: an accelerometer block needs at least this many rows at rest
+MIN_IMU_ROWS = 6
+#: rounds of refit and noise re-estimation at the start (the declared scales are only a start)
+NOISE_ROUNDS = 3
+#: a refit confirms the linearisation when its cost is within this share of the linearised system's prediction
+LINEARISATION_TOL = 0.01
+#: everything is linearised again, with new noise scales, when a refit lowered the whitened cost by this share
+NOISE_REESTIMATE = 0.05
+#: the order of the candidates: an exact tie (effects the data cannot tell apart) goes to the earlier one
+TIE_ORDER = ("camera_extrinsics", "camera_intrinsics", "tag_offset", "time_offset", "base_tilt", "joint_offset",
+             "gravity_compliance", "lateral_compliance", "mount_bending", "backlash", "thermal_growth", "link_error")
+
+
+@dataclass
+class Measurements:
+    """What a diagnosis fits: tracker points or poses (with accelerometers in ``stops.imus``), tag pixels, contacts."""
+
+    stops: Stops | None = None
+    pixels: PixelObs | None = None
+    contacts: Contacts | None = None
+
+
+def build_blocks(tree: KinematicTree, data: Measurements, declared: Sequence[Effect],
+                 options: DiagnoseOptions) -> list[ResidualBlock]:
+    """One residual block per measurement kind present (``options.blocks`` selects)."""
+    want = set(options.blocks) if options.blocks else None
+    blocks: list[ResidualBlock] = []
+    s = data.stops
+    if s is not None and len(s):
+        kind = "tracker" if s.kind == "point" else "pose"
+        if want is None or kind in want:
+            blocks.append(TrackerBlock(tree, s, declared) if kind == "tracker" else PoseBlock(tree, s))
+        if s.imus and (want is None or "imu" in want) and at_rest(s).sum() >= MIN_IMU_ROWS:
+            blocks.append(ImuBlock(tree, s, options.imu_sigma or {}))
+    if data.pixels is not None and len(data.pixels) and (want is None or "pixels" in want):
+        blocks.append(PixelBlock(tree, data.pixels))
+    if data.contacts is not None and len(data.contacts) and (want is None or "contact" in want):
+        blocks.append(ContactBlock(tree, data.contacts))
+    if not blocks:
+        raise MeasurementError("diagnose: no measurements to fit (no tracker points, poses, pixels, accelerometers "
+                               "or contacts)")
+    return blocks
+
+
+class Run:
+    """One diagnosis in progress: the problem, the catalogue, the current values and the folds."""
+
+    def __init__(self, problem: Problem, catalogue: Catalogue, unit_fold: np.ndarray) -> None:
+        self.problem, self.catalogue, self.unit_fold = problem, catalogue, unit_fold
+        self.values: dict[int, np.ndarray] = {}
+        self.effects: list[Effect] = []
+        self.model: tuple[Term, ...] = ()
+        self.lin: Linearised | None = None
+        self.noise_cost: float | None = None
+        self.lin_whitening = -1  #: the problem's whitening that ``lin`` was computed in
+        self.lin_model: tuple[Term, ...] | None = None  #: the model ``lin`` was computed at
+        self.refitted = False  #: whether a refit moved the values since
+
+    def model_effects(self, model: Sequence[Term]) -> list[Effect]:
+        return [self.catalogue.effect(t, self._masked(t)) for t in model]
+
+    def _masked(self, t: Term) -> np.ndarray:
+        v = self.values.get(t.cand, np.zeros(self.catalogue.effects[t.cand].n_params))
+        out = np.zeros_like(v)
+        out[list(t.comps)] = v[list(t.comps)]
+        return out
+
+    def relinearise(self, model: tuple[Term, ...], final: bool = False) -> Linearised:
+        """Refit ``model`` on the nonlinear chain, re-estimate the noise scales, and linearise every candidate there
+        (the first time and the ``final`` time :data:`NOISE_ROUNDS` rounds of refit and noise)."""
+        if self.lin is not None and self.lin_model == model and not self.refitted and not final:
+            return self.lin  # nothing changed since it was made
+        first = self.lin is None
+        rounds = NOISE_ROUNDS if first or final else 1
+        for k in range(rounds):
+            self.refit(model)
+            self.estimate_noise(self.effects, self.catalogue.n_params(model))
+            if k < rounds - 1:
+                self.problem.system(self.effects, [])  # whitening with the new scales (the last: below)
+        sys = self.problem.system(self.effects, self.catalogue.effects)
+        by_cand = {t.cand: t for t in model}
+        parts = [self._masked(by_cand[c]) if c in by_cand else np.zeros(e.n_params)
+                 for c, e in enumerate(self.catalogue.effects)]
+        theta = np.concatenate(parts) if parts else np.zeros(0)
+        self.lin = Linearised(sys, self.catalogue, theta, self.unit_fold)
+        self.lin_whitening = self.problem.whitening_count
+        self.lin_model, self.refitted = model, False
+        self.noise_cost = self.lin.ssr(model)  # the cost in the new whitening
+        return self.lin
+
+    def refit(self, model: tuple[Term, ...]) -> float:
+        """Refit ``model`` on the nonlinear chain (values kept as the next start); returns the whitened cost."""
+        jac = None
+        if self.lin is not None and self.lin_whitening == self.problem.whitening_count:
+            jac = self.lin.sys.subset(self.lin.columns(model), [len(t.comps) for t in model])
+        fit = self.problem.refit(self.model_effects(model), jacobian=jac)
+        for t, e in zip(model, fit.effects):
+            full = np.zeros(self.catalogue.effects[t.cand].n_params)
+            full[list(t.comps)] = e.params
+            self.values[t.cand] = full
+        self.model, self.effects = model, fit.effects
+        self.refitted = True
+        return fit.cost
+
+    def confirm(self, model: tuple[Term, ...], predicted: float) -> bool:
+        """Refit ``model``; whether the current linearisation still holds: the refitted cost within
+        :data:`LINEARISATION_TOL` (relative) of the ``predicted`` in-sample cost of the linearised system, and
+        within :data:`NOISE_REESTIMATE` of the cost the noise scales were estimated at (a fit that took away much
+        of the residual needs new scales: the old ones give the rows the shape of the error it took away)."""
+        cost = self.refit(model)
+        linear = abs(cost - predicted) <= LINEARISATION_TOL * max(predicted, 1e-300)
+        noise = self.noise_cost is None or cost >= (1.0 - NOISE_REESTIMATE) * self.noise_cost
+        return linear and noise
+
+    def estimate_noise(self, effects: Sequence[Effect], n_params: int) -> None:
+        """Each block's sensor and prior scales from its residual at the fitted model (:mod:`noise`)."""
+        pr = self.problem
+        model = [*pr.declared, *effects]
+        total = sum(len(b) * b.dim for b in pr.blocks)
+        for b, st in zip(pr.blocks, pr.state):
+            if st.S is None or st.Q is None:
+                continue
+            r = b.residual(model)
+            n_comp = r.size
+            used = b.n_segments * b.nuisance_dim + n_params * n_comp / max(total, 1)
+            frac = max(1.0 - used / max(n_comp, 1), 0.05)
+            st.scales = estimate_scales(r, st.S, st.Q, frac, st.scales if self.lin is not None else None)
+
+
+def _effect_of(tree: KinematicTree, name: str, loc: str) -> Effect:
+    """A declared effect (``--effects``) with all its parameters.
+
+    Raises
+    ------
+    ModelConfigError, UnknownJointError
+        Not an effect of the vocabulary, or not at a location of this robot (names it).
+    """
+    try:
+        return make_effect(name, loc, tree)
+    except (ModelConfigError, UnknownJointError) as exc:
+        raise type(exc)(f"--effects {name}@{loc}: {exc}") from None
+
+
+def _catalogue(tree: KinematicTree, blocks: Sequence[ResidualBlock], options: DiagnoseOptions,
+               declared: Sequence[Effect] = ()) -> Catalogue:
+    """Candidates of every block (``options.candidates`` prefixes filter), ``declared`` ones (``--effects``), the
+    measured chains and the cameras."""
+    cands = [c for b in blocks for c in b.candidates()] + list(declared)
+    # exact ties are broken by catalogue order (TIE_ORDER): a sensor's own effect before a chain effect the sensor
+    # cannot tell from it (a camera moved, or the whole arm relative to a camera fixed to the root), the generic
+    # link_error last (a tilted base, not a link error at the first joint)
+    cands.sort(key=lambda c: TIE_ORDER.index(c.name) if c.name in TIE_ORDER else len(TIE_ORDER))
+    if options.candidates:
+        cands = [c for c in cands if any(c.key.startswith(p) for p in options.candidates)]
+    chains = [ln for b in blocks for ln in b.chain_links()]
+    cameras = {j: f for b in blocks for j, f in b.camera_mounts().items()}
+    return Catalogue(tree, cands, chains, cameras)
+
+
+def declared_specs(specs: Sequence[str]) -> list[tuple[str, str, list[str]]]:
+    """``--effects``: ``(name, location, components)`` of ``name@location[comp,...]`` specs or of YAML files with an
+    ``effects`` list of ``{name, location[, parameters]}`` (the parameters' names choose the components; all if
+    none is given)."""
+    entries: list[tuple[str, str, list[str]]] = []
+    for spec in specs:
+        if spec.endswith((".yaml", ".yml")) and Path(spec).is_file():
+            doc = yaml.safe_load(Path(spec).read_text(encoding="utf-8")) or {}
+            for e in doc.get("effects") or []:
+                entries.append((str(e["name"]), str(e["location"]), list((e.get("parameters") or {}).keys())))
+            continue
+        head, _, comps = spec.partition("[")
+        name, _, loc = head.partition("@")
+        entries.append((name, loc, [c for c in comps.rstrip("]").split(",") if c]))
+    return entries
+
+
+def _declared_model(run: Run, entries: Sequence[tuple[str, str, list[str]]], options: DiagnoseOptions
+                    ) -> tuple[tuple[Term, ...], dict[str, str]]:
+    """The terms of the ``--effects`` entries (:func:`declared_specs`) that these measurements can identify, and the
+    reasons of those left out."""
+    lin = run.relinearise(())
+    terms: list[Term] = []
+    left_out: dict[str, str] = {}
+    for name, loc, comps in entries:
+        t = _term_of(run.catalogue, name, loc, comps)
+        idf = lin.identifiable(tuple(terms), [t], options.max_condition, options.max_absorbed)
+        if idf.ok:
+            terms.append(t)
+        else:
+            left_out[run.catalogue.describe(t)] = idf.reason
+    return model_key(terms), left_out
+
+
+def _term_of(catalogue: Catalogue, name: str, loc: str, comps: Sequence[str]) -> Term:
+    """The catalogue term of effect ``name`` at ``loc`` (or at the camera frame ``loc``) with the parameters
+    ``comps`` (all if empty).
+
+    Raises
+    ------
+    ModelConfigError
+        No such candidate, or parameters it does not have.
+    """
+    cand = next((i for i, e in enumerate(catalogue.effects) if e.name == name
+                 and (e.location == loc or getattr(e, "frame", None) == loc)), None)
+    if cand is None:
+        raise ModelConfigError(f"--effects {name}@{loc}: no such effect in the catalogue of this robot")
+    e = catalogue.effects[cand]
+    bad = [c for c in comps if c not in e.param_names]
+    if bad:
+        raise ModelConfigError(f"--effects {name}@{loc}: no parameters {bad} (has {list(e.param_names)})")
+    return Term(cand, tuple(e.param_names.index(c) for c in comps) if comps else tuple(range(e.n_params)))
+
+
+def diagnose(robot: Robot, data: Measurements | Stops, declared: Sequence[Effect] = (),
+             perturbation_cov: Mapping[str, np.ndarray] | None = None, joint_noise: Mapping[str, float] | None = None,
              options: DiagnoseOptions | None = None) -> DiagnoseResult:
-    """Find the catalogue effects that explain the residual of ``stops`` (module docstring).
+    """Find the catalogue effects that explain the measurements (module docstring).
 
     Parameters
     ----------
     robot : Robot
-    stops : Stops
-    declared : effects the model already declares (part of the nominal prediction)
-    perturbation_cov : joint -> 6x6 covariance of the model's perturbation xi_j, in the tangent
-        space right after the joint's origin (docs/conventions.md sec. 5)
-    joint_noise : joint -> 1-sigma along the joint axis [rad or m]
+    data : Measurements (or tracker / pose Stops alone)
+    declared : effects the model already declares (part of every prediction)
+    perturbation_cov : joint -> 6x6 covariance of the model's perturbation xi_j (tangent space right after the
+        joint's origin); joint_noise : joint -> 1-sigma along the axis [rad or m]
     options : DiagnoseOptions
-
-    Returns
-    -------
-    DiagnoseResult
     """
     options = options or DiagnoseOptions()
+    data = data if isinstance(data, Measurements) else Measurements(stops=data)
     tree = KinematicTree(robot)
-    _check_finite(robot, stops)
-    pert, jnoise = perturbation_cov or {}, joint_noise or {}
-    lin = _linearise(tree, stops, declared, pert, jnoise)
-    problem = LinearProblem(stops, lin.x0, lin.R0, lin.W_base, lin.W_rot)
-    cands = _candidates(tree, stops, lin, options)
-    mode, folds = make_folds(stops, options)
-    all_rows = np.arange(len(stops))
-    sel = _forward_selection(tree, problem, stops, cands, folds, options, all_rows)
-    chosen, simplified = simplify(tree, problem, cands, sel.chosen, folds, options, all_rows, sel.e2)
-    share_steps = sel.steps
-    if simplified:
-        sel, share_steps = _rescore(problem, stops, chosen, folds, sel)
-    # locations the tracker cannot tell apart: let the accelerometers decide (not fitted to them)
-    relocated = _relocate_by_imu(tree, problem, stops, declared, chosen, cands, all_rows) if stops.imus else []
-    fit, ins_before, ins_after, lin_err = _final_fit(tree, stops, declared, chosen, problem, lin, all_rows)
-    effects_out, found = _effect_entries(chosen, fit, share_steps, _rms_m(sel.R_before) ** 2)
-
-    # sigma refit (NEES on held-out stops)
-    ok = np.isfinite(sel.e2)
-    nees_before, nees_after, k_scale, fitted_jn = _refit_sigma(
-        tree, stops, lin.poses, lin.dq0, lin.dxi0, pert, jnoise, sel.Rb_after)
-    floor = math.sqrt(float(np.mean(np.trace(lin.C_exp, axis1=-2, axis2=-1))))
-    rms_b = _rms_m(sel.R_before)
-    rms_a = _rms_m(sel.R_after)
-    unexplained = math.sqrt(max(rms_a ** 2 - floor ** 2, 0.0))
-    res = DiagnoseResult(
-        effects=effects_out, residual_before=rms_b, residual_after=rms_a,
-        residual_before_insample=ins_before, residual_after_insample=ins_after,
-        noise_floor=floor, unexplained=unexplained, steps=sel.steps,
-        rejected=[{"candidate": k, "reason": v} for k, v in sel.rejected.items()],
-        nees_before=nees_before, nees_after=nees_after, sigma_scale=k_scale,
-        linearisation_error=lin_err, cv=mode, n_stops=int(ok.sum()), n_sessions=len(np.unique(stops.session)),
-        e2_before=np.sum(sel.R_before ** 2, axis=1), e2_after=np.sum(sel.R_after ** 2, axis=1), chosen=found)
-    res.extra["per_group"] = {stops.group_names[g]: {"before": _scores(sel.R_before[stops.group == g]),
-                                                     "after": _scores(sel.R_after[stops.group == g])}
-                              for g in np.unique(stops.group)}
-    if fitted_jn:
-        res.extra["fitted_joint_noise"] = fitted_jn
-    if simplified:
-        res.extra["simplified"] = simplified
-    if relocated:
-        res.extra["relocated_by_imu"] = relocated
-    if stops.imus:
-        _accelerometer_extras(res, robot, tree, stops, declared, found, options, perturbation_cov, joint_noise)
-    # a systematic residual remains if the held-out mean squared Mahalanobis distance under the
-    # declared covariance exceeds its expectation 3 by more than 3 standard errors (chi^2_3 mean); the rows of
-    # several reflectors at one stop share its perturbation draw: count stops (distinct configurations)
-    m2 = float(np.nanmean(sel.e2))
-    n_ok = _independent_rows(stops, np.isfinite(sel.e2))
-    res.extra["heldout_mahalanobis2"] = m2
-    res.extra["unexplained_significant"] = bool(m2 > 3.0 + 3.0 * math.sqrt(6.0 / max(n_ok, 1)))
-    res.summary = _summary(res)
-    return res
+    if data.stops is not None:
+        check_stops(robot, data.stops)
+    blocks = build_blocks(tree, data, declared, options)
+    problem = Problem(blocks, declared, perturbation_cov, joint_noise, options.loss, options.loss_scale)
+    entries = declared_specs(options.effects or [])
+    catalogue = _catalogue(tree, blocks, options, [_effect_of(tree, n, loc) for n, loc, _ in entries])
+    unit_group = np.zeros(problem.n_units, dtype=int)
+    for g, u in zip(problem.groups, problem.units):
+        unit_group[u] = g
+    mode, unit_fold = assign_folds(unit_group, options.cv, options.folds, options.seed)
+    run = Run(problem, catalogue, unit_fold)
+    before = run.relinearise(())
+    insample_before = [b.residual([*problem.declared]) for b in blocks]
+    if options.effects:
+        model, left_out = _declared_model(run, entries, options)
+        lin = run.relinearise(model, final=True)
+        selection = Selection(model, [], left_out, before.heldout(()), lin.heldout(model))
+    else:
+        sel_opts = SelectionOptions(min_t=options.min_t, min_gain=options.min_gain, penalty=options.penalty,
+                                    max_condition=options.max_condition, max_absorbed=options.max_absorbed,
+                                    max_effects=options.max_effects, groups=options.groups)
+        selection = select(catalogue, run, sel_opts)
+        run.relinearise(selection.model, final=True)
+    return build_result(run, before, insample_before, selection, mode, options)
 
 
-def _check_finite(robot: Robot, stops: Stops) -> None:
-    """At least 6 stops; no NaN/inf in the measurements or in the joint values the measured link needs."""
+def check_stops(robot: Robot, stops: Stops) -> None:
+    """At least 6 stops; no NaN/inf in the measurements or in the joint values the measured link needs.
+
+    Raises
+    ------
+    PpoeError, MeasurementError
+        Naming the first bad stop, its bag and session.
+    """
     n = len(stops)
     if n < 6:
         raise PpoeError(f"diagnose: only {n} stops with measurements; need at least 6")
@@ -127,406 +320,3 @@ def _check_finite(robot: Robot, stops: Stops) -> None:
                                f"values (first: stop {i} of {stops.group_names[stops.group[i]]}, session "
                                f"{stops.session_names[stops.session[i]]})")
 
-
-@dataclass
-class _Linearisation:
-    """The nominal prediction with the declared effects, chain Jacobians and whitening (expected covariance of the
-    measured point: declared PPOE covariance + sensor noise, base frame)."""
-
-    x0: np.ndarray
-    R0: np.ndarray | None
-    poses: dict[str, np.ndarray]
-    dq0: dict[str, np.ndarray]
-    dxi0: dict[str, np.ndarray]
-    chain: tuple
-    base_R: np.ndarray | None
-    nominal: dict[str, np.ndarray]
-    C_exp: np.ndarray
-    W_base: np.ndarray
-    W_rot: np.ndarray | None
-
-
-def _linearise(tree: KinematicTree, stops: Stops, declared: Sequence[Effect], pert: Mapping[str, np.ndarray],
-               jnoise: Mapping[str, float]) -> _Linearisation:
-    """Prediction, Jacobians and whitening at the declared model (see :class:`_Linearisation`)."""
-    x0, R0, poses, dq0, dxi0 = predict_nominal(tree, stops, declared)
-    base_R = None
-    Jq, Jx, Fq, Fx = chain_jacobians(tree, stops, poses, dq0, dxi0)
-    if stops.kind == "pose" and stops.base and stops.base != tree.root:
-        base_R = poses[stops.base][..., :3, :3]
-    nominal = tree.link_poses(stops.q)
-    C_exp = _point_covariance(tree, stops, poses, dq0, dxi0, pert, jnoise)
-    C_exp = C_exp + stops.sigma_rows()[:, None, None] ** 2 * np.eye(3)
-    W_base = np.linalg.inv(np.linalg.cholesky(C_exp))
-    W_rot = None
-    if stops.kind == "pose":
-        C_rot = _rotation_covariance(stops, Fq, Fx, pert, jnoise)
-        W_rot = np.linalg.inv(np.linalg.cholesky(C_rot + stops.sigma_rot ** 2 * np.eye(3)))
-    return _Linearisation(x0, R0, poses, dq0, dxi0, (Jq, Jx, Fq, Fx), base_R, nominal, C_exp, W_base, W_rot)
-
-
-def _candidates(tree: KinematicTree, stops: Stops, lin: _Linearisation, options: DiagnoseOptions) -> list[Candidate]:
-    """Catalogue effects at plausible locations that move the measurement at all (``options.candidates`` filter)."""
-    cands = []
-    for eff in candidate_effects(tree, stops):
-        c = Candidate(eff, measurement_jacobian(tree, stops, eff, lin.nominal, lin.chain, lin.base_R))
-        if options.candidates and not any(c.key.startswith(p) for p in options.candidates):
-            continue
-        if np.abs(c.G).max() > 0.0:
-            cands.append(c)
-    return cands
-
-
-@dataclass
-class _Selection:
-    """Forward selection: chosen candidates, steps, rejections, held-out residuals before/after (metres, whitened
-    base-frame rows ``Rb``) and the held-out squared Mahalanobis distance per stop ``e2``."""
-
-    chosen: list[Candidate]
-    steps: list[dict[str, Any]]
-    rejected: dict[str, str]
-    R_before: np.ndarray
-    R_after: np.ndarray
-    Rb_after: np.ndarray
-    e2: np.ndarray
-
-
-def _forward_selection(tree: KinematicTree, problem: LinearProblem, stops: Stops, cands: list[Candidate],
-                       folds: Any, options: DiagnoseOptions, all_rows: np.ndarray) -> _Selection:
-    """Greedy forward selection by held-out error with paired t and signed-rank statistics (module docstring)."""
-    n = len(stops)
-    chosen: list[Candidate] = []
-    R_before, Rb_before, e2 = problem.heldout(_stack(chosen, n, stops.dim), folds)
-    R_after, Rb_after = R_before, Rb_before
-    steps: list[dict[str, Any]] = []
-    rejected: dict[str, str] = {}
-    while len(chosen) < options.max_effects:
-        best = _best_candidate(tree, problem, stops, cands, chosen, rejected, folds, options, all_rows, e2)
-        # (mse: mean whitened squared held-out error; reported RMS values are in metres)
-        if best is None:
-            break
-        c2, mse1, gain, (t, z), e2c, key, Rc, Rbc = best
-        step = {"candidate": c2.key, "accepted": bool(gain >= options.min_gain and t >= options.min_t),
-                "heldout_rms": _rms_m(Rc), "heldout_mahalanobis2": mse1, "gain": gain, "t": t, "z": z}
-        steps.append(step)
-        if not step["accepted"]:
-            break
-        chosen.append(c2)
-        e2 = e2c
-        R_after, Rb_after = Rc, Rbc
-    return _Selection(chosen, steps, rejected, R_before, R_after, Rb_after, e2)
-
-
-def _independent_rows(stops: Stops, ok: np.ndarray) -> int:
-    """Rows ``ok`` counted once per stop: distinct joint configurations (one row per reflector of a stop)."""
-    if stops.links is None:
-        return int(ok.sum())
-    Q = np.column_stack([stops.q[j][ok] for j in sorted(stops.q)]) if stops.q else np.zeros((int(ok.sum()), 0))
-    return int(np.unique(np.round(Q, 9), axis=0).shape[0]) if Q.size else int(ok.sum())
-
-
-def _rescore(problem: LinearProblem, stops: Stops, chosen: list[Candidate], folds: Any,
-             sel: _Selection) -> tuple[_Selection, list[dict[str, Any]]]:
-    """After a simplification: held-out residuals of the new chosen set, and its cumulative held-out RMS per
-    effect (the shares of the report)."""
-    n = len(stops)
-    cumulative = []
-    for k in range(1, len(chosen) + 1):
-        Rc, Rbc, e2c = problem.heldout(_stack(chosen[:k], n, stops.dim), folds)
-        cumulative.append({"candidate": chosen[k - 1].key, "heldout_rms": _rms_m(Rc)})
-    new = _Selection(chosen, sel.steps, sel.rejected, sel.R_before, Rc, Rbc, e2c) if chosen else sel
-    return new, cumulative
-
-
-def _best_candidate(tree: KinematicTree, problem: LinearProblem, stops: Stops, cands: list[Candidate],
-                    chosen: list[Candidate], rejected: dict[str, str], folds: Any, options: DiagnoseOptions,
-                    all_rows: np.ndarray, e2: np.ndarray) -> tuple | None:
-    """The candidate with the lowest held-out error among the ``options.screen`` best screened in-sample."""
-    n = len(stops)
-    best = None
-    screened = []
-    G_now = _stack(chosen, n, stops.dim)
-    ssr_now = _ssr(problem, G_now, all_rows)
-    for c in cands:
-        if c.key in rejected or any(c.key == k.key for k in chosen):
-            continue
-        if any(ch.effect.name == c.effect.name and ch.effect.location == c.effect.location for ch in chosen):
-            continue
-        c2, why, ssr = _identifiable_subset(problem, chosen, c, options, tree, all_rows)
-        if c2 is None:
-            rejected[c.key] = why
-            continue
-        screened.append((1.0 - ssr / ssr_now, c, c2))
-    screened.sort(key=lambda z: -z[0])
-    tried = []
-    for _, c, c2 in screened[:options.screen]:
-        Rc, Rbc, e2c = problem.heldout(_stack(chosen + [c2], n, stops.dim), folds)
-        ok = np.isfinite(e2) & np.isfinite(e2c)
-        if ok.sum() < 3:
-            continue
-        mse0, mse1 = float(np.mean(e2[ok])), float(np.mean(e2c[ok]))
-        d = e2[ok] - e2c[ok]
-        t = _paired_t(d)
-        z = _signed_rank_z(d)
-        gain = 1.0 - mse1 / mse0
-        tried.append((c2, mse1, gain, (t, z), e2c, c.key, Rc, Rbc))
-        if best is None or mse1 < best[1]:
-            best = tried[-1]
-    return _simplest_as_good(best, tried, options)
-
-
-def _simplest_as_good(best: tuple | None, tried: list[tuple], options: DiagnoseOptions) -> tuple | None:
-    """The parsimony rule (CONTRACT sec. 6): of the candidates that would be accepted, the one with the fewest
-    parameters whose held-out error is not significantly worse than the best's (paired t below 2); among those,
-    the lowest held-out error.  A zero offset is then a ``joint_offset``, not a ``link_error``."""
-    if best is None:
-        return None
-    ok_best = np.isfinite(best[4])
-    good = []
-    for cand in tried:
-        if (cand[0].effect.n_params >= best[0].effect.n_params or cand[2] < options.min_gain
-                or cand[3][0] < options.min_t):
-            continue
-        ok = ok_best & np.isfinite(cand[4])
-        if ok.sum() >= 3 and _paired_t(cand[4][ok] - best[4][ok]) < 2.0:
-            good.append(cand)
-    if not good:
-        return best
-    return min(good, key=lambda c: (c[0].effect.n_params, c[1]))
-
-
-def _final_fit(tree: KinematicTree, stops: Stops, declared: Sequence[Effect], chosen: list[Candidate],
-               problem: LinearProblem, lin: _Linearisation,
-               all_rows: np.ndarray) -> tuple[FitResult, float, float, float]:
-    """Final fit on all stops, relinearised at the estimate (Gauss-Newton on the full chain): fit, in-sample RMS
-    before/after and the linearisation error of the selection stage at the final estimate."""
-    n = len(stops)
-    G = _stack(chosen, n, stops.dim)
-    fit = problem.fit(G, all_rows, iterations=6)
-    fit0 = problem.fit(G[..., :0], all_rows)
-    ins_before = _rms3(problem.residuals(G[..., :0], np.zeros(0), fit0.regs, fit0.rows))
-    ins_after = _rms3(problem.residuals(G, fit.theta, fit.regs, fit.rows))
-    theta = fit.theta.copy()
-    lin_err = 0.0
-    for _ in range(3 if chosen else 0):
-        current = _with_thetas(chosen, theta)
-        xk, Rk, pk, dqk, dxik = predict_nominal(tree, stops, list(declared) + current)
-        chain = chain_jacobians(tree, stops, pk, dqk, dxik)
-        Gk = np.concatenate([measurement_jacobian(tree, stops, c.effect, lin.nominal, chain, lin.base_R)
-                             for c in chosen], axis=-1)
-        pk_problem = LinearProblem(stops, xk, Rk, lin.W_base, lin.W_rot)
-        gn_step = pk_problem.fit(Gk, all_rows, iterations=6)
-        theta = theta + gn_step.theta
-        ins_after = _rms3(pk_problem.residuals(Gk, gn_step.theta, gn_step.regs, gn_step.rows))
-        fit = FitResult(theta.copy(), gn_step.regs, gn_step.cov, gn_step.s2, gn_step.condition, gn_step.absorbed,
-                        gn_step.rows)
-        if np.all(np.abs(gn_step.theta) <= 1e-8 * np.abs(theta) + 1e-15):
-            break
-    if chosen:  # accuracy of the linear model used during selection, at the final estimate
-        x_nl = predict_nominal(tree, stops, list(declared) + _with_thetas(chosen, theta))[0]
-        lin_err = float(np.max(np.linalg.norm(x_nl - (lin.x0 + G[:, :3] @ theta), axis=1)))
-    return fit, ins_before, ins_after, lin_err
-
-
-def _effect_entries(chosen: list[Candidate], fit: FitResult, steps: list[dict[str, Any]],
-                    mse_before: float) -> tuple[list[dict[str, Any]], list[Effect]]:
-    """Contract entries (name, location, parameters, 95 % CI, sigma, share of the residual) and the effects."""
-    effects_out: list[dict[str, Any]] = []
-    found: list[Effect] = []
-    i = 0
-    for k, c in enumerate(chosen):
-        P = c.effect.n_params
-        th = fit.theta[i:i + P]
-        sd = np.sqrt(np.maximum(np.diag(fit.cov)[i:i + P], 0.0))
-        i += P
-        eff = c.effect.with_params(th)
-        found.append(eff)
-        entry = eff.to_config()
-        entry["ci"] = {name: [float(v - 1.96 * s), float(v + 1.96 * s)]
-                       for name, v, s in zip(eff.param_names, th, sd)}
-        entry["sigma"] = {name: float(s) for name, s in zip(eff.param_names, sd)}
-        prev = mse_before if k == 0 else steps[k - 1]["heldout_rms"] ** 2
-        entry["share"] = float((prev - steps[k]["heldout_rms"] ** 2) / mse_before)
-        effects_out.append(entry)
-    return effects_out, found
-
-
-def _accelerometer_extras(res: DiagnoseResult, robot: Robot, tree: KinematicTree, stops: Stops,
-                          declared: Sequence[Effect], found: list[Effect], options: DiagnoseOptions,
-                          perturbation_cov: Mapping[str, np.ndarray] | None,
-                          joint_noise: Mapping[str, float] | None) -> None:
-    """Accelerometer tilt residuals before/after (in-sample, not used by the fit) and the accelerometer stage
-    (without a ``base_tilt`` driven by the measured tilt: it is made of these accelerometers' readings)."""
-    found = [e for e in found if not (e.name == "base_tilt" and getattr(e, "variable", None))]
-    before = imu_tilt_residuals(tree, stops, list(declared))
-    after = imu_tilt_residuals(tree, stops, list(declared) + found)
-    res.extra["imu_tilt"] = {k: {"link": before[k]["link"], "n": before[k]["n"],
-                                 "rms_before": before[k]["rms"], "rms_after": after[k]["rms"]}
-                             for k in before}
-    # accelerometer stage: per-file base tilt and IMU-visible effects on top of declared + found
-    imu_fit = diagnose_imu(robot, stops, list(declared) + found, seed=options.seed,
-                           sigma=options.imu_sigma if options.imu_sigma else 4e-4,
-                           perturbation_cov=perturbation_cov, joint_noise=joint_noise)
-    res.extra["imu_fit"] = {k: v for k, v in imu_fit.items() if k not in ("found", "tilt")}
-
-
-def _relocate_by_imu(tree: KinematicTree, problem: LinearProblem, stops: Stops, declared: Sequence[Effect],
-                     chosen: list[Candidate], cands: Sequence[Candidate], rows: np.ndarray) -> list[dict]:
-    """Swap a chosen effect for the same effect at another location when the tracker data fit
-    both equally well (in-sample weighted SSR within 0.5 %) and the accelerometer tilt residuals
-    prefer the other location; ``chosen`` is modified in place.  Returns the swaps made."""
-    swaps: list[dict] = []
-    for k, c in enumerate(list(chosen)):
-        others = [x for i, x in enumerate(chosen) if i != k]
-
-        def fitted(cand: Candidate, others: list[Candidate] = others) -> tuple[float, list[Effect]]:
-            G = _stack(others + [cand], len(stops), stops.dim)
-            fit = problem.fit(G, rows, iterations=2)
-            ssr = float(np.nansum(problem.whitened(problem.residuals(G, fit.theta, fit.regs, fit.rows),
-                                                   fit.regs, fit.rows) ** 2))
-            return ssr, _with_thetas(others + [cand], fit.theta)
-
-        ssr0, effs0 = fitted(c)
-        best = (_imu_cost(tree, stops, list(declared) + effs0), c)
-        for alt in cands:
-            if alt.effect.name != c.effect.name or alt.effect.location == c.effect.location \
-                    or alt.G.shape[-1] != c.G.shape[-1] or any(alt.effect.location == o.effect.location
-                                                               and alt.effect.name == o.effect.name for o in others):
-                continue
-            ssr1, effs1 = fitted(alt)
-            if ssr1 > 1.005 * ssr0:
-                continue
-            th = effs1[-1].params
-            if any(v < 0 for name, v in zip(alt.effect.param_names, th) if name in alt.effect.nonnegative):
-                continue
-            cost = _imu_cost(tree, stops, list(declared) + effs1)
-            if cost < 0.8 * best[0]:
-                best = (cost, alt)
-        if best[1] is not c:
-            swaps.append(
-                {
-                    "from": c.key,
-                    "to": best[1].key,
-                    "imu_cost_from": _imu_cost(tree, stops, list(declared) + effs0),
-                    "imu_cost_to": best[0],
-                }
-            )
-            chosen[k] = best[1]
-    return swaps
-
-
-def _with_thetas(chosen: Sequence[Candidate], theta: np.ndarray) -> list[Effect]:
-    """The chosen effects with their slices of the stacked parameter vector."""
-    out, i = [], 0
-    for c in chosen:
-        out.append(c.effect.with_params(theta[i : i + c.effect.n_params]))
-        i += c.effect.n_params
-    return out
-
-
-def _summary(res: DiagnoseResult) -> str:
-    if res.effects:
-        names = ", ".join(f"{e['name']} at {e['location']}" for e in res.effects)
-        head = f"found {len(res.effects)} effect(s): {names}"
-    else:
-        head = "no catalogue effect explains the residual significantly"
-    tail = (
-        f"held-out RMS {1e3 * res.residual_before:.3f} mm -> {1e3 * res.residual_after:.3f} mm "
-        f"(noise floor {1e3 * res.noise_floor:.3f} mm)"
-    )
-    if res.extra.get("unexplained_significant"):
-        tail += (
-            f"; UNEXPLAINED: {1e3 * res.unexplained:.3f} mm RMS above the noise floor is not "
-            f"explained by any catalogue effect (held-out mean Mahalanobis^2 "
-            f"{res.extra['heldout_mahalanobis2']:.2f}, expected 3)"
-        )
-    return head + "; " + tail
-
-
-def append_test_summary(res: DiagnoseResult) -> None:
-    """One summary line per ``--test`` bag (``res.extra["test"]``): RMS and p95 before -> after [mm]."""
-    for name, t in res.extra.get("test", {}).items():
-        b = t["before"]
-        if t["n"] and b["n"]:
-            res.summary += (f"\ntest {name} ({t['n']} stops; {t['protocol']}): RMS {1e3 * b['rms']:.3f} -> "
-                            f"{1e3 * t['rms']:.3f} mm, p95 {1e3 * b['p95']:.3f} -> {1e3 * t['p95']:.3f} mm")
-        else:
-            res.summary += f"\ntest {name}: no stop could be scored ({t['unscored']} without a registration)"
-
-
-def _scores(R: np.ndarray) -> dict[str, float]:
-    """Error statistics of residuals (n, 3) [m] in a z-up frame: RMS 3D, max 3D, r95 xy, r95 z."""
-    R = R[np.all(np.isfinite(R), axis=1)]
-    if not R.size:
-        return {"n": 0}
-    n3 = np.linalg.norm(R, axis=1)
-    return {
-        "n": int(R.shape[0]),
-        "rms": float(np.sqrt(np.mean(n3**2))),
-        "max": float(n3.max()),
-        "r95_xy": float(np.percentile(np.linalg.norm(R[:, :2], axis=1), 95)),
-        "r95_z": float(np.percentile(np.abs(R[:, 2]), 95)),
-    }
-
-
-def _refit_sigma(
-    tree: KinematicTree,
-    stops: Stops,
-    poses: Mapping,
-    dq: Mapping,
-    dxi: Mapping,
-    pert: Mapping[str, np.ndarray],
-    jnoise: Mapping[str, float],
-    Rb: np.ndarray,
-) -> tuple[float, float, float, dict[str, float] | None]:
-    """Scale ``k`` of the model covariance so that the mean held-out NEES is 3.
-
-    ``C_i = k^2 C_model,i + sigma^2 I`` with ``C_model`` the first-order PPOE covariance of the
-    measured point (base-frame axes) and ``Rb`` the held-out residuals in base-frame axes.
-    A model without any uncertainty gets a common joint noise ``k`` [rad or m] on the movable
-    joints of the chain instead.  Returns ``(NEES at k=1, NEES at k, k, fitted joint noise)``.
-    """
-    fitted: dict[str, float] | None = None
-    if pert or jnoise:
-        C_model = _point_covariance(tree, stops, poses, dq, dxi, pert, jnoise)
-    else:
-        unit = {j: 1.0 for j in stops.chain_joints(tree.robot) if tree.robot.joints[j].independent}
-        C_model = _point_covariance(tree, stops, poses, dq, dxi, {}, unit)
-    ok = np.all(np.isfinite(Rb), axis=1)
-    if not ok.any():
-        return float("nan"), float("nan"), 1.0, None
-    S0 = stops.sigma_rows()[ok, None, None] ** 2 * np.eye(3)
-
-    def nees(k: float) -> float:
-        C = k * k * C_model[ok] + S0
-        return float(np.mean(np.einsum("ni,nij,nj->n", Rb[ok], np.linalg.inv(C), Rb[ok])))
-
-    n1 = nees(1.0) if (pert or jnoise) else float("nan")
-    lo, hi = 1e-9, 1e4
-    if nees(lo) <= 3.0:
-        k = lo
-    elif nees(hi) >= 3.0:
-        k = hi
-    else:
-        for _ in range(100):
-            mid = math.sqrt(lo * hi)
-            lo, hi = (mid, hi) if nees(mid) > 3.0 else (lo, mid)
-        k = math.sqrt(lo * hi)
-    if not (pert or jnoise):
-        fitted = {j: float(k) for j in stops.chain_joints(tree.robot) if tree.robot.joints[j].independent}
-    return n1, nees(k), k, fitted
-
-
-def protocol_scores(robot: Robot, stops: Stops, effects: Sequence[Effect] = ()) -> dict[str, float]:
-    """Score a model with ``effects`` by the stationing protocol, with nothing fitted but the
-    registrations: per session Kabsch on the ``reg_mask`` stops, error of the ``score_mask``
-    stops (measured minus predicted, measurement frame).  Returns RMS / max 3D, r95 xy and z [m]
-    and ``n`` (see the Hilti README "Baseline").
-    """
-    tree = KinematicTree(robot)
-    x = predict_nominal(tree, stops, list(effects))[0]
-    problem = LinearProblem(stops, x, None)
-    G0 = np.zeros((len(stops), 3, 0))
-    regs = problem.kabsch_regs(G0, np.zeros(0), np.flatnonzero(stops.reg_mask))
-    rows = np.flatnonzero(stops.score_mask & ~stops.reg_mask & np.isin(stops.session, list(regs)))
-    return _scores(problem.residuals(G0, np.zeros(0), regs, rows))

@@ -1,9 +1,17 @@
-"""Tag-pixel measurement model of the pixel stage: predicted pixels, chain Jacobians, PPOE pixel covariance,
-candidates."""
+"""Tag pixels: the observations (:class:`PixelObs`) and their prediction through link -> root -> camera -> image.
+
+A tag point on its link, ``p_link = T_link_tag Exp(delta) t`` (``delta`` the tag's ``tag_offset``, ``t`` the point
+in the tag frame; or the given link point when the tag is not known), goes to the root on the chain corrected by
+the effects (eq. 16 hooks), into the camera optical frame, and through the camera's ``camera_info`` corrected by its
+``camera_intrinsics`` (pinhole + plumb_bob, :mod:`ppoe_core.estimation.camera`).  :func:`project` gives the pixels
+and, on request, every derivative a residual block needs: w.r.t. the eq. 16 insertions of every joint (through the
+tag link's and the camera's frame Jacobians, ``dP_cam = R_cam^T R_l [I, -[p]x] xi_l + [-I, [P_cam]x] xi_cam``),
+w.r.t. the intrinsics (:mod:`ppoe_core.estimation.camera_intrinsics`) and w.r.t. the tag pose.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -12,47 +20,53 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.analysis.diagnose.candidates import row_link_poses
 from ppoe_core.errors import MeasurementError, ModelConfigError
-from ppoe_core.estimation.camera import project_points_jacobian
-from ppoe_core.model.effects import Effect, make_effect, sum_effect_corrections
+from ppoe_core.estimation.camera_intrinsics import project_with_intrinsics_jacobian
+from ppoe_core.model.effects import Effect, sum_effect_corrections
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
-# =============================================================================
-# Marker pixels: reprojection residuals and camera_extrinsics
-# =============================================================================
+__all__ = ["PixelObs", "Projection", "project", "predict_pixels", "pixel_rms", "pixel_stats", "camera_mount_joint",
+           "concat_pixel_obs", "map_context", "tag_link_poses"]
 
 
 @dataclass
 class PixelObs:
-    """Marker-centre pixels: one row per (pose, marker, camera) observation.
+    """Tag-point pixels: one row per (pose, point, camera) observation.
 
     Attributes
     ----------
-    q : dict joint -> ndarray, shape (M,)
+    q : dict joint -> ndarray (M,)
         Joint values of each observation [rad, m].
     link : str
-        Link that carries the markers (e.g. ``EE1`` or ``tool0``); with ``links`` set, the first one.
-    point : ndarray, shape (M, 3)
-        Marker origin (the point whose image is measured) in its link's coordinates [m].
-    camera : ndarray, shape (M,), int
+        Link that carries the points; with ``links`` set, the first one.
+    point : ndarray (M, 3)
+        The observed point in its link's coordinates [m] (at the nominal tag pose).
+    camera : ndarray (M,) int
         Index into ``cameras``.
-    cameras : list[str]
+    cameras : list of str
         Camera optical frames (URDF links; z forward, x right, y down).
-    K : list of ndarray (3, 3); D : list of ndarray (5,)
-        Intrinsics [px] and plumb_bob distortion of each camera.
-    uv : ndarray, shape (M, 2)
+    K, D : lists of ndarray (3, 3) / (5,)
+        Intrinsics [px] and plumb_bob distortion of each camera (its ``camera_info``).
+    uv : ndarray (M, 2)
         Measured raw (distorted) pixels.
-    pose : ndarray, shape (M,), int
-        Robot pose index of each observation (cross-validation folds keep a pose together).
+    pose : ndarray (M,) int
+        Image of each observation (the points of one image share it).
     sigma_px : float
-        Pixel noise, 1-sigma per axis [px]: residuals are whitened with it.
+        Pixel noise, 1-sigma per axis [px] (declared).
     name : str
-        Source (file or bag), used in messages.
+        Source (file or bag), for messages.
     context : dict
-        Effect context per observation (``motion_sign``: joint -> (M,), ``time`` (M,),
-        ``joint_velocity``: joint -> (M,)), as in :class:`Stops`.
-    links : ndarray, shape (M,), of str, or None
-        Tags on several links: the link of each row's point (None: every row on ``link``).
+        Effect context per observation (``motion_sign``, ``time``, ``joint_velocity``, ``sensor``).
+    links : ndarray (M,) of str or None
+        Points on several links: the link of each row (None: every row on ``link``).
+    tag : ndarray (M,) int or None
+        Tag id of each row (-1: none); with ``tag_point`` and ``tag_poses`` the ``tag_offset`` effects apply.
+    tag_point : ndarray (M, 3) or None
+        The point in its tag's frame [m].
+    tag_poses : dict id -> ndarray (4, 4)
+        ``T_link_tag`` of each tag.
+    group : ndarray (M,) int or None
+        Source bag / file of each row (index into ``group_names``; None: one group, ``name``).
     """
 
     q: dict[str, np.ndarray]
@@ -68,40 +82,45 @@ class PixelObs:
     name: str = ""
     context: dict[str, Any] = field(default_factory=dict)
     links: np.ndarray | None = None
+    tag: np.ndarray | None = None
+    tag_point: np.ndarray | None = None
+    tag_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    group: np.ndarray | None = None
+    group_names: list[str] = field(default_factory=list)
 
     def __len__(self) -> int:
         return int(self.uv.shape[0])
 
+    def row_groups(self) -> tuple[np.ndarray, list[str]]:
+        """Group of each row (M,) and the group names."""
+        if self.group is None:
+            return np.zeros(len(self), dtype=int), [self.name]
+        return np.asarray(self.group, dtype=int), list(self.group_names)
+
     def row_links(self) -> np.ndarray:
-        """The tag link of each row, (M,) of str."""
+        """The link of each row, (M,) of str."""
         return self.links if self.links is not None else np.full(len(self), self.link, dtype=object)
 
     def tag_links(self) -> list[str]:
-        """The tag links, in first-seen order (one unless ``links`` is set)."""
+        """The point links, in first-seen order (one unless ``links`` is set)."""
         return list(dict.fromkeys(self.row_links().tolist())) if self.links is not None else [self.link]
 
     def subset(self, rows: np.ndarray) -> PixelObs:
         """The observations ``rows`` (index or boolean array)."""
         return PixelObs(
-            q={k: v[rows] for k, v in self.q.items()},
-            link=self.link,
-            point=self.point[rows],
-            camera=self.camera[rows],
-            cameras=self.cameras,
-            K=self.K,
-            D=self.D,
-            uv=self.uv[rows],
-            pose=self.pose[rows],
-            sigma_px=self.sigma_px,
-            name=self.name,
-            context=_map_ctx(lambda v: v[rows], [self.context]),
+            q={k: v[rows] for k, v in self.q.items()}, link=self.link, point=self.point[rows],
+            camera=self.camera[rows], cameras=self.cameras, K=self.K, D=self.D, uv=self.uv[rows],
+            pose=self.pose[rows], sigma_px=self.sigma_px, name=self.name,
+            context=map_context(lambda v: v[rows], [self.context]),
             links=None if self.links is None else self.links[rows],
-        )
+            tag=None if self.tag is None else self.tag[rows],
+            tag_point=None if self.tag_point is None else self.tag_point[rows], tag_poses=self.tag_poses,
+            group=None if self.group is None else self.group[rows], group_names=self.group_names)
 
 
-def _map_ctx(fn: Any, ctxs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """Apply ``fn`` to the per-observation arrays of one or several contexts (keys of the first;
-    nested joint dictionaries kept)."""
+def map_context(fn: Callable[..., Any], ctxs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Apply ``fn`` to the per-observation arrays of one or several contexts (keys of the first; nested joint
+    dictionaries kept)."""
     out: dict[str, Any] = {}
     for k, v in ctxs[0].items():
         if isinstance(v, Mapping):
@@ -111,186 +130,135 @@ def _map_ctx(fn: Any, ctxs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def _camera_points(
-    tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect]
-) -> tuple[np.ndarray, dict, dict, dict]:
-    """Marker points in their camera's optical frame, shape (M, 3) [m], with the chain used."""
-    dq, dxi = sum_effect_corrections(list(effects), obs.q, obs.context)
-    links = obs.tag_links()
-    poses = tree.link_poses(obs.q, dq, dxi, links=[*links, *obs.cameras])
-    T_root_tag = tag_link_poses(obs, poses)
-    p_root = np.einsum("mij,mj->mi", T_root_tag[:, :3, :3], obs.point) + T_root_tag[:, :3, 3]
-    P = np.empty_like(p_root)  # filled per camera
-    for c, frame in enumerate(obs.cameras):
-        m = obs.camera == c
-        T = poses[frame][m]
-        P[m] = np.einsum("mji,mj->mi", T[:, :3, :3], p_root[m] - T[:, :3, 3])
-    return P, poses, dq, dxi
-
-
 def tag_link_poses(obs: PixelObs, poses: Mapping[str, np.ndarray]) -> np.ndarray:
-    """``T_root_link`` of each row's tag link, (M, 4, 4), from :meth:`KinematicTree.link_poses` output."""
+    """``T_root_link`` of each row's link, (M, 4, 4), from :meth:`KinematicTree.link_poses` output."""
     return row_link_poses(poses, obs.link, obs.links, len(obs))
 
 
-def _tag_frame_jacobians(tree: KinematicTree, obs: PixelObs, poses: Mapping[str, np.ndarray], dq: Mapping,
-                         dxi: Mapping) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """:meth:`KinematicTree.frame_jacobian` of each row's tag link ((M, 6), (M, 6, 6); zero for joints off
-    that link's path)."""
-    if obs.links is None:
-        return tree.frame_jacobian(obs.q, obs.link, poses, dq, dxi)
-    rows, n = obs.row_links(), len(obs)
-    Jq: dict[str, np.ndarray] = {}
-    Jx: dict[str, np.ndarray] = {}
-    for ln in obs.tag_links():
-        m = rows == ln
-        jq, jx = tree.frame_jacobian(obs.q, ln, poses, dq, dxi)
-        for k, v in jq.items():
-            Jq[k] = Jq.get(k, np.zeros((n, 6))) + np.where(m[:, None], np.broadcast_to(v, (n, 6)), 0.0)
-        for k, v in jx.items():
-            Jx[k] = Jx.get(k, np.zeros((n, 6, 6))) + np.where(m[:, None, None], np.broadcast_to(v, (n, 6, 6)), 0.0)
-    return Jq, Jx
+@dataclass
+class Projection:
+    """:func:`project` output: pixels (M, 2) and, with Jacobians, ``J_dq`` (joint -> (M, 2)), ``J_dxi`` (joint ->
+    (M, 2, 6)), ``J_intrinsics`` (M, 2, 9) and ``J_point`` (M, 2, 3) (w.r.t. the point in its link)."""
+
+    uv: np.ndarray
+    J_dq: dict[str, np.ndarray] = field(default_factory=dict)
+    J_dxi: dict[str, np.ndarray] = field(default_factory=dict)
+    J_intrinsics: np.ndarray | None = None
+    J_point: np.ndarray | None = None
 
 
-def predict_pixels(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> np.ndarray:
-    """Predicted raw pixels (M, 2): marker origin on ``obs.link`` -> root -> camera optical frame,
-    projected with the intrinsics and plumb_bob distortion (:func:`ppoe_core.estimation.camera.project_points`).
+def sensor_corrections(obs: PixelObs, effects: Sequence[Effect]) -> tuple[list[np.ndarray], list[np.ndarray],
+                                                                         np.ndarray]:
+    """The cameras' ``(K, D)`` corrected by their ``camera_intrinsics`` and the rows' link points moved by their
+    tags' ``tag_offset`` (other effects ignored)."""
+    K, D = [np.asarray(k, dtype=float) for k in obs.K], [np.asarray(d, dtype=float) for d in obs.D]
+    point = obs.point
+    for e in effects:
+        if e.name == "camera_intrinsics" and e.location in obs.cameras:
+            c = obs.cameras.index(e.location)
+            K[c], D[c] = e.corrected(K[c], D[c])  # type: ignore[attr-defined]
+        elif e.name == "tag_offset" and obs.tag is not None and obs.tag_point is not None:
+            m = obs.tag == e.tag_id  # type: ignore[attr-defined]
+            if m.any() and e.tag_id in obs.tag_poses:  # type: ignore[attr-defined]
+                T = e.corrected(obs.tag_poses[e.tag_id])  # type: ignore[attr-defined]
+                point = point.copy() if point is obs.point else point
+                point[m] = obs.tag_point[m] @ T[:3, :3].T + T[:3, 3]
+    return K, D, point
+
+
+def project(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = (), jacobians: bool = False,
+            corrections: tuple[dict, dict] | None = None) -> Projection:
+    """Predicted raw pixels of ``obs`` with ``effects`` (chain and sensor effects), and their derivatives
+    (module docstring) if ``jacobians``; ``corrections``: the chain effects' ``(dq, dxi)`` if the caller has them.
 
     Raises
     ------
     MeasurementError
-        A marker is behind its camera (names the source and the observation row).
+        A point behind its camera (names the source and the row).
     """
-    from ppoe_core.estimation.camera import project_points
-
-    P = _camera_points(tree, obs, effects)[0]
-    _check_in_front(obs, P)
-    uv = np.empty((len(obs), 2))
-    for c in range(len(obs.cameras)):
-        m = obs.camera == c
-        uv[m] = project_points(P[m], obs.K[c], obs.D[c])
-    return uv
-
-
-def _check_in_front(obs: PixelObs, P: np.ndarray) -> None:
-    """MeasurementError naming the source and row if a marker point ``P`` (M, 3) is behind its camera."""
-    bad = P[:, 2] <= 1e-6
-    if np.any(bad):
-        raise MeasurementError(
-            f"{obs.name}: observation {int(np.flatnonzero(bad)[0])}: marker is behind "
-            f"camera '{obs.cameras[int(obs.camera[bad][0])]}' (z = {P[bad][0, 2]:.3g} m)"
-        )
-
-
-def pixel_chain_jacobians(
-    tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()
-) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Analytic derivatives of the predicted pixels w.r.t. the eq. 16 insertions, on the chain
-    corrected by ``effects``.
-
-    With the right perturbations ``xi_cam`` of ``T_root_cam`` and ``xi_l`` of ``T_root_link``
-    (:meth:`KinematicTree.frame_jacobian`),
-    ``dP_cam = R_cam^T R_l [I, -[p]x] xi_l + [-I, [P_cam]x] xi_cam``, then the plumb_bob
-    projection Jacobian ``d uv / d P_cam``.
-
-    Returns
-    -------
-    J_dq : dict joint -> ndarray (M, 2)
-        ``d uv / d dq_j`` [px/rad or px/m].
-    J_dxi : dict joint -> ndarray (M, 2, 6)
-        ``d uv / d dxi_j`` (tangent right after joint ``j``'s origin, ``[rho; theta]``).
-    """
-    return predict_pixels_with_jacobians(tree, obs, effects)[1:]
-
-
-def predict_pixels_with_jacobians(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()
-                                  ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """:func:`predict_pixels` and :func:`pixel_chain_jacobians` from one chain evaluation: ``(uv (M, 2), J_dq,
-    J_dxi)``."""
-    P, poses, dq, dxi = _camera_points(tree, obs, effects)
-    _check_in_front(obs, P)
+    chain = [e for e in effects if not e.sensor]
+    K, D, point = sensor_corrections(obs, effects)
+    dq, dxi = corrections if corrections is not None else sum_effect_corrections(chain, obs.q, obs.context)
+    links = obs.tag_links()
+    poses = tree.link_poses(obs.q, dq, dxi, links=[*links, *obs.cameras])
+    T_l = tag_link_poses(obs, poses)
+    p_root = np.einsum("mij,mj->mi", T_l[:, :3, :3], point) + T_l[:, :3, 3]
     n = len(obs)
-    uv = np.empty((n, 2))
-    Jq_l, Jx_l = _tag_frame_jacobians(tree, obs, poses, dq, dxi)
-    R_l = tag_link_poses(obs, poses)[:, :3, :3]
-    B_l = np.concatenate([R_l, -R_l @ lie.hat3(obs.point)], axis=-1)  # (M, 3, 6): d p_root / d xi_l
-    A = np.zeros((n, 3, 3))  # d P_cam / d p_root = R_cam^T
-    B_c = np.zeros((n, 3, 6))  # d P_cam / d xi_cam
-    Jproj = np.zeros((n, 2, 3))
-    cam_jac = []
+    P = np.empty((n, 3))
+    R_cam = np.empty((n, 3, 3))
     for c, frame in enumerate(obs.cameras):
         m = obs.camera == c
-        if not np.any(m):
+        T = poses[frame][m]
+        R_cam[m] = T[:, :3, :3]
+        P[m] = np.einsum("mji,mj->mi", T[:, :3, :3], p_root[m] - T[:, :3, 3])
+    bad = P[:, 2] <= 1e-6
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise MeasurementError(f"{obs.name}: observation {i}: point is behind camera "
+                               f"'{obs.cameras[int(obs.camera[i])]}' (z = {P[i, 2]:.3g} m)")
+    uv, Jproj, Jint = np.empty((n, 2)), np.empty((n, 2, 3)), np.empty((n, 2, 9))
+    for c in range(len(obs.cameras)):
+        m = obs.camera == c
+        if m.any():
+            uv[m], Jproj[m], Jint[m] = project_with_intrinsics_jacobian(P[m], K[c], D[c])
+    if not jacobians:
+        return Projection(uv)
+    return _with_jacobians(tree, obs, poses, dq, dxi, point, P, R_cam, T_l, uv, Jproj, Jint)
+
+
+def _with_jacobians(tree: KinematicTree, obs: PixelObs, poses: Mapping[str, np.ndarray], dq: Mapping, dxi: Mapping,
+                    point: np.ndarray, P: np.ndarray, R_cam: np.ndarray, T_l: np.ndarray, uv: np.ndarray,
+                    Jproj: np.ndarray, Jint: np.ndarray) -> Projection:
+    """The derivatives of :func:`project` w.r.t. the eq. 16 insertions, the intrinsics and the link point."""
+    n = len(obs)
+    R_l = T_l[:, :3, :3]
+    A = np.swapaxes(R_cam, -1, -2)  # d P_cam / d p_root
+    J_point = Jproj @ A @ R_l
+    G_l = J_point @ np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), -lie.hat3(point)], axis=-1)
+    J_dq: dict[str, np.ndarray] = {}
+    J_dxi: dict[str, np.ndarray] = {}
+    rows = obs.row_links()
+    for ln in obs.tag_links():
+        m = rows == ln
+        jq, jx = tree.frame_jacobian(obs.q, ln, poses, dq, dxi)
+        for k, v in jq.items():
+            J_dq.setdefault(k, np.zeros((n, 2)))[m] += np.einsum("mij,mj->mi", G_l[m], v[m])
+        for k, v in jx.items():
+            J_dxi.setdefault(k, np.zeros((n, 2, 6)))[m] += G_l[m] @ v[m]
+    G_c = Jproj @ np.concatenate([-np.broadcast_to(np.eye(3), (n, 3, 3)), lie.hat3(P)], axis=-1)
+    for c, frame in enumerate(obs.cameras):
+        m = obs.camera == c
+        if not m.any():
             continue
-        A[m] = np.swapaxes(poses[frame][m][:, :3, :3], -1, -2)
-        B_c[m] = np.concatenate([-np.broadcast_to(np.eye(3), (int(m.sum()), 3, 3)), lie.hat3(P[m])], axis=-1)
-        uv[m], Jproj[m] = project_points_jacobian(P[m], obs.K[c], obs.D[c])
-        cam_jac.append((m, tree.frame_jacobian(obs.q, frame, poses, dq, dxi)))
-    G_l = Jproj @ A @ B_l  # (M, 2, 6): d uv / d xi_l
-    J_dq: dict[str, np.ndarray] = {k: np.einsum("mij,mj->mi", G_l, v) for k, v in Jq_l.items()}
-    J_dxi: dict[str, np.ndarray] = {k: G_l @ v for k, v in Jx_l.items()}
-    G_c = Jproj @ B_c
-    for m, (Jq_c, Jx_c) in cam_jac:
-        for k, v in Jq_c.items():  # rows of this camera only
-            J_dq[k] = J_dq[k].copy() if k in J_dq else np.zeros((n, 2))
-            J_dq[k][m] += np.einsum("mij,mj->mi", G_c[m], v[m])
-        for k, v in Jx_c.items():
-            J_dxi[k] = J_dxi[k].copy() if k in J_dxi else np.zeros((n, 2, 6))
-            J_dxi[k][m] += G_c[m] @ v[m]
-    return uv, J_dq, J_dxi
+        jq, jx = tree.frame_jacobian(obs.q, frame, poses, dq, dxi)
+        for k, v in jq.items():
+            J_dq.setdefault(k, np.zeros((n, 2)))[m] += np.einsum("mij,mj->mi", G_c[m], v[m])
+        for k, v in jx.items():
+            J_dxi.setdefault(k, np.zeros((n, 2, 6)))[m] += G_c[m] @ v[m]
+    return Projection(uv, J_dq, J_dxi, Jint, J_point)
 
 
-def pixel_jacobian(tree: KinematicTree, obs: PixelObs, effect: Effect, effects: Sequence[Effect] = ()) -> np.ndarray:
-    """Analytic derivative (M, 2, P) of the predicted pixels w.r.t. ``effect``'s parameters,
-    evaluated on the chain corrected by ``effects``: :func:`pixel_chain_jacobians` times
-    :meth:`Effect.basis` (evaluated on the nominal chain)."""
-    Jq, Jx = pixel_chain_jacobians(tree, obs, effects)
-    return effect_jacobian(Jq, Jx, effect, obs.q, obs.context, tree.link_poses(obs.q), (len(obs), 2))
+def predict_pixels(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> np.ndarray:
+    """Predicted raw pixels (M, 2) with ``effects`` (:func:`project`)."""
+    return project(tree, obs, effects).uv
 
 
-def effect_jacobian(Jq: Mapping[str, np.ndarray], Jx: Mapping[str, np.ndarray], effect: Effect,
-                    q: Mapping[str, np.ndarray], context: Mapping[str, Any], nominal: Mapping[str, np.ndarray],
-                    shape: tuple[int, int]) -> np.ndarray:
-    """Chain Jacobians (``Jq``: joint -> (M, d), ``Jx``: joint -> (M, d, 6)) times ``effect``'s basis
-    (:meth:`Effect.basis` on the ``nominal`` link poses): the derivative (M, d, P) of a measurement of
-    shape ``shape`` = (M, d) w.r.t. the effect's parameters."""
-    Bq, Bx = effect.basis(q, context, nominal)
-    out = np.zeros((*shape, effect.n_params))
-    for k, b in Bq.items():
-        if k in Jq:
-            out = out + Jq[k][:, :, None] * b[:, None, :]
-    for k, b in Bx.items():
-        if k in Jx:
-            out = out + Jx[k] @ b
-    return out
+def pixel_stats(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> dict[str, dict[str, float]]:
+    """Per camera frame: ``n``, ``rms``, ``median`` and ``max`` of the 2D reprojection error [px]."""
+    e = np.linalg.norm(obs.uv - predict_pixels(tree, obs, effects), axis=1)
+    return {f: {"n": int(np.sum(obs.camera == c)), "rms": float(np.sqrt(np.mean(e[obs.camera == c] ** 2))),
+                "median": float(np.median(e[obs.camera == c])), "max": float(np.max(e[obs.camera == c]))}
+            for c, f in enumerate(obs.cameras) if np.any(obs.camera == c)}
 
 
-def pixel_covariance(
-    tree: KinematicTree,
-    obs: PixelObs,
-    effects: Sequence[Effect] = (),
-    pert: Mapping[str, np.ndarray] | None = None,
-    jnoise: Mapping[str, float] | None = None,
-) -> np.ndarray:
-    """Expected covariance (M, 2, 2) of each pixel residual [px^2], image axes: the first-order
-    PPOE covariance (paper eq. 18 to first order: ``pert`` = 6x6 covariances of the insertions,
-    tangent right after each joint's origin; ``jnoise`` = joint 1-sigma [rad, m]) propagated
-    through :func:`pixel_chain_jacobians`, plus ``obs.sigma_px^2 I``."""
-    C = np.broadcast_to(float(obs.sigma_px) ** 2 * np.eye(2), (len(obs), 2, 2)).copy()
-    if pert or jnoise:
-        Jq, Jx = pixel_chain_jacobians(tree, obs, effects)
-        for jn, S in (pert or {}).items():
-            if jn in Jx:
-                C += Jx[jn] @ np.asarray(S, float) @ np.swapaxes(Jx[jn], -1, -2)
-        for jn, sg in (jnoise or {}).items():
-            if jn in Jq:
-                C += float(sg) ** 2 * Jq[jn][:, :, None] * Jq[jn][:, None, :]
-    return C
+def pixel_rms(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> dict[str, float]:
+    """RMS of the 2D reprojection error [px] per camera frame (cameras without rows omitted)."""
+    return {f: v["rms"] for f, v in pixel_stats(tree, obs, effects).items()}
 
 
 def camera_mount_joint(robot: Robot, frame: str) -> str:
-    """The fixed joint a ``camera_extrinsics`` correction of camera ``frame`` sits at: the first
-    fixed joint after the last movable joint on the path from the root to ``frame``."""
+    """The fixed joint a ``camera_extrinsics`` correction of camera ``frame`` sits at: the first fixed joint after
+    the last movable joint on the path from the root to ``frame``."""
     if frame not in robot.links:
         raise ModelConfigError(f"camera frame '{frame}' is not a link of URDF {robot.source}")
     path = robot.path_from_root(frame)
@@ -304,44 +272,41 @@ def camera_mount_joint(robot: Robot, frame: str) -> str:
     return path[k]
 
 
-def pixel_candidates(robot: Robot, obs: PixelObs) -> list[Effect]:
-    """Candidate effects of the pixel residual: ``camera_extrinsics`` (6-DoF) at the mount joint
-    of every camera that has observations (:func:`camera_mount_joint`), and a ``time_offset`` of every
-    camera that saw the robot move (joint speed above 1 mrad/s at some of its images: motion makes a
-    stamp offset visible; context ``sensor`` gives each row's camera)."""
-    tree = KinematicTree(robot)
-    out: list[Effect] = []
-    vel = obs.context.get("joint_velocity") or {}
-    speed = np.max(np.abs(np.stack(list(vel.values()))), axis=0) if vel else np.zeros(len(obs))
-    for c, frame in enumerate(obs.cameras):
-        if np.any(obs.camera == c):
-            out.append(make_effect("camera_extrinsics", camera_mount_joint(robot, frame), tree))
-            if "sensor" in obs.context and np.any(speed[obs.camera == c] > 1e-3):
-                out.append(make_effect("time_offset", frame, tree))
-    return out
-
-
-def pixel_stats(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> dict[str, dict[str, float]]:
-    """Per camera frame: ``n``, ``rms``, ``median`` and ``max`` of the 2D reprojection error [px]
-    (norm of measured minus predicted pixel, every observation counted)."""
-    e = np.linalg.norm(obs.uv - predict_pixels(tree, obs, effects), axis=1)
-    return {
-        f: {
-            "n": int(np.sum(obs.camera == c)),
-            "rms": float(np.sqrt(np.mean(e[obs.camera == c] ** 2))),
-            "median": float(np.median(e[obs.camera == c])),
-            "max": float(np.max(e[obs.camera == c])),
-        }
-        for c, f in enumerate(obs.cameras)
-        if np.any(obs.camera == c)
-    }
-
-
-def pixel_rms(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()) -> dict[str, float]:
-    """RMS of the 2D reprojection error [px] per camera frame (cameras without rows omitted)."""
-    e = obs.uv - predict_pixels(tree, obs, effects)
-    return {
-        f: float(np.sqrt(np.mean(np.sum(e[obs.camera == c] ** 2, axis=1))))
-        for c, f in enumerate(obs.cameras)
-        if np.any(obs.camera == c)
-    }
+def concat_pixel_obs(parts: Sequence[PixelObs]) -> PixelObs:
+    """Join :class:`PixelObs` of several sources (points on any links); images and cameras renumbered."""
+    if not parts:
+        raise MeasurementError("concat_pixel_obs: no pixel observations given")
+    several = any(p.links is not None for p in parts) or len({p.link for p in parts}) > 1
+    cams: list[str] = []
+    K: list[np.ndarray] = []
+    D: list[np.ndarray] = []
+    for p in parts:
+        for c, f in enumerate(p.cameras):
+            if f not in cams:
+                cams.append(f)
+                K.append(p.K[c])
+                D.append(p.D[c])
+            elif not (np.allclose(K[cams.index(f)], p.K[c]) and np.allclose(D[cams.index(f)], p.D[c])):
+                raise MeasurementError(f"{p.name}: camera '{f}' has other intrinsics than in {parts[0].name}")
+    off, pose, groups = 0, [], []
+    gnames: list[str] = []
+    for p in parts:
+        pose.append(p.pose + off)
+        off += int(p.pose.max()) + 1 if len(p) else 0
+        g, names_g = p.row_groups()
+        groups.append(g + len(gnames))
+        gnames.extend(names_g)
+    names = set().union(*[p.q for p in parts])
+    tags = all(p.tag is not None for p in parts)
+    return PixelObs(
+        q={j: np.concatenate([p.q[j] for p in parts]) for j in names}, link=parts[0].link,
+        links=np.concatenate([p.row_links() for p in parts]) if several else None,
+        point=np.concatenate([p.point for p in parts]),
+        camera=np.concatenate([[cams.index(p.cameras[c]) for c in p.camera] for p in parts]).astype(int),
+        cameras=cams, K=K, D=D, uv=np.concatenate([p.uv for p in parts]), pose=np.concatenate(pose),
+        sigma_px=parts[0].sigma_px, name="+".join(p.name for p in parts),
+        context=map_context(lambda *v: np.concatenate(v), [p.context for p in parts]),
+        tag=np.concatenate([p.tag for p in parts if p.tag is not None]) if tags else None,
+        tag_point=np.concatenate([p.tag_point for p in parts if p.tag_point is not None]) if tags else None,
+        tag_poses={k: v for p in parts for k, v in p.tag_poses.items()}, group=np.concatenate(groups),
+        group_names=gnames)

@@ -37,13 +37,13 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
             doc = rt.load(fh) or {}
     effects = [e for e in (doc.get("effects") or []) if e.get("name") not in drop]
     for e in result.effects:
-        if e["name"] in drop:
+        if e.name in drop:
             continue
-        entry = {"name": e["name"], "location": e["location"], "parameters": e["parameters"]}
-        for key in ("variable", "reference"):
-            if key in e:
-                entry[key] = e[key]
-        entry["ci"] = {k: [float(a), float(b)] for k, (a, b) in e["ci"].items()}
+        entry: dict[str, Any] = {"name": e.name, "location": e.location, "parameters": e.parameters}
+        for key in ("variable", "reference", "camera_info"):
+            if getattr(e, key) is not None:
+                entry[key] = getattr(e, key)
+        entry["ci"] = {k: [float(a), float(b)] for k, (a, b) in e.ci.items()}
         effects.append(entry)
     doc["effects"] = effects
     k = result.sigma_scale
@@ -58,12 +58,13 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
             jn_sec = doc.get("joint_noise") or {}
             for jn in list(jn_sec):
                 jn_sec[jn] = float(jn_sec[jn] * k)
-        elif not doc.get("joint_noise") and result.extra.get("fitted_joint_noise"):
-            doc["joint_noise"] = result.extra["fitted_joint_noise"]
+        elif not doc.get("joint_noise") and result.fitted_joint_noise:
+            doc["joint_noise"] = result.fitted_joint_noise
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     header = ("# Model updated by `ppoe diagnose`: effects found (with 95 % CIs) appended to `effects`,\n"
-              f"# perturbation sigmas scaled by {k:.4g} for held-out NEES = 3.\n"
+              f"# perturbation sigmas and joint noise scaled by {k:.4g}: the declared prior's scale as the data "
+              "estimate it.\n"
               + (f"# For robot_calibrated.urdf: the effects {list(drop)} are folded into its joint origins.\n"
                  if drop else ""))
     buf = io.StringIO()
@@ -78,8 +79,7 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
     out.mkdir(parents=True, exist_ok=True)
     paths = {"json": out / "diagnose.json", "md": out / "diagnose.md", "png": out / "diagnose.png"}
     paths["json"].write_text(json.dumps(result.to_json(), indent=2), encoding="utf-8")
-    lines = (_md_effects(result, title) + _md_test(result) + _md_imu_tilt(result) + _md_imu_fit(result)
-             + _md_pixels(result) + _md_steps(result))
+    lines = _md_effects(result, title) + _md_blocks(result) + _md_test(result) + _md_steps(result)
     paths["md"].write_text("\n".join(lines) + "\n", encoding="utf-8")
     if not _plot(result, paths["png"]):
         paths.pop("png")
@@ -87,40 +87,56 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
 
 
 def _md_effects(result: DiagnoseResult, title: str) -> list[str]:
-    """Title, residuals before/after, noise floor, NEES and the table of effects found."""
+    """Title, summary and the table of effects found."""
     lines = [f"# {title}", "", result.summary, "",
-             f"* held-out residual (RMS 3D, {result.cv} cross-validation, {result.n_stops} stops, "
-             f"{result.n_sessions} sessions): before **{1e3 * result.residual_before:.3f} mm**, after "
-             f"**{1e3 * result.residual_after:.3f} mm**",
-             f"* in-sample: {1e3 * result.residual_before_insample:.3f} mm -> "
-             f"{1e3 * result.residual_after_insample:.3f} mm; noise floor (declared PPOE covariance + sensor noise) "
-             f"{1e3 * result.noise_floor:.3f} mm; unexplained above it {1e3 * result.unexplained:.3f} mm",
-             f"* NEES (held-out, expectation 3): {result.nees_before:.3g} with the model's sigmas, "
-             f"{result.nees_after:.3g} after scaling them by {result.sigma_scale:.4g}",
-             f"* linearisation error of the selection stage at the final estimate (the final fit is "
-             f"relinearised on the full chain): {1e6 * result.linearisation_error:.3f} um", "",
-             "| effect | location | parameter | value | 95 % CI | share of residual |",
-             "|---|---|---|---|---|---|"]
+             f"* cross-validation: {result.cv} over {result.n_poses} robot poses ({result.n_stops} tracker / pose "
+             f"rows, {result.n_sessions} registration sessions)", "",
+             "| effect | location | measured by | parameter | value | 95 % CI | share of held-out error |",
+             "|---|---|---|---|---|---|---|"]
     for e in result.effects:
-        for i, (k, v) in enumerate(e["parameters"].items()):
-            lo, hi = e["ci"][k]
-            share = f"{100 * e['share']:.1f} %" if i == 0 else ""
-            lines.append(f"| {e['name'] if i == 0 else ''} | {e['location'] if i == 0 else ''} | {k} | "
-                         f"{v:.6g} | [{lo:.6g}, {hi:.6g}] | {share} |")
+        for i, (k, v) in enumerate(e.parameters.items()):
+            lo, hi = e.ci[k]
+            first = i == 0
+            lines.append(f"| {e.name if first else ''} | {e.location if first else ''} | "
+                         f"{e.measurement if first else ''} | {k} | {v:.6g} | [{lo:.6g}, {hi:.6g}] | "
+                         f"{f'{100 * e.share:.1f} %' if first else ''} |")
+        if e.camera_info:
+            K = e.camera_info["K"]
+            lines.append(f"| | | | camera_info | fx {K[0]:.2f}, fy {K[4]:.2f}, cx {K[2]:.2f}, cy {K[5]:.2f}; "
+                         f"D {', '.join(f'{d:.4g}' for d in e.camera_info['D'])} | | |")
     if not result.effects:
-        lines.append("| (none) | | | | | |")
+        lines.append("| (none) | | | | | | |")
+    return lines
+
+
+def _md_blocks(result: DiagnoseResult) -> list[str]:
+    """Per measurement kind: held-out / in-sample RMS before -> after, noise, structure of what is left."""
+    lines = ["", "## Measurements", "",
+             "| measurement | rows | held-out RMS before -> after | in-sample | noise floor | unexplained | "
+             "sensor / prior scale | NEES declared before -> after | residual structure (held-out gain, t) |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for b in result.blocks.values():
+        f, u = (1e3, "mm") if b.unit == "m" else (1.0, b.unit)
+        st = "; ".join(f"{s.predictor} {100 * s.gain:.1f} %, t {s.t:.1f}{' **significant**' if s.significant else ''}"
+                       for s in b.structure)
+        lines.append(f"| {b.kind} | {b.n} | {f * b.rms_before:.4g} -> {f * b.rms_after:.4g} {u} | "
+                     f"{f * b.rms_before_insample:.4g} -> {f * b.rms_after_insample:.4g} {u} | "
+                     f"{f * b.noise_floor:.4g} {u} | {f * b.unexplained:.4g} {u} | {b.sensor_scale:.3g} / "
+                     f"{b.prior_scale:.3g} | {b.nees_before:.3g} -> {b.nees_after:.3g} | {st} |")
+        for name, v in b.per_sensor.items():
+            lines.append(f"| {b.kind} {name} | | {f * v['rms_before']:.4g} -> {f * v['rms_after']:.4g} {u} | "
+                         f"{f * v['rms_before_insample']:.4g} -> {f * v['rms_after_insample']:.4g} {u} | | | | | |")
     return lines
 
 
 def _md_test(result: DiagnoseResult) -> list[str]:
     """``--test``: the fitted model scored, unchanged, on each test bag (mm), before -> after."""
-    test = result.extra.get("test")
-    if not test:
+    if not result.test:
         return []
     lines = ["", "## Test bags (fitted model unchanged; only tracker registrations fitted)", "",
              "| bag | n | RMS | mean | median | p95 | max | r95 xy | protocol |",
              "|---|---|---|---|---|---|---|---|---|"]
-    for name, t in test.items():
+    for name, t in result.test.items():
         b = t["before"]
         cells = [f"{1e3 * b[k]:.3f} -> {1e3 * t[k]:.3f}" if k in t and k in b else "-"
                  for k in ("rms", "mean", "median", "p95", "max", "r95_xy")]
@@ -128,105 +144,43 @@ def _md_test(result: DiagnoseResult) -> list[str]:
     return lines
 
 
-def _md_imu_tilt(result: DiagnoseResult) -> list[str]:
-    """Accelerometer tilt residuals before/after (not used by the fit)."""
-    lines: list[str] = []
-    if result.extra.get("imu_tilt"):
-        lines += ["", "## Accelerometer tilt residuals (not used by the fit; per-session mean removed)", "",
-                  "| IMU | link | stops | RMS rx, ry before [mrad] | after [mrad] |", "|---|---|---|---|---|"]
-        for k, v in result.extra["imu_tilt"].items():
-            lines.append(f"| {k} | {v['link']} | {v['n']} | {1e3 * v['rms_before'][0]:.3f}, "
-                         f"{1e3 * v['rms_before'][1]:.3f} | {1e3 * v['rms_after'][0]:.3f}, "
-                         f"{1e3 * v['rms_after'][1]:.3f} |")
-    return lines
-
-
-def _md_imu_fit(result: DiagnoseResult) -> list[str]:
-    """The accelerometer stage: base tilt per bag/file and IMU-visible effects."""
-    lines: list[str] = []
-    fit = result.extra.get("imu_fit")
-    if fit:
-        lines += ["", "## Accelerometer stage (base tilt per bag/file, effects seen by the IMUs)", "",
-                  f"Reference IMU (its mounting is part of the base tilt): {fit['reference_imu']}. "
-                  "Held-out tilt RMS per IMU, rx / ry [mrad]: "
-                  + ", ".join(f"{k} {1e3 * b[0]:.3f} / {1e3 * b[1]:.3f} -> {1e3 * fit['tilt_rms_after'][k][0]:.3f}"
-                              f" / {1e3 * fit['tilt_rms_after'][k][1]:.3f}" for k, b in fit["tilt_rms_before"].items())
-                  + ".", ""]
-        for e in fit["effects"]:
-            if e["name"] == "base_tilt":
-                for g, v in e["per_group"].items():
-                    lines.append(f"* base_tilt {g}: tilt_x {1e3 * v['tilt_x']:.3f} mrad "
-                                 f"[{1e3 * v['ci']['tilt_x'][0]:.3f}, {1e3 * v['ci']['tilt_x'][1]:.3f}], "
-                                 f"tilt_y {1e3 * v['tilt_y']:.3f} mrad "
-                                 f"[{1e3 * v['ci']['tilt_y'][0]:.3f}, {1e3 * v['ci']['tilt_y'][1]:.3f}]")
-            else:
-                lines.append(f"* {e['name']}@{e['location']}: " + ", ".join(
-                    f"{k} {v:.4g} [{e['ci'][k][0]:.4g}, {e['ci'][k][1]:.4g}]" for k, v in e["parameters"].items()))
-        if not fit["effects"]:
-            lines.append("* nothing found (no base tilt, no IMU-visible effect)")
-    return lines
-
-
-def _md_pixels(result: DiagnoseResult) -> list[str]:
-    """The tag-pixel stage: held-out and in-sample pixel RMS per camera."""
-    lines: list[str] = []
-    if result.extra.get("pixels"):
-        px = result.extra["pixels"]
-        lines += ["", f"## Tag pixels ({px['n']} points; effects marked `measurement: pixels` above, share = of "
-                  "the pixel residual)", ""]
-        if "pixel_rms_declared_only" in px:
-            lines += ["In-sample RMS with only the declared effects (without the tracker/pose effects above): "
-                      + ", ".join(f"{f} {v:.2f} px" for f, v in px["pixel_rms_declared_only"].items()), ""]
-        lines += ["| camera frame | held-out RMS before [px] | after [px] | in-sample before | after |",
-                  "|---|---|---|---|---|"]
-        for f in px["pixel_rms_before"]:
-            lines.append(f"| {f} | {px['pixel_rms_before'][f]:.2f} | {px['pixel_rms_after'][f]:.2f} | "
-                         f"{px['pixel_rms_before_insample'][f]:.2f} | {px['pixel_rms_after_insample'][f]:.2f} |")
-    return lines
-
-
 def _md_steps(result: DiagnoseResult) -> list[str]:
     """The selection steps and the candidates never attributed (not identifiable)."""
-    lines: list[str] = []
-    lines += ["", "## Selection steps", "", "| candidate | accepted | held-out RMS [mm] | gain | t |",
-              "|---|---|---|---|---|"]
+    lines = ["", "## Selection steps", "", "| action | move | held-out gain | change of L | t | z |",
+             "|---|---|---|---|---|---|"]
     for s in result.steps:
-        lines.append(f"| {s['candidate']} | {s['accepted']} | {1e3 * s['heldout_rms']:.3f} | "
-                     f"{100 * s['gain']:.1f} % | {s['t']:.2f} |")
+        mark = "" if s.get("accepted", True) else " (refused)"
+        lines.append(f"| {s['action']}{mark} | {s['move']} | {s['heldout_gain']:.4g} | {s['delta_L']:.4g} | "
+                     f"{s['t']:.2f} | {s['z']:.2f} |")
     if result.rejected:
-        lines += ["", "## Not identifiable (never attributed)", ""]
+        lines += ["", "## Not identifiable or unphysical (never attributed)", ""]
         lines += [f"* {r['candidate']}: {r['reason']}" for r in result.rejected]
     return lines
 
 
 def _plot(result: DiagnoseResult, png: Path) -> bool:
-    """Held-out error histogram and RMS per accepted step into ``png``; False without matplotlib."""
+    """Held-out RMS before / after per measurement (relative to before) into ``png``; False without matplotlib."""
     try:
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-        ok = np.isfinite(result.e2_before) & np.isfinite(result.e2_after)
-        eb, ea = 1e3 * np.sqrt(result.e2_before[ok]), 1e3 * np.sqrt(result.e2_after[ok])
-        bins = np.linspace(0, max(eb.max(initial=1e-3), ea.max(initial=1e-3)), 40)
-        ax[0].hist(eb, bins, alpha=0.6, label="before")
-        ax[0].hist(ea, bins, alpha=0.6, label="after")
-        ax[0].set_xlabel("held-out 3D error [mm]")
-        ax[0].legend()
-        accepted = [s for s in result.steps if s["accepted"]]  # the selection's steps (a simplification after
-        rms = [1e3 * result.residual_before] + [1e3 * s["heldout_rms"] for s in accepted]  # it may rename them)
-        ax[1].plot(range(len(rms)), rms, "o-")
-        ax[1].axhline(1e3 * result.noise_floor, ls="--", color="k", label="noise floor")
-        ax[1].set_xticks(range(len(rms)), ["nominal"] + ["+" + s["candidate"].replace("@", "\n", 1) for s in accepted],
-                         fontsize=6, rotation=30)
-        ax[1].set_ylabel("held-out RMS [mm]")
-        ax[1].legend()
-        fig.tight_layout()
-        fig.savefig(png, dpi=100)
-        plt.close(fig)
     except ImportError:  # matplotlib is optional for the report
         return False
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    names = list(result.blocks)
+    before = [1.0 for _ in names]
+    after = [b.rms_after / b.rms_before if b.rms_before > 0 else np.nan for b in result.blocks.values()]
+    floor = [b.noise_floor / b.rms_before if b.rms_before > 0 else np.nan for b in result.blocks.values()]
+    x = np.arange(len(names))
+    ax.bar(x - 0.2, before, 0.4, label="before")
+    ax.bar(x + 0.2, after, 0.4, label="after")
+    ax.plot(x + 0.2, floor, "k_", markersize=20, label="noise floor")
+    ax.set_xticks(x, names)
+    ax.set_ylabel("held-out RMS / before")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
     return True
 
 

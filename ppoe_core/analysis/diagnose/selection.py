@@ -1,102 +1,407 @@
-"""Greedy forward selection by held-out gain: the one selection loop of the pixel and accelerometer stages.
+"""The one selection routine: stepwise forward and backward over candidate effects by penalised held-out likelihood.
 
-A candidate ``i`` joins the chosen set when the design of ``chosen + [i]`` is identifiable (condition number of the
-column-scaled normal matrix below ``max_condition``; optional extra ``check``, e.g. no negative compliance) and it
-gives the largest held-out gain ``1 - sum(new) / sum(base)`` of the held-out squared whitened errors; it is accepted
-when that gain is at least ``min_gain`` with a paired t statistic or a one-sided signed-rank z >= ``min_t`` over the
-held-out units (poses or stops): the rank test sees an improvement confined to some units (images in motion, for
-a camera's time offset) that the t statistic, dominated by their spread, misses.  The tracker/pose stage
-(:func:`ppoe_core.analysis.diagnose.engine.diagnose`) screens in-sample first and picks by held-out Mahalanobis
-error; it shares :func:`~ppoe_core.analysis.diagnose.stats._paired_t` with this loop.
+Criterion (docs/diagnose.md, "Selection"): a model ``M`` scores ``L(M) = sum_u d_u(M) / s^2 + kappa P(M)``, with
+``d_u`` the held-out sum of squared whitened residuals of robot pose ``u`` (``-2 log`` likelihood of the held-out
+data up to a constant, :meth:`Linearised.heldout`), ``s^2`` the in-sample residual variance of the model the step
+starts from (the noise scale of the current fit), ``P`` the number of parameters and ``kappa = ln U`` per
+parameter (``U`` scored poses; a BIC-like price).
+
+* **Forward**: every candidate not in the model (each ``camera_intrinsics`` level, its identifiable components
+  only, no significantly negative compliance), every held term grown by one nested step (a parameter more, an
+  intrinsics level more) and every group move (one kind on every joint of a measured chain) is
+  scored; of those that lower ``L`` with significant per-pose held-out gains in some measurement block (paired t
+  or one-sided signed-rank z >= ``min_t`` over the poses of that block: a tracker's gain is not drowned by the
+  scatter of a camera's pixels; a nested extension of a held term at :data:`NESTED_T`, the structure tests' level:
+  a round scores a handful of extensions against about a hundred additions) and a relative gain >= ``min_gain``,
+  the one that lowers ``L`` most is added.
+* **Confirmation**: the new model is refitted on the full nonlinear chain (:meth:`Problem.refit`); every candidate
+  is linearised again there unless the refitted cost is the one the current linearisation predicted.
+* **Backward**, after every addition until nothing changes: for every term, its removal, each nested simpler term
+  (one parameter less, an intrinsics level less, ``joint_offset@j`` for ``link_error@j``) and the simpler
+  replacements by one or two other candidates with fewer parameters in all that explain nothing beyond it; the
+  move that lowers ``L`` most is taken whenever ``L`` does not rise (the held-out fit does not get worse by more
+  than ``kappa`` per parameter saved) and the held-out losses are not significant in any block (paired t or
+  signed-rank z of the per-pose losses below :data:`BACKWARD_T`).  Backward moves are linear at the point of the
+  last refit (the next accepted step refits them).
+* **Stop** when no forward move qualifies (``max_effects`` optionally caps the number of terms).
+* **Phases**: first the sensors' own effects only (camera extrinsics and intrinsics, tag placement, a sensor's time
+  offset: the model of a measurement, before any arm effect is asked to explain what a sensor's own error does),
+  then every candidate; the backward pass may still replace a sensor effect by an arm effect.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from ppoe_core.analysis.diagnose.stats import _lstsq, _paired_t, _signed_rank_z
+from ppoe_core.analysis.diagnose.crossval import Linearised
+from ppoe_core.analysis.diagnose.stats import paired_t, signed_rank_z
+from ppoe_core.analysis.diagnose.terms import Catalogue, Term, model_key
 
-__all__ = ["GainSelection", "select_by_heldout_gain"]
+__all__ = ["SelectionOptions", "Move", "Selection", "Refitter", "select"]
+
+#: replacements by other candidates scored held out per term (the best by in-sample fit)
+SWAP_SCREEN = 6
+#: terms with at least this many parameters are tried against simpler replacements by other candidates (two
+#: parameters are covered by the nested one-parameter terms)
+SWAP_MIN_PARAMS = 3
+#: a backward move is not taken when it makes the held-out fit significantly worse: the per-pose losses' paired t
+#: and signed-rank z both reach this (one-sided 2.3 %)
+BACKWARD_T = 2.0
+#: significance (paired t or signed-rank z) of a nested extension of a held term (an intrinsics level, a parameter
+#: more): a round scores a handful of them (about a hundred additions, judged at ``min_t``), the level at which the
+#: structure tests flag what is left (significance.STRUCTURE_T)
+NESTED_T = 3.0
+#: iterations of the backward pass at one linearisation (each removes or simplifies one term)
+MAX_BACKWARD = 200
+
+
+class Refitter(Protocol):
+    """What the selection needs of the solver: ``relinearise(model)`` refits ``model`` on the nonlinear chain and
+    returns the system of every candidate there; ``confirm(model, predicted)`` refits it and says whether the
+    refitted cost is still the one the current linearisation predicts (``predicted``), i.e. whether it still
+    holds."""
+
+    def relinearise(self, model: tuple[Term, ...]) -> Linearised: ...
+
+    def confirm(self, model: tuple[Term, ...], predicted: float) -> bool: ...
 
 
 @dataclass
-class GainSelection:
-    """Chosen candidate indices, accepted steps, rejections, the final held-out errors per unit and the history of
-    their sums (one entry before any candidate, one per accepted step)."""
+class SelectionOptions:
+    """Settings of :func:`select` (module docstring)."""
 
-    chosen: list[int] = field(default_factory=list)
-    steps: list[dict[str, Any]] = field(default_factory=list)
-    rejected: list[dict[str, Any]] = field(default_factory=list)
-    base: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    hist: list[float] = field(default_factory=list)
-    base0: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    min_t: float = 4.0
+    min_gain: float = 0.0
+    penalty: float | None = None
+    max_condition: float = 1e6
+    max_absorbed: float = 0.999
+    max_effects: int | None = None
+    groups: bool = True
+    max_rounds: int = 60
 
 
-def select_by_heldout_gain(n_candidates: int, name: Callable[[int], str],
-                           design: Callable[[Sequence[int]], np.ndarray],
-                           heldout: Callable[[Sequence[int]], np.ndarray], e0: np.ndarray, *, max_effects: int,
-                           max_condition: float, min_gain: float, min_t: float, skip_rejected: bool = False,
-                           check: Callable[[int, np.ndarray], str | None] | None = None) -> GainSelection:
-    """Forward selection (module docstring).
+@dataclass
+class Move:
+    """A scored change of the model: its new terms, the held-out gain (sum over poses of the drop of ``d_u``), the
+    change of ``L``, the paired statistics, and what it did."""
 
-    Parameters
-    ----------
-    n_candidates : number of candidates; ``name(i)`` describes candidate ``i``
-    design : ``idx -> (rows, columns)`` whitened Jacobian of the candidates ``idx`` (with any nuisance columns)
-    heldout : ``idx -> (units,)`` held-out squared whitened error per unit with the candidates ``idx``
-    e0 : whitened residual, flattened to the rows of ``design``
-    skip_rejected : a candidate rejected once is not tried again
-    check : ``(i, theta) -> reason`` to reject candidate ``i`` from its in-sample fit ``theta`` (None: keep)
-    """
-    sel = GainSelection()
-    sel.base = heldout(sel.chosen)
-    sel.base0 = sel.base.copy()
-    sel.hist = [float(sel.base.sum())]
-    while len(sel.chosen) < max_effects:
-        best = _best_by_gain(n_candidates, name, design, heldout, e0, sel, max_condition, skip_rejected, check)
-        if best is None:
+    action: str
+    model: tuple[Term, ...]
+    label: str
+    gain: float
+    delta_L: float
+    t: float = 0.0
+    z: float = 0.0
+    d: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    t_min: float = 0.0
+    z_min: float = 0.0
+
+    def record(self) -> dict[str, Any]:
+        return {"action": self.action, "move": self.label, "heldout_gain": self.gain, "delta_L": self.delta_L,
+                "t": self.t, "z": self.z}
+
+
+@dataclass
+class Selection:
+    """Result: the chosen model, the values of every column at the end, the steps taken, the candidates refused
+    (with the reason) and the held-out errors per pose of the empty and the final model."""
+
+    model: tuple[Term, ...]
+    steps: list[dict[str, Any]]
+    rejected: dict[str, str]
+    d_before: np.ndarray
+    d_after: np.ndarray
+
+
+class Selector:
+    """State of one selection: the linearisation (rebuilt by the refitter when a refit leaves it)."""
+
+    def __init__(self, catalogue: Catalogue, refitter: Refitter, options: SelectionOptions) -> None:
+        self.catalogue, self.refitter, self.options = catalogue, refitter, options
+        self.rejected: dict[str, str] = {}
+        self.steps: list[dict[str, Any]] = []
+        self.visited: set[tuple[Term, ...]] = set()
+        self.allowed: set[int] | None = None  #: forward candidates of the current phase (None: all)
+        self._lin: Linearised | None = None
+        self._variance: dict[tuple[Term, ...], float] = {}
+
+    @property
+    def lin(self) -> Linearised | None:
+        return self._lin
+
+    @lin.setter
+    def lin(self, value: Linearised | None) -> None:
+        self._lin, self._variance = value, {}
+
+    # -- scoring --------------------------------------------------------------------------------------
+    def kappa(self, d: np.ndarray) -> float:
+        if self.options.penalty is not None:
+            return float(self.options.penalty)
+        return math.log(max(int(np.isfinite(d).sum()), 2))
+
+    def score(self, base: tuple[Term, ...], model: tuple[Term, ...], action: str, label: str) -> Move:
+        """The move ``base -> model`` scored held out (gains per pose, change of ``L`` in units of the current
+        residual variance, paired statistics per measurement block: their largest is the move's ``t`` / ``z``,
+        their smallest its ``t_min`` / ``z_min``)."""
+        assert self.lin is not None
+        d0, d1 = self.lin.heldout(base), self.lin.heldout(model)
+        ok = np.isfinite(d0) & np.isfinite(d1)
+        gain = float((d0[ok] - d1[ok]).sum()) / self.variance(base)
+        dP = self.catalogue.n_params(model) - self.catalogue.n_params(base)
+        b0, b1 = self.lin.heldout_blocks(base), self.lin.heldout_blocks(model)
+        stats = []
+        for x0, x1 in zip(b0, b1):
+            m = np.isfinite(x0) & np.isfinite(x1)
+            if m.sum() >= 3:
+                diff = x0[m] - x1[m]
+                stats.append((paired_t(diff), signed_rank_z(diff)))
+        ts, zs = [t for t, _ in stats] or [0.0], [z for _, z in stats] or [0.0]
+        best = max(range(len(ts)), key=lambda k: max(ts[k], zs[k]))
+        worst = min(range(len(ts)), key=lambda k: max(ts[k], zs[k]))
+        return Move(action, model, label, gain, -gain + self.kappa(d0) * dP, ts[best], zs[best], d1,
+                    ts[worst], zs[worst])
+
+    def variance(self, model: tuple[Term, ...]) -> float:
+        """The residual variance of ``model`` in the current whitening (in-sample, per degree of freedom): ``-2 log
+        L`` is counted in units of it, so a whitening from an older, noisier fit does not blur the penalty."""
+        assert self.lin is not None
+        key = model_key(model)
+        if key not in self._variance:
+            _, _, s2 = self.lin.fit(key)
+            self._variance[key] = max(s2, 1e-12)
+        return self._variance[key]
+
+    # -- forward --------------------------------------------------------------------------------------
+    def admissible(self, model: tuple[Term, ...], term: Term, record: bool = True) -> Term | None:
+        """``term`` reduced to what can be identified with ``model`` (components taken one by one, those that
+        explain the most in-sample first, each kept if still identifiable: of a far camera's nearly equivalent
+        shift and turn, the one the data show) and physically signed; None (reason recorded) if nothing is left."""
+        assert self.lin is not None
+        o = self.options
+        key = self.catalogue.describe(term)
+        idf = self.lin.identifiable(model, [term], o.max_condition, o.max_absorbed)
+        if not idf.ok:
+            if len(term.comps) == 1 or "act" in idf.reason:
+                if record:
+                    self.rejected[key] = idf.reason
+                return None
+            keep: list[int] = []
+            singles = [Term(term.cand, (c,)) for c in term.comps]  # the components that explain most go first
+            order = np.argsort(self.lin.added_ssr(model, singles), kind="stable")
+            for c in (term.comps[i] for i in order):
+                trial = Term(term.cand, tuple(sorted((*keep, c))))
+                if self.lin.identifiable(model, [trial], o.max_condition, o.max_absorbed).ok:
+                    keep.append(c)
+            if not keep:
+                if record:
+                    self.rejected[key] = idf.reason
+                return None
+            term = Term(term.cand, tuple(sorted(keep)))
+        return self._signed(model, term)
+
+    def _signed(self, model: tuple[Term, ...], term: Term) -> Term | None:
+        """Drop the components of ``term`` that must be non-negative but fit significantly negative."""
+        assert self.lin is not None
+        eff = self.catalogue.effect(term)
+        if not eff.nonnegative:
+            return term
+        values, cov, _ = self.lin.fit([*model, term])
+        k0 = self.catalogue.n_params(model)
+        sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        bad = [c for i, c in enumerate(term.comps)
+               if eff.param_names[i] in eff.nonnegative and values[k0 + i] + 1.96 * sd[k0 + i] < 0.0]
+        if not bad:
+            return term
+        keep = tuple(c for c in term.comps if c not in bad)
+        if not keep:
+            self.rejected[self.catalogue.describe(term)] = "fits with a negative compliance: unphysical sign"
+            return None
+        return self._signed(model, Term(term.cand, keep))
+
+    def forward_moves(self, model: tuple[Term, ...]) -> list[Move]:
+        """Every single addition and group move, scored (module docstring)."""
+        held = {t.cand for t in model}
+        moves = []
+        for t in model:  # a held term grown by a nested step (a parameter more, an intrinsics level more)
+            rest = tuple(x for x in model if x != t)
+            for r in self.catalogue.richer(t):
+                r2 = self.admissible(rest, r, record=False)  # what of it can be identified (k2 next to k1 may not)
+                if r2 is None or r2 == t or not set(t.comps) < set(r2.comps) or model_key([*rest, r2]) in self.visited:
+                    continue
+                moves.append(self.score(model, model_key([*rest, r2]), "extend", self.catalogue.describe(r2)))
+        for cand in range(len(self.catalogue)):
+            if cand in held or (self.allowed is not None and cand not in self.allowed):
+                continue
+            for entry in self.catalogue.entry_terms(cand):
+                term = self.admissible(model, entry)
+                if term is None:
+                    continue
+                new = model_key([*model, term])
+                if new not in self.visited:
+                    moves.append(self.score(model, new, "add", self.catalogue.describe(term)))
+        if self.options.groups and self.allowed is None:
+            moves.extend(self.group_moves(model))
+        return moves
+
+    def group_moves(self, model: tuple[Term, ...]) -> list[Move]:
+        """One move per group (:meth:`Catalogue.groups`): its admissible members, added together."""
+        out = []
+        for label, members in self.catalogue.groups(model):
+            cur = list(model)
+            added = 0
+            for cand in members:
+                term = self.admissible(tuple(cur), self.catalogue.full(cand))
+                if term is not None:
+                    cur.append(term)
+                    added += 1
+            new = model_key(cur)
+            if added >= 2 and new not in self.visited:
+                out.append(self.score(model, new, "add group", f"{label} ({added})"))
+        return out
+
+    def accept(self, m: Move, d0: np.ndarray) -> bool:
+        o = self.options
+        ok = np.isfinite(d0) & np.isfinite(m.d)
+        total = float(d0[ok].sum())
+        rel = float((d0[ok] - m.d[ok]).sum()) / total if total > 0 else 0.0
+        need = min(o.min_t, NESTED_T) if m.action == "extend" else o.min_t
+        return m.delta_L < 0.0 and max(m.t, m.z) >= need and rel >= o.min_gain
+
+    def best(self, moves: Sequence[Move], model: tuple[Term, ...]) -> Move:
+        """The move that lowers ``L`` most; equal ones (to rounding) go by fewer parameters, then by catalogue order
+        (a sensor's own effects first).  A camera's intrinsics give way to the same camera's extrinsics when those
+        explain at least as much (the held-out gain, penalty aside): a mount is more often off than a calibration,
+        and small errors of the two look alike in the pixels."""
+        def key(m: Move) -> tuple[float, int, int]:
+            new = [t.cand for t in m.model if t not in model]
+            return (round(m.delta_L, 6), self.catalogue.n_params(m.model), min(new, default=-1))
+
+        best = min(moves, key=key)
+        new = [t for t in best.model if t not in model]
+        eff = self.catalogue.effects[new[0].cand] if best.action == "add" and new else None
+        if eff is None or eff.name != "camera_intrinsics":
+            return best
+        mounts = {j for j, f in self.catalogue.cameras.items() if f == eff.location}
+
+        def camera_move(m: Move, name: str) -> bool:
+            added = [self.catalogue.effects[t.cand] for t in m.model if t not in model]
+            return m.action == "add" and len(added) == 1 and added[0].name == name and (
+                added[0].location in mounts if name == "camera_extrinsics" else added[0].location == eff.location)
+
+        rival = max((m for m in moves if camera_move(m, "camera_extrinsics")), key=lambda m: m.gain, default=None)
+        own = max(m.gain for m in moves if camera_move(m, "camera_intrinsics"))
+        return rival if rival is not None and rival.gain >= own else best
+
+    # -- backward -------------------------------------------------------------------------------------
+    def backward_moves(self, model: tuple[Term, ...]) -> list[Move]:
+        """Removals, nested simplifications and simpler replacements of every term, scored."""
+        moves = []
+        for t in model:
+            rest = tuple(x for x in model if x != t)
+            label = self.catalogue.describe(t)
+            moves.append(self.score(model, rest, "remove", label))
+            for s in self.catalogue.simpler(t):
+                if s.cand != t.cand and any(x.cand == s.cand for x in rest):
+                    continue
+                s2 = self.admissible(rest, s)
+                if s2 is not None and s2 != t:
+                    moves.append(self.score(model, model_key([*rest, s2]), "simplify",
+                                            f"{label} -> {self.catalogue.describe(s2)}"))
+            if len(t.comps) >= SWAP_MIN_PARAMS:
+                moves.extend(self.swaps(model, t, rest))
+        return moves
+
+    def swaps(self, model: tuple[Term, ...], t: Term, rest: tuple[Term, ...]) -> list[Move]:
+        """Replacements of ``t`` by one or two other candidates with fewer parameters in all (screened in-sample,
+        the best :data:`SWAP_SCREEN` scored held out) that explain what ``t`` explains and nothing more (added to the
+        model with ``t``, they would not lower ``L``)."""
+        assert self.lin is not None
+        held = {x.cand for x in model}
+        singles = [self.catalogue.full(c) for c in range(len(self.catalogue))
+                   if c not in held and len(self.catalogue.full(c).comps) < len(t.comps)]
+        fits = self.lin.added_ssr(rest, singles)
+        ranked = [singles[k] for k in np.argsort(fits, kind="stable")[:SWAP_SCREEN]]
+        combos = [(a,) for a in ranked] + [(a, b) for i, a in enumerate(ranked) for b in ranked[i + 1:]
+                                           if len(a.comps) + len(b.comps) < len(t.comps)]
+        combos.sort(key=lambda c: self.lin.ssr([*rest, *c]) if self.lin else 0.0)
+        out = []
+        for combo in combos[:SWAP_SCREEN]:
+            cur: list[Term] = list(rest)
+            for s in combo:
+                s2 = self.admissible(tuple(cur), s)
+                if s2 is None or s2 != s:
+                    break
+                cur.append(s2)
+            else:
+                if self.score(model, model_key([*model, *cur[len(rest):]]), "", "").delta_L < 0.0:
+                    continue  # the replacement explains something ``t`` does not: a forward step's business
+                label = f"{self.catalogue.describe(t)} -> " + " + ".join(self.catalogue.describe(s) for s in combo)
+                out.append(self.score(model, model_key(cur), "replace", label))
+        return out
+
+    def backward(self, model: tuple[Term, ...]) -> tuple[tuple[Term, ...], bool]:
+        """Backward moves at the current linearisation until none lowers ``L`` (module docstring)."""
+        changed = False
+        for _ in range(MAX_BACKWARD):
+            moves = [m for m in self.backward_moves(model) if m.delta_L <= 0.0 and -max(m.t_min, m.z_min) < BACKWARD_T]
+            if not moves:
+                break
+            best = min(moves, key=lambda m: (m.delta_L, self.catalogue.n_params(m.model)))
+            self.steps.append(best.record())
+            model, changed = best.model, True
+        return model, changed
+
+
+def select(catalogue: Catalogue, refitter: Refitter, options: SelectionOptions,
+           start: Sequence[Term] = ()) -> Selection:
+    """Stepwise selection (module docstring) with the nonlinear refits of ``refitter``."""
+    sel = Selector(catalogue, refitter, options)
+    model = model_key(start)
+    sel.lin = refitter.relinearise(model)
+    d_before = sel.lin.heldout(())
+    sel.visited.add(model)
+    sensors = {i for i, e in enumerate(catalogue.effects) if catalogue.is_sensor_own(i)}
+    for phase, allowed in (("sensors", sensors), ("all", None)):
+        if phase == "sensors" and not sensors:
+            continue
+        sel.allowed = allowed
+        model = _forward(sel, model, phase)
+    return Selection(model, sel.steps, sel.rejected, d_before, sel.lin.heldout(model))
+
+
+def _forward(sel: Selector, model: tuple[Term, ...], phase: str) -> tuple[Term, ...]:
+    """Forward steps (each settled by a refit and a backward pass) until none qualifies or the cap is reached."""
+    assert sel.lin is not None
+    for _ in range(sel.options.max_rounds):
+        if sel.options.max_effects is not None and len(model) >= sel.options.max_effects:
             break
-        i, gain, t, new, cond = best
-        z = _signed_rank_z(sel.base - new)
-        step = {"effect": name(i), "heldout_gain": gain, "t": t, "z": z, "condition": cond}
-        if gain < min_gain or max(t, z) < min_t:
-            sel.rejected.append({**step, "reason": f"held-out gain {gain:.3f} (min {min_gain}), t {t:.2f} and "
-                                                   f"signed-rank z {z:.2f} (min {min_t})"})
+        d0 = sel.lin.heldout(model)
+        moves = sel.forward_moves(model)
+        ok = [m for m in moves if sel.accept(m, d0)]
+        best = sel.best(ok or moves, model) if moves else None
+        if best is None or not ok:
+            if best is not None:
+                sel.steps.append({**best.record(), "accepted": False, "phase": phase})
             break
-        sel.steps.append(step)
-        sel.chosen.append(i)
-        sel.base = new
-        sel.hist.append(float(new.sum()))
-    return sel
+        sel.steps.append({**best.record(), "accepted": True, "phase": phase})
+        model = best.model
+        sel.visited.add(model)
+        model = _settle(sel, model)
+    return model
 
 
-def _best_by_gain(n_candidates: int, name: Callable[[int], str], design: Callable[[Sequence[int]], np.ndarray],
-                  heldout: Callable[[Sequence[int]], np.ndarray], e0: np.ndarray, sel: GainSelection,
-                  max_condition: float, skip_rejected: bool,
-                  check: Callable[[int, np.ndarray], str | None] | None) -> tuple | None:
-    """``(i, gain, t, new held-out errors, condition)`` of the identifiable candidate with the largest gain."""
-    best = None
-    for i in range(n_candidates):
-        if i in sel.chosen or (skip_rejected and any(r.get("effect") == name(i) for r in sel.rejected)):
-            continue
-        idx = sel.chosen + [i]
-        th, Hs = _lstsq(design(idx), e0.reshape(-1))
-        cond = float(np.linalg.cond(Hs))
-        if not np.isfinite(cond) or cond > max_condition:
-            sel.rejected.append({"effect": name(i), "reason": f"not identifiable (condition {cond:.3g})"})
-            continue
-        reason = check(i, th) if check is not None else None
-        if reason is not None:
-            sel.rejected.append({"effect": name(i), "reason": reason})
-            continue
-        new = heldout(idx)
-        d = sel.base - new
-        gain = float(d.sum() / max(sel.base.sum(), 1e-300))
-        t = _paired_t(d)
-        if best is None or gain > best[1]:
-            best = (i, gain, t, new, cond)
-    return best
+def _settle(sel: Selector, model: tuple[Term, ...]) -> tuple[Term, ...]:
+    """Refit after an accepted step (linearise every candidate again there unless the refit confirms the current
+    linearisation), then the backward pass (its moves are linear; the next accepted step, or the end of the
+    selection, refits what it leaves)."""
+    assert sel.lin is not None
+    if not sel.refitter.confirm(model, sel.lin.ssr(model)):
+        sel.lin = sel.refitter.relinearise(model)
+    model, _ = sel.backward(model)
+    sel.visited.add(model)
+    return model

@@ -22,15 +22,15 @@ from typing import Any
 
 import numpy as np
 
+from ppoe_core.analysis.diagnose.block_tracker import kabsch_per_session
 from ppoe_core.analysis.diagnose.candidates import predict_nominal
-from ppoe_core.analysis.diagnose.linear import LinearProblem
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import BagError
 from ppoe_core.model.effects import Effect
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
-__all__ = ["error_stats", "score_stops", "check_same_robot"]
+__all__ = ["error_stats", "score_stops", "check_same_robot", "protocol_scores"]
 
 PROTOCOL_ROLES = "stop roles: registration per station on its stationing stops, evaluation stops scored"
 PROTOCOL_ALL = "one rigid registration per session fitted on all its stops, every stop scored"
@@ -58,21 +58,21 @@ def _errors(tree: KinematicTree, stops: Stops,
     """Position errors (n, 3) of the scored stops, the protocol used, the scored rows, and the number
     of stops that could not be scored (their session had no usable registration)."""
     x0, R0, *_ = predict_nominal(tree, stops, list(effects))
-    problem = LinearProblem(stops, x0, R0)
-    G0, th0 = np.zeros((len(stops), stops.dim, 0)), np.zeros(0)
     every = np.arange(len(stops))
     if stops.kind == "pose":
-        return problem.residuals(G0, th0, {}, every)[:, :3], PROTOCOL_POSE, every, 0
+        return stops.p_meas - x0, PROTOCOL_POSE, every, 0
     roles = not (bool(stops.reg_mask.all()) and bool(stops.score_mask.all()))
     if roles:
-        regs = problem.kabsch_regs(G0, th0, np.flatnonzero(stops.reg_mask))
+        reg_rows = np.flatnonzero(stops.reg_mask)
         wanted = np.flatnonzero(stops.score_mask & ~stops.reg_mask)
         protocol = PROTOCOL_ROLES
     else:
-        regs = problem.kabsch_regs(G0, th0, every)
-        wanted, protocol = every, PROTOCOL_ALL
+        reg_rows, wanted, protocol = every, every, PROTOCOL_ALL
+    regs = kabsch_per_session(x0[reg_rows], stops.p_meas[reg_rows], stops.session[reg_rows])
     rows = wanted[np.isin(stops.session[wanted], list(regs))]
-    return problem.residuals(G0, th0, regs, rows), protocol, rows, int(wanted.size - rows.size)
+    T = np.stack([regs[int(k)] for k in stops.session[rows]]) if rows.size else np.zeros((0, 4, 4))
+    pred = np.einsum("nij,nj->ni", T[:, :3, :3], x0[rows]) + T[:, :3, 3]
+    return stops.p_meas[rows] - pred, protocol, rows, int(wanted.size - rows.size)
 
 
 def score_stops(robot: Robot, stops: Stops, declared: Sequence[Effect], found: Sequence[Effect]) -> dict[str, Any]:
@@ -128,3 +128,11 @@ def check_same_robot(fit_robot: Robot, test_robot: Robot, fit_bag: str, test_bag
              f"joints that differ: {changed[:5]}" if changed else ""]
     raise BagError(f"bag {test_bag}: /robot_description is another robot than bag {fit_bag}'s ("
                    + "; ".join(p for p in parts if p) + "): a test bag must record the fitted robot")
+
+
+def protocol_scores(robot: Robot, stops: Stops, effects: Sequence[Effect] = ()) -> dict[str, float | int]:
+    """Score a model with ``effects`` by the stops' protocol with nothing fitted but the registrations
+    (:func:`error_stats` of the scored stops: per session a Kabsch registration on the ``reg_mask`` stops, the
+    ``score_mask`` stops scored; the Hilti README "Baseline")."""
+    R, _, _, _ = _errors(KinematicTree(robot), stops, effects)
+    return error_stats(R)

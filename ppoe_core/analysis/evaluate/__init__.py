@@ -70,48 +70,20 @@ rejected, dropped, bad) are reported per fused method.
 from __future__ import annotations
 
 from ppoe_core.analysis.evaluate.metrics import (
-    METHODS,
-    error_stats,
-    nees_stats,
-    point_covariance,
-    position_errors,
-    rotation_errors,
+    METHODS, error_stats, nees_stats, point_covariance, position_errors, rotation_errors,
 )
 from ppoe_core.analysis.evaluate.options import (
-    EVALUATE_SETTINGS,
-    REPLAY_SETTINGS,
-    EvaluateOptions,
-    Evaluation,
-    load_fusion_params,
+    EVALUATE_SETTINGS, REPLAY_SETTINGS, EvaluateOptions, Evaluation, load_fusion_params, load_sources,
 )
-from ppoe_core.analysis.evaluate.replay import (
-    ProgressBar,
-    contact_measurements,
-    evaluate_bag,
-    joint_matrix,
-)
+from ppoe_core.analysis.evaluate.replay import contact_measurements, evaluate_bag, joint_matrix
 from ppoe_core.analysis.evaluate.report import markdown_report, write_report
 from ppoe_core.analysis.evaluate.scoring import registration_split
 from ppoe_core.analysis.evaluate.tag_stream import tag_measurements
+from ppoe_core.io.progress import ProgressBar
 
 __all__ = [
-    "registration_split",
-    "joint_matrix",
-    "tag_measurements",
-    "contact_measurements",
-    "EvaluateOptions",
-    "Evaluation",
-    "evaluate_bag",
-    "error_stats",
-    "position_errors",
-    "rotation_errors",
-    "point_covariance",
-    "nees_stats",
-    "ProgressBar",
-    "METHODS",
-    "markdown_report",
-    "write_report",
-    "EVALUATE_SETTINGS",
-    "REPLAY_SETTINGS",
-    "load_fusion_params",
+    "registration_split", "joint_matrix", "tag_measurements", "contact_measurements", "EvaluateOptions", "Evaluation",
+    "evaluate_bag", "error_stats", "position_errors", "rotation_errors", "point_covariance", "nees_stats",
+    "ProgressBar", "METHODS", "markdown_report", "write_report", "EVALUATE_SETTINGS", "REPLAY_SETTINGS",
+    "load_fusion_params", "load_sources",
 ]

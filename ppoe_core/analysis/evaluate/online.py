@@ -1,26 +1,31 @@
-"""``ppoe evaluate --online``: drifting effects tracked through a bag, tool error before / static / online.
+"""``ppoe evaluate --online``: drifting effects tracked through a bag, the drift monitor, tool error before / static /
+online.
 
-The bag is replayed in stamp order through :class:`~ppoe_core.estimation.online_effects.OnlineEffects`, the
-object the fusion node runs live (``ppoe_ros.common.online_effects``): each ``/temperature`` message sets the
-thermal variable, each tracker point (``/ground_truth/point[/<name>]``, the model's ``trackers``) and each
-accelerometer message (``/imu/<name>``, the model's ``imus``) updates the tracked effects, and at each
-``/ground_truth/pose`` the tool pose is scored by
+The bag's measurements are replayed in stamp order (ties by source) through the objects the fusion node runs live
+(``ppoe_ros.common.online_effects``): :class:`~ppoe_core.estimation.online_inputs.OnlineInputs` (its :meth:`step`:
+bad-input rules, :class:`~ppoe_core.estimation.online_effects.OnlineEffects`, the drift monitor of
+:func:`~ppoe_core.analysis.drift_naming.make_monitor`).  Measurements: the model's tracker points
+(``/ground_truth/point[/<name>]``, its ``trackers``) and accelerometers (``/imu/<name>``, its ``imus``), tag pixels
+(recorded ``/tag_bearing/observations``, or tags detected on the images, with the focal lengths of ``camera_info``),
+contact planes, and the fusion node's ``sources`` blocks of a node parameter file (6D poses, points,
+accelerometers).  Each measurement takes the joints of the latest ``/joint_states`` at or before its stamp (merged
+per joint as the nodes do) and the latest temperature at or before it.  At each ``/ground_truth/pose`` the tool pose
+is scored by
 
 * ``before``: the nominal model (no effects),
 * ``static``: the diagnosed model, its effects fixed,
-* ``online``: the current estimate (from every tracker point / accelerometer message stamped before the ground
-  truth),
+* ``online``: the estimate from every measurement stamped before the ground truth,
 * ``fresh`` (with ``--truth``): the true effects at that moment, i.e. a robot calibrated just then.
 
-Joint values of a measurement are those of the latest ``/joint_states`` at or before its stamp (merged per joint
-as the kinematics node does, :func:`~ppoe_core.analysis.evaluate.inputs.joint_matrix`).  With ``--truth
-BAG.truth.yaml`` (``ppoe simulate``) the estimate is compared with the true parameters over time
-(:func:`ppoe_core.sim.schedule.truth_values`): error, 3-sigma coverage, and the plot ``online_parameters.png``.
+With ``--truth BAG.truth.yaml`` (``ppoe simulate``) the estimate is compared with the true parameters over time
+(:func:`ppoe_core.sim.schedule.truth_values`: error, 3-sigma coverage), and the drift's significance is located:
+the first measurement from which the untracked truth moves the measurements by one noise sigma per component on
+average over five measurements (:func:`significance`).
 """
 
 from __future__ import annotations
 
-import json
+import copy
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,108 +33,29 @@ from typing import Any
 
 import numpy as np
 
+from ppoe_core.analysis.drift_naming import make_monitor
 from ppoe_core.analysis.evaluate.inputs import joint_matrix, required_joints
-from ppoe_core.analysis.evaluate.metrics import error_stats, rotation_errors
-from ppoe_core.errors import BagError, ModelConfigError
-from ppoe_core.estimation.online_inputs import IMU_TOPIC, OnlineMeasurement, apply_measurement
-from ppoe_core.estimation.online_effects import (
-    OnlineEffects,
-    entries_from_flat,
-    parse_online_config,
-    replace_effects,
+from ppoe_core.analysis.evaluate.online_config import OnlineSettings, load_online_config, load_online_settings
+from ppoe_core.analysis.evaluate.online_report import (
+    ONLINE_METHODS,
+    OnlineEvaluation,
+    markdown_online,
+    write_online_report,
 )
+from ppoe_core.errors import BagError, ModelConfigError
+from ppoe_core.estimation.online_effects import OnlineEffects, parse_online_config
+from ppoe_core.estimation.online_inputs import IMU_TOPIC, OnlineInputs, OnlineMeasurement, OnlineStep
+from ppoe_core.estimation.sources import complete_source, imu_payload, point_payload, pose_payload
 from ppoe_core.io.bagio import read_bag
 from ppoe_core.model.effects import effect_from_config
 from ppoe_core.model.ppoe import PPOEModel
-from ppoe_core.robot.yaml_io import read_yaml_file
-from ppoe_core.sim.schedule import parse_value, truth_values
+from ppoe_core.sim.schedule import parse_value
 
-__all__ = ["ONLINE_METHODS", "OnlineEvaluation", "evaluate_online", "load_online_config", "markdown_online",
-           "write_online_report"]
+__all__ = ["ONLINE_METHODS", "OnlineEvaluation", "OnlineSettings", "evaluate_online", "load_online_config",
+           "load_online_settings", "markdown_online", "significance", "truth_effects", "write_online_report"]
 
-ONLINE_METHODS = ("before", "static", "online", "fresh")
-
-
-@dataclass
-class OnlineEvaluation:
-    """Result of :func:`evaluate_online`: the parameter trace and the scored tool errors."""
-
-    bag: str
-    labels: list[str]
-    stamps: np.ndarray                      # (K,) stamps of the parameter trace [s] (after each update)
-    theta: np.ndarray                       # (K, P) estimate
-    sigma: np.ndarray                       # (K, P) 1-sigma
-    truth: dict[str, np.ndarray] | None     # label -> (K,) true value at the trace stamps
-    gt_stamps: np.ndarray                   # (N,)
-    position_error: dict[str, np.ndarray]   # method -> (N,) [m]
-    rotation_error: dict[str, np.ndarray]   # method -> (N,) [rad]
-    counts: dict[str, int] = field(default_factory=dict)
-    model_effects: list[dict[str, Any]] = field(default_factory=list)
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON numbers: tool error per method (all, first half, second half), parameter summary, counts."""
-        half = self.gt_stamps[0] + 0.5 * (self.gt_stamps[-1] - self.gt_stamps[0]) if len(self.gt_stamps) else 0.0
-        second = self.gt_stamps > half
-        tool = {m: {"position": error_stats(e), "position_first_half": error_stats(e[~second]),
-                    "position_second_half": error_stats(e[second]), "rotation": error_stats(self.rotation_error[m])}
-                for m, e in self.position_error.items()}
-        params: dict[str, Any] = {}
-        for i, lab in enumerate(self.labels):
-            d: dict[str, Any] = {"final": float(self.theta[-1, i]) if len(self.stamps) else None,
-                                 "final_sigma": float(self.sigma[-1, i]) if len(self.stamps) else None}
-            if self.truth is not None and lab in self.truth and len(self.stamps):
-                err = self.theta[:, i] - self.truth[lab]
-                d["error"] = error_stats(np.abs(err))
-                d["coverage_3sigma"] = float(np.mean(np.abs(err) <= 3 * self.sigma[:, i]))
-            params[lab] = d
-        return {"bag": self.bag, "tool_error": tool, "parameters": params, "counts": dict(self.counts),
-                "effects": self.model_effects}
-
-
-def load_online_config(path: str | Path | None) -> tuple[Any, float | None]:
-    """``--online-config FILE`` -> (``online_effects`` list or None, jump probability).
-
-    The file holds ``online_effects:`` (list of ``{name, location, process_noise, initial_sigma}``,
-    :func:`~ppoe_core.estimation.online_effects.parse_online_config`) and optionally ``jump_probability``
-    (0 = off, default 1e-6); or it is a node parameter file whose ``online_*`` parameters are read (the same
-    configuration offline and live).
-    """
-    if path is None:
-        return None, 1e-6
-    raw, _ = read_yaml_file(Path(path), "online config", ModelConfigError)
-    if isinstance(raw, Mapping) and len(raw) == 1:  # a node parameter file (``/**: ros__parameters: online_*``)
-        node = next(iter(raw.values()))
-        if isinstance(node, Mapping) and isinstance(node.get("ros__parameters"), Mapping):
-            return _from_node_params(node["ros__parameters"], path)
-    if not isinstance(raw, Mapping) or set(raw) - {"online_effects", "jump_probability"}:
-        raise ModelConfigError(f"online config {path}: a mapping with keys online_effects, jump_probability")
-    jp = raw.get("jump_probability", 1e-6)
-    if not isinstance(jp, (int, float)) or not 0 <= jp < 1:
-        raise ModelConfigError(f"online config {path}: jump_probability must be in [0, 1), got {jp!r}")
-    return raw.get("online_effects"), (float(jp) or None)
-
-
-def _from_node_params(p: Mapping[str, Any], path: str | Path) -> tuple[Any, float | None]:
-    """The ``online_*`` parameters of a node parameter file (docs/online.md) -> (entries, jump probability)."""
-    try:
-        entries = entries_from_flat(list(p.get("online_effects") or []), list(p.get("online_process_noise") or []),
-                                    list(p.get("online_initial_sigma") or []),
-                                    float(p.get("online_thermal_reference", 20.0)), where=f"{path}: online_effects")
-        jp = float(p.get("online_jump_probability", 1e-6))
-    except (TypeError, ValueError) as exc:
-        raise ModelConfigError(f"online config {path}: {exc}") from None
-    return entries, (jp or None)
-
-
-def _fresh_model(model: PPOEModel, truth: Mapping[str, Any], stamp: float) -> PPOEModel:
-    """The model with the TRUE effects at ``stamp`` (a robot calibrated at that moment)."""
-    t = stamp - float(truth.get("start_time", 0.0))
-    effs = []
-    for i, e in enumerate(truth.get("effects") or []):
-        params = {k: float(parse_value(v, f"truth effects[{i}].{k}")(t)) for k, v in e["parameters"].items()}
-        entry = {k: e[k] for k in ("name", "location", "variable", "reference") if k in e}
-        effs.append(effect_from_config({**entry, "parameters": params}, model.robot, where=f"truth effects[{i}]"))
-    return model.with_effects(effs)
+#: running mean over this many measurements decides when a drift is significant (:func:`significance`)
+SIGNIFICANCE_RUN = 5
 
 
 def _ns(stamp: float) -> int:
@@ -137,193 +63,239 @@ def _ns(stamp: float) -> int:
     return int(round(float(stamp) * 1e9))
 
 
-def _events(data: Any, model: PPOEModel, base: str, tool: str, temperature_topic: str) -> list[tuple]:
-    """(stamp, order, kind, payload) of the temperatures, tracker points and ground-truth poses, in stamp order."""
-    ev: list[tuple] = []
-    temps = data.temperatures.get(temperature_topic)
-    if temps is not None:
-        ev += [(float(t), 0, "temp", (float(v),)) for t, v in zip(temps.stamps, temps.temperature)]
-    series = dict(data.ground_truth_points)
+def truth_effects(model: PPOEModel, truth: Mapping[str, Any], stamp: float) -> list[Any]:
+    """The TRUE effects at ``stamp`` [s] of a simulation truth (a robot calibrated at that moment)."""
+    t = stamp - float(truth.get("start_time", 0.0))
+    effs = []
+    for i, e in enumerate(truth.get("effects") or []):
+        params = {k: float(parse_value(v, f"truth effects[{i}].{k}")(t)) for k, v in e["parameters"].items()}
+        entry = {k: e[k] for k in ("name", "location", "variable", "reference") if k in e}
+        effs.append(effect_from_config({**entry, "parameters": params}, model.robot, where=f"truth effects[{i}]"))
+    return effs
+
+
+def _topic(t: str) -> str:
+    return "/" + t.strip("/")
+
+
+def _source_measurements(data: Any, model: PPOEModel, sources: list[Any]) -> list[OnlineMeasurement]:
+    """The fusion node's point / pose / accelerometer sources from the bag's series (the node's conversion rules,
+    :mod:`ppoe_core.estimation.sources`)."""
+    out: list[OnlineMeasurement] = []
+    points = dict(data.ground_truth_points)
     if len(data.ground_truth_point):
-        series["/ground_truth/point"] = data.ground_truth_point
+        points["/ground_truth/point"] = data.ground_truth_point
+    for src in sources:
+        topic = _topic(src.topic)
+        if src.off:
+            continue
+        rows: list[tuple[float, str, Any]]
+        if src.kind == "pose":
+            s = data.poses_with_covariance.get(topic)
+            rows = [] if s is None else [(t, s.frame_ids[i], pose_payload(src, model, s.frame_ids[i], s.T[i],
+                                                                           s.cov_ros[i]))
+                                         for i, t in enumerate(s.stamps)]
+        elif src.kind == "point":
+            s = points.get(topic)
+            rows = [] if s is None else [(t, s.frame_ids[i], point_payload(src, model, s.frame_ids[i], s.p[i]))
+                                         for i, t in enumerate(s.stamps)]
+        else:
+            s = data.imus.get(topic[len(IMU_TOPIC):]) if topic.startswith(IMU_TOPIC) else None
+            rows = [] if s is None else [(t, s.frame_ids[i], imu_payload(src, model, s.frame_ids[i],
+                                                                          s.linear_acceleration[i],
+                                                                          s.accel_covariance[i]))
+                                         for i, t in enumerate(s.stamps)]
+        out += [OnlineMeasurement(_ns(t), topic, f, payload=p) for t, f, p in rows if not isinstance(p, str)]
+    return out
+
+
+def _measurements(data: Any, model: PPOEModel, sources: list[Any], bag: str) -> list[OnlineMeasurement]:
+    """Every measurement of the bag for the online filter, in the live processing order (stamp, then source)."""
+    from ppoe_core.analysis.evaluate.replay import contact_measurements
+    from ppoe_core.analysis.evaluate.tag_stream import tag_measurements
+
+    taken = {_topic(s.topic) for s in sources if not s.off}
+    out: list[OnlineMeasurement] = []
+    points = dict(data.ground_truth_points)
+    if len(data.ground_truth_point):
+        points["/ground_truth/point"] = data.ground_truth_point
     for tr in model.config.trackers:
-        s = series.get(tr.topic)
-        if s is not None:
-            ev += [(float(t), 2, "point", OnlineMeasurement(_ns(t), tr.topic, s.frame_ids[i], s.p[i]))
-                   for i, t in enumerate(s.stamps)]
+        s = points.get(tr.topic)
+        if s is not None and tr.topic not in taken:
+            out += [OnlineMeasurement(_ns(t), tr.topic, s.frame_ids[i], s.p[i]) for i, t in enumerate(s.stamps)]
     for name in model.config.imus:
         s = data.imus.get(name)
-        if s is not None:
-            ev += [(float(t), 2, "imu", OnlineMeasurement(_ns(t), f"{IMU_TOPIC}{name}", s.frame_ids[i],
-                                                          s.linear_acceleration[i], name))
-                   for i, t in enumerate(s.stamps)]
-    gt = data.ground_truth_pose
-    if len(gt) == 0:
-        raise BagError(f"bag {data.path}: --online needs /ground_truth/pose to score the tool")
-    ev += [(float(t), 1, "gt", (gt.frame_ids[i], gt.T[i])) for i, t in enumerate(gt.stamps)]
-    if not any(e[2] in ("point", "imu") for e in ev):
-        raise BagError(f"bag {data.path}: --online needs tracker points of the model's trackers "
-                       f"({[t.topic for t in model.config.trackers]}) or accelerometers of its imus "
-                       f"({['/imu/' + n for n in model.config.imus]}); the bag has none")
-    return sorted(ev, key=lambda e: (e[0], e[1]))
+        if s is not None and f"{IMU_TOPIC}{name}" not in taken:
+            out += [OnlineMeasurement(_ns(t), f"{IMU_TOPIC}{name}", s.frame_ids[i], s.linear_acceleration[i], name)
+                    for i, t in enumerate(s.stamps)]
+    if model.config.tags is not None:
+        tags, _ = tag_measurements(data, model, bag)
+        out += [_from_fusion(m) for m in tags]
+    if len(data.wrench) or "/contact/plane" in data.poses_with_covariance:
+        contacts, _ = contact_measurements(data, model, "", {})
+        out += [_from_fusion(m) for m in contacts]
+    out += _source_measurements(data, model, sources)
+    return sorted(out, key=lambda m: (m.stamp_ns, m.source))
+
+
+def _from_fusion(m: Any) -> OnlineMeasurement:
+    """A fusion-pipeline :class:`~ppoe_core.estimation.corrections.Measurement` (source ``"<topic> [<frame>]"``)."""
+    topic, _, frame = m.source.partition(" [")
+    return OnlineMeasurement(_ns(m.stamp), topic, frame[:-1] if frame else "", payload=m.payload)
+
+
+@dataclass
+class _Replay:
+    """The run's trace: after each step its stamp, estimate, effects; scored ground truths; counts."""
+
+    steps: list[OnlineStep] = field(default_factory=list)
+    thetas: list[tuple[list[str], np.ndarray, np.ndarray]] = field(default_factory=list)
+    effects: list[list[Any]] = field(default_factory=list)
 
 
 def evaluate_online(bag: str | Path, model_path: str | Path, online_effects: Any = None,
                     jump_probability: float | None = 1e-6, truth: Mapping[str, Any] | None = None,
-                    base: str | None = None, tool: str | None = None,
-                    temperature_topic: str = "/temperature") -> OnlineEvaluation:
-    """Replay ``bag`` with the online filter (module docstring).
+                    base: str | None = None, tool: str | None = None, temperature_topic: str = "/temperature",
+                    settings: OnlineSettings | None = None) -> OnlineEvaluation:
+    """Replay ``bag`` with the online filter and the drift monitor (module docstring).  ``settings`` (a node
+    parameter file's, :func:`load_online_settings`) overrides ``online_effects`` and ``jump_probability``.
 
     Raises
     ------
     BagError
-        No ground-truth pose or tracker point; joints missing.
+        No ground-truth pose, no measurement for the filter; joints missing.
     ModelConfigError
         Bad online config; a tracker frame without ``tracker_registration`` in the model.
     """
+    st = settings or OnlineSettings(online_effects, jump_probability)
     data = read_bag(bag, load_images=False)
-    model = PPOEModel.from_strings(data.require_robot_description(), Path(model_path))
+    model = PPOEModel.from_strings(data.require_robot_description(), Path(model_path),
+                                   urdf_source=f"bag {bag} /robot_description")
+    if model.config.tags is not None and not len(data.tag_observations) and len(data.images):
+        data = read_bag(bag, load_images=True)  # tags are detected on the images
     fr = model.config.frames
     base = base or (fr.base if fr is not None and fr.base else model.robot.root)
     tool = tool or (fr.tool if fr is not None else None)
     if tool is None:
         raise ModelConfigError(f"{model_path}: no frames.tool and no --tool given")
-    filt = OnlineEffects(model, parse_online_config(online_effects, model), jump_probability)
-    if filt.needs_temperature() and temperature_topic not in data.temperatures:
+    sources = [copy.copy(s) for s in st.sources]
+    for s in sources:
+        s.off = complete_source(s, model)
+    filt = OnlineEffects(model, parse_online_config(st.entries, model, sources=sources), st.jump_probability)
+    monitor = make_monitor(st.monitor, st.naming) if st.monitor is not None else None
+    inputs = OnlineInputs(filt, monitor=monitor, base=base, temperature_timeout_ns=_ns(st.temperature_timeout))
+    temps = data.temperatures.get(temperature_topic)
+    if filt.needs_temperature() and temps is None:
         raise BagError(f"bag {bag}: a thermal_growth effect with variable temperature needs {temperature_topic}; "
                        f"the bag has {sorted(data.temperatures) or 'no temperature topic'}")
+    meas = _measurements(data, model, sources, str(bag))
+    gt = data.ground_truth_pose
+    if len(gt) == 0:
+        raise BagError(f"bag {data.path}: --online needs /ground_truth/pose to score the tool")
+    if not meas:
+        raise BagError(f"bag {data.path}: --online needs measurements for the filter: tracker points of the model's "
+                       f"trackers ({[t.topic for t in model.config.trackers]}), accelerometers of its imus "
+                       f"({[IMU_TOPIC + n for n in model.config.imus]}), tag observations or the sources of the "
+                       "online config; the bag has none")
     names = list(model.joint_names)
     Q, _ = joint_matrix(data.joint_states, names, str(bag), required=required_joints(model, {base, tool}))
+    rep = _replay(inputs, data, meas, Q, names, temps)
+    return _result(str(bag), model, filt, inputs, monitor, rep, data, Q, names, temps, truth, base, tool)
+
+
+def _replay(inputs: OnlineInputs, data: Any, meas: list[OnlineMeasurement], Q: np.ndarray, names: list[str],
+            temps: Any) -> _Replay:
+    """Camera infos and measurements in stamp order through :meth:`OnlineInputs.step`."""
+    rep = _Replay()
     js_t = np.asarray(data.joint_states.stamps, float)
-    nominal = model.with_effects([])
-    rec: dict[str, Any] = {"st": [], "th": [], "sg": [], "gt": [], "T": {m: [] for m in ONLINE_METHODS},
-                           "Tgt": [], "skipped_no_joints": 0, "nis": []}
-    for stamp, _, kind, pl in _events(data, model, base, tool, temperature_topic):
-        if kind == "temp":
-            filt.set_temperature(stamp, pl[0])
+    ci = data.camera_info
+    cams = sorted((_ns(t), ci.frame_ids[i], i) for i, t in enumerate(ci.stamps))
+    t_st = [_ns(t) for t in temps.stamps] if temps is not None else []
+    js_ns = [_ns(t) for t in js_t]
+    c = 0
+    filt = inputs.filter
+    for m in meas:
+        while c < len(cams) and cams[c][0] <= m.stamp_ns:
+            inputs.camera_info(cams[c][1], ci.K[cams[c][2]], ci.D[cams[c][2]])
+            c += 1
+        if not inputs.joints_known(js_ns, m):
             continue
-        i = int(np.searchsorted(js_t, stamp, side="right")) - 1
+        i = int(np.searchsorted(js_ns, m.stamp_ns, side="right")) - 1
+        if not np.all(np.isfinite(Q[i])):
+            inputs.counts.no_joints += 1
+            continue
+        k = int(np.searchsorted(t_st, m.stamp_ns, side="right")) - 1
+        temp = (t_st[k], float(temps.temperature[k])) if k >= 0 else None
+        step = inputs.take(m, dict(zip(names, Q[i].tolist())), temp)
+        if step is not None:
+            rep.steps.append(step)
+            assert step.theta is not None and step.P is not None
+            rep.thetas.append((list(step.labels), step.theta, np.sqrt(np.clip(np.diag(step.P), 0.0, None))))
+            rep.effects.append(filt.effects())
+    return rep
+
+
+def _result(bag: str, model: PPOEModel, filt: OnlineEffects, inputs: OnlineInputs, monitor: Any, rep: _Replay,
+            data: Any, Q: np.ndarray, names: list[str], temps: Any, truth: Mapping | None, base: str,
+            tool: str) -> OnlineEvaluation:
+    from ppoe_core.analysis.evaluate.online_report import build_evaluation
+
+    scored = _score(filt, model, rep, data, Q, names, temps, truth, base, tool)
+    sig = significance(filt, [s.row for s in rep.steps if s.row is not None], truth) if truth is not None else None
+    return build_evaluation(bag, filt, inputs, monitor, rep, scored, truth, sig)
+
+
+def _score(filt: OnlineEffects, model: PPOEModel, rep: _Replay, data: Any, Q: np.ndarray, names: list[str],
+           temps: Any, truth: Mapping | None, base: str, tool: str) -> dict[str, Any]:
+    """Tool poses of every method at each ground-truth pose (the online one from the last step stamped before)."""
+    gt = data.ground_truth_pose
+    js_t = np.asarray(data.joint_states.stamps, float)
+    step_t = np.array([s.stamp_ns * 1e-9 for s in rep.steps])
+    static = filt.diagnosed_effects
+    out: dict[str, Any] = {"stamps": [], "T": {m: [] for m in ONLINE_METHODS}, "Tgt": []}
+    for stamp, frame_id, T_gt in zip(gt.stamps, gt.frame_ids, gt.T):
+        if frame_id != base:
+            raise BagError(f"/ground_truth/pose: frame_id {frame_id!r}, expected the base frame {base!r}")
+        i = int(np.searchsorted(js_t, stamp + 1e-12, side="right")) - 1
         if i < 0 or not np.all(np.isfinite(Q[i])):
-            rec["skipped_no_joints"] += 1
             continue
-        q = dict(zip(names, Q[i]))
-        if kind in ("point", "imu"):
-            up = apply_measurement(filt, pl, q)
-            if up is not None:
-                rec["st"].append(stamp)
-                rec["th"].append(filt.theta.copy())
-                rec["sg"].append(filt.sigmas())
-                rec["nis"].append(up.nis)
-        elif not filt.needs_temperature():
-            _score(rec, filt, model, nominal, truth, q, stamp, base, tool, pl)
-    return _result(str(bag), filt, rec, truth)
-
-
-def _score(rec: dict, filt: OnlineEffects, model: PPOEModel, nominal: PPOEModel, truth: Mapping | None,
-           q: dict, stamp: float, base: str, tool: str, pl: tuple) -> None:
-    """Tool poses of every method at one ground-truth pose."""
-    frame_id, T_gt = pl
-    if frame_id != base:
-        raise BagError(f"/ground_truth/pose: frame_id {frame_id!r}, expected the base frame {base!r}")
-    filt.predict(stamp)
-    ctx = filt.context
-    rec["T"]["before"].append(nominal.fk_mean(q, base, tool, context=ctx))
-    rec["T"]["static"].append(model.fk_mean(q, base, tool, context=ctx))
-    rec["T"]["online"].append(filt.tool_pose(q, base, tool)[0])
-    if truth is not None:
-        rec["T"]["fresh"].append(_fresh_model(model, truth, stamp).fk_mean(q, base, tool, context=ctx))
-    rec["gt"].append(stamp)
-    rec["Tgt"].append(T_gt)
-
-
-def _result(bag: str, filt: OnlineEffects, rec: dict, truth: Mapping | None) -> OnlineEvaluation:
-    P = len(filt.labels)
-    st = np.asarray(rec["st"], float)
-    Tgt = np.asarray(rec["Tgt"], float).reshape(-1, 4, 4)
-    pos, rot = {}, {}
-    for m, Ts in rec["T"].items():
-        if Ts:
-            T = np.asarray(Ts)
-            pos[m] = np.linalg.norm(T[:, :3, 3] - Tgt[:, :3, 3], axis=1)
-            rot[m] = rotation_errors(T, Tgt)
-    tv = None
-    if truth is not None:
-        allv = truth_values(truth, st)
-        tv = {lab: allv.get(lab, np.zeros_like(st)) for lab in filt.labels}
-    counts = {"tracker_points": filt.counts.points, "accelerations": filt.counts.gravity, "jumps": filt.counts.jumps,
-              "temperatures": filt.counts.temperatures, "ground_truth_poses": int(len(Tgt)),
-              "skipped_waiting_for_temperature": filt.counts.waiting_for_temperature,
-              "skipped_no_joint_state": int(rec["skipped_no_joints"])}
-    nis = np.asarray(rec["nis"], float)
-    counts["nis_above_99pct"] = int(np.sum(nis > 11.345))
-    return OnlineEvaluation(bag, filt.labels, st, np.asarray(rec["th"], float).reshape(-1, P),
-                            np.asarray(rec["sg"], float).reshape(-1, P), tv, np.asarray(rec["gt"], float), pos, rot,
-                            counts, filt.effect_entries())
-
-
-def write_online_report(ev: OnlineEvaluation, out_dir: str | Path, model_yaml: str | Path | None = None
-                        ) -> list[Path]:
-    """``online.json`` and ``online_parameters.png`` (estimate with 3-sigma band vs truth over time, and the
-    tool position error per method) in ``out_dir``; with ``model_yaml`` (the diagnosed model) also
-    ``model_online.yaml``: that model with the tracked effects at their final estimate (with ``ci``)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [out / "online.json", out / "online_parameters.png"]
-    paths[0].write_text(json.dumps(ev.to_dict(), indent=1, allow_nan=False))
-    if model_yaml is not None:
-        paths.append(_write_model(ev, Path(model_yaml), out / "model_online.yaml"))
-    P = len(ev.labels)
-    fig, axes = plt.subplots(P + 1, 1, figsize=(8, 2.2 * (P + 1)), squeeze=False, sharex=True)
-    t0 = ev.gt_stamps[0] if len(ev.gt_stamps) else 0.0
-    for i, (ax, lab) in enumerate(zip(axes[:P, 0], ev.labels)):
-        x, m, s = ev.stamps - t0, ev.theta[:, i], ev.sigma[:, i]
-        ax.fill_between(x, m - 3 * s, m + 3 * s, color="C0", alpha=0.25, label="online +-3 sigma")
-        ax.plot(x, m, "C0", label="online")
-        if ev.truth is not None:
-            ax.plot(x, ev.truth[lab], "k--", label="truth")
-        ax.set_ylabel(lab, fontsize=7)
-        ax.legend(fontsize=7, loc="best")
-    ax = axes[P, 0]
-    for k, (meth, e) in enumerate(ev.position_error.items()):
-        ax.plot(ev.gt_stamps - t0, 1e3 * e, f"C{k}.-", lw=0.8, ms=3, label=meth)
-    ax.set_ylabel("tool position error [mm]")
-    ax.set_xlabel("time since first ground truth [s]")
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(paths[1], dpi=110)
-    plt.close(fig)
-    return paths
-
-
-def _write_model(ev: OnlineEvaluation, model_yaml: Path, out: Path) -> Path:
-    """The diagnosed model YAML with its tracked effects replaced by (or added as) the final estimate."""
-    import yaml
-
-    raw, _ = read_yaml_file(model_yaml, "model file", ModelConfigError)
-    doc = replace_effects(raw, ev.model_effects)
-    out.write_text(f"# {model_yaml.name} with the online estimate at the end of {ev.bag} (ppoe evaluate --online)\n"
-                   + yaml.safe_dump(json.loads(json.dumps(doc)), sort_keys=False, default_flow_style=None))
+        q = dict(zip(names, Q[i].tolist()))
+        ctx: dict[str, Any] = {"time": float(stamp)}
+        if temps is not None:
+            k = int(np.searchsorted(temps.stamps, stamp, side="right")) - 1
+            if k >= 0:
+                ctx["temperature"] = float(temps.temperature[k])
+        if any(getattr(e, "variable", None) == "temperature" for e in static) and "temperature" not in ctx:
+            continue
+        j = int(np.searchsorted(step_t, stamp - 1e-9, side="left")) - 1
+        online = rep.effects[j] if j >= 0 else static
+        out["T"]["before"].append(filt.pose(q, base, tool, [], ctx))
+        out["T"]["static"].append(filt.pose(q, base, tool, static, ctx))
+        out["T"]["online"].append(filt.pose(q, base, tool, online, ctx))
+        if truth is not None:
+            out["T"]["fresh"].append(filt.pose(q, base, tool, truth_effects(model, truth, stamp), ctx))
+        out["stamps"].append(float(stamp))
+        out["Tgt"].append(T_gt)
     return out
 
 
-def markdown_online(ev: OnlineEvaluation) -> str:
-    """The before / static / online (/ fresh) table: tool position error over the bag and in each half [mm]."""
-    d = ev.to_dict()
-    rows = ["| method | mean [mm] | RMS [mm] | p95 [mm] | 1st half mean | 2nd half mean | rotation mean [deg] |",
-            "|---|---|---|---|---|---|---|"]
-    for m, st in d["tool_error"].items():
-        p = st["position"]
-        rows.append(f"| {m} | {1e3 * p['mean']:.3f} | {1e3 * p['rms']:.3f} | {1e3 * p['p95']:.3f} | "
-                    f"{1e3 * st['position_first_half']['mean']:.3f} | {1e3 * st['position_second_half']['mean']:.3f}"
-                    f" | {np.degrees(st['rotation']['mean']):.4f} |")
-    for lab, p in d["parameters"].items():
-        extra = f", 3-sigma coverage {p['coverage_3sigma']:.2f}" if "coverage_3sigma" in p else ""
-        if p["final"] is not None:
-            rows.append(f"\n{lab}: final {p['final']:.6g} +- {p['final_sigma']:.2g}{extra}")
-    return "\n".join(rows) + f"\n\ncounts: {d['counts']}"
-
+def significance(filt: OnlineEffects, rows: list[Any], truth: Mapping[str, Any]) -> dict[str, Any]:
+    """Where the untracked truth becomes significant: per measurement the whitened squared difference between the
+    prediction with the TRUE effects and with the diagnosed (static) ones, per component, ``delta_k =
+    |L^-1 (h_true - h_static)|^2 / m_k`` (``L L^T`` the filter's measurement noise); the drift is significant from
+    the first measurement where the mean of ``delta`` over the last :data:`SIGNIFICANCE_RUN` measurements reaches 1
+    (one noise sigma per component).  Returns ``{"delta": [...], "index": k0 or None, "stamp": ...}``."""
+    static = filt.diagnosed_effects
+    delta = []
+    for row in rows:
+        lin_s = filt.linearize(row, static)
+        lin_t = filt.linearize(row, truth_effects(filt.model, truth, row.stamp))
+        d = 0.0
+        for a, b in zip(lin_s, lin_t):
+            W = np.linalg.inv(np.linalg.cholesky(a.noise))
+            d += float(np.sum((W @ (a.residual - b.residual)) ** 2))
+        delta.append(d / max(1, row.dim))
+    run = np.convolve(delta, np.ones(SIGNIFICANCE_RUN) / SIGNIFICANCE_RUN, mode="full")[:len(delta)]
+    hit = np.flatnonzero((np.arange(len(delta)) >= SIGNIFICANCE_RUN - 1) & (run >= 1.0))
+    k0 = int(hit[0]) if hit.size else None
+    return {"delta": delta, "index": k0, "stamp": rows[k0].stamp if k0 is not None else None}

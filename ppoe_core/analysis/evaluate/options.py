@@ -12,6 +12,7 @@ import numpy as np
 from ppoe_core.analysis.evaluate.metrics import METHODS
 from ppoe_core.errors import ModelConfigError
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
+from ppoe_core.estimation.sources import SourceConfig, parse_sources
 from ppoe_core.estimation.updater import FUSION_RANGES
 from ppoe_core.sensing.contact import FORCE_COMPONENTS
 from ppoe_core.sensing.tag_rows import DEFAULT_CORNER_REFINEMENT
@@ -36,22 +37,17 @@ REPLAY_SETTINGS: dict[str, Any] = {
 EVALUATE_SETTINGS: dict[str, Any] = {**FUSION_SETTINGS, **REPLAY_SETTINGS}
 
 
-def load_fusion_params(path: str | Path) -> dict[str, Any]:
-    """The fusion settings of a ROS 2 parameter file of the fusion node.
-
-    Reads the first ``ros__parameters`` mapping of the file (``/**`` or the node's name) and
-    returns the keys of :data:`EVALUATE_SETTINGS` it sets (for :attr:`EvaluateOptions.fusion`);
-    node-only keys (topics, QoS, diagnostics) are ignored.  A ``/**`` file shared by all nodes
-    thus also sets the tag bearing and contact node settings of :data:`REPLAY_SETTINGS`.
+def _ros_parameters(path: Path) -> dict[str, Any]:
+    """The first ``ros__parameters`` mapping of a ROS 2 parameter file, nested keys flattened to ``a.b`` (as ROS
+    reads them).
 
     Raises
     ------
     ModelConfigError
-        Unreadable file, no ``ros__parameters``, or a value of the wrong type (names the key).
+        Unreadable file or no ``ros__parameters``.
     """
     import yaml
 
-    path = Path(path)
     try:
         doc = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as exc:
@@ -64,6 +60,49 @@ def load_fusion_params(path: str | Path) -> dict[str, Any]:
                 break
     if params is None:
         raise ModelConfigError(f"{path}: no '<node>: ros__parameters:' mapping (ROS 2 parameter file)")
+
+    def flat(d: dict[str, Any], prefix: str) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    return flat(params, "")
+
+
+def load_sources(path: str | Path) -> list[SourceConfig]:
+    """The fusion node's sensor blocks (``sources`` and a block of keys per name, docs/fusion_node.md) of a ROS 2
+    parameter file, checked as the node checks them (:func:`ppoe_core.estimation.sources.parse_sources`).
+
+    Raises
+    ------
+    ModelConfigError
+        Unreadable file, or a block that does not fit its type (names the file, the block and the key).
+    """
+    path = Path(path)
+    params = _ros_parameters(path)
+    names = params.get("sources") or []
+    if not isinstance(names, list):
+        raise ModelConfigError(f"{path}: parameter 'sources' must be a list of names, got {names!r}")
+    return parse_sources(params, [str(n) for n in names], str(path))
+
+
+def load_fusion_params(path: str | Path) -> dict[str, Any]:
+    """The fusion settings of a ROS 2 parameter file of the fusion node.
+
+    Reads the first ``ros__parameters`` mapping of the file (``/**`` or the node's name) and
+    returns the keys of :data:`EVALUATE_SETTINGS` it sets (for :attr:`EvaluateOptions.fusion`);
+    node-only keys (topics, QoS, diagnostics) are ignored (the sensor blocks: :func:`load_sources`).
+    A ``/**`` file shared by all nodes thus also sets the tag bearing and contact node settings of
+    :data:`REPLAY_SETTINGS`.
+
+    Raises
+    ------
+    ModelConfigError
+        Unreadable file, no ``ros__parameters``, or a value of the wrong type (names the key).
+    """
+    path = Path(path)
+    params = _ros_parameters(path)
     out = {k: params[k] for k in EVALUATE_SETTINGS if k in params}
     try:
         EvaluateOptions(fusion=out).fusion_settings()
@@ -102,6 +141,9 @@ class EvaluateOptions:
     accept_partial : bool
         Score what can be read of a damaged bag (``read_bag(accept_partial=True)``); the summary's
         ``bag_notes`` then say per topic what was lost.
+    sources : list of SourceConfig
+        The fusion node's sensor blocks (tracker points, 6D poses, accelerometers; :func:`load_sources`), replayed
+        from the bag's topics as the node fuses them.
     """
 
     base: str | None = None
@@ -114,6 +156,7 @@ class EvaluateOptions:
     accept_partial: bool = False
     urdf: str | None = None
     estimate: str | None = None
+    sources: list[SourceConfig] = field(default_factory=list)
 
     def fusion_settings(self) -> dict[str, Any]:
         """:data:`EVALUATE_SETTINGS` updated with :attr:`fusion`.

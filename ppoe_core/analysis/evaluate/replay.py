@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import gc
 import math
-import sys
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -15,66 +14,16 @@ from typing import Any
 import numpy as np
 
 from ppoe_core import lie
-from ppoe_core.analysis.evaluate.metrics import (
-    METHODS,
-)
+from ppoe_core.analysis.evaluate.metrics import (METHODS)
 from ppoe_core.analysis.evaluate.options import EvaluateOptions, Evaluation
 from ppoe_core.analysis.evaluate.inputs import JOINT_MAX_AGE_S, joint_matrix, recorded_estimate, required_joints
 from ppoe_core.analysis.evaluate.scoring import score_points, score_poses
+from ppoe_core.analysis.evaluate.sources import measurement_dim, source_measurements
 from ppoe_core.analysis.evaluate.tag_stream import TagStream
 from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
+from ppoe_core.io.progress import ProgressBar
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
 from ppoe_core.model.context import batch_context
-
-# ----------------------------------------------------------------------------
-# Progress bar
-# ----------------------------------------------------------------------------
-
-
-class ProgressBar:
-    """A minimal text progress bar on a stream (stderr by default), throttled to 10 Hz.
-
-    Parameters
-    ----------
-    total : int
-        Number of steps.
-    enabled : bool
-        Draw nothing when False.
-    label : str
-    stream : file-like, optional
-    """
-
-    def __init__(self, total: int, enabled: bool, label: str = "evaluate", stream: Any = None) -> None:
-        self.total = max(int(total), 1)
-        self.enabled = bool(enabled)
-        self.label = label
-        self.stream = stream if stream is not None else sys.stderr
-        self._last = 0.0
-        self._t0 = time.monotonic()
-
-    def update(self, done: int) -> None:
-        """Redraw for ``done`` steps finished (at most every 0.1 s)."""
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if now - self._last < 0.1 and done < self.total:
-            return
-        self._last = now
-        frac = min(done / self.total, 1.0)
-        width = 30
-        bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
-        el = now - self._t0
-        eta = f"{el / frac - el:6.1f}s" if frac > 0 else "     ?"
-        self.stream.write(f"\r{self.label} [{bar}] {100 * frac:5.1f}% {el:6.1f}s eta {eta}")
-        self.stream.flush()
-
-    def close(self) -> None:
-        """Finish the line."""
-        if self.enabled:
-            self.update(self.total)
-            self.stream.write("\n")
-            self.stream.flush()
-
 
 # ----------------------------------------------------------------------------
 # Replay
@@ -176,7 +125,7 @@ def contact_measurements(
     return out, counts
 
 
-_NO_MEASUREMENTS = (
+_NO_MEASUREMENTS = (  # (a configured source without messages is an error before)
     "no tag observations, images, contact planes or wrenches in contact in the bag: only forward kinematics scored"
 )
 
@@ -233,20 +182,21 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml,
                          required_joints(model, sensors), data.temperatures)
         contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
+        src_meas, src_counts = source_measurements(data, model, opt.sources, bag)
         pipes, updaters = _pipelines(model, base, tool, fs, pri.cov_naive)
         gt_stamps = data.ground_truth_pose.stamps if kind == "pose" else data.ground_truth_point.stamps
         # every image before the replay: detection threads beside the (pure Python) replay would wait for the GIL
         # and make it wait, which cost more than the overlap saved (measured on a quiet machine: 3.3-3.5 s against
         # 2.7 s for the 10-minute bench bag)
-        meas = sorted(tags.measurements() + contact_meas, key=lambda m: m.stamp)
+        meas = sorted(tags.measurements() + contact_meas + src_meas, key=lambda m: m.stamp)
         run = _replay(pri, meas, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
     finally:
         tags.close()
     tag_counts = tags.counts
 
     have = np.all(np.isfinite(run.est_T["fk"].reshape(len(gt_stamps), -1)), axis=1)
-    summary = _summary_head(bag, model_yaml, base, tool, kind, data, pri, have,
-                            {"total": len(meas), **tag_counts, **contact_counts}, fs)
+    counts = {"total": len(meas), **tag_counts, **contact_counts, **({"sources": src_counts} if src_counts else {})}
+    summary = _summary_head(bag, model_yaml, base, tool, kind, data, pri, have, counts, fs)
     samples: dict[str, np.ndarray] = {}
     # without any measurement the fused estimates are the priors: only FK is scored
     methods = ["fk"] + (list(pipes) if meas else [])
@@ -403,9 +353,10 @@ def _fk_priors(js: Any, model: Any, base: str, tool: str, order: int, bag: str,
 
 def _pipelines(model: Any, base: str, tool: str, fs: dict[str, Any],
                cov_naive: np.ndarray | None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The fusion node's pipeline and updater (``make_pipeline`` / ``make_updater`` with the node's settings) for
-    the PPOE and the naive prior; the naive model knows nothing of the camera chain's covariance."""
+    """The fusion node's pipeline and updater (``make_pipeline`` / ``make_updater`` with the node's settings and
+    updater class) for the PPOE and the naive prior; the naive model knows nothing of the camera chain's covariance."""
     from ppoe_core.estimation.pipeline import make_pipeline, make_updater
+    from ppoe_core.estimation.source_updater import SourceUpdater
 
     node_settings = {k: fs[k] for k in FUSION_SETTINGS}
     pipes: dict[str, Any] = {}
@@ -415,7 +366,7 @@ def _pipelines(model: Any, base: str, tool: str, fs: dict[str, Any],
             continue
         s_name = {**node_settings, "camera_covariance": bool(fs["camera_covariance"]) and name == "ppoe"}
         try:
-            updaters[name] = make_updater(model, base, tool, s_name)
+            updaters[name] = make_updater(model, base, tool, s_name, cls=SourceUpdater)
             pipes[name] = make_pipeline(model, base, tool, s_name, updater=updaters[name])
         except (TypeError, ValueError) as exc:
             raise ModelConfigError(f"fusion settings: {exc}") from None
@@ -439,9 +390,7 @@ class ReplayRun:
         for o in outs:
             self.outcomes[name][o.status] = self.outcomes[name].get(o.status, 0) + 1
             if o.status in ("accepted", "rejected") and math.isfinite(o.nis):
-                pl = o.measurement.payload
-                dim = 2 * sum(int(t) in known_tags for t in pl.ids) if hasattr(pl, "ids") else 1
-                self.nis[name].append((o.nis, dim))
+                self.nis[name].append((o.nis, measurement_dim(o.measurement.payload, known_tags)))
             if o.status == "bad" and len(self.errors[name]) < 20:
                 self.errors[name].append(o.error)
 

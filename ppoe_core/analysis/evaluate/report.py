@@ -121,38 +121,87 @@ def write_report(ev: Evaluation, out_dir: str | Path) -> list[Path]:
     paths[0].write_text(markdown_report(ev))
     paths[1].write_text(json.dumps(ev.to_dict(), indent=2, allow_nan=False) + "\n")
     paths += write_tum(ev, out)
+    plot_errors(ev, paths[2])
+    return paths
+
+
+#: colours of the methods in the plots (ground truth black)
+_COLORS = {"fk": "tab:orange", "ppoe": "tab:blue", "naive": "tab:green", "recorded": "tab:purple"}
+
+
+def plot_errors(ev: Evaluation, path: Path) -> None:
+    """``errors.png``: each error metric and the NEES against time since the first scored sample (left), and the
+    trajectory of the ground truth and of every method seen from the top (x-y) and the side (x-z) in the base frame
+    (right)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     metrics = [k for k in ("position_3d", "lateral", "rotation") if f"fk_{k}" in ev.samples]
-    fig, axes = plt.subplots(len(metrics) + 1, 1, figsize=(8, 2.4 * (len(metrics) + 1)), squeeze=False)
-    x = np.arange(len(ev.samples.get("stamp", [])))
-    for ax, k in zip(axes[:, 0], metrics):
+    rows = len(metrics) + 1
+    fig = plt.figure(figsize=(13, 2.4 * rows + 0.4))
+    grid = fig.add_gridspec(rows, 2, width_ratios=(1.9, 1.0))
+    stamps = np.asarray(ev.samples.get("stamp", []), dtype=float)
+    t = stamps - stamps[0] if stamps.size else stamps
+    axes = [fig.add_subplot(grid[i, 0]) for i in range(rows)]
+    for ax in axes[1:]:
+        ax.sharex(axes[0])
+    _plot_metrics(ev, axes, metrics, t)
+    half = max(1, rows // 2)
+    top = fig.add_subplot(grid[:half, 1])
+    side = fig.add_subplot(grid[half:, 1])
+    _plot_trajectory(ev, top, (0, 1), "top view")
+    _plot_trajectory(ev, side, (0, 2), "side view")
+    fig.suptitle(f"ppoe evaluate: {Path(str(ev.summary.get('bag', ''))).name}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _plot_metrics(ev: Evaluation, axes: list, metrics: list[str], t: np.ndarray) -> None:
+    """The error metrics and the NEES (with its 95 % band) of every method against time ``t`` [s]."""
+    import scipy.stats
+
+    for ax, k in zip(axes, metrics):
         scale, unit = (math.degrees(1), "deg") if k == "rotation" else (1e3, "mm")
         for name in METHODS:
             if f"{name}_{k}" in ev.samples:
-                ax.plot(x, scale * ev.samples[f"{name}_{k}"], ".-", ms=3, lw=0.6, label=_LABELS[name])
+                ax.plot(t, scale * ev.samples[f"{name}_{k}"], ".-", ms=3, lw=0.6, color=_COLORS[name],
+                        label=_LABELS[name])
         ax.set_ylabel(f"{k.replace('_', ' ')} [{unit}]")
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    ax = axes[-1, 0]
+    axes[0].legend(fontsize=8)
+    ax = axes[-1]
     for name in METHODS:
         if f"{name}_nees" in ev.samples:
-            ax.semilogy(x, ev.samples[f"{name}_nees"], ".", ms=3, label=_LABELS[name])
+            ax.semilogy(t, ev.samples[f"{name}_nees"], ".", ms=3, color=_COLORS[name], label=_LABELS[name])
     dof = ev.summary["methods"]["fk"]["nees"]["dof"]
-    import scipy.stats
-
     for q in (0.025, 0.975):
         ax.axhline(float(scipy.stats.chi2.ppf(q, dof)), color="grey", lw=0.8, ls="--")
     ax.set_ylabel(f"NEES ({dof} dof; 95 % band)")
-    ax.set_xlabel("scored ground-truth sample")
+    ax.set_xlabel("time since the first scored sample [s]")
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(paths[2], dpi=100)
-    plt.close(fig)
-    return paths
+
+
+def _plot_trajectory(ev: Evaluation, ax: Any, axes_xyz: tuple[int, int], title: str) -> None:
+    """Positions of the ground truth and of every method [m] on two base-frame axes (equal scale)."""
+    names = "xyz"
+    tracks = [("ground truth", "gt_T", "black")] + [(_LABELS[m], f"{m}_T", _COLORS[m]) for m in METHODS]
+    for label, key, color in tracks:
+        T = ev.samples.get(key)
+        if T is None or len(T) == 0:
+            continue
+        p = np.asarray(T)[:, :3, 3]
+        style = dict(ls="-", lw=0.5, ms=3, alpha=0.9) if key == "gt_T" else dict(ls="none", ms=2.5, alpha=0.8)
+        ax.plot(p[:, axes_xyz[0]], p[:, axes_xyz[1]], marker=".", color=color, label=label, **style)
+    ax.set_xlabel(f"{names[axes_xyz[0]]} [m]")
+    ax.set_ylabel(f"{names[axes_xyz[1]]} [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(f"{title} ({ev.summary.get('base', 'base')} frame)", fontsize=9)
+    ax.grid(alpha=0.3)
+    if axes_xyz == (0, 1):
+        ax.legend(fontsize=7)
 
 
 def _measurement_lines(m: dict) -> list[str]:

@@ -13,13 +13,7 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.analysis.evaluate.metrics import (
-    nees_named,
-    regularised,
-    error_stats,
-    nees_stats,
-    point_covariance,
-    position_errors,
-    rotation_errors,
+    nees_named, regularised, error_stats, nees_stats, point_covariance, position_errors, rotation_errors,
 )
 from ppoe_core.errors import PpoeError
 from ppoe_core.model.context import batch_context
@@ -131,9 +125,7 @@ def _register(run: ReplayRun, gt_point: Any, usable: np.ndarray, p_fk: np.ndarra
         T_tracker_base = lie.fit_rigid(p_fk[fit], gt_point.p[fit])
         T_base_tracker = lie.inverse(T_tracker_base)
         p_gt_base[ev_idx] = gt_point.p[ev_idx] @ T_base_tracker[:3, :3].T + T_base_tracker[:3, 3]
-        res_fit = np.linalg.norm(
-            gt_point.p[fit] @ T_base_tracker[:3, :3].T + T_base_tracker[:3, 3] - p_fk[fit], axis=1
-        )
+        res_fit = np.linalg.norm(gt_point.p[fit] @ T_base_tracker[:3, :3].T + T_base_tracker[:3, 3] - p_fk[fit], axis=1)
         reg.append(
             {
                 "group": name,
@@ -200,8 +192,4 @@ def score_points(summary: dict[str, Any], samples: dict[str, np.ndarray], run: R
             }
         )
         samples["gt_T"] = _at(p_gt_base[sel])
-        summary["methods"][m] = {
-            "position_3d": error_stats(e3),
-            "lateral": error_stats(el),
-            "nees": nees_stats(ne, 3),
-        }
+        summary["methods"][m] = {"position_3d": error_stats(e3), "lateral": error_stats(el), "nees": nees_stats(ne, 3)}

@@ -176,6 +176,8 @@ class HiltiDataset:
     stops: list[HiltiStop] = field(default_factory=list)
     incomplete: list[str] = field(default_factory=list)
     """Stations lacking a role list (``null`` or missing), one line each; their other stops are kept."""
+    truncated: list[str] = field(default_factory=list)
+    """Signs that the file was cut short (:func:`truncation_notes`), one line each."""
 
     @property
     def stations(self) -> list[str]:
@@ -261,6 +263,7 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
         raise DatasetError(f"{path}: joint_names {joint_names} differ from the expected {_EXPECTED_JOINTS}")
     stops: list[HiltiStop] = []
     incomplete: list[str] = []
+    layout: dict[str, dict[str, list[tuple[str, int]]]] = {}
     heights = doc["column_heights"]
     if not isinstance(heights, dict):
         raise DatasetError(f"{path}: column_heights must be a mapping")
@@ -272,6 +275,8 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
             if not isinstance(sval, dict):
                 raise DatasetError(f"{path}: column_heights/{height}/solution_spaces/{space}: not a mapping")
             _station_stops(path, height, space, sval, stops, incomplete)
+            layout.setdefault(f"{height}", {})[f"{space}"] = [(_ROLES[k], len(v or [])) for k, v in sval.items()
+                                                               if k in _ROLES]
     stops.sort(key=lambda s: s.time)
     times = np.array([s.time for s in stops])
     if len(times) > 1 and np.min(np.diff(times)) <= (BURST_COUNT - 1) * BURST_PERIOD_S + MEASUREMENT_DELAY_S:
@@ -285,7 +290,39 @@ def load_hilti(path: str | Path, allow_incomplete: bool = False) -> HiltiDataset
             f"{path}: {len(incomplete)} station role list(s) missing or null, so those stations cannot be "
             f"scored by the stationing protocol: " + "; ".join(incomplete)
             + " (pass --allow-incomplete to import the other stops)")
-    return HiltiDataset(path=path, joint_names=joint_names, stops=stops, incomplete=incomplete)
+    truncated = truncation_notes(layout)
+    if truncated and not allow_incomplete:
+        raise DatasetError(f"{path}: the file looks cut short ({'; '.join(truncated)}); it holds {len(stops)} "
+                           f"stops in {sum(map(len, layout.values()))} stations (the format declares no total); "
+                           "pass --allow-incomplete to import them anyway")
+    return HiltiDataset(path=path, joint_names=joint_names, stops=stops, incomplete=incomplete, truncated=truncated)
+
+
+def truncation_notes(layout: dict[str, dict[str, list[tuple[str, int]]]]) -> list[str]:
+    """Signs that a file was cut short, from its layout (column height -> solution space -> [(role, stop count)],
+    all in file order).  The format declares no stop count, but every complete file repeats one pattern of
+    solution spaces per column height: the last height lacking a space that every other height has, or the last
+    list of the file (its last station's last role) holding fewer stops than that list does at any other height,
+    is what a cut leaves."""
+    heights = list(layout)
+    if len(heights) < 2:
+        return []
+    last, others = heights[-1], heights[:-1]
+    notes = []
+    common = [sp for sp in layout[others[0]] if all(sp in layout[h] for h in others)]
+    missing = [sp for sp in common if sp not in layout[last]]
+    if missing:
+        notes.append(f"column height {last}, the last in the file, lacks solution space(s) {', '.join(missing)} "
+                     "that every other height has")
+    space = list(layout[last])[-1]
+    if not layout[last][space]:
+        return notes
+    role, count = layout[last][space][-1]
+    ref = [n for h in others for r, n in layout[h].get(space, []) if r == role]
+    if ref and count < min(ref):
+        notes.append(f"its last station h{last}_s{space} has {count} {role} stops where solution space {space} "
+                     f"has {min(ref)}-{max(ref)} at the other heights")
+    return notes
 
 
 def _station_stops(path: Path, height: Any, space: Any, sval: dict, stops: list[HiltiStop],
@@ -404,8 +441,9 @@ def import_hilti(
     Returns
     -------
     dict
-        ``counts`` (messages per topic), ``model`` (path of the written model YAML) and
-        ``incomplete`` (stations with a missing role list, one line each).
+        ``counts`` (messages per topic), ``model`` (path of the written model YAML),
+        ``incomplete`` (stations with a missing role list, one line each), ``truncated`` (signs of a file cut
+        short, accepted with ``allow_incomplete``), ``stops`` and ``stations`` (how many were imported).
     """
     path, out = Path(path), Path(out)
     model_out = Path(ppoe_model_out) if ppoe_model_out is not None else out.with_name(out.name + ".model.yaml")
@@ -425,4 +463,5 @@ def import_hilti(
         "# tracker: prism on link prism, total-station 1-sigma [m]; imus: accelerometers, 1-sigma [m/s^2].\n"
     )
     model_out.write_text(header + yaml.safe_dump(hilti_model_dict(), sort_keys=False))
-    return {"counts": counts, "model": str(model_out), "incomplete": list(dataset.incomplete)}
+    return {"counts": counts, "model": str(model_out), "incomplete": list(dataset.incomplete),
+            "truncated": list(dataset.truncated), "stops": len(dataset.stops), "stations": len(dataset.stations)}

@@ -1,0 +1,221 @@
+"""Cross-validation of models at one linearisation: folds over robot poses or bags, held-out errors, identifiability.
+
+:func:`assign_folds` puts every robot pose (unit) in a fold: leave-one-group-out (``groups``: one fold per bag or
+file) or ``k`` seeded folds over the poses of each group (``stops``).  :class:`Linearised` is the stacked system of
+all blocks at the current model with the columns of *every* candidate (:mod:`linsys`), its folds precomputed; a
+model (:class:`~ppoe_core.analysis.diagnose.terms.Term` s) is scored by :meth:`Linearised.heldout`: per unit, the
+held-out sum of squared whitened residuals (``-2 log`` of the held-out Gaussian likelihood up to a constant, the noise
+scales fixed).  Terms of the current model that a candidate model leaves out are held at zero (their values at the
+linearisation point are undone); the others are refitted on each fold's training units.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ppoe_core.analysis.diagnose.linsys import Fold, FoldStack, LinearSystem, solve_scaled
+from ppoe_core.analysis.diagnose.terms import Catalogue, Term
+from ppoe_core.errors import PpoeError
+
+__all__ = ["assign_folds", "Linearised", "Identifiability"]
+
+
+def assign_folds(unit_group: np.ndarray, mode: str, folds: int, seed: int) -> tuple[str, np.ndarray]:
+    """Fold of every unit: ``mode`` ``auto`` (``groups`` with >= 3 groups, else ``stops``), ``groups`` (one fold per
+    group) or ``stops`` (``folds`` seeded folds over the units of each group).  Returns the mode used and the fold
+    index per unit.
+
+    Raises
+    ------
+    PpoeError
+        ``groups`` with fewer than 2 groups, or fewer units than folds.
+    """
+    groups = np.unique(unit_group)
+    if mode == "auto":
+        mode = "groups" if groups.size >= 3 else "stops"
+    if mode == "groups":
+        if groups.size < 2:
+            raise PpoeError("diagnose: leave-one-group-out needs at least 2 bags/files")
+        return mode, np.searchsorted(groups, unit_group)
+    if unit_group.size < folds:
+        raise PpoeError(f"diagnose: {unit_group.size} robot poses, fewer than the {folds} folds")
+    rng = np.random.default_rng(seed)
+    out = np.zeros(unit_group.size, dtype=int)
+    start = 0
+    for g in groups:
+        idx = np.flatnonzero(unit_group == g)
+        out[idx] = (rng.permutation(idx.size) + start) % folds
+        start += idx.size
+    return mode, out
+
+
+@dataclass
+class Identifiability:
+    """Whether a model's columns can be told apart: the condition number of the column-scaled reduced information,
+    the largest share of a new column's information that the nuisances absorb, and a reason if not."""
+
+    ok: bool
+    condition: float
+    absorbed: float
+    reason: str = ""
+
+
+class Linearised:
+    """The system of every candidate at the current model, with its folds (module docstring).
+
+    Parameters
+    ----------
+    sys : LinearSystem
+        Columns of all catalogue candidates (in catalogue order).
+    catalogue : Catalogue
+    theta : ndarray (C,)
+        Current values of every column (the chosen terms' values; zero elsewhere).
+    unit_fold : ndarray (U,)
+        Fold of every unit (:func:`assign_folds`).
+    """
+
+    def __init__(self, sys: LinearSystem, catalogue: Catalogue, theta: np.ndarray, unit_fold: np.ndarray) -> None:
+        self.sys, self.catalogue, self.theta = sys, catalogue, np.asarray(theta, dtype=float)
+        n_folds = int(unit_fold.max()) + 1 if unit_fold.size else 0
+        comp_fold = unit_fold[sys.unit]
+        self.folds: list[Fold] = [sys.fold(comp_fold != f) for f in range(n_folds)]
+        self.stack = FoldStack(self.folds)
+        self.all = sys.full()
+        self.raw_diag = np.einsum("ij,ij->j", sys.G, sys.G)
+        self.n_units = sys.n_units
+        comp_block = np.zeros(sys.e.size, dtype=int)
+        for k, part in enumerate(sys.parts):
+            comp_block[part.start:part.stop] = k
+        self.n_blocks = max(len(sys.parts), 1)
+        #: per scored held-out component, its (block, unit) cell
+        self._cell = comp_block[self.stack.idx] * self.n_units + self.stack.unit
+        self._cache: dict[tuple, np.ndarray] = {}
+        self._idf: dict[tuple, Identifiability] = {}
+
+    def columns(self, model: Sequence[Term]) -> np.ndarray:
+        """Column indices of a model's terms (in term order)."""
+        cols = self.sys.cols
+        return np.array([cols[t.cand].start + c for t in model for c in t.comps], dtype=int)
+
+    def _fixed(self, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Columns with a current value that ``cols`` does not free, and the steps that undo their values."""
+        nz = np.flatnonzero(self.theta != 0.0)
+        fixed = np.setdiff1d(nz, cols)
+        return fixed, -self.theta[fixed]
+
+    def heldout(self, model: Sequence[Term]) -> np.ndarray:
+        """Per unit (U,), the held-out sum of squared whitened residuals of ``model`` (NaN: not scored)."""
+        key = tuple(sorted(model))
+        if key in self._cache:
+            return self._cache[key]
+        d = np.nansum(self.heldout_blocks(key), axis=0)
+        d[np.all(np.isnan(self.heldout_blocks(key)), axis=0)] = np.nan
+        self._cache[key] = d
+        return d
+
+    def heldout_blocks(self, model: Sequence[Term]) -> np.ndarray:
+        """Per block and unit (B, U), the held-out sum of squared whitened residuals of ``model`` (NaN: the unit has
+        no scored component in that block)."""
+        key = ("blocks", *sorted(model))
+        if key not in self._cache:
+            cols = self.columns(tuple(sorted(model)))
+            r = self.stack.heldout(cols, *self._fixed(cols))
+            size = self.n_blocks * self.n_units
+            d = np.bincount(self._cell, r * r, minlength=size)
+            d[np.bincount(self._cell, minlength=size) == 0] = np.nan
+            self._cache[key] = d.reshape(self.n_blocks, self.n_units)
+        return self._cache[key]
+
+    def heldout_residual(self, model: Sequence[Term]) -> np.ndarray:
+        """Held-out whitened residual of every component (n,) (NaN where not scored)."""
+        cols = self.columns(model)
+        out = np.full(self.sys.e.size, np.nan)
+        out[self.stack.idx] = self.stack.heldout(cols, *self._fixed(cols))
+        return out
+
+    def fit(self, model: Sequence[Term]) -> tuple[np.ndarray, np.ndarray, float]:
+        """All-data linear fit: the model's values (current + step, in column order), their covariance
+        ``s^2 H^-1`` and ``s^2`` (reduced SSR per degree of freedom)."""
+        cols = self.columns(model)
+        fixed, fv = self._fixed(cols)
+        step = self.all.fit(cols, fixed, fv)
+        H = self.all.H[np.ix_(cols, cols)]
+        b = self.all.b[cols] - (self.all.H[np.ix_(cols, fixed)] @ fv if fixed.size else 0.0)
+        ee = self.all.ee - 2.0 * float(self.all.b[fixed] @ fv) + float(fv @ self.all.H[np.ix_(fixed, fixed)] @ fv) \
+            if fixed.size else self.all.ee
+        ssr = max(ee - float(step @ b), 0.0)
+        dof = max(self.sys.e.size - cols.size - self._n_nuisance(), 1)
+        s2 = ssr / dof
+        cov = s2 * np.linalg.pinv(H) if cols.size else np.zeros((0, 0))
+        return self.theta[cols] + step, cov, s2
+
+    def ssr(self, model: Sequence[Term]) -> float:
+        """In-sample reduced sum of squares of ``model`` (screening; cached per model)."""
+        key = ("ssr", *sorted(model))
+        if key not in self._cache:
+            self._cache[key] = np.array(self._ssr(model))
+        return float(self._cache[key])
+
+    def _ssr(self, model: Sequence[Term]) -> float:
+        cols = self.columns(model)
+        fixed, fv = self._fixed(cols)
+        b = self.all.b[cols] - (self.all.H[np.ix_(cols, fixed)] @ fv if fixed.size else 0.0)
+        ee = self.all.ee - 2.0 * float(self.all.b[fixed] @ fv) + float(fv @ self.all.H[np.ix_(fixed, fixed)] @ fv) \
+            if fixed.size else self.all.ee
+        step = solve_scaled(self.all.H[np.ix_(cols, cols)], b)
+        return max(ee - float(step @ b), 0.0)
+
+    def added_ssr(self, model: Sequence[Term], terms: Sequence[Term]) -> np.ndarray:
+        """In-sample reduced sum of squares of ``model`` plus each of ``terms`` (one each), for screening: the
+        Schur complement of ``model``'s fit (the other columns' current values held as for ``model`` alone)."""
+        cols = self.columns(model)
+        fixed, fv = self._fixed(cols)
+        H = self.all.H
+        b = self.all.b - (H[:, fixed] @ fv if fixed.size else 0.0)
+        base = self.ssr(model)
+        if cols.size:
+            Hrr = H[np.ix_(cols, cols)]
+            X = np.linalg.pinv(Hrr) @ np.concatenate([H[cols], b[cols][:, None]], axis=1)
+            S = H - H[:, cols] @ X[:, :-1]
+            g = b - H[:, cols] @ X[:, -1]
+        else:
+            S, g = H, b
+        out = np.empty(len(terms))
+        for k, t in enumerate(terms):
+            c = np.setdiff1d(self.columns([t]), cols)
+            out[k] = base - float(g[c] @ solve_scaled(S[np.ix_(c, c)], g[c])) if c.size else base
+        return out
+
+    def _n_nuisance(self) -> int:
+        return int(sum(ns.n_segments * ns.N.shape[1] for ns in self.sys.nuisances))
+
+    def identifiable(self, model: Sequence[Term], new: Sequence[Term], max_condition: float,
+                     max_absorbed: float) -> Identifiability:
+        """Whether ``new`` can be told apart from the nuisances and from ``model`` (all data; cached)."""
+        key = (tuple(sorted(model)), tuple(new), max_condition, max_absorbed)
+        if key not in self._idf:
+            self._idf[key] = self._identifiable(model, new, max_condition, max_absorbed)
+        return self._idf[key]
+
+    def _identifiable(self, model: Sequence[Term], new: Sequence[Term], max_condition: float,
+                      max_absorbed: float) -> Identifiability:
+        cols = self.columns([*model, *new])
+        new_cols = self.columns(new)
+        raw = self.raw_diag[new_cols]
+        if np.any(raw <= 1e-18 * max(float(self.raw_diag.max(initial=0.0)), 1e-300)):
+            return Identifiability(False, math.inf, 1.0, "does not act on the measurements")
+        absorbed = float(np.max(self.sys.absorbed()[new_cols])) if new_cols.size else 0.0
+        if absorbed > max_absorbed:
+            return Identifiability(False, math.inf, absorbed, "not separable from the nuisances (registration)")
+        H = self.all.H[np.ix_(cols, cols)]
+        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        ev = np.linalg.eigvalsh(H / d[:, None] / d[None, :])
+        cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
+        if cond > max_condition:
+            return Identifiability(False, cond, absorbed,
+                                   f"not separable from the effects already chosen (condition {cond:.2g})")
+        return Identifiability(True, cond, absorbed)
