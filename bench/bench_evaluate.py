@@ -40,6 +40,9 @@ from ppoe_core.analysis.evaluate.tag_stream import IMAGE_WORKERS  # noqa: E402
 from ppoe_core.io.bagio import read_bag  # noqa: E402
 from ppoe_core.sim.simulate import simulate  # noqa: E402
 
+#: issue 24's target: bag seconds per wall second of ``evaluate_bag``
+TARGET_REAL_TIME = 400.0
+
 __all__ = ["main", "scenario"]
 
 #: experiment I centre configuration of bags/table1_exp1.yaml [rad]
@@ -134,6 +137,10 @@ def main(argv: list[str] | None = None) -> int:
         fk, pp = s["methods"]["fk"]["lateral"], s["methods"]["ppoe"]["lateral"]
         print(f"fk_lateral_mean: {1e3 * fk['mean']:.2f} mm")
         print(f"ppoe_lateral_mean: {1e3 * pp['mean']:.2f} mm")
+        rate = span / t_eval
+        print(f"row: ppoe evaluate = {rate:.0f}x real time (baseline read_bag alone {span / t_read:.0f}x; "
+              f"{span / c_eval:.0f} bag-s per CPU-s) target >= {TARGET_REAL_TIME:g}x: "
+              f"{'met' if rate >= TARGET_REAL_TIME else 'MISSED'}")
     finally:
         if tmp is not None:
             tmp.cleanup()

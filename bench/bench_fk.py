@@ -11,7 +11,9 @@ Before timing, the PPOE covariance is checked against the pytransform3d one (pyt
 orders tangent vectors ``[omega; v]``, ours ``[rho; theta]``: the comparison permutes) and
 against the Monte-Carlo covariance.
 
-Times are best-of-N process CPU times (robust on a shared machine). Output: ``name: value unit`` lines. Targets (one
+Times are best-of-N process CPU times (robust on a shared machine). Output: ``name: value unit`` lines, then one
+``row: ... met|MISSED`` line per target of issue 24 (:data:`ROW_TARGETS`: one configuration <= 5 us, batched
+>= 3 M/s and >= 500k/s at order 4). Earlier targets (one
 core, issue "fast enough"): ``ppoe_single_order2_time`` <= 30 us and ``single_speedup_vs_pytransform3d`` >= 300,
 ``batched_configs_per_s`` >= 1,000,000, ``batched_order4_configs_per_s`` >= 200,000.  The first call compiles the
 numba kernels (or loads them from numba's cache); timing starts after it.  Run::
@@ -56,6 +58,8 @@ Q_EXAMPLE = {
     "joint_6": 0.9,
     "joint_7": 0.0,
 }
+#: issue 24's targets: one configuration [us], batched order 2 [M configurations/s], order 4 [k/s]
+ROW_TARGETS = {"single_us": 5.0, "batched_order2_M": 3.0, "batched_order4_k": 500.0}
 #: [rho; theta] <-> pytransform3d's [omega; v]
 PERM = np.array([3, 4, 5, 0, 1, 2])
 
@@ -199,7 +203,21 @@ def main(argv: list[str] | None = None) -> int:
     print(f"batched_order4_configs_per_s: {args.batch / t_b4:.0f}")
     print(f"batched_speedup_vs_pytransform3d: {t_pt / (t_b / args.batch):.0f}")
     print(f"batched_speedup_vs_montecarlo_{n_mc}: {t_mc / (t_b / args.batch):.0f}")
+    # issue 24's rows (targets: ROW_TARGETS), each with its same-run baseline
+    _row("one 7-DOF mean + cov", t_ppoe * 1e6, "us", f"{t_pt / t_ppoe:.0f}x pytransform3d's {t_pt * 1e6:.0f} us",
+         ROW_TARGETS["single_us"], lower=True)
+    _row("batched order 2", args.batch / t_b / 1e6, "M/s", f"{t_pt / (t_b / args.batch):.0f}x pytransform3d",
+         ROW_TARGETS["batched_order2_M"], lower=False)
+    _row("batched order 4", args.batch / t_b4 / 1e3, "k/s", f"{t_b4 / t_b:.1f}x the order-2 time",
+         ROW_TARGETS["batched_order4_k"], lower=False)
     return 0
+
+
+def _row(what: str, value: float, unit: str, baseline: str, target: float, lower: bool) -> None:
+    """``row: <what> = <value> (<baseline>) target <t>: met|MISSED`` (issue 24's table)."""
+    met = value <= target if lower else value >= target
+    print(f"row: {what} = {value:.2f} {unit} ({baseline}) target {'<=' if lower else '>='} {target:g} {unit}: "
+          f"{'met' if met else 'MISSED'}")
 
 
 if __name__ == "__main__":

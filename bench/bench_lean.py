@@ -29,7 +29,10 @@ The load average is printed: on a shared machine start-up times grow with it.
 
 Usage::
 
-    python bench/bench_lean.py [--seconds 15] [--skip-cold]
+    python bench/bench_lean.py [--seconds 15] [--skip-cold] [--all]
+
+``--all``: then ``bench_fk.py``, ``bench_fusion_node.py``, ``bench_tags.py`` and ``bench_evaluate.py`` (each in its
+own process), and every ``row:`` line of all of them again at the end: every row of issue 24's table, one command.
 """
 
 from __future__ import annotations
@@ -55,7 +58,10 @@ MODEL = REPO / "config" / "robots" / "arm7_model.yaml"
 IMAGE_BAG = REPO / "bags" / "effect_camera_extrinsics"  # arm7, 640x480 PNG images of tags 10/11
 NODES = ("kinematics_node", "fusion_node", "tag_bearing_node", "contact_node")
 
-__all__ = ["main", "first_output", "node_params"]
+#: the other benchmarks of issue 24's table (``--all``), each printing ``row: ... met|MISSED`` lines
+FRIENDS = ("bench_fk.py", "bench_fusion_node.py", "bench_tags.py", "bench_evaluate.py")
+
+__all__ = ["FRIENDS", "main", "first_output", "node_params", "run_all"]
 
 
 def _env(domain: int, cache: Path, **extra: str) -> dict[str, str]:
@@ -257,14 +263,42 @@ def _row(what: str, value: float, unit: str, baseline: str, target: float, bette
           f"{target:g} {unit}: {'met' if met else 'MISSED'}", flush=True)
 
 
+def run_all(lean_args: list[str]) -> int:
+    """This benchmark, then :data:`FRIENDS` one after the other (each its own process, its output passed through),
+    then every ``row:`` line again: issue 24's table in one command.  Exit code 1 if a benchmark failed."""
+    rows: list[str] = []
+    failed: list[str] = []
+    for script, extra in [("bench_lean.py", lean_args), *[(f, []) for f in FRIENDS]]:
+        print(f"== {script} (load average {os.getloadavg()[0]:.2f})", flush=True)
+        proc = subprocess.Popen([sys.executable, str(REPO / "bench" / script), *extra], cwd=REPO, text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            print(line, end="", flush=True)
+            if line.startswith("row: "):
+                rows.append(f"{script}: {line[5:].rstrip()}")
+        if proc.wait():
+            failed.append(script)
+    print("== issue 24, every row (same-run baselines in parentheses)")
+    for r in rows:
+        print(r)
+    for f in failed:
+        print(f"FAILED: {f}")
+    return 1 if failed else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=15.0, help="steady-state window of the RSS rows (default 15)")
     ap.add_argument("--skip-cold", action="store_true", help="skip the cold start (minutes on a busy machine)")
+    ap.add_argument("--all", action="store_true", help="then run the other benchmarks of issue 24's table "
+                    f"({', '.join(FRIENDS)}) and print every row again at the end")
     ap.add_argument("--role", choices=["feed_all"], help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.role == "feed_all":
         return feed_all(args.seconds)
+    if args.all:
+        return run_all([a for a in (argv if argv is not None else sys.argv[1:]) if a != "--all"])
     print(f"bench_lean.load_avg_1min: {os.getloadavg()[0]:.2f} -", flush=True)
     tmp = Path(tempfile.mkdtemp(prefix="bench_lean_"))
     cache = tmp / "numba_cache"
