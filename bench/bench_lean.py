@@ -30,6 +30,8 @@ The load average is printed: on a shared machine start-up times grow with it.
 Usage::
 
     python bench/bench_lean.py [--seconds 15] [--skip-cold] [--all]
+    python bench/bench_lean.py --breakdown aot|jit      # the kinematics node's start-up and memory, step by step
+    python bench/bench_lean.py --fresh-clone            # README set-up command in a fresh clone, then a node start
 
 ``--all``: then ``bench_fk.py``, ``bench_fusion_node.py``, ``bench_tags.py`` and ``bench_evaluate.py`` (each in its
 own process), and every ``row:`` line of all of them again at the end: every row of issue 24's table, one command.
@@ -263,6 +265,94 @@ def _row(what: str, value: float, unit: str, baseline: str, target: float, bette
           f"{target:g} {unit}: {'met' if met else 'MISSED'}", flush=True)
 
 
+def breakdown(jit: bool) -> int:
+    """Where the kinematics node's start-up time and memory go, step by step in THIS process (VmRSS and wall time
+    after each step; run in a fresh process after ``ppoe warmup``): Python + numpy, rclpy + messages + ``init``,
+    the node's modules, its kernels (the ahead-of-time module, or with ``jit`` numba's cache: ``import numba`` and
+    the warm-up), the node built (URDF parsed, model loaded, first pose computed)."""
+    t0 = time.monotonic()
+    rows: list[tuple[str, float, float]] = []
+
+    def step(what: str) -> None:
+        rows.append((what, time.monotonic() - t0, _rss_mb(os.getpid())))
+
+    import numpy  # noqa: F401
+
+    step("python + numpy")
+    import rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped  # noqa: F401
+    from rclpy.parameter import Parameter
+    from sensor_msgs.msg import JointState  # noqa: F401
+
+    rclpy.init(args=["bench_lean"])
+    step("rclpy + messages, init")
+    from ppoe_ros.common.runner import warm_node_kernels
+    from ppoe_ros.nodes.kinematics_node import KinematicsNode
+
+    step("the node's modules (ppoe_core, ppoe_ros)")
+    if jit:
+        import numba  # noqa: F401
+
+        step("import numba (+ llvmlite)")
+        warm_node_kernels(["kinematics_node"])
+        step("the node's kernels from numba's cache")
+    else:
+        from ppoe_core import aot
+
+        st = aot.load()
+        step(f"ahead-of-time module ({'loaded' if st.usable else 'NOT usable: ' + st.why})")
+    node = KinematicsNode(parameter_overrides=[Parameter("robot_description", value=URDF.read_text()),
+                                               Parameter("model_file", value=str(MODEL))])
+    step("node built (URDF, model, first FK)")
+    print(f"breakdown_numba_loaded: {'numba' in sys.modules} -")
+    prev_t, prev_rss = 0.0, 0.0
+    for what, t, rss in rows:
+        print(f"breakdown: {what}: +{t - prev_t:.2f} s (at {t:.2f} s), +{rss - prev_rss:.1f} MB (RSS {rss:.1f} MB)")
+        prev_t, prev_rss = t, rss
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+def fresh_clone() -> int:
+    """The README's set-up command in a fresh ``git clone`` of this repository (its committed HEAD), up to and with
+    ``ppoe warmup`` (the evaluate examples after it are left out), each step timed, then the clone's own
+    ``kinematics_node`` (its console script, its venv, its caches: no ``PYTHONPATH`` or ``NUMBA_CACHE_DIR`` from
+    here) started: seconds to its first pose.  pip's download cache is whatever this machine has."""
+    tmp = Path(tempfile.mkdtemp(prefix="bench_lean_clone_"))
+    clone = tmp / "ppoe_ros"
+    try:
+        subprocess.run(["git", "clone", "-q", str(REPO), str(clone)], check=True)
+        line = next(ln for ln in (clone / "README.md").read_text().splitlines()
+                    if ln.startswith("python3 -m venv") and "ppoe warmup" in ln)
+        steps = line.split(" && ")
+        steps = steps[:next(i for i, st in enumerate(steps) if "ppoe warmup" in st) + 1]
+        env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR", "VIRTUAL_ENV")}
+        t_setup = 0.0
+        for st in steps:
+            t0 = time.monotonic()
+            res = subprocess.run(["bash", "-c", st], cwd=clone, env=env, capture_output=True, text=True, check=False)
+            t_setup += time.monotonic() - t0
+            print(f"fresh_clone_step: {time.monotonic() - t0:.1f} s: {st}", flush=True)
+            if res.returncode:
+                print(f"error: the step failed ({res.returncode}): {(res.stdout + res.stderr)[-2000:]}")
+                return 1
+        print(f"fresh_clone_setup: {t_setup:.1f} s")
+        d = random.SystemRandom().randint(1, 200)
+        env.update(ROS_DOMAIN_ID=str(d), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+        env.pop("ROS_LOCALHOST_ONLY", None)
+        params = node_params(tmp)["kinematics_node"]
+        cmd = [str(clone / ".venv" / "bin" / "kinematics_node"), "--ros-args", "--params-file",
+               str(clone / "config" / "nodes" / "kinematics_node.yaml"), "--params-file", str(params)]
+        t_first, out = first_output(cmd, env, d)
+        print(f"fresh_clone_kernels: {next((ln for ln in out.splitlines() if 'compiled kernels' in ln), '?')[:200]}")
+        _row("first start after the README's set-up command (fresh clone), to first pose", t_first, "s",
+             f"set-up command {t_setup:.0f} s before it", 5.0)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
 def run_all(lean_args: list[str]) -> int:
     """This benchmark, then :data:`FRIENDS` one after the other (each its own process, its output passed through),
     then every ``row:`` line again: issue 24's table in one command.  Exit code 1 if a benchmark failed."""
@@ -293,10 +383,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-cold", action="store_true", help="skip the cold start (minutes on a busy machine)")
     ap.add_argument("--all", action="store_true", help="then run the other benchmarks of issue 24's table "
                     f"({', '.join(FRIENDS)}) and print every row again at the end")
+    ap.add_argument("--breakdown", choices=["aot", "jit"], help="only the kinematics node's start-up and memory "
+                    "step by step in one process (after 'ppoe warmup'; jit: numba's cache, not the AOT module)")
+    ap.add_argument("--fresh-clone", action="store_true", help="only: the README's set-up command in a fresh "
+                    "clone, then its kinematics_node to its first pose (minutes: pip, ppoe warmup)")
     ap.add_argument("--role", choices=["feed_all"], help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.fresh_clone:
+        return fresh_clone()
     if args.role == "feed_all":
         return feed_all(args.seconds)
+    if args.breakdown:
+        return breakdown(args.breakdown == "jit")
     if args.all:
         return run_all([a for a in (argv if argv is not None else sys.argv[1:]) if a != "--all"])
     print(f"bench_lean.load_avg_1min: {os.getloadavg()[0]:.2f} -", flush=True)
