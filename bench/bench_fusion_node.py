@@ -250,8 +250,9 @@ def run_mode(mode: str, seconds: float, warmup: float) -> dict[str, float]:
     else:
         cmd = [sys.executable, "-m", "ppoe_ros.nodes.fusion_node", "--ros-args", "--params-file",
                str(REPO / "config" / "nodes" / "fusion_node.yaml"), "--params-file", str(params)]
-    proc = subprocess.Popen(cmd, env=env, cwd=REPO, start_new_session=True, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True)
+    log_path = tmp / f"{mode}.log"  # a file, not a pipe nobody reads (a node's warnings would fill it and block it)
+    log = open(log_path, "wb")
+    proc = subprocess.Popen(cmd, env=env, cwd=REPO, start_new_session=True, stdout=log, stderr=subprocess.STDOUT)
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain)
     node = rclpy.create_node("bench_fusion_receiver", context=ctx)
@@ -310,6 +311,10 @@ def run_mode(mode: str, seconds: float, warmup: float) -> dict[str, float]:
                     p.wait(5)
         node.destroy_node()
         ctx.try_shutdown()
+        log.close()
+    node_log = log_path.read_text(errors="replace").splitlines()
+    for line in [ln for ln in node_log if "WARN" in ln or "ERROR" in ln][:5]:
+        print(f"{mode}.log: {line[:300]}")
     head = lines[0].split()
     obs_times = [int(t) for t in lines[1].split()] if len(lines) > 1 else []
     # each update output: the latest observation published before it
@@ -355,9 +360,12 @@ def main(argv: list[str] | None = None) -> int:
         met = r["cpu_share"] <= 0.35
         print(f"row: fusion node CPU at 1 kHz priors + 30 Hz two-tag images = {r['cpu_share']:.3f} cores (relay floor "
               f"{floor:.3f}, classic executor {classic:.3f}) target <= 0.35 cores: {'met' if met else 'MISSED'}")
-        met = r["update_latency_p99"] <= 5.0 and r["update_outputs"] > 0
+        # the observations published inside the timed window: half of them must give an update output to judge
+        expected = r["observations_sent"] * args.seconds / (args.seconds + args.warmup)
+        met = r["update_latency_p99"] <= 5.0 and r["update_outputs"] >= 0.5 * expected
         print(f"row: fused output after the image, p99 = {r['update_latency_p99']:.2f} ms (median "
-              f"{r['update_latency_median']:.2f} ms, {r['update_outputs']} updates; classic executor "
+              f"{r['update_latency_median']:.2f} ms, {r['update_outputs']} update outputs of about {expected:.0f} "
+              f"observations; classic executor "
               f"{results.get('classic', {}).get('update_latency_p99', float('nan')):.2f} ms) target <= 5 ms: "
               f"{'met' if met else 'MISSED'}")
     return 0
