@@ -13,9 +13,9 @@ dispatcher, so the kernel keeps its options: fused multiply-add, inlining).  Sam
 implementation (``test/test_aot.py`` compares the node's bytes on a stream of messages both ways).
 
 Where: beside numba's cache (:func:`ppoe_core.compile_cache.cache_location`): ``ppoe_core/__pycache__`` when the
-package is writable, else the user/temp cache directory; a manifest (JSON) records the source files' hash, the
-Python/numpy/numba versions and the CPU (the code uses the host's instruction set), and :func:`load` refuses a
-module that does not match them (the node then uses numba and says why, once).
+package is writable, else the user/temp cache directory (``PPOE_AOT_DIR`` overrides it); a manifest (JSON) records
+the source files' hash, the Python/numpy/numba versions and the CPU (the code uses the host's instruction set), and
+:func:`load` refuses a module that does not match them (the node then uses numba and says why, once).
 
 Trade (docs/performance.md): it needs a C compiler when it is built (``ppoe warmup``, the README's set-up command,
 ``colcon build``); it is built on the machine that runs it (host CPU), not shipped in wheels; numba marks ``pycc`` as
@@ -64,6 +64,9 @@ MODULE_NAME = "ppoe_aot_kinematics"
 MANIFEST_VERSION = 1
 #: environment variable: ``0`` = do not use the ahead-of-time module (numba's cache instead)
 ENV_SWITCH = "PPOE_AOT"
+#: environment variable: the ahead-of-time module's directory instead of the one beside numba's cache (a test or a
+#: benchmark builds its own module while the kernels keep the install's numba cache)
+ENV_DIR = "PPOE_AOT_DIR"
 
 
 class AotStatus(NamedTuple):
@@ -75,8 +78,10 @@ class AotStatus(NamedTuple):
 
 
 def aot_dir() -> Path | None:
-    """Directory of the ahead-of-time module: ``ppoe_core/__pycache__`` for a writable package, else ``aot/`` in the
-    kernel cache directory; None when caching is off."""
+    """Directory of the ahead-of-time module: ``$PPOE_AOT_DIR`` when set, else ``ppoe_core/__pycache__`` for a
+    writable package, else ``aot/`` in the kernel cache directory; None when caching is off."""
+    if os.environ.get(ENV_DIR):
+        return Path(os.environ[ENV_DIR])
     loc = cache_location()
     if loc.directory is None:
         return None

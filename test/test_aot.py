@@ -61,9 +61,10 @@ def _run(env: dict[str, str], domain: int) -> dict:
 
 @pytest.fixture(scope="module")
 def aot_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A cache directory holding the ahead-of-time module, built by ``ppoe warmup`` (kinematics node only)."""
+    """A directory holding the ahead-of-time module, built by ``ppoe warmup`` (kinematics node only); the numba
+    kernels stay in the install's cache (shared with the other tests: compiled once per run, not once more here)."""
     cache = tmp_path_factory.mktemp("aot_cache")
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), PYTHONPATH=str(REPO))
+    env = dict(os.environ, PPOE_AOT_DIR=str(cache), PYTHONPATH=str(REPO))
     res = subprocess.run([sys.executable, "-m", "ppoe_ros.cli", "warmup", "--nodes", "kinematics_node"], env=env,
                          cwd=REPO, capture_output=True, text=True, timeout=1200)
     assert res.returncode == 0, res.stdout + res.stderr
@@ -74,7 +75,7 @@ def aot_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.mark.timeout(1500)
 def test_node_on_the_ahead_of_time_kernels_without_numba_same_bytes(aot_cache: Path) -> None:
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(aot_cache), PYTHONPATH=str(REPO))
+    env = dict(os.environ, PPOE_AOT_DIR=str(aot_cache), PYTHONPATH=str(REPO))
     ahead = _run(env, 151)
     assert ahead["usable"], ahead["why"]
     assert not ahead["numba"] and not ahead["llvmlite"], "numba was imported by the node's path"
@@ -89,15 +90,15 @@ def test_node_on_the_ahead_of_time_kernels_without_numba_same_bytes(aot_cache: P
 def test_module_built_for_other_sources_is_refused(aot_cache: Path, tmp_path: Path) -> None:
     """A manifest whose source hash differs (the kernels changed after `ppoe warmup`) is not loaded: the node uses
     numba and says why."""
-    manifest = next((aot_cache / "aot").glob("*.json"))
+    manifest = next(aot_cache.glob("*.json"))
     info = json.loads(manifest.read_text())
     info["sources_hash"] = "0" * 40
-    stale = tmp_path / "cache"
-    (stale / "aot").mkdir(parents=True)
-    for f in (aot_cache / "aot").iterdir():
-        (stale / "aot" / f.name).write_bytes(f.read_bytes())
-    (stale / "aot" / manifest.name).write_text(json.dumps(info))
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(stale), PYTHONPATH=str(REPO))
+    stale = tmp_path / "aot"
+    stale.mkdir()
+    for f in aot_cache.iterdir():
+        (stale / f.name).write_bytes(f.read_bytes())
+    (stale / manifest.name).write_text(json.dumps(info))
+    env = dict(os.environ, PPOE_AOT_DIR=str(stale), PYTHONPATH=str(REPO))
     code = "from ppoe_core import aot; s = aot.load(); print(s.usable, s.why)"
     res = subprocess.run([sys.executable, "-c", code], env=env, cwd=REPO, capture_output=True, text=True, timeout=120)
     assert res.stdout.startswith("False") and "sources changed" in res.stdout and "ppoe warmup" in res.stdout
