@@ -36,6 +36,8 @@ class NodeStats:
     def __init__(self, node: Node, keys: Iterable[str] = ("received", "published", "bad"),
                  throttle_sec: float = 2.0) -> None:
         self._logger = node.get_logger()
+        self.context = getattr(node, "context", None)
+        """The node's context: once shut down (Ctrl-C during a callback) a failing publish is not an error."""
         self.counts: dict[str, int] = {k: 0 for k in keys}
         self.throttle_sec = float(throttle_sec)
         self._last_log: dict[tuple[str, str], float] = {}
@@ -98,7 +100,9 @@ def guarded(stats: NodeStats, topic: str,
             except bad_types as exc:
                 stats.bad(topic, str(exc) or type(exc).__name__)
             except Exception as exc:  # noqa: BLE001 - a node must survive any message
-                stats.error(topic, exc)
+                # shutting down (context no longer ok): the publish failed because rclpy stopped, not an error
+                if stats.context is None or stats.context.ok():
+                    stats.error(topic, exc)
             return None
 
         return wrapper
