@@ -4,16 +4,63 @@
 config under ``share/ppoe_ros``; ``pip install .`` gives the same executables as
 console scripts.  The ROS 2 Jazzy wheels from PyPI are behind the ``ros`` extra
 so that users with ROS 2 from apt install without them.
+
+After installing into its final place (``colcon build``, ``python setup.py install``/``develop``: not a wheel
+being built in a staging directory), ``ppoe warmup`` runs on the installed copy: the nodes' kernels are compiled
+then, not at their first start (docs/performance.md, "Start-up").  ``PPOE_WARMUP=0`` skips it;
+``PPOE_WARMUP_NODES`` (space-separated node names) limits it.  A pip install runs it as the README's set-up
+command says (pip builds a wheel in an isolated environment, where this hook cannot reach the final place).
 """
 
+import os
+import subprocess
+import sys
 from glob import glob
 
 from setuptools import find_packages, setup
+from setuptools.command.develop import develop
+from setuptools.command.install import install
 
 PACKAGE = "ppoe_ros"
 
+
+def _warmup(install_lib: str) -> None:
+    """``ppoe warmup`` on the copy installed in ``install_lib`` (the module docstring); never fails the install."""
+    if os.environ.get("PPOE_WARMUP", "1") == "0":
+        print("ppoe warmup skipped (PPOE_WARMUP=0): the nodes compile their kernels at their first start")
+        return
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (install_lib, os.environ.get("PYTHONPATH")) if p))
+    nodes = os.environ.get("PPOE_WARMUP_NODES", "").split()
+    cmd = [sys.executable, "-m", "ppoe_ros.cli", "warmup"] + (["--nodes", *nodes] if nodes else [])
+    try:
+        code = subprocess.call(cmd, env=env, cwd=install_lib)
+    except OSError as exc:
+        code = str(exc)
+    if code:
+        print(f"ppoe warmup did not finish ({code}): the nodes compile their kernels at their first start "
+              f"(run 'ppoe warmup' later)")
+
+
+class InstallAndWarm(install):
+    """``install``, then ``ppoe warmup`` on the installed copy (not when staging a wheel: ``--root``)."""
+
+    def run(self):
+        super().run()
+        if not self.root:
+            _warmup(self.install_lib)
+
+
+class DevelopAndWarm(develop):
+    """``develop`` (``colcon build --symlink-install``), then ``ppoe warmup`` on the source tree."""
+
+    def run(self):
+        super().run()
+        if not getattr(self, "uninstall", False):
+            _warmup(os.path.dirname(os.path.abspath(__file__)))
+
 setup(
     name=PACKAGE,
+    cmdclass={"install": InstallAndWarm, "develop": DevelopAndWarm},
     version="0.1.0",
     packages=find_packages(include=["ppoe_core", "ppoe_core.*", "ppoe_ros", "ppoe_ros.*"]),
     package_data={"ppoe_core": ["py.typed"], "ppoe_ros": ["py.typed"]},
@@ -69,6 +116,7 @@ setup(
             "tag_bearing_node = ppoe_ros.nodes.tag_bearing_node:main",
             "contact_node = ppoe_ros.nodes.contact_node:main",
             "fusion_node = ppoe_ros.nodes.fusion_node:main",
+            "ppoe_container = ppoe_ros.nodes.container:main",
             "ppoe_markers = ppoe_ros.common.markers:main",
             "ppoe_calibration = ppoe_ros.common.calibration:main",
             "ppoe_managed = ppoe_ros.common.lifecycle:main",

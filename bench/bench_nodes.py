@@ -105,8 +105,9 @@ def feed(rate: float, seconds: float) -> int:
     return 0
 
 
-def relay() -> int:
-    """Relay process (the floor): raw joint states in, one fixed raw pose (the input's stamp) out per message."""
+def relay(in_topic: str = "/joint_states", out_topic: str = "/ppoe/pose", in_pose: bool = False) -> int:
+    """Relay process (the floor): raw joint states (``in_pose``: poses) in on ``in_topic``, one fixed raw pose (the
+    input's stamp) out per message on ``out_topic``."""
     import rclpy
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from rclpy.serialization import serialize_message
@@ -116,14 +117,15 @@ def relay() -> int:
 
     def factory() -> object:
         node = rclpy.create_node("bench_relay")
-        pub = node.create_publisher(PoseWithCovarianceStamped, "/ppoe/pose", reliable_qos(1000))
+        pub = node.create_publisher(PoseWithCovarianceStamped, out_topic, reliable_qos(1000))
         template = bytearray(serialize_message(PoseWithCovarianceStamped()))
 
         def on_joint_state(raw: bytes) -> None:
             template[4:12] = raw[4:12]  # header.stamp
             pub.publish(bytes(template))
 
-        node.create_subscription(JointState, "/joint_states", on_joint_state, sensor_qos(1000), raw=True)
+        node.create_subscription(PoseWithCovarianceStamped if in_pose else JointState, in_topic, on_joint_state,
+                                 sensor_qos(1000), raw=True)
         return node
 
     return run_node(factory, [], executor="events")
@@ -281,7 +283,7 @@ def callback_us(n: int = 5000, reps: int = 5) -> tuple[float, float]:
     from ppoe_ros.common.runner import warm_node_kernels
     from ppoe_ros.nodes.kinematics_node import KinematicsNode
 
-    warm_node_kernels()
+    warm_node_kernels(["kinematics_node"])
     rng = np.random.default_rng(1)
     data = []
     for k in range(n):
@@ -314,11 +316,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=1000.0, help="joint-state rate [Hz] (default 1000)")
     ap.add_argument("--modes", default="relay,node", help="comma list of relay, node, batched (default relay,node)")
     ap.add_argument("--role", default="bench", choices=("bench", "feed", "relay"), help=argparse.SUPPRESS)
+    ap.add_argument("--in-topic", default="/joint_states", help=argparse.SUPPRESS)  # relay role
+    ap.add_argument("--out-topic", default="/ppoe/pose", help=argparse.SUPPRESS)
+    ap.add_argument("--in-pose", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.role == "feed":
         return feed(args.rate, args.seconds)
     if args.role == "relay":
-        return relay()
+        return relay(args.in_topic, args.out_topic, args.in_pose)
     print(f"bench_nodes.cpus: {os.cpu_count()} cores")
     print(f"bench_nodes.load_avg_1min: {os.getloadavg()[0]:.2f}")
     print(f"fk_call: {fk_call_us():.1f} us")

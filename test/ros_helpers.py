@@ -37,7 +37,13 @@ from typing import Any
 import yaml
 from conftest import REPO
 
+#: environment variable: "1" = NodeProcess.node starts the node inside ``ppoe_container``
+CONTAINER_ENV = "PPOE_TEST_CONTAINER"
+#: the nodes ``ppoe_container`` runs
+CONTAINER_NODES = ("kinematics_node", "fusion_node", "tag_bearing_node", "contact_node")
+
 __all__ = [
+    "CONTAINER_ENV",
     "REPO",
     "random_domain_id",
     "ros_env",
@@ -90,8 +96,12 @@ class NodeProcess:
     def node(cls, module: str, env: Mapping[str, str], tmp_dir: Path | str,
              params: Mapping[str, Any] | None = None, params_file: Path | str | None = None,
              name: str | None = None) -> NodeProcess:
-        """Start ``ppoe_ros.<module>`` with ``--ros-args`` parameters (``-p k:=v``) and/or a params file."""
+        """Start ``ppoe_ros.<module>`` with ``--ros-args`` parameters (``-p k:=v``) and/or a params file; with
+        ``PPOE_TEST_CONTAINER=1`` in the test's environment a node of ``ppoe_container`` runs it instead, alone in
+        that process (``test/test_container.py`` runs the node tests so)."""
         cmd = [sys.executable, "-m", f"ppoe_ros.nodes.{module}", "--ros-args"]
+        if os.environ.get(CONTAINER_ENV) == "1" and module in CONTAINER_NODES:
+            cmd = [sys.executable, "-m", "ppoe_ros.nodes.container", module, "--ros-args"]
         if params_file is not None:
             cmd += ["--params-file", str(params_file)]
         for k, v in (params or {}).items():

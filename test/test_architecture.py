@@ -39,7 +39,8 @@ _spec.loader.exec_module(gen)
 
 MAX_MODULE_LINES = 600
 MAX_FUNCTION_LINES = 60
-LAYERS = ("compile_cache", "errors", "lie", "robot", "model", "estimation", "sensing", "io", "sim", "analysis", "cli")
+LAYERS = ("compile_cache", "jit", "aot", "errors", "lie", "robot", "model", "estimation", "sensing", "io", "sim",
+          "analysis", "cli")
 FORBIDDEN = {"analysis": ("ppoe_core.io.importers",)}   # layer -> module prefixes it may not import
 ROS_TOP_LEVEL = {
     "rclpy", "rcl", "rcl_interfaces", "rclpy_message_converter", "rosidl_runtime_py", "rosidl_parser",

@@ -36,11 +36,14 @@ def install_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
         else:
             shutil.copy2(p, src / item)
     colcon = [sys.executable, "-c", "import sys; from colcon_core.command import main; sys.exit(main())"]
-    env = dict(os.environ, COLCON_HOME=str(ws / "colcon_home"))
+    # setup.py runs `ppoe warmup` on the installed copy; here for one node only (the whole set takes minutes)
+    env = dict(os.environ, COLCON_HOME=str(ws / "colcon_home"), PPOE_WARMUP_NODES="contact_node")
+    env.pop("NUMBA_CACHE_DIR", None)
     res = subprocess.run(
         colcon + ["--log-base", str(ws / "log"), "build", "--base-paths", str(ws / "src"),
-                  "--build-base", str(ws / "build"), "--install-base", str(ws / "install")],
-        cwd=ws, env=env, capture_output=True, text=True, timeout=120,
+                  "--build-base", str(ws / "build"), "--install-base", str(ws / "install"),
+                  "--event-handlers", "console_direct+"],
+        cwd=ws, env=env, capture_output=True, text=True, timeout=300,
     )
     assert res.returncode == 0, f"colcon build failed:\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}"
     assert "Finished <<< ppoe_ros" in res.stdout
@@ -78,3 +81,11 @@ def test_installed_ppoe_entry_point_runs(install_dir: Path) -> None:
     probe = subprocess.run([sys.executable, "-c", "import ppoe_ros; print(ppoe_ros.__file__)"],
                            cwd=install_dir, env=env, capture_output=True, text=True, timeout=60)
     assert probe.stdout.strip().startswith(str(site))
+
+
+def test_colcon_build_ran_ppoe_warmup_on_the_installed_copy(install_dir: Path) -> None:
+    """setup.py's install step compiled the (here: contact) node's kernels into the installed package's cache."""
+    site = next((install_dir / "lib").glob("python3*/site-packages"))
+    index = list((site / "ppoe_core").rglob("__pycache__/*.nbi"))
+    assert index, "no numba cache index in the installed package: ppoe warmup did not run"
+    assert all(str(p).startswith(str(site)) for p in index)

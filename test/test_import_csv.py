@@ -219,3 +219,13 @@ def test_an_unreadable_urdf_is_one_line(tmp_path, capsys):
                  str(tmp_path / "bag")]) == 2
     err = capsys.readouterr().err
     assert f"{missing}: cannot read the URDF: No such file or directory" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("char", ["\x00", "\x07", "\x1b"])
+def test_a_control_character_in_a_cell_is_an_error_naming_line_and_column(tmp_path, capsys, char):
+    """Was: a NUL inside a station name imported with exit 0 (found by test_fuzz_inputs)."""
+    c, mp = _write(tmp_path, n=6)
+    _rewrite(c, lambda lines: lines[:4] + [lines[4].replace(",S", f",{char}S")] + lines[5:])
+    code, err = _import_exit(c, mp, tmp_path / "bag", capsys)
+    assert code == 2 and f"{c}:5: column 'st': control character {char!r}" in err, err
+    assert not (tmp_path / "bag").exists()

@@ -156,8 +156,10 @@ def test_two_robots_in_one_graph_outputs_do_not_cross(tmp_path):
 def test_in_process_nodes_follow_namespace_and_prefix(tmp_path):
     """Contact and fusion node built in /robot1 with frame_prefix robot1/: resolved topics, prefixed output frames,
     inputs of another robot (or without the prefix) refused, sensor-block frames checked with the prefix."""
+    from geometry_msgs.msg import PoseWithCovarianceStamped
     from ros_helpers import Probe, ros_env
     from rclpy.parameter import Parameter
+    from rclpy.serialization import deserialize_message, serialize_message
     from sensor_msgs.msg import Imu
     from std_msgs.msg import Header
 
@@ -190,10 +192,12 @@ def test_in_process_nodes_follow_namespace_and_prefix(tmp_path):
             assert {"/robot1/ppoe/pose", "/robot1/joint_states", "/robot1/imu/tool", "/robot1/contact/plane",
                     "/robot1/tag_bearing/observations", "/robot1/camera/camera_info"} <= topics
             cov_ros = lie.cov_local_to_ros(T, P)
+            # the node takes its priors as bytes and publishes bytes (raw subscription and publisher)
             with pytest.raises(MeasurementError, match="prior frame 'base_link' is not base_frame 'robot1/base_link'"):
-                fusion._prior(pose_cov_stamped_msg(T, cov_ros, 0, "base_link"))
-            fusion._prior(pose_cov_stamped_msg(T, cov_ros, 1_000_000_000, "robot1/base_link"))
-            assert [m.header.frame_id for m in sent] == ["robot1/base_link"]
+                fusion._prior(serialize_message(pose_cov_stamped_msg(T, cov_ros, 0, "base_link")))
+            fusion._prior(serialize_message(pose_cov_stamped_msg(T, cov_ros, 1_000_000_000, "robot1/base_link")))
+            assert [deserialize_message(m, PoseWithCovarianceStamped).header.frame_id for m in sent] == [
+                "robot1/base_link"]
             src = fusion.sources.sources[0]
             assert src.topic == "/robot1/imu/tool"
 

@@ -66,7 +66,7 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.parametrize("command", [
-    ["diagnose", "bags/no_effect", "--model", "config/robots/arm7_model.yaml", "--pixels", "off", "--joint", "off",
+    ["diagnose", "bags/no_effect", "--model", "config/robots/arm7_model.yaml", "--pixels", "off",
      "--json"],
     ["evaluate", "bags/table1_exp1", "--model", "config/robots/rover_model.yaml", "--json"],
 ], ids=["diagnose", "evaluate"])

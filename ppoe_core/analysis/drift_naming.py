@@ -44,7 +44,11 @@ from ppoe_core.estimation.online_models import OnlineRow
 from ppoe_core.estimation.online_monitor import DriftMonitor, DriftNaming, MonitorSettings, NamedEffect
 from ppoe_core.model.effects import Effect, make_effect
 
-__all__ = ["NamingSettings", "make_monitor", "name_drift", "window_candidates"]
+__all__ = ["SAME_COLUMNS", "NamingSettings", "make_monitor", "name_drift", "window_candidates"]
+
+#: two candidates are the same on a window when the cosines of all principal angles between their whitened columns
+#: exceed this (e.g. the growth of two segments that lie on one axis: proportional columns)
+SAME_COLUMNS = 0.9999
 
 
 @dataclass(frozen=True)
@@ -215,10 +219,24 @@ def _named(filt: OnlineEffects, problem: LinearProblem, chosen: list[ChosenTerm]
         e = c.effect
         sl = slice(k, k + len(c.comps))
         named.append(NamedEffect(e.with_params(d[sl]), c.gain, c.t, np.sqrt(np.diag(cov)[sl]),
-                                 e.name in ONLINE_EFFECT_NAMES))
+                                 e.name in ONLINE_EFFECT_NAMES, _equivalent(problem, c.candidate)))
         k += len(c.comps)
     theta = np.concatenate([filt.theta + d[:P], d[P:]])
     return DriftNaming(named, n, screened, "", theta, cov)
+
+
+def _equivalent(problem: LinearProblem, i: int) -> list[str]:
+    """Candidates whose window columns span the same space as candidate ``i``'s (cosines of all principal angles
+    above :data:`SAME_COLUMNS`): the window cannot tell them apart (``name@location``)."""
+    A = np.linalg.qr(problem.columns[i])[0]
+    out = []
+    for j, c in enumerate(problem.columns):
+        e = problem.candidates[j]
+        if j == i or c.shape[1] != A.shape[1]:
+            continue
+        if np.linalg.svd(A.T @ np.linalg.qr(c)[0], compute_uv=False).min() > SAME_COLUMNS:
+            out.append(f"{e.name}@{e.location}")
+    return out
 
 
 def make_monitor(settings: MonitorSettings | None = None, naming: NamingSettings | None = None) -> DriftMonitor:

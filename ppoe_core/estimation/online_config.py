@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from ppoe_core.errors import ModelConfigError
-from ppoe_core.model.effects import Effect, effect_from_config
+from ppoe_core.errors import ModelConfigError, UnknownJointError
+from ppoe_core.model.effects import Effect, effect_from_config, make_effect
 
 __all__ = [
     "DEFAULT_INITIAL_SIGMA",
@@ -181,10 +181,15 @@ def parse_online_config(raw: Any, model: Any, where: str = "online_effects",
         held = next((e for e in model.effects if e.name == name and e.location == str(entry.get("location"))), None)
         if held is not None:
             eff = held
-        else:
+        elif "parameters" in entry:
             cfg = {k: entry[k] for k in ("name", "location", "variable", "reference", "parameters") if k in entry}
-            cfg.setdefault("parameters", {})
             eff = effect_from_config(cfg, model.robot, where=w)
+        else:  # every parameter of the effect, starting at zero
+            opts = {k: entry[k] for k in ("variable", "reference") if k in entry}
+            try:
+                eff = make_effect(str(name), str(entry.get("location")), model.robot, **opts)
+            except (ModelConfigError, UnknownJointError) as exc:
+                raise type(exc)(f"{w}: {exc}") from None
         if any(t.effect.name == eff.name and t.effect.location == eff.location for t in out):
             raise ModelConfigError(f"{w}: effect {eff.describe()} is listed twice")
         out.append(tracked(eff, entry.get("process_noise"), entry.get("initial_sigma"), w))

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import bisect
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -163,12 +163,17 @@ def correct_prior(filt: OnlineEffects, q: Mapping[str, float], T_base_tool: np.n
 
 @dataclass(frozen=True)
 class OnlineStep:
-    """A measurement taken by the filter: its stamp, the update, the row, and a drift event the monitor raised."""
+    """A measurement taken by the filter: its stamp, the update, the row, a drift event the monitor raised, and the
+    estimate right after it (``labels``, ``theta`` (P,), covariance ``P`` (P, P): what the live hook publishes; a
+    drain of several steps must not publish the last state for each)."""
 
     stamp_ns: int
     update: OnlineUpdate
     row: OnlineRow | None = None
     drift: Any = None
+    labels: tuple[str, ...] = ()
+    theta: np.ndarray | None = None
+    P: np.ndarray | None = None
 
 
 @dataclass
@@ -201,23 +206,30 @@ class OnlineInputs:
         streams are taken in stamp order
     temperature_timeout_ns : a temperature older than this at a measurement's stamp is stale (counted, noted)
     base : frame of the fusion payloads' ``T_base_frame`` (default: model frames.base, else the root)
+    joint_gap_ns : joint states around a measurement's stamp further apart than this leave it out (0: no check;
+        default 0.1 s, five periods of the contract's 50 Hz)
     """
 
     def __init__(self, filt: OnlineEffects, joint_max_age_ns: int = 0, keep_ns: int = 10_000_000_000,
                  temperature_wait_ns: int = 2_000_000_000, max_pending: int = 1000,
                  policy: StampResetPolicy | None = None, monitor: Any = None, reorder_ns: int = 100_000_000,
-                 temperature_timeout_ns: int = 10_000_000_000, base: str | None = None) -> None:
+                 temperature_timeout_ns: int = 10_000_000_000, base: str | None = None,
+                 joint_gap_ns: int = 100_000_000) -> None:
         model = filt.model
         self.filter = filt
         self.monitor = monitor
         self.base = base or _base(filt)
         self.names = list(model.joint_names)
+        # a measurement is taken up to reorder + temperature wait after its stamp (later, when the joint stream has a
+        # gap): its joints must still be kept then
+        keep_ns = max(int(keep_ns), 3 * int(reorder_ns) + int(temperature_wait_ns))
         self.joints = JointHistory(self.names, known=model.robot.joints, max_age_ns=joint_max_age_ns,
                                    keep_ns=keep_ns, policy=policy)
         self.temperatures = StampedHistory(keep_ns)
         self.temperature_wait_ns = int(temperature_wait_ns)
         self.temperature_timeout_ns = int(temperature_timeout_ns)
         self.reorder_ns = int(reorder_ns)
+        self.joint_gap_ns = int(joint_gap_ns)
         self.max_pending = int(max_pending)
         self.pending: list[tuple[tuple[int, str], OnlineMeasurement]] = []
         self.counts = _Counts()
@@ -295,7 +307,27 @@ class OnlineInputs:
                 out.append(step)
         return out
 
+    def joints_known(self, stamps_ns: Sequence[int], m: OnlineMeasurement) -> bool:
+        """Whether the joint states around ``m``'s stamp are complete: the ones just before and after it (sorted
+        ``stamps_ns``) at most ``joint_gap_ns`` apart.  A larger gap (messages lost before the node, a stalled
+        driver) is counted in ``no_joints`` and noted: the arm may have moved in it."""
+        i = bisect.bisect_right(stamps_ns, m.stamp_ns) - 1
+        if i < 0:
+            self.counts.no_joints += 1
+            self.notes.append(("no_joints", f"{m.source} at {m.stamp_ns * 1e-9:.6f} s: no joint state at or before "
+                                            "its stamp (kept); skipped"))
+            return False
+        if self.joint_gap_ns <= 0 or i + 1 >= len(stamps_ns) or stamps_ns[i + 1] - stamps_ns[i] <= self.joint_gap_ns:
+            return True
+        self.counts.no_joints += 1
+        self.notes.append(("no_joints", (
+            f"{m.source} at {m.stamp_ns * 1e-9:.6f} s: no joint state between {stamps_ns[i] * 1e-9:.6f} and "
+            f"{stamps_ns[i + 1] * 1e-9:.6f} s (gap above {self.joint_gap_ns * 1e-9:g} s: lost?); skipped")))
+        return False
+
     def _process(self, m: OnlineMeasurement) -> OnlineStep | None:
+        if not self.joints_known(self.joints.history.stamps, m):
+            return None
         q = self.joints.at(m.stamp_ns)
         if q is None or not np.isfinite(q).all():
             self.counts.no_joints += 1
@@ -339,8 +371,11 @@ class OnlineInputs:
             self._check_temperature(m, temperature[0])
             if filt.context.get("temperature") != temperature[1]:
                 filt.set_temperature(temperature[0] * 1e-9, temperature[1])
-        row, unknown = build_row(filt, m, q, self.base, self._skip_tags(m))
+        m = self._with_focal(m)
+        skip = self._skip_tags(m)
+        row, unknown = build_row(filt, m, q, self.base, skip)
         self.counts.unknown_tag_points += unknown
+        self._seen_tags(m, skip)
         if not row.parts:
             return None
         jumps = filt.counts.jumps
@@ -350,7 +385,16 @@ class OnlineInputs:
             return None
         self.counts.jumps += filt.counts.jumps - jumps
         drift = self.monitor.observe(filt, row, up) if self.monitor is not None else None
-        return OnlineStep(m.stamp_ns, up, row, drift)
+        return OnlineStep(m.stamp_ns, up, row, drift, tuple(filt.labels), filt.theta.copy(), filt.P.copy())
+
+    def _with_focal(self, m: OnlineMeasurement) -> OnlineMeasurement:
+        """A tag image that reached the node before its camera's first ``camera_info`` takes the focal lengths of
+        the camera_info seen since (the measurement waited for its joint state in between)."""
+        p = m.payload
+        if isinstance(p, TagMeasurement) and (p.fx is None or p.fy is None) and p.camera_frame in self.cameras:
+            K = self.cameras[p.camera_frame][0]
+            return replace(m, payload=replace(p, fx=float(K[0, 0]), fy=float(K[1, 1])))
+        return m
 
     def _check_temperature(self, m: OnlineMeasurement, t_ns: int) -> None:
         """A temperature older than ``temperature_timeout_ns`` at the measurement's stamp: counted, noted once per
@@ -375,12 +419,9 @@ class OnlineInputs:
             return frozenset()
         stamp, seen = self._recent_tags
         if abs(m.stamp_ns - stamp) > SAME_INSTANT_NS:
-            stamp, seen = m.stamp_ns, {}
+            return frozenset()
         ids = set(np.asarray(p.ids).astype(int).reshape(-1).tolist())
         twice = {i for i in ids if i in seen and seen[i] != p.camera_frame}
-        for i in ids - twice:
-            seen.setdefault(i, p.camera_frame)
-        self._recent_tags = (stamp, seen)
         if twice:
             self.counts.tags_seen_twice += len(twice)
             others = sorted({seen[i] for i in twice})
@@ -389,6 +430,18 @@ class OnlineInputs:
                 f" used once (the first camera's view), the second view dropped: the two views' errors are "
                 "correlated through the tag's chain")))
         return frozenset(twice)
+
+    def _seen_tags(self, m: OnlineMeasurement, used: frozenset[int]) -> None:
+        """Remember the tags an image was used with (for :meth:`_skip_tags` of another camera's image)."""
+        p = m.payload
+        if not isinstance(p, TagMeasurement):
+            return
+        stamp, seen = self._recent_tags
+        if abs(m.stamp_ns - stamp) > SAME_INSTANT_NS:
+            stamp, seen = m.stamp_ns, {}
+        for i in set(np.asarray(p.ids).astype(int).reshape(-1).tolist()) - used:
+            seen.setdefault(i, p.camera_frame)
+        self._recent_tags = (stamp, seen)
 
     def correct_prior(self, stamp_ns: int, T_base_tool: np.ndarray, cov_tool: np.ndarray, base: str,
                       tool: str) -> tuple[np.ndarray, np.ndarray]:

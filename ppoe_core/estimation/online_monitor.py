@@ -67,13 +67,16 @@ class MonitorSettings:
 @dataclass
 class NamedEffect:
     """An effect that explains the drift: the window's estimate (``effect.params``), its 1-sigma, held-out gain
-    (relative decrease of the held-out whitened squared residual), paired t statistic, whether it can be tracked."""
+    (relative decrease of the held-out whitened squared residual), paired t statistic, whether it can be tracked,
+    and the candidates the window cannot tell from it (``name@location``: the same columns up to scale, e.g. the
+    growth of two segments along one axis)."""
 
     effect: Effect
     gain: float
     t: float
     sigma: np.ndarray
     trackable: bool
+    equivalent: list[str] = field(default_factory=list)
 
     @property
     def key(self) -> str:
@@ -82,7 +85,8 @@ class NamedEffect:
     def to_dict(self) -> dict[str, Any]:
         return {"effect": self.key, "parameters": dict(zip(self.effect.param_names, self.effect.params.tolist())),
                 "sigma": dict(zip(self.effect.param_names, np.asarray(self.sigma, float).tolist())),
-                "heldout_gain": float(self.gain), "t": float(self.t), "trackable": bool(self.trackable)}
+                "heldout_gain": float(self.gain), "t": float(self.t), "trackable": bool(self.trackable),
+                "equivalent": list(self.equivalent)}
 
 
 @dataclass
@@ -123,6 +127,7 @@ class DriftEvent:
         if not n.named:
             return f"{head}; no candidate effect explains it ({n.why})"
         names = ", ".join(f"{e.key} (held-out gain {100 * e.gain:.0f} %, t {e.t:.1f}"
+                          + (f", the same on this data as {' or '.join(e.equivalent)}" if e.equivalent else "")
                           + ("" if e.trackable else ", not trackable online: run ppoe diagnose") + ")"
                           for e in n.named)
         return f"{head}; explained by {names}" + (f"; added to the online state: {self.added}" if self.added else "")

@@ -22,7 +22,7 @@ import sys
 from typing import Any
 
 import numpy as np
-from numba import njit
+from ppoe_core.jit import njit
 
 from ppoe_core.model.joint_history import NEVER_NS, JointHistory, fresh_vector, merge_into
 from ppoe_core.io import cdr

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from ppoe_core.jit import njit
 
 __all__ = [
     "quat_into", "quat_from_matrix_kernel", "quat_from_matrix_one", "pose_fields_one", "pose_from_quat_one",

@@ -29,7 +29,7 @@ covariance accumulates in two vectorised passes per column (the column into ``g`
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from ppoe_core.jit import njit
 
 from ppoe_core.model.fourth_order import compound_chunk
 

@@ -63,10 +63,11 @@ class CameraIntrinsics(Effect):
         K2[1, 1] += d[1]
         K2[0, 2] += d[2]
         K2[1, 2] += d[3]
-        D2 = np.zeros(5)
         D_in = np.asarray(D, dtype=float).ravel()
-        D2[:min(5, D_in.size)] = D_in[:5]
-        return K2, D2 + d[4:]
+        D2 = np.zeros(max(5, D_in.size))
+        D2[:D_in.size] = D_in
+        D2[:5] += d[4:]
+        return K2, D2
 
 
 def tag_location(tag_id: int) -> str:

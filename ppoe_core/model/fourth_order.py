@@ -7,7 +7,7 @@ pytransform3d's ``_compound_cov_fourth_order_terms`` (BSD-3; it orders twists ``
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from ppoe_core.jit import njit
 from numpy.typing import ArrayLike
 
 __all__ = ["compound_fourth_order", "compound_chunk", "CHUNK"]

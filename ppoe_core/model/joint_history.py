@@ -26,7 +26,7 @@ from collections.abc import Collection, Sequence
 from typing import Any, NamedTuple
 
 import numpy as np
-from numba import njit
+from ppoe_core.jit import njit
 
 from ppoe_core.errors import JointValueError
 from ppoe_core.model.stamp_policy import BACKWARD, FUTURE, NEW_TIMELINE, StampCheck, StampRefused, StampResetPolicy

@@ -37,6 +37,8 @@ __all__ = [
     "aruco_dictionary",
     "tag_points_local",
     "detect_tags",
+    "refine_edges",
+    "EDGE_PASSES",
     "render_tags",
 ]
 
@@ -108,14 +110,29 @@ def _diagonal_intersection(c: np.ndarray) -> np.ndarray:
     return np.array([(l1 * m2 - l2 * m1) / w, (l2 * m0 - l0 * m2) / w])
 
 
-def _refine_edges(grey: np.ndarray, corners: np.ndarray, n_cells: int) -> np.ndarray:
-    """Refine the 4 corners of a quad by fitting its 4 outer edges (AprilTag-style).
+#: passes of the edge fit: each re-centres the profiles on the edges the previous one found (the gradient centroid of
+#: a window that is off the edge is biased towards the window's middle); four bring the corner error of rendered
+#: 640x480 images (blur 0.8 px, noise 2 grey levels) to 0.097 px RMS, the AprilTag 3 C library's 0.104 px on the same
+#: images, one pass 0.22 px (bench/bench_tags.py)
+EDGE_PASSES = 4
+#: profile sample step across an edge [px]
+_EDGE_STEP = 0.1
+#: profiles per edge at most (evenly spaced over its middle 70 %); more change the corners by < 0.005 px
+_EDGE_PROFILES = 40
+#: half width of a profile [cells of the black square] (at most 2 px): wider reaches the next inner edge
+_EDGE_WINDOW = 0.55
+
+
+def refine_edges(grey: np.ndarray, corners: np.ndarray, n_cells: int, passes: int = EDGE_PASSES) -> np.ndarray:
+    """Refine the 4 corners of a quad by fitting its 4 outer edges (AprilTag-style), ``passes`` times.
 
     Along each edge, intensity profiles across the edge (bilinear samples, step 0.1 px, half
-    width ``min(2 px, 0.7 cell)``) give the sub-pixel edge position as the centroid of the
+    width ``min(2 px, 0.55 cell)``) give the sub-pixel edge position as the centroid of the
     dark-to-light gradient; a total-least-squares line is fitted to those points and the
     corners are the intersections of consecutive lines.  Corners that move by more than one
-    cell, or edges with too few valid profiles, keep the input values.
+    cell, or edges with too few valid profiles, keep the input values.  Each pass starts from the
+    previous pass's corners (:data:`EDGE_PASSES`); a pass is one compiled call
+    (:func:`ppoe_core.sensing.edge_kernel.edge_pass`).
 
     Parameters
     ----------
@@ -124,56 +141,19 @@ def _refine_edges(grey: np.ndarray, corners: np.ndarray, n_cells: int) -> np.nda
         Corners in the module's order (clockwise in the image).
     n_cells : int
         Cells across the black square (8 for 36h11).
+    passes : int
 
     Returns
     -------
     (4, 2) refined corners.
     """
-    import cv2
+    from ppoe_core.sensing.edge_kernel import edge_pass
 
-    c = np.asarray(corners, dtype=float)
-    img = grey.astype(np.float32)
-    centre = c.mean(axis=0)
-    lines = []
-    for k in range(4):
-        a, b = c[k], c[(k + 1) % 4]
-        d = b - a
-        length = float(np.linalg.norm(d))
-        if length < 4.0:
-            return c
-        d /= length
-        nrm = np.array([d[1], -d[0]])
-        if nrm @ (0.5 * (a + b) - centre) < 0:  # outward normal
-            nrm = -nrm
-        cell = length / n_cells
-        half = min(2.0, 0.7 * cell)
-        ts = np.linspace(0.15, 0.85, max(int(length), 6))
-        ss = np.arange(-half, half + 1e-9, 0.1)
-        P = (a[None, None, :] + ts[:, None, None] * (b - a)[None, None, :]
-             + ss[None, :, None] * nrm[None, None, :]).astype(np.float32)
-        prof = cv2.remap(img, P[..., 0], P[..., 1], interpolation=cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE)
-        g = np.clip(np.diff(prof, axis=1), 0.0, None)       # dark (inside) -> light (outside)
-        wsum = g.sum(axis=1)
-        mids = 0.5 * (ss[1:] + ss[:-1])
-        ok = wsum > 1e-3 * max(float(wsum.max()), 1e-9)
-        if ok.sum() < 3:
-            return c
-        off = (g[ok] * mids[None, :]).sum(axis=1) / wsum[ok]
-        pts = a[None, :] + ts[ok, None] * (b - a)[None, :] + off[:, None] * nrm[None, :]
-        m = pts.mean(axis=0)
-        _, _, vt = np.linalg.svd(pts - m)
-        n_line = vt[1]
-        lines.append(np.array([n_line[0], n_line[1], -n_line @ m]))
-    out = c.copy()
-    for k in range(4):
-        x = np.cross(lines[(k - 1) % 4], lines[k])  # edge k-1 (into corner k) and edge k (out of it)
-        if abs(x[2]) < 1e-12:
-            continue
-        p = x[:2] / x[2]
-        if np.linalg.norm(p - c[k]) < np.linalg.norm(c[(k + 1) % 4] - c[k]) / n_cells:
-            out[k] = p
-    return out
+    c = np.array(corners, dtype=np.float64)
+    img = np.ascontiguousarray(grey, dtype=np.uint8)
+    for _ in range(passes):
+        edge_pass(img, c, int(n_cells), _EDGE_PROFILES, _EDGE_STEP, _EDGE_WINDOW, c)
+    return c
 
 
 _per_thread = threading.local()
@@ -218,7 +198,7 @@ def detect_tags(image: np.ndarray, dictionary: str = "tag36h11", refine: str = "
         Dictionary name, see :func:`aruco_dictionary`.
     refine
         Corner refinement: ``"edges"`` (default: OpenCV sub-pixel corners, then a line fit of the
-        four outer edges, see :func:`_refine_edges`), ``"subpix"``, ``"contour"``, ``"apriltag"``
+        four outer edges, see :func:`refine_edges`), ``"subpix"``, ``"contour"``, ``"apriltag"``
         or ``"none"`` (OpenCV's methods alone).
 
     Returns
@@ -247,7 +227,7 @@ def detect_tags(image: np.ndarray, dictionary: str = "tag36h11", refine: str = "
     for c, i in zip(corners, ids.reshape(-1)):
         c4 = np.asarray(c, dtype=float).reshape(4, 2)
         if refine == "edges":
-            c4 = _refine_edges(img, c4, int(d.markerSize) + 2)
+            c4 = refine_edges(img, c4, int(d.markerSize) + 2)
         out.append(TagDetection(int(i), c4, _diagonal_intersection(c4)))
     out.sort(key=lambda d: d.id)
     return out

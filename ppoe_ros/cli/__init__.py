@@ -25,6 +25,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "import": ("ppoe_core.cli.importer", "turn measured datasets (hilti, motoman, csv) into contract bags"),
     "play": ("ppoe_ros.cli.play", "publish a recorded bag onto live ROS 2 topics"),
     "record": ("ppoe_ros.cli.record", "record live ROS 2 topics into a new bag"),
+    "warmup": ("ppoe_ros.cli.warmup", "compile every node's kernels now (installation), not at a node's first start"),
 }
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import math
 import os
+import struct
 from typing import Any
 
 import numpy as np
@@ -14,8 +15,11 @@ from geometry_msgs.msg import Point, Pose, PoseWithCovariance, PoseWithCovarianc
 from std_msgs.msg import Header
 
 from ppoe_core import lie
-from ppoe_core.errors import PpoeError
+from ppoe_core.errors import MeasurementError, PpoeError
 from ppoe_core.lie.compiled import lie_kernels
+
+#: ``header.stamp`` (int32 sec, uint32 nanosec) right after the 4-byte CDR encapsulation
+_STAMP = struct.Struct("<iI")
 
 #: The generated message classes' private fields, as the fast builder of :func:`pose_cov_stamped_msg` fills them
 _MSG_SLOTS = {
@@ -155,6 +159,54 @@ def pose_cov_from_msg(msg: PoseWithCovarianceStamped) -> tuple[np.ndarray, np.nd
     T = matrix_from_pose_msg(msg.pose.pose)
     cov_ros = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)  # a copy: the message keeps its array
     return T, cov_ros, stamp_to_ns(msg.header.stamp), msg.header.frame_id
+
+
+def pose_cov_from_cdr(raw: bytes) -> tuple[np.ndarray, np.ndarray, int, str]:
+    """:func:`pose_cov_from_msg` of a serialised ``PoseWithCovarianceStamped`` (a raw subscription's bytes), without
+    building the typed message: the fields by :func:`ppoe_core.io.cdr.parse_fields` (the bag reader's), the
+    stamp in integer nanoseconds from the header's bytes; anything that reader leaves to the typed path (big endian
+    ...) takes it.
+
+    Raises
+    ------
+    MeasurementError
+        Bytes that are not a ``PoseWithCovarianceStamped``.
+    """
+    from ppoe_core.io import cdr
+
+    try:
+        _, frame, (px, py, pz, qx, qy, qz, qw), cov = cdr.parse_fields(_POSE_COV_TYPE, raw)
+    except cdr.PARSE_ERRORS:
+        from rclpy.serialization import deserialize_message
+
+        try:
+            return pose_cov_from_msg(deserialize_message(raw, PoseWithCovarianceStamped))
+        except Exception as exc:  # noqa: BLE001 - rclpy raises plain exceptions for malformed bytes
+            raise MeasurementError(f"not a PoseWithCovarianceStamped ({len(raw)} bytes): {exc}") from None
+    sec, nsec = _STAMP.unpack_from(raw, 4)
+    T = _matrix_from_quat_xyz(qx, qy, qz, qw, px, py, pz)
+    return T, np.array(cov, dtype=float).reshape(6, 6), sec * 1_000_000_000 + nsec, frame
+
+
+_POSE_COV_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+
+
+class PoseCovarianceCdr:
+    """:func:`pose_cov_stamped_msg` as bytes for a raw publisher (same floats: the quaternion by the same kernel),
+    with a fixed ``frame_id``: no typed message is built (publishing a typed message converts it field by field).
+    """
+
+    def __init__(self, frame_id: str) -> None:
+        from ppoe_core.io.cdr import PoseCovarianceWriter
+
+        self.writer = PoseCovarianceWriter(frame_id)
+        self._fields = np.empty(7)
+
+    def serialize(self, T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp_ns: int) -> bytes:
+        """The message bytes (``cov_ros`` in the ROS convention, ``stamp_ns`` integer nanoseconds)."""
+        f = self._fields
+        lie_kernels().pose_fields_one(np.asarray(T_parent_child, dtype=np.float64), f)  # qx qy qz qw px py pz
+        return self.writer.serialize(stamp_ns, f[4:7], f[0:4], np.asarray(cov_ros, dtype=np.float64))
 
 
 def wrench_to_numpy(msg: Any) -> np.ndarray:

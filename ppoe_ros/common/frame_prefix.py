@@ -19,7 +19,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-from ppoe_core.estimation.sources import unprefixed
 from ppoe_ros.common.params import ParamSpec
 
 __all__ = ["FRAME_PREFIX_PARAM", "prefixed", "unprefixed", "resolve_topics"]
@@ -34,6 +33,14 @@ FRAME_PREFIX_PARAM = ParamSpec(
 def prefixed(prefix: str, frame: str) -> str:
     """``prefix + frame`` (an empty frame stays empty)."""
     return prefix + frame if frame else frame
+
+
+def unprefixed(prefix: str, frame: str, topic: str) -> str:
+    """:func:`ppoe_core.estimation.sources.unprefixed` (THE rule; imported on the first call, so that a node that
+    never receives a frame, e.g. the kinematics node, does not load the estimation layer and scipy with it)."""
+    from ppoe_core.estimation.sources import unprefixed as rule
+
+    return rule(prefix, frame, topic)
 
 
 def resolve_topics(node: Any, params: dict[str, Any], keys: Sequence[str]) -> None:

@@ -49,7 +49,7 @@ from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
 from ppoe_core.analysis.drift_naming import make_monitor
 from ppoe_core.analysis.evaluate.online_config import MONITOR_PARAMS, settings_from_params
-from ppoe_core.errors import ModelConfigError
+from ppoe_core.errors import ModelConfigError, PpoeError
 from ppoe_core.estimation.online_effects import OnlineEffects, parse_online_config
 from ppoe_core.estimation.online_inputs import IMU_TOPIC, OnlineInputs, OnlineMeasurement, OnlineStep
 from ppoe_core.estimation.source_updater import GravityMeasurement, PointMeasurement
@@ -82,6 +82,9 @@ ONLINE_PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("online_temperature_timeout", 10.0, "a temperature older than this at a measurement is stale "
               "(counted as online_temperature_stale, logged); 0 = off", unit="s", min_value=0.0, max_value=1e6),
     ParamSpec("online_joint_states_topic", "joint_states", "joint states of the measurements", check=check_nonempty),
+    ParamSpec("online_reorder_window", 0.1, "a measurement waits for a joint state this long after its stamp, so that "
+              "the measurements of several topics are taken in stamp order (as ppoe evaluate --online takes them)",
+              unit="s", min_value=0.0, max_value=60.0),
     ParamSpec("online_joint_max_age", 0.5, "a joint value a split message lacks is held this long; 0 = no limit",
               unit="s", min_value=0.0, max_value=3600.0),
     ParamSpec("online_estimates_topic", "ppoe/online_effects", "estimates out (std_msgs/Float64MultiArray, layout "
@@ -198,7 +201,12 @@ class OnlineEffectsHook:
                                     st.jump_probability)
         monitor = make_monitor(st.monitor, st.naming) if st.monitor is not None else None
         self.inputs = OnlineInputs(self.filter, int(self.p["online_joint_max_age"] * 1e9), monitor=monitor,
-                                   temperature_timeout_ns=int(round(st.temperature_timeout * 1e9)))
+                                   temperature_timeout_ns=int(round(st.temperature_timeout * 1e9)),
+                                   reorder_ns=int(round(self.p["online_reorder_window"] * 1e9)))
+        try:  # load the compiled kernels now, not while the first measurements wait (messages would pile up)
+            self.filter.tool_pose({j: 0.0 for j in model.joint_names}, model.robot.root, list(model.robot.links)[-1])
+        except PpoeError:
+            pass
         self.node.get_logger().info(f"online effects: tracking {self.filter.labels} from "
                                     f"{sorted(self._subscribed)} and the node's measurements; drift monitor "
                                     + ("off" if monitor is None else f"on ({monitor.settings})"))
@@ -233,12 +241,18 @@ class OnlineEffectsHook:
         if isinstance(m.payload, (PointMeasurement, GravityMeasurement)) and topic in self._subscribed:
             return
         om = OnlineMeasurement(int(round(m.stamp * 1e9)), topic, frame[:-1] if frame else "", payload=m.payload)
-        self._publish(self.inputs.measurement(om))
+        try:  # never into the caller: the fusion node hands the same measurement to its pipeline next
+            self._publish(self.inputs.measurement(om))
+        except Exception as exc:  # noqa: BLE001 - counted and logged, the node's measurement goes on
+            self.stats.bad(str(m.source), f"online effects: {exc}", kind="online_bad")
 
     def camera_info(self, frame: str, K: Any, D: Any) -> None:
         """A camera's ``camera_info`` (a change mid-run is counted and logged)."""
         if self.inputs is not None:
-            self.inputs.camera_info(frame, K, D)
+            try:
+                self.inputs.camera_info(frame, K, D)
+            except Exception as exc:  # noqa: BLE001 - counted and logged, the node's camera_info goes on
+                self.stats.bad(frame, f"online effects: camera_info: {exc}", kind="online_bad")
             self._sync()
 
     def _publish(self, steps: list[OnlineStep]) -> None:
@@ -246,7 +260,7 @@ class OnlineEffectsHook:
         assert self.inputs is not None and self.filter is not None
         for step in steps:
             self.stats.inc("online_points")
-            self.pub.publish(estimates_msg(self.filter, step.stamp_ns * 1e-9))
+            self.pub.publish(_array_msg(step.stamp_ns * 1e-9, list(step.labels), step.theta, step.P))
             self.stats.inc("online_published")
             if step.drift is not None:
                 self._drift(step.drift)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -64,7 +65,13 @@ def check_params_files(argv: Sequence[str]) -> None:
                                        f"{type(data).__name__}")
 
 
-def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, executor: str = "single") -> int:
+#: environment variable overriding every node's executor ("single" or "events"): the benchmarks run a node on the
+#: classic executor as their same-run baseline
+ENV_EXECUTOR = "PPOE_EXECUTOR"
+
+
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, executor: str = "single",
+             kernels: Sequence[str] = ()) -> int:
     """The standard ``main()`` of a node: init, build, spin, shut down; returns the exit code.
 
     Parameters
@@ -79,9 +86,19 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, exe
         per message at 1 kHz (``bench/bench_nodes.py``).  Its ``spin()`` (and ``spin_until_future_complete``
         without a timeout) spins at a full core without running callbacks and ignores SIGINT here, so it is
         spun in 1 s slices until the context shuts down (SIGINT / SIGTERM).
+    kernels : sequence of str
+        Nodes (:data:`NODE_KERNELS`) whose kernels are compiled or loaded before the node is built.
     """
+    return run_nodes([factory], args, executor, kernels)
+
+
+def run_nodes(factories: Sequence[Callable[[], Node]], args: Sequence[str] | None = None,
+              executor: str = "single", kernels: Sequence[str] = ()) -> int:
+    """:func:`run_node` for several nodes in one process, on ONE executor (``ppoe_container``): built in order,
+    spun together, destroyed together; a :class:`PpoeError` while building any of them stops all (exit code 2)."""
     argv = list(sys.argv if args is None else args)
-    name = getattr(factory, "__name__", "node")
+    executor = os.environ.get(ENV_EXECUTOR, executor)  # benchmarks' same-run baseline (bench_fusion_node.py)
+    name = ", ".join(getattr(f, "__name__", "node") for f in factories)
     try:
         check_params_files(argv)
         rclpy.init(args=argv)
@@ -91,19 +108,22 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, exe
     except RCLError as exc:  # rcl's own argument parsing (e.g. a malformed --remap)
         print(f"[FATAL] {name}: cannot start: {str(exc).split(', at ')[0]}", file=sys.stderr, flush=True)
         return 2
-    node: Node | None = None
+    nodes: list[Node] = []
     code = 0
     try:
-        warm_node_kernels()
-        node = factory()
-        _spin(node, executor)
+        _log_to_stderr()
+        warm_node_kernels(kernels)
+        for factory in factories:
+            nodes.append(factory())
+        nodes[0].get_logger().info(kernel_report())
+        _spin(nodes, executor)
     except PpoeError as exc:
         print(f"[FATAL] {exc}", file=sys.stderr, flush=True)
         code = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         code = 0
     finally:
-        if node is not None:
+        for node in nodes:
             try:
                 node.destroy_node()
             except Exception:  # noqa: BLE001 - best effort during shutdown
@@ -112,38 +132,119 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, exe
     return code
 
 
-def warm_node_kernels() -> None:
-    """Compile (or load from numba's cache) the per-message pose conversions, the fusion update and the fusion
-    pipeline's per-prior steps before the node subscribes: on a fresh install the first call compiles for a few
-    seconds, which must not fall on the first message (inputs queue up and may be lost meanwhile)."""
+def _log_to_stderr() -> None:
+    """Show ppoe_core's log lines (the kernel cache, compiles, the ahead-of-time module) on stderr, as rclpy shows
+    the node's own: what is compiled and why must be seen on a first start."""
+    import logging
+
+    core = logging.getLogger("ppoe_core")
+    if not core.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("[%(levelname)s] [%(created).9f] [%(name)s]: %(message)s"))
+        core.addHandler(handler)
+        core.setLevel(logging.INFO)
+        core.propagate = False
+
+
+def kernel_report() -> str:
+    """One line: where this process's compiled kernels come from (the ahead-of-time module, or numba's cache and
+    how many it had to compile)."""
+    from ppoe_core import aot, jit
+    from ppoe_core.compile_cache import cache_location, compile_stats
+
+    tried = aot.loaded()
+    if jit.ahead_of_time_in_use() and tried is not None:
+        return f"compiled kernels: ahead-of-time module {tried.path} (numba not loaded)"
+    stats = compile_stats()
+    why = f"; ahead-of-time module not used: {tried.why}" if tried is not None and not tried.usable else ""
+    done = f"{stats.kernels} compiled now in {stats.seconds:.1f} s" if stats.kernels else "none compiled now"
+    return f"compiled kernels: numba, {cache_location().describe()}; {done}{why}"
+
+
+def _warm_kinematics() -> None:
+    """The kinematics node's path on a small robot, both covariance orders (what ``ppoe warmup`` caches and
+    compiles ahead of time; at run time the node warms its own model's kernels when the URDF arrives)."""
+    from ppoe_core.io.kinematics_warmup import warm_kinematics
+
+    warm_kinematics()
+
+
+def _warm_pose_messages() -> None:
+    """The pose message conversions (quaternion, ROS covariance both ways)."""
+    import numpy as np
+
+    from ppoe_ros.common.conversions import pose_cov_from_msg, pose_cov_stamped_msg
+
+    pose_cov_from_msg(pose_cov_stamped_msg(np.eye(4), np.eye(6), 0, "warm-up"))
+
+
+def _warm_fusion() -> None:
+    """The measurement updates, carried corrections and per-prior pipeline steps, and the pose conversions."""
+    from ppoe_core.estimation.warmup import warm_kernels, warm_pipeline
+
+    warm_kernels()
+    warm_pipeline()
+    _warm_pose_messages()
+
+
+def _warm_tags() -> None:
+    """The camera model's projection and undistortion of the tag rows, and the corner refinement's edge fit."""
+    import numpy as np
+
+    from ppoe_core.estimation.camera import project_points, undistort_pixels
+    from ppoe_core.sensing.tags import refine_edges
+
+    grey = np.full((60, 60), 200, dtype=np.uint8)
+    grey[20:40, 20:40] = 30
+    refine_edges(grey, np.array([[19.5, 19.5], [39.5, 19.5], [39.5, 39.5], [19.5, 39.5]]), 10)
+    K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+    D = np.array([0.01, -0.01, 0.0, 0.0, 0.0])
+    uv = np.array([[300.0, 200.0], [340.0, 260.0]])
+    undistort_pixels(uv, K, D)
+    project_points(np.array([[0.0, 0.0, 1.0], [0.1, 0.0, 1.0]]), K, D)
+
+
+def _warm_contact() -> None:
+    """The contact plane's covariance check and conversion."""
     import numpy as np
 
     from ppoe_core import lie
 
-    lie.quat_from_matrix(np.eye(3))
-    lie.cov_ros_to_local(np.eye(4), lie.cov_local_to_ros(np.eye(4), np.eye(6)))
-    from ppoe_core.estimation.warmup import warm_kernels, warm_pipeline
-    from ppoe_core.io import joint_pose
-    from ppoe_ros.common.conversions import pose_cov_from_msg, pose_cov_stamped_msg
-
-    warm_kernels()
-    joint_pose.warm_kernels()  # the kinematics node's per-message path
-    warm_pipeline()
-    pose_cov_from_msg(pose_cov_stamped_msg(np.eye(4), np.eye(6), 0, "warm-up"))
+    lie.cov_local_to_ros(np.eye(4), lie.check_covariance(np.eye(6), "warm-up", size=6))
 
 
-def _spin(node: Node, executor: str) -> None:
-    """Spin ``node`` until shutdown on the chosen executor (see :func:`run_node`)."""
+#: what each node compiles (or loads from numba's cache) before it subscribes: only what that node uses
+NODE_KERNELS: dict[str, Callable[[], None]] = {
+    "kinematics_node": _warm_kinematics,
+    "fusion_node": _warm_fusion,
+    "tag_bearing_node": _warm_tags,
+    "contact_node": _warm_contact,
+}
+
+
+def warm_node_kernels(nodes: Sequence[str] | None = None) -> None:
+    """Compile (or load from numba's cache) the kernels of ``nodes`` (:data:`NODE_KERNELS`; None: every node)
+    before they subscribe: on a fresh install the first call compiles for seconds, which must not fall on the first
+    message (inputs queue up and may be lost meanwhile)."""
+    for name in NODE_KERNELS if nodes is None else nodes:
+        NODE_KERNELS[name]()
+
+
+def _spin(nodes: Sequence[Node], executor: str) -> None:
+    """Spin ``nodes`` until shutdown on one executor of the chosen kind (see :func:`run_node`)."""
+    context = nodes[0].context
     if executor == "events":
         from rclpy.experimental import EventsExecutor
         from rclpy.task import Future
 
-        ex: Any = EventsExecutor(context=node.context)
-        ex.add_node(node)
+        ex: Any = EventsExecutor(context=context)
+        for node in nodes:
+            ex.add_node(node)
         never = Future()
-        while node.context.ok():
+        while context.ok():
             ex.spin_until_future_complete(never, timeout_sec=1.0)
         return
-    ex = rclpy.executors.SingleThreadedExecutor()
-    ex.add_node(node)
+    ex = rclpy.executors.SingleThreadedExecutor(context=context)
+    for node in nodes:
+        ex.add_node(node)
     ex.spin()

@@ -28,7 +28,6 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from ppoe_core import lie
 from ppoe_core.io.cdr import tf_message
-from ppoe_ros.common.conversions import stamp_to_ns
 from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats
 from ppoe_core.model.tf_frames import JointFrames, TfFrame, calibrated_camera_frames, urdf_collision
 
@@ -79,8 +78,12 @@ def tf_message_cdr(frames: Sequence[TfFrame], stamp_ns: int) -> bytes:
     """``tf2_msgs/TFMessage`` of ``frames``, all at ``stamp_ns``, as CDR bytes (:func:`ppoe_core.io.cdr.tf_message`,
     what rclpy's ``serialize_message`` gives; ``test/test_tf.py`` checks it): the per-joint-state path of the
     kinematics node builds no typed message."""
-    T = np.stack([f.T_parent_child for f in frames]) if frames else np.zeros((0, 4, 4))
-    poses = np.concatenate([T[:, :3, 3], lie.quat_from_matrix(T[:, :3, :3])], axis=1)
+    if len(frames) == 1:  # the fusion node's corrected tool, at every prior: no stacking
+        T1 = np.asarray(frames[0].T_parent_child, dtype=float)
+        poses = np.concatenate([T1[:3, 3], lie.quat_from_matrix(T1[:3, :3])])[None]
+    else:
+        T = np.stack([f.T_parent_child for f in frames]) if frames else np.zeros((0, 4, 4))
+        poses = np.concatenate([T[:, :3, 3], lie.quat_from_matrix(T[:, :3, :3])], axis=1)
     return tf_message([(f.parent, f.child, p) for f, p in zip(frames, poses)], stamp_ns)
 
 
@@ -176,10 +179,10 @@ class FusionTf:
             ([f"{p}{base} -> {p}{child} on {TF_TOPIC} (corrected tool)"] if self.child else [])
             + [f"{p}{c.parent} -> {p}{c.child} on {TF_STATIC_TOPIC} (calibrated camera)" for c in cameras]) or "none"))
 
-    def publish(self, T_base_tool: np.ndarray, stamp: TimeMsg) -> None:
-        """The corrected tool frame on ``/tf`` at ``stamp`` (the fused pose's), unless it is off."""
+    def publish(self, T_base_tool: np.ndarray, stamp_ns: int) -> None:
+        """The corrected tool frame on ``/tf`` at ``stamp_ns`` [ns] (the fused pose's), unless it is off."""
         if self.child is not None and self.broadcaster is not None:
-            self.broadcaster.send([TfFrame(self.base, self.child, T_base_tool)], stamp_to_ns(stamp))
+            self.broadcaster.send([TfFrame(self.base, self.child, T_base_tool)], stamp_ns)
 
 
 class KinematicsTf:

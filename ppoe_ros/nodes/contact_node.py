@@ -189,7 +189,7 @@ def main(args: Sequence[str] | None = None) -> int:
     """Console entry point ``contact_node`` (``--ros-args`` accepted)."""
     from ppoe_ros.common.runner import run_node
 
-    return run_node(ContactNode, args)
+    return run_node(ContactNode, args, executor="events", kernels=("contact_node",))
 
 
 if __name__ == "__main__":

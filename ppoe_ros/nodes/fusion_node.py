@@ -68,7 +68,13 @@ from ppoe_core.estimation.pipeline import (
 from ppoe_core.model.joint_history import JointHistory
 from ppoe_core.estimation.source_updater import SourceUpdater
 from ppoe_core.robot.yaml_io import read_yaml_mapping
-from ppoe_ros.common.conversions import ns_to_stamp, pose_cov_from_msg, pose_cov_stamped_msg, stamp_to_ns
+from ppoe_core.io.cdr import parse_joint_state
+from ppoe_ros.common.conversions import (
+    PoseCovarianceCdr,
+    pose_cov_from_cdr,
+    pose_cov_from_msg,
+    stamp_to_ns,
+)
 from ppoe_ros.common.diagnostics import DiagnosticsPublisher, NodeStats, guarded
 from ppoe_ros.common.losses import counted_subscription
 from ppoe_ros.common.params import ParamSpec, check_nonempty, declare_parameters, mapping_get
@@ -213,15 +219,16 @@ class FusionNode(Node):
         qos = sensor_qos(p["qos_depth"])
         rel = reliable_qos(p["qos_depth"])
 
-        def sub(msg_type: Any, topic: str, cb: Any, q: Any) -> None:
+        def sub(msg_type: Any, topic: str, cb: Any, q: Any, raw: bool = False) -> None:
             if topic:
-                counted_subscription(self, self.stats, msg_type, topic, cb, q)
+                counted_subscription(self, self.stats, msg_type, topic, cb, q, raw=raw)
 
-        sub(PoseWithCovarianceStamped, p["prior_topic"], self._prior, qos)
+        self._out = PoseCovarianceCdr(self.prefix + self.base_frame)  # the output as bytes, the 1 kHz inputs too
+        sub(PoseWithCovarianceStamped, p["prior_topic"], self._prior, qos, raw=True)
         sub(PointCloud2, p["observations_topic"], self._observations, rel)
         sub(PoseWithCovarianceStamped, p["contact_topic"], self._contact, rel)
         sub(CameraInfo, p["camera_info_topic"], self._camera_info, qos)
-        sub(JointState, p["joint_states_topic"], self._joint_state, qos)
+        sub(JointState, p["joint_states_topic"], self._joint_state, qos, raw=True)
         self.sources = LiveSources(self, parse_sources(p, names, f"node {self.get_fully_qualified_name()}"),
                                    self.stats, self.prefix, self._measure)
         self.sources.subscribe(qos)
@@ -290,14 +297,15 @@ class FusionNode(Node):
             self.online.camera_info(unprefixed(self.prefix, msg.header.frame_id, self.params["camera_info_topic"]),
                                     np.asarray(msg.k, float).reshape(3, 3), np.asarray(msg.d, float))
 
-    def _joint_state(self, msg: JointState) -> None:
+    def _joint_state(self, data: bytes) -> None:
         if self.model is None:
             return
-        self.joints.update(msg.name, msg.position, stamp_to_ns(msg.header.stamp))  # a refused one: counted bad
+        msg = parse_joint_state(data)  # MeasurementError naming the field of a malformed message: counted bad
+        self.joints.update(msg.names, msg.positions, msg.stamp_ns)  # a refused one: counted bad
 
-    def _prior(self, msg: PoseWithCovarianceStamped) -> None:
+    def _prior(self, data: bytes) -> None:
         self.stats.counts["received"] += 1
-        T, cov_ros, stamp_ns, frame = pose_cov_from_msg(msg)
+        T, cov_ros, stamp_ns, frame = pose_cov_from_cdr(data)
         if frame != self.prefix + self.base_frame:
             raise MeasurementError(f"prior frame '{frame}' is not base_frame '{self.prefix}{self.base_frame}'")
         cov_tool = lie.cov_ros_to_local(T, cov_ros)
@@ -317,7 +325,7 @@ class FusionNode(Node):
         for o in outcomes:
             self._report(o)
         if est is not None:
-            self._publish(est.T_base_tool, est.cov_tool, msg.header.stamp)
+            self._publish(est.T_base_tool, est.cov_tool, stamp_ns)
         self._sync_counts()
 
     def _observations(self, msg: PointCloud2) -> None:
@@ -380,12 +388,11 @@ class FusionNode(Node):
         elif o.status == "accepted" and self.params["publish_on_update"]:
             est = self.pipeline.latest()
             if est is not None:
-                self._publish(est.T_base_tool, est.cov_tool, ns_to_stamp(int(round(est.stamp * 1e9))))
+                self._publish(est.T_base_tool, est.cov_tool, int(round(est.stamp * 1e9)))
 
-    def _publish(self, T: np.ndarray, cov_tool: np.ndarray, stamp: Any) -> None:
-        self.pub.publish(pose_cov_stamped_msg(T, lie.cov_local_to_ros(T, cov_tool), stamp,
-                                              self.prefix + self.base_frame))
-        self.tf.publish(T, stamp)
+    def _publish(self, T: np.ndarray, cov_tool: np.ndarray, stamp_ns: int) -> None:
+        self.pub.publish(self._out.serialize(T, lie.cov_local_to_ros(T, cov_tool), stamp_ns))
+        self.tf.publish(T, stamp_ns)
         self.stats.counts["published"] += 1
 
     def _sync_counts(self) -> None:
@@ -422,7 +429,7 @@ def main(args: Sequence[str] | None = None) -> int:
     """Console entry point ``fusion_node`` (``--ros-args`` accepted)."""
     from ppoe_ros.common.runner import run_node
 
-    return run_node(FusionNode, args)
+    return run_node(FusionNode, args, executor="events", kernels=("fusion_node",))
 
 
 if __name__ == "__main__":

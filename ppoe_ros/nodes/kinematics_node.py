@@ -229,6 +229,7 @@ class KinematicsNode(Node):
                 T, cov = model.fk(np.zeros(len(model.joint_names)), reference, t.frame, order=self.order,
                                   context=live.neutral() if live else None)
                 lie.cov_local_to_ros(T, cov)
+                lie.quat_from_matrix(T[:3, :3])
                 t.writer = PoseCovarianceWriter(self.params["frame_prefix"] + reference)
         except PpoeError as exc:
             raise type(exc)(f"{where}: {exc}") from None
@@ -391,8 +392,10 @@ class KinematicsNode(Node):
 
 def main(args: Sequence[str] | None = None) -> int:
     """Console entry point ``kinematics_node`` (``--ros-args`` accepted)."""
+    from ppoe_core import aot
     from ppoe_ros.common.runner import run_node
 
+    aot.load()  # the ahead-of-time kernels when `ppoe warmup` built them for this install: numba is not loaded
     return run_node(KinematicsNode, args, executor="events")
 
 

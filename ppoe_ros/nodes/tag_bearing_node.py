@@ -57,7 +57,7 @@ from ppoe_ros.common.tag_cloud import cloud_from_observations
 __all__ = ["TagBearingNode", "PARAMS", "OBSERVATION_FIELDS", "main"]
 
 
-_REFINE = ("subpix", "contour", "apriltag", "none")
+_REFINE = ("edges", "subpix", "contour", "apriltag", "none")
 
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("image_topic", "camera/image_raw/compressed", "image input topic", check=check_nonempty),
@@ -69,7 +69,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               "4x4_50 ... 7x7_1000; empty = model YAML tags.family, else tag36h11"),
     ParamSpec("tag_ids", [], "tag ids to publish; empty = the model YAML's tag ids, else every detected tag",
               ptype=ParameterType.PARAMETER_INTEGER_ARRAY),
-    ParamSpec("corner_refinement", DEFAULT_CORNER_REFINEMENT, "corner refinement: subpix, contour, apriltag or none",
+    ParamSpec("corner_refinement", DEFAULT_CORNER_REFINEMENT, "corner refinement: edges (subpix, then the outer "
+              "edges fitted), subpix, contour, apriltag or none",
               check=lambda v: None if v in _REFINE else f"must be one of {_REFINE}, got {v!r}"),
     ParamSpec("observations_topic", "tag_bearing/observations", "output PointCloud2 topic", check=check_nonempty),
     ParamSpec("publish_debug_image", False, "publish an image with the detections drawn"),
@@ -169,7 +170,7 @@ def main(args: Sequence[str] | None = None) -> int:
     """Console entry point ``tag_bearing_node`` (``--ros-args`` accepted)."""
     from ppoe_ros.common.runner import run_node
 
-    return run_node(TagBearingNode, args)
+    return run_node(TagBearingNode, args, executor="events", kernels=("tag_bearing_node",))
 
 
 if __name__ == "__main__":

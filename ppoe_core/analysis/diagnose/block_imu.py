@@ -1,17 +1,16 @@
 """Accelerometer tilts: at rest an accelerometer on a link measures gravity, i.e. the link's tilt.
 
 Row ``i`` (a stop) has two components per accelerometer ``k``: the small rotations about the sensor link's x and y
-axes between the measured up direction ``u_m`` (the normalised specific force) and the predicted one,
-``[u_m,y - u_p,y, -(u_m,x - u_p,x)]`` with ``u_p = R_root_link^T z_root`` on the corrected chain.  A right
-perturbation ``phi`` of the link's rotation moves ``u_p`` by ``u_p x phi``: the tilt prediction moves by
-``A phi``, ``A = [[u_z, 0, -u_x], [0, u_z, -u_y]]``, and the chain part is the rotation rows of
-:meth:`KinematicTree.frame_jacobian`.
+axes between the measured up direction ``u_m`` (the normalised specific force) and the predicted one, ``[u_m,y -
+u_p,y, -(u_m,x - u_p,x)]`` with ``u_p = R_root_link^T z_root`` on the corrected chain.  A right perturbation ``phi``
+of the link's rotation moves ``u_p`` by ``u_p x phi``: the tilt prediction moves by ``A phi``, ``A = [[u_z, 0,
+-u_x], [0, u_z, -u_y]]``, and the chain part is the rotation rows of :meth:`KinematicTree.frame_jacobian`.
 
-Nuisances, per group (bag or file: one placement of the robot): the base tilt ``w`` of the placement relative to
-the first one (2, root axes: ``u_p = R^T Exp(-w) z``, ``du/dw = R^T Exp(-w) [z]x J_r(-w)`` (x, y columns); none for the
-first placement, whose tilt is the ``base_tilt`` effect: the reference accelerometer, the one nearest the root, is
-taken as mounted as declared), and the mounting of every other accelerometer (2 each, additive on its two tilt
-components); their current values are the block's state (the solver's steps update it).
+Nuisances, per session (a bag, or a station of a mobile robot: one placement): the base tilt ``w`` of the placement
+relative to the first one (2, root axes: ``u_p = R^T Exp(-w) z``, ``du/dw = R^T Exp(-w) [z]x J_r(-w)`` (x, y
+columns); none for the first placement, whose tilt is the ``base_tilt`` effect: the reference accelerometer, the one
+nearest the root, is taken as mounted as declared), and the mounting of every other accelerometer (2 each, additive
+on its two tilt components); their current values are the block's state (the solver's steps update it).
 ``base_tilt`` driven by the measured tilt is made of these readings: it is not a prediction of them (zero Jacobian,
 left out of the prediction).  Noise: ``sigma / |a|`` per component (``sigma`` per accelerometer [m/s^2], model
 ``imus``; default 4e-4) plus the declared prior on the link's rotation.
@@ -85,14 +84,14 @@ class ImuBlock(ResidualBlock):
         self.nuisance_dim = 2 * self.K
         self.ref = int(np.argmin([len(tree.robot.path_from_root(ln)) for ln in self.links]))
         self.stops = stops
-        super().__init__(tree, stops.q, stops.context, stops.group, stops.group_names, stops.group,
+        super().__init__(tree, stops.q, stops.context, stops.session, stops.session_names, stops.group,
                          stops.group_names)
-        self.nu = np.zeros((len(stops.group_names), 2 * self.K))
+        self.nu = np.zeros((len(stops.session_names), 2 * self.K))
 
     def _poses(self, effects: Sequence[Effect]) -> tuple[dict, dict, dict]:
         eff = [e for e in effects if not _measured_tilt(e)]
         dq, dxi = self.corrections(eff)
-        return self.tree.link_poses(self.q, dq, dxi), dq, dxi
+        return self.tree.link_poses(self.q, dq, dxi, links=self.links), dq, dxi
 
     def linearise(self, effects: Sequence[Effect], candidates: Sequence[Effect], pert: Mapping[str, np.ndarray],
                   jnoise: Mapping[str, float], chain: bool = False) -> Linearisation:
@@ -102,7 +101,7 @@ class ImuBlock(ResidualBlock):
         Jq: dict[str, np.ndarray] = {}
         Jx: dict[str, np.ndarray] = {}
         need = chain or bool(candidates) or bool(pert) or bool(jnoise)
-        nu = self.nu[self.group]  # (n, 2K): placement tilt, then the mountings
+        nu = self.nu[self.segment]  # (n, 2K): placement tilt, then the mountings
         w = np.zeros((n, 3))
         w[:, :2] = -nu[:, :2]
         Rw = lie.so3_exp(w)
@@ -120,7 +119,7 @@ class ImuBlock(ResidualBlock):
             A[:, 0, 0], A[:, 0, 2] = u[:, 2], -u[:, 0]
             A[:, 1, 1], A[:, 1, 2] = u[:, 2], -u[:, 1]
             du = np.einsum("nji,njk->nik", R, dg)  # d u / d w
-            N[:, sl, 0:2] = np.stack([du[:, 1, :], -du[:, 0, :]], axis=1) * (self.group > 0)[:, None, None]
+            N[:, sl, 0:2] = np.stack([du[:, 1, :], -du[:, 0, :]], axis=1) * (self.segment > 0)[:, None, None]
             if k != self.ref:
                 c = 2 + 2 * self._mount_slot(k)
                 N[:, sl, c:c + 2] = np.eye(2)
@@ -148,9 +147,9 @@ class ImuBlock(ResidualBlock):
         self.nu = state.copy()
 
     def placement_tilts(self) -> dict[str, list[float]]:
-        """The placement tilt of each group [rad, about the root's x and y] (the reference sensor's mounting
+        """The placement tilt of each session [rad, about the root's x and y] (the reference sensor's mounting
         included): the nuisance values of the last fit."""
-        return {name: [float(v) for v in self.nu[g, :2]] for g, name in enumerate(self.group_names)}
+        return {name: [float(v) for v in self.nu[g, :2]] for g, name in enumerate(self.segment_names)}
 
     def candidates(self) -> list[Effect]:
         """``base_tilt`` (the first placement's), ``joint_offset`` (revolute), ``gravity_compliance`` and

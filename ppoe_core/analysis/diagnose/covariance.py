@@ -1,12 +1,14 @@
 """The one covariance routine of the effect parameters (their 95 % intervals).
 
-At the fitted model, with the whitened residual ``e`` and the columns ``G`` of the chosen parameters, every segment's
-nuisance projected out (:meth:`LinearSystem.projected`: the intervals are marginal over the registrations), the
-information is ``H = G^T G``.  With at least :data:`MIN_CLUSTERS` robot poses the covariance is the pose-clustered
-sandwich ``H^-1 (sum_u g_u g_u^T) H^-1 U/(U-1)``, ``g_u = G_u^T e_u`` summed over the components of pose ``u``
-(the rows of one pose share its arm error: tracker and pixels of one stop, the points of one image); with fewer it
-is ``s^2 H^-1``, ``s^2`` the whitened residual variance per degree of freedom.  Intervals are normal,
-``theta +- 1.96 sigma`` (Monte-Carlo coverage tests in ``test/test_diagnose_engine.py``).
+At the fitted model, with the whitened residual ``e`` and the columns ``G`` of the chosen parameters, every
+segment's nuisance projected out (:meth:`LinearSystem.projected`: the intervals are marginal over the
+registrations), the information is ``H = G^T G``.  With at least :data:`MIN_CLUSTERS` robot poses the covariance is
+the pose-clustered sandwich ``H^-1 (sum_u g_u g_u^T) H^-1 U/(U-P)``, ``g_u = G_u^T e_u`` summed over the components
+of pose ``u`` (the rows of one pose share its arm error: tracker and pixels of one stop, the points of one image;
+``U/(U-P)``: the scores' degrees of freedom left after the ``P`` parameters, without which 40 poses and 6 parameters
+under-cover by a tenth of sigma); with fewer it is ``s^2 H^-1``, ``s^2`` the whitened residual variance per degree
+of freedom.  Intervals are normal, ``theta +- 1.96 sigma`` (Monte-Carlo coverage tests in
+``test/test_diagnose_engine.py``).
 """
 
 from __future__ import annotations
@@ -55,4 +57,4 @@ def parameter_covariance(sys: LinearSystem, cols: np.ndarray, n_nuisance: int,
     np.add.at(scores, sys.unit, G * r[:, None])
     S = scores.T @ scores
     U = units.size
-    return ParameterCovariance(H_inv @ S @ H_inv * U / (U - 1), step, s2, "pose-clustered sandwich")
+    return ParameterCovariance(H_inv @ S @ H_inv * U / max(U - P, 1), step, s2, "pose-clustered sandwich")

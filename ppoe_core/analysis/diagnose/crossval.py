@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ppoe_core.analysis.diagnose.linsys import Fold, LinearSystem, solve_scaled
+from ppoe_core.analysis.diagnose.linsys import Fold, FoldStack, LinearSystem, solve_scaled
 from ppoe_core.analysis.diagnose.terms import Catalogue, Term
 from ppoe_core.errors import PpoeError
 
@@ -83,10 +83,18 @@ class Linearised:
         n_folds = int(unit_fold.max()) + 1 if unit_fold.size else 0
         comp_fold = unit_fold[sys.unit]
         self.folds: list[Fold] = [sys.fold(comp_fold != f) for f in range(n_folds)]
+        self.stack = FoldStack(self.folds)
         self.all = sys.full()
         self.raw_diag = np.einsum("ij,ij->j", sys.G, sys.G)
         self.n_units = sys.n_units
+        comp_block = np.zeros(sys.e.size, dtype=int)
+        for k, part in enumerate(sys.parts):
+            comp_block[part.start:part.stop] = k
+        self.n_blocks = max(len(sys.parts), 1)
+        #: per scored held-out component, its (block, unit) cell
+        self._cell = comp_block[self.stack.idx] * self.n_units + self.stack.unit
         self._cache: dict[tuple, np.ndarray] = {}
+        self._idf: dict[tuple, Identifiability] = {}
 
     def columns(self, model: Sequence[Term]) -> np.ndarray:
         """Column indices of a model's terms (in term order)."""
@@ -104,26 +112,29 @@ class Linearised:
         key = tuple(sorted(model))
         if key in self._cache:
             return self._cache[key]
-        cols = self.columns(key)
-        fixed, fv = self._fixed(cols)
-        d = np.zeros(self.n_units)
-        count = np.zeros(self.n_units)
-        for f in self.folds:
-            dth = f.fit(cols, fixed, fv)
-            r = f.heldout(cols, dth, fixed, fv)
-            d += np.bincount(f.unit, r * r, minlength=self.n_units)
-            count += np.bincount(f.unit, minlength=self.n_units)
-        d[count == 0] = np.nan
+        d = np.nansum(self.heldout_blocks(key), axis=0)
+        d[np.all(np.isnan(self.heldout_blocks(key)), axis=0)] = np.nan
         self._cache[key] = d
         return d
+
+    def heldout_blocks(self, model: Sequence[Term]) -> np.ndarray:
+        """Per block and unit (B, U), the held-out sum of squared whitened residuals of ``model`` (NaN: the unit has
+        no scored component in that block)."""
+        key = ("blocks", *sorted(model))
+        if key not in self._cache:
+            cols = self.columns(tuple(sorted(model)))
+            r = self.stack.heldout(cols, *self._fixed(cols))
+            size = self.n_blocks * self.n_units
+            d = np.bincount(self._cell, r * r, minlength=size)
+            d[np.bincount(self._cell, minlength=size) == 0] = np.nan
+            self._cache[key] = d.reshape(self.n_blocks, self.n_units)
+        return self._cache[key]
 
     def heldout_residual(self, model: Sequence[Term]) -> np.ndarray:
         """Held-out whitened residual of every component (n,) (NaN where not scored)."""
         cols = self.columns(model)
-        fixed, fv = self._fixed(cols)
         out = np.full(self.sys.e.size, np.nan)
-        for f in self.folds:
-            out[f.idx] = f.heldout(cols, f.fit(cols, fixed, fv), fixed, fv)
+        out[self.stack.idx] = self.stack.heldout(cols, *self._fixed(cols))
         return out
 
     def fit(self, model: Sequence[Term]) -> tuple[np.ndarray, np.ndarray, float]:
@@ -143,7 +154,13 @@ class Linearised:
         return self.theta[cols] + step, cov, s2
 
     def ssr(self, model: Sequence[Term]) -> float:
-        """In-sample reduced sum of squares of ``model`` (screening)."""
+        """In-sample reduced sum of squares of ``model`` (screening; cached per model)."""
+        key = ("ssr", *sorted(model))
+        if key not in self._cache:
+            self._cache[key] = np.array(self._ssr(model))
+        return float(self._cache[key])
+
+    def _ssr(self, model: Sequence[Term]) -> float:
         cols = self.columns(model)
         fixed, fv = self._fixed(cols)
         b = self.all.b[cols] - (self.all.H[np.ix_(cols, fixed)] @ fv if fixed.size else 0.0)
@@ -152,12 +169,40 @@ class Linearised:
         step = solve_scaled(self.all.H[np.ix_(cols, cols)], b)
         return max(ee - float(step @ b), 0.0)
 
+    def added_ssr(self, model: Sequence[Term], terms: Sequence[Term]) -> np.ndarray:
+        """In-sample reduced sum of squares of ``model`` plus each of ``terms`` (one each), for screening: the
+        Schur complement of ``model``'s fit (the other columns' current values held as for ``model`` alone)."""
+        cols = self.columns(model)
+        fixed, fv = self._fixed(cols)
+        H = self.all.H
+        b = self.all.b - (H[:, fixed] @ fv if fixed.size else 0.0)
+        base = self.ssr(model)
+        if cols.size:
+            Hrr = H[np.ix_(cols, cols)]
+            X = np.linalg.pinv(Hrr) @ np.concatenate([H[cols], b[cols][:, None]], axis=1)
+            S = H - H[:, cols] @ X[:, :-1]
+            g = b - H[:, cols] @ X[:, -1]
+        else:
+            S, g = H, b
+        out = np.empty(len(terms))
+        for k, t in enumerate(terms):
+            c = np.setdiff1d(self.columns([t]), cols)
+            out[k] = base - float(g[c] @ solve_scaled(S[np.ix_(c, c)], g[c])) if c.size else base
+        return out
+
     def _n_nuisance(self) -> int:
         return int(sum(ns.n_segments * ns.N.shape[1] for ns in self.sys.nuisances))
 
     def identifiable(self, model: Sequence[Term], new: Sequence[Term], max_condition: float,
                      max_absorbed: float) -> Identifiability:
-        """Whether ``new`` can be told apart from the nuisances and from ``model`` (all data)."""
+        """Whether ``new`` can be told apart from the nuisances and from ``model`` (all data; cached)."""
+        key = (tuple(sorted(model)), tuple(new), max_condition, max_absorbed)
+        if key not in self._idf:
+            self._idf[key] = self._identifiable(model, new, max_condition, max_absorbed)
+        return self._idf[key]
+
+    def _identifiable(self, model: Sequence[Term], new: Sequence[Term], max_condition: float,
+                      max_absorbed: float) -> Identifiability:
         cols = self.columns([*model, *new])
         new_cols = self.columns(new)
         raw = self.raw_diag[new_cols]

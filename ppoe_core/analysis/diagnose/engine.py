@@ -97,6 +97,9 @@ class Run:
         self.model: tuple[Term, ...] = ()
         self.lin: Linearised | None = None
         self.noise_cost: float | None = None
+        self.lin_whitening = -1  #: the problem's whitening that ``lin`` was computed in
+        self.lin_model: tuple[Term, ...] | None = None  #: the model ``lin`` was computed at
+        self.refitted = False  #: whether a refit moved the values since
 
     def model_effects(self, model: Sequence[Term]) -> list[Effect]:
         return [self.catalogue.effect(t, self._masked(t)) for t in model]
@@ -107,30 +110,41 @@ class Run:
         out[list(t.comps)] = v[list(t.comps)]
         return out
 
-    def relinearise(self, model: tuple[Term, ...]) -> Linearised:
-        """Refit ``model`` on the nonlinear chain, re-estimate the noise scales, and linearise every candidate there."""
+    def relinearise(self, model: tuple[Term, ...], final: bool = False) -> Linearised:
+        """Refit ``model`` on the nonlinear chain, re-estimate the noise scales, and linearise every candidate there
+        (the first time and the ``final`` time :data:`NOISE_ROUNDS` rounds of refit and noise)."""
+        if self.lin is not None and self.lin_model == model and not self.refitted and not final:
+            return self.lin  # nothing changed since it was made
         first = self.lin is None
-        for _ in range(NOISE_ROUNDS if first else 1):
+        rounds = NOISE_ROUNDS if first or final else 1
+        for k in range(rounds):
             self.refit(model)
             self.estimate_noise(self.effects, self.catalogue.n_params(model))
-            self.problem.system(self.effects, [])  # whitening with the new scales
+            if k < rounds - 1:
+                self.problem.system(self.effects, [])  # whitening with the new scales (the last: below)
         sys = self.problem.system(self.effects, self.catalogue.effects)
         by_cand = {t.cand: t for t in model}
         parts = [self._masked(by_cand[c]) if c in by_cand else np.zeros(e.n_params)
                  for c, e in enumerate(self.catalogue.effects)]
         theta = np.concatenate(parts) if parts else np.zeros(0)
         self.lin = Linearised(sys, self.catalogue, theta, self.unit_fold)
+        self.lin_whitening = self.problem.whitening_count
+        self.lin_model, self.refitted = model, False
         self.noise_cost = self.lin.ssr(model)  # the cost in the new whitening
         return self.lin
 
     def refit(self, model: tuple[Term, ...]) -> float:
         """Refit ``model`` on the nonlinear chain (values kept as the next start); returns the whitened cost."""
-        fit = self.problem.refit(self.model_effects(model))
+        jac = None
+        if self.lin is not None and self.lin_whitening == self.problem.whitening_count:
+            jac = self.lin.sys.subset(self.lin.columns(model), [len(t.comps) for t in model])
+        fit = self.problem.refit(self.model_effects(model), jacobian=jac)
         for t, e in zip(model, fit.effects):
             full = np.zeros(self.catalogue.effects[t.cand].n_params)
             full[list(t.comps)] = e.params
             self.values[t.cand] = full
         self.model, self.effects = model, fit.effects
+        self.refitted = True
         return fit.cost
 
     def confirm(self, model: tuple[Term, ...], predicted: float) -> bool:
@@ -274,14 +288,14 @@ def diagnose(robot: Robot, data: Measurements | Stops, declared: Sequence[Effect
     insample_before = [b.residual([*problem.declared]) for b in blocks]
     if options.effects:
         model, left_out = _declared_model(run, entries, options)
-        lin = run.relinearise(model)
+        lin = run.relinearise(model, final=True)
         selection = Selection(model, [], left_out, before.heldout(()), lin.heldout(model))
     else:
         sel_opts = SelectionOptions(min_t=options.min_t, min_gain=options.min_gain, penalty=options.penalty,
                                     max_condition=options.max_condition, max_absorbed=options.max_absorbed,
                                     max_effects=options.max_effects, groups=options.groups)
         selection = select(catalogue, run, sel_opts)
-        run.relinearise(selection.model)
+        run.relinearise(selection.model, final=True)
     return build_result(run, before, insample_before, selection, mode, options)
 
 

@@ -126,7 +126,7 @@ def diagnose_bags(bags: Sequence[str | Path], model: str | Path, test: Sequence[
     options = options or DiagnoseOptions()
     if options.imu_sigma is None and getattr(cfg, "imus", None):
         options.imu_sigma = {k: v.sigma for k, v in cfg.imus.items()}
-    stage("fitting and selecting effects")
+    stage("fitting the effects")
     res = diagnose(robot, data, declared, pert, jnoise, options)
     for note in load.notes:
         res.summary += "\n" + note

@@ -19,11 +19,11 @@ columns on every fold is then ``O(n |S| + |S|^3)``.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-__all__ = ["NuisanceSet", "BlockPart", "LinearSystem", "Fold", "solve_scaled"]
+__all__ = ["NuisanceSet", "BlockPart", "LinearSystem", "Fold", "FoldStack", "solve_scaled"]
 
 #: a segment's nuisance is determined when its information's smallest scaled eigenvalue exceeds this
 MIN_NUISANCE_EIG = 1e-9
@@ -89,8 +89,9 @@ class LinearSystem:
     score: np.ndarray
     nuisances: list[NuisanceSet] = field(default_factory=list)
     parts: list[BlockPart] = field(default_factory=list)
+    _gramG: np.ndarray | None = field(default=None, init=False, repr=False)
     _gram_cache: tuple[np.ndarray, np.ndarray, float] | None = field(default=None, init=False, repr=False)
-    _segments: list[tuple[NuisanceSet, list[np.ndarray]]] | None = field(default=None, init=False, repr=False)
+    _schur_cache: tuple[np.ndarray, list[tuple], np.ndarray] | None = field(default=None, init=False, repr=False)
     _reduced_cache: tuple[np.ndarray, np.ndarray, float, list[tuple], np.ndarray] | None = field(
         default=None, init=False, repr=False)
     _absorbed: np.ndarray | None = field(default=None, init=False, repr=False)
@@ -102,44 +103,72 @@ class LinearSystem:
     def _gram(self) -> tuple[np.ndarray, np.ndarray, float]:
         """``G^T G``, ``G^T e`` and ``e^T e`` of all components (computed once)."""
         if self._gram_cache is None:
-            self._gram_cache = (self.G.T @ self.G, self.G.T @ self.e, float(self.e @ self.e))
+            if self._gramG is None:
+                self._gramG = self.G.T @ self.G
+            self._gram_cache = (self._gramG, self.G.T @ self.e, float(self.e @ self.e))
         return self._gram_cache
 
-    def segments(self) -> list[tuple[NuisanceSet, list[np.ndarray]]]:
-        """Per nuisance set, the positions (into ``idx``) of each segment's components (computed once)."""
-        if self._segments is None:
-            self._segments = []
-            for ns in self.nuisances:
+    def with_residual(self, e: np.ndarray) -> LinearSystem:
+        """The system with the residual ``e`` and the same columns: what does not depend on the residual (``G^T
+        G``, the segments' eliminations) is shared, not computed again."""
+        out = replace(self, e=np.asarray(e, dtype=float))
+        self._gram()
+        out._gramG, out._schur_cache = self._gramG, self._schur()
+        return out
+
+    def subset(self, columns: np.ndarray, sizes: Sequence[int]) -> LinearSystem:
+        """The system with only ``columns`` (in that order), grouped into consecutive slices of ``sizes``."""
+        ends = np.cumsum([0, *sizes])
+        return LinearSystem(self.e, self.G[:, columns], [slice(int(a), int(b)) for a, b in zip(ends[:-1], ends[1:])],
+                            self.unit, self.n_units, self.group, self.reg, self.score, self.nuisances, self.parts)
+
+    def _schur(self) -> tuple[np.ndarray, list[tuple], np.ndarray]:
+        """What the nuisance elimination needs that does not depend on the residual: ``G^T G - sum_s M_s^T A_s^-1
+        M_s``, per segment ``(components, N, active columns, A^-1 (None: not determined), M, A^-1 M, nuisance set,
+        segment id)``, and the mask of components in a segment (computed once)."""
+        if self._schur_cache is None:
+            if self._gramG is None:
+                self._gramG = self.G.T @ self.G
+            H = self._gramG.copy()
+            terms: list[tuple] = []
+            for k, ns in enumerate(self.nuisances):
                 order = np.argsort(ns.seg, kind="stable")
-                _, starts = np.unique(ns.seg[order], return_index=True)
-                self._segments.append((ns, np.split(order, starts[1:]) if order.size else []))
-        return self._segments
+                ids, starts = np.unique(ns.seg[order], return_index=True)
+                for sid, pos in zip(ids, np.split(order, starts[1:]) if order.size else []):
+                    rows, N = ns.idx[pos], ns.N[pos]
+                    act = _active(N)
+                    if not _determined(N, act):
+                        terms.append((rows, N, act, None, None, None, k, int(sid)))
+                        continue
+                    A_inv = _ginv(N, act)
+                    M = N.T @ self.G[rows]
+                    AM = A_inv @ M
+                    H -= M.T @ AM
+                    terms.append((rows, N, act, A_inv, M, AM, k, int(sid)))
+            in_seg = np.zeros(self.e.size, dtype=bool)
+            for t in terms:
+                in_seg[t[0]] = True
+            self._schur_cache = (H, terms, in_seg)
+        return self._schur_cache
 
     def _reduced(self) -> tuple[np.ndarray, np.ndarray, float, list[tuple], np.ndarray]:
         """The information with every segment's nuisance eliminated on all its components, per segment its terms
         ``(components, N, A^-1, M, g, A^-1 M, A^-1 g)`` and the mask of components in a segment (computed once; a
         fold only corrects the segments it touches)."""
         if self._reduced_cache is None:
-            gram, gb, gee = self._gram()
-            H, b, ee = gram.copy(), gb.copy(), gee
+            _, gb, gee = self._gram()
+            H, sterms, in_seg = self._schur()
+            b, ee = gb.copy(), gee
             terms: list[tuple] = []
-            for ns, segs in self.segments():
-                for pos in segs:
-                    rows, N = ns.idx[pos], ns.N[pos]
-                    act = _active(N)
-                    if not _determined(N, act):
-                        terms.append((rows, N, act, None, None, None, None, None))
-                        continue
-                    A_inv = _ginv(N, act)
-                    M, g = N.T @ self.G[rows], N.T @ self.e[rows]
-                    AM, Ag = A_inv @ M, A_inv @ g
-                    H -= M.T @ AM
-                    b -= M.T @ Ag
-                    ee -= float(g @ Ag)
-                    terms.append((rows, N, act, A_inv, M, g, AM, Ag))
-            in_seg = np.zeros(self.e.size, dtype=bool)
-            for t in terms:
-                in_seg[t[0]] = True
+            for rows, N, act, A_inv, M, AM, _, _ in sterms:
+                if A_inv is None:
+                    terms.append((rows, N, act, None, None, None, None, None))
+                    continue
+                g = N.T @ self.e[rows]
+                Ag = A_inv @ g
+                b -= M.T @ Ag
+                ee -= float(g @ Ag)
+                terms.append((rows, N, act, A_inv, M, g, AM, Ag))
             self._reduced_cache = (H, b, ee, terms, in_seg)
         return self._reduced_cache
 
@@ -261,17 +290,11 @@ class LinearSystem:
         """Per block (index) with nuisances, the step ``dnu`` (n_segments, k) that goes with ``dtheta`` on
         ``columns`` (all components)."""
         r = self.e - self.G[:, columns] @ dtheta
-        out = {}
-        for ns in self.nuisances:
-            step = np.zeros((ns.n_segments, ns.N.shape[1]))
-            for s in np.unique(ns.seg):
-                m = ns.seg == s
-                Ns = ns.N[m]
-                act = _active(Ns)
-                if _determined(Ns, act):
-                    step[s] = _ginv(Ns, act) @ (Ns.T @ r[ns.idx[m]])
-            out[ns.block] = step
-        return out
+        steps = [np.zeros((ns.n_segments, ns.N.shape[1])) for ns in self.nuisances]
+        for rows, N, _act, A_inv, _M, _AM, k, sid in self._schur()[1]:
+            if A_inv is not None:
+                steps[k][sid] = A_inv @ (N.T @ r[rows])
+        return {ns.block: st for ns, st in zip(self.nuisances, steps)}
 
 
 def _active(N: np.ndarray) -> np.ndarray:
@@ -330,6 +353,63 @@ class Fold:
         if fixed is not None and fixed.size:
             r = r - self.G[:, fixed] @ fixed_values
         return r
+
+
+class FoldStack:
+    """All folds of a cross-validation stacked (the same numbers as :class:`Fold` s, scored in one batched solve):
+    ``H`` (F, C, C), ``b`` (F, C), and every fold's scored held-out components in one list (``e``, ``G``, ``idx``,
+    ``unit`` and ``fold`` per component)."""
+
+    def __init__(self, folds: Sequence[Fold]) -> None:
+        C = folds[0].H.shape[0] if folds else 0
+        self.H = np.stack([f.H for f in folds]) if folds else np.zeros((0, C, C))
+        self.b = np.stack([f.b for f in folds]) if folds else np.zeros((0, C))
+        self.e = np.concatenate([f.e for f in folds]) if folds else np.zeros(0)
+        #: held-out columns transposed (C, m): a model's columns are then contiguous rows
+        self.GT = np.ascontiguousarray(np.concatenate([f.G for f in folds]).T) if folds else np.zeros((C, 0))
+        self.idx = np.concatenate([f.idx for f in folds]).astype(int) if folds else np.zeros(0, dtype=int)
+        self.unit = np.concatenate([f.unit for f in folds]).astype(int) if folds else np.zeros(0, dtype=int)
+        ends = np.cumsum([0, *(f.idx.size for f in folds)])
+        self.slices = [slice(int(a), int(b)) for a, b in zip(ends[:-1], ends[1:])]
+
+    def heldout(self, cols: np.ndarray, fixed: np.ndarray, fixed_values: np.ndarray) -> np.ndarray:
+        """Held-out residual of every scored component: ``cols`` fitted on each fold's training part (:meth:`Fold.fit`
+        with the default ridge), ``fixed`` held at ``fixed_values``."""
+        if not len(self.H):
+            return np.zeros(0)
+        b = self.b[:, cols]
+        if fixed.size:
+            b = b - self.H[:, cols[:, None], fixed[None, :]] @ fixed_values
+        dth = solve_scaled_batch(self.H[:, cols[:, None], cols[None, :]], b)
+        r = self.e.copy()
+        if cols.size:
+            Gc = self.GT[cols]
+            for k, sl in enumerate(self.slices):
+                r[sl] -= dth[k] @ Gc[:, sl]
+        if fixed.size:
+            r -= fixed_values @ self.GT[fixed]
+        return r
+
+
+def solve_scaled_batch(H: np.ndarray, b: np.ndarray, ridge: float = 1e-10) -> np.ndarray:
+    """:func:`solve_scaled` of every ``H[k] x = b[k]`` (H (F, s, s), b (F, s)) in one batched solve."""
+    F, s = b.shape
+    if s == 0:
+        return np.zeros((F, 0))
+    d = np.sqrt(np.maximum(np.einsum("kii->ki", H), 0.0))
+    act = d > MIN_ACTIVE * np.maximum(d.max(axis=1, keepdims=True), 1e-300)
+    da = np.where(act, d, 1.0)
+    Hs = H / da[:, :, None] / da[:, None, :]
+    mask = act[:, :, None] & act[:, None, :]
+    Hs = np.where(mask, Hs, 0.0)
+    diag = np.einsum("kii->ki", Hs)
+    diag[...] = np.where(act, diag + ridge, 1.0)
+    rhs = np.where(act, b / da, 0.0)
+    try:
+        x = np.linalg.solve(Hs, rhs[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return np.stack([solve_scaled(H[k], b[k], ridge) for k in range(F)])
+    return np.where(act, x / da, 0.0)
 
 
 def solve_scaled(H: np.ndarray, b: np.ndarray, ridge: float = 1e-10, scale: np.ndarray | None = None) -> np.ndarray:

@@ -33,9 +33,10 @@ def estimate_scales(r: np.ndarray, S: np.ndarray, Q: np.ndarray, dof_fraction: f
                     start: NoiseScales | None = None) -> NoiseScales:
     """Maximum-likelihood scales of ``C_i = a^2 S_i + k^2 Q_i`` for residuals ``r`` (n, d) (module docstring):
     ``-2 log L = sum_i log det C_i + r_i^T C_i^-1 r_i`` minimised over ``log a^2``, ``log k^2`` (L-BFGS-B with the
-    analytic gradient ``dL/dlam_j = sum_i tr(C_i^-1 D_j) - r_i^T C_i^-1 D_j C_i^-1 r_i``, from three starts: it is
-    not convex).  The prior's share is kept only when it lowers ``-2 log L`` by more than ``ln n`` (BIC) against the
-    sensor alone (then ``k = 0``): with too few rows the two shapes are not told apart.
+    analytic gradient ``dL/dlam_j = sum_i tr(C_i^-1 D_j) - r_i^T C_i^-1 D_j C_i^-1 r_i``, from three starts, or from
+    ``start``, a previous estimate: it is not convex).  The prior's share is kept only when it lowers ``-2 log L``
+    by more than ``ln n`` (BIC) against the sensor alone (then ``k = 0``): with too few rows the two shapes are not
+    told apart.
 
     ``dof_fraction`` (0, 1]: the share of the residual's degrees of freedom left after the fit (in-sample residuals
     are smaller than the noise by that factor).  Rows with non-finite residuals are ignored.

@@ -9,17 +9,20 @@ parameter (``U`` scored poses; a BIC-like price).
 * **Forward**: every candidate not in the model (each ``camera_intrinsics`` level, its identifiable components
   only, no significantly negative compliance), every held term grown by one nested step (a parameter more, an
   intrinsics level more) and every group move (one kind on every joint of a measured chain) is
-  scored; of those that lower ``L`` with significant per-pose held-out gains (paired t or one-sided signed-rank
-  z >= ``min_t``, and a relative gain >= ``min_gain``), the one that lowers ``L`` most is added.
+  scored; of those that lower ``L`` with significant per-pose held-out gains in some measurement block (paired t
+  or one-sided signed-rank z >= ``min_t`` over the poses of that block: a tracker's gain is not drowned by the
+  scatter of a camera's pixels; a nested extension of a held term at :data:`NESTED_T`, the structure tests' level:
+  a round scores a handful of extensions against about a hundred additions) and a relative gain >= ``min_gain``,
+  the one that lowers ``L`` most is added.
 * **Confirmation**: the new model is refitted on the full nonlinear chain (:meth:`Problem.refit`); every candidate
   is linearised again there unless the refitted cost is the one the current linearisation predicted.
 * **Backward**, after every addition until nothing changes: for every term, its removal, each nested simpler term
   (one parameter less, an intrinsics level less, ``joint_offset@j`` for ``link_error@j``) and the simpler
   replacements by one or two other candidates with fewer parameters in all that explain nothing beyond it; the
   move that lowers ``L`` most is taken whenever ``L`` does not rise (the held-out fit does not get worse by more
-  than ``kappa`` per parameter saved) and the held-out losses are not significant (paired t or signed-rank z
-  of the per-pose losses below :data:`BACKWARD_T`).  Backward moves are linear at the point of the last refit
-  (the next accepted step refits them).
+  than ``kappa`` per parameter saved) and the held-out losses are not significant in any block (paired t or
+  signed-rank z of the per-pose losses below :data:`BACKWARD_T`).  Backward moves are linear at the point of the
+  last refit (the next accepted step refits them).
 * **Stop** when no forward move qualifies (``max_effects`` optionally caps the number of terms).
 * **Phases**: first the sensors' own effects only (camera extrinsics and intrinsics, tag placement, a sensor's time
   offset: the model of a measurement, before any arm effect is asked to explain what a sensor's own error does),
@@ -49,6 +52,10 @@ SWAP_MIN_PARAMS = 3
 #: a backward move is not taken when it makes the held-out fit significantly worse: the per-pose losses' paired t
 #: and signed-rank z both reach this (one-sided 2.3 %)
 BACKWARD_T = 2.0
+#: significance (paired t or signed-rank z) of a nested extension of a held term (an intrinsics level, a parameter
+#: more): a round scores a handful of them (about a hundred additions, judged at ``min_t``), the level at which the
+#: structure tests flag what is left (significance.STRUCTURE_T)
+NESTED_T = 3.0
 #: iterations of the backward pass at one linearisation (each removes or simplifies one term)
 MAX_BACKWARD = 200
 
@@ -91,6 +98,8 @@ class Move:
     t: float = 0.0
     z: float = 0.0
     d: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    t_min: float = 0.0
+    z_min: float = 0.0
 
     def record(self) -> dict[str, Any]:
         return {"action": self.action, "move": self.label, "heldout_gain": self.gain, "delta_L": self.delta_L,
@@ -137,14 +146,25 @@ class Selector:
 
     def score(self, base: tuple[Term, ...], model: tuple[Term, ...], action: str, label: str) -> Move:
         """The move ``base -> model`` scored held out (gains per pose, change of ``L`` in units of the current
-        residual variance, paired statistics)."""
+        residual variance, paired statistics per measurement block: their largest is the move's ``t`` / ``z``,
+        their smallest its ``t_min`` / ``z_min``)."""
         assert self.lin is not None
         d0, d1 = self.lin.heldout(base), self.lin.heldout(model)
         ok = np.isfinite(d0) & np.isfinite(d1)
-        diff = d0[ok] - d1[ok]
-        gain = float(diff.sum()) / self.variance(base)
+        gain = float((d0[ok] - d1[ok]).sum()) / self.variance(base)
         dP = self.catalogue.n_params(model) - self.catalogue.n_params(base)
-        return Move(action, model, label, gain, -gain + self.kappa(d0) * dP, paired_t(diff), signed_rank_z(diff), d1)
+        b0, b1 = self.lin.heldout_blocks(base), self.lin.heldout_blocks(model)
+        stats = []
+        for x0, x1 in zip(b0, b1):
+            m = np.isfinite(x0) & np.isfinite(x1)
+            if m.sum() >= 3:
+                diff = x0[m] - x1[m]
+                stats.append((paired_t(diff), signed_rank_z(diff)))
+        ts, zs = [t for t, _ in stats] or [0.0], [z for _, z in stats] or [0.0]
+        best = max(range(len(ts)), key=lambda k: max(ts[k], zs[k]))
+        worst = min(range(len(ts)), key=lambda k: max(ts[k], zs[k]))
+        return Move(action, model, label, gain, -gain + self.kappa(d0) * dP, ts[best], zs[best], d1,
+                    ts[worst], zs[worst])
 
     def variance(self, model: tuple[Term, ...]) -> float:
         """The residual variance of ``model`` in the current whitening (in-sample, per degree of freedom): ``-2 log
@@ -157,25 +177,31 @@ class Selector:
         return self._variance[key]
 
     # -- forward --------------------------------------------------------------------------------------
-    def admissible(self, model: tuple[Term, ...], term: Term) -> Term | None:
-        """``term`` reduced to what can be identified with ``model`` (components pruned one by one) and is
-        physically signed; None (reason recorded) if nothing is left."""
+    def admissible(self, model: tuple[Term, ...], term: Term, record: bool = True) -> Term | None:
+        """``term`` reduced to what can be identified with ``model`` (components taken one by one, those that
+        explain the most in-sample first, each kept if still identifiable: of a far camera's nearly equivalent
+        shift and turn, the one the data show) and physically signed; None (reason recorded) if nothing is left."""
         assert self.lin is not None
         o = self.options
         key = self.catalogue.describe(term)
         idf = self.lin.identifiable(model, [term], o.max_condition, o.max_absorbed)
         if not idf.ok:
             if len(term.comps) == 1 or "act" in idf.reason:
-                self.rejected[key] = idf.reason
+                if record:
+                    self.rejected[key] = idf.reason
                 return None
             keep: list[int] = []
-            for c in term.comps:
-                if self.lin.identifiable(model, [Term(term.cand, (*keep, c))], o.max_condition, o.max_absorbed).ok:
+            singles = [Term(term.cand, (c,)) for c in term.comps]  # the components that explain most go first
+            order = np.argsort(self.lin.added_ssr(model, singles), kind="stable")
+            for c in (term.comps[i] for i in order):
+                trial = Term(term.cand, tuple(sorted((*keep, c))))
+                if self.lin.identifiable(model, [trial], o.max_condition, o.max_absorbed).ok:
                     keep.append(c)
             if not keep:
-                self.rejected[key] = idf.reason
+                if record:
+                    self.rejected[key] = idf.reason
                 return None
-            term = Term(term.cand, tuple(keep))
+            term = Term(term.cand, tuple(sorted(keep)))
         return self._signed(model, term)
 
     def _signed(self, model: tuple[Term, ...], term: Term) -> Term | None:
@@ -204,11 +230,8 @@ class Selector:
         for t in model:  # a held term grown by a nested step (a parameter more, an intrinsics level more)
             rest = tuple(x for x in model if x != t)
             for r in self.catalogue.richer(t):
-                assert self.lin is not None
-                if not self.lin.identifiable(rest, [r], self.options.max_condition, self.options.max_absorbed).ok:
-                    continue
-                r2 = self._signed(rest, r)
-                if r2 is None or r2 == t or model_key([*rest, r2]) in self.visited:
+                r2 = self.admissible(rest, r, record=False)  # what of it can be identified (k2 next to k1 may not)
+                if r2 is None or r2 == t or not set(t.comps) < set(r2.comps) or model_key([*rest, r2]) in self.visited:
                     continue
                 moves.append(self.score(model, model_key([*rest, r2]), "extend", self.catalogue.describe(r2)))
         for cand in range(len(self.catalogue)):
@@ -246,7 +269,8 @@ class Selector:
         ok = np.isfinite(d0) & np.isfinite(m.d)
         total = float(d0[ok].sum())
         rel = float((d0[ok] - m.d[ok]).sum()) / total if total > 0 else 0.0
-        return m.delta_L < 0.0 and max(m.t, m.z) >= o.min_t and rel >= o.min_gain
+        need = min(o.min_t, NESTED_T) if m.action == "extend" else o.min_t
+        return m.delta_L < 0.0 and max(m.t, m.z) >= need and rel >= o.min_gain
 
     def best(self, moves: Sequence[Move], model: tuple[Term, ...]) -> Move:
         """The move that lowers ``L`` most; equal ones (to rounding) go by fewer parameters, then by catalogue order
@@ -300,7 +324,8 @@ class Selector:
         held = {x.cand for x in model}
         singles = [self.catalogue.full(c) for c in range(len(self.catalogue))
                    if c not in held and len(self.catalogue.full(c).comps) < len(t.comps)]
-        ranked = sorted(singles, key=lambda s: self.lin.ssr([*rest, s]) if self.lin else 0.0)[:SWAP_SCREEN]
+        fits = self.lin.added_ssr(rest, singles)
+        ranked = [singles[k] for k in np.argsort(fits, kind="stable")[:SWAP_SCREEN]]
         combos = [(a,) for a in ranked] + [(a, b) for i, a in enumerate(ranked) for b in ranked[i + 1:]
                                            if len(a.comps) + len(b.comps) < len(t.comps)]
         combos.sort(key=lambda c: self.lin.ssr([*rest, *c]) if self.lin else 0.0)
@@ -323,7 +348,7 @@ class Selector:
         """Backward moves at the current linearisation until none lowers ``L`` (module docstring)."""
         changed = False
         for _ in range(MAX_BACKWARD):
-            moves = [m for m in self.backward_moves(model) if m.delta_L <= 0.0 and -max(m.t, m.z) < BACKWARD_T]
+            moves = [m for m in self.backward_moves(model) if m.delta_L <= 0.0 and -max(m.t_min, m.z_min) < BACKWARD_T]
             if not moves:
                 break
             best = min(moves, key=lambda m: (m.delta_L, self.catalogue.n_params(m.model)))

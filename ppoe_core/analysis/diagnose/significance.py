@@ -2,8 +2,8 @@
 
 The declared prior covariance is not asked (users declare loose priors).  Instead every block offers predictors of a
 residual that the catalogue cannot express (:meth:`ResidualBlock.structure_columns`): the **configuration** (each
-joint's Jacobian times a Fourier series of its own angle: any smooth joint error, e.g. a cyclic transmission error),
-**time** (a drift per bag) and, for pixels, the **image position** (a polynomial in the normalised image
+joint's Jacobian times a cubic B-spline basis of its own value: any smooth joint error, e.g. a cyclic transmission
+error), **time** (a drift per bag) and, for pixels, the **image position** (a polynomial in the normalised image
 coordinates per camera: intrinsics or distortion the model lacks).  At the final model, each predictor's columns are
 added to the chosen effects' and both are cross-validated over the same folds (effects refitted per fold,
 :mod:`linsys`): the residual is *systematic* when the predictor lowers the held-out whitened error by at least

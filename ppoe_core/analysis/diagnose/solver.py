@@ -6,7 +6,7 @@ and stacks the whitened components into a :class:`~ppoe_core.analysis.diagnose.l
 given candidates, nuisance columns per segment).  :meth:`Problem.refit` is the nonlinear fit of a set of effects:
 Gauss-Newton with Levenberg-Marquardt damping on the full chain, each step the reduced (Schur-eliminated) normal
 equations of that system, the nuisance steps applied to each block's linearisation point (a registration
-``T0 <- T0 Exp(d)``), until the parameter steps are below 1e-4 of their standard deviations.  An optional robust
+``T0 <- T0 Exp(d)``), until the parameter steps are below 1 % of their standard deviations.  An optional robust
 loss (``soft_l1``: weights ``1 / sqrt(1 + (e / c)^2)`` of the whitened residual, iteratively reweighted) damps gross
 outliers.
 """
@@ -26,7 +26,7 @@ from ppoe_core.model.effects import Effect
 __all__ = ["Problem", "Refit", "assign_units", "global_groups"]
 
 #: convergence: every parameter step below this many of its standard deviations
-STEP_TOL = 1e-4
+STEP_TOL = 1e-2
 #: convergence: the relative change of the cost below this (rounding and the second-order error of the eliminated
 #: nuisances), and a step no worse than this is taken
 REL_COST_TOL = 1e-6
@@ -106,6 +106,7 @@ class Problem:
         self.n_units = int(max((u.max() for u in self.units if u.size), default=-1)) + 1
         self.state = [BlockState() for _ in self.blocks]
         self.loss, self.loss_scale = loss, loss_scale
+        self.whitening_count = 0  #: how many times the whitening was recomputed (a Jacobian is valid in its own)
 
     # -- linear system -------------------------------------------------------------------------------
     def system(self, effects: Sequence[Effect], candidates: Sequence[Effect], rewhiten: bool = True) -> LinearSystem:
@@ -115,6 +116,8 @@ class Problem:
         model = [*self.declared, *effects]
         parts: dict[str, list[np.ndarray]] = {k: [] for k in ("e", "G", "unit", "group", "reg", "score")}
         nuisances, partsb, offset = [], [], 0
+        if rewhiten or any(st.W is None for st in self.state):
+            self.whitening_count += 1
         for i, (b, st, unit) in enumerate(zip(self.blocks, self.state, self.units)):
             fresh = rewhiten or st.W is None
             lin = b.linearise(model, candidates, self.pert if fresh else {}, self.jnoise if fresh else {})
@@ -128,7 +131,7 @@ class Problem:
             w = self._robust_weights(np.einsum("nij,nj->ni", W, lin.r))
             Wr = W * w[:, None, None]
             parts["e"].append(np.einsum("nij,nj->ni", Wr, lin.r).reshape(-1))
-            parts["G"].append(np.concatenate([Wr @ J for J in lin.J], axis=2).reshape(n * d, -1)
+            parts["G"].append((Wr @ np.concatenate(lin.J, axis=2)).reshape(n * d, -1)
                               if lin.J else np.zeros((n * d, 0)))
             parts["unit"].append(np.repeat(unit, d))
             parts["group"].append(np.repeat(self.groups[i], d))
@@ -170,15 +173,48 @@ class Problem:
             total += float(np.sum((e * w[:, None]) ** 2))
         return total
 
-    def refit(self, effects: Sequence[Effect], max_iterations: int = 20) -> Refit:
+    def whitened(self, effects: Sequence[Effect]) -> np.ndarray:
+        """The whitened residual components of every block at ``effects`` (stacked as in :meth:`system`), with the
+        current whitening and nuisance points (no robust weights)."""
+        model = [*self.declared, *effects]
+        parts = []
+        for b, st in zip(self.blocks, self.state):
+            assert st.W is not None
+            parts.append(np.einsum("nij,nj->ni", st.W, b.residual(model)).reshape(-1))
+        return np.concatenate(parts) if parts else np.zeros(0)
+
+    def refit(self, effects: Sequence[Effect], max_iterations: int = 20,
+              jacobian: LinearSystem | None = None) -> Refit:
         """Nonlinear Gauss-Newton / Levenberg-Marquardt fit of ``effects`` (start: their current values) and the
-        nuisances (module docstring); the whitening is the one of the last :meth:`system` call."""
+        nuisances (module docstring); the whitening is the one of the last :meth:`system` call.
+
+        The Jacobian is kept while it serves (a chord Gauss-Newton: the effects are small corrections, their
+        Jacobian barely changes; the same minimum for a fraction of the cost): the iterations evaluate the residuals
+        only and linearise again when a step does not lower the cost.  ``jacobian``: the columns of ``effects`` (in
+        order) and the nuisance columns from an earlier linearisation near this point (the selection's), used from
+        the start.  With a robust loss every point is linearised (its weights change with the residual)."""
         effects = list(effects)
         fresh = any(st.W is None for st in self.state)
-        sys = self.system(effects, effects, rewhiten=fresh)
+        if jacobian is None or fresh or self.loss != "linear":
+            jacobian = self.system(effects, effects, rewhiten=fresh)
+            sys = jacobian
+        else:
+            sys = jacobian.with_residual(self.whitened(effects))
+        return self._iterate(effects, sys, max_iterations)
+
+    def _trial(self, jacobian: LinearSystem, trial: list[Effect]) -> LinearSystem:
+        """The system at ``trial``: its residuals with ``jacobian``'s columns (a robust loss: linearised there)."""
+        if self.loss != "linear":
+            return self.system(trial, trial, rewhiten=False)
+        return jacobian.with_residual(self.whitened(trial))
+
+    def _iterate(self, effects: list[Effect], sys: LinearSystem, max_iterations: int) -> Refit:
+        """The damped Gauss-Newton iterations of :meth:`refit` from the system ``sys`` at ``effects`` (its columns
+        the Jacobian kept).  A step that does not lower the cost with a kept Jacobian linearises at the current
+        point; with a fresh one, it raises the damping."""
         full = sys.full()
         cost = full.ee  # the cost with the nuisances at their best (linearly), at these effects
-        lam, iterations, converged = 0.0, 0, False
+        lam, iterations, converged, kept = 0.0, 0, False, True
         for iterations in range(1, max_iterations + 1):  # noqa: B007 - the count is returned
             H = full.H.copy()
             if lam:
@@ -188,23 +224,28 @@ class Problem:
             for i, d in sys.nuisance_step(step, np.arange(step.size)).items():
                 self.blocks[i].apply_nuisance(d)
             trial = _stepped(effects, step)
-            sys_t = self.system(trial, trial, rewhiten=False)
+            sys_t = self._trial(sys, trial)
             full_t = sys_t.full()
             cost_t = full_t.ee
             gain = (cost - cost_t) / max(cost, 1e-300)
             if gain >= -REL_COST_TOL:  # not worse (up to rounding): take it
                 sd = np.sqrt(np.maximum(np.diag(np.linalg.pinv(full.H)), 1e-300)) if step.size else step
                 small = bool(np.all(np.abs(step) <= STEP_TOL * sd + 1e-15)) or gain <= REL_COST_TOL
-                effects, sys, full, cost, lam = trial, sys_t, full_t, cost_t, (lam / 10.0 if lam > 1e-6 else 0.0)
+                effects, sys, full, cost = trial, sys_t, full_t, cost_t
+                lam, kept = (lam / 10.0 if lam > 1e-6 else 0.0), True
                 if small:
                     converged = True
                     break
-            else:
-                for b, st in zip(self.blocks, saved):
-                    b.set_nuisance_state(st)
-                lam = max(10.0 * lam, 1e-3)
-                if lam > 1e8:
-                    break
+                continue
+            for b, st in zip(self.blocks, saved):
+                b.set_nuisance_state(st)
+            if kept and self.loss == "linear":  # the kept Jacobian is off here: linearise at this point
+                sys, kept = self.system(effects, effects, rewhiten=False), False
+                full = sys.full()
+                continue
+            lam = max(10.0 * lam, 1e-3)
+            if lam > 1e8:
+                break
         return Refit(effects, cost, iterations, converged)
 
 

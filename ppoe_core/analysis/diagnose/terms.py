@@ -109,15 +109,20 @@ class Catalogue:
         return self.effect(term).key
 
     def simpler(self, term: Term) -> list[Term]:
-        """Terms nested in ``term`` with fewer parameters: one parameter less (an intrinsics level less), and
+        """Terms nested in ``term`` with fewer parameters: one parameter less (an intrinsics level less; of a level
+        with unidentifiable parameters pruned, the level below and each of its extra parameters less), and
         ``joint_offset@j`` for ``link_error@j``."""
         e = self.effects[term.cand]
         out: list[Term] = []
         if e.name == "camera_intrinsics":
             names = {e.param_names[i] for i in term.comps}
-            for lower, upper in zip(INTRINSIC_LEVELS[:-1], INTRINSIC_LEVELS[1:]):
-                if names == set(upper):
-                    out.append(Term(term.cand, self._level(e, lower)))
+            below = [lv for lv in INTRINSIC_LEVELS if set(lv) < names]
+            if below:  # the largest level inside it, and (a level with a part pruned) each extra parameter less
+                level = set(below[-1])
+                out.append(Term(term.cand, self._level(e, below[-1])))
+                if names not in (set(lv) for lv in INTRINSIC_LEVELS):
+                    out.extend(Term(term.cand, tuple(c for c in term.comps if c != k)) for k in term.comps
+                               if e.param_names[k] not in level and len(names) - 1 > len(level))
         elif len(term.comps) > 1 and e.all_components:
             out.extend(Term(term.cand, tuple(c for c in term.comps if c != k)) for k in term.comps)
         if e.name == "link_error":

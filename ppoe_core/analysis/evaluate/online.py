@@ -168,9 +168,11 @@ def evaluate_online(bag: str | Path, model_path: str | Path, online_effects: Any
         Bad online config; a tracker frame without ``tracker_registration`` in the model.
     """
     st = settings or OnlineSettings(online_effects, jump_probability)
-    data = read_bag(bag, load_images=True)
+    data = read_bag(bag, load_images=False)
     model = PPOEModel.from_strings(data.require_robot_description(), Path(model_path),
                                    urdf_source=f"bag {bag} /robot_description")
+    if model.config.tags is not None and not len(data.tag_observations) and len(data.images):
+        data = read_bag(bag, load_images=True)  # tags are detected on the images
     fr = model.config.frames
     base = base or (fr.base if fr is not None and fr.base else model.robot.root)
     tool = tool or (fr.tool if fr is not None else None)
@@ -209,14 +211,17 @@ def _replay(inputs: OnlineInputs, data: Any, meas: list[OnlineMeasurement], Q: n
     ci = data.camera_info
     cams = sorted((_ns(t), ci.frame_ids[i], i) for i, t in enumerate(ci.stamps))
     t_st = [_ns(t) for t in temps.stamps] if temps is not None else []
+    js_ns = [_ns(t) for t in js_t]
     c = 0
     filt = inputs.filter
     for m in meas:
         while c < len(cams) and cams[c][0] <= m.stamp_ns:
             inputs.camera_info(cams[c][1], ci.K[cams[c][2]], ci.D[cams[c][2]])
             c += 1
-        i = int(np.searchsorted(js_t, m.stamp_ns * 1e-9 + 1e-12, side="right")) - 1
-        if i < 0 or not np.all(np.isfinite(Q[i])):
+        if not inputs.joints_known(js_ns, m):
+            continue
+        i = int(np.searchsorted(js_ns, m.stamp_ns, side="right")) - 1
+        if not np.all(np.isfinite(Q[i])):
             inputs.counts.no_joints += 1
             continue
         k = int(np.searchsorted(t_st, m.stamp_ns, side="right")) - 1
@@ -224,7 +229,8 @@ def _replay(inputs: OnlineInputs, data: Any, meas: list[OnlineMeasurement], Q: n
         step = inputs.take(m, dict(zip(names, Q[i].tolist())), temp)
         if step is not None:
             rep.steps.append(step)
-            rep.thetas.append((filt.labels, filt.theta.copy(), filt.sigmas()))
+            assert step.theta is not None and step.P is not None
+            rep.thetas.append((list(step.labels), step.theta, np.sqrt(np.clip(np.diag(step.P), 0.0, None))))
             rep.effects.append(filt.effects())
     return rep
 

@@ -25,7 +25,7 @@ from ppoe_core.sensing.tag_rows import DEFAULT_CORNER_REFINEMENT
 #: settings of the replay beyond the fusion node's (:data:`ppoe_core.estimation.pipeline.FUSION_SETTINGS`):
 #: the tag bearing node's and the contact node's parameters of the same names and meanings
 REPLAY_SETTINGS: dict[str, Any] = {
-    # tag bearing node (bags with images): subpix, contour, apriltag, none, or edges (ppoe_core.sensing.tags)
+    # tag bearing node (bags with images): edges (default), subpix, contour, apriltag or none (ppoe_core.sensing.tags)
     "corner_refinement": DEFAULT_CORNER_REFINEMENT,
     # contact node (bags with /wrench): N; 0 = model YAML contact.force_threshold / release_threshold
     "force_threshold": 0.0,

@@ -17,10 +17,12 @@ __all__ = ["IMAGE_WORKERS", "TagStream", "tag_measurements"]
 IMAGE_WORKERS = min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
-def _camera_lookup(data: Any) -> Callable[[str, float], tuple[np.ndarray, np.ndarray] | None]:
+def _camera_lookup(data: Any, effects: Any = ()) -> Callable[[str, float], tuple[np.ndarray, np.ndarray] | None]:
     """frame_id, stamp -> (K, D) of the latest camera_info of that frame at or before the stamp
-    (or the first one after it if there is none before)."""
+    (or the first one after it if there is none before), corrected by the model's ``camera_intrinsics`` of that
+    frame (a diagnosed model)."""
     ci = data.camera_info
+    intrinsics = {e.location: e for e in effects if e.name == "camera_intrinsics"}
     per: dict[str, tuple[np.ndarray, list[int]]] = {}
     for i, f in enumerate(ci.frame_ids):
         per.setdefault(f, (np.zeros(0), []))[1].append(i)
@@ -32,7 +34,7 @@ def _camera_lookup(data: Any) -> Callable[[str, float], tuple[np.ndarray, np.nda
         st, idx = table[frame]
         k = int(np.searchsorted(st, stamp, side="right")) - 1
         i = idx[max(k, 0)]
-        return ci.K[i], ci.D[i]
+        return intrinsics[frame].corrected(ci.K[i], ci.D[i]) if frame in intrinsics else (ci.K[i], ci.D[i])
 
     return lookup
 
@@ -59,7 +61,7 @@ class TagStream:
         self._rows: Any = None
         self._camera: Any = None
         self.stamps: list[float] = []
-        cams = _camera_lookup(data)
+        cams = _camera_lookup(data, model.effects)
         obs = data.tag_observations
         if len(obs):
             topic = "/tag_bearing/observations"

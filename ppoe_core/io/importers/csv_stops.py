@@ -132,32 +132,43 @@ def read_csv_rows(path: str | Path) -> tuple[list[CsvRow], list[str]]:
     ------
     DatasetError
         Unreadable file, no header or no data rows, a column named twice in the header, a row with more or
-        fewer cells than the header, a NUL character (``FILE:LINE``).
+        fewer cells than the header, a control character such as NUL (``FILE:LINE``, the column).
     """
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
             reader = csv.reader(fh)
             first = next(reader, None)
             header = [h.strip() for h in first or []]
-            if any("\x00" in h for h in header):
-                raise DatasetError(f"{path}:1: a NUL character: not a text CSV (binary or damaged file?)")
+            _check_text(path, 1, dict(zip(header, header)))
             _check_header(path, header)
             rows: list[CsvRow] = []
             line = reader.line_num + 1
             for cells in reader:
-                if any("\x00" in c for c in cells):
-                    raise DatasetError(f"{path}:{line}: a NUL character: not a text CSV (binary or damaged file?)")
                 if cells and len(cells) != len(header):
                     raise DatasetError(f"{path}:{line}: {len(cells)} cells but the header has {len(header)} "
                                        f"columns; every row must have one cell per column (empty cells allowed)")
                 if cells:
-                    rows.append((line, dict(zip(header, cells))))
+                    rows.append((line, _check_text(path, line, dict(zip(header, cells)))))
                 line = reader.line_num + 1
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise DatasetError(f"{path}: cannot read as CSV: {getattr(exc, 'strerror', None) or exc}") from None
     if not rows:
         raise DatasetError(f"{path}: no data rows")
     return rows, header
+
+
+#: characters no text cell holds (C0 controls but tab, line feed and carriage return; DEL)
+_CONTROL = frozenset(chr(c) for c in [*range(0x00, 0x09), 0x0B, 0x0C, *range(0x0E, 0x20), 0x7F])
+
+
+def _check_text(path: str | Path, line: int, cells: dict[str, str]) -> dict[str, str]:
+    """``cells``, or an error naming the line and column of a control character (NUL: a binary or damaged file)."""
+    for col, text in cells.items():
+        bad = next((ch for ch in text if ch in _CONTROL), None)
+        if bad is not None:
+            raise DatasetError(f"{path}:{line}: column {col!r}: control character {bad!r} in {text!r}: not a text "
+                               "CSV (binary or damaged file?)")
+    return cells
 
 
 def _check_header(path: str | Path, header: list[str]) -> None:
