@@ -33,7 +33,7 @@ from ppoe_core.model.stamp_policy import BACKWARD, FUTURE, NEW_TIMELINE, StampCh
 
 __all__ = [
     "NEVER_NS", "StampResetPolicy", "StampCheck", "StampRefused", "JointUpdate", "JointHistory", "StampedHistory",
-    "merge_into", "fresh_vector", "take_message",
+    "merge_into", "fresh_vector", "merge_message",
 ]
 
 #: the stamp of a joint never seen
@@ -68,7 +68,7 @@ def fresh_vector(values: np.ndarray, stamps: np.ndarray, stamp: Any, max_age: An
 
 
 @njit(cache=True)
-def take_message(values: np.ndarray, stamps: np.ndarray, pos: np.ndarray, src: np.ndarray, dst: np.ndarray,
+def merge_message(values: np.ndarray, stamps: np.ndarray, pos: np.ndarray, src: np.ndarray, dst: np.ndarray,
                  needed_src: np.ndarray, needed_idx: np.ndarray, stamp: Any, max_age: Any, never: Any, reset: bool,
                  vec: np.ndarray) -> int:
     """:meth:`JointHistory.update`'s merge in one call: -1 (nothing changed) when a needed joint's value ``pos``
@@ -316,13 +316,13 @@ class JointHistory:
         pos = np.asarray(positions, dtype=np.float64)
         new_timeline = check.verdict == NEW_TIMELINE
         vec = self._scratch
-        missing = take_message(self.values, self.stamps, pos, lay.src, lay.dst, lay.needed_src, self.needed_idx,
+        missing = merge_message(self.values, self.stamps, pos, lay.src, lay.dst, lay.needed_src, self.needed_idx,
                                stamp_ns, self.max_age_ns, NEVER_NS, new_timeline, vec)
         if missing < 0:
             bad = [names[i] for i in lay.needed_src if not np.isfinite(pos[i])]
             raise JointValueError(f"NaN or infinite value for joint(s) {', '.join(repr(b) for b in bad)}")
         if new_timeline:
-            self.history.clear()  # (the values and stamps: forgotten by take_message)
+            self.history.clear()  # (the values and stamps: forgotten by merge_message)
         self.clock[0], self.clock[1] = stamp_ns, 1
         if self.history.keep_ns > 0:
             self.history.add(stamp_ns, vec.copy())
