@@ -13,9 +13,9 @@ With ros2_control an arm, a mast and a gripper often publish ``/joint_states`` s
 * keeps the joint vectors by stamp (``keep_ns``) for :meth:`JointHistory.at`: the latest at or before a stamp, or,
   when every kept one is newer (a prior that overtook its joint state), the oldest if at most ``max_age`` newer.
 
-The merge step itself is the compiled :func:`merge_into` / :func:`fresh_vector`, the same functions the kinematics
-node's compiled per-message path (:mod:`ppoe_core.io.joint_pose`) and the batch of :meth:`JointHistory.merge_rows`
-(``ppoe evaluate``) run.
+The merge step itself is the compiled :func:`merge_into` / :func:`fresh_vector` (for one message in one call:
+:func:`merge_message`), the same functions the kinematics node's compiled per-message path
+(:mod:`ppoe_core.io.joint_pose`) and the batch of :meth:`JointHistory.merge_rows` (``ppoe evaluate``) run.
 """
 
 from __future__ import annotations
