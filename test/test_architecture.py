@@ -49,29 +49,10 @@ ROS_TOP_LEVEL = {
 }
 MODULES = list(gen.iter_modules())
 
-_SCENARIOS = "the scenarios helper's modules (ppoe_core/sim): their scenario-file checks become public there"
 #: (importing module, imported module, name) -> why the underscore name is still imported
-PRIVATE_IMPORTS_ALLOWED: dict[tuple[str, str, str], str] = {
-    **{("ppoe_core.sim." + m, "ppoe_core.sim." + d, n): _SCENARIOS for m, d, n in (
-        ("camera_sim", "scenario", "_where"), ("sim_config", "scenario", "_check_keys"),
-        ("sim_config", "scenario", "_joints_map"), ("sim_config", "scenario", "_num"),
-        ("sim_config", "scenario", "_pose_cfg"), ("sim_config", "scenario", "_where"),
-        ("simulate", "scenario", "_check_keys"), ("simulate", "scenario", "_joints_map"),
-        ("simulate", "scenario", "_num"), ("simulate", "scenario", "_where"), ("simulate", "sim_config", "_min_jerk"),
-        ("simulate", "sim_config", "_SimConfig"), ("simulate", "sim_config", "_Stop"))},
-    **{(m, "ppoe_core.robot.config_checks", n): "config_checks' names are public (check_keys, CheckContext, ...); "
-       "its underscore aliases serve this module of other work in progress (scenarios: dh.py, faults: csv_stops.py)"
-       for m, names in (("ppoe_core.robot.dh", ("_check_keys", "_Ctx", "_mapping", "_number", "_vector")),
-                        ("ppoe_core.io.importers.csv_stops", ("_check_keys", "_Ctx", "_mapping"))) for n in names},
-    **{("ppoe_core.io.writer", "ppoe_core.io.messages", n): "messages' names are public (IMU_TOPIC_RE, pose_message, "
-       "vector3_message); the underscore aliases serve the faults helper's writer.py until it imports them"
-       for n in ("_IMU_RE", "_pose_msg", "_vec3")},
-}
+PRIVATE_IMPORTS_ALLOWED: dict[tuple[str, str, str], str] = {}
 #: (module, lazily imported module) -> why a function-level import of a module that imports it back is kept
-CYCLE_IMPORTS_ALLOWED: dict[tuple[str, str], str] = {
-    ("ppoe_core.io.bag_qos", "ppoe_core.io.writer"): "the ros helper's module (bag QoS, fd1df0b): the writer imports "
-    "offered_qos from it, its rewrite of old bags needs the writer; to be split along what it offers on their side",
-}
+CYCLE_IMPORTS_ALLOWED: dict[tuple[str, str], str] = {}
 
 
 def is_ros_package(name: str) -> bool:

@@ -18,12 +18,12 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from ppoe_core.errors import BagError
 from ppoe_core.io.bag_qos import (
     DURATION_INFINITE,
-    fill_offered_qos,
     make_qos,
     offered_qos,
     playback_qos,
     recorded_qos,
 )
+from ppoe_core.io.bag_qos_fill import fill_offered_qos
 from ppoe_core.io.bagio import BagWriter, typestore
 
 SHIPPED = sorted(p.parent for p in (REPO / "bags").glob("*/metadata.yaml"))

@@ -444,15 +444,20 @@ def test_param_spec_validation_and_descriptor() -> None:
     assert all(s.descriptor().description for s in PARAMS)
 
 
+#: bag time [s] of the first joint state: the node first builds its model from the bag's URDF (stamp 0), which took
+#: 2.1 s on a loaded 2-core machine; joint states played meanwhile are lost before the model exists
+JOINTS_T0 = 4.0
+
+
 def _split_expectation(q_all: np.ndarray) -> tuple[list[float], list[np.ndarray]]:
     """Stamps and merged joint values of the outputs for a bag whose arm (joint_1..6) and wrist + gripper
     (joint_7, finger) come in separate messages 2 ms apart: the first arm message cannot be completed."""
     stamps, qs = [], []
     for k, q in enumerate(q_all):
         if k > 0:
-            stamps.append(1.0 + 0.01 * k)
+            stamps.append(JOINTS_T0 + 0.01 * k)
             qs.append(np.r_[q[:6], q_all[k - 1][6]])  # joint_7 held from the previous wrist message
-        stamps.append(1.0 + 0.01 * k + 0.002)
+        stamps.append(JOINTS_T0 + 0.01 * k + 0.002)
         qs.append(q)
     return stamps, qs
 
@@ -470,11 +475,11 @@ def test_bag_play_node_record_equals_fk(tmp_path: Path, model, split: bool) -> N
         bag.write_robot_description(URDF.read_text(), 0.0)
         for k, q in enumerate(q_all):  # extra, unused joint in every message
             if split:
-                bag.write_joint_state(1.0 + 0.01 * k, ARM[:6], list(q[:6]))
-                bag.write_joint_state(1.0 + 0.01 * k + 0.002, ARM[6:] + ["finger_left_joint"], [q[6], 0.01])
+                bag.write_joint_state(JOINTS_T0 + 0.01 * k, ARM[:6], list(q[:6]))
+                bag.write_joint_state(JOINTS_T0 + 0.01 * k + 0.002, ARM[6:] + ["finger_left_joint"], [q[6], 0.01])
             else:
-                bag.write_joint_state(1.0 + 0.01 * k, ARM + ["finger_left_joint"], list(q) + [0.01])
-    stamps, qs = _split_expectation(q_all) if split else (list(1.0 + 0.01 * np.arange(len(q_all))), list(q_all))
+                bag.write_joint_state(JOINTS_T0 + 0.01 * k, ARM + ["finger_left_joint"], list(q) + [0.01])
+    stamps, qs = _split_expectation(q_all) if split else (list(JOINTS_T0 + 0.01 * np.arange(len(q_all))), list(q_all))
     env = ros_env(tmp_path)
     node = NodeProcess.node("kinematics_node", env, tmp_path, params={"model_file": str(MODEL),
                                                                        "use_sim_time": True,

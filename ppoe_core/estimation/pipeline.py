@@ -121,7 +121,6 @@ class FusionPipeline:
         self.corrections: dict[str, CarriedCorrection] = {}
         self.pending: list[Measurement] = []
         self.counts: dict[str, int] = {k: 0 for k in COUNT_KEYS}
-        self.last_nis: float = float("nan")
 
     # -- priors ---------------------------------------------------------------
 
@@ -422,7 +421,6 @@ class FusionPipeline:
         except PpoeError as exc:  # MeasurementError, CovarianceError, unknown frame/joint
             self.counts["bad"] += 1
             return MeasurementOutcome(measurement, "bad", error=f"{measurement.source}: {exc}")
-        self.last_nis = float(res.nis)
         if not res.accepted:
             self.counts["rejected"] += 1
             return MeasurementOutcome(measurement, "rejected", nis=float(res.nis))

@@ -158,7 +158,6 @@ class ModelUpdater:
         self.contact = getattr(cfg, "contact", None)
         #: tag points ignored because their id is not in the model YAML
         self.unknown_tag_points = 0
-        self.last_result: Any = None
 
     def _joints(self, prior: PriorSample | None) -> dict[str, float]:
         if prior is None or prior.joints is None:
@@ -271,7 +270,6 @@ class ModelUpdater:
         posterior = self.gating == "posterior" and self.gate_probability is not None
         res = iterated_update(T_base_tool, cov_tool, z, obs, max_iterations=self.max_iterations,
                               gate_probability=prior_gate, with_cost=posterior)
-        self.last_result = res
         if not posterior:
             return ToolUpdate(res.T, res.cov, bool(res.accepted), float(res.nis))
         cost = res.cost  # the compiled update's posterior cost (NaN: M R M^T not positive definite -> rejected)

@@ -256,16 +256,3 @@ class JointPoseFastPath:
         program, col, mult, off, raw, fields = self._targets[0]
         chain_pose_cdr(np.full(self._q.shape, np.nan), col, mult, off, program, self._order, self._fourth, 0, raw,
                        fields)
-
-
-def warm_kernels() -> None:
-    """Compile (or load from numba's cache) :func:`joint_state_pose` and :func:`chain_pose_cdr` for the argument
-    types a node passes (a model's chain program, a writer's buffer), without a model: a one-factor chain."""
-    from ppoe_core.model.chain import ChainProgram, LeanChain
-
-    program = ChainProgram(np.eye(4)[None].copy(), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
-                           np.zeros(0, dtype=np.int64), np.zeros((0, 2, 3)), np.zeros(0, dtype=np.int64),
-                           np.zeros(0, dtype=np.int64), np.zeros(1, dtype=np.int64))
-    lean = LeanChain(program, np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
-    JointPoseFastPath(JointHistory(["a"]), np.zeros(1, dtype=np.int64), 1,
-                      [(lean, PoseCovarianceWriter("warm-up"))], 2).warm()

@@ -151,8 +151,3 @@ def deserialize(data: bytes | memoryview, msgtype: str, *, topic: str = "?") -> 
     if len(tail) > 8 and any(tail):
         raise BagError(f"topic {topic}: {len(tail)} unexpected trailing bytes after a {msgtype} message")
     return message
-
-
-# the underscore names, for io/writer.py (the faults helper's work in progress; test/test_architecture.py lists it):
-# remove once it imports the public names
-_IMU_RE, _pose_msg, _vec3 = IMU_TOPIC_RE, pose_message, vector3_message

@@ -12,7 +12,7 @@ import numpy as np
 from ppoe_core.errors import BagError
 from ppoe_core.io.bag_qos import offered_qos
 from ppoe_core.io.messages import (
-    _IMU_RE,
+    IMU_TOPIC_RE,
     CONTRACT_TYPES,
     IMU_TOPIC_PREFIX,
     T_CAMERA_INFO,
@@ -38,8 +38,8 @@ from ppoe_core.io.messages import (
     TOPIC_TAG_OBSERVATIONS,
     TOPIC_TEMPERATURE,
     TOPIC_WRENCH,
-    _pose_msg,
-    _vec3,
+    pose_message,
+    vector3_message,
     deserialize,
     header_msg,
     serialize,
@@ -322,15 +322,16 @@ class BagWriter:
                      topic: str = TOPIC_WRENCH) -> None:
         """``/wrench`` (``geometry_msgs/WrenchStamped``): force [N] and torque [N m] at the tool."""
         types = typestore().types
-        msg = types[T_WRENCH](header=header_msg(stamp_to_ns(stamp), frame_id),
-                              wrench=types["geometry_msgs/msg/Wrench"](force=_vec3(force, f"{topic} force"),
-                                                                       torque=_vec3(torque, f"{topic} torque")))
+        wrench = types["geometry_msgs/msg/Wrench"](force=vector3_message(force, f"{topic} force"),
+                                                   torque=vector3_message(torque, f"{topic} torque"))
+        msg = types[T_WRENCH](header=header_msg(stamp_to_ns(stamp), frame_id), wrench=wrench)
         self.write_message(topic, msg, stamp)
 
     def write_ground_truth_pose(self, stamp: float, frame_id: str, T_frame_tool: np.ndarray,
                                 topic: str = TOPIC_GT_POSE) -> None:
         """``/ground_truth/pose`` (``PoseStamped``): tool pose in ``frame_id`` (robot base)."""
-        msg = typestore().types[T_POSE](header=header_msg(stamp_to_ns(stamp), frame_id), pose=_pose_msg(T_frame_tool))
+        msg = typestore().types[T_POSE](header=header_msg(stamp_to_ns(stamp), frame_id),
+                                        pose=pose_message(T_frame_tool))
         self.write_message(topic, msg, stamp)
 
     def write_ground_truth_point(self, stamp: float, frame_id: str, p_tracker: Sequence[float] | np.ndarray,
@@ -362,7 +363,7 @@ class BagWriter:
         ``accel_sigma`` [m/s^2] fills the diagonal of ``linear_acceleration_covariance``.
         """
         topic = IMU_TOPIC_PREFIX + str(name)
-        if not _IMU_RE.match(topic):
+        if not IMU_TOPIC_RE.match(topic):
             raise BagError(f"topic {topic}: not a valid /imu/<name> topic")
         types = typestore().types
         ocov = np.zeros(9)
@@ -373,9 +374,10 @@ class BagWriter:
         msg = types[T_IMU](
             header=header_msg(stamp_to_ns(stamp), frame_id),
             orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-            orientation_covariance=ocov, angular_velocity=_vec3(angular_velocity, f"{topic} angular_velocity"),
+            orientation_covariance=ocov,
+            angular_velocity=vector3_message(angular_velocity, f"{topic} angular_velocity"),
             angular_velocity_covariance=np.zeros(9),
-            linear_acceleration=_vec3(linear_acceleration, f"{topic} linear_acceleration"),
+            linear_acceleration=vector3_message(linear_acceleration, f"{topic} linear_acceleration"),
             linear_acceleration_covariance=acov)
         self.write_message(topic, msg, stamp)
 
@@ -413,7 +415,7 @@ class BagWriter:
             raise BagError(f"topic {topic}: covariance must be 6x6, got {cov.shape}")
         msg = types[T_POSE_COV](header=header_msg(stamp_to_ns(stamp), frame_id),
                                 pose=types["geometry_msgs/msg/PoseWithCovariance"](
-                                    pose=_pose_msg(T), covariance=cov.reshape(-1).copy()))
+                                    pose=pose_message(T), covariance=cov.reshape(-1).copy()))
         self.write_message(topic, msg, stamp)
 
 

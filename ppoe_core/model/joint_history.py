@@ -13,9 +13,9 @@ With ros2_control an arm, a mast and a gripper often publish ``/joint_states`` s
 * keeps the joint vectors by stamp (``keep_ns``) for :meth:`JointHistory.at`: the latest at or before a stamp, or,
   when every kept one is newer (a prior that overtook its joint state), the oldest if at most ``max_age`` newer.
 
-The merge step itself is the compiled :func:`merge_into` / :func:`fresh_vector`, the same functions the kinematics
-node's compiled per-message path (:mod:`ppoe_core.io.joint_pose`) and the batch of :meth:`JointHistory.merge_rows`
-(``ppoe evaluate``) run.
+The merge step itself is the compiled :func:`merge_into` / :func:`fresh_vector` (for one message in one call:
+:func:`merge_message`), the same functions the kinematics node's compiled per-message path
+(:mod:`ppoe_core.io.joint_pose`) and the batch of :meth:`JointHistory.merge_rows` (``ppoe evaluate``) run.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from ppoe_core.model.stamp_policy import BACKWARD, FUTURE, NEW_TIMELINE, StampCh
 
 __all__ = [
     "NEVER_NS", "StampResetPolicy", "StampCheck", "StampRefused", "JointUpdate", "JointHistory", "StampedHistory",
-    "merge_into", "fresh_vector",
+    "merge_into", "fresh_vector", "merge_message",
 ]
 
 #: the stamp of a joint never seen
@@ -64,6 +64,37 @@ def fresh_vector(values: np.ndarray, stamps: np.ndarray, stamp: Any, max_age: An
             missing += 1
         else:
             out[j] = values[j]
+    return missing
+
+
+@njit(cache=True)
+def merge_message(values: np.ndarray, stamps: np.ndarray, pos: np.ndarray, src: np.ndarray, dst: np.ndarray,
+                 needed_src: np.ndarray, needed_idx: np.ndarray, stamp: Any, max_age: Any, never: Any, reset: bool,
+                 vec: np.ndarray) -> int:
+    """:meth:`JointHistory.update`'s merge in one call: -1 (nothing changed) when a needed joint's value ``pos``
+    carries is not finite; else every held value forgotten when ``reset``, the message's finite values merged
+    (:func:`merge_into`), every joint's vector into ``vec`` (:func:`fresh_vector`) and the number of needed joints
+    without a fresh value returned."""
+    for i in range(needed_src.shape[0]):
+        if not np.isfinite(pos[needed_src[i]]):
+            return -1
+    if reset:
+        values[:] = np.nan
+        stamps[:] = never
+    m = 0
+    d = np.empty(src.shape[0], dtype=np.int64)
+    c = np.empty(src.shape[0])
+    for i in range(src.shape[0]):
+        if np.isfinite(pos[src[i]]):  # a joint outside the needed ones without a value: not taken
+            d[m] = dst[i]
+            c[m] = pos[src[i]]
+            m += 1
+    merge_into(values, stamps, d[:m], c[:m], stamp)
+    fresh_vector(values, stamps, stamp, max_age, never, vec)
+    missing = 0
+    for i in range(needed_idx.shape[0]):
+        if np.isnan(vec[needed_idx[i]]):
+            missing += 1
     return missing
 
 
@@ -283,23 +314,20 @@ class JointHistory:
             extra = f" (names not in the URDF: {lay.strange})" if lay.strange else ""
             return JointUpdate(None, "carries none of the chain's joints" + extra, "ignored", "")
         pos = np.asarray(positions, dtype=np.float64)
-        carried = pos[lay.src]
-        if not np.isfinite(pos[lay.needed_src]).all():
+        new_timeline = check.verdict == NEW_TIMELINE
+        vec = self._scratch
+        missing = merge_message(self.values, self.stamps, pos, lay.src, lay.dst, lay.needed_src, self.needed_idx,
+                               stamp_ns, self.max_age_ns, NEVER_NS, new_timeline, vec)
+        if missing < 0:
             bad = [names[i] for i in lay.needed_src if not np.isfinite(pos[i])]
             raise JointValueError(f"NaN or infinite value for joint(s) {', '.join(repr(b) for b in bad)}")
-        if check.verdict == NEW_TIMELINE:
-            self.reset()
-        fin = np.isfinite(carried)  # a joint outside the needed ones without a value: not taken
-        merge_into(self.values, self.stamps, lay.dst[fin] if not fin.all() else lay.dst,
-                   carried[fin] if not fin.all() else carried, stamp_ns)
+        if new_timeline:
+            self.history.clear()  # (the values and stamps: forgotten by merge_message)
         self.clock[0], self.clock[1] = stamp_ns, 1
-        vec = self._scratch
-        fresh_vector(self.values, self.stamps, stamp_ns, self.max_age_ns, NEVER_NS, vec)
         if self.history.keep_ns > 0:
             self.history.add(stamp_ns, vec.copy())
-        values = vec[self.needed_idx]
-        if np.isfinite(values).all():
-            return JointUpdate(values, "", "", check.why)
+        if missing == 0:
+            return JointUpdate(vec[self.needed_idx], "", "", check.why)
         return JointUpdate(None, self._why_incomplete(stamp_ns), "incomplete", check.why)
 
     def _why_incomplete(self, stamp_ns: int) -> str:

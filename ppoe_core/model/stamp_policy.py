@@ -10,6 +10,7 @@ node's wrenches and :class:`~ppoe_core.estimation.pipeline.FusionPipeline`'s pri
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import NamedTuple
 
 from ppoe_core.errors import MeasurementError
@@ -52,12 +53,12 @@ class StampResetPolicy:
     reset_threshold_s: float = 1.0
     future_tolerance_s: float = 0.0
 
-    @property
+    @cached_property
     def reset_ns(self) -> int:
         """:attr:`reset_threshold_s` in integer nanoseconds."""
         return int(round(self.reset_threshold_s * 1e9))
 
-    @property
+    @cached_property
     def future_ns(self) -> int:
         """:attr:`future_tolerance_s` in integer nanoseconds (0 = off)."""
         return int(round(self.future_tolerance_s * 1e9))

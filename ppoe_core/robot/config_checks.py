@@ -181,9 +181,3 @@ def check_pose_entry(ctx: CheckContext, d: Mapping, path: str) -> np.ndarray:
     xyz = check_vector(ctx, d["xyz"], d, "xyz", path + ".xyz", 3) if "xyz" in d else np.zeros(3)
     rpy = check_vector(ctx, d["rpy"], d, "rpy", path + ".rpy", 3) if "rpy" in d else np.zeros(3)
     return lie.from_xyz_rpy(xyz, rpy)
-
-
-# the underscore names, for the modules of other work in progress that still import them (robot/dh.py,
-# io/importers/csv_stops.py; test/test_architecture.py lists them): remove once they import the public names
-_Ctx = CheckContext
-_check_keys, _mapping, _number, _vector = check_keys, check_mapping, check_number, check_vector

@@ -52,7 +52,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from ppoe_core import lie
-from ppoe_core.robot.config_checks import _check_keys, _Ctx, _mapping, _number, _vector
+from ppoe_core.robot.config_checks import check_keys, CheckContext, check_mapping, check_number, check_vector
 from ppoe_core.robot.yaml_io import read_yaml_file
 
 __all__ = ["dh_to_urdf"]
@@ -80,7 +80,7 @@ def _t(x: float, y: float, z: float) -> np.ndarray:
 class _Tree:
     """The URDF lines built so far and the names used (each name once, errors name the entry)."""
 
-    def __init__(self, ctx: _Ctx, base: str) -> None:
+    def __init__(self, ctx: CheckContext, base: str) -> None:
         self.ctx = ctx
         self.links: set[str] = {base}
         self.joints: set[str] = set()
@@ -110,9 +110,9 @@ def dh_to_urdf(source: str | os.PathLike[str]) -> str:
         the file, line and row.
     """
     data, where = read_yaml_file(source, "DH table")
-    ctx = _Ctx(where)
-    top = _mapping(ctx, data, None, None, "DH table")
-    _check_keys(ctx, top, _TOP_KEYS, "DH table")
+    ctx = CheckContext(where)
+    top = check_mapping(ctx, data, None, None, "DH table")
+    check_keys(ctx, top, _TOP_KEYS, "DH table")
     if "joints" not in top and "chains" not in top:
         raise ctx.error(top, None, "DH table", "missing required key 'joints' (or 'chains')")
     convention = top.get("convention", "standard")
@@ -126,16 +126,16 @@ def dh_to_urdf(source: str | os.PathLike[str]) -> str:
     if not isinstance(chains, list):
         raise ctx.error(top, "chains", "chains", "must be a list of chains")
     for k, ch in enumerate(chains):
-        ch = _mapping(ctx, ch, chains, None, f"chains[{k}]")
-        _check_keys(ctx, ch, _CHAIN_KEYS, f"chains[{k}]", required=("name", "joints"))
+        ch = check_mapping(ctx, ch, chains, None, f"chains[{k}]")
+        check_keys(ctx, ch, _CHAIN_KEYS, f"chains[{k}]", required=("name", "joints"))
         parent = tree.parent(ch, "parent", f"chains[{k}].parent", ch.get("parent", base))
         _chain(ctx, tree, convention, ch, f"chains[{k}].", parent, _name(ctx, ch, "name", f"chains[{k}].name"))
     frames = top.get("frames", [])
     if not isinstance(frames, list):
         raise ctx.error(top, "frames", "frames", "must be a list of fixed frames")
     for k, fr in enumerate(frames):
-        fr = _mapping(ctx, fr, frames, None, f"frames[{k}]")
-        _check_keys(ctx, fr, _FIXED_KEYS + ("parent",), f"frames[{k}]", required=("name", "parent"))
+        fr = check_mapping(ctx, fr, frames, None, f"frames[{k}]")
+        check_keys(ctx, fr, _FIXED_KEYS + ("parent",), f"frames[{k}]", required=("name", "parent"))
         parent = tree.parent(fr, "parent", f"frames[{k}].parent", fr["parent"])
         _fixed(ctx, tree, {k_: v for k_, v in fr.items() if k_ != "parent"}, fr, f"frames[{k}]", parent)
     head = [f"<robot name={quoteattr(_name(ctx, top, 'name', 'name', 'dh_robot'))}>",
@@ -143,10 +143,11 @@ def dh_to_urdf(source: str | os.PathLike[str]) -> str:
     return "\n".join(head + tree.lines + ["</robot>", ""])
 
 
-def _chain(ctx: _Ctx, tree: _Tree, convention: str, d: Mapping, prefix: str, parent: str, name: str | None) -> None:
+def _chain(ctx: CheckContext, tree: _Tree, convention: str, d: Mapping, prefix: str, parent: str,
+           name: str | None) -> None:
     """Rows ``d["joints"]`` (and the optional ``mount`` and ``tool``) hanging on ``parent``, added to ``tree``."""
     if "mount" in d:
-        parent = _fixed(ctx, tree, _mapping(ctx, d["mount"], d, "mount", prefix + "mount"), d, prefix + "mount",
+        parent = _fixed(ctx, tree, check_mapping(ctx, d["mount"], d, "mount", prefix + "mount"), d, prefix + "mount",
                         parent)
     rows = d["joints"]
     if not isinstance(rows, list) or not rows:
@@ -170,14 +171,14 @@ def _chain(ctx: _Ctx, tree: _Tree, convention: str, d: Mapping, prefix: str, par
                              _t(prev["a"], 0, 0) @ _rx(prev["alpha"]), {})
         parent = flange["name"]
     if "tool" in d:
-        _fixed(ctx, tree, _mapping(ctx, d["tool"], d, "tool", prefix + "tool"), d, prefix + "tool", parent)
+        _fixed(ctx, tree, check_mapping(ctx, d["tool"], d, "tool", prefix + "tool"), d, prefix + "tool", parent)
 
 
-def _fixed(ctx: _Ctx, tree: _Tree, fr: Mapping, obj: Any, path: str, parent: str) -> str:
+def _fixed(ctx: CheckContext, tree: _Tree, fr: Mapping, obj: Any, path: str, parent: str) -> str:
     """A fixed frame (tool, mount, ``frames`` entry) on ``parent``; returns its link name."""
-    _check_keys(ctx, fr, _FIXED_KEYS, path, required=("name",))
-    xyz = _vector(ctx, fr["xyz"], fr, "xyz", f"{path}.xyz", 3) if "xyz" in fr else np.zeros(3)
-    rpy = _vector(ctx, fr["rpy"], fr, "rpy", f"{path}.rpy", 3) if "rpy" in fr else np.zeros(3)
+    check_keys(ctx, fr, _FIXED_KEYS, path, required=("name",))
+    xyz = check_vector(ctx, fr["xyz"], fr, "xyz", f"{path}.xyz", 3) if "xyz" in fr else np.zeros(3)
+    rpy = check_vector(ctx, fr["rpy"], fr, "rpy", f"{path}.rpy", 3) if "rpy" in fr else np.zeros(3)
     link = _name(ctx, fr, "name", f"{path}.name")
     joint = _name(ctx, fr, "joint", f"{path}.joint", f"{link}_joint")
     tree.add(fr, "name", path, link, joint)
@@ -186,20 +187,20 @@ def _fixed(ctx: _Ctx, tree: _Tree, fr: Mapping, obj: Any, path: str, parent: str
     return link
 
 
-def _mass(ctx: _Ctx, row: Mapping, path: str) -> dict[str, Any]:
+def _mass(ctx: CheckContext, row: Mapping, path: str) -> dict[str, Any]:
     """``mass`` [kg], ``com`` [m] and ``inertia`` (6 numbers, kg m^2) of a row or fixed frame, or {} without a
     mass."""
     out: dict[str, Any] = {}
     if "mass" in row:
-        out["mass"] = _number(ctx, row["mass"], row, "mass", f"{path}.mass", positive=True)
-        out["com"] = _vector(ctx, row["com"], row, "com", f"{path}.com", 3) if "com" in row else np.zeros(3)
+        out["mass"] = check_number(ctx, row["mass"], row, "mass", f"{path}.mass", positive=True)
+        out["com"] = check_vector(ctx, row["com"], row, "com", f"{path}.com", 3) if "com" in row else np.zeros(3)
         out["inertia"] = _DEFAULT_INERTIA
         if "inertia" in row:
             val = row["inertia"]
             if not isinstance(val, list) or len(val) not in (3, 6):
                 raise ctx.error(row, "inertia", f"{path}.inertia", "must be a list of 3 numbers (ixx iyy izz) or 6 "
                                 f"(ixx ixy ixz iyy iyz izz) [kg m^2], got {val!r}")
-            v = _vector(ctx, val, row, "inertia", f"{path}.inertia", len(val))
+            v = check_vector(ctx, val, row, "inertia", f"{path}.inertia", len(val))
             out["inertia"] = np.array([v[0], 0.0, 0.0, v[1], 0.0, v[2]]) if len(val) == 3 else v
     else:
         for k in ("com", "inertia"):
@@ -208,10 +209,10 @@ def _mass(ctx: _Ctx, row: Mapping, path: str) -> dict[str, Any]:
     return out
 
 
-def _row(ctx: _Ctx, row: Any, rows: list, i: int, prefix: str = "", chain: str | None = None) -> dict[str, Any]:
+def _row(ctx: CheckContext, row: Any, rows: list, i: int, prefix: str = "", chain: str | None = None) -> dict[str, Any]:
     path = f"{prefix}joints[{i}]"
-    row = _mapping(ctx, row, rows, None, path)
-    _check_keys(ctx, row, _ROW_KEYS, path, required=("name",))
+    row = check_mapping(ctx, row, rows, None, path)
+    check_keys(ctx, row, _ROW_KEYS, path, required=("name",))
     jtype = row.get("type", "revolute")
     if jtype not in ("revolute", "continuous", "prismatic"):
         raise ctx.error(row, "type", path + ".type", f"must be revolute, continuous or prismatic, got {jtype!r}")
@@ -219,10 +220,10 @@ def _row(ctx: _Ctx, row: Any, rows: list, i: int, prefix: str = "", chain: str |
     out: dict[str, Any] = {"name": _name(ctx, row, "name", path + ".name"), "type": jtype,
                            "link": _name(ctx, row, "link", path + ".link", default_link)}
     for k in ("a", "alpha", "d", "theta"):
-        out[k] = _number(ctx, row[k], row, k, f"{path}.{k}") if k in row else 0.0
+        out[k] = check_number(ctx, row[k], row, k, f"{path}.{k}") if k in row else 0.0
     for k in ("lower", "upper"):
         if k in row:
-            out[k] = _number(ctx, row[k], row, k, f"{path}.{k}")
+            out[k] = check_number(ctx, row[k], row, k, f"{path}.{k}")
     if jtype != "continuous" and not ("lower" in out and "upper" in out):
         raise ctx.error(row, None, path, f"a {jtype} joint needs both lower and upper limits (or type: continuous)")
     if "lower" in out and out["lower"] > out["upper"]:
@@ -230,7 +231,7 @@ def _row(ctx: _Ctx, row: Any, rows: list, i: int, prefix: str = "", chain: str |
     return {**out, **_mass(ctx, row, path)}
 
 
-def _name(ctx: _Ctx, obj: Mapping, key: str, path: str, default: str | None = None) -> str:
+def _name(ctx: CheckContext, obj: Mapping, key: str, path: str, default: str | None = None) -> str:
     """A link, joint, chain or robot name: non-empty text without spaces (issue 25: ``name: null`` became "None",
     an empty name an error in a line of the generated URDF)."""
     value = obj.get(key, default)

@@ -22,7 +22,7 @@ from ppoe_core.errors import ScenarioError
 from ppoe_core.estimation.camera import project_points
 from ppoe_core.sensing.tag_rows import rows_from_detections
 from ppoe_core.sensing.tags import TagDetection, render_tags, tag_points_local
-from ppoe_core.sim.scenario import _where
+from ppoe_core.sim.scenario_checks import key_location
 
 __all__ = ["check_camera_truth", "tag_poses_cam", "visible_tags", "camera_events", "observation_rows"]
 
@@ -36,7 +36,7 @@ def check_camera_truth(sim: Any) -> None:
     """The camera and tag truths of simulator ``sim`` fit its scenario: ``camera_intrinsics`` at the scenario
     camera's frame, ``tag_offset`` at a tag of the model; sets ``sim.cam["K_true"]`` / ``["D_true"]``."""
     for i, e in enumerate(sim.true.effects):
-        where = _where(sim.path, f"truth.effects[{i}]")
+        where = key_location(sim.path, f"truth.effects[{i}]")
         if e["name"] == "camera_intrinsics" and (sim.cam is None or e["location"] != sim.cam["frame"]):
             raise ScenarioError(f"{where}: camera_intrinsics at '{e['location']}' needs the scenario camera with "
                                 f"that frame (camera.frame = {sim.cam['frame'] if sim.cam else None!r})")

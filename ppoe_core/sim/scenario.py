@@ -3,21 +3,18 @@
 
 from __future__ import annotations
 
-import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from ppoe_core import lie
 from ppoe_core.errors import ModelConfigError, ScenarioError, UnknownFrameError, UnknownJointError, UrdfError
 from ppoe_core.robot.config import ModelConfig, load_model_config
 from ppoe_core.robot.dh import dh_to_urdf
 from ppoe_core.robot.urdf import Robot, parse_urdf
 from ppoe_core.robot.yaml_io import read_yaml_file
+from ppoe_core.sim.scenario_checks import check_keys, check_number, key_location
 from ppoe_core.sim.schedule import TEMPERATURE_DOC
 
 #: effects the simulator can put into the true robot, with their parameters
@@ -155,64 +152,6 @@ _TOP_KEYS = ("extends", "robot", "seed", "start_time", "truth", "trajectory", "c
 # =============================================================================
 
 
-def _where(path: str, key: str) -> str:
-    return f"scenario {path}: {key}"
-
-
-def _check_keys(d: Any, allowed: Sequence[str], path: str, key: str) -> dict:
-    if d is None:
-        return {}
-    if not isinstance(d, Mapping):
-        raise ScenarioError(f"{_where(path, key)} must be a mapping, got {type(d).__name__}")
-    bad = sorted(set(d) - set(allowed))
-    if bad:
-        raise ScenarioError(f"{_where(path, key)}: unknown keys {bad} (allowed: {list(allowed)})")
-    return dict(d)
-
-
-def _num(
-    d: Mapping, k: str, default: Any, path: str, key: str, minimum: float | None = None, maximum: float | None = None
-) -> Any:
-    v = d.get(k, default)
-    if v is None:
-        return None
-    try:
-        f = float(v)
-    except (TypeError, ValueError):
-        raise ScenarioError(f"{_where(path, key + '.' + k)} must be a number, got {v!r}") from None
-    if not math.isfinite(f) or (minimum is not None and f < minimum) or (maximum is not None and f > maximum):
-        raise ScenarioError(f"{_where(path, key + '.' + k)} = {v!r} out of range [{minimum}, {maximum}]")
-    return f
-
-
-def _joints_map(d: Any, path: str, key: str, robot: Robot) -> dict[str, float]:
-    if d is None:
-        return {}
-    if not isinstance(d, Mapping):
-        raise ScenarioError(f"{_where(path, key)} must map joint names to values")
-    out = {}
-    for name, v in d.items():
-        if name not in robot.joints or not robot.joints[name].movable:
-            raise ScenarioError(f"{_where(path, key)}: '{name}' is not a movable joint of {robot.source}")
-        try:
-            out[str(name)] = float(v)
-        except (TypeError, ValueError):
-            raise ScenarioError(f"{_where(path, key + '.' + str(name))} must be a number, got {v!r}") from None
-        if not math.isfinite(out[str(name)]):
-            raise ScenarioError(f"{_where(path, key + '.' + str(name))} must be finite, got {v!r}")
-    return out
-
-
-def _pose_cfg(d: Any, path: str, key: str) -> np.ndarray:
-    d = _check_keys(d, ("xyz", "rpy", "frame"), path, key)
-    try:
-        xyz = np.asarray(d.get("xyz", [0, 0, 0]), dtype=float).reshape(3)
-        rpy = np.asarray(d.get("rpy", [0, 0, 0]), dtype=float).reshape(3)
-    except (TypeError, ValueError):
-        raise ScenarioError(f"{_where(path, key)}: xyz and rpy must be 3 numbers each") from None
-    return lie.from_xyz_rpy(xyz, rpy)
-
-
 #: how deep ``extends`` may chain (a cycle is an error long before)
 _MAX_EXTENDS = 8
 
@@ -237,7 +176,7 @@ def read_scenario_raw(path: str | os.PathLike, depth: int = 0) -> dict[str, Any]
     """
     p = Path(path)
     raw, _ = read_yaml_file(p, "scenario", ScenarioError)
-    raw = _check_keys(raw, _TOP_KEYS, str(p), "top level")
+    raw = check_keys(raw, _TOP_KEYS, str(p), "top level")
     rob = raw.get("robot")
     if isinstance(rob, Mapping):
         raw["robot"] = {k: str((p.parent / str(v)).resolve()) if k in ("urdf", "dh", "model") else v
@@ -246,7 +185,7 @@ def read_scenario_raw(path: str | os.PathLike, depth: int = 0) -> dict[str, Any]
     if base is None:
         return raw
     if depth >= _MAX_EXTENDS:
-        raise ScenarioError(f"{_where(str(p), 'extends')}: more than {_MAX_EXTENDS} levels (a cycle?)")
+        raise ScenarioError(f"{key_location(str(p), 'extends')}: more than {_MAX_EXTENDS} levels (a cycle?)")
     return _merged(read_scenario_raw(p.parent / str(base), depth + 1), raw)
 
 
@@ -272,12 +211,12 @@ def _robot_text(p: Path, rob: Mapping[str, Any]) -> tuple[str, str]:
         try:
             return dh_to_urdf(dh_path), f"{dh_path} (from-dh)"
         except ModelConfigError as exc:
-            raise ScenarioError(f"{_where(str(p), 'robot.dh')}: {exc}") from None
+            raise ScenarioError(f"{key_location(str(p), 'robot.dh')}: {exc}") from None
     urdf_path = (p.parent / str(rob["urdf"])).resolve()
     try:
         return urdf_path.read_text(), str(urdf_path)
     except (OSError, UnicodeDecodeError) as exc:
-        raise ScenarioError(f"{_where(str(p), 'robot.urdf')}: cannot read {urdf_path}: {exc}") from None
+        raise ScenarioError(f"{key_location(str(p), 'robot.urdf')}: cannot read {urdf_path}: {exc}") from None
 
 
 @dataclass
@@ -303,9 +242,9 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
     """
     p = Path(path)
     raw = read_scenario_raw(p)
-    rob = _check_keys(raw.get("robot"), ("urdf", "dh", "model"), str(p), "robot")
+    rob = check_keys(raw.get("robot"), ("urdf", "dh", "model"), str(p), "robot")
     if ("urdf" in rob) == ("dh" in rob) or "model" not in rob:
-        raise ScenarioError(f"{_where(str(p), 'robot')} needs 'model' and one of 'urdf' or 'dh'")
+        raise ScenarioError(f"{key_location(str(p), 'robot')} needs 'model' and one of 'urdf' or 'dh'")
     model_path = (p.parent / str(rob["model"])).resolve()
     urdf_text, urdf_source = _robot_text(p, rob)
     try:
@@ -315,6 +254,6 @@ def load_scenario(path: str | os.PathLike) -> Scenario:
         raise ScenarioError(f"scenario {p}: {exc}") from None
     seed = raw.get("seed", 0)
     if not isinstance(seed, int) or seed < 0:
-        raise ScenarioError(f"{_where(str(p), 'seed')} must be a non-negative integer, got {seed!r}")
-    start = _num(raw, "start_time", 100.0, str(p), "top", minimum=0.0)
+        raise ScenarioError(f"{key_location(str(p), 'seed')} must be a non-negative integer, got {seed!r}")
+    start = check_number(raw, "start_time", 100.0, str(p), "top", minimum=0.0)
     return Scenario(str(p), raw, robot, model, urdf_text, int(seed), float(start))

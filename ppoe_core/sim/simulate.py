@@ -42,19 +42,11 @@ from ppoe_core import lie
 from ppoe_core.errors import PpoeError, ScenarioError
 from ppoe_core.io.bagio import BagWriter
 from ppoe_core.robot.tree import GRAVITY
-from ppoe_core.sim.scenario import (
-    SCENARIO_DOC,
-    TRUTH_EFFECTS,
-    Scenario,
-    _check_keys,
-    _joints_map,
-    _num,
-    _where,
-    load_scenario,
-)
+from ppoe_core.sim.scenario import SCENARIO_DOC, TRUTH_EFFECTS, Scenario, load_scenario
+from ppoe_core.sim.scenario_checks import check_joint_values, check_keys, check_number, key_location
 from ppoe_core.sim.camera_sim import camera_events, check_camera_truth, tag_poses_cam, visible_tags
 from ppoe_core.sim.schedule import parse_temperature, temperature_events, truth_entries
-from ppoe_core.sim.sim_config import _min_jerk, _SimConfig, _Stop
+from ppoe_core.sim.sim_config import min_jerk, SimConfig, Stop
 from ppoe_core.sim.truth import TrueRobot
 
 __all__ = ["SCENARIO_DOC", "TRUTH_EFFECTS", "Scenario", "TrueRobot", "SimulationResult", "load_scenario", "simulate"]
@@ -77,7 +69,7 @@ class SimulationResult:
     visible_tags: list[int] = field(default_factory=list)
 
 
-class _Sim(_SimConfig):
+class _Sim(SimConfig):
     """One simulation run (internal)."""
 
     def __init__(self, sc: Scenario, seed: int) -> None:
@@ -88,13 +80,13 @@ class _Sim(_SimConfig):
         raw = sc.raw
         self.robot = sc.robot
         self.model = sc.model
-        truth = _check_keys(raw.get("truth"), ("perturbations", "perturbation_scale", "joint_noise", "effects",
+        truth = check_keys(raw.get("truth"), ("perturbations", "perturbation_scale", "joint_noise", "effects",
                                                "record_draws", "encoder_noise"),
                             self.path, "truth")
         self.draw = truth.get("perturbations", "once")
         if self.draw not in ("once", "per_stop", "none"):
-            raise ScenarioError(f"{_where(self.path, 'truth.perturbations')} must be once, per_stop or none")
-        self.pscale = _num(truth, "perturbation_scale", 1.0, self.path, "truth", minimum=0.0)
+            raise ScenarioError(f"{key_location(self.path, 'truth.perturbations')} must be once, per_stop or none")
+        self.pscale = check_number(truth, "perturbation_scale", 1.0, self.path, "truth", minimum=0.0)
         self.use_joint_noise = bool(truth.get("joint_noise", True))
         self.record_draws = bool(truth.get("record_draws", False))
         self.temperature = parse_temperature(raw.get("temperature"), self.path, self.robot.root)
@@ -102,7 +94,7 @@ class _Sim(_SimConfig):
                               temperature=self.temperature["value"] if self.temperature else None)
         self.dt_js = self.true.effect_param("time_offset", "dt")
         self.joints = self.robot.independent_joints
-        self._parse_trajectory(_check_keys(raw.get("trajectory"), (
+        self._parse_trajectory(check_keys(raw.get("trajectory"), (
             "joint_rate", "dwell", "settle", "move_time", "extra_joints", "start", "stops", "random_stops",
             "smooth"), self.path, "trajectory"))
         self._parse_sensors()
@@ -113,15 +105,15 @@ class _Sim(_SimConfig):
         """``truth.encoder_noise``: 1-sigma per driven joint of the white noise on each recorded sample [rad|m]."""
         where = "truth.encoder_noise"
         if isinstance(raw, Mapping):
-            m = _joints_map(raw, self.path, where, self.robot)
+            m = check_joint_values(raw, self.path, where, self.robot)
             bad = sorted(set(m) - set(self.joints))
             if bad:
-                raise ScenarioError(f"{_where(self.path, where)}: {bad} are not driven joints")
+                raise ScenarioError(f"{key_location(self.path, where)}: {bad} are not driven joints")
             sig = np.array([m.get(j, 0.0) for j in self.joints])
         else:
-            sig = np.full(len(self.joints), _num({"v": raw}, "v", 0.0, self.path, where, minimum=0.0))
+            sig = np.full(len(self.joints), check_number({"v": raw}, "v", 0.0, self.path, where, minimum=0.0))
         if np.any(sig < 0):
-            raise ScenarioError(f"{_where(self.path, where)} must be >= 0")
+            raise ScenarioError(f"{key_location(self.path, where)} must be >= 0")
         return sig
 
     def _draw_xi(self, n_sets: int) -> list[dict[str, np.ndarray]]:
@@ -189,7 +181,7 @@ class _Sim(_SimConfig):
             tries += 1
             if tries > cfg["max_tries"]:
                 raise ScenarioError(
-                    f"{_where(self.path, 'trajectory.random_stops')}: only {got} of {need} "
+                    f"{key_location(self.path, 'trajectory.random_stops')}: only {got} of {need} "
                     f"acceptable configurations (min_visible_tags, min_link_z) in {cfg['max_tries']} tries"
                 )
             q = dict(cfg["around"])
@@ -203,14 +195,14 @@ class _Sim(_SimConfig):
             if cfg["min_visible"] > 0:
                 if self.cam is None:
                     raise ScenarioError(
-                        f"{_where(self.path, 'trajectory.random_stops.min_visible_tags')} needs a camera"
+                        f"{key_location(self.path, 'trajectory.random_stops.min_visible_tags')} needs a camera"
                     )
                 Q = np.array([[q[j] for j in self.joints]])
                 poses = self.true.poses({j: Q[:, i] for i, j in enumerate(self.joints)}, {}, {}, {}, np.zeros(1), 1)
                 Ts, _, sizes = tag_poses_cam(self, poses)
                 if visible_tags(self.cam, Ts, sizes)[0].sum() < cfg["min_visible"]:
                     continue
-            self.stops.append(_Stop(q, self.dwell))
+            self.stops.append(Stop(q, self.dwell))
             got += 1
 
     def _contact_penetration(self, poses: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -222,17 +214,18 @@ class _Sim(_SimConfig):
         return -d[:, 2]
 
     def _solve_contacts(self) -> None:
-        new: list[_Stop] = []
+        new: list[Stop] = []
         for k, s in enumerate(self.stops):
             if s.contact is None:
                 new.append(s)
                 continue
             if self.contact is None:
-                raise ScenarioError(f"{_where(self.path, f'trajectory.stops[{k}].contact')} needs the contact section")
+                raise ScenarioError(f"{key_location(self.path, f'trajectory.stops[{k}].contact')} needs the contact "
+                                    "section")
             pj = s.contact["press_joint"]
             target = s.contact["force"] / self.contact["k"]
 
-            def depth(v: float, s: _Stop = s, pj: str = pj) -> float:
+            def depth(v: float, s: Stop = s, pj: str = pj) -> float:
                 q = dict(s.q)
                 q[pj] = v
                 Q = np.array([[q[j] for j in self.joints]])
@@ -248,21 +241,22 @@ class _Sim(_SimConfig):
                 slope = (depth(v + h) - depth(v - h)) / (2 * h)
                 if abs(slope) < 1e-9:
                     raise ScenarioError(
-                        f"{_where(self.path, f'trajectory.stops[{k}].contact')}: joint {pj} does not "
+                        f"{key_location(self.path, f'trajectory.stops[{k}].contact')}: joint {pj} does not "
                         "move the tool point towards the plane"
                     )
                 v = v - f / slope
             else:
-                raise ScenarioError(f"{_where(self.path, f'trajectory.stops[{k}].contact')}: could not reach the plane")
+                raise ScenarioError(f"{key_location(self.path, f'trajectory.stops[{k}].contact')}: could not reach "
+                                    "the plane")
             slope = (depth(v + 1e-4) - depth(v - 1e-4)) / 2e-4
             away = -math.copysign(abs(s.contact["approach"]), slope)
             qa = dict(s.q)
             qa[pj] = v + away
             qc = dict(s.q)
             qc[pj] = v
-            new.append(_Stop(qa, 0.2, None, measure=False, draw=s.draw))
-            new.append(_Stop(qc, s.dwell, s.contact, draw=s.draw))
-            new.append(_Stop(dict(qa), 0.2, None, measure=False, draw=s.draw))
+            new.append(Stop(qa, 0.2, None, measure=False, draw=s.draw))
+            new.append(Stop(qc, s.dwell, s.contact, draw=s.draw))
+            new.append(Stop(dict(qa), 0.2, None, measure=False, draw=s.draw))
         self.stops = new
 
     # -- time line ------------------------------------------------------------
@@ -287,7 +281,7 @@ class _Sim(_SimConfig):
                     nmove = int(round(self.move_time * self.rate))
                     for i in range(nmove):
                         ts.append(now + i * dt)
-                        qs.append(qprev + (qk - qprev) * _min_jerk(np.array(i / nmove)))
+                        qs.append(qprev + (qk - qprev) * min_jerk(np.array(i / nmove)))
                         sets.append(s.draw)
                     now += nmove * dt
                 ndw = max(int(round(s.dwell * self.rate)), 1)
@@ -327,7 +321,7 @@ class _Sim(_SimConfig):
         """Sample stamps: inside each stop window after ``settle`` (rate 0 = once per stop), or the whole bag."""
         if self.smooth is not None or during == "always":
             if rate <= 0:
-                raise ScenarioError(f"{_where(self.path, 'sensor rate')}: rate 0 (once per stop) needs stops")
+                raise ScenarioError(f"{key_location(self.path, 'sensor rate')}: rate 0 (once per stop) needs stops")
             return np.arange(self.t[0], self.t[-1] + 1e-9, 1.0 / rate)
         out = []
         for a, b, _ in self.windows:

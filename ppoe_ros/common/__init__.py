@@ -33,12 +33,12 @@ from typing import Any
 
 #: module of the package -> the names taken from it
 _NAMES: dict[str, tuple[str, ...]] = {
-    "conversions": ("cov_ros_to_msg_array", "matrix_from_pose_msg", "message_class", "ns_to_stamp",
+    "conversions": ("matrix_from_pose_msg", "message_class", "ns_to_stamp",
                     "pose_cov_from_msg", "pose_cov_stamped_msg", "pose_msg_from_matrix", "stamp_to_ns",
                     "wrench_to_numpy"),
     "diagnostics": ("DiagnosticsPublisher", "NodeStats", "guarded"),
     "losses": ("SequenceGaps", "counted_subscription"),
-    "params": ("ParamSpec", "check_length", "check_nonempty", "check_nonnegative", "check_positive",
+    "params": ("ParamSpec", "check_length", "check_nonempty",
                "declare_parameters", "mapping_get"),
     "qos": ("LATCHED_QOS", "reliable_qos", "sensor_qos"),
     "runner": ("run_node", "take_robot_description"),

@@ -92,14 +92,6 @@ def _matrix_from_quat_xyz(x: float, y: float, z: float, w: float, px: Any, py: A
     return T
 
 
-def cov_ros_to_msg_array(cov_ros: np.ndarray) -> list[float]:
-    """A ``(6, 6)`` covariance (ROS convention, order x y z rx ry rz) -> 36 row-major floats."""
-    cov = np.asarray(cov_ros, dtype=float)
-    if cov.shape != (6, 6):
-        raise ValueError(f"covariance must be 6x6, got shape {cov.shape}")
-    return cov.reshape(36).tolist()
-
-
 def pose_cov_stamped_msg(T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp: TimeMsg | int,
                          frame_id: str) -> PoseWithCovarianceStamped:
     """Build a ``PoseWithCovarianceStamped``.

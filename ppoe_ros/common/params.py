@@ -111,16 +111,6 @@ class ParamSpec:
         return None
 
 
-def check_positive(value: Any) -> str | None:
-    """Checker: value > 0."""
-    return None if value > 0 else f"must be > 0, got {value}"
-
-
-def check_nonnegative(value: Any) -> str | None:
-    """Checker: value >= 0."""
-    return None if value >= 0 else f"must be >= 0, got {value}"
-
-
 def check_nonempty(value: Any) -> str | None:
     """Checker: a non-empty string / list."""
     return None if len(value) > 0 else "must not be empty"

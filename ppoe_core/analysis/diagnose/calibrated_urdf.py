@@ -19,12 +19,10 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.errors import UrdfError
 from ppoe_core.model.effects import Effect, sum_effect_corrections
+from ppoe_core.model.tf_frames import STATIC_EFFECTS  # the effects folded into the URDF
 from ppoe_core.robot.urdf import Robot
 
 __all__ = ["STATIC_EFFECTS", "calibrated_urdf"]
-
-#: effects that are folded into the URDF
-STATIC_EFFECTS = ("joint_offset", "link_error", "camera_extrinsics")
 
 
 def calibrated_urdf(urdf_xml: str, robot: Robot, effects: Sequence[Effect]) -> tuple[str, list[Effect]]:

@@ -52,15 +52,15 @@ _TOP = ("joints", "angle_unit", "length_unit", "points", "pose", "time", "statio
 
 def load_mapping(path: str | Path, robot: Robot) -> dict[str, Any]:
     """The mapping YAML, checked against the URDF (joint names) and the key set (module docstring)."""
-    from ppoe_core.robot.config_checks import _check_keys, _Ctx, _mapping
+    from ppoe_core.robot.config_checks import check_keys, CheckContext, check_mapping
     from ppoe_core.robot.yaml_io import read_yaml_file
 
     data, where = read_yaml_file(path, "CSV mapping", error=DatasetError)
-    ctx = _Ctx(where)
+    ctx = CheckContext(where)
     try:
-        top = _mapping(ctx, data, None, None, "mapping")
-        _check_keys(ctx, top, _TOP, "mapping", required=("joints",))
-        joints = _mapping(ctx, top["joints"], top, "joints", "joints")
+        top = check_mapping(ctx, data, None, None, "mapping")
+        check_keys(ctx, top, _TOP, "mapping", required=("joints",))
+        joints = check_mapping(ctx, top["joints"], top, "joints", "joints")
         for jn in joints:
             if jn not in robot.joints or not robot.joints[jn].independent:
                 raise ctx.error(joints, jn, f"joints.{jn}", f"not an independent movable joint of {robot.source}")
@@ -71,13 +71,13 @@ def load_mapping(path: str | Path, robot: Robot) -> dict[str, Any]:
         if not isinstance(points, list):
             raise ctx.error(top, "points", "points", "must be a list of {topic, columns, frame}")
         for i, p in enumerate(points):
-            p = _mapping(ctx, p, points, None, f"points[{i}]")
-            _check_keys(ctx, p, ("topic", "columns", "frame"), f"points[{i}]", required=("columns",))
+            p = check_mapping(ctx, p, points, None, f"points[{i}]")
+            check_keys(ctx, p, ("topic", "columns", "frame"), f"points[{i}]", required=("columns",))
             if len(p["columns"]) != 3:
                 raise ctx.error(p, "columns", f"points[{i}].columns", "must name 3 columns (x, y, z)")
         if "pose" in top:
-            pose = _mapping(ctx, top["pose"], top, "pose", "pose")
-            _check_keys(ctx, pose, ("columns", "frame"), "pose", required=("columns",))
+            pose = check_mapping(ctx, top["pose"], top, "pose", "pose")
+            check_keys(ctx, pose, ("columns", "frame"), "pose", required=("columns",))
             if len(pose["columns"]) != 7:
                 raise ctx.error(pose, "columns", "pose.columns", "must name 7 columns (x y z qx qy qz qw)")
     except Exception as exc:  # config_checks raise ModelConfigError: re-raise as the importer's error
