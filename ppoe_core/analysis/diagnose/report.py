@@ -70,9 +70,9 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
     header = ("# Model updated by `ppoe diagnose`: effects found (with 95 % CIs) appended to `effects`,\n"
               f"# perturbation sigmas and joint noise scaled by {k:.4g}: the declared prior's scale as the data "
               "estimate it.\n"
-              + (f"# For robot_calibrated.urdf: the effects {list(drop)} are left out here; their significant "
-                 "components are folded into its joint origins (diagnose.md, section How to apply, lists the rest).\n"
-                 if drop else ""))
+              + (f"# For robot_calibrated.urdf: the static effects {list(drop)} are left out here: the declared ones\n"
+                 "# and the significant components of the found ones are folded into its joint origins (diagnose.md,\n"
+                 "# section How to apply, lists the components left out).\n" if drop else ""))
     buf = io.StringIO()
     rt.dump(doc, buf)
     out_path.write_text(header + buf.getvalue(), encoding="utf-8")

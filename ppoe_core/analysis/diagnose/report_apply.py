@@ -12,6 +12,7 @@ the model, so a corrected camera is applied where the camera driver publishes it
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -106,7 +107,8 @@ def apply_section(result: DiagnoseResult, plan: CalibrationPlan, out_dir: str | 
               "significant static component (joint_offset, link_error, camera_extrinsics) to fold in."),
              f"* `{CAL_MODEL_FILE}`: the model YAML that goes with it: static effects removed (they are in the URDF)"
              + (", " + ", ".join(f"`{k}`" for k in plan.in_model) + " kept as effects" if plan.in_model else "")
-             + "; perturbation sigmas and joint noise scaled by the fitted prior scale.",
+             + (f"; perturbation sigmas and joint noise scaled by {result.sigma_scale:.3g} (the declared prior's scale "
+                "as the data estimate it)." if math.isfinite(result.sigma_scale) else "."),
              f"* `{DIAG_MODEL_FILE}`: the alternative for the original, unchanged URDF: every effect found (also the "
              "components left out of the calibrated URDF) as model effects.", ""]
     lines += _not_applied(result, plan)
@@ -154,9 +156,10 @@ def _camera_lines(result: DiagnoseResult, d: str) -> list[str]:
     lines: list[str] = []
     cams: list[EffectReport] = [e for e in result.effects if e.camera_info is not None]
     if cams:
-        lines += ["", "Camera intrinsics are neither in the URDF nor in the model: the nodes (`tag_bearing_node`, "
-                  "`fusion_node`) read `K` and `D` from the `CameraInfo` on their `camera_info_topic`. Give the "
-                  "corrected calibration to the camera driver (`camera_info_url`, read by camera_info_manager):", ""]
+        lines += ["", "Camera intrinsics cannot go into a URDF, and the nodes do not take them from the model (its "
+                  "`camera_intrinsics` entry is kept for the record): `tag_bearing_node` and `fusion_node` read `K` "
+                  "and `D` from the `CameraInfo` on their `camera_info_topic`. Give the corrected calibration to the "
+                  "camera driver (`camera_info_url`, read by camera_info_manager):", ""]
         for e in cams:
             frame = e.frame or e.location
             lines.append(f"* `{frame}`: `{d}/{camera_info_name(frame)}` (e.g. "
