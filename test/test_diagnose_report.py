@@ -189,3 +189,34 @@ def test_cli_report_on_the_camera_bag(tmp_path):
     for cam in out.glob("camera_info_*.yaml"):
         assert (yaml.safe_load(cam.read_text())["image_width"], yaml.safe_load(cam.read_text())["image_height"]) \
             == (640, 480)
+
+
+def test_cli_folds_only_the_camera_components_whose_interval_excludes_zero(tmp_path):
+    """The issue's case: all six camera_extrinsics components fitted on bags/effect_camera_extrinsics (truth x and
+    rz): robot_calibrated.urdf carries exactly the components whose interval excludes zero (FK to 1e-9 m), the
+    others are listed as not applied, and the calibrated model has no static effect left."""
+    from ppoe_core.model.effects import effect_from_config
+    from ppoe_ros.cli import main
+
+    out = tmp_path / "d"
+    assert main(["diagnose", str(REPO / "bags" / "effect_camera_extrinsics"), "--model",
+                 str(CONFIG / "robots" / "arm7_model.yaml"), "--effects", "camera_extrinsics@camera_joint",
+                 "--pixels", "on", "--out", str(out), "--quiet"]) == 0
+    doc = yaml.safe_load((out / "diagnose.json").read_text())
+    (entry,) = doc["effects"]
+    keep = [p for p, (lo, hi) in entry["ci"].items() if lo > 0 or hi < 0]
+    left = [p for p in entry["ci"] if p not in keep]
+    assert keep and left  # this bag: x and rz are significant, the rest is not
+    robot0 = parse_urdf(URDF)
+    eff = effect_from_config(entry, robot0)
+    folded = eff.with_params([v if p in keep else 0.0 for p, v in zip(eff.param_names, eff.params)])
+    q = {j: np.random.default_rng(4).uniform(-2, 2, 20) for j in robot0.independent_joints}
+    expect = KinematicTree(robot0).link_poses(q, *sum_effect_corrections([folded], q, {}))
+    got = KinematicTree(parse_urdf(out / "robot_calibrated.urdf")).link_poses(q)
+    assert max(float(np.abs(expect[k] - got[k]).max()) for k in got) < 1e-9
+    md = (out / "diagnose.md").read_text()
+    for p in left:
+        assert f"| camera_extrinsics@camera_joint | {p} |" in md
+    assert f"--effects 'camera_extrinsics@camera_joint[{','.join(keep)}]'" in md
+    cal = yaml.safe_load((out / "model_calibrated.yaml").read_text())
+    assert not [e for e in cal.get("effects") or [] if e["name"] == "camera_extrinsics"]
