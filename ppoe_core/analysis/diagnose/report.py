@@ -15,11 +15,15 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from ppoe_core.analysis.diagnose.calibrated_urdf import significant
+from ppoe_core.analysis.diagnose.calibrated_urdf import STATIC_EFFECTS, plan_calibration, significant
+from ppoe_core.analysis.diagnose.report_apply import apply_section, camera_sizes, write_camera_infos
+from ppoe_core.analysis.diagnose.report_plot import display_unit, ordered_blocks, plot_blocks
 from ppoe_core.analysis.diagnose.results import DiagnoseResult
 from ppoe_core.model.effects import Effect, effect_from_config
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
+
+__all__ = ["SHARE", "SHARE_DEFINITION", "TERMS", "headline", "load_model", "write_model_yaml", "write_report"]
 
 
 def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseResult, out_path: str | Path,
@@ -111,10 +115,6 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
     ``camera_info_<frame>.yaml`` (image size from the ``bags``' camera_info) in ``out_dir``.
 
     ``declared``: the model YAML's effects (its static ones are folded into the calibrated URDF in full)."""
-    from ppoe_core.analysis.diagnose.calibrated_urdf import STATIC_EFFECTS, plan_calibration
-    from ppoe_core.analysis.diagnose.report_apply import apply_section, camera_sizes, write_camera_infos
-    from ppoe_core.analysis.diagnose.report_plot import plot_blocks
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"json": out / "diagnose.json", "md": out / "diagnose.md", "png": out / "diagnose.png"}
@@ -134,8 +134,6 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
 
 def headline(result: DiagnoseResult) -> list[str]:
     """What was found and, per measurement kind, the held-out RMS before -> after (the report's first lines)."""
-    from ppoe_core.analysis.diagnose.report_plot import display_unit, ordered_blocks
-
     if result.effects:
         head = (f"Found {len(result.effects)} effect(s): "
                 + ", ".join(f"{e.name} at {e.location} ({SHARE} {_pct(e.share)})" for e in result.effects) + ".")
@@ -189,8 +187,6 @@ def _md_effects(result: DiagnoseResult) -> list[str]:
 
 def _md_blocks(result: DiagnoseResult) -> list[str]:
     """Per measurement kind: held-out / in-sample RMS before -> after, noise, the predictable part of what is left."""
-    from ppoe_core.analysis.diagnose.report_plot import display_unit, ordered_blocks
-
     lines = ["", "## Measurements", "",
              "| measurement | rows | held-out RMS before -> after | in-sample | noise floor | unexplained | "
              "sensor / prior scale | NEES declared before -> after | predictable part of what is left (t) |",

@@ -20,7 +20,7 @@ from typing import Any
 from ppoe_core.analysis.diagnose.calibrated_urdf import CalibrationPlan
 from ppoe_core.analysis.diagnose.results import DiagnoseResult, EffectReport
 
-__all__ = ["apply_section", "camera_info_yaml", "camera_sizes", "write_camera_infos"]
+__all__ = ["apply_section", "camera_info_name", "camera_info_yaml", "camera_sizes", "write_camera_infos"]
 
 #: file names ``ppoe diagnose --out DIR`` writes (ppoe_core/cli/diagnose.py)
 URDF_FILE, CAL_MODEL_FILE, DIAG_MODEL_FILE = "robot_calibrated.urdf", "model_calibrated.yaml", "model_diagnosed.yaml"
