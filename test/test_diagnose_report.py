@@ -131,7 +131,8 @@ def test_report_says_how_to_apply_and_what_was_left_out(case, tmp_path):
 
 def test_one_word_for_a_share(case, tmp_path):
     """"share" appears in the report and in docs/diagnose_report.md (prose) only as "share of the residual"; the effects
-    table's column has that name, and the predictable part / held-out gain are not called shares."""
+    table's column has that name, the predictable part and a step's held-out drop of -2 log L have their own words,
+    and no "gain" (a word other pages use for relative gains) is left in the report."""
     _, _, result = case
     md = write_report(result, tmp_path, "t")["md"].read_text()
     doc = (REPO / "docs" / "diagnose_report.md").read_text()
@@ -140,6 +141,7 @@ def test_one_word_for_a_share(case, tmp_path):
         assert words and all(w.lower().endswith("of the residual") for w in words), set(words) - {SHARE}
     assert f"| {SHARE} |" in md and "62.0 %" in md
     assert "predictable part" in md and "time 12.0 %, t 4.5 **structure left**" in md
+    assert "held-out drop of -2 log L |" in md and "| 272.8 |" in md and "gain" not in md.replace("heldout_gain", "")
 
 
 def test_plot_shows_every_measurement_kind_before_and_after(case):

@@ -2,8 +2,8 @@
 
 The report's words have one meaning each, listed under its "Terms" (:data:`SHARE`, :data:`SHARE_DEFINITION`,
 :data:`TERMS`; docs/diagnose_report.md): an effect's *share of the residual* is the only "share"; what is left in a
-measurement kind has a *predictable part*; a selection step has a *held-out gain* (not a fraction).  The "How to
-apply" section and the camera files come from :mod:`report_apply`, the figure from :mod:`report_plot`.
+measurement kind has a *predictable part*; a selection step has a *held-out drop of -2 log L* (not a fraction).
+The "How to apply" section and the camera files come from :mod:`report_apply`, the figure from :mod:`report_plot`.
 """
 
 from __future__ import annotations
@@ -104,8 +104,9 @@ TERMS = (
                          "whitened residual a smooth function of the predictor (configuration, time, image position) "
                          "predicts held out; significant ones are named \"structure left\". Negative: predicting "
                          "does worse than not predicting"),
-    ("held-out gain", "of a selection step: the drop of the held-out -2 log L (whitened squared residuals in units "
-                      "of the current residual variance); not a fraction"),
+    ("held-out drop of -2 log L", "of a selection step: how much the step lowers the held-out -2 log L (the "
+                                  "whitened squared residuals in units of the current residual variance; JSON "
+                                  "steps[].heldout_gain); a count, not a fraction"),
 )
 
 
@@ -222,7 +223,7 @@ def _md_test(result: DiagnoseResult) -> list[str]:
 
 def _md_steps(result: DiagnoseResult) -> list[str]:
     """The selection steps and the candidates never attributed (not identifiable)."""
-    lines = ["", "## Selection steps", "", "| action | move | held-out gain | change of L | t | z |",
+    lines = ["", "## Selection steps", "", "| action | move | held-out drop of -2 log L | change of L | t | z |",
              "|---|---|---|---|---|---|"]
     for s in result.steps:
         mark = "" if s.get("accepted", True) else " (refused)"
