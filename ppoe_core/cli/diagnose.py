@@ -112,7 +112,8 @@ def _run(args: argparse.Namespace, tick: Any) -> int:
     paths = {}
     if args.out:
         tick.stage("writing the report")
-        paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags))
+        paths = write_report(res, args.out, title="ppoe diagnose " + " ".join(Path(b).name for b in args.bags),
+                             declared=done.declared, bags=args.bags)
         model_out = write_model_yaml(args.model, res, Path(args.out) / "model_diagnosed.yaml")
         calibrated = _write_calibrated(args, done)
         print("wrote " + ", ".join(str(p) for p in [*paths.values(), model_out, *calibrated]), file=sys.stderr)
@@ -135,12 +136,13 @@ def options(args: argparse.Namespace) -> Any:
 
 
 def _write_calibrated(args: argparse.Namespace, done: Any) -> list[Path]:
-    """``robot_calibrated.urdf`` (declared and found static effects folded into the joint origins) and
-    ``model_calibrated.yaml`` (the model without them) in ``--out``."""
-    from ppoe_core.analysis.diagnose.calibrated_urdf import STATIC_EFFECTS, calibrated_urdf
+    """``robot_calibrated.urdf`` (declared static effects and the significant components of the found ones
+    folded into the joint origins: :func:`~ppoe_core.analysis.diagnose.calibrated_urdf.plan_calibration`) and
+    ``model_calibrated.yaml`` (the model without static effects) in ``--out``."""
+    from ppoe_core.analysis.diagnose.calibrated_urdf import STATIC_EFFECTS, calibrated_urdf, plan_calibration
     from ppoe_core.analysis.diagnose.report import write_model_yaml
 
-    text, _ = calibrated_urdf(done.urdf, done.robot, [*done.declared, *done.result.found])
+    text, _ = calibrated_urdf(done.urdf, done.robot, plan_calibration(done.result, done.declared).folded)
     urdf_out = Path(args.out) / "robot_calibrated.urdf"
     urdf_out.write_text(text, encoding="utf-8")
     model_out = write_model_yaml(args.model, done.result, Path(args.out) / "model_calibrated.yaml",

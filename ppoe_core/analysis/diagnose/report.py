@@ -1,4 +1,10 @@
-"""Diagnose results out: the updated model YAML and the markdown report."""
+"""Diagnose results out: the updated model YAML and the report (``diagnose.md``, ``.json``, ``.png``).
+
+The report's words have one meaning each, listed under its "Terms" (:data:`SHARE`, :data:`SHARE_DEFINITION`,
+:data:`TERMS`; docs/diagnose_report.md): an effect's *share of the residual* is the only "share"; what is left in a
+measurement kind has a *predictable part*; a selection step has a *held-out drop of -2 log L* (not a fraction).
+The "How to apply" section and the camera files come from :mod:`report_apply`, the figure from :mod:`report_plot`.
+"""
 
 from __future__ import annotations
 
@@ -9,12 +15,15 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from ppoe_core.analysis.diagnose.calibrated_urdf import STATIC_EFFECTS, plan_calibration, significant
+from ppoe_core.analysis.diagnose.report_apply import apply_section, camera_sizes, write_camera_infos
+from ppoe_core.analysis.diagnose.report_plot import display_unit, ordered_blocks, plot_blocks
 from ppoe_core.analysis.diagnose.results import DiagnoseResult
 from ppoe_core.model.effects import Effect, effect_from_config
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
+
+__all__ = ["SHARE", "SHARE_DEFINITION", "TERMS", "headline", "load_model", "write_model_yaml", "write_report"]
 
 
 def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseResult, out_path: str | Path,
@@ -65,59 +74,127 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
     header = ("# Model updated by `ppoe diagnose`: effects found (with 95 % CIs) appended to `effects`,\n"
               f"# perturbation sigmas and joint noise scaled by {k:.4g}: the declared prior's scale as the data "
               "estimate it.\n"
-              + (f"# For robot_calibrated.urdf: the effects {list(drop)} are folded into its joint origins.\n"
-                 if drop else ""))
+              + (f"# For robot_calibrated.urdf: the static effects {list(drop)} are left out here: the declared ones\n"
+                 "# and the significant components of the found ones are folded into its joint origins (diagnose.md,\n"
+                 "# section How to apply, lists the components left out).\n" if drop else ""))
     buf = io.StringIO()
     rt.dump(doc, buf)
     out_path.write_text(header + buf.getvalue(), encoding="utf-8")
     return out_path
 
 
-def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe diagnose") -> dict[str, Path]:
-    """``diagnose.json``, ``diagnose.md`` and ``diagnose.png`` in ``out_dir``."""
+#: the one name of the quantity in the effects table (docs/diagnose_report.md uses the same words)
+SHARE = "share of the residual"
+
+#: its definition, printed under the report's "Terms"
+SHARE_DEFINITION = (
+    "the part of the held-out residual of the nominal model (the sum over every measurement of the squared whitened "
+    "held-out residuals) that the effect removes: how much that sum rises when this effect alone is left out of "
+    "the diagnosed model, divided by the sum before any effect. Two effects that explain the same error both "
+    "count it, so the effects' values need not add up to the total drop")
+
+#: the other terms of the report
+TERMS = (
+    ("held out", "predicted by a fit that did not see the row (cross-validation over robot poses, or over bags)"),
+    ("before -> after", "the nominal model (URDF + declared effects) -> the diagnosed model (+ the effects found)"),
+    ("noise floor", "the held-out RMS a model with nothing systematic left would reach (the declared noise as the "
+                    "data scale it)"),
+    ("unexplained", "the RMS above the noise floor after the diagnosis"),
+    ("predictable part", "of what is left in a measurement kind after the diagnosis: the fraction of its held-out "
+                         "whitened residual a smooth function of the predictor (configuration, time, image position) "
+                         "predicts held out; significant ones are named \"structure left\". Negative: predicting "
+                         "does worse than not predicting"),
+    ("held-out drop of -2 log L", "of a selection step: how much the step lowers the held-out -2 log L (the "
+                                  "whitened squared residuals in units of the current residual variance; JSON "
+                                  "steps[].heldout_gain); a count, not a fraction"),
+)
+
+
+def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe diagnose", *,
+                 declared: Sequence[Effect] = (), bags: Sequence[str | Path] = ()) -> dict[str, Path]:
+    """``diagnose.json``, ``diagnose.md``, ``diagnose.png`` and, for corrected camera intrinsics,
+    ``camera_info_<frame>.yaml`` (image size from the ``bags``' camera_info) in ``out_dir``.
+
+    ``declared``: the model YAML's effects (its static ones are folded into the calibrated URDF in full)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"json": out / "diagnose.json", "md": out / "diagnose.md", "png": out / "diagnose.png"}
     paths["json"].write_text(json.dumps(result.to_json(), indent=2), encoding="utf-8")
-    lines = _md_effects(result, title) + _md_blocks(result) + _md_test(result) + _md_steps(result)
+    plan = plan_calibration(result, declared)
+    static_declared = [e.key for e in declared if e.name in STATIC_EFFECTS]
+    lines = (_md_head(result, title) + _md_effects(result) + _md_blocks(result)
+             + apply_section(result, plan, out, static_declared) + _md_test(result) + _md_steps(result) + _md_terms())
     paths["md"].write_text("\n".join(lines) + "\n", encoding="utf-8")
-    if not _plot(result, paths["png"]):
+    if not plot_blocks(result, paths["png"], title):
         paths.pop("png")
+    sizes = camera_sizes(bags) if bags and any(e.camera_info for e in result.effects) else {}
+    for cam in write_camera_infos(result, out, sizes):
+        paths[cam.stem] = cam
     return paths
 
 
-def _md_effects(result: DiagnoseResult, title: str) -> list[str]:
-    """Title, summary and the table of effects found."""
-    lines = [f"# {title}", "", result.summary, "",
-             f"* cross-validation: {result.cv} over {result.n_poses} robot poses ({result.n_stops} tracker / pose "
-             f"rows, {result.n_sessions} registration sessions)", "",
-             "| effect | location | measured by | parameter | value | 95 % CI | share of held-out error |",
-             "|---|---|---|---|---|---|---|"]
+def headline(result: DiagnoseResult) -> list[str]:
+    """What was found and, per measurement kind, the held-out RMS before -> after (the report's first lines)."""
+    if result.effects:
+        head = (f"Found {len(result.effects)} effect(s): "
+                + ", ".join(f"{e.name} at {e.location} ({SHARE} {_pct(e.share)})" for e in result.effects) + ".")
+    else:
+        head = "No catalogue effect was found: none lowers the held-out residual significantly."
+    lines = [head, ""]
+    for b in ordered_blocks(result):
+        f, u = display_unit(b.unit)
+        line = (f"* {b.kind}: held-out RMS {f * b.rms_before:.4g} -> {f * b.rms_after:.4g} {u} (noise floor "
+                f"{f * b.noise_floor:.4g} {u})")
+        sig = [s for s in b.structure if s.significant]
+        if sig:
+            line += (f"; structure left: {f * b.unexplained:.4g} {u} RMS above the floor, predictable part "
+                     + ", ".join(f"{_pct(s.gain)} from the {s.predictor}" for s in sig) + " (outside the catalogue)")
+        lines.append(line)
+    return lines
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.1f} %" if math.isfinite(x) else "-"
+
+
+def _md_head(result: DiagnoseResult, title: str) -> list[str]:
+    """Title, headline, cross-validation, the plot."""
+    return [f"# {title}", "", *headline(result), "",
+            f"Cross-validation: {result.cv} over {result.n_poses} robot poses ({result.n_stops} tracker / pose rows, "
+            f"{result.n_sessions} registration sessions).", "", "![held-out RMS per measurement](diagnose.png)"]
+
+
+def _md_effects(result: DiagnoseResult) -> list[str]:
+    """The table of effects found: values, 95 % intervals, significance, share of the residual."""
+    lines = ["", "## Effects found", "",
+             f"| effect | location | measured by | parameter | value | 95 % CI | CI excludes 0 | {SHARE} |",
+             "|---|---|---|---|---|---|---|---|"]
     for e in result.effects:
         for i, (k, v) in enumerate(e.parameters.items()):
             lo, hi = e.ci[k]
             first = i == 0
+            sig = "yes" if significant((lo, hi)) else "no"
             lines.append(f"| {e.name if first else ''} | {e.location if first else ''} | "
-                         f"{e.measurement if first else ''} | {k} | {v:.6g} | [{lo:.6g}, {hi:.6g}] | "
-                         f"{f'{100 * e.share:.1f} %' if first else ''} |")
+                         f"{e.measurement if first else ''} | {k} | {v:.6g} | [{lo:.6g}, {hi:.6g}] | {sig} | "
+                         f"{_pct(e.share) if first else ''} |")
         if e.camera_info:
             K = e.camera_info["K"]
             lines.append(f"| | | | camera_info | fx {K[0]:.2f}, fy {K[4]:.2f}, cx {K[2]:.2f}, cy {K[5]:.2f}; "
-                         f"D {', '.join(f'{d:.4g}' for d in e.camera_info['D'])} | | |")
+                         f"D {', '.join(f'{d:.4g}' for d in e.camera_info['D'])} | | | |")
     if not result.effects:
-        lines.append("| (none) | | | | | | |")
+        lines.append("| (none) | | | | | | | |")
     return lines
 
 
 def _md_blocks(result: DiagnoseResult) -> list[str]:
-    """Per measurement kind: held-out / in-sample RMS before -> after, noise, structure of what is left."""
+    """Per measurement kind: held-out / in-sample RMS before -> after, noise, the predictable part of what is left."""
     lines = ["", "## Measurements", "",
              "| measurement | rows | held-out RMS before -> after | in-sample | noise floor | unexplained | "
-             "sensor / prior scale | NEES declared before -> after | residual structure (held-out gain, t) |",
+             "sensor / prior scale | NEES declared before -> after | predictable part of what is left (t) |",
              "|---|---|---|---|---|---|---|---|---|"]
-    for b in result.blocks.values():
-        f, u = (1e3, "mm") if b.unit == "m" else (1.0, b.unit)
-        st = "; ".join(f"{s.predictor} {100 * s.gain:.1f} %, t {s.t:.1f}{' **significant**' if s.significant else ''}"
+    for b in ordered_blocks(result):
+        f, u = display_unit(b.unit)
+        st = "; ".join(f"{s.predictor} {_pct(s.gain)}, t {s.t:.1f}{' **structure left**' if s.significant else ''}"
                        for s in b.structure)
         lines.append(f"| {b.kind} | {b.n} | {f * b.rms_before:.4g} -> {f * b.rms_after:.4g} {u} | "
                      f"{f * b.rms_before_insample:.4g} -> {f * b.rms_after_insample:.4g} {u} | "
@@ -146,7 +223,7 @@ def _md_test(result: DiagnoseResult) -> list[str]:
 
 def _md_steps(result: DiagnoseResult) -> list[str]:
     """The selection steps and the candidates never attributed (not identifiable)."""
-    lines = ["", "## Selection steps", "", "| action | move | held-out gain | change of L | t | z |",
+    lines = ["", "## Selection steps", "", "| action | move | held-out drop of -2 log L | change of L | t | z |",
              "|---|---|---|---|---|---|"]
     for s in result.steps:
         mark = "" if s.get("accepted", True) else " (refused)"
@@ -158,30 +235,10 @@ def _md_steps(result: DiagnoseResult) -> list[str]:
     return lines
 
 
-def _plot(result: DiagnoseResult, png: Path) -> bool:
-    """Held-out RMS before / after per measurement (relative to before) into ``png``; False without matplotlib."""
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:  # matplotlib is optional for the report
-        return False
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    names = list(result.blocks)
-    before = [1.0 for _ in names]
-    after = [b.rms_after / b.rms_before if b.rms_before > 0 else np.nan for b in result.blocks.values()]
-    floor = [b.noise_floor / b.rms_before if b.rms_before > 0 else np.nan for b in result.blocks.values()]
-    x = np.arange(len(names))
-    ax.bar(x - 0.2, before, 0.4, label="before")
-    ax.bar(x + 0.2, after, 0.4, label="after")
-    ax.plot(x + 0.2, floor, "k_", markersize=20, label="noise floor")
-    ax.set_xticks(x, names)
-    ax.set_ylabel("held-out RMS / before")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
-    return True
+def _md_terms() -> list[str]:
+    """What the report's words mean (one definition each)."""
+    return ["", "## Terms", "", f"* **{SHARE}** (of an effect): {SHARE_DEFINITION}."] + [
+        f"* **{name}**: {text}." for name, text in TERMS]
 
 
 def load_model(model_yaml: str | Path | None, robot: Robot) -> tuple[Any, list[Effect], dict, dict]:
