@@ -27,6 +27,7 @@ from ppoe_core.analysis.diagnose.block_pixels import PixelBlock
 from ppoe_core.analysis.diagnose.block_pose import PoseBlock
 from ppoe_core.analysis.diagnose.block_tracker import TrackerBlock
 from ppoe_core.analysis.diagnose.block_contact import ContactBlock, Contacts
+from ppoe_core.analysis.diagnose.covariance import parameter_covariance
 from ppoe_core.analysis.diagnose.crossval import Linearised, assign_folds
 from ppoe_core.analysis.diagnose.noise import estimate_scales
 from ppoe_core.analysis.diagnose.outcome import build_result
@@ -296,7 +297,41 @@ def diagnose(robot: Robot, data: Measurements | Stops, declared: Sequence[Effect
                                     max_effects=options.max_effects, groups=options.groups)
         selection = select(catalogue, run, sel_opts)
         run.relinearise(selection.model, final=True)
+        selection = _physical_signs(run, selection)
     return build_result(run, before, insample_before, selection, mode, options)
+
+
+def _physical_signs(run: Run, selection: Selection) -> Selection:
+    """The final model without compliance components whose reported 95 % interval (:mod:`covariance`, at the final
+    noise scales) lies below zero, the most negative first, refitted after each: a reported compliance is never
+    significantly negative (the selection checks the same with the linearised covariance it works with, which an
+    older noise estimate may have made wider)."""
+    model = selection.model
+    while model:
+        pr = run.problem
+        sys = pr.system(run.effects, run.effects, rewhiten=False)
+        n_nuis = int(sum(ns.n_segments * ns.N.shape[1] for ns in sys.nuisances))
+        pc = parameter_covariance(sys, np.arange(sys.n_columns), n_nuis)
+        sd = np.sqrt(np.maximum(np.diag(pc.cov), 0.0))
+        worst: tuple[float, Term, int] | None = None
+        for k, (t, e) in enumerate(zip(model, run.effects)):
+            for i, c in enumerate(t.comps):
+                v, s_ = float(e.params[i]), float(sd[sys.cols[k]][i])
+                z = (v + 1.96 * s_) / max(s_, 1e-300)
+                if e.param_names[i] in e.nonnegative and z < 0.0 and (worst is None or z < worst[0]):
+                    worst = (z, t, c)
+        if worst is None:
+            break
+        _, t, c = worst
+        keep = tuple(x for x in t.comps if x != c)
+        selection.steps.append({"action": "remove", "move": run.catalogue.describe(t),
+                                "reason": "its 95 % interval lies below zero: unphysical sign"})
+        model = model_key([x for x in model if x != t] + ([Term(t.cand, keep)] if keep else []))
+        run.relinearise(model, final=True)
+    if model == selection.model:
+        return selection
+    assert run.lin is not None
+    return Selection(model, selection.steps, selection.rejected, selection.d_before, run.lin.heldout(model))
 
 
 def check_stops(robot: Robot, stops: Stops) -> None:

@@ -223,6 +223,33 @@ class Selector:
             return None
         return self._signed(model, Term(term.cand, keep))
 
+    def physical(self, model: Sequence[Term], record: bool = True) -> tuple[Term, ...]:
+        """``model`` without the components that must be non-negative but fit significantly negative *together*
+        (the most negative first, refitted after each): members of a group move, or terms a later addition turned
+        around, are checked jointly, not only one at a time when they entered."""
+        assert self.lin is not None
+        model = model_key(model)
+        while True:
+            values, cov, _ = self.lin.fit(model)
+            sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            worst, k = None, 0
+            for t in model:
+                eff = self.catalogue.effect(t)
+                for i, c in enumerate(t.comps):
+                    z = (values[k + i] + 1.96 * sd[k + i]) / max(sd[k + i], 1e-300)
+                    if eff.param_names[i] in eff.nonnegative and z < 0.0 and (worst is None or z < worst[0]):
+                        worst = (z, t, c)
+                k += len(t.comps)
+            if worst is None:
+                return model
+            _, t, c = worst
+            keep = tuple(x for x in t.comps if x != c)
+            label = self.catalogue.describe(t)
+            model = model_key([x for x in model if x != t] + ([Term(t.cand, keep)] if keep else []))
+            if record:
+                self.steps.append({"action": "remove", "move": label, "reason": "fits with a negative compliance "
+                                   "next to the other terms: unphysical sign"})
+
     def forward_moves(self, model: tuple[Term, ...]) -> list[Move]:
         """Every single addition and group move, scored (module docstring)."""
         held = {t.cand for t in model}
@@ -259,7 +286,8 @@ class Selector:
                 if term is not None:
                     cur.append(term)
                     added += 1
-            new = model_key(cur)
+            new = self.physical(cur, record=False)  # the members' signs checked together
+            added -= len(cur) - len(new)
             if added >= 2 and new not in self.visited:
                 out.append(self.score(model, new, "add group", f"{label} ({added})"))
         return out
@@ -402,6 +430,7 @@ def _settle(sel: Selector, model: tuple[Term, ...]) -> tuple[Term, ...]:
     assert sel.lin is not None
     if not sel.refitter.confirm(model, sel.lin.ssr(model)):
         sel.lin = sel.refitter.relinearise(model)
+    model = sel.physical(model)
     model, _ = sel.backward(model)
     sel.visited.add(model)
     return model
