@@ -23,6 +23,8 @@ from ppoe_core.errors import PpoeError
 
 __all__ = ["assign_folds", "Linearised", "Identifiability"]
 
+_NONE, _NONE_F = np.zeros(0, dtype=int), np.zeros(0)
+
 
 def assign_folds(unit_group: np.ndarray, mode: str, folds: int, seed: int) -> tuple[str, np.ndarray]:
     """Fold of every unit: ``mode`` ``auto`` (``groups`` with >= 3 groups, else ``stops``), ``groups`` (one fold per
@@ -93,6 +95,8 @@ class Linearised:
         self.n_blocks = max(len(sys.parts), 1)
         #: per scored held-out component, its (block, unit) cell
         self._cell = comp_block[self.stack.idx] * self.n_units + self.stack.unit
+        self._nonzero = self.theta != 0.0
+        self._any_value = bool(self._nonzero.any())
         self._cache: dict[tuple, np.ndarray] = {}
         self._idf: dict[tuple, Identifiability] = {}
 
@@ -103,8 +107,11 @@ class Linearised:
 
     def _fixed(self, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Columns with a current value that ``cols`` does not free, and the steps that undo their values."""
-        nz = np.flatnonzero(self.theta != 0.0)
-        fixed = np.setdiff1d(nz, cols)
+        if not self._any_value:
+            return _NONE, _NONE_F
+        m = self._nonzero.copy()
+        m[cols] = False
+        fixed = np.flatnonzero(m)
         return fixed, -self.theta[fixed]
 
     def heldout(self, model: Sequence[Term]) -> np.ndarray:

@@ -173,7 +173,7 @@ class Run:
             st.scales = estimate_scales(r, st.S, st.Q, frac, st.scales if self.lin is not None else None)
 
 
-def _effect_of(tree: KinematicTree, name: str, loc: str) -> Effect:
+def _effect_of(tree: KinematicTree, name: str, loc: str, **options: str) -> Effect:
     """A declared effect (``--effects``) with all its parameters.
 
     Raises
@@ -182,7 +182,7 @@ def _effect_of(tree: KinematicTree, name: str, loc: str) -> Effect:
         Not an effect of the vocabulary, or not at a location of this robot (names it).
     """
     try:
-        return make_effect(name, loc, tree)
+        return make_effect(name, loc, tree, **options)
     except (ModelConfigError, UnknownJointError) as exc:
         raise type(exc)(f"--effects {name}@{loc}: {exc}") from None
 
@@ -203,32 +203,63 @@ def _catalogue(tree: KinematicTree, blocks: Sequence[ResidualBlock], options: Di
     return Catalogue(tree, cands, chains, cameras)
 
 
-def declared_specs(specs: Sequence[str]) -> list[tuple[str, str, list[str]]]:
-    """``--effects``: ``(name, location, components)`` of ``name@location[comp,...]`` specs or of YAML files with an
-    ``effects`` list of ``{name, location[, parameters]}`` (the parameters' names choose the components; all if
-    none is given)."""
-    entries: list[tuple[str, str, list[str]]] = []
+@dataclass
+class DeclaredEntry:
+    """One ``--effects`` entry: effect ``name`` at ``location`` with the parameters ``components`` (all if empty)
+    and, for ``thermal_growth``, its driving ``variable`` (None: the measurements' own candidate)."""
+
+    name: str
+    location: str
+    components: list[str]
+    variable: str | None = None
+
+
+def declared_specs(specs: Sequence[str]) -> list[DeclaredEntry]:
+    """``--effects``: the entries of ``name@location[comp,...]`` specs or of YAML files with an ``effects`` list of
+    ``{name, location[, parameters][, variable]}`` (the parameters' names choose the components; all if none is
+    given)."""
+    entries: list[DeclaredEntry] = []
     for spec in specs:
         if spec.endswith((".yaml", ".yml")) and Path(spec).is_file():
             doc = yaml.safe_load(Path(spec).read_text(encoding="utf-8")) or {}
             for e in doc.get("effects") or []:
-                entries.append((str(e["name"]), str(e["location"]), list((e.get("parameters") or {}).keys())))
+                entries.append(DeclaredEntry(str(e["name"]), str(e["location"]),
+                                             list((e.get("parameters") or {}).keys()),
+                                             str(e["variable"]) if e.get("variable") else None))
             continue
         head, _, comps = spec.partition("[")
         name, _, loc = head.partition("@")
-        entries.append((name, loc, [c for c in comps.rstrip("]").split(",") if c]))
+        entries.append(DeclaredEntry(name, loc, [c for c in comps.rstrip("]").split(",") if c]))
     return entries
 
 
-def _declared_model(run: Run, entries: Sequence[tuple[str, str, list[str]]], options: DiagnoseOptions
+def _declared_effects(tree: KinematicTree, blocks: Sequence[ResidualBlock],
+                      entries: Sequence[DeclaredEntry]) -> list[Effect]:
+    """The ``--effects`` entries that no block offers as a candidate, as effects (a block's own candidate carries
+    what the measurements drive it with: a ``thermal_growth`` over ``time`` when there is no temperature)."""
+    offered = [c for b in blocks for c in b.candidates()]
+    out = []
+    for d in entries:
+        if not any(_matches(c, d) for c in offered):
+            opts = {"variable": d.variable} if d.variable else {}
+            out.append(_effect_of(tree, d.name, d.location, **opts))
+    return out
+
+
+def _matches(e: Effect, d: DeclaredEntry) -> bool:
+    return (e.name == d.name and (e.location == d.location or getattr(e, "frame", None) == d.location)
+            and (d.variable is None or getattr(e, "variable", None) == d.variable))
+
+
+def _declared_model(run: Run, entries: Sequence[DeclaredEntry], options: DiagnoseOptions
                     ) -> tuple[tuple[Term, ...], dict[str, str]]:
     """The terms of the ``--effects`` entries (:func:`declared_specs`) that these measurements can identify, and the
     reasons of those left out."""
     lin = run.relinearise(())
     terms: list[Term] = []
     left_out: dict[str, str] = {}
-    for name, loc, comps in entries:
-        t = _term_of(run.catalogue, name, loc, comps)
+    for d in entries:
+        t = _term_of(run.catalogue, d)
         idf = lin.identifiable(tuple(terms), [t], options.max_condition, options.max_absorbed)
         if idf.ok:
             terms.append(t)
@@ -237,17 +268,17 @@ def _declared_model(run: Run, entries: Sequence[tuple[str, str, list[str]]], opt
     return model_key(terms), left_out
 
 
-def _term_of(catalogue: Catalogue, name: str, loc: str, comps: Sequence[str]) -> Term:
-    """The catalogue term of effect ``name`` at ``loc`` (or at the camera frame ``loc``) with the parameters
-    ``comps`` (all if empty).
+def _term_of(catalogue: Catalogue, d: DeclaredEntry) -> Term:
+    """The catalogue term of the entry ``d``: its effect at its location (or at the camera frame it names) with its
+    parameters (all if none are named).
 
     Raises
     ------
     ModelConfigError
         No such candidate, or parameters it does not have.
     """
-    cand = next((i for i, e in enumerate(catalogue.effects) if e.name == name
-                 and (e.location == loc or getattr(e, "frame", None) == loc)), None)
+    name, loc, comps = d.name, d.location, d.components
+    cand = next((i for i, e in enumerate(catalogue.effects) if _matches(e, d)), None)
     if cand is None:
         raise ModelConfigError(f"--effects {name}@{loc}: no such effect in the catalogue of this robot")
     e = catalogue.effects[cand]
@@ -279,7 +310,7 @@ def diagnose(robot: Robot, data: Measurements | Stops, declared: Sequence[Effect
     blocks = build_blocks(tree, data, declared, options)
     problem = Problem(blocks, declared, perturbation_cov, joint_noise, options.loss, options.loss_scale)
     entries = declared_specs(options.effects or [])
-    catalogue = _catalogue(tree, blocks, options, [_effect_of(tree, n, loc) for n, loc, _ in entries])
+    catalogue = _catalogue(tree, blocks, options, _declared_effects(tree, blocks, entries))
     unit_group = np.zeros(problem.n_units, dtype=int)
     for g, u in zip(problem.groups, problem.units):
         unit_group[u] = g

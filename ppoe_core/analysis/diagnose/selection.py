@@ -144,15 +144,20 @@ class Selector:
             return float(self.options.penalty)
         return math.log(max(int(np.isfinite(d).sum()), 2))
 
-    def score(self, base: tuple[Term, ...], model: tuple[Term, ...], action: str, label: str) -> Move:
+    def score(self, base: tuple[Term, ...], model: tuple[Term, ...], action: str, label: str,
+              stats: bool | None = None) -> Move:
         """The move ``base -> model`` scored held out (gains per pose, change of ``L`` in units of the current
         residual variance, paired statistics per measurement block: their largest is the move's ``t`` / ``z``,
-        their smallest its ``t_min`` / ``z_min``)."""
+        their smallest its ``t_min`` / ``z_min``).  The paired statistics are computed when ``stats`` (default:
+        only when ``L`` does not rise; no move that raises ``L`` is taken, forward or backward)."""
         assert self.lin is not None
         d0, d1 = self.lin.heldout(base), self.lin.heldout(model)
         ok = np.isfinite(d0) & np.isfinite(d1)
         gain = float((d0[ok] - d1[ok]).sum()) / self.variance(base)
         dP = self.catalogue.n_params(model) - self.catalogue.n_params(base)
+        delta_L = -gain + self.kappa(d0) * dP
+        if not (delta_L <= 0.0 if stats is None else stats):
+            return Move(action, model, label, gain, delta_L, d=d1)
         b0, b1 = self.lin.heldout_blocks(base), self.lin.heldout_blocks(model)
         stats = []
         for x0, x1 in zip(b0, b1):
@@ -163,8 +168,7 @@ class Selector:
         ts, zs = [t for t, _ in stats] or [0.0], [z for _, z in stats] or [0.0]
         best = max(range(len(ts)), key=lambda k: max(ts[k], zs[k]))
         worst = min(range(len(ts)), key=lambda k: max(ts[k], zs[k]))
-        return Move(action, model, label, gain, -gain + self.kappa(d0) * dP, ts[best], zs[best], d1,
-                    ts[worst], zs[worst])
+        return Move(action, model, label, gain, delta_L, ts[best], zs[best], d1, ts[worst], zs[worst])
 
     def variance(self, model: tuple[Term, ...]) -> float:
         """The residual variance of ``model`` in the current whitening (in-sample, per degree of freedom): ``-2 log
@@ -366,7 +370,7 @@ class Selector:
                     break
                 cur.append(s2)
             else:
-                if self.score(model, model_key([*model, *cur[len(rest):]]), "", "").delta_L < 0.0:
+                if self.score(model, model_key([*model, *cur[len(rest):]]), "", "", stats=False).delta_L < 0.0:
                     continue  # the replacement explains something ``t`` does not: a forward step's business
                 label = f"{self.catalogue.describe(t)} -> " + " + ".join(self.catalogue.describe(s) for s in combo)
                 out.append(self.score(model, model_key(cur), "replace", label))
@@ -413,7 +417,8 @@ def _forward(sel: Selector, model: tuple[Term, ...], phase: str) -> tuple[Term, 
         ok = [m for m in moves if sel.accept(m, d0)]
         best = sel.best(ok or moves, model) if moves else None
         if best is None or not ok:
-            if best is not None:
+            if best is not None:  # the statistics of the best move refused (not computed for a rising L)
+                best = sel.score(model, best.model, best.action, best.label, stats=True)
                 sel.steps.append({**best.record(), "accepted": False, "phase": phase})
             break
         sel.steps.append({**best.record(), "accepted": True, "phase": phase})
