@@ -182,7 +182,7 @@ def _effect_of(tree: KinematicTree, name: str, loc: str, **options: str) -> Effe
         Not an effect of the vocabulary, or not at a location of this robot (names it).
     """
     try:
-        return make_effect(name, loc, tree, **options)
+        return make_effect(name, loc, tree, None, **options)
     except (ModelConfigError, UnknownJointError) as exc:
         raise type(exc)(f"--effects {name}@{loc}: {exc}") from None
 

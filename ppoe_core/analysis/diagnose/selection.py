@@ -159,13 +159,13 @@ class Selector:
         if not (delta_L <= 0.0 if stats is None else stats):
             return Move(action, model, label, gain, delta_L, d=d1)
         b0, b1 = self.lin.heldout_blocks(base), self.lin.heldout_blocks(model)
-        stats = []
+        per_block = []
         for x0, x1 in zip(b0, b1):
             m = np.isfinite(x0) & np.isfinite(x1)
             if m.sum() >= 3:
                 diff = x0[m] - x1[m]
-                stats.append((paired_t(diff), signed_rank_z(diff)))
-        ts, zs = [t for t, _ in stats] or [0.0], [z for _, z in stats] or [0.0]
+                per_block.append((paired_t(diff), signed_rank_z(diff)))
+        ts, zs = [t for t, _ in per_block] or [0.0], [z for _, z in per_block] or [0.0]
         best = max(range(len(ts)), key=lambda k: max(ts[k], zs[k]))
         worst = min(range(len(ts)), key=lambda k: max(ts[k], zs[k]))
         return Move(action, model, label, gain, delta_L, ts[best], zs[best], d1, ts[worst], zs[worst])
