@@ -198,6 +198,17 @@ def test_declared_effect_set_is_fitted_with_cis(robot):
     assert any(r["candidate"].startswith("link_error@mount_joint") for r in doc["rejected"])
 
 
+def test_a_declared_thermal_growth_takes_the_variable_the_measurements_have(robot):
+    """--effects thermal_growth@joint_3 on stops without a temperature: the measurements' own candidate (over time)
+    is fitted; the effect is not built anew over a temperature that is not there (which failed, naming the missing
+    context)."""
+    eff = make_effect("gravity_compliance", "joint_2", robot, [2e-5])
+    stops = _synthetic(robot, [eff], seed=23)
+    res = diagnose(robot, stops, options=DiagnoseOptions(effects=["thermal_growth@joint_3"]))
+    (e,) = res.found
+    assert (e.name, e.location, e.variable) == ("thermal_growth", "joint_3", "time")
+
+
 def test_library_and_cli_give_the_same_json(tmp_path):
     """``ppoe diagnose --json`` prints exactly the JSON of the library call diagnose_bags."""
     from ppoe_core.analysis.diagnose.files import diagnose_bags

@@ -23,6 +23,8 @@ from ppoe_core.errors import PpoeError
 
 __all__ = ["assign_folds", "Linearised", "Identifiability"]
 
+_NONE, _NONE_F = np.zeros(0, dtype=int), np.zeros(0)
+
 
 def assign_folds(unit_group: np.ndarray, mode: str, folds: int, seed: int) -> tuple[str, np.ndarray]:
     """Fold of every unit: ``mode`` ``auto`` (``groups`` with >= 3 groups, else ``stops``), ``groups`` (one fold per
@@ -93,6 +95,8 @@ class Linearised:
         self.n_blocks = max(len(sys.parts), 1)
         #: per scored held-out component, its (block, unit) cell
         self._cell = comp_block[self.stack.idx] * self.n_units + self.stack.unit
+        self._nonzero = self.theta != 0.0
+        self._any_value = bool(self._nonzero.any())
         self._cache: dict[tuple, np.ndarray] = {}
         self._idf: dict[tuple, Identifiability] = {}
 
@@ -103,8 +107,11 @@ class Linearised:
 
     def _fixed(self, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Columns with a current value that ``cols`` does not free, and the steps that undo their values."""
-        nz = np.flatnonzero(self.theta != 0.0)
-        fixed = np.setdiff1d(nz, cols)
+        if not self._any_value:
+            return _NONE, _NONE_F
+        m = self._nonzero.copy()
+        m[cols] = False
+        fixed = np.flatnonzero(m)
         return fixed, -self.theta[fixed]
 
     def heldout(self, model: Sequence[Term]) -> np.ndarray:
@@ -201,9 +208,32 @@ class Linearised:
             self._idf[key] = self._identifiable(model, new, max_condition, max_absorbed)
         return self._idf[key]
 
+    def _condition(self, m_cols: np.ndarray, n_cols: np.ndarray) -> float:
+        """Condition of the new columns ``n_cols`` given the model's ``m_cols``: the largest eigenvalue of their own
+        column-scaled information over the smallest of it with the model's columns eliminated (Schur complement).
+        Without a model it is the condition number of their scaled information; a new column correlated ``rho``
+        with the model gets ``1 / (1 - rho^2)``.  The model's own conditioning does not count: a model whose
+        columns drifted near-dependent at a new linearisation (intrinsics k1 k2 k3 next to the camera pose) must
+        not block every addition."""
+        H = self.all.H
+        Hnn = H[np.ix_(n_cols, n_cols)]
+        d = np.sqrt(np.maximum(np.diag(Hnn), 1e-300))
+        S = Hnn
+        if m_cols.size:
+            key = ("model_inv", *m_cols.tolist())
+            if key not in self._cache:  # one per model: every candidate of a round is checked against it
+                Hmm = H[np.ix_(m_cols, m_cols)]
+                dm = np.sqrt(np.maximum(np.diag(Hmm), 1e-300))
+                inv = np.linalg.pinv(Hmm / dm[:, None] / dm[None, :], rcond=1e-12, hermitian=True)
+                self._cache[key] = inv / dm[:, None] / dm[None, :]
+            Hmn = H[np.ix_(m_cols, n_cols)]
+            S = Hnn - Hmn.T @ self._cache[key] @ Hmn
+        top = float(np.linalg.eigvalsh(Hnn / d[:, None] / d[None, :])[-1])
+        low = float(np.linalg.eigvalsh(S / d[:, None] / d[None, :])[0])
+        return top / low if low > 0 else math.inf
+
     def _identifiable(self, model: Sequence[Term], new: Sequence[Term], max_condition: float,
                       max_absorbed: float) -> Identifiability:
-        cols = self.columns([*model, *new])
         new_cols = self.columns(new)
         raw = self.raw_diag[new_cols]
         if np.any(raw <= 1e-18 * max(float(self.raw_diag.max(initial=0.0)), 1e-300)):
@@ -211,10 +241,7 @@ class Linearised:
         absorbed = float(np.max(self.sys.absorbed()[new_cols])) if new_cols.size else 0.0
         if absorbed > max_absorbed:
             return Identifiability(False, math.inf, absorbed, "not separable from the nuisances (registration)")
-        H = self.all.H[np.ix_(cols, cols)]
-        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-        ev = np.linalg.eigvalsh(H / d[:, None] / d[None, :])
-        cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
+        cond = self._condition(self.columns(model), new_cols)
         if cond > max_condition:
             return Identifiability(False, cond, absorbed,
                                    f"not separable from the effects already chosen (condition {cond:.2g})")

@@ -27,6 +27,7 @@ from ppoe_core.analysis.diagnose.block_pixels import PixelBlock
 from ppoe_core.analysis.diagnose.block_pose import PoseBlock
 from ppoe_core.analysis.diagnose.block_tracker import TrackerBlock
 from ppoe_core.analysis.diagnose.block_contact import ContactBlock, Contacts
+from ppoe_core.analysis.diagnose.covariance import parameter_covariance
 from ppoe_core.analysis.diagnose.crossval import Linearised, assign_folds
 from ppoe_core.analysis.diagnose.noise import estimate_scales
 from ppoe_core.analysis.diagnose.outcome import build_result
@@ -172,7 +173,7 @@ class Run:
             st.scales = estimate_scales(r, st.S, st.Q, frac, st.scales if self.lin is not None else None)
 
 
-def _effect_of(tree: KinematicTree, name: str, loc: str) -> Effect:
+def _effect_of(tree: KinematicTree, name: str, loc: str, **options: str) -> Effect:
     """A declared effect (``--effects``) with all its parameters.
 
     Raises
@@ -181,7 +182,7 @@ def _effect_of(tree: KinematicTree, name: str, loc: str) -> Effect:
         Not an effect of the vocabulary, or not at a location of this robot (names it).
     """
     try:
-        return make_effect(name, loc, tree)
+        return make_effect(name, loc, tree, None, **options)
     except (ModelConfigError, UnknownJointError) as exc:
         raise type(exc)(f"--effects {name}@{loc}: {exc}") from None
 
@@ -202,32 +203,63 @@ def _catalogue(tree: KinematicTree, blocks: Sequence[ResidualBlock], options: Di
     return Catalogue(tree, cands, chains, cameras)
 
 
-def declared_specs(specs: Sequence[str]) -> list[tuple[str, str, list[str]]]:
-    """``--effects``: ``(name, location, components)`` of ``name@location[comp,...]`` specs or of YAML files with an
-    ``effects`` list of ``{name, location[, parameters]}`` (the parameters' names choose the components; all if
-    none is given)."""
-    entries: list[tuple[str, str, list[str]]] = []
+@dataclass
+class DeclaredEntry:
+    """One ``--effects`` entry: effect ``name`` at ``location`` with the parameters ``components`` (all if empty)
+    and, for ``thermal_growth``, its driving ``variable`` (None: the measurements' own candidate)."""
+
+    name: str
+    location: str
+    components: list[str]
+    variable: str | None = None
+
+
+def declared_specs(specs: Sequence[str]) -> list[DeclaredEntry]:
+    """``--effects``: the entries of ``name@location[comp,...]`` specs or of YAML files with an ``effects`` list of
+    ``{name, location[, parameters][, variable]}`` (the parameters' names choose the components; all if none is
+    given)."""
+    entries: list[DeclaredEntry] = []
     for spec in specs:
         if spec.endswith((".yaml", ".yml")) and Path(spec).is_file():
             doc = yaml.safe_load(Path(spec).read_text(encoding="utf-8")) or {}
             for e in doc.get("effects") or []:
-                entries.append((str(e["name"]), str(e["location"]), list((e.get("parameters") or {}).keys())))
+                entries.append(DeclaredEntry(str(e["name"]), str(e["location"]),
+                                             list((e.get("parameters") or {}).keys()),
+                                             str(e["variable"]) if e.get("variable") else None))
             continue
         head, _, comps = spec.partition("[")
         name, _, loc = head.partition("@")
-        entries.append((name, loc, [c for c in comps.rstrip("]").split(",") if c]))
+        entries.append(DeclaredEntry(name, loc, [c for c in comps.rstrip("]").split(",") if c]))
     return entries
 
 
-def _declared_model(run: Run, entries: Sequence[tuple[str, str, list[str]]], options: DiagnoseOptions
+def _declared_effects(tree: KinematicTree, blocks: Sequence[ResidualBlock],
+                      entries: Sequence[DeclaredEntry]) -> list[Effect]:
+    """The ``--effects`` entries that no block offers as a candidate, as effects (a block's own candidate carries
+    what the measurements drive it with: a ``thermal_growth`` over ``time`` when there is no temperature)."""
+    offered = [c for b in blocks for c in b.candidates()]
+    out = []
+    for d in entries:
+        if not any(_matches(c, d) for c in offered):
+            opts = {"variable": d.variable} if d.variable else {}
+            out.append(_effect_of(tree, d.name, d.location, **opts))
+    return out
+
+
+def _matches(e: Effect, d: DeclaredEntry) -> bool:
+    return (e.name == d.name and (e.location == d.location or getattr(e, "frame", None) == d.location)
+            and (d.variable is None or getattr(e, "variable", None) == d.variable))
+
+
+def _declared_model(run: Run, entries: Sequence[DeclaredEntry], options: DiagnoseOptions
                     ) -> tuple[tuple[Term, ...], dict[str, str]]:
     """The terms of the ``--effects`` entries (:func:`declared_specs`) that these measurements can identify, and the
     reasons of those left out."""
     lin = run.relinearise(())
     terms: list[Term] = []
     left_out: dict[str, str] = {}
-    for name, loc, comps in entries:
-        t = _term_of(run.catalogue, name, loc, comps)
+    for d in entries:
+        t = _term_of(run.catalogue, d)
         idf = lin.identifiable(tuple(terms), [t], options.max_condition, options.max_absorbed)
         if idf.ok:
             terms.append(t)
@@ -236,17 +268,17 @@ def _declared_model(run: Run, entries: Sequence[tuple[str, str, list[str]]], opt
     return model_key(terms), left_out
 
 
-def _term_of(catalogue: Catalogue, name: str, loc: str, comps: Sequence[str]) -> Term:
-    """The catalogue term of effect ``name`` at ``loc`` (or at the camera frame ``loc``) with the parameters
-    ``comps`` (all if empty).
+def _term_of(catalogue: Catalogue, d: DeclaredEntry) -> Term:
+    """The catalogue term of the entry ``d``: its effect at its location (or at the camera frame it names) with its
+    parameters (all if none are named).
 
     Raises
     ------
     ModelConfigError
         No such candidate, or parameters it does not have.
     """
-    cand = next((i for i, e in enumerate(catalogue.effects) if e.name == name
-                 and (e.location == loc or getattr(e, "frame", None) == loc)), None)
+    name, loc, comps = d.name, d.location, d.components
+    cand = next((i for i, e in enumerate(catalogue.effects) if _matches(e, d)), None)
     if cand is None:
         raise ModelConfigError(f"--effects {name}@{loc}: no such effect in the catalogue of this robot")
     e = catalogue.effects[cand]
@@ -278,7 +310,7 @@ def diagnose(robot: Robot, data: Measurements | Stops, declared: Sequence[Effect
     blocks = build_blocks(tree, data, declared, options)
     problem = Problem(blocks, declared, perturbation_cov, joint_noise, options.loss, options.loss_scale)
     entries = declared_specs(options.effects or [])
-    catalogue = _catalogue(tree, blocks, options, [_effect_of(tree, n, loc) for n, loc, _ in entries])
+    catalogue = _catalogue(tree, blocks, options, _declared_effects(tree, blocks, entries))
     unit_group = np.zeros(problem.n_units, dtype=int)
     for g, u in zip(problem.groups, problem.units):
         unit_group[u] = g
@@ -296,7 +328,41 @@ def diagnose(robot: Robot, data: Measurements | Stops, declared: Sequence[Effect
                                     max_effects=options.max_effects, groups=options.groups)
         selection = select(catalogue, run, sel_opts)
         run.relinearise(selection.model, final=True)
+        selection = _physical_signs(run, selection)
     return build_result(run, before, insample_before, selection, mode, options)
+
+
+def _physical_signs(run: Run, selection: Selection) -> Selection:
+    """The final model without compliance components whose reported 95 % interval (:mod:`covariance`, at the final
+    noise scales) lies below zero, the most negative first, refitted after each: a reported compliance is never
+    significantly negative (the selection checks the same with the linearised covariance it works with, which an
+    older noise estimate may have made wider)."""
+    model = selection.model
+    while model:
+        pr = run.problem
+        sys = pr.system(run.effects, run.effects, rewhiten=False)
+        n_nuis = int(sum(ns.n_segments * ns.N.shape[1] for ns in sys.nuisances))
+        pc = parameter_covariance(sys, np.arange(sys.n_columns), n_nuis)
+        sd = np.sqrt(np.maximum(np.diag(pc.cov), 0.0))
+        worst: tuple[float, Term, int] | None = None
+        for k, (t, e) in enumerate(zip(model, run.effects)):
+            for i, c in enumerate(t.comps):
+                v, s_ = float(e.params[i]), float(sd[sys.cols[k]][i])
+                z = (v + 1.96 * s_) / max(s_, 1e-300)
+                if e.param_names[i] in e.nonnegative and z < 0.0 and (worst is None or z < worst[0]):
+                    worst = (z, t, c)
+        if worst is None:
+            break
+        _, t, c = worst
+        keep = tuple(x for x in t.comps if x != c)
+        selection.steps.append({"action": "remove", "move": run.catalogue.describe(t),
+                                "reason": "its 95 % interval lies below zero: unphysical sign"})
+        model = model_key([x for x in model if x != t] + ([Term(t.cand, keep)] if keep else []))
+        run.relinearise(model, final=True)
+    if model == selection.model:
+        return selection
+    assert run.lin is not None
+    return Selection(model, selection.steps, selection.rejected, selection.d_before, run.lin.heldout(model))
 
 
 def check_stops(robot: Robot, stops: Stops) -> None:

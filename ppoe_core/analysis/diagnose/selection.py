@@ -144,27 +144,31 @@ class Selector:
             return float(self.options.penalty)
         return math.log(max(int(np.isfinite(d).sum()), 2))
 
-    def score(self, base: tuple[Term, ...], model: tuple[Term, ...], action: str, label: str) -> Move:
+    def score(self, base: tuple[Term, ...], model: tuple[Term, ...], action: str, label: str,
+              stats: bool | None = None) -> Move:
         """The move ``base -> model`` scored held out (gains per pose, change of ``L`` in units of the current
         residual variance, paired statistics per measurement block: their largest is the move's ``t`` / ``z``,
-        their smallest its ``t_min`` / ``z_min``)."""
+        their smallest its ``t_min`` / ``z_min``).  The paired statistics are computed when ``stats`` (default:
+        only when ``L`` does not rise; no move that raises ``L`` is taken, forward or backward)."""
         assert self.lin is not None
         d0, d1 = self.lin.heldout(base), self.lin.heldout(model)
         ok = np.isfinite(d0) & np.isfinite(d1)
         gain = float((d0[ok] - d1[ok]).sum()) / self.variance(base)
         dP = self.catalogue.n_params(model) - self.catalogue.n_params(base)
+        delta_L = -gain + self.kappa(d0) * dP
+        if not (delta_L <= 0.0 if stats is None else stats):
+            return Move(action, model, label, gain, delta_L, d=d1)
         b0, b1 = self.lin.heldout_blocks(base), self.lin.heldout_blocks(model)
-        stats = []
+        per_block = []
         for x0, x1 in zip(b0, b1):
             m = np.isfinite(x0) & np.isfinite(x1)
             if m.sum() >= 3:
                 diff = x0[m] - x1[m]
-                stats.append((paired_t(diff), signed_rank_z(diff)))
-        ts, zs = [t for t, _ in stats] or [0.0], [z for _, z in stats] or [0.0]
+                per_block.append((paired_t(diff), signed_rank_z(diff)))
+        ts, zs = [t for t, _ in per_block] or [0.0], [z for _, z in per_block] or [0.0]
         best = max(range(len(ts)), key=lambda k: max(ts[k], zs[k]))
         worst = min(range(len(ts)), key=lambda k: max(ts[k], zs[k]))
-        return Move(action, model, label, gain, -gain + self.kappa(d0) * dP, ts[best], zs[best], d1,
-                    ts[worst], zs[worst])
+        return Move(action, model, label, gain, delta_L, ts[best], zs[best], d1, ts[worst], zs[worst])
 
     def variance(self, model: tuple[Term, ...]) -> float:
         """The residual variance of ``model`` in the current whitening (in-sample, per degree of freedom): ``-2 log
@@ -223,6 +227,33 @@ class Selector:
             return None
         return self._signed(model, Term(term.cand, keep))
 
+    def physical(self, model: Sequence[Term], record: bool = True) -> tuple[Term, ...]:
+        """``model`` without the components that must be non-negative but fit significantly negative *together*
+        (the most negative first, refitted after each): members of a group move, or terms a later addition turned
+        around, are checked jointly, not only one at a time when they entered."""
+        assert self.lin is not None
+        model = model_key(model)
+        while True:
+            values, cov, _ = self.lin.fit(model)
+            sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            worst, k = None, 0
+            for t in model:
+                eff = self.catalogue.effect(t)
+                for i, c in enumerate(t.comps):
+                    z = (values[k + i] + 1.96 * sd[k + i]) / max(sd[k + i], 1e-300)
+                    if eff.param_names[i] in eff.nonnegative and z < 0.0 and (worst is None or z < worst[0]):
+                        worst = (z, t, c)
+                k += len(t.comps)
+            if worst is None:
+                return model
+            _, t, c = worst
+            keep = tuple(x for x in t.comps if x != c)
+            label = self.catalogue.describe(t)
+            model = model_key([x for x in model if x != t] + ([Term(t.cand, keep)] if keep else []))
+            if record:
+                self.steps.append({"action": "remove", "move": label, "reason": "fits with a negative compliance "
+                                   "next to the other terms: unphysical sign"})
+
     def forward_moves(self, model: tuple[Term, ...]) -> list[Move]:
         """Every single addition and group move, scored (module docstring)."""
         held = {t.cand for t in model}
@@ -259,7 +290,8 @@ class Selector:
                 if term is not None:
                     cur.append(term)
                     added += 1
-            new = model_key(cur)
+            new = self.physical(cur, record=False)  # the members' signs checked together
+            added -= len(cur) - len(new)
             if added >= 2 and new not in self.visited:
                 out.append(self.score(model, new, "add group", f"{label} ({added})"))
         return out
@@ -338,7 +370,7 @@ class Selector:
                     break
                 cur.append(s2)
             else:
-                if self.score(model, model_key([*model, *cur[len(rest):]]), "", "").delta_L < 0.0:
+                if self.score(model, model_key([*model, *cur[len(rest):]]), "", "", stats=False).delta_L < 0.0:
                     continue  # the replacement explains something ``t`` does not: a forward step's business
                 label = f"{self.catalogue.describe(t)} -> " + " + ".join(self.catalogue.describe(s) for s in combo)
                 out.append(self.score(model, model_key(cur), "replace", label))
@@ -385,7 +417,8 @@ def _forward(sel: Selector, model: tuple[Term, ...], phase: str) -> tuple[Term, 
         ok = [m for m in moves if sel.accept(m, d0)]
         best = sel.best(ok or moves, model) if moves else None
         if best is None or not ok:
-            if best is not None:
+            if best is not None:  # the statistics of the best move refused (not computed for a rising L)
+                best = sel.score(model, best.model, best.action, best.label, stats=True)
                 sel.steps.append({**best.record(), "accepted": False, "phase": phase})
             break
         sel.steps.append({**best.record(), "accepted": True, "phase": phase})
@@ -402,6 +435,7 @@ def _settle(sel: Selector, model: tuple[Term, ...]) -> tuple[Term, ...]:
     assert sel.lin is not None
     if not sel.refitter.confirm(model, sel.lin.ssr(model)):
         sel.lin = sel.refitter.relinearise(model)
+    model = sel.physical(model)
     model, _ = sel.backward(model)
     sel.visited.add(model)
     return model
