@@ -94,6 +94,7 @@ setup(
             "pytest>=7",
             "hypothesis>=6",
             "pytest-timeout>=2",
+            "pytest-xdist>=3",    # the README's test command runs the suite on 2 workers (-n 2 --dist loadfile)
             "pytransform3d>=3.6",
             "gtsam>=4.3",         # test_diagnose_joint: GTSAM factor graph vs scipy (importorskip)
             "xacro>=2.0",         # test_launch_file: a .xacro urdf expanded by the launch file (importorskip)

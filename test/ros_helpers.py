@@ -53,9 +53,29 @@ __all__ = [
 ]
 
 
+def _worker_domains() -> range:
+    """The DDS domain ids this test process may use: 1..200, split between pytest-xdist workers
+    (``PYTEST_XDIST_WORKER=gwK`` of ``PYTEST_XDIST_WORKER_COUNT``) so that two tests running at once in two workers
+    never share a domain."""
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    index = int(worker[2:]) if worker[2:].isdigit() else 0
+    size = DOMAIN_IDS // max(count, 1)
+    return range(1 + index * size, 1 + (index + 1) * size)
+
+
+#: DDS domain ids used by the tests (1..200; ids above 232 are not valid with the default port mapping)
+DOMAIN_IDS = 200
+_DOMAIN_NEXT = [random.SystemRandom().randrange(DOMAIN_IDS)]
+
+
 def random_domain_id() -> int:
-    """A random DDS domain id in 1..200 (one per test run)."""
-    return random.SystemRandom().randint(1, 200)
+    """A DDS domain id for one test: this worker's ids (:func:`_worker_domains`) in turn from a random start, so that
+    a test never reuses the domain of the test just before it (whose processes may still be exiting) and other runs
+    on the machine are unlikely to share it."""
+    ids = _worker_domains()
+    _DOMAIN_NEXT[0] += 1
+    return ids[_DOMAIN_NEXT[0] % len(ids)]
 
 
 def ros_env(tmp_dir: Path | str, domain_id: int | None = None) -> dict[str, str]:

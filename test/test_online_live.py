@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import yaml
 from conftest import REPO
+from ros_helpers import random_domain_id
 
 pytest.importorskip("rclpy")
 
@@ -125,7 +126,7 @@ def test_correct_prior_moves_the_static_pose_to_the_estimate():
     from ppoe_ros.common.online_effects import OnlineEffectsNode
 
     urdf = (REPO / "config" / "robots" / "arm7.urdf").read_text()
-    rclpy.init()
+    rclpy.init(domain_id=random_domain_id())
     try:
         node = OnlineEffectsNode(parameter_overrides=[Parameter("model_file", value=str(MODEL)),
                                                       Parameter("robot_description", value=urdf)])

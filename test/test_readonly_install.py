@@ -30,6 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from ros_helpers import random_domain_id
+
 import pytest
 from conftest import BAGS, CONFIG_ROBOTS, REPO
 from ros_helpers import write_params_file
@@ -78,7 +80,7 @@ def sandbox() -> dict:
     env = {k: v for k, v in os.environ.items()
            if k not in ("XDG_CACHE_HOME", "NUMBA_CACHE_DIR", "PYTHONPATH", "HOME", "TMPDIR")}
     env.update(HOME=str(home), TMPDIR=str(tmp), PYTHONPATH=str(install), PYTHONDONTWRITEBYTECODE="1",
-               ROS_DOMAIN_ID=str(100 + os.getpid() % 100), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+               ROS_DOMAIN_ID=str(random_domain_id()), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
                ROS_LOG_DIR=str(tmp / "ros_log"), PYTHONUNBUFFERED="1", RCUTILS_COLORIZED_OUTPUT="0")
     prefix = _wrapper()
     probe = subprocess.run([*prefix, "touch", str(install / "ppoe_core" / "probe"), str(home / "probe")],
