@@ -578,6 +578,8 @@ def test_diagnostics_error_without_model_and_warn_when_the_input_is_silent(tmp_p
         desc = probe.publisher("/robot_description", String, LATCHED_QOS)
         desc.publish(String(data=URDF.read_text()))
         probe.wait_for_subscribers(js, proc)
+        # the model is built from the URDF first (2 s and more on a loaded machine, in a container process too)
+        probe.spin_until(lambda: "no model" not in last().message, 20, proc, "the model from /robot_description")
         t = [1.0]
 
         def feed(seconds: float) -> None:
