@@ -156,10 +156,11 @@ def _camera_lines(result: DiagnoseResult, d: str) -> list[str]:
     lines: list[str] = []
     cams: list[EffectReport] = [e for e in result.effects if e.camera_info is not None]
     if cams:
-        lines += ["", "Camera intrinsics cannot go into a URDF, and the nodes do not take them from the model (its "
-                  "`camera_intrinsics` entry is kept for the record): `tag_bearing_node` and `fusion_node` read `K` "
-                  "and `D` from the `CameraInfo` on their `camera_info_topic`. Give the corrected calibration to the "
-                  "camera driver (`camera_info_url`, read by camera_info_manager):", ""]
+        lines += ["", "Camera intrinsics cannot go into a URDF. `ppoe evaluate` applies the model's "
+                  "`camera_intrinsics` entry to the bag's camera_info; the nodes do not: `tag_bearing_node` and "
+                  "`fusion_node` read `K` and `D` from the `CameraInfo` on their `camera_info_topic`. On the robot, "
+                  "give the corrected calibration to the camera driver (`camera_info_url`, read by "
+                  "camera_info_manager):", ""]
         for e in cams:
             frame = e.frame or e.location
             lines.append(f"* `{frame}`: `{d}/{camera_info_name(frame)}` (e.g. "
