@@ -182,19 +182,26 @@ class Linearised:
         cols = self.columns(model)
         fixed, fv = self._fixed(cols)
         H = self.all.H
-        b = self.all.b - (H[:, fixed] @ fv if fixed.size else 0.0)
         base = self.ssr(model)
+        out = np.full(len(terms), base)
+        own = [np.setdiff1d(self.columns([t]), cols) for t in terms]
+        need = np.unique(np.concatenate(own)) if own else np.zeros(0, dtype=int)
+        if not need.size:
+            return out
+        idx = np.concatenate([need, cols])  # only the rows and columns the terms need (not all C x C)
+        b = self.all.b[idx] - (H[np.ix_(idx, fixed)] @ fv if fixed.size else 0.0)
+        bU, bc = b[:need.size], b[need.size:]
+        S, g = H[np.ix_(need, need)], bU
         if cols.size:
-            Hrr = H[np.ix_(cols, cols)]
-            X = np.linalg.pinv(Hrr) @ np.concatenate([H[cols], b[cols][:, None]], axis=1)
-            S = H - H[:, cols] @ X[:, :-1]
-            g = b - H[:, cols] @ X[:, -1]
-        else:
-            S, g = H, b
-        out = np.empty(len(terms))
-        for k, t in enumerate(terms):
-            c = np.setdiff1d(self.columns([t]), cols)
-            out[k] = base - float(g[c] @ solve_scaled(S[np.ix_(c, c)], g[c])) if c.size else base
+            P = np.linalg.pinv(H[np.ix_(cols, cols)])
+            HcU = H[np.ix_(cols, need)]
+            S = S - HcU.T @ P @ HcU
+            g = bU - HcU.T @ (P @ bc)
+        pos = {int(c): i for i, c in enumerate(need)}
+        for k, c in enumerate(own):
+            if c.size:
+                i = np.array([pos[int(x)] for x in c])
+                out[k] = base - float(g[i] @ solve_scaled(S[np.ix_(i, i)], g[i]))
         return out
 
     def _n_nuisance(self) -> int:
@@ -209,28 +216,31 @@ class Linearised:
         return self._idf[key]
 
     def _condition(self, m_cols: np.ndarray, n_cols: np.ndarray) -> float:
-        """Condition of the new columns ``n_cols`` given the model's ``m_cols``: the largest eigenvalue of their own
-        column-scaled information over the smallest of it with the model's columns eliminated (Schur complement).
-        Without a model it is the condition number of their scaled information; a new column correlated ``rho``
-        with the model gets ``1 / (1 - rho^2)``.  The model's own conditioning does not count: a model whose
-        columns drifted near-dependent at a new linearisation (intrinsics k1 k2 k3 next to the camera pose) must
-        not block every addition."""
+        """Condition number of the new columns ``n_cols`` next to the model's ``m_cols``, the model's own
+        conditioning left out: the column-scaled information of the new columns and of an orthonormal basis of the
+        model's column space (``[[I, R], [R^T, M]]``, ``R`` their correlations).  Without a model it is the condition
+        number of the new columns' scaled information; a new column correlated ``rho`` with the model gets
+        ``(1 + rho) / (1 - rho)``, as when the model is one well-conditioned column.  A model whose own columns
+        drifted near-dependent at a new linearisation (intrinsics k1 k2 k3 next to the camera poses) must not block
+        every addition."""
         H = self.all.H
         Hnn = H[np.ix_(n_cols, n_cols)]
         d = np.sqrt(np.maximum(np.diag(Hnn), 1e-300))
-        S = Hnn
+        M = Hnn / d[:, None] / d[None, :]
         if m_cols.size:
-            key = ("model_inv", *m_cols.tolist())
+            key = ("model_basis", *m_cols.tolist())
             if key not in self._cache:  # one per model: every candidate of a round is checked against it
                 Hmm = H[np.ix_(m_cols, m_cols)]
                 dm = np.sqrt(np.maximum(np.diag(Hmm), 1e-300))
-                inv = np.linalg.pinv(Hmm / dm[:, None] / dm[None, :], rcond=1e-12, hermitian=True)
-                self._cache[key] = inv / dm[:, None] / dm[None, :]
-            Hmn = H[np.ix_(m_cols, n_cols)]
-            S = Hnn - Hmn.T @ self._cache[key] @ Hmn
-        top = float(np.linalg.eigvalsh(Hnn / d[:, None] / d[None, :])[-1])
-        low = float(np.linalg.eigvalsh(S / d[:, None] / d[None, :])[0])
-        return top / low if low > 0 else math.inf
+                lam, V = np.linalg.eigh(Hmm / dm[:, None] / dm[None, :])
+                keep = lam > 1e-12 * max(float(lam[-1]), 1e-300)
+                self._cache[key] = V[:, keep] / np.sqrt(lam[keep]) / dm[:, None]  # W: W^T Hmm W = I
+            W = self._cache[key]
+            R = W.T @ H[np.ix_(m_cols, n_cols)] / d[None, :]
+            r = R.shape[0]
+            M = np.block([[np.eye(r), R], [R.T, M]])
+        ev = np.linalg.eigvalsh(M)
+        return float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
 
     def _identifiable(self, model: Sequence[Term], new: Sequence[Term], max_condition: float,
                       max_absorbed: float) -> Identifiability:

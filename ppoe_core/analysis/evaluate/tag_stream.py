@@ -61,7 +61,7 @@ class TagStream:
         self._rows: Any = None
         self._camera: Any = None
         self.stamps: list[float] = []
-        cams = _camera_lookup(data, model.effects)
+        cams = _camera_lookup(data, getattr(model, "effects", None) or ())  # no effects: camera_info as recorded
         obs = data.tag_observations
         if len(obs):
             topic = "/tag_bearing/observations"
