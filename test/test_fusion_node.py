@@ -128,6 +128,12 @@ def test_fusion_node_live_corrects_prior_drops_stale_and_survives_bad_input(tmp_
         assert proc.alive()
         log = proc.output()
 
+    # every fused pose carries a prior's exact stamp, the update's output too (the newest prior's, published again;
+    # it went through float seconds and was off by up to ~0.1 us)
+    sent = {t0 + k * dt for k in range(36)} | {t0 + 35 * dt - 100_000_000}
+    stamps = [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in fused]
+    assert set(stamps) <= sent, sorted(set(stamps) - sent)[:3]
+    assert len(stamps) > len(set(stamps)), "no update output repeating its prior's stamp"
     last = fused[-1]
     T_last = matrix_from_pose_msg(last.pose.pose)
     err_fused = np.linalg.norm(T_last[:3, 3] - T_true[:3, 3])

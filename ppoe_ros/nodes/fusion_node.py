@@ -234,6 +234,7 @@ class FusionNode(Node):
         self.sources.subscribe(qos)
         self.commands = FusionServices(self, self.pipeline, self._measure, self.prefix, self.stats)
         self._last_prior_wall = time.monotonic()
+        self._newest_stamp = (math.nan, 0)  # the newest prior's stamp: (seconds as the pipeline keeps it, exact ns)
         self.create_timer(0.1, guarded(self.stats, "pending measurements")(self._expire_pending),
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
 
@@ -313,6 +314,8 @@ class FusionNode(Node):
             T, cov_tool = self.online.correct_prior(stamp_ns, T, cov_tool, self.base_frame, self.tool_frame)
         newest, topic = self.pipeline.buffer.newest, self.params["prior_topic"]
         est, outcomes = self.pipeline.add_prior(stamp_ns * 1e-9, T, cov_tool, self.joints.at(stamp_ns))
+        if est is not None and (newest is None or stamp_ns * 1e-9 >= newest):
+            self._newest_stamp = (stamp_ns * 1e-9, stamp_ns)
         if est is None:
             self.stats.bad(topic, f"prior at {stamp_ns * 1e-9:.6f} s is older than the prior buffer "
                                   f"(newest {newest:.6f} s, {self.params['buffer_duration']:g} s kept): dropped",
@@ -387,8 +390,9 @@ class FusionNode(Node):
             self.stats.bad(src, f"rejected by the gate (cost {o.nis:.3g})", kind="rejected")
         elif o.status == "accepted" and self.params["publish_on_update"]:
             est = self.pipeline.latest()
-            if est is not None:
-                self._publish(est.T_base_tool, est.cov_tool, int(round(est.stamp * 1e9)))
+            if est is not None:  # the newest prior's exact stamp (seconds as float lose up to ~0.1 us at 2026 epochs)
+                s, ns = self._newest_stamp
+                self._publish(est.T_base_tool, est.cov_tool, ns if est.stamp == s else int(round(est.stamp * 1e9)))
 
     def _publish(self, T: np.ndarray, cov_tool: np.ndarray, stamp_ns: int) -> None:
         self.pub.publish(self._out.serialize(T, lie.cov_local_to_ros(T, cov_tool), stamp_ns))
