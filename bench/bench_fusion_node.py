@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import os
 import random
+import shutil
 import signal
 import struct
 import subprocess
@@ -322,6 +323,7 @@ def run_mode(mode: str, seconds: float, warmup: float) -> dict[str, float]:
         ctx.try_shutdown()
         log.close()
     node_log = log_path.read_text(errors="replace").splitlines()
+    shutil.rmtree(tmp, ignore_errors=True)  # the model, parameter file and log of this mode
     for line in [ln for ln in node_log if "WARN" in ln or "ERROR" in ln][:5]:
         print(f"{mode}.log: {line[:300]}")
     keys = ("priors", "measurements", "accepted", "rejected", "throttled", "dropped_stale", "dropped_no_prior",
