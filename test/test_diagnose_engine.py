@@ -224,6 +224,27 @@ def test_library_and_cli_give_the_same_json(tmp_path):
     assert np.isfinite(POINT).all()
 
 
+def test_the_same_bag_gives_the_same_json_in_every_process():
+    """Two processes with different string hashes (``PYTHONHASHSEED``): the same JSON to the last digit.  The pose
+    block once ordered the joints of its Jacobians by a set of names, so the structure tests (and the sums over
+    joints) came out in another order per process (bags/contact: ``measurements.pose.structure``)."""
+    import os
+    import subprocess
+    import sys
+
+    from conftest import REPO
+
+    docs = []
+    for seed in ("1", "3"):
+        env = {**os.environ, "PYTHONHASHSEED": seed, "PYTHONPATH": str(REPO)}
+        out = subprocess.run([sys.executable, "-m", "ppoe_ros.cli", "diagnose", str(BAGS / "contact"), "--model",
+                              str(CONFIG / "robots" / "humanoid_model.yaml"), "--json", "--quiet"],
+                             env=env, capture_output=True, text=True, timeout=600, check=True)
+        docs.append(json.loads(out.stdout))
+    assert docs[0] == docs[1]
+    assert docs[0]["measurements"]["pose"]["structure"], "no structure tests to compare"
+
+
 def test_selection_on_a_linear_problem_names_the_true_column(robot):
     """``select_linear`` (the drift naming's entry, analysis/drift_naming.py): a whitened problem with free columns
     and one candidate's column in the data; the selection names exactly that candidate, with its drop-one gain."""

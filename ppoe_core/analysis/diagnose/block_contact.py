@@ -69,7 +69,7 @@ def concat_contacts(parts: Sequence[Contacts]) -> Contacts:
     for p in parts:
         groups.append(np.array([len(names) + g for g in p.group], dtype=int))
         names.extend(p.group_names)
-    joints = set.intersection(*[set(p.q) for p in parts])
+    joints = [j for j in first.q if all(j in p.q for p in parts)]  # in order (a set's varies per run)
     ctx: dict[str, Any] = {}
     for key, v in first.context.items():
         if isinstance(v, Mapping):

@@ -52,7 +52,7 @@ class PoseBlock(ResidualBlock):
         def joined(P: dict, F: dict, tail: tuple[int, ...]) -> dict:
             """Position rows (base axes) over rotation rows, per joint: (n, 6) + tail."""
             out = {}
-            for k in set(P) | set(F):
+            for k in [*P, *(j for j in F if j not in P)]:  # dict order, not a set's (string hashes vary per run)
                 pos = P.get(k, np.zeros((n, 3) + tail))
                 if base_R is not None:
                     pos = np.einsum("nji,nj...->ni...", base_R, pos)

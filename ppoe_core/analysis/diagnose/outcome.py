@@ -164,6 +164,7 @@ def summary(res: DiagnoseResult) -> str:
         if sig:
             line += (f"; UNEXPLAINED: {scale * b.unexplained:.3f} {u} RMS above the floor follows the "
                      + " and the ".join(s.predictor for s in sig)
-                     + f" (held-out gain {max(s.gain for s in sig):.0%}), outside the effect catalogue")
+                     + f" (predictable part {max(s.gain for s in sig):.0%} of the held-out residual), "
+                     "outside the effect catalogue")
         lines.append(line)
     return "; ".join(lines[:1]) + ("\n" + "\n".join(lines[1:]) if len(lines) > 1 else "")

@@ -21,6 +21,7 @@ from ppoe_core import lie
 from ppoe_core.analysis.diagnose.candidates import row_link_poses
 from ppoe_core.errors import MeasurementError, ModelConfigError
 from ppoe_core.estimation.camera_intrinsics import project_with_intrinsics_jacobian
+from ppoe_core.model import tf_frames
 from ppoe_core.model.effects import Effect, sum_effect_corrections
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
@@ -258,18 +259,23 @@ def pixel_rms(tree: KinematicTree, obs: PixelObs, effects: Sequence[Effect] = ()
 
 def camera_mount_joint(robot: Robot, frame: str) -> str:
     """The fixed joint a ``camera_extrinsics`` correction of camera ``frame`` sits at: the first fixed joint after
-    the last movable joint on the path from the root to ``frame``."""
+    the last movable joint on the path from the root to ``frame`` (:func:`ppoe_core.model.tf_frames.camera_mount_joint`,
+    the one owner), with an error naming the frame where there is none.
+
+    Raises
+    ------
+    ModelConfigError
+        ``frame`` is not a link, is the root link, or hangs on a movable joint.
+    """
     if frame not in robot.links:
         raise ModelConfigError(f"camera frame '{frame}' is not a link of URDF {robot.source}")
     path = robot.path_from_root(frame)
     if not path:
         raise ModelConfigError(f"camera frame '{frame}' is the root link of URDF {robot.source}")
-    k = len(path)
-    while k > 0 and not robot.joints[path[k - 1]].movable:
-        k -= 1
-    if k == len(path):
+    joint = tf_frames.camera_mount_joint(robot, frame)
+    if joint is None:
         raise ModelConfigError(f"camera frame '{frame}' hangs on movable joint '{path[-1]}' (URDF {robot.source})")
-    return path[k]
+    return joint
 
 
 def concat_pixel_obs(parts: Sequence[PixelObs]) -> PixelObs:
