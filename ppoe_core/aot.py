@@ -52,8 +52,6 @@ KINEMATICS_KERNELS: tuple[str, ...] = (
     "ppoe_core.model.chain_kernel.fk_one",
     "ppoe_core.io.joint_pose.joint_state_pose",
     "ppoe_core.io.joint_pose.chain_pose_cdr",
-    "ppoe_core.model.joint_history.merge_into",
-    "ppoe_core.model.joint_history.fresh_vector",
     "ppoe_core.model.joint_history.merge_message",
     "ppoe_core.lie.kernels.quat_from_matrix_one",
     "ppoe_core.lie.kernels.rotate_covariance_one",

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -68,8 +69,11 @@ def aot_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     res = subprocess.run([sys.executable, "-m", "ppoe_ros.cli", "warmup", "--nodes", "kinematics_node"], env=env,
                          cwd=REPO, capture_output=True, text=True, timeout=1200)
     assert res.returncode == 0, res.stdout + res.stderr
-    if "ahead-of-time module" not in res.stdout:
-        pytest.skip(f"no ahead-of-time module here (a C compiler is needed): {res.stderr[-500:]}")
+    if "no ahead-of-time module" in res.stdout:
+        # only a missing tool chain is a reason not to test: a kernel the warm-up did not compile is a failure
+        if not re.search(r"pycc|compiler|distutils|setuptools", res.stdout + res.stderr, re.IGNORECASE):
+            pytest.fail(f"ppoe warmup built no ahead-of-time module: {res.stdout[-800:]}")
+        pytest.skip(f"no ahead-of-time module here (a C compiler is needed): {res.stdout[-500:]}")
     return cache
 
 
