@@ -27,9 +27,9 @@ received while it was paused).  A pause in which the graph saw no publisher and 
 (same endpoint GID) is bridged: the gaps across it are counted.
 
 Not countable: what a publisher sends while the node is still starting, once its subscription exists and before it
-spins (the history keeps the newest ``depth``; the first message taken then looks like a late join).  Nodes
-therefore subscribe after their slow start-up work (the kinematics node after loading its kernels: in
-``bench/bench_soak.py`` under load a 23 s cold compile left 22892 messages of 120001 uncounted this way).
+spins (the history keeps the newest ``depth``; the first message taken then looks like a late join).  So a node
+subscribes after its slow start-up work: the kinematics node once its model's kernels are loaded (before that, in
+``bench/bench_soak.py`` under load, a 23 s cold compile left 22892 of 120001 messages uncounted; issue 25).
 """
 
 from __future__ import annotations
