@@ -173,3 +173,15 @@ def test_the_kinematics_node_subscribes_joint_states_once_its_model_is_loaded(tm
             assert node._js_sub is not None and node.model is not None
         finally:
             node.destroy_node()
+
+
+def test_a_publisher_replaced_between_two_looks_starts_a_new_count():
+    """One publisher left and another (running for a while: its numbers are high) took over within one
+    diagnostics period: the count stays 1, the GID changes; its first number is not a gap after the old one's."""
+    stats, gaps = _gaps()
+    gaps.set_publishers(1, G1)
+    gaps.observe(_info(10, time.time_ns()))
+    gaps.set_publishers(1, G2)
+    gaps.observe(_info(5000, time.time_ns()))
+    gaps.observe(_info(5003, time.time_ns()))
+    assert stats.counts.get("lost_before_node", 0) == 2 and gaps.tracking

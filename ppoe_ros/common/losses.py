@@ -49,7 +49,8 @@ class SequenceGaps:
     at a diagnostics period) and ``received_untracked`` (messages received while paused).  A pause during
     which no other publisher was seen and that ends on the same publisher (same endpoint GID: its sequence
     continues; the graph only lost sight of it for a while, as under heavy load) is bridged: the gaps in the
-    numbers it received during the pause and across it are counted when tracking resumes.
+    numbers it received during the pause and across it are counted when tracking resumes.  A publisher replaced
+    by another between two looks (the count stays 1, the GID changes) starts a new count.
     """
 
     __slots__ = ("topic", "stats", "last", "tracking", "empty_since", "gid", "bridge", "pending")
@@ -130,6 +131,8 @@ class SequenceGaps:
                 self.last = None
             self.bridge, self.pending = False, 0
             self.tracking = True
+        elif gid is not None and self.gid is not None and gid != self.gid:
+            self.last = None  # another publisher took over between two looks: its numbers are its own
         if count == 1:
             self.gid = gid
 
