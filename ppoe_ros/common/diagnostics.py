@@ -221,7 +221,7 @@ class DiagnosticsPublisher:
         """Give every sequence-gap counter its topic's publisher count; returns the paused topics."""
         paused = []
         for gaps in self._stats.gap_counters:
-            gaps.set_publishers(self._node.count_publishers(gaps.topic))
+            gaps.refresh(self._node)
             if not gaps.tracking:
                 paused.append(gaps.topic)
         return paused

@@ -201,11 +201,12 @@ class KinematicsNode(Node):
         js_qos = reliable_qos(p["qos_depth"]) if p["joint_states_reliable"] else sensor_qos(p["qos_depth"])
         self._on_joint_state = guarded(self.stats, js_topic)(self._joint_state)
         self._drain_max = int(p["drain_max"])
+        take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
+        # after the model (its kernels take 1-30 s to load or compile): a subscription that exists while the node
+        # does not spin yet loses what overflows its history, and the node could not count it (losses.py)
         self._js_sub, self._js_gaps = counted_subscription(self, self.stats, JointState, js_topic,
                                                            self._on_joint_state_burst, js_qos,
                                                            raw=True)
-
-        take_robot_description(self, p, self.stats, self._set_model, self._robot_description)
         self.diagnostics.watch_input(js_topic, "received", p["input_timeout"])
         self.diagnostics.set_status(None if self.model else DiagnosticStatus.ERROR,
                                     "" if self.model else "no model: waiting for robot_description")
