@@ -307,8 +307,11 @@ class Selector:
     def best(self, moves: Sequence[Move], model: tuple[Term, ...]) -> Move:
         """The move that lowers ``L`` most; equal ones (to rounding) go by fewer parameters, then by catalogue order
         (a sensor's own effects first).  A camera's intrinsics give way to the same camera's extrinsics when those
-        explain at least as much (the held-out gain, penalty aside): a mount is more often off than a calibration,
-        and small errors of the two look alike in the pixels."""
+        explain at least as much (the held-out gain, penalty aside) or explain, per pose held out, not significantly
+        less (paired t and signed-rank z < ``BACKWARD_T``, the rule of the backward pass): a mount is more often off
+        than a calibration, small errors of the two look alike in the pixels, and the extrinsics enter with all six
+        components while the intrinsics enter at their best level (bags/effect_camera_extrinsics: the true
+        ``[x, rz]`` scores better than ``[fx, fy, cx, cy]``, all six slightly worse)."""
         def key(m: Move) -> tuple[float, int, int]:
             new = [t.cand for t in m.model if t not in model]
             return (round(m.delta_L, 6), self.catalogue.n_params(m.model), min(new, default=-1))
@@ -326,8 +329,14 @@ class Selector:
                 added[0].location in mounts if name == "camera_extrinsics" else added[0].location == eff.location)
 
         rival = max((m for m in moves if camera_move(m, "camera_extrinsics")), key=lambda m: m.gain, default=None)
-        own = max(m.gain for m in moves if camera_move(m, "camera_intrinsics"))
-        return rival if rival is not None and rival.gain >= own else best
+        own = max((m for m in moves if camera_move(m, "camera_intrinsics")), key=lambda m: m.gain)
+        if rival is None or not rival.delta_L < 0.0:
+            return best
+        ok = np.isfinite(rival.d) & np.isfinite(own.d)
+        loss = rival.d[ok] - own.d[ok]  # per pose: what the extrinsics explain less than the intrinsics, held out
+        if rival.gain >= own.gain or (ok.sum() >= 3 and max(paired_t(loss), signed_rank_z(loss)) < BACKWARD_T):
+            return rival  # the backward pass then keeps of the mount's six components those the data need
+        return best
 
     # -- backward -------------------------------------------------------------------------------------
     def backward_moves(self, model: tuple[Term, ...]) -> list[Move]:
