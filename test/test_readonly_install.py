@@ -52,19 +52,21 @@ def _set_writable(root: Path, writable: bool) -> None:
         os.chmod(path, (mode | stat.S_IWUSR) if writable else (mode & ~bits))
 
 
+#: why a read-only sandbox cannot be made here (None: it can): file modes and setpriv are Linux's, and root ignores
+#: file modes unless setpriv drops its capabilities
+NO_SANDBOX = ("file modes and setpriv: Linux only" if sys.platform != "linux" else
+              "running as root without setpriv: cannot make a read-only directory unwritable for root"
+              if os.getuid() == 0 and shutil.which("setpriv") is None else None)
+pytestmark = pytest.mark.skipif(NO_SANDBOX is not None, reason=str(NO_SANDBOX))
+
+
 def _wrapper() -> list[str]:
-    if os.getuid() != 0:
-        return []
-    if shutil.which("setpriv") is None:
-        pytest.skip("running as root without setpriv: cannot make a read-only directory unwritable for root")
-    return NO_CAPS
+    return NO_CAPS if os.getuid() == 0 else []
 
 
 @pytest.fixture(scope="module")
 def sandbox() -> dict:
     """The read-only install: ``prefix`` (command wrapper), ``env``, ``root``, ``tmp`` (TMPDIR)."""
-    if sys.platform != "linux":
-        pytest.skip("file modes and setpriv: Linux only")
     root = Path(tempfile.gettempdir()) / f"ppoe-readonly-test-{hashlib.sha1(str(REPO).encode()).hexdigest()[:10]}"
     install, home, tmp = root / "install", root / "home", root / "tmp"
     for path in (install, home):
@@ -85,8 +87,8 @@ def sandbox() -> dict:
     prefix = _wrapper()
     probe = subprocess.run([*prefix, "touch", str(install / "ppoe_core" / "probe"), str(home / "probe")],
                            capture_output=True, text=True)
-    if probe.returncode == 0:
-        pytest.skip("the read-only sandbox is writable here (file modes not enforced); nothing to test")
+    assert probe.returncode != 0, ("the read-only sandbox is writable here (file modes not enforced): the test "
+                                   f"cannot make the install read-only ({probe.stdout}{probe.stderr})")
     return {"prefix": prefix, "env": env, "root": root, "tmp": tmp, "install": install}
 
 
