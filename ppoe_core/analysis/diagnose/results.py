@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from ppoe_core.analysis.diagnose.selection import SelectionOptions
 from ppoe_core.model.effects import Effect
 
 __all__ = ["DiagnoseOptions", "EffectReport", "BlockReport", "StructureTest", "DiagnoseResult"]
@@ -52,13 +53,14 @@ class DiagnoseOptions:
 
     folds: int = 5
     cv: str = "auto"
-    min_t: float = 4.0
-    min_gain: float = 0.0
-    penalty: float | None = None
-    max_condition: float = 1e6
-    max_absorbed: float = 0.999
-    max_effects: int | None = None
-    groups: bool = True
+    # the selection's settings default to the selection's own (one place: SelectionOptions)
+    min_t: float = SelectionOptions.min_t
+    min_gain: float = SelectionOptions.min_gain
+    penalty: float | None = SelectionOptions.penalty
+    max_condition: float = SelectionOptions.max_condition
+    max_absorbed: float = SelectionOptions.max_absorbed
+    max_effects: int | None = SelectionOptions.max_effects
+    groups: bool = SelectionOptions.groups
     seed: int = 0
     candidates: list[str] | None = None
     effects: list[str] | None = None
