@@ -247,6 +247,29 @@ class Probe:
                         f"a subscriber on {pub.topic_name}")
         self.spin_for(settle)
 
+    def call(self, client: Any, request: Any, proc: NodeProcess | None = None, timeout: float = 60.0,
+             settle: float = 1.0, resend_after: float | None = None) -> Any:
+        """Call a service once it is ready; return its answer (AssertionError with the node's log after ``timeout``).
+
+        ``service_is_ready`` is the client's view of discovery: the server's response writer may not have
+        matched the client's reader yet, and Fast DDS then drops the answer after 100 ms ("failed to send
+        response (timeout)"), which a loaded machine reaches. So spin ``settle`` seconds first; an idempotent
+        service may also be asked again every ``resend_after`` seconds without an answer.
+        """
+        self.spin_until(client.service_is_ready, 60, proc, f"service {client.srv_name}")
+        self.spin_for(settle)
+        end = time.monotonic() + timeout
+        while True:
+            future = client.call_async(request)
+            wait = timeout if resend_after is None else min(resend_after, max(0.0, end - time.monotonic()))
+            try:
+                self.spin_until(future.done, wait, proc, f"the answer of {client.srv_name}")
+                return future.result()
+            except AssertionError:
+                if resend_after is None or time.monotonic() >= end:
+                    raise
+                client.remove_pending_request(future)
+
     def wait_for_publishers(self, topic: str, proc: NodeProcess | None = None, n: int = 1,
                             timeout: float = 45.0) -> None:
         """Wait until ``topic`` has ``n`` publishers."""

@@ -90,10 +90,8 @@ def test_take_sample_and_compute_services_live(tmp_path: Path) -> None:
         compute = probe.node.create_client(Trigger, "/ppoe_calibration/compute")
 
         def call(client, timeout: float = 120.0):
-            probe.spin_until(client.service_is_ready, 60, node, f"service {client.srv_name}")
-            future = client.call_async(Trigger.Request())
-            probe.spin_until(future.done, timeout, node, f"the answer of {client.srv_name}")
-            return future.result()
+            settle = 0.0 if client.service_is_ready() else 1.0  # a new client: see Probe.call
+            return probe.call(client, Trigger.Request(), node, timeout, settle=settle)
 
         early = call(compute)
         assert not early.success and "no sample" in early.message

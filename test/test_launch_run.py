@@ -134,6 +134,7 @@ def test_lifecycle_launch_brings_the_nodes_up(tmp_path: Path, monkeypatch: pytes
         js = probe.publisher("/joint_states", JointState, 100)
         client = probe.node.create_client(ChangeState, "/kinematics_node/change_state")
         probe.spin_until(client.service_is_ready, 60, proc, "the lifecycle services")
+        probe.spin_for(1.0)  # the server's answer writer matches after the client sees it (ros_helpers' Probe.call)
         for event in (configure.kwargs["event"], handler.args[0].kwargs["entities"][0].kwargs["event"]):
             if event.kwargs["transition_id"] == Transition.TRANSITION_ACTIVATE:
                 assert js.get_subscription_count() == 0

@@ -27,20 +27,14 @@ def _transition(probe: Probe, node: NodeProcess, name: str, transition_id: int) 
     from lifecycle_msgs.srv import ChangeState
 
     client = probe.node.create_client(ChangeState, f"/{name}/change_state")
-    probe.spin_until(client.service_is_ready, 60, node, f"/{name}/change_state")
-    future = client.call_async(ChangeState.Request(transition=Transition(id=transition_id)))
-    probe.spin_until(future.done, 60, node, f"transition {transition_id}")
-    return bool(future.result().success)
+    return bool(probe.call(client, ChangeState.Request(transition=Transition(id=transition_id)), node).success)
 
 
 def _state(probe: Probe, node: NodeProcess, name: str) -> str:
     from lifecycle_msgs.srv import GetState
 
     client = probe.node.create_client(GetState, f"/{name}/get_state")
-    probe.spin_until(client.service_is_ready, 60, node, f"/{name}/get_state")
-    future = client.call_async(GetState.Request())
-    probe.spin_until(future.done, 30, node, "get_state")
-    return str(future.result().current_state.label)
+    return str(probe.call(client, GetState.Request(), node, resend_after=10.0).current_state.label)
 
 
 def _managed(env: dict, tmp: Path, params: dict, log: str) -> NodeProcess:

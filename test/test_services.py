@@ -25,11 +25,8 @@ pytestmark = pytest.mark.ros
 ROBOTS = REPO / "config" / "robots"
 
 
-def _call(probe: Probe, client, proc: NodeProcess, timeout: float = 30.0):
-    probe.spin_until(client.service_is_ready, 60, proc, f"service {client.srv_name}")
-    future = client.call_async(Trigger.Request())
-    probe.spin_until(future.done, timeout, proc, f"the answer of {client.srv_name}")
-    return future.result()
+def _call(probe: Probe, client, proc: NodeProcess, resend_after: float | None = None):
+    return probe.call(client, Trigger.Request(), proc, resend_after=resend_after)
 
 
 def test_fusion_reset_and_set_pose(tmp_path: Path) -> None:
@@ -98,8 +95,8 @@ def test_online_save_model(tmp_path: Path) -> None:
     cmd = [sys.executable, "-m", "ppoe_ros.common.online_effects", "--ros-args", "-r", "__ns:=/r1"]
     with Probe(env) as probe, NodeProcess([*cmd, "--params-file", str(with_out)], env, tmp_path / "a.log") as a, \
             NodeProcess([*cmd, "-r", "__node:=other", "--params-file", str(without)], env, tmp_path / "b.log") as b:
-        saved = _call(probe, probe.node.create_client(Trigger, "/r1/online_effects_node/save_model"), a)
-        refused = _call(probe, probe.node.create_client(Trigger, "/r1/other/save_model"), b)
+        saved = _call(probe, probe.node.create_client(Trigger, "/r1/online_effects_node/save_model"), a, 10.0)
+        refused = _call(probe, probe.node.create_client(Trigger, "/r1/other/save_model"), b, 10.0)
     assert saved.success and saved.message == f"wrote {out}", saved.message
     assert "written by the online effects of /r1/online_effects_node" in out.read_text()
     assert "base_tilt" in out.read_text()
