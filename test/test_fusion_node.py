@@ -463,16 +463,28 @@ def test_prior_parse_of_the_writers_layout_equals_the_cdr_reader():
                 got, ref = codec.parse(data), pose_cov_from_cdr(data)
                 assert all(np.array_equal(a, b) for a, b in zip(got[:2], ref[:2])) and got[2:] == ref[2:]
                 assert got[2:] == (stamp, frame) and got[1].flags.writeable
+                T_l, cov_l, *rest = codec.parse_local(data)  # the compiled path: cov_ros_to_local's floats
+                assert np.array_equal(T_l, ref[0]) and np.array_equal(cov_l, lie.cov_ros_to_local(*ref[:2]))
+                assert tuple(rest) == (stamp, frame)
+            cov_tool = lie.cov_ros_to_local(T, A @ A.T)
+            assert codec.serialize_local(T, cov_tool, stamp) == codec.serialize(T, lie.cov_local_to_ros(T, cov_tool),
+                                                                                stamp)
+            assert np.array_equal(codec.fields[:3], T[:3, 3]) and np.array_equal(codec.fields[3:7],
+                                                                                 lie.quat_from_matrix(T[:3, :3]))
             other = PoseCovarianceCdr(frame + "_x").serialize(T, A @ A.T, stamp)
             assert codec.parse(other)[3] == frame + "_x"
     padded = bytearray(PoseCovarianceCdr("ab").serialize(np.eye(4), np.eye(6), 5))
     assert len(padded) % 8 == 4 and padded[19] == 0  # "ab\0" at 16..18 and one byte of padding before the pose
     padded[19] = 7
     assert PoseCovarianceCdr("ab").parse(bytes(padded))[3] == "ab"  # padding is not read (rclpy leaves it unset)
-    with pytest.raises(MeasurementError):
-        codec.parse(raw[:-8])
-    with pytest.raises(MeasurementError):
-        codec.parse(b"\x00\x00\x00\x00" + raw[4:])
+    for bad in (raw[:-8], b"\x00\x00\x00\x00" + raw[4:]):
+        for read in (codec.parse, codec.parse_local):
+            with pytest.raises(MeasurementError):
+                read(bad)
+    no_rotation = codec.serialize(np.eye(4), np.eye(6), 5)
+    no_rotation = no_rotation[:-8 * 40] + bytes(8 * 4) + no_rotation[-8 * 36:]  # quaternion 0 0 0 0
+    with pytest.raises(ValueError, match="not a rotation"):
+        codec.parse_local(no_rotation)
 
 
 def test_joint_state_reader_equals_parse_joint_state():

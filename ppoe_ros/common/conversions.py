@@ -187,38 +187,71 @@ _POSE_COV_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 class PoseCovarianceCdr:
     """:func:`pose_cov_stamped_msg` as bytes for a raw publisher (same floats: the quaternion by the same kernel),
     with a fixed ``frame_id``: no typed message is built (publishing a typed message converts it field by field);
-    and :meth:`parse`, :func:`pose_cov_from_cdr` of messages laid out as this writer's.
+    and :meth:`parse`, :func:`pose_cov_from_cdr` of messages laid out as this writer's.  :meth:`parse_local` and
+    :meth:`serialize_local` take the covariance in the tangent space at the pose (the fusion node's per-prior path:
+    one compiled call each, :mod:`ppoe_core.estimation.pose_fields`).
     """
 
     def __init__(self, frame_id: str) -> None:
         from ppoe_core.io.cdr import PoseCovarianceWriter
 
         self.writer = PoseCovarianceWriter(frame_id)
-        #: the pose of the last :meth:`serialize`: ``qx qy qz qw px py pz`` (``lie.quat_from_matrix``'s floats)
-        self.fields = np.empty(7)
+        #: the fields of the last message written: position (3), quaternion x y z w (4), ROS covariance (36)
+        self.fields = self.writer.fields
         template = self.writer.message()
         self._size = len(template)
         self._values_at = self._size - 8 * 43  # position, quaternion, covariance: the message's last 43 doubles
         self._frame = template[12:16 + len(frame_id.encode("utf-8")) + 1]  # frame_id: length, bytes, NUL
+        self._in = np.empty(43)  # the fields of a message read (aligned: the message's doubles are not)
 
     def serialize(self, T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp_ns: int) -> bytes:
         """The message bytes (``cov_ros`` in the ROS convention, ``stamp_ns`` integer nanoseconds)."""
-        f = self.fields
+        f = np.empty(7)
         lie_kernels().pose_fields_one(np.asarray(T_parent_child, dtype=np.float64), f)  # qx qy qz qw px py pz
         return self.writer.serialize(stamp_ns, f[4:7], f[0:4], np.asarray(cov_ros, dtype=np.float64))
+
+    def serialize_local(self, T_parent_child: np.ndarray, cov_child: np.ndarray, stamp_ns: int) -> bytes:
+        """:meth:`serialize` of ``lie.cov_local_to_ros(T_parent_child, cov_child)`` (the same bytes), the fields in
+        one compiled call (:func:`ppoe_core.estimation.pose_fields.fields_from_pose`)."""
+        _pose_fields().fields_from_pose(np.asarray(T_parent_child, dtype=np.float64),
+                                        np.asarray(cov_child, dtype=np.float64), self.fields)
+        _STAMP.pack_into(self.writer.raw, 4, *divmod(int(stamp_ns), 1_000_000_000))  # header.stamp, as the writer
+        return self.writer.message()
 
     def parse(self, raw: bytes) -> tuple[np.ndarray, np.ndarray, int, str]:
         """:func:`pose_cov_from_cdr` of ``raw`` (the same values and errors): a message of this writer's size whose
         ``frame_id`` equals the writer's (and little-endian CDR; the padding after it is not compared: rclpy leaves
         it unset) has its stamp and 43 doubles at the writer's offsets; any other goes through
         :func:`pose_cov_from_cdr`."""
-        if len(raw) != self._size or not raw.startswith(self._frame, 12) or not raw.startswith(_CDR_LE):
+        if not self._same_layout(raw):
             return pose_cov_from_cdr(raw)
         sec, nsec = _STAMP.unpack_from(raw, 4)
         v = np.frombuffer(raw, dtype="<f8", count=43, offset=self._values_at)
         px, py, pz, qx, qy, qz, qw = v[:7].tolist()
         T = _matrix_from_quat_xyz(qx, qy, qz, qw, px, py, pz)
         return T, v[7:].astype(np.float64).reshape(6, 6), sec * 1_000_000_000 + nsec, self.writer.frame_id
+
+    def parse_local(self, raw: bytes) -> tuple[np.ndarray, np.ndarray, int, str]:
+        """:meth:`parse` with the covariance as ``lie.cov_ros_to_local`` gives it (the same floats and errors): for
+        this writer's layout in one compiled call (:func:`ppoe_core.estimation.pose_fields.prior_from_fields`)."""
+        if self._same_layout(raw):
+            self._in[:] = np.frombuffer(raw, dtype="<f8", count=43, offset=self._values_at)
+            T, cov = np.empty((4, 4)), np.empty((6, 6))
+            if _pose_fields().prior_from_fields(self._in, T, cov):
+                sec, nsec = _STAMP.unpack_from(raw, 4)
+                return T, cov, sec * 1_000_000_000 + nsec, self.writer.frame_id
+        T, cov_ros, stamp_ns, frame = self.parse(raw)  # not this layout, or a quaternion that is no rotation (raises)
+        return T, lie.cov_ros_to_local(T, cov_ros), stamp_ns, frame
+
+    def _same_layout(self, raw: bytes) -> bool:
+        return len(raw) == self._size and raw.startswith(self._frame, 12) and raw.startswith(_CDR_LE)
+
+
+def _pose_fields() -> Any:
+    """:mod:`ppoe_core.estimation.pose_fields` (numba), imported on first use."""
+    from ppoe_core.lie.compiled import compiled
+
+    return compiled("ppoe_core.estimation.pose_fields")
 
 
 class JointStateReader:

@@ -306,10 +306,9 @@ class FusionNode(Node):
 
     def _prior(self, data: bytes) -> None:
         self.stats.counts["received"] += 1
-        T, cov_ros, stamp_ns, frame = self._out.parse(data)
+        T, cov_tool, stamp_ns, frame = self._out.parse_local(data)
         if frame != self.prefix + self.base_frame:
             raise MeasurementError(f"prior frame '{frame}' is not base_frame '{self.prefix}{self.base_frame}'")
-        cov_tool = lie.cov_ros_to_local(T, cov_ros)
         if self.online is not None:  # the static model's prior moved to the online effect estimate
             T, cov_tool = self.online.correct_prior(stamp_ns, T, cov_tool, self.base_frame, self.tool_frame)
         newest, topic = self.pipeline.buffer.newest, self.params["prior_topic"]
@@ -396,8 +395,8 @@ class FusionNode(Node):
 
     def _publish(self, T: np.ndarray, cov_tool: np.ndarray, stamp_ns: int) -> None:
         out = self._out
-        self.pub.publish(out.serialize(T, lie.cov_local_to_ros(T, cov_tool), stamp_ns))
-        self.tf.publish_pose(out.fields[4:7], out.fields[0:4], stamp_ns)  # the same quaternion as the message's
+        self.pub.publish(out.serialize_local(T, cov_tool, stamp_ns))
+        self.tf.publish_pose(out.fields[0:3], out.fields[3:7], stamp_ns)  # the message's position and quaternion
         self.stats.counts["published"] += 1
 
     def _sync_counts(self) -> None:
