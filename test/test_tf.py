@@ -165,7 +165,7 @@ def test_one_frame_tf_writer_equals_tf_message_cdr():
             fields = np.empty(7)
             lie_kernels().pose_fields_one(T, fields)
             assert np.array_equal(fields[0:4], lie.quat_from_matrix(T[:3, :3]))
-            data = writer.serialize(fields[4:7], fields[0:4], stamp_ns)
+            data = writer.serialize(np.concatenate([fields[4:7], fields[0:4]]), stamp_ns)
             assert data == tf_message_cdr([TfFrame(parent, child, T)], stamp_ns), (parent, k)
 
 def test_kinematics_node_hot_path_untouched_without_publish_tf(tmp_path):

@@ -248,10 +248,16 @@ class PoseCovarianceCdr:
 
 
 def _pose_fields() -> Any:
-    """:mod:`ppoe_core.estimation.pose_fields` (numba), imported on first use."""
-    from ppoe_core.lie.compiled import compiled
+    """:mod:`ppoe_core.estimation.pose_fields` (numba), imported on the first call and kept (an import statement
+    per message costs more than the kernel call)."""
+    if not _POSE_FIELDS:
+        from ppoe_core.lie.compiled import compiled
 
-    return compiled("ppoe_core.estimation.pose_fields")
+        _POSE_FIELDS.append(compiled("ppoe_core.estimation.pose_fields"))
+    return _POSE_FIELDS[0]
+
+
+_POSE_FIELDS: list[Any] = []
 
 
 class JointStateReader:

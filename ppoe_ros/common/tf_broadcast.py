@@ -99,11 +99,10 @@ class OneFrameTfCdr:
         self._buf = bytearray(tf_message([(parent, child, np.zeros(7))], 0))
         self._pose = np.frombuffer(self._buf, dtype="<f8", count=7, offset=len(self._buf) - 56)
 
-    def serialize(self, position: np.ndarray, quat_xyzw: np.ndarray, stamp_ns: int) -> bytes:
-        """The message bytes at ``stamp_ns`` [ns]: ``position`` (3,), ``quat_xyzw`` (4,)."""
+    def serialize(self, pose: np.ndarray, stamp_ns: int) -> bytes:
+        """The message bytes at ``stamp_ns`` [ns]: ``pose`` (7,) = position x y z, quaternion x y z w."""
         _STAMP.pack_into(self._buf, 8, *divmod(int(stamp_ns), 1_000_000_000))  # after the sequence's length
-        self._pose[0:3] = position
-        self._pose[3:7] = quat_xyzw
+        self._pose[:] = pose
         return bytes(self._buf)
 
 
@@ -206,12 +205,13 @@ class FusionTf:
         """The corrected tool frame on ``/tf`` at ``stamp_ns`` [ns] (the fused pose's), unless it is off."""
         if self._writer is not None:
             T = np.asarray(T_base_tool, dtype=float)
-            self.publish_pose(T[:3, 3], lie.quat_from_matrix(T[:3, :3]), stamp_ns)
+            self.publish_pose(np.concatenate([T[:3, 3], lie.quat_from_matrix(T[:3, :3])]), stamp_ns)
 
-    def publish_pose(self, position: np.ndarray, quat_xyzw: np.ndarray, stamp_ns: int) -> None:
-        """:meth:`publish` of the pose as ``position`` (3,) and ``quat_xyzw`` (4,) (``lie.quat_from_matrix``'s)."""
+    def publish_pose(self, pose: np.ndarray, stamp_ns: int) -> None:
+        """:meth:`publish` of the pose as ``pose`` (7,): position x y z, quaternion x y z w
+        (``lie.quat_from_matrix``'s)."""
         if self._writer is not None and self.broadcaster is not None:
-            self.broadcaster.pub.publish(self._writer.serialize(position, quat_xyzw, stamp_ns))
+            self.broadcaster.pub.publish(self._writer.serialize(pose, stamp_ns))
 
 
 class KinematicsTf:

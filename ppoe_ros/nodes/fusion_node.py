@@ -396,7 +396,7 @@ class FusionNode(Node):
     def _publish(self, T: np.ndarray, cov_tool: np.ndarray, stamp_ns: int) -> None:
         out = self._out
         self.pub.publish(out.serialize_local(T, cov_tool, stamp_ns))
-        self.tf.publish_pose(out.fields[0:3], out.fields[3:7], stamp_ns)  # the message's position and quaternion
+        self.tf.publish_pose(out.fields[:7], stamp_ns)  # the message's position and quaternion
         self.stats.counts["published"] += 1
 
     def _sync_counts(self) -> None:
