@@ -32,11 +32,11 @@ def _one_kernel() -> tuple:
 
 
 def _kernel() -> tuple:
-    """``(eval_chain, CHUNK, FOURTH_WORK)`` of :mod:`ppoe_core.model.chain_kernel`."""
+    """``(eval_chain, FOURTH_WORK)`` of :mod:`ppoe_core.model.chain_kernel`."""
     if not _KERNEL:
-        from ppoe_core.model.chain_kernel import CHUNK, FOURTH_WORK, eval_chain
+        from ppoe_core.model.chain_kernel import FOURTH_WORK, eval_chain
 
-        _KERNEL.append((eval_chain, CHUNK, FOURTH_WORK))
+        _KERNEL.append((eval_chain, FOURTH_WORK))
     return _KERNEL[0]
 
 
@@ -69,7 +69,7 @@ def evaluate(ch: Chain, theta: Array, D: Array | None, order: int = 2, want_cols
     J : ndarray, shape (n_motion, 6, N), or None
         Local columns of unit joint motions (before the joint's sign / multiplier).
     """
-    eval_chain, CHUNK, FOURTH_WORK = _kernel()
+    eval_chain, FOURTH_WORK = _kernel()
     N = theta.shape[1]
     F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start = ch.program
     m = col_pos.shape[0]
@@ -79,7 +79,7 @@ def evaluate(ch: Chain, theta: Array, D: Array | None, order: int = 2, want_cols
     J = np.empty((mot_pos.shape[0], 6, N if want_jac else 0))
     Dc = _NO_D if D is None or D.shape[0] == 0 else np.ascontiguousarray(D, dtype=float)
     # the fourth-order code is compiled only into the specialisation that gets its work array
-    fourth = np.empty(FOURTH_WORK + (min(N, CHUNK),)) if order == 4 and m > 0 else None
+    fourth = np.empty(FOURTH_WORK + (1,)) if order == 4 and m > 0 else None
     eval_chain(F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start, np.ascontiguousarray(theta, dtype=float),
                Dc, order if m > 0 else 0, T, cov, G, J, fourth)
     return T, (cov if order else None), (G if want_cols else None), (J if want_jac else None)
