@@ -108,13 +108,13 @@ def _angles(theta: np.ndarray, n0: int, C: int, cs: np.ndarray) -> None:
             cs[m, 1, 0] = np.cos(theta[m, n0])
         return
     for m in range(theta.shape[0]):
-        big = 0.0
+        big = False  # an OR, not a max: a floating-point max reduction would keep the loop scalar
         for n in range(C):
             s, c = sincos(theta[m, n0 + n])
             cs[m, 0, n] = s
             cs[m, 1, n] = c
-            big = max(big, abs(theta[m, n0 + n]))
-        if big > SINCOS_LIMIT:
+            big = big | (abs(theta[m, n0 + n]) > SINCOS_LIMIT)
+        if big:
             for n in range(C):
                 if abs(theta[m, n0 + n]) > SINCOS_LIMIT:
                     cs[m, 0, n] = np.sin(theta[m, n0 + n])

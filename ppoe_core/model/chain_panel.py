@@ -46,14 +46,14 @@ def _angles(theta: np.ndarray, n0: int, C: int, P: np.ndarray, cs: int) -> None:
     """Rows ``cs + 2 m``, ``cs + 2 m + 1`` = sine, cosine of motion ``m`` (:func:`sincos`; numpy's beyond
     :data:`SINCOS_LIMIT`, as :func:`ppoe_core.model.chain_kernel._angles`)."""
     for m in range(theta.shape[0]):
-        big = 0.0
+        big = False  # an OR, not a max: a floating-point max reduction would keep the loop scalar
         R = _rows(P, cs + 2 * m, 2)
         for n in range(C):
             s, c = sincos(theta[m, n0 + n])
             R[n] = s
             R[CHUNK + n] = c
-            big = max(big, abs(theta[m, n0 + n]))
-        if big > SINCOS_LIMIT:
+            big = big | (abs(theta[m, n0 + n]) > SINCOS_LIMIT)
+        if big:
             for n in range(C):
                 if abs(theta[m, n0 + n]) > SINCOS_LIMIT:
                     R[n] = np.sin(theta[m, n0 + n])
@@ -91,12 +91,22 @@ def _rot_z(o: np.ndarray, x: np.ndarray, r: np.ndarray, C: int) -> None:
     for n in range(C):
         s = r[n]
         c = r[CHUNK + n]
-        for j in range(4):
-            a = x[j * CHUNK + n]
-            b = x[(4 + j) * CHUNK + n]
-            o[j * CHUNK + n] = c * a - s * b
-            o[(4 + j) * CHUNK + n] = s * a + c * b
-            o[(8 + j) * CHUNK + n] = x[(8 + j) * CHUNK + n]
+        a, b = x[n], x[4 * CHUNK + n]
+        o[n] = c * a - s * b
+        o[4 * CHUNK + n] = s * a + c * b
+        o[8 * CHUNK + n] = x[8 * CHUNK + n]
+        a, b = x[CHUNK + n], x[5 * CHUNK + n]
+        o[CHUNK + n] = c * a - s * b
+        o[5 * CHUNK + n] = s * a + c * b
+        o[9 * CHUNK + n] = x[9 * CHUNK + n]
+        a, b = x[2 * CHUNK + n], x[6 * CHUNK + n]
+        o[2 * CHUNK + n] = c * a - s * b
+        o[6 * CHUNK + n] = s * a + c * b
+        o[10 * CHUNK + n] = x[10 * CHUNK + n]
+        a, b = x[3 * CHUNK + n], x[7 * CHUNK + n]
+        o[3 * CHUNK + n] = c * a - s * b
+        o[7 * CHUNK + n] = s * a + c * b
+        o[11 * CHUNK + n] = x[11 * CHUNK + n]
 
 
 @njit(cache=True, fastmath=FASTMATH)
