@@ -22,11 +22,13 @@ Compile time and speed (docs/performance.md): the fourth-order code is compiled 
 that are given its work array (``fourth``): numba prunes the ``fourth is None`` branch when the argument's type is
 ``none``, so a second-order caller (the kinematics node's default) never compiles it (about half of the cold
 compile).  The working set of a call is sized ``min(N, CHUNK)`` (one configuration allocates 3 KB, not 100 KB), the
-covariance accumulates in two vectorised passes per column (the column into ``g``, then the 21 products), and
-``fastmath={"contract"}`` lets LLVM fuse multiply-adds (results differ from separate rounding in the last bit).  The
-joint angles' sines and cosines are :func:`sincos` (Cephes' reduction and polynomials, within 2 ulp of libm's, no
-call): libm's are called one angle at a time and kept the loop scalar; with it the batched order-2 FK went 2.0 ->
-2.5 M configurations/s (bench/bench_fk.py, under load; 32 configurations per chunk was slower than 64).
+covariance accumulates in two vectorised passes per column (the column into ``g``, then the 21 products; a column
+without rotation only its six non-zero products), and ``fastmath={"contract"}`` lets LLVM fuse multiply-adds
+(results differ from separate rounding in the last bit).  The joint angles' sines and cosines are :func:`sincos`
+(Cephes' reduction and polynomials, within 2 ulp of libm's, no call), in a loop whose big-angle test is an OR (a
+floating-point max reduction kept it scalar).  Two or more configurations at order 0 or 2 without the columns take
+the same expressions on another layout, :mod:`ppoe_core.model.chain_panel` (about 1.5-2x faster); this kernel
+serves one configuration, the fourth order and the columns.
 """
 
 from __future__ import annotations
