@@ -48,7 +48,7 @@ def evaluate(ch: Chain, theta: Array, D: Array | None, order: int = 2, want_cols
 
     The compiled kernel :func:`ppoe_core.model.chain_kernel.eval_chain` (suffix products from the chain's end, paper
     eq. 15/18); two or more configurations at order 0 or 2 without the columns take its panel layout
-    (:func:`ppoe_core.model.chain_panel.eval_panels`: the same expressions, the same bits, faster).
+    (:func:`ppoe_core.model.chain_panel.eval_panels`: the same expressions, to a few ulp, faster).
 
     Parameters
     ----------
@@ -81,7 +81,7 @@ def evaluate(ch: Chain, theta: Array, D: Array | None, order: int = 2, want_cols
     cov = (np.empty if m > 0 else np.zeros)((N if order else 0, 6, 6))
     th = np.ascontiguousarray(theta, dtype=float)
     Dc = _NO_D if D is None or D.shape[0] == 0 else np.ascontiguousarray(D, dtype=float)
-    if N > 1 and order != 4 and not want_cols and not want_jac:  # the batched fast path, same bits
+    if N > 1 and order != 4 and not want_cols and not want_jac:  # the batched fast path, same expressions
         eval_panels(F, kind, arg, col_pos, X, th, Dc, order if m > 0 else 0, T, cov)
         return T, (cov if order else None), None, None
     G = np.empty((m, 6, N if want_cols else 0))

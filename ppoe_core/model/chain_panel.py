@@ -3,7 +3,8 @@ second-order covariances ``cov = G^T G`` (paper eq. 15/18, tangent space at the 
 configurations, the batched FK's fast path (:func:`ppoe_core.model.chain_eval.evaluate` takes it for two or more
 configurations at order 0 or 2 without the columns; everything else is :func:`ppoe_core.model.chain_kernel.eval_chain`).
 
-The arithmetic is :func:`~ppoe_core.model.chain_kernel.eval_chain`'s, expression for expression (same bits); what
+The arithmetic is :func:`~ppoe_core.model.chain_kernel.eval_chain`'s, expression for expression (the compiler may fuse
+multiply-adds differently: covariances agree to a few ulp of their largest entry, test/test_chain_kernel.py); what
 differs is the layout.  A chunk's working set is one flat array of *panels*, rows of :data:`CHUNK` configurations:
 the suffix products ``S[k]`` (12 rows each), the 21 rows of the covariance's upper triangle and the motions' sines
 and cosines.  Because the row stride is a compile-time constant, every loop over the configurations has one
