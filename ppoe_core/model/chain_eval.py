@@ -32,11 +32,13 @@ def _one_kernel() -> tuple:
 
 
 def _kernel() -> tuple:
-    """``(eval_chain, CHUNK, FOURTH_WORK)`` of :mod:`ppoe_core.model.chain_kernel`."""
+    """``(eval_chain, eval_panels, FOURTH_WORK)`` of :mod:`ppoe_core.model.chain_kernel` and
+    :mod:`ppoe_core.model.chain_panel`."""
     if not _KERNEL:
-        from ppoe_core.model.chain_kernel import CHUNK, FOURTH_WORK, eval_chain
+        from ppoe_core.model.chain_kernel import FOURTH_WORK, eval_chain
+        from ppoe_core.model.chain_panel import eval_panels
 
-        _KERNEL.append((eval_chain, CHUNK, FOURTH_WORK))
+        _KERNEL.append((eval_chain, eval_panels, FOURTH_WORK))
     return _KERNEL[0]
 
 
@@ -44,8 +46,9 @@ def evaluate(ch: Chain, theta: Array, D: Array | None, order: int = 2, want_cols
              want_jac: bool = False) -> tuple[Array, Array | None, Array | None, Array | None]:
     """Mean poses, covariances, local covariance columns and joint-motion columns of a chain.
 
-    One implementation for one and many configurations: the compiled kernel
-    :func:`ppoe_core.model.chain_kernel.eval_chain` (suffix products from the chain's end, paper eq. 15/18).
+    The compiled kernel :func:`ppoe_core.model.chain_kernel.eval_chain` (suffix products from the chain's end, paper
+    eq. 15/18); two or more configurations at order 0 or 2 without the columns take its panel layout
+    (:func:`ppoe_core.model.chain_panel.eval_panels`: the same expressions, to a few ulp, faster).
 
     Parameters
     ----------
@@ -69,19 +72,24 @@ def evaluate(ch: Chain, theta: Array, D: Array | None, order: int = 2, want_cols
     J : ndarray, shape (n_motion, 6, N), or None
         Local columns of unit joint motions (before the joint's sign / multiplier).
     """
-    eval_chain, CHUNK, FOURTH_WORK = _kernel()
+    eval_chain, eval_panels, FOURTH_WORK = _kernel()
     N = theta.shape[1]
     F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start = ch.program
     m = col_pos.shape[0]
     T = np.empty((N, 4, 4))
-    cov = np.zeros((N if order else 0, 6, 6))  # zeros stay when the chain has no perturbation
+    # the kernels write every entry of a covariance when the chain has columns; zeros stay when it has none
+    cov = (np.empty if m > 0 else np.zeros)((N if order else 0, 6, 6))
+    th = np.ascontiguousarray(theta, dtype=float)
+    Dc = _NO_D if D is None or D.shape[0] == 0 else np.ascontiguousarray(D, dtype=float)
+    if N > 1 and order != 4 and not want_cols and not want_jac:  # the batched fast path, same expressions
+        eval_panels(F, kind, arg, col_pos, X, th, Dc, order if m > 0 else 0, T, cov)
+        return T, (cov if order else None), None, None
     G = np.empty((m, 6, N if want_cols else 0))
     J = np.empty((mot_pos.shape[0], 6, N if want_jac else 0))
-    Dc = _NO_D if D is None or D.shape[0] == 0 else np.ascontiguousarray(D, dtype=float)
     # the fourth-order code is compiled only into the specialisation that gets its work array
-    fourth = np.empty(FOURTH_WORK + (min(N, CHUNK),)) if order == 4 and m > 0 else None
-    eval_chain(F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start, np.ascontiguousarray(theta, dtype=float),
-               Dc, order if m > 0 else 0, T, cov, G, J, fourth)
+    fourth = np.empty(FOURTH_WORK + (1,)) if order == 4 and m > 0 else None
+    eval_chain(F, kind, arg, col_pos, X, mot_pos, mot_kind, site_start, th, Dc, order if m > 0 else 0, T, cov, G, J,
+               fourth)
     return T, (cov if order else None), (G if want_cols else None), (J if want_jac else None)
 
 

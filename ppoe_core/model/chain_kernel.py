@@ -22,11 +22,13 @@ Compile time and speed (docs/performance.md): the fourth-order code is compiled 
 that are given its work array (``fourth``): numba prunes the ``fourth is None`` branch when the argument's type is
 ``none``, so a second-order caller (the kinematics node's default) never compiles it (about half of the cold
 compile).  The working set of a call is sized ``min(N, CHUNK)`` (one configuration allocates 3 KB, not 100 KB), the
-covariance accumulates in two vectorised passes per column (the column into ``g``, then the 21 products), and
-``fastmath={"contract"}`` lets LLVM fuse multiply-adds (results differ from separate rounding in the last bit).  The
-joint angles' sines and cosines are :func:`sincos` (Cephes' reduction and polynomials, within 2 ulp of libm's, no
-call): libm's are called one angle at a time and kept the loop scalar; with it the batched order-2 FK went 2.0 ->
-2.5 M configurations/s (bench/bench_fk.py, under load; 32 configurations per chunk was slower than 64).
+covariance accumulates in two vectorised passes per column (the column into ``g``, then the 21 products; a column
+without rotation only its six non-zero products), and ``fastmath={"contract"}`` lets LLVM fuse multiply-adds
+(results differ from separate rounding in the last bit).  The joint angles' sines and cosines are :func:`sincos`
+(Cephes' reduction and polynomials, within 2 ulp of libm's, no call), in a loop whose big-angle test is an OR (a
+floating-point max reduction kept it scalar).  Two or more configurations at order 0 or 2 without the columns take
+the same expressions on another layout, :mod:`ppoe_core.model.chain_panel` (about 1.5-2x faster); this kernel
+serves one configuration, the fourth order and the columns.
 """
 
 from __future__ import annotations
@@ -34,14 +36,17 @@ from __future__ import annotations
 import numpy as np
 from ppoe_core.jit import njit
 
-from ppoe_core.model.fourth_order import compound_chunk
+from ppoe_core.model.fourth_order import CHUNK as PANEL
+from ppoe_core.model.fourth_order import PACKED, compound_chunk
 
 __all__ = ["CHUNK", "FOURTH_WORK", "SINCOS_LIMIT", "eval_chain", "fk_one", "sincos"]
 
-#: configurations per chunk (the working set ``(n_f + 1, 3, 4, CHUNK)`` stays in cache)
-CHUNK = 64
-#: leading shape of the fourth-order work array ``fourth`` of :func:`eval_chain` (its last axis: >= min(N, CHUNK))
-FOURTH_WORK = (29, 3, 3)
+#: configurations per chunk (the working set ``(n_f + 1, 3, 4, CHUNK)`` stays in cache); at most the fourth-order
+#: compounding's panel width (:data:`ppoe_core.model.fourth_order.CHUNK`)
+CHUNK = PANEL
+#: leading shape of the fourth-order work array ``fourth`` of :func:`eval_chain` and :func:`fk_one` (any last axis,
+#: e.g. 1): four panels of packed covariances (:mod:`~ppoe_core.model.fourth_order`)
+FOURTH_WORK = (4, PACKED * PANEL)
 #: floating-point flags of every kernel here: fused multiply-add allowed, nothing else (no reassociation)
 FASTMATH = {"contract"}
 
@@ -105,13 +110,13 @@ def _angles(theta: np.ndarray, n0: int, C: int, cs: np.ndarray) -> None:
             cs[m, 1, 0] = np.cos(theta[m, n0])
         return
     for m in range(theta.shape[0]):
-        big = 0.0
+        big = False  # an OR, not a max: a floating-point max reduction would keep the loop scalar
         for n in range(C):
             s, c = sincos(theta[m, n0 + n])
             cs[m, 0, n] = s
             cs[m, 1, n] = c
-            big = max(big, abs(theta[m, n0 + n]))
-        if big > SINCOS_LIMIT:
+            big = big | (abs(theta[m, n0 + n]) > SINCOS_LIMIT)
+        if big:
             for n in range(C):
                 if abs(theta[m, n0 + n]) > SINCOS_LIMIT:
                     cs[m, 0, n] = np.sin(theta[m, n0 + n])
@@ -217,11 +222,33 @@ def _cov_one(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, acc: np.ndarray)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _cov_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, C: int, acc: np.ndarray, g: np.ndarray) -> None:
-    """Upper triangle of ``G^T G`` (21 entries per configuration, row by row) into ``acc`` (21, C): per column, the
-    column into ``g`` (6, C), then the 21 products (two simple loops over the configurations, both vectorised)."""
-    acc[:, :C] = 0.0
-    for c in range(col_pos.shape[0]):
+def _translation_products(B: np.ndarray, X: np.ndarray, c: int, C: int, acc: np.ndarray) -> None:
+    """:func:`_accumulate` of a column without rotation (``w = 0`` exactly): the column is ``[R^T v; 0]``, so only
+    the six products of its rr block are not exactly zero (the others would add ``+-0``: skipping them gives the
+    same bits)."""
+    v0, v1, v2 = X[c, 0, 0], X[c, 0, 1], X[c, 0, 2]
+    for n in range(C):
+        g0 = v0 * B[0, 0, n] + v1 * B[1, 0, n] + v2 * B[2, 0, n]
+        g1 = v0 * B[0, 1, n] + v1 * B[1, 1, n] + v2 * B[2, 1, n]
+        g2 = v0 * B[0, 2, n] + v1 * B[1, 2, n] + v2 * B[2, 2, n]
+        acc[0, n] += g0 * g0
+        acc[1, n] += g0 * g1
+        acc[2, n] += g0 * g2
+        acc[6, n] += g1 * g1
+        acc[7, n] += g1 * g2
+        acc[11, n] += g2 * g2
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _accumulate(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, c_lo: int, c_hi: int, C: int, acc: np.ndarray,
+                g: np.ndarray) -> None:
+    """``acc[:, :C] +=`` the upper triangle (21 rows, row by row) of ``G^T G`` over the columns ``c_lo .. c_hi``: per
+    column, the column into ``g`` (6, C), then the 21 products (two simple loops over the configurations, both
+    vectorised); a column without rotation takes :func:`_translation_products`."""
+    for c in range(c_lo, c_hi):
+        if X[c, 1, 0] == 0.0 and X[c, 1, 1] == 0.0 and X[c, 1, 2] == 0.0:
+            _translation_products(S[col_pos[c]], X, c, C, acc)
+            continue
         _column_rows(S[col_pos[c]], X, c, C, g, 0)
         k = 0
         for i in range(6):
@@ -229,6 +256,13 @@ def _cov_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, C: int, acc: n
                 for n in range(C):
                     acc[k, n] += g[i, n] * g[j, n]
                 k += 1
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _cov_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, C: int, acc: np.ndarray, g: np.ndarray) -> None:
+    """Upper triangle of ``G^T G`` (21 entries per configuration, row by row) into ``acc`` (21, C)."""
+    acc[:, :C] = 0.0
+    _accumulate(S, col_pos, X, 0, col_pos.shape[0], C, acc, g)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -278,24 +312,28 @@ def _write_chunk(S: np.ndarray, acc: np.ndarray, want_cov: bool, n0: int, C: int
 
 @njit(cache=True, fastmath=FASTMATH)
 def _fourth_chunk(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, site_start: np.ndarray, C: int,
-                  Gc: np.ndarray, Sk: np.ndarray, cov4: np.ndarray, W: np.ndarray) -> None:
-    """Fourth-order covariance (Barfoot & Furgale 2014) of the chunk into ``cov4`` (6, 6, C): the local site
-    covariances ``Sigma_k = G_k^T G_k`` compounded in chain order."""
-    _columns_chunk(S, col_pos, X, 0, C, Gc)
-    for k in range(site_start.shape[0] - 1):
-        target = cov4 if k == 0 else Sk
-        target[:, :, :C] = 0.0
+                  W: np.ndarray) -> int:
+    """Fourth-order covariance (Barfoot & Furgale 2014) of the chunk: the local site covariances
+    ``Sigma_k = G_k^T G_k`` (upper triangles, :func:`_accumulate`) compounded in chain order
+    (:func:`~ppoe_core.model.fourth_order.compound_chunk`).  ``W`` (4, PACKED, PANEL): two result panels, the
+    site's covariance, the column.  A site whose columns are all exactly zero is skipped (compounding with a zero
+    covariance gives the same bits).  Returns the buffer (0 or 1) holding the result."""
+    a = 0
+    W[0, :, :C] = 0.0
+    _accumulate(S, col_pos, X, site_start[0], site_start[1], C, W[0], W[3])
+    for k in range(1, site_start.shape[0] - 1):
+        zero = True
         for c in range(site_start[k], site_start[k + 1]):
-            for i in range(6):
-                for j in range(i, 6):
-                    for n in range(C):
-                        target[i, j, n] += Gc[c, i, n] * Gc[c, j, n]
-        for i in range(6):
-            for j in range(i + 1, 6):
-                for n in range(C):
-                    target[j, i, n] = target[i, j, n]
-        if k > 0:
-            compound_chunk(cov4, Sk, cov4, C, W)
+            for i in range(2):
+                for j in range(3):
+                    zero = zero and X[c, i, j] == 0.0
+        if zero:
+            continue
+        W[2, :, :C] = 0.0
+        _accumulate(S, col_pos, X, site_start[k], site_start[k + 1], C, W[2], W[3])
+        compound_chunk(W[a], W[2], W[1 - a], C)
+        a = 1 - a
+    return a
 
 
 @njit(cache=True, fastmath=FASTMATH)
@@ -348,14 +386,15 @@ def eval_chain(F: np.ndarray, kind: np.ndarray, arg: np.ndarray, col_pos: np.nda
 def _fourth_into(S: np.ndarray, col_pos: np.ndarray, X: np.ndarray, site_start: np.ndarray, n0: int, C: int,
                  W: np.ndarray, cov: np.ndarray) -> None:
     """Fourth-order covariances of the chunk (:func:`_fourth_chunk`) into ``cov[n0 : n0 + C]``."""
-    Gc = np.empty((col_pos.shape[0], 6, C))
-    Sk = np.empty((6, 6, C))
-    cov4 = np.empty((6, 6, C))
-    _fourth_chunk(S, col_pos, X, site_start, C, Gc, Sk, cov4, W)
+    panels = W.reshape(W.size)[: 4 * PACKED * PANEL].reshape((4, PACKED, PANEL))
+    P = panels[_fourth_chunk(S, col_pos, X, site_start, C, panels)]
     for n in range(C):
+        k = 0
         for i in range(6):
-            for j in range(6):
-                cov[n0 + n, i, j] = cov4[i, j, n]
+            for j in range(i, 6):
+                cov[n0 + n, i, j] = P[k, n]
+                cov[n0 + n, j, i] = P[k, n]
+                k += 1
 
 
 @njit(cache=True, fastmath=FASTMATH)
