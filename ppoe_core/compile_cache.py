@@ -23,6 +23,14 @@ without any logging set-up) when the cache is not the package directory, as that
 when numba is first imported (:func:`ensure_compile_timer`), so commands that never compile (``ppoe record``)
 stay fast.
 
+numba checks a cached kernel only against the modification time of *its own* module: a kernel that calls (and
+so inlines) a kernel of another module keeps the old code when only that other module changes (an upgrade
+installs new files beside the old caches, which pip does not remove).  So the cache carries a stamp, the SHA-1
+of every package module that mentions numba (:func:`kernel_sources_digest`, about 4 ms); when the sources no
+longer match it, :func:`drop_stale_kernels` removes this package's cached kernels before numba reads them (one
+log line says how many), and writes the new stamp.  A location that cannot be written (a read-only install
+warmed at install time) is left as it is.
+
 Public API (issue 24's warm-up builds on it): :func:`configure_compile_cache`, :func:`cache_location`,
 :func:`kernel_cache_dir`, :func:`compile_stats`, :class:`CacheLocation`, :class:`CompileStats`.
 """
@@ -30,6 +38,7 @@ Public API (issue 24's warm-up builds on it): :func:`configure_compile_cache`, :
 from __future__ import annotations
 
 import atexit
+import contextlib
 import hashlib
 import importlib.abc
 import importlib.util
@@ -53,7 +62,9 @@ __all__ = [
     "choose_cache_location",
     "compile_stats",
     "configure_compile_cache",
+    "drop_stale_kernels",
     "ensure_compile_timer",
+    "kernel_sources_digest",
     "kernel_cache_dir",
 ]
 
@@ -65,6 +76,10 @@ ENV_CACHE_DIR = "NUMBA_CACHE_DIR"
 CACHE_NAME = "ppoe"
 #: the package whose kernels are cached (this file's directory)
 PACKAGE_DIR = Path(__file__).resolve().parent
+#: file, in the first cache directory of the package, holding the kernel sources' digest the cache was built from
+STAMP_NAME = "ppoe_kernel_sources.sha1"
+#: numba's cache files: the index (``.nbi``) and the compiled code (``.nbc``)
+NUMBA_CACHE_SUFFIXES = (".nbi", ".nbc")
 
 
 class CacheLocation(NamedTuple):
@@ -220,6 +235,7 @@ def configure_compile_cache(force: bool = False) -> CacheLocation:
     elif loc.kind in ("package", "none"):
         os.environ.pop(ENV_CACHE_DIR, None)  # an unwritable user value would only make numba fail
     _state["location"] = loc
+    drop_stale_kernels(loc)
     if "numba" in sys.modules:
         ensure_compile_timer()
     elif not any(isinstance(finder, _AfterNumbaImport) for finder in sys.meta_path):
@@ -228,16 +244,63 @@ def configure_compile_cache(force: bool = False) -> CacheLocation:
     return loc
 
 
+def kernel_sources_digest(package_dir: Path | None = None) -> str:
+    """SHA-1 over the path and bytes of every module of the package that mentions numba (sorted by path)."""
+    package_dir = PACKAGE_DIR if package_dir is None else Path(package_dir)
+    digest = hashlib.sha1()
+    for directory in _package_dirs(package_dir):
+        for path in sorted(directory.glob("*.py")):
+            data = path.read_bytes()
+            if b"numba" in data:
+                digest.update(str(path.relative_to(package_dir)).encode() + b"\0" + data)
+    return digest.hexdigest()
+
+
+def drop_stale_kernels(loc: CacheLocation, package_dir: Path | None = None) -> int:
+    """Remove the package's cached kernels when its kernel sources changed since the stamp; return how many files.
+
+    Writes the current digest as the stamp (nothing happens where the cache cannot be written).
+    """
+    package_dir = PACKAGE_DIR if package_dir is None else Path(package_dir)
+    if loc.directory is None:
+        return 0
+    dirs = [kernel_cache_dir(d / "__init__.py", loc) for d in _package_dirs(package_dir)]
+    stamp = dirs[0] / STAMP_NAME if dirs and dirs[0] is not None else None
+    if stamp is None:
+        return 0
+    now = kernel_sources_digest(package_dir)
+    try:
+        if stamp.read_text().strip() == now:
+            return 0
+    except OSError:
+        pass
+    removed = 0
+    for directory in dirs:
+        for path in directory.glob("*") if directory is not None and directory.is_dir() else ():
+            if path.suffix in NUMBA_CACHE_SUFFIXES:
+                with contextlib.suppress(OSError):
+                    path.unlink()
+                    removed += 1
+    try:
+        stamp.parent.mkdir(parents=True, exist_ok=True)
+        stamp.write_text(now + "\n")
+    except OSError:
+        return removed
+    if removed:
+        LOG.info(f"kernel sources changed since the cache was written: removed {removed} cached kernel file(s)")
+    return removed
+
+
 def cache_location() -> CacheLocation:
     """The location chosen for this process (:func:`configure_compile_cache` runs if it has not)."""
     return configure_compile_cache()
 
 
-def kernel_cache_dir(source_file: str | os.PathLike[str]) -> Path | None:
-    """Directory where numba caches the kernels of module file ``source_file`` at the chosen location
-    (numba's own layout: ``__pycache__`` beside it for kind ``"package"``, else ``<dir>/<parent>_<sha1>``);
-    ``None`` when caching is off."""
-    loc = cache_location()
+def kernel_cache_dir(source_file: str | os.PathLike[str], loc: CacheLocation | None = None) -> Path | None:
+    """Directory where numba caches the kernels of module file ``source_file`` at location ``loc`` (default:
+    the chosen one; numba's own layout: ``__pycache__`` beside it for kind ``"package"``, else
+    ``<dir>/<parent>_<sha1>``); ``None`` when caching is off."""
+    loc = cache_location() if loc is None else loc
     src = Path(os.path.abspath(source_file))
     if loc.directory is None:
         return None

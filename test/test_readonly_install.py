@@ -216,3 +216,36 @@ def test_nothing_writable_switches_caching_off_instead_of_failing(tmp_path):
                                        "kernels (none; nothing writable (test))", "0"], res.stdout
     assert "compiled 1 numba kernel(s)" in res.stderr and "not cached (caching is off)" in res.stderr, res.stderr
     assert not list(tmp_path.rglob("*.nbi")), "nothing cached"
+
+
+def test_a_changed_kernel_module_drops_the_kernels_that_inlined_it(tmp_path):
+    """numba checks a cached kernel against its own module only: ``outer`` (module b) calls ``inner`` (module a);
+    after a.py changes, numba alone still runs the old ``inner`` inside the cached ``outer``; with the stamp
+    (``drop_stale_kernels``, run at ``import ppoe_core``) the package's kernels are dropped and recompiled."""
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from numba import njit\n\n@njit(cache=True)\ndef inner(x):\n    return x + 1\n")
+    (pkg / "b.py").write_text("from numba import njit\nfrom pkg.a import inner\n\n"
+                              "@njit(cache=True)\ndef outer(x):\n    return inner(x) * 10\n")
+    cache = tmp_path / "cache"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(tmp_path)]), "NUMBA_CACHE_DIR": str(cache)}
+
+    def run(drop: bool) -> tuple[str, str]:
+        code = ("import logging, pathlib; logging.basicConfig(level=logging.INFO)\n"
+                "import ppoe_core.compile_cache as c\n"
+                f"loc = c.CacheLocation(pathlib.Path({str(cache)!r}), 'environment', '')\n"
+                f"{'print(c.drop_stale_kernels(loc, pathlib.Path(' + repr(str(pkg)) + ')))' if drop else ''}\n"
+                "import pkg.b\nprint(pkg.b.outer(1))\n")
+        res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+        assert res.returncode == 0, res.stderr
+        return res.stdout.split()[-1], res.stderr
+
+    assert run(drop=True)[0] == "20"  # first run: nothing to drop, the stamp is written
+    assert run(drop=False)[0] == "20" and list(cache.rglob("*.nbi"))
+    (pkg / "a.py").write_text("from numba import njit\n\n@njit(cache=True)\ndef inner(x):\n    return x + 2\n")
+    assert run(drop=False)[0] == "20", "numba alone keeps the stale inlined kernel (the reason for the stamp)"
+    value, log = run(drop=True)
+    assert value == "30" and "kernel sources changed since the cache was written: removed" in log, log
+    value, log = run(drop=True)
+    assert value == "30" and "removed" not in log  # stamp current: the fresh cache is kept
