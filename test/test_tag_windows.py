@@ -146,3 +146,23 @@ def test_evaluate_tag_stream_with_predicted_windows_equals_the_whole_images(bag)
         assert a.stamp == b.stamp
         for f in ("ids", "corners", "xy", "uv"):
             np.testing.assert_array_equal(getattr(a.payload, f), getattr(b.payload, f))
+
+
+def test_predicted_windows_without_a_prediction_leave_the_whole_image():
+    from ppoe_core.analysis.evaluate.tag_prediction import predicted_windows
+
+    path = REPO / "bags" / "table1_exp1"
+    my = REPO / "config" / "robots" / BAGS["table1_exp1"]
+    data = read_bag(path)
+    model = replay._load_model(data.require_robot_description(), my, str(path))
+    Q = np.zeros((1, len(model.joint_names)))
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    cam = data.camera_info.frame_ids[0]
+    # a frame the URDF does not know, an image without a camera model
+    wins = predicted_windows(model, ["no_such_frame", cam], np.array([1.0, 1.0]),
+                             lambda i: None if i == 1 else (K, np.zeros(5)), np.array([0.0]), Q)
+    assert wins == [None, None]
+    # with a camera: every window is an integer box around a tag the model has, ids only of tags facing the camera
+    got = predicted_windows(model, [cam], np.array([1.0]), lambda i: (K, np.zeros(5)), np.array([0.0]), Q)[0]
+    known = {item.id for item in model.config.tags.items}
+    assert got is None or all(w.u0 < w.u1 and w.v0 < w.v1 and set(w.ids) <= known for w in got)

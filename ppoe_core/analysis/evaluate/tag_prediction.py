@@ -40,6 +40,8 @@ _FACING_COS = 0.1
 _EXPECT_COS = -0.5
 #: nearer than this [m] (any corner) the projection is not trusted: the image goes to the full detection
 _MIN_DEPTH = 0.05
+#: a point straight ahead, projected in place of those nearer than _MIN_DEPTH (their images are not used)
+_AHEAD = np.array([0.0, 0.0, 1.0])
 
 
 def predicted_windows(model: Any, frames: Sequence[str], stamps: np.ndarray,
@@ -71,13 +73,21 @@ def predicted_windows(model: Any, frames: Sequence[str], stamps: np.ndarray,
                 len(prior_stamps) - 1)
     for frame in sorted(set(frames)):
         sel = np.flatnonzero(np.asarray(frames) == frame)
-        per_tag = [_tag_corners(model, frame, item, Q[k[sel]]) for item in model.config.tags.items]
-        if any(p is None for p in per_tag):
+        maybe = [_tag_corners(model, frame, item, Q[k[sel]]) for item in model.config.tags.items]
+        per_tag = [p for p in maybe if p is not None]
+        if len(per_tag) < len(maybe):
             continue  # a frame the model cannot place (e.g. not a link of the URDF): whole images
-        for j, i in enumerate(sel.tolist()):
-            KD = camera(i)
+        by_camera: dict[bytes, list[int]] = {}  # the images of one camera model are projected together
+        cams = [camera(i) for i in sel.tolist()]
+        for j, KD in enumerate(cams):
             if KD is not None:
-                out[i] = _windows(per_tag, j, KD)
+                by_camera.setdefault(np.asarray(KD[0]).tobytes() + np.asarray(KD[1]).tobytes(), []).append(j)
+        for js in by_camera.values():
+            K, D = cams[js[0]]  # type: ignore[misc]  # (not None: js holds only images with a camera)
+            P = np.stack([p[1][js] for p in per_tag])  # (tags, images, 4, 3)
+            uv = project_points(np.where(P[..., 2:3] < _MIN_DEPTH, _AHEAD, P), K, D)  # (near points: not used)
+            for g, j in enumerate(js):
+                out[int(sel[j])] = _windows(per_tag, j, uv[:, g], float(max(K[0, 0], K[1, 1])))
     return out
 
 
@@ -103,12 +113,11 @@ def _tag_corners(model: Any, frame: str, item: Any, Qs: np.ndarray) -> tuple[int
     return int(item.id), P, cos, sigma
 
 
-def _windows(per_tag: list[Any], j: int, KD: tuple[np.ndarray, np.ndarray]) -> list[TagWindow] | None:
-    """The windows of one image (row ``j`` of every tag's prediction); None where no projection can be trusted."""
-    K, D = KD
-    f = float(max(K[0, 0], K[1, 1]))
+def _windows(per_tag: list[Any], j: int, uv_tags: np.ndarray, f: float) -> list[TagWindow] | None:
+    """The windows of one image (row ``j`` of every tag's prediction, its corners' pixels ``uv_tags`` (tags, 4, 2),
+    focal length ``f`` [px]); None where no projection can be trusted."""
     wins: list[TagWindow] = []
-    for tag_id, P, cos, sigma in per_tag:
+    for (tag_id, P, cos, sigma), uv in zip(per_tag, uv_tags):
         if cos[j] >= _FACING_COS:
             continue
         pts = P[j]
@@ -116,7 +125,6 @@ def _windows(per_tag: list[Any], j: int, KD: tuple[np.ndarray, np.ndarray]) -> l
             if np.all(pts[:, 2] < 0.0):
                 continue  # wholly behind the camera
             return None
-        uv = project_points(pts, K, D)
         if not np.all(np.isfinite(uv)):
             return None
         perimeter = float(np.sum(np.linalg.norm(uv - np.roll(uv, -1, axis=0), axis=1)))
