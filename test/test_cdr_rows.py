@@ -107,6 +107,7 @@ def test_read_bag_identical_without_raw_parsing(tmp_path: Path, monkeypatch: pyt
     bags = _bags(tmp_path)
     fast = [reader.read_bag(b) for b in bags]
     monkeypatch.setattr(reader, "_raw_fields", lambda kind, raw: None)  # typed deserialisation only
+    monkeypatch.setattr(reader, "_joint_state_block", lambda raws: None)  # /joint_states message by message too
     for bag, data in zip(bags, fast):
         assert _same(data, reader.read_bag(bag)), bag
 
@@ -168,6 +169,7 @@ def test_contract_errors_are_the_same_on_the_raw_path(tmp_path: Path, monkeypatc
             with monkeypatch.context() as m:
                 if typed_only:
                     m.setattr(reader, "_raw_fields", lambda kind, raw: None)
+                    m.setattr(reader, "_joint_state_block", lambda raws: None)
                 with pytest.raises(BagError, match=re.escape(f"/joint_states: message 0 {needle}")) as err:
                     reader.read_bag(path)
             errors.append(str(err.value))
@@ -182,3 +184,42 @@ def test_contract_errors_are_the_same_on_the_raw_path(tmp_path: Path, monkeypatc
                       bagio.serialize(P(header=bagio.header_msg(0, "base"), pose=pose), P.__msgtype__))
     with pytest.raises(BagError, match=r"topic /ground_truth/pose message 0: invalid quaternion"):
         reader.read_bag(path)
+
+
+def test_joint_states_read_at_once_equal_message_by_message(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``/joint_states`` of one layout is read in one numpy operation (``cdr.joint_state_block``); a message of another
+    layout anywhere (names, value counts, trailing bytes) sends the topic message by message; the series are the
+    same bit for bit either way."""
+    from ppoe_core.io.cdr import joint_state_block, parse_fields
+    from ppoe_core.io.writer import cdr_joint_state
+
+    rng = np.random.default_rng(3)
+
+    def js(i: int, names: tuple[str, ...] = ("a", "b"), vel: bool = True) -> bytes:
+        n = len(names)
+        return cdr_joint_state(10**9 * (100 + i) + int(rng.integers(0, 10**9)), list(names), rng.normal(size=n),
+                               rng.normal(size=n) if vel else np.zeros(0), np.zeros(0), frame_id="f")
+
+    same = [js(i) for i in range(30)]
+    block = joint_state_block(same)
+    assert block is not None and block.positions.shape == (30, 2) and block.effort.shape == (30, 0)
+    for i, raw in enumerate(same):
+        stamp, frame, names, pos, vel, eff = parse_fields("sensor_msgs/msg/JointState", raw)
+        assert block.stamps[i] == stamp and frame == block.frame and names == block.names
+        assert _same(block.positions[i], pos) and _same(block.velocities[i], vel)
+    variants = {"names": js(30, ("a", "c")), "more names": js(30, ("a", "b", "c")), "no velocities": js(30, vel=False),
+                "trailing bytes": js(30) + b"\x01" * 9}
+    for what, odd in variants.items():
+        msgs = same[:12] + [odd] + same[12:]
+        assert joint_state_block(msgs) is None, what
+        if what == "trailing bytes":
+            continue  # (the bag writer refuses such a message)
+        path = tmp_path / what.replace(" ", "_")
+        with bagio.BagWriter(path) as bag:
+            for i, raw in enumerate(msgs):
+                bag.write_raw("/joint_states", "sensor_msgs/msg/JointState", 100 + i, raw)
+        at_once = reader.read_bag(path)
+        with monkeypatch.context() as m:
+            m.setattr(reader, "_joint_state_block", lambda raws: None)
+            assert _same(at_once, reader.read_bag(path)), what
+        assert len(at_once.joint_states) == 31

@@ -34,7 +34,7 @@ from ppoe_core.errors import MeasurementError
 
 __all__ = ["CDR_LE_HEADER", "SCHEMAS", "CdrError", "PARSE_ERRORS", "align", "read", "write", "check_end",
            "parse_fields", "parse_joint_state", "JointStateCdr", "joint_state_names_block", "PoseCovarianceWriter",
-           "tf_message", "as_bytes"]
+           "tf_message", "as_bytes", "JointStateBlock", "joint_state_block"]
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
@@ -352,6 +352,53 @@ def _joint_state_fields(raw: bytes) -> tuple[Any, ...]:
     (sec, nsec, frame), *rest = values
     _last_layout[0] = _Layout(len(raw), raw[:4], raw[12:spans[0][0] + 4], frame, values[1], tuple(spans), end)
     return (float(sec) + 1e-9 * float(nsec), frame, *rest)
+
+
+class JointStateBlock(NamedTuple):
+    """``JointState`` messages of one layout read at once (:func:`joint_state_block`): ``stamps`` (N,) [s],
+    ``frame``, ``names``, ``positions`` (N, n), ``velocities`` (N, 0 or n), ``efforts`` (N, 0 or n)."""
+
+    stamps: np.ndarray
+    frame: str
+    names: tuple[str, ...]
+    positions: np.ndarray
+    velocities: np.ndarray
+    effort: np.ndarray
+
+
+def joint_state_block(raws: Sequence[bytes]) -> JointStateBlock | None:
+    """Every message of ``raws`` at once, when all are laid out as the first: the first read in full
+    (:func:`parse_fields`), then the others compared with it as :func:`parse_fields` compares a message with the
+    previous layout (same size, encapsulation, frame_id, names and value counts, trailing bytes) in one numpy
+    operation, and their stamps and values read from one array (the same numbers, bit for bit, as message by
+    message); None when one differs (read them one by one then).
+
+    Raises
+    ------
+    CdrError, struct.error, UnicodeDecodeError, ValueError, IndexError
+        The first message does not parse (:data:`PARSE_ERRORS`).
+    """
+    if not raws:
+        return None
+    _joint_state_fields(raws[0])  # the layout of the first message (or raises)
+    lay = _last_layout[0]
+    if lay is None or any(len(r) != lay.size for r in raws):
+        return None
+    arr = np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), lay.size)
+    first = arr[0]
+    body_end = lay.spans[0][0] + 4
+    ok = (arr[:, :4] == first[:4]).all(axis=1) & (arr[:, 12:body_end] == first[12:body_end]).all(axis=1)
+    for count_at, _, _ in lay.spans[1:]:
+        ok &= (arr[:, count_at:count_at + 4] == first[count_at:count_at + 4]).all(axis=1)
+    if lay.size - lay.end > 8:  # check_end: more than 8 trailing bytes must be zeros
+        ok &= ~arr[:, lay.end:].any(axis=1)
+    if not ok.all():
+        return None
+    sec = np.ascontiguousarray(arr[:, 4:8]).view("<i4")[:, 0].astype(np.float64)
+    nsec = np.ascontiguousarray(arr[:, 8:12]).view("<u4")[:, 0].astype(np.float64)
+    values = [np.ascontiguousarray(arr[:, at:at + 8 * n]).view("<f8") if n else np.zeros((len(raws), 0))
+              for _, at, n in lay.spans]
+    return JointStateBlock(sec + 1e-9 * nsec, lay.frame, lay.names, *values)
 
 
 def parse_fields(msgtype: str, raw: bytes) -> tuple[Any, ...]:

@@ -7,10 +7,10 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from ppoe_core.errors import BagError
-from ppoe_core.io.cdr import PARSE_ERRORS, as_bytes
+from ppoe_core.io.cdr import PARSE_ERRORS, JointStateBlock, as_bytes, joint_state_block
 from ppoe_core.io.messages import T_POSE_COV, TOPIC_ROBOT_DESCRIPTION, deserialize, typestore
 from ppoe_core.io.recovery import RecoveredMcap, ReadStatus, account, lost_messages, recording_in_progress
-from ppoe_core.io.rows import RowKind, expected_type, finish, row_kind
+from ppoe_core.io.rows import JOINT_STATE_KIND, RowKind, expected_type, finish, finish_joint_state_block, row_kind
 from ppoe_core.io.series import BagData, RawMessage
 
 
@@ -202,29 +202,58 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None,
     acc: dict[str, list[Any]] = {}
     status = ReadStatus()
     kinds = {c.topic: row_kind(c.topic, c.msgtype) for c in parse if c.topic != TOPIC_ROBOT_DESCRIPTION}
+    # /joint_states (most of a bag's messages) kept raw and read at once at the end where all share one layout
+    held: dict[str, list[tuple[Any, int, Any]]] = {t: [] for t, kind in kinds.items() if kind is JOINT_STATE_KIND}
     for conn, _, raw in _messages(reader, parse, status):
         topic = conn.topic
         k = status.counts[topic] - 1
-        kind = kinds.get(topic)
-        fields = _raw_fields(kind, raw)
-        if fields is None:  # typed deserialisation: robot description, other topics, and what the raw parser left
-            try:
-                msg = deserialize(raw, conn.msgtype, topic=topic)
-            except BagError as exc:
-                status.reject(topic, k, exc)
-                continue
-        try:
-            if kind is None:
-                _description(data, msg, topic, k)
-                continue
-            row = kind.build(kind.fields(msg) if fields is None else fields, topic, k, load_images)
-        except BagError:
-            raise
-        except (ValueError, TypeError, AttributeError) as exc:
-            raise BagError(f"bag {path}: topic {topic} message {k}: {exc}") from exc
-        acc.setdefault(topic, []).append(row)
+        if topic in held:
+            held[topic].append((conn, k, raw))
+            continue
+        _add_message(data, acc, status, conn, k, raw, kinds.get(topic), load_images)
+    for topic, msgs in held.items():
+        block = _joint_state_block([raw for _, _, raw in msgs])
+        if block is not None:
+            finish_joint_state_block(data, topic, block)
+            continue
+        for conn, k, raw in msgs:  # one by one, as any other topic
+            _add_message(data, acc, status, conn, k, raw, kinds[topic], load_images)
     finish(data, acc)
     return data, parse, status
+
+
+def _joint_state_block(raws: list[Any]) -> JointStateBlock | None:
+    """:func:`ppoe_core.io.cdr.joint_state_block` of the messages (None also where the first does not parse)."""
+    if not raws:
+        return None
+    try:
+        return joint_state_block([as_bytes(r) for r in raws])
+    except PARSE_ERRORS:
+        return None
+
+
+def _add_message(data: BagData, acc: dict[str, list[Any]], status: ReadStatus, conn: Any, k: int, raw: Any,
+                 kind: RowKind | None, load_images: bool) -> None:
+    """Message ``k`` of its topic -> a row of ``acc`` (or the robot description); a message the typed deserialiser
+    refuses is rejected in ``status``."""
+    topic = conn.topic
+    fields = _raw_fields(kind, raw)
+    if fields is None:  # typed deserialisation: robot description, other topics, and what the raw parser left
+        try:
+            msg = deserialize(raw, conn.msgtype, topic=topic)
+        except BagError as exc:
+            status.reject(topic, k, exc)
+            return
+    try:
+        if kind is None:
+            _description(data, msg, topic, k)
+            return
+        row = kind.build(kind.fields(msg) if fields is None else fields, topic, k, load_images)
+    except BagError:
+        raise
+    except (ValueError, TypeError, AttributeError) as exc:
+        raise BagError(f"bag {data.path}: topic {topic} message {k}: {exc}") from exc
+    acc.setdefault(topic, []).append(row)
 
 
 def _raw_fields(kind: RowKind | None, raw: Any) -> tuple | None:

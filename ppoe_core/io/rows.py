@@ -29,7 +29,8 @@ from ppoe_core.io.series import (
     TemperatureSeries, Wrenches,
 )
 
-__all__ = ["RowKind", "row_kind", "finish", "expected_type", "named", "tag_rows_from_cloud"]
+__all__ = ["RowKind", "row_kind", "finish", "expected_type", "named", "tag_rows_from_cloud", "JOINT_STATE_KIND",
+           "finish_joint_state_block"]
 
 
 def expected_type(topic: str) -> str | None:
@@ -242,6 +243,8 @@ def _raw(msgtype: str) -> Callable[[bytes], tuple]:
 
 
 _JOINT_STATE = RowKind(_raw(T_JOINT_STATE), _js_fields, _js_row)
+#: the row kind of ``/joint_states`` (whose messages the reader may read at once: :func:`finish_joint_state_block`)
+JOINT_STATE_KIND = _JOINT_STATE
 _POINT = RowKind(_raw(T_POINT), _point_fields, _point_row)
 _POSE_COV = RowKind(_raw(T_POSE_COV), _pose_cov_fields, _pose_cov_row)
 _IMU = _typed(_row_imu)
@@ -374,6 +377,24 @@ _FINISHERS: dict[str, Callable[[BagData, str, np.ndarray, list, list], None]] = 
     TOPIC_GT_POINT: _finish_point,
     TOPIC_TAG_OBSERVATIONS: _finish_tag_cloud,
 }
+
+
+def finish_joint_state_block(data: BagData, topic: str, block: cdr.JointStateBlock) -> None:
+    """``data.joint_states`` of messages read at once (:func:`ppoe_core.io.cdr.joint_state_block`): what
+    :func:`finish` makes of their rows one by one (the first message's row checks, names and value counts, hold for
+    all: they have its bytes there).
+
+    Raises
+    ------
+    BagError
+        As the row of message 0 would.
+    """
+    n, N = len(block.names), block.stamps.shape[0]
+    _js_row((block.stamps[0], block.frame, block.names, block.positions[0], block.velocities[0], block.effort[0]),
+            topic, 0, True)
+    pos, vel, eff = (A.copy() if A.shape[1] else np.full((N, n), np.nan)
+                     for A in (block.positions, block.velocities, block.effort))
+    data.joint_states = JointStates(block.stamps.copy(), list(block.names), pos, vel, eff)
 
 
 def finish(data: BagData, acc: dict[str, list[Any]]) -> None:

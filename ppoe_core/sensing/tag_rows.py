@@ -24,9 +24,10 @@ import numpy as np
 
 from ppoe_core.estimation.camera import project_points, undistort_pixels
 from ppoe_core.sensing import tags as tagmod
+from ppoe_core.sensing.tag_windows import TagWindow, detect_tags_in_windows
 
 __all__ = ["OBSERVATION_FIELDS", "DEFAULT_CORNER_REFINEMENT", "observe_tags", "rows_from_detections",
-           "detections_in_images", "ImageDetections", "centre_from_corners"]
+           "detections_in_images", "ImageDetections", "centre_from_corners", "detect_tags_windowed"]
 
 #: fields of one observation row (and FLOAT64 fields of one ``/tag_bearing/observations`` point)
 OBSERVATION_FIELDS: tuple[str, ...] = ("id", "corner", "u", "v", "x", "y")
@@ -108,6 +109,21 @@ def observe_tags(
         Unknown dictionary or refinement (from :func:`ppoe_core.sensing.tags.detect_tags`).
     """
     return rows_from_detections(tagmod.detect_tags(image, dictionary, refine), K, D, tag_ids)
+
+
+def detect_tags_windowed(image: np.ndarray, windows: Sequence[TagWindow] | None, dictionary: str = "tag36h11",
+                         refine: str = DEFAULT_CORNER_REFINEMENT, ids: Sequence[int] = ()) -> tuple[list[Any], bool]:
+    """:func:`ppoe_core.sensing.tag_windows.detect_tags_in_windows` of ``image`` (grey or BGR; the tags ``ids``, default
+    all), or where it gives no promise (or there are no ``windows``) :func:`ppoe_core.sensing.tags.detect_tags` of
+    the whole image: ``(detections, True if the windows gave them)``."""
+    if windows:
+        import cv2
+
+        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        found = detect_tags_in_windows(grey, windows, dictionary, refine, ids)
+        if found is not None:
+            return found, True
+    return tagmod.detect_tags(image, dictionary, refine), False
 
 
 def detections_in_images(decode: Callable[[int], np.ndarray], n: int, dictionary: str = "tag36h11",

@@ -37,6 +37,8 @@ __all__ = [
     "aruco_dictionary",
     "tag_points_local",
     "detect_tags",
+    "opencv_detector",
+    "detections_from_corners",
     "refine_edges",
     "EDGE_PASSES",
     "render_tags",
@@ -159,9 +161,9 @@ def refine_edges(grey: np.ndarray, corners: np.ndarray, n_cells: int, passes: in
 _per_thread = threading.local()
 
 
-def _detector(dictionary: str, refine: str) -> tuple[Any, Any]:
-    """The ``cv2.aruco.ArucoDetector`` of a dictionary and corner refinement, and the dictionary; made once per
-    thread (a detector is not shared between threads)."""
+def opencv_detector(dictionary: str, refine: str) -> tuple[Any, Any]:
+    """The ``cv2.aruco.ArucoDetector`` of a dictionary and corner refinement (the one :func:`detect_tags` uses), and
+    the dictionary; made once per thread (a detector is not shared between threads)."""
     import cv2
 
     cache = _per_thread.__dict__.setdefault("detectors", {})
@@ -219,15 +221,22 @@ def detect_tags(image: np.ndarray, dictionary: str = "tag36h11", refine: str = "
                                f"got {img.dtype} {img.shape}")
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    detector, d = _detector(dictionary, refine)
+    detector, d = opencv_detector(dictionary, refine)
     corners, ids, _ = detector.detectMarkers(img)
-    out: list[TagDetection] = []
     if ids is None:
-        return out
-    for c, i in zip(corners, ids.reshape(-1)):
-        c4 = np.asarray(c, dtype=float).reshape(4, 2)
+        return []
+    four = [np.asarray(c, dtype=float).reshape(4, 2) for c in corners]
+    return detections_from_corners(img, four, ids.reshape(-1).tolist(), d, refine)
+
+
+def detections_from_corners(grey: np.ndarray, corners: list[np.ndarray], ids: list[int], d: Any,
+                            refine: str) -> list[TagDetection]:
+    """:class:`TagDetection` of OpenCV's corners (refined by OpenCV as ``refine`` asks), the edge fit applied for
+    ``"edges"``; sorted by id."""
+    out: list[TagDetection] = []
+    for c4, i in zip(corners, ids):
         if refine == "edges":
-            c4 = refine_edges(img, c4, int(d.markerSize) + 2)
+            c4 = refine_edges(grey, c4, int(d.markerSize) + 2)
         out.append(TagDetection(int(i), c4, _diagonal_intersection(c4)))
     out.sort(key=lambda d: d.id)
     return out

@@ -144,6 +144,11 @@ class EvaluateOptions:
     sources : list of SourceConfig
         The fusion node's sensor blocks (tracker points, 6D poses, accelerometers; :func:`load_sources`), replayed
         from the bag's topics as the node fuses them.
+    tag_windows : bool
+        Detect the tags of the bag's images in windows around the corners the forward kinematics predicts
+        (:mod:`ppoe_core.analysis.evaluate.tag_prediction`; the same corners, bit for bit, as the whole image, which is
+        used where the windows cannot promise that), default; False: every image whole, as the tag node does (also
+        sees tags of ids the model does not know outside the windows, counted in ``unknown_tag_points``).
     """
 
     base: str | None = None
@@ -157,6 +162,7 @@ class EvaluateOptions:
     urdf: str | None = None
     estimate: str | None = None
     sources: list[SourceConfig] = field(default_factory=list)
+    tag_windows: bool = True
 
     def fusion_settings(self) -> dict[str, Any]:
         """:data:`EVALUATE_SETTINGS` updated with :attr:`fusion`.

@@ -176,11 +176,13 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     base, tool, kind = _check_inputs(data, model, model_yaml, opt, bag)
     sensors = {base, tool, *data.camera_info.frame_ids, *data.tag_observations.frame_ids}
     fs = opt.fusion_settings()
-    # the images' tags are detected on worker threads from here on, while the forward kinematics run
-    tags = TagStream(data, model, bag, refine=str(fs["corner_refinement"]))
+    pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml,
+                     required_joints(model, sensors), data.temperatures)
+    # the images' tags are detected on worker threads from here on (in windows predicted from the priors' joint
+    # states), while the rest is set up
+    tags = TagStream(data, model, bag, refine=str(fs["corner_refinement"]),
+                     priors=(pri.stamps, pri.Q) if opt.tag_windows else None)
     try:
-        pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml,
-                         required_joints(model, sensors), data.temperatures)
         contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
         src_meas, src_counts = source_measurements(data, model, opt.sources, bag)
         pipes, updaters = _pipelines(model, base, tool, fs, pri.cov_naive)

@@ -46,13 +46,20 @@ class TagStream:
     Recorded observations are used as they are (made at once).  Otherwise the images are decoded and their tags
     detected (``ppoe_core.sensing.tags.detect_tags``, as the tag node; its rows by
     :func:`ppoe_core.sensing.tag_rows.rows_from_detections`) on ``workers`` threads, started here and running
-    while the caller does other work (``ppoe evaluate``: the forward kinematics); the images are handed out in
+    while the caller does other work (``ppoe evaluate``: the set-up of the replay); the images are handed out in
     image order, with the first error (no camera_info, an image that does not decode) at its image, as one loop over
     the images would.  ``counts``: tag_messages, tag_points, images, images_without_tags (complete once every
     slot was read).  Call :meth:`close` at the end (stops the threads).
+
+    ``priors``: ``(stamps, Q)`` of the forward kinematics' joint states (``model.joint_names`` order): the model's
+    tags are then looked for in windows around their predicted corners
+    (:func:`ppoe_core.analysis.evaluate.tag_prediction.predicted_windows`,
+    :func:`ppoe_core.sensing.tag_rows.detect_tags_windowed`: the same corners as on the whole image, which is
+    searched where the windows cannot promise that; ``windowed`` says which images the windows gave).
     """
 
-    def __init__(self, data: Any, model: Any, bag: str, refine: str = "subpix", workers: int = IMAGE_WORKERS) -> None:
+    def __init__(self, data: Any, model: Any, bag: str, refine: str = "subpix", workers: int = IMAGE_WORKERS,
+                 priors: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         from ppoe_core.estimation.pipeline import Measurement, TagMeasurement, source_key
 
         self.counts = {"tag_messages": 0, "tag_points": 0, "images": 0, "images_without_tags": 0}
@@ -61,6 +68,9 @@ class TagStream:
         self._rows: Any = None
         self._camera: Any = None
         self.stamps: list[float] = []
+        #: per detected image (in the order done), True if the windows predicted from ``priors`` gave its tags
+        #: (:func:`ppoe_core.sensing.tag_rows.detect_tags_windowed`), False for the whole image
+        self.windowed: list[bool] = []
         cams = _camera_lookup(data, getattr(model, "effects", None) or ())  # no effects: camera_info as recorded
         obs = data.tag_observations
         if len(obs):
@@ -82,10 +92,12 @@ class TagStream:
         if len(imgs) == 0 or model.config.tags is None:
             return
         self.stamps = [float(t) for t in imgs.stamps]
-        self._start(cams, model.config.tags.family, refine, workers, bag)
+        self._start(cams, model, refine, workers, bag, priors)
 
-    def _start(self, cams: Callable[[str, float], Any], family: str, refine: str, workers: int, bag: str) -> None:
-        from ppoe_core.sensing.tag_rows import detections_in_images, rows_from_detections
+    def _start(self, cams: Callable[[str, float], Any], model: Any, refine: str, workers: int, bag: str,
+               priors: tuple[np.ndarray, np.ndarray] | None) -> None:
+        from ppoe_core.analysis.evaluate.tag_prediction import predicted_windows
+        from ppoe_core.sensing.tag_rows import ImageDetections, detect_tags_windowed, rows_from_detections
 
         imgs = self._imgs
 
@@ -100,10 +112,25 @@ class TagStream:
             camera(i)  # its error first, as for an image that does not decode
             return imgs.decode(i)
 
+        def known_camera(i: int) -> tuple[np.ndarray, np.ndarray] | None:
+            return cams(imgs.frame_ids[i], self.stamps[i])
+
+        family = model.config.tags.family
+        windows: list[Any] = [None] * len(imgs)
+        ids: list[int] = []
+        if priors is not None:
+            windows = predicted_windows(model, imgs.frame_ids, np.asarray(self.stamps), known_camera, *priors)
+            ids = [item.id for item in model.config.tags.items]
+
+        def one(i: int) -> list[Any]:
+            dets, windowed = detect_tags_windowed(decode(i), windows[i], family, refine, ids)
+            self.windowed.append(windowed)
+            return dets
+
         self._rows = rows_from_detections
         self._camera = camera
         # the rows are made here, not on the workers: the less Python (GIL) they run, the less the replay waits
-        self._dets = detections_in_images(decode, len(imgs), family, refine, workers, ahead=len(imgs))
+        self._dets = ImageDetections(one, len(imgs), workers, len(imgs))
 
     def get(self, k: int) -> Any:
         """The measurement of slot ``k`` (None: an image without tags); reads the images up to ``k`` in order."""
