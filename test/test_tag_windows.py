@@ -166,3 +166,20 @@ def test_predicted_windows_without_a_prediction_leave_the_whole_image():
     got = predicted_windows(model, [cam], np.array([1.0]), lambda i: (K, np.zeros(5)), np.array([0.0]), Q)[0]
     known = {item.id for item in model.config.tags.items}
     assert got is None or all(w.u0 < w.u1 and w.v0 < w.v1 and set(w.ids) <= known for w in got)
+
+
+def test_cli_tag_windows_gives_the_same_json_and_is_opt_in(capsys):
+    """``ppoe evaluate --tag-windows`` scores a shipped bag exactly as the default whole-image detection does."""
+    import json
+
+    from ppoe_ros.cli import main
+
+    assert EvaluateOptions().tag_windows is False
+    docs = []
+    for extra in ([], ["--tag-windows"]):
+        assert main(["evaluate", str(REPO / "bags" / "table1_exp2"), "--model",
+                     str(REPO / "config" / "robots" / "rover_model.yaml"), "--json", "--quiet", *extra]) == 0
+        doc = json.loads(capsys.readouterr().out)
+        doc.pop("wall_time_s", None)
+        docs.append(doc)
+    assert docs[0] == docs[1]

@@ -39,6 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--accept-partial", action="store_true",
                         help="use what can be read of a damaged bag (default: refuse it, naming per topic "
                              "what was lost)")
+    parser.add_argument("--tag-windows", action="store_true",
+                        help="detect tags only in windows around where the forward kinematics puts them (the same "
+                             "corners, faster; tags of ids the model lacks are then not counted; default: whole "
+                             "images)")
     parser.add_argument("--order", type=int, choices=(2, 4), default=2, help="covariance order of the PPOE model")
     parser.add_argument(
         "--ground-truth", default="auto", choices=("auto", "pose", "point"),
@@ -135,6 +139,7 @@ def _run_offline(args: argparse.Namespace) -> int:
         base=args.base, tool=args.tool, order=args.order, fit_set=args.fit_set, fusion=fusion,
         ground_truth=args.ground_truth, progress=progress, accept_partial=args.accept_partial, urdf=args.urdf,
         estimate=args.estimate, sources=load_sources(args.fusion_params) if args.fusion_params else [],
+        tag_windows=args.tag_windows,
     )
     ev = evaluate_bag(args.bag, args.model, opts)
     for note in ev.summary.get("bag_notes", []):

@@ -147,8 +147,9 @@ class EvaluateOptions:
     tag_windows : bool
         Detect the tags of the bag's images in windows around the corners the forward kinematics predicts
         (:mod:`ppoe_core.analysis.evaluate.tag_prediction`; the same corners, bit for bit, as the whole image, which is
-        used where the windows cannot promise that), default; False: every image whole, as the tag node does (also
-        sees tags of ids the model does not know outside the windows, counted in ``unknown_tag_points``).
+        used where the windows cannot promise that; ``ppoe evaluate --tag-windows``). Off by default: every image
+        whole, as the tag node does, so tags of ids the model does not know are still counted in
+        ``unknown_tag_points`` and a tag far from where a badly wrong model puts it is still found.
     """
 
     base: str | None = None
@@ -162,7 +163,7 @@ class EvaluateOptions:
     urdf: str | None = None
     estimate: str | None = None
     sources: list[SourceConfig] = field(default_factory=list)
-    tag_windows: bool = True
+    tag_windows: bool = False
 
     def fusion_settings(self) -> dict[str, Any]:
         """:data:`EVALUATE_SETTINGS` updated with :attr:`fusion`.
