@@ -85,12 +85,16 @@ class KinematicTree:
     def link_poses(self, q: Mapping[str, Any], dq: Mapping[str, Any] | None = None,
                    dxi: Mapping[str, Any] | None = None,
                    links: Sequence[str] | None = None,
-                   dT: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                   dT: Mapping[str, np.ndarray] | None = None,
+                   motions: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
         """``T_root_link`` for every link (or the ancestors of ``links``), shape ``(..., 4, 4)``.
 
         Implements the mean of paper eq. 17 with eq. 16 links
         ``Exp(p_i) Exp(dxi_i) dT_i Exp(zeta_i (q_i + dq_i))``; ``dT`` (joint -> ``(..., 4, 4)``) are
         insertions given as transforms (the simulator's composed truth), identity where absent.
+        ``motions``: the caller's cache of the motions ``Exp(zeta_i q_i)`` of joints that no ``dq`` touches, for
+        callers that evaluate the same ``q`` (unchanged arrays) many times with different corrections (a fit); it
+        is filled on the first call and must be dropped when ``q`` changes.
         """
         dxi = dxi or {}
         dT = dT or {}
@@ -116,9 +120,19 @@ class KinematicTree:
             if jn in dT:
                 T = T @ dT[jn]
             if j.movable:
-                T = T @ self._motion(j, vals[jn])
+                T = T @ self._cached_motion(j, jn, vals[jn], dq, motions)
             poses[j.child] = T
         return poses
+
+    def _cached_motion(self, joint: Any, name: str, v: np.ndarray, dq: Mapping[str, Any] | None,
+                       motions: dict[str, np.ndarray] | None) -> np.ndarray:
+        """``Exp(zeta v)`` of ``joint``, from ``motions`` (:meth:`link_poses`) when no ``dq`` changes its value."""
+        if motions is None or (dq and (name in dq or (joint.mimic_root is not None and joint.mimic_root[0] in dq))):
+            return self._motion(joint, v)
+        M = motions.get(name)
+        if M is None:
+            M = motions[name] = self._motion(joint, v)
+        return M
 
     def joint_frames(self, poses: Mapping[str, np.ndarray], joint: str,
                      dxi: Mapping[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -177,16 +191,18 @@ class KinematicTree:
     def point_jacobian(self, q: Mapping[str, Any], link: str, point: Any,
                        poses: Mapping[str, np.ndarray] | None = None,
                        dq: Mapping[str, Any] | None = None,
-                       dxi: Mapping[str, Any] | None = None
+                       dxi: Mapping[str, Any] | None = None,
+                       frame: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
                        ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Jacobians of the root-frame position of ``point`` (link coordinates, (3,)) on ``link``.
 
         Returns ``(J_dq: joint -> (..., 3), J_dxi: joint -> (..., 3, 6))``, derived from
-        :meth:`frame_jacobian` with ``d(T p)/d xi = R [I, -[p]_x]``.
+        :meth:`frame_jacobian` with ``d(T p)/d xi = R [I, -[p]_x]`` (``frame``: its result for these ``poses``,
+        when the caller has it).
         """
         if poses is None:
             poses = self.link_poses(q, dq, dxi, links=[link])
-        J_dq, J_dxi = self.frame_jacobian(q, link, poses, dq, dxi)
+        J_dq, J_dxi = frame if frame is not None else self.frame_jacobian(q, link, poses, dq, dxi)
         R = poses[link][..., :3, :3]
         p = np.asarray(point, dtype=float)
         B = np.concatenate([R, -R @ lie.hat3(p)], axis=-1)

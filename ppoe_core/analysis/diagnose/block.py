@@ -94,6 +94,8 @@ class ResidualBlock(ABC):
         self.score_mask = np.ones(n, dtype=bool) if score_mask is None else np.asarray(score_mask, dtype=bool)
         self._nominal: dict[str, np.ndarray] | None = None
         self._bases: dict[str, tuple[dict[str, np.ndarray], dict[str, np.ndarray]]] = {}
+        #: :meth:`KinematicTree.link_poses`' cache of the joint motions at ``q`` (the rows' joint values never change)
+        self.motions: dict[str, np.ndarray] = {}
 
     def __len__(self) -> int:
         return int(self.segment.size)

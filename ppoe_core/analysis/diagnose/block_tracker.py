@@ -135,7 +135,7 @@ class TrackerBlock(ResidualBlock):
     def linearise(self, effects: Sequence[Effect], candidates: Sequence[Effect], pert: Mapping[str, np.ndarray],
                   jnoise: Mapping[str, float], chain: bool = False) -> Linearisation:
         s = self.stops
-        x, _, poses, dq, dxi = predict_nominal(self.tree, s, (), self.corrections(effects))
+        x, _, poses, dq, dxi = predict_nominal(self.tree, s, (), self.corrections(effects), self.motions)
         n = len(s)
         z = self.measured_in_root()
         r = z - x
@@ -157,7 +157,7 @@ class TrackerBlock(ResidualBlock):
         self.T0 = state.copy()
 
     def reset_nuisance(self, effects: Sequence[Effect]) -> None:
-        x = predict_nominal(self.tree, self.stops, (), self.corrections(effects))[0]
+        x = predict_nominal(self.tree, self.stops, (), self.corrections(effects), self.motions)[0]
         regs = kabsch_per_session(x, self.stops.p_meas, self.stops.session)
         for k, T in regs.items():
             self.T0[k] = T
