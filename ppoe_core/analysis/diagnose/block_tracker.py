@@ -147,6 +147,11 @@ class TrackerBlock(ResidualBlock):
         Q = prior_covariance(Jq, Jx, pert, jnoise, (n, 3))
         return Linearisation(r, J, N, S, Q, Jq=Jq)
 
+    def residual(self, effects: Sequence[Effect]) -> np.ndarray:
+        """:meth:`linearise`'s ``r`` alone (no Jacobians, nuisance columns or covariances: a refit's trial)."""
+        x = predict_nominal(self.tree, self.stops, (), self.corrections(effects), self.motions)[0]
+        return self.measured_in_root() - x
+
     def apply_nuisance(self, step: np.ndarray) -> None:
         self.T0 = self.T0 @ lie.exp(np.asarray(step, dtype=float).reshape(-1, 6))
 
