@@ -5,7 +5,7 @@ Joint values may be corrected through eq. 16's hooks (``dq`` per joint, ``dxi`` 
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -148,9 +148,11 @@ class KinematicTree:
     def frame_jacobian(self, q: Mapping[str, Any], link: str,
                        poses: Mapping[str, np.ndarray] | None = None,
                        dq: Mapping[str, Any] | None = None,
-                       dxi: Mapping[str, Any] | None = None
+                       dxi: Mapping[str, Any] | None = None,
+                       joints: Collection[str] | None = None
                        ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-        """Right-tangent Jacobians of ``T_root_link`` w.r.t. the eq. 16 insertions.
+        """Right-tangent Jacobians of ``T_root_link`` w.r.t. the eq. 16 insertions (of the path's ``joints`` only,
+        and the mimic joints driven by them, when given).
 
         Returns
         -------
@@ -174,6 +176,8 @@ class KinematicTree:
         J_dxi: dict[str, np.ndarray] = {}
         for jn in self.robot.path_from_root(link):
             j = self.robot.joints[jn]
+            if joints is not None and jn not in joints and (j.mimic_root is None or j.mimic_root[0] not in joints):
+                continue
             T_root_a, T_root_c = self.joint_frames(poses, jn, dxi)
             J_dxi[jn] = lie.adjoint(T_l_root @ T_root_a)
             if dxi and jn in dxi:

@@ -135,6 +135,18 @@ class ResidualBlock(ABC):
                                                                             if Jx else self.dim))
         return chain_columns(Jq, Jx, self.basis(effect), effect.n_params, shape)
 
+    def chain_joints(self, candidates: Sequence[Effect], pert: Mapping[str, np.ndarray], jnoise: Mapping[str, float],
+                     chain: bool) -> set[str] | None:
+        """The joints whose chain Jacobians :meth:`linearise` needs: those the ``candidates``' bases insert at and
+        the declared prior's (``pert``, ``jnoise``); None (all) with ``chain``."""
+        if chain:
+            return None
+        out = set(pert) | set(jnoise)
+        for c in candidates:
+            Bq, Bx = self.basis(c)
+            out.update(Bq, Bx)
+        return out
+
     @property
     def n_segments(self) -> int:
         return len(self.segment_names)

@@ -102,6 +102,7 @@ class ImuBlock(ResidualBlock):
         Jx: dict[str, np.ndarray] = {}
         need = chain or bool(candidates) or bool(pert) or bool(jnoise)
         r, w, Rw, ups = self._tilts(poses)
+        joints = self.chain_joints(candidates, pert, jnoise, chain)
         # d Exp(-w) z / d w = Exp(-w) [z]x J_r(-w) (x, y columns: the tilt has no z part)
         dg = (Rw @ lie.hat3(np.array([0.0, 0.0, 1.0])) @ lie.so3_right_jacobian(w))[:, :, :2]
         for k, link in enumerate(self.links):
@@ -117,7 +118,7 @@ class ImuBlock(ResidualBlock):
                 c = 2 + 2 * self._mount_slot(k)
                 N[:, sl, c:c + 2] = np.eye(2)
             if need:
-                Fq, Fx = self.tree.frame_jacobian(self.q, link, poses, dq, dxi)
+                Fq, Fx = self.tree.frame_jacobian(self.q, link, poses, dq, dxi, joints)
                 for j, F in Fq.items():
                     Jq.setdefault(j, np.zeros((n, 2 * K)))[:, sl] = np.einsum("nij,nj->ni", A, F[:, 3:])
                 for j, F in Fx.items():

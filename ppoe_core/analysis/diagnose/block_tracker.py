@@ -140,7 +140,8 @@ class TrackerBlock(ResidualBlock):
         z = self.measured_in_root()
         r = z - x
         need_chain = chain or bool(candidates) or bool(pert) or bool(jnoise)
-        Jq, Jx, _, _ = chain_jacobians(self.tree, s, poses, dq, dxi) if need_chain else ({}, {}, {}, {})
+        joints = self.chain_joints(candidates, pert, jnoise, chain)
+        Jq, Jx, _, _ = chain_jacobians(self.tree, s, poses, dq, dxi, joints) if need_chain else ({}, {}, {}, {})
         J = [chain_columns(Jq, Jx, self.basis(c), c.n_params, (n, 3)) for c in candidates]
         N = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), -lie.hat3(z)], axis=-1)
         S = s.sigma_rows()[:, None, None] ** 2 * np.eye(3)

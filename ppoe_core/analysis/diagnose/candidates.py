@@ -3,7 +3,7 @@ nominal prediction of its rows and their chain Jacobians."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -138,8 +138,9 @@ def measured_link_poses(stops: Stops, poses: Mapping[str, np.ndarray]) -> np.nda
 
 
 def chain_jacobians(tree: KinematicTree, stops: Stops, poses: Mapping[str, np.ndarray], dq: Mapping,
-                    dxi: Mapping) -> tuple[dict, dict, dict, dict]:
-    """Jacobians of each row's measured point and link frame w.r.t. the eq. 16 insertions.
+                    dxi: Mapping, joints: Collection[str] | None = None) -> tuple[dict, dict, dict, dict]:
+    """Jacobians of each row's measured point and link frame w.r.t. the eq. 16 insertions (at ``joints`` only when
+    given: :meth:`KinematicTree.frame_jacobian`).
 
     Returns ``(Jq, Jx, Fq, Fx)`` as :meth:`KinematicTree.point_jacobian` (root-frame position, (N, 3)
     and (N, 3, 6)) and :meth:`KinematicTree.frame_jacobian` (tangent at the link, (N, 6) and
@@ -149,7 +150,7 @@ def chain_jacobians(tree: KinematicTree, stops: Stops, poses: Mapping[str, np.nd
     point = stops.point_rows()
 
     def both(ln: str) -> tuple[dict, dict, dict, dict]:
-        frame = tree.frame_jacobian(stops.q, ln, poses, dq, dxi)
+        frame = tree.frame_jacobian(stops.q, ln, poses, dq, dxi, joints)
         return (*tree.point_jacobian(stops.q, ln, point, poses, dq, dxi, frame=frame), *frame)
 
     if stops.links is None:
