@@ -23,6 +23,18 @@ GRAVITY = 9.80665
 # =============================================================================
 
 
+class LinkPoses(dict):
+    """:meth:`KinematicTree.link_poses`' result (link -> ``T_root_link``) with what the Jacobians of the same
+    evaluation reuse: per joint the frame right after its origin (``origin``) and after its ``dxi`` insertion
+    (``inserted``), and the insertions' right Jacobians ``J_r(dxi)`` (``dxi_jacobians``, filled on first use)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.origin: dict[str, np.ndarray] = {}
+        self.inserted: dict[str, np.ndarray] = {}
+        self.dxi_jacobians: dict[str, np.ndarray] = {}
+
+
 class KinematicTree:
     """Nominal forward kinematics of a whole URDF tree with the eq. 16 effect hooks.
 
@@ -86,7 +98,7 @@ class KinematicTree:
                    dxi: Mapping[str, Any] | None = None,
                    links: Sequence[str] | None = None,
                    dT: Mapping[str, np.ndarray] | None = None,
-                   motions: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                   motions: dict[str, np.ndarray] | None = None) -> LinkPoses:
         """``T_root_link`` for every link (or the ancestors of ``links``), shape ``(..., 4, 4)``.
 
         Implements the mean of paper eq. 17 with eq. 16 links
@@ -111,12 +123,13 @@ class KinematicTree:
                                     *[np.shape(v)[:-1] for v in dxi.values()],
                                     *[np.shape(v)[:-2] for v in dT.values()])
         eye = np.broadcast_to(np.eye(4), batch + (4, 4))
-        poses: dict[str, np.ndarray] = {self.root: eye}
+        poses = LinkPoses()
+        poses[self.root] = eye
         for jn in joints:
             j = self.robot.joints[jn]
-            T = poses[j.parent] @ j.origin
+            T = poses.origin[jn] = poses[j.parent] @ j.origin
             if jn in dxi:
-                T = T @ lie.exp(np.asarray(dxi[jn], dtype=float))
+                T = poses.inserted[jn] = T @ lie.exp(np.asarray(dxi[jn], dtype=float))
             if jn in dT:
                 T = T @ dT[jn]
             if j.movable:
@@ -139,10 +152,14 @@ class KinematicTree:
         """``(T_root_a, T_root_c)``: frame right after the joint's origin and its ``dxi``
         insertion (``Exp(p) Exp(dxi)``), and the child link frame after the motion."""
         j = self.robot.joints[joint]
-        T_a = poses[j.parent] @ j.origin
+        done = poses if isinstance(poses, LinkPoses) else None  # the same products, made by link_poses
         if dxi and joint in dxi:
-            T_a = T_a @ lie.exp(np.asarray(dxi[joint], dtype=float))
-        return T_a, poses[j.child]
+            if done is not None and joint in done.inserted:
+                return done.inserted[joint], poses[j.child]
+            return (poses[j.parent] @ j.origin) @ lie.exp(np.asarray(dxi[joint], dtype=float)), poses[j.child]
+        if done is not None and joint in done.origin:
+            return done.origin[joint], poses[j.child]
+        return poses[j.parent] @ j.origin, poses[j.child]
 
     # -- Jacobians ---------------------------------------------------------------
     def frame_jacobian(self, q: Mapping[str, Any], link: str,
@@ -181,7 +198,7 @@ class KinematicTree:
             T_root_a, T_root_c = self.joint_frames(poses, jn, dxi)
             J_dxi[jn] = lie.adjoint(T_l_root @ T_root_a)
             if dxi and jn in dxi:
-                J_dxi[jn] = J_dxi[jn] @ lie.right_jacobian(np.asarray(dxi[jn], dtype=float))
+                J_dxi[jn] = J_dxi[jn] @ self._dxi_jacobian(poses, jn, dxi[jn])
             if j.movable:
                 col = np.einsum("...ij,j->...i", lie.adjoint(T_l_root @ T_root_c), j.twist)
                 if j.mimic_root is not None:
@@ -191,6 +208,14 @@ class KinematicTree:
                 else:
                     J_dq[jn] = J_dq.get(jn, 0.0) + col
         return J_dq, J_dxi
+
+    @staticmethod
+    def _dxi_jacobian(poses: Mapping[str, np.ndarray], joint: str, dxi: Any) -> np.ndarray:
+        """``J_r(dxi)`` of ``joint``'s insertion (kept in ``poses`` when they are :class:`LinkPoses`)."""
+        cache = poses.dxi_jacobians if isinstance(poses, LinkPoses) else {}
+        if joint not in cache:
+            cache[joint] = lie.right_jacobian(np.asarray(dxi, dtype=float))
+        return cache[joint]
 
     def point_jacobian(self, q: Mapping[str, Any], link: str, point: Any,
                        poses: Mapping[str, np.ndarray] | None = None,
