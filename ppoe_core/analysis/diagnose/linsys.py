@@ -137,10 +137,10 @@ class LinearSystem:
                 for sid, pos in zip(ids, np.split(order, starts[1:]) if order.size else []):
                     rows, N = ns.idx[pos], ns.N[pos]
                     act = _active(N)
-                    if not _determined(N, act):
+                    A_inv = _nuisance_inverse(N, act)
+                    if A_inv is None:
                         terms.append((rows, N, act, None, None, None, k, int(sid)))
                         continue
-                    A_inv = _ginv(N, act)
                     M = N.T @ self.G[rows]
                     AM = A_inv @ M
                     H -= M.T @ AM
@@ -237,7 +237,8 @@ class LinearSystem:
         H -= Go.T @ Go
         b -= Go.T @ eo
         ee -= float(eo @ eo)
-        if tr.any() and _determined(N[tr], act):
+        A2 = _nuisance_inverse(N[tr], act) if tr.any() else None
+        if A2 is not None:
             fit_rows, fit_N, out, training = rows[tr], N[tr], te, True
         else:
             if tr.any():  # its training part cannot determine the nuisance: it does not train
@@ -250,10 +251,10 @@ class LinearSystem:
             out = split if split.any() else te
             scored[loc[rows[te]]] = False
             fit_rows, fit_N, training = rows[reg], N[reg], False
-            if not te.any() or not _determined(fit_N, act):
+            A2 = _nuisance_inverse(fit_N, act) if te.any() else None
+            if A2 is None:
                 return ee
             scored[loc[rows[out]]] = True
-        A2 = _ginv(fit_N, act)
         M2, g2 = fit_N.T @ self.G[fit_rows], fit_N.T @ self.e[fit_rows]
         AM2, Ag2 = A2 @ M2, A2 @ g2
         if training:
@@ -278,10 +279,9 @@ class LinearSystem:
             for s in np.unique(ns.seg):
                 m = ns.seg == s
                 rows, Ns = ns.idx[m], ns.N[m]
-                act = _active(Ns)
-                if not _determined(Ns, act):
+                A_inv = _nuisance_inverse(Ns, _active(Ns))
+                if A_inv is None:
                     continue
-                A_inv = _ginv(Ns, act)
                 e_p[rows] -= Ns @ (A_inv @ (Ns.T @ self.e[rows]))
                 G_p[rows] -= Ns @ (A_inv @ (Ns.T @ self.G[rows]))
         return e_p, G_p
@@ -304,22 +304,22 @@ def _active(N: np.ndarray) -> np.ndarray:
     return norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
 
 
-def _determined(N: np.ndarray, act: np.ndarray) -> bool:
-    """Whether nuisance rows ``N`` (m, k) determine the ``act`` columns (scaled information well conditioned)."""
+def _nuisance_inverse(N: np.ndarray, act: np.ndarray) -> np.ndarray | None:
+    """``(N^T N)^-1`` (k, k) on the ``act`` columns, zero elsewhere, if the nuisance rows ``N`` (m, k) determine
+    them (their scaled information well conditioned: smallest eigenvalue above :data:`MIN_NUISANCE_EIG` of the
+    largest), else None."""
     Na = N[:, act]
     if Na.shape[0] < Na.shape[1] or not act.any():
-        return bool(not act.any())
+        return np.zeros((N.shape[1], N.shape[1])) if not act.any() else None
     A = Na.T @ Na
     d = np.sqrt(np.maximum(np.diag(A), 1e-300))
     ev = np.linalg.eigvalsh(A / d[:, None] / d[None, :])
-    return bool(ev[0] > MIN_NUISANCE_EIG * max(ev[-1], 1e-300))
-
-
-def _ginv(N: np.ndarray, act: np.ndarray) -> np.ndarray:
-    """``(N^T N)^-1`` on the ``act`` columns, zero elsewhere (k, k)."""
+    if not ev[0] > MIN_NUISANCE_EIG * max(ev[-1], 1e-300):
+        return None
+    if act.all():
+        return np.linalg.inv(A)
     out = np.zeros((N.shape[1], N.shape[1]))
-    Na = N[:, act]
-    out[np.ix_(act, act)] = np.linalg.inv(Na.T @ Na)
+    out[np.ix_(act, act)] = np.linalg.inv(A)
     return out
 
 
@@ -343,8 +343,8 @@ class Fold:
         (``ridge``, ``scale``: :func:`solve_scaled`)."""
         b = self.b[cols]
         if fixed is not None and fixed.size:
-            b = b - self.H[np.ix_(cols, fixed)] @ fixed_values
-        return solve_scaled(self.H[np.ix_(cols, cols)], b, ridge, None if scale is None else scale[cols])
+            b = b - self.H[cols[:, None], fixed] @ fixed_values
+        return solve_scaled(self.H[cols[:, None], cols], b, ridge, None if scale is None else scale[cols])
 
     def heldout(self, cols: np.ndarray, dtheta: np.ndarray, fixed: np.ndarray | None = None,
                 fixed_values: np.ndarray | None = None) -> np.ndarray:
