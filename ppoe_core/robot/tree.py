@@ -127,7 +127,7 @@ class KinematicTree:
         poses[self.root] = eye
         for jn in joints:
             j = self.robot.joints[jn]
-            T = poses.origin[jn] = poses[j.parent] @ j.origin
+            T = poses.origin[jn] = _times_constant(poses[j.parent], j.origin)
             if jn in dxi:
                 T = poses.inserted[jn] = T @ lie.exp(np.asarray(dxi[jn], dtype=float))
             if jn in dT:
@@ -156,10 +156,11 @@ class KinematicTree:
         if dxi and joint in dxi:
             if done is not None and joint in done.inserted:
                 return done.inserted[joint], poses[j.child]
-            return (poses[j.parent] @ j.origin) @ lie.exp(np.asarray(dxi[joint], dtype=float)), poses[j.child]
+            T_a = _times_constant(poses[j.parent], j.origin) @ lie.exp(np.asarray(dxi[joint], dtype=float))
+            return T_a, poses[j.child]
         if done is not None and joint in done.origin:
             return done.origin[joint], poses[j.child]
-        return poses[j.parent] @ j.origin, poses[j.child]
+        return _times_constant(poses[j.parent], j.origin), poses[j.child]
 
     # -- Jacobians ---------------------------------------------------------------
     def frame_jacobian(self, q: Mapping[str, Any], link: str,
@@ -274,6 +275,14 @@ class KinematicTree:
         M = np.broadcast_to(M, T.shape[:-2] + (3,))
         Rt = np.swapaxes(T[..., :3, :3], -1, -2)
         return np.einsum("...ij,...j->...i", Rt, F), np.einsum("...ij,...j->...i", Rt, M)
+
+
+def _times_constant(T: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``T @ M`` of poses ``T`` (..., 4, 4) and one matrix ``M`` (4, 4) as one matrix product of the stacked rows
+    (the same sums, one BLAS call instead of one per pose)."""
+    if T.ndim <= 2:
+        return T @ M
+    return (T.reshape(-1, 4) @ M).reshape(T.shape[:-2] + (4, 4))
 
 
 # =============================================================================
