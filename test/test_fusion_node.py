@@ -438,3 +438,93 @@ def test_pose_message_fast_build_equals_the_constructors_and_round_trips(monkeyp
         np.testing.assert_allclose(T_back, T, atol=1e-12)
         assert np.array_equal(cov_back, cov) and frame == "base_link"
         assert ns == (stamp if isinstance(stamp, int) else k * 1_000_003)
+
+
+def test_prior_parse_of_the_writers_layout_equals_the_cdr_reader():
+    """``PoseCovarianceCdr.parse`` (the fusion node's prior input): for messages laid out as its writer's, the same
+    pose, covariance, stamp and frame as :func:`pose_cov_from_cdr` (bit for bit); another frame, non-zero padding,
+    trailing bytes, a big-endian header or truncated bytes go through :func:`pose_cov_from_cdr` (its values or its
+    error)."""
+    from rclpy.serialization import serialize_message
+
+    from ppoe_core.errors import MeasurementError
+    from ppoe_ros.common.conversions import PoseCovarianceCdr, pose_cov_from_cdr
+
+    rng = np.random.default_rng(11)
+    for frame in ("base_link", "ab", "robot_1/base_link"):
+        codec = PoseCovarianceCdr(frame)
+        for k in range(20):
+            T = lie.exp(rng.normal(size=6) * (0.1 if k % 2 else 3.0))
+            A = rng.normal(size=(6, 6))
+            stamp = 1_700_000_000_123_456_789 + 1_000_003 * k - (2_000_000_000_000_000_000 if k == 7 else 0)
+            raw = codec.serialize(T, A @ A.T, stamp)
+            typed = serialize_message(pose_cov_stamped_msg(T, A @ A.T, stamp, frame))
+            for data in (raw, typed, raw + bytes(4)):
+                got, ref = codec.parse(data), pose_cov_from_cdr(data)
+                assert all(np.array_equal(a, b) for a, b in zip(got[:2], ref[:2])) and got[2:] == ref[2:]
+                assert got[2:] == (stamp, frame) and got[1].flags.writeable
+                T_l, cov_l, *rest = codec.parse_local(data)  # the compiled path: cov_ros_to_local's floats
+                assert np.array_equal(T_l, ref[0]) and np.array_equal(cov_l, lie.cov_ros_to_local(*ref[:2]))
+                assert tuple(rest) == (stamp, frame)
+            cov_tool = lie.cov_ros_to_local(T, A @ A.T)
+            assert codec.serialize_local(T, cov_tool, stamp) == codec.serialize(T, lie.cov_local_to_ros(T, cov_tool),
+                                                                                stamp)
+            assert np.array_equal(codec.fields[:3], T[:3, 3]) and np.array_equal(codec.fields[3:7],
+                                                                                 lie.quat_from_matrix(T[:3, :3]))
+            other = PoseCovarianceCdr(frame + "_x").serialize(T, A @ A.T, stamp)
+            assert codec.parse(other)[3] == frame + "_x"
+    padded = bytearray(PoseCovarianceCdr("ab").serialize(np.eye(4), np.eye(6), 5))
+    assert len(padded) % 8 == 4 and padded[19] == 0  # "ab\0" at 16..18 and one byte of padding before the pose
+    padded[19] = 7
+    assert PoseCovarianceCdr("ab").parse(bytes(padded))[3] == "ab"  # padding is not read (rclpy leaves it unset)
+    for bad in (raw[:-8], b"\x00\x00\x00\x00" + raw[4:]):
+        for read in (codec.parse, codec.parse_local):
+            with pytest.raises(MeasurementError):
+                read(bad)
+    no_rotation = codec.serialize(np.eye(4), np.eye(6), 5)
+    no_rotation = no_rotation[:-8 * 40] + bytes(8 * 4) + no_rotation[-8 * 36:]  # quaternion 0 0 0 0
+    with pytest.raises(ValueError, match="not a rotation"):
+        codec.parse_local(no_rotation)
+
+
+def test_joint_state_reader_equals_parse_joint_state():
+    """``JointStateReader.parse`` (the fusion node's joint-state input, which remembers the last layout) gives what
+    ``parse_joint_state`` gives for a stream of messages with garbage padding (rclpy leaves it unset), a name
+    changed in place, another frame, more joints, no positions, and raises its errors for bad bytes."""
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+
+    from ppoe_core.io.cdr import CdrError, parse_joint_state
+    from ppoe_ros.common.conversions import JointStateReader
+
+    rng = np.random.default_rng(4)
+    reader = JointStateReader()
+    layouts = [(["j1", "joint_22", "abc"], "base"), (["j1", "joint_23", "abc"], "base"),
+               (["j1", "joint_22", "abc"], "odom"), (["j1", "joint_22", "abc", "x"], "base"), ([], "")]
+    hits = 0
+    for k in range(200):
+        names, frame = layouts[(k // 7) % len(layouts)]
+        msg = JointState(name=names, position=list(rng.normal(size=len(names))), velocity=[0.5] * (k // 35 % 2))
+        msg.header.frame_id = frame
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 1_700_000_000 + k, 999_999 * k
+        raw = bytearray(serialize_message(msg))
+        for at in range(len(raw)):  # garbage in every padding byte: the bytes the parser does not read
+            if at >= 4 and raw[at] == 0 and rng.random() < 0.5:
+                probe = bytes(raw[:at]) + b"\x5a" + bytes(raw[at + 1:])
+                try:
+                    same = parse_joint_state(probe)
+                except CdrError:
+                    continue
+                ref0 = parse_joint_state(bytes(raw))
+                if (same.names, same.frame_id, same.stamp_ns) == (ref0.names, ref0.frame_id, ref0.stamp_ns) and \
+                        np.array_equal(same.positions, ref0.positions):
+                    raw[at] = 0x5A
+        data = bytes(raw)
+        hits += reader._layout is not None and len(data) == reader._layout[0]
+        got, ref = reader.parse(data), parse_joint_state(data)
+        assert (got.stamp_ns, got.frame_id, got.names) == (ref.stamp_ns, ref.frame_id, ref.names), k
+        assert np.array_equal(got.positions, ref.positions) and got.positions.dtype == ref.positions.dtype, k
+    assert hits > 100
+    for bad in (data[:3], b"\x00\x00\x00\x00" + data[4:], data[:20]):
+        with pytest.raises(CdrError):
+            reader.parse(bad)

@@ -229,3 +229,50 @@ def test_play_skips_types_not_installed(tmp_path: Path) -> None:
     finally:
         proc.stop()
     assert f"topic /probe: message type '{msgtype}' is not installed" in proc.output()
+
+
+def test_discovery_delay_comes_after_the_subscribers_are_found(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--wait-for-subscribers``: the publisher sees its subscriber before the subscriber has matched it, so the
+    ``--delay`` runs after the last subscriber is found (a subscriber found at 0.3 s, delay 0.4 s: >= 0.7 s); one
+    never found is named and the wait ends at its limit."""
+    import rclpy
+    from rclpy.context import Context
+
+    from ppoe_ros.cli.play import wait_for_discovery
+
+    class Pub:
+        def __init__(self, found_after: float) -> None:
+            self.at = time.monotonic() + found_after
+
+        def get_subscription_count(self) -> int:
+            return int(time.monotonic() >= self.at)
+
+    class Log:
+        def __init__(self) -> None:
+            self.lines: list[str] = []
+
+        def warning(self, text: str) -> None:
+            self.lines.append(text)
+
+    class Node:
+        logger = Log()
+
+        def get_logger(self) -> Log:
+            return self.logger
+
+    import rclpy.utilities
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=0)
+    monkeypatch.setattr(rclpy.utilities, "get_default_context", lambda: ctx)  # rclpy.ok() of this context
+    try:
+        t0 = time.monotonic()
+        wait_for_discovery(Node(), {"/a": Pub(0.3), "/b": Pub(0.1)}, 0.4, 5.0)
+        assert time.monotonic() - t0 >= 0.7
+        assert Node.logger.lines == []
+        t0 = time.monotonic()
+        wait_for_discovery(Node(), {"/a": Pub(0.0), "/never": Pub(1e9)}, 0.1, 0.3)
+        assert 0.4 <= time.monotonic() - t0 < 3.0
+        assert Node.logger.lines == ["no subscriber after 0.3 s on /never; playing anyway"]
+    finally:
+        ctx.try_shutdown()

@@ -147,6 +147,27 @@ def test_tf_message_cdr_equals_rclpy_serialisation():
             np.testing.assert_allclose(_T(tr), f.T_parent_child, atol=1e-12)
 
 
+
+@needs_tf2_msgs
+def test_one_frame_tf_writer_equals_tf_message_cdr():
+    """The fusion node's /tf writer (one frame, stamp and pose rewritten in place) gives tf_message_cdr's bytes, for
+    the pose as the node computes it (``pose_fields_one``: ``lie.quat_from_matrix``'s floats)."""
+    from ppoe_core.lie.compiled import lie_kernels
+    from ppoe_core.model.tf_frames import TfFrame
+    from ppoe_ros.common.tf_broadcast import OneFrameTfCdr, tf_message_cdr
+
+    rng = np.random.default_rng(5)
+    for parent, child in (("base_link", "tool0_corrected"), ("b", "c"), ("r1/base_link", "r1/tool_link_corrected")):
+        writer = OneFrameTfCdr(parent, child)
+        for k in range(30):
+            T = lie.exp(rng.normal(size=6) * (0.1 if k % 2 else 3.0))
+            stamp_ns = 1_700_000_000_123_456_789 + 999_999_937 * k - (1_800_000_000_000_000_000 if k == 3 else 0)
+            fields = np.empty(7)
+            lie_kernels().pose_fields_one(T, fields)
+            assert np.array_equal(fields[0:4], lie.quat_from_matrix(T[:3, :3]))
+            data = writer.serialize(np.concatenate([fields[4:7], fields[0:4]]), stamp_ns)
+            assert data == tf_message_cdr([TfFrame(parent, child, T)], stamp_ns), (parent, k)
+
 def test_kinematics_node_hot_path_untouched_without_publish_tf(tmp_path):
     """publish_tf false (the default): no TF object and no /tf publisher, the per-message path is the compiled one;
     true: TF is published from the Python path (the compiled one is off)."""

@@ -191,14 +191,18 @@ class TagBearingModel(MeasurementModel):
             raise MeasurementError(f"{name}: {len(self.labels)} labels for {n} points")
         self.dim = 2 * n
         if mode == "pixel":
-            sig = np.tile([self.pixel_sigma, self.pixel_sigma], n)
+            var = np.array([self.pixel_sigma, self.pixel_sigma]) ** 2
         else:
-            sig = np.tile([self.pixel_sigma / K[0, 0], self.pixel_sigma / K[1, 1]], n)
-        blocks = [np.diag(sig**2)]
+            var = np.array([self.pixel_sigma / K[0, 0], self.pixel_sigma / K[1, 1]]) ** 2
         self.has_camera_noise = cov_camera is not None
+        # blockdiag(diag(pixel variances), cov_camera): one array written in place (scipy's block_diag and np.diag
+        # cost more than the update at 30 images/s)
+        size = 2 * n + (6 if self.has_camera_noise else 0)
+        self.noise_cov = np.zeros((size, size))
+        diag = np.arange(2 * n)
+        self.noise_cov[diag, diag] = np.tile(var, n)  # [var_x, var_y] per point
         if self.has_camera_noise:
-            blocks.append(check_noise_covariance(cov_camera, 6, f"{name}: cov_camera"))
-        self.noise_cov = scipy.linalg.block_diag(*blocks)
+            self.noise_cov[2 * n:, 2 * n:] = check_noise_covariance(cov_camera, 6, f"{name}: cov_camera")
         self.noise_checked = True  # built from checked blocks
         self.noise_dim = self.noise_cov.shape[0]
         #: the compiled linearisation (the whole update in one call)

@@ -162,8 +162,9 @@ class ModelUpdater:
     def _joints(self, prior: PriorSample | None) -> dict[str, float]:
         if prior is None or prior.joints is None:
             return {}
-        names = self.model.joint_names
-        return {n: float(v) for n, v in zip(names, prior.joints) if math.isfinite(float(v))}
+        q = prior.joints
+        values = q.tolist() if type(q) is np.ndarray and q.ndim == 1 else [float(v) for v in q]  # Python floats
+        return {n: v for n, v in zip(self.model.joint_names, values) if math.isfinite(v)}
 
     def build(self, measurement: Measurement, prior: PriorSample | None) -> tuple[Any, Array]:
         """Measurement model and ``z`` for ``measurement`` (see class docstring)."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ppoe_core import lie
+from ppoe_core.estimation import pose_fields
 from ppoe_core.estimation.corrections import CarriedCorrection, apply_carried_corrections
 from ppoe_core.estimation.direct_measurements import PointObservation
 from ppoe_core.estimation.fusion import iterated_update
@@ -57,3 +58,9 @@ def warm_pipeline() -> None:
     pipe.add_measurement(Measurement(0.015, "warm-up", None))
     pipe.add_priors(0.03 + 0.01 * np.arange(3), np.repeat(X[None], 3, axis=0), P, np.zeros((3, 2)))
     pipe.add_prior(0.07, X, P, np.zeros(2))
+    # the fusion node's message conversions: its own aligned copy in, the writer's buffer (unaligned doubles) out
+    fields = np.zeros(pose_fields.FIELDS)
+    fields[6] = 1.0
+    pose_fields.prior_from_fields(fields, np.empty((4, 4)), np.empty((6, 6)))
+    out = np.frombuffer(bytearray(4 + 8 * pose_fields.FIELDS), dtype="<f8", count=pose_fields.FIELDS, offset=4)
+    pose_fields.fields_from_pose(X, P, out)

@@ -40,8 +40,8 @@ from ppoe_core.cli.checks import float_range
 from ppoe_core.errors import BagError, PpoeError
 from ppoe_core.io import bagio
 
-__all__ = ["add_arguments", "add_ros_args", "init_ros", "run", "ROBOT_DESCRIPTION_TOPIC", "GLOBAL_TOPICS",
-           "play_name"]
+__all__ = ["add_arguments", "add_ros_args", "init_ros", "run", "wait_for_discovery", "ROBOT_DESCRIPTION_TOPIC",
+           "GLOBAL_TOPICS", "play_name"]
 
 ROBOT_DESCRIPTION_TOPIC = "/robot_description"
 
@@ -63,7 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="play only these topics (default: all)")
     parser.add_argument("--loop", action="store_true", help="start over at the end, until interrupted")
     parser.add_argument("--delay", type=float_range(0.0), default=0.5,
-                        help="seconds to wait after creating the publishers, for discovery (default 0.5)")
+                        help="seconds to wait after creating the publishers (and after their subscribers are found, "
+                             "with --wait-for-subscribers), for the subscribers' side of discovery (default 0.5)")
     parser.add_argument("--accept-partial", action="store_true",
                         help="play what can be read of a damaged bag (default: refuse it, naming per topic "
                              "what was lost)")
@@ -138,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
             qos = _publisher_qos(topic, recorded.get(topic, []), check.counts.get(topic, 0))
             pubs[topic] = node.create_publisher(classes[topic], play_name(topic), qos)
         clock_pub = node.create_publisher(Clock, "/clock", reliable_qos(10)) if args.clock else None
-        _wait(node, pubs, args.delay, args.wait_for_subscribers)
+        wait_for_discovery(node, pubs, args.delay, args.wait_for_subscribers)
         counts = ", ".join(f"{pubs[t].topic_name} ({check.counts.get(t, 0)})" for t in selected)
         log.info(f"playing {args.bag}: {counts} at rate {args.rate:g}")
         while True:
@@ -158,21 +159,28 @@ def run(args: argparse.Namespace) -> int:
         rclpy.try_shutdown()
 
 
-def _wait(node: Any, pubs: dict[str, Any], delay: float, wait_subs: float) -> None:
-    """Discovery: sleep ``delay``; optionally wait until every publisher has a subscriber."""
+def wait_for_discovery(node: Any, pubs: dict[str, Any], delay: float, wait_subs: float) -> None:
+    """Discovery: optionally wait until every publisher has a subscriber, then sleep ``delay``.
+
+    A publisher counts a subscriber as soon as *its* side of discovery matched; the subscriber drops what
+    arrives before its side matched the publisher (a volatile joint state is lost so), so the ``delay`` comes
+    after the subscribers are found, not before.
+    """
     import rclpy
 
-    end = time.monotonic() + max(0.0, delay)
-    while time.monotonic() < end and rclpy.ok():
-        time.sleep(0.02)
     if wait_subs > 0:
         end = time.monotonic() + wait_subs
+        lonely = list(pubs)
         while rclpy.ok() and time.monotonic() < end:
             lonely = [t for t, p in pubs.items() if p.get_subscription_count() == 0]
             if not lonely:
-                return
+                break
             time.sleep(0.02)
-        node.get_logger().warning(f"no subscriber after {wait_subs:g} s on {', '.join(lonely)}; playing anyway")
+        if lonely:
+            node.get_logger().warning(f"no subscriber after {wait_subs:g} s on {', '.join(lonely)}; playing anyway")
+    end = time.monotonic() + max(0.0, delay)
+    while time.monotonic() < end and rclpy.ok():
+        time.sleep(0.02)
 
 
 def _drain(node: Any, pubs: dict[str, Any], timeout: float) -> None:

@@ -20,6 +20,7 @@ from ppoe_core.lie.compiled import lie_kernels
 
 #: ``header.stamp`` (int32 sec, uint32 nanosec) right after the 4-byte CDR encapsulation
 _STAMP = struct.Struct("<iI")
+_U32 = struct.Struct("<I")
 
 #: The generated message classes' private fields, as the fast builder of :func:`pose_cov_stamped_msg` fills them
 _MSG_SLOTS = {
@@ -185,20 +186,122 @@ _POSE_COV_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 
 class PoseCovarianceCdr:
     """:func:`pose_cov_stamped_msg` as bytes for a raw publisher (same floats: the quaternion by the same kernel),
-    with a fixed ``frame_id``: no typed message is built (publishing a typed message converts it field by field).
+    with a fixed ``frame_id``: no typed message is built (publishing a typed message converts it field by field);
+    and :meth:`parse`, :func:`pose_cov_from_cdr` of messages laid out as this writer's.  :meth:`parse_local` and
+    :meth:`serialize_local` take the covariance in the tangent space at the pose (the fusion node's per-prior path:
+    one compiled call each, :mod:`ppoe_core.estimation.pose_fields`).
     """
 
     def __init__(self, frame_id: str) -> None:
         from ppoe_core.io.cdr import PoseCovarianceWriter
 
         self.writer = PoseCovarianceWriter(frame_id)
-        self._fields = np.empty(7)
+        #: the fields of the last message written: position (3), quaternion x y z w (4), ROS covariance (36)
+        self.fields = self.writer.fields
+        template = self.writer.message()
+        self._size = len(template)
+        self._values_at = self._size - 8 * 43  # position, quaternion, covariance: the message's last 43 doubles
+        self._frame = template[12:16 + len(frame_id.encode("utf-8")) + 1]  # frame_id: length, bytes, NUL
+        self._in = np.empty(43)  # the fields of a message read (aligned: the message's doubles are not)
 
     def serialize(self, T_parent_child: np.ndarray, cov_ros: np.ndarray, stamp_ns: int) -> bytes:
         """The message bytes (``cov_ros`` in the ROS convention, ``stamp_ns`` integer nanoseconds)."""
-        f = self._fields
+        f = np.empty(7)
         lie_kernels().pose_fields_one(np.asarray(T_parent_child, dtype=np.float64), f)  # qx qy qz qw px py pz
         return self.writer.serialize(stamp_ns, f[4:7], f[0:4], np.asarray(cov_ros, dtype=np.float64))
+
+    def serialize_local(self, T_parent_child: np.ndarray, cov_child: np.ndarray, stamp_ns: int) -> bytes:
+        """:meth:`serialize` of ``lie.cov_local_to_ros(T_parent_child, cov_child)`` (the same bytes), the fields in
+        one compiled call (:func:`ppoe_core.estimation.pose_fields.fields_from_pose`)."""
+        _pose_fields().fields_from_pose(np.asarray(T_parent_child, dtype=np.float64),
+                                        np.asarray(cov_child, dtype=np.float64), self.fields)
+        _STAMP.pack_into(self.writer.raw, 4, *divmod(int(stamp_ns), 1_000_000_000))  # header.stamp, as the writer
+        return self.writer.message()
+
+    def parse(self, raw: bytes) -> tuple[np.ndarray, np.ndarray, int, str]:
+        """:func:`pose_cov_from_cdr` of ``raw`` (the same values and errors): a message of this writer's size whose
+        ``frame_id`` equals the writer's (and little-endian CDR; the padding after it is not compared: rclpy leaves
+        it unset) has its stamp and 43 doubles at the writer's offsets; any other goes through
+        :func:`pose_cov_from_cdr`."""
+        if not self._same_layout(raw):
+            return pose_cov_from_cdr(raw)
+        sec, nsec = _STAMP.unpack_from(raw, 4)
+        v = np.frombuffer(raw, dtype="<f8", count=43, offset=self._values_at)
+        px, py, pz, qx, qy, qz, qw = v[:7].tolist()
+        T = _matrix_from_quat_xyz(qx, qy, qz, qw, px, py, pz)
+        return T, v[7:].astype(np.float64).reshape(6, 6), sec * 1_000_000_000 + nsec, self.writer.frame_id
+
+    def parse_local(self, raw: bytes) -> tuple[np.ndarray, np.ndarray, int, str]:
+        """:meth:`parse` with the covariance as ``lie.cov_ros_to_local`` gives it (the same floats and errors): for
+        this writer's layout in one compiled call (:func:`ppoe_core.estimation.pose_fields.prior_from_fields`)."""
+        if self._same_layout(raw):
+            self._in[:] = np.frombuffer(raw, dtype="<f8", count=43, offset=self._values_at)
+            T, cov = np.empty((4, 4)), np.empty((6, 6))
+            if _pose_fields().prior_from_fields(self._in, T, cov):
+                sec, nsec = _STAMP.unpack_from(raw, 4)
+                return T, cov, sec * 1_000_000_000 + nsec, self.writer.frame_id
+        T, cov_ros, stamp_ns, frame = self.parse(raw)  # not this layout, or a quaternion that is no rotation (raises)
+        return T, lie.cov_ros_to_local(T, cov_ros), stamp_ns, frame
+
+    def _same_layout(self, raw: bytes) -> bool:
+        return len(raw) == self._size and raw.startswith(self._frame, 12) and raw.startswith(_CDR_LE)
+
+
+def _pose_fields() -> Any:
+    """:mod:`ppoe_core.estimation.pose_fields` (numba), imported on the first call and kept (an import statement
+    per message costs more than the kernel call)."""
+    if not _POSE_FIELDS:
+        from ppoe_core.lie.compiled import compiled
+
+        _POSE_FIELDS.append(compiled("ppoe_core.estimation.pose_fields"))
+    return _POSE_FIELDS[0]
+
+
+_POSE_FIELDS: list[Any] = []
+
+
+class JointStateReader:
+    """:func:`ppoe_core.io.cdr.parse_joint_state` with the layout of the last message remembered: a message of the
+    same size whose frame_id, names and position count equal the last one's, byte for byte at the same offsets
+    (the padding between them is not compared: rclpy leaves it unset), has its stamp and positions at the same
+    offsets, and the same values (that parser reads nothing after the positions); any other is parsed in full, and
+    its layout remembered."""
+
+    def __init__(self) -> None:
+        # (size, (offset, bytes) of each length-prefixed field, frame_id, names, positions' offset, count)
+        self._layout: tuple[int, tuple[tuple[int, bytes], ...], str, tuple[str, ...], int, int] | None = None
+
+    def parse(self, raw: bytes) -> Any:
+        """The :class:`~ppoe_core.io.cdr.JointStateCdr` of ``raw`` (its errors: :class:`~ppoe_core.io.cdr.CdrError`)."""
+        from ppoe_core.io import cdr
+
+        lay = self._layout
+        if lay is not None and len(raw) == lay[0] and raw.startswith(_CDR_LE):
+            for at, seg in lay[1]:
+                if not raw.startswith(seg, at):
+                    break
+            else:
+                sec, nsec = _STAMP.unpack_from(raw, 4)
+                positions = np.frombuffer(raw, dtype="<f8", count=lay[5], offset=lay[4]) if lay[5] else _EMPTY
+                return cdr.JointStateCdr(sec * 1_000_000_000 + nsec, lay[2], lay[3], positions)
+        msg = cdr.parse_joint_state(raw)
+        spans: list[tuple[int, int, int]] = []
+        cdr.read(cdr.SCHEMAS["sensor_msgs/msg/JointState"], raw, 3, spans=spans)
+        at_count, at_data, count = spans[0]
+        segs, pos = [], 12
+        for _ in range(1 + 1 + len(msg.names)):  # frame_id, the name count, each name (then the position count)
+            pos = cdr.align(pos, 4)
+            n = 0 if len(segs) == 1 else _U32.unpack_from(raw, pos)[0]
+            segs.append((pos, raw[pos:pos + 4 + n]))
+            pos += 4 + n
+        segs.append((at_count, raw[at_count:at_count + 4]))
+        self._layout = (len(raw), tuple(segs), msg.frame_id, msg.names, at_data, count)
+        return msg
+
+
+_CDR_LE = b"\x00\x01"  # the bytes ppoe_core.io.cdr.read checks: CDR, little endian
+_EMPTY = np.zeros(0)
+_EMPTY.flags.writeable = False
 
 
 def wrench_to_numpy(msg: Any) -> np.ndarray:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 from collections.abc import Callable, Mapping, Sequence
@@ -116,6 +117,11 @@ def run_nodes(factories: Sequence[Callable[[], Node]], args: Sequence[str] | Non
         for factory in factories:
             nodes.append(factory())
         nodes[0].get_logger().info(kernel_report())
+        # what start-up built (modules, numba's dispatchers, the model: ~170k objects) lives as long as the process:
+        # out of the collector's full passes, which otherwise stall the callbacks for ~140 ms now and then (measured
+        # in the fusion node at 1 kHz, docs/performance.md).  No gc.collect() first: it would cost the start-up
+        # ~0.1 s, and what start-up left as cyclic garbage is kept once, bounded
+        gc.freeze()
         _spin(nodes, executor)
     except PpoeError as exc:
         print(f"[FATAL] {exc}", file=sys.stderr, flush=True)

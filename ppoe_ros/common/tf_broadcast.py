@@ -17,6 +17,7 @@ install where ``scripts/build_tf2_msgs.py`` was not run) TF is off with one log 
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -33,10 +34,12 @@ from ppoe_core.model.tf_frames import JointFrames, TfFrame, calibrated_camera_fr
 
 __all__ = [
     "TF_TOPIC", "TF_STATIC_TOPIC", "TF2_MSGS_HINT", "tf_message_class", "transform_msg", "tf_message_cdr",
-    "TfBroadcaster", "FusionTf", "KinematicsTf",
+    "OneFrameTfCdr", "TfBroadcaster", "FusionTf", "KinematicsTf",
 ]
 
 TF_TOPIC = "/tf"
+#: ``header.stamp`` (int32 sec, uint32 nanosec)
+_STAMP = struct.Struct("<iI")
 TF_STATIC_TOPIC = "/tf_static"
 
 #: the log line when TF is asked for but tf2_msgs does not import
@@ -85,6 +88,22 @@ def tf_message_cdr(frames: Sequence[TfFrame], stamp_ns: int) -> bytes:
         T = np.stack([f.T_parent_child for f in frames]) if frames else np.zeros((0, 4, 4))
         poses = np.concatenate([T[:, :3, 3], lie.quat_from_matrix(T[:, :3, :3])], axis=1)
     return tf_message([(f.parent, f.child, p) for f, p in zip(frames, poses)], stamp_ns)
+
+
+class OneFrameTfCdr:
+    """:func:`tf_message_cdr` of one frame with fixed names (the fusion node's corrected tool at every prior): the
+    message written once, then only its stamp and its 7 doubles (translation, rotation x y z w: the message's last
+    56 bytes) rewritten; the same bytes (``test/test_tf.py``)."""
+
+    def __init__(self, parent: str, child: str) -> None:
+        self._buf = bytearray(tf_message([(parent, child, np.zeros(7))], 0))
+        self._pose = np.frombuffer(self._buf, dtype="<f8", count=7, offset=len(self._buf) - 56)
+
+    def serialize(self, pose: np.ndarray, stamp_ns: int) -> bytes:
+        """The message bytes at ``stamp_ns`` [ns]: ``pose`` (7,) = position x y z, quaternion x y z w."""
+        _STAMP.pack_into(self._buf, 8, *divmod(int(stamp_ns), 1_000_000_000))  # after the sequence's length
+        self._pose[:] = pose
+        return bytes(self._buf)
 
 
 class TfBroadcaster:
@@ -154,6 +173,7 @@ class FusionTf:
         self.broadcaster = TfBroadcaster.create(node, diagnostics, prefix) if params["publish_tf"] else None
         self.base = ""
         self.child: str | None = None  # None: no /tf for the corrected tool
+        self._writer: OneFrameTfCdr | None = None
 
     def set_model(self, model: Any, base: str, tool: str) -> None:
         """Check the child frames against ``model``'s URDF and publish the calibrated cameras on ``/tf_static``."""
@@ -168,6 +188,8 @@ class FusionTf:
             log.error(f"{problems[-1]} (the node keeps running; set tf_child_frame to a name that is not a URDF "
                       f"link, e.g. the default '{tool}_corrected')")
         self.base, self.child = base, None if why else child
+        p = self.broadcaster.prefix
+        self._writer = None if self.child is None else OneFrameTfCdr(p + base, p + self.child)
         cameras, notes = calibrated_camera_frames(model, self.camera_suffix)
         for note in notes:
             log.warning(note)
@@ -181,8 +203,15 @@ class FusionTf:
 
     def publish(self, T_base_tool: np.ndarray, stamp_ns: int) -> None:
         """The corrected tool frame on ``/tf`` at ``stamp_ns`` [ns] (the fused pose's), unless it is off."""
-        if self.child is not None and self.broadcaster is not None:
-            self.broadcaster.send([TfFrame(self.base, self.child, T_base_tool)], stamp_ns)
+        if self._writer is not None:
+            T = np.asarray(T_base_tool, dtype=float)
+            self.publish_pose(np.concatenate([T[:3, 3], lie.quat_from_matrix(T[:3, :3])]), stamp_ns)
+
+    def publish_pose(self, pose: np.ndarray, stamp_ns: int) -> None:
+        """:meth:`publish` of the pose as ``pose`` (7,): position x y z, quaternion x y z w
+        (``lie.quat_from_matrix``'s)."""
+        if self._writer is not None and self.broadcaster is not None:
+            self.broadcaster.pub.publish(self._writer.serialize(pose, stamp_ns))
 
 
 class KinematicsTf:

@@ -68,10 +68,9 @@ from ppoe_core.estimation.pipeline import (
 from ppoe_core.model.joint_history import JointHistory
 from ppoe_core.estimation.source_updater import SourceUpdater
 from ppoe_core.robot.yaml_io import read_yaml_mapping
-from ppoe_core.io.cdr import parse_joint_state
 from ppoe_ros.common.conversions import (
+    JointStateReader,
     PoseCovarianceCdr,
-    pose_cov_from_cdr,
     pose_cov_from_msg,
     stamp_to_ns,
 )
@@ -224,6 +223,7 @@ class FusionNode(Node):
                 counted_subscription(self, self.stats, msg_type, topic, cb, q, raw=raw)
 
         self._out = PoseCovarianceCdr(self.prefix + self.base_frame)  # the output as bytes, the 1 kHz inputs too
+        self._js_reader = JointStateReader()
         sub(PoseWithCovarianceStamped, p["prior_topic"], self._prior, qos, raw=True)
         sub(PointCloud2, p["observations_topic"], self._observations, rel)
         sub(PoseWithCovarianceStamped, p["contact_topic"], self._contact, rel)
@@ -301,15 +301,14 @@ class FusionNode(Node):
     def _joint_state(self, data: bytes) -> None:
         if self.model is None:
             return
-        msg = parse_joint_state(data)  # MeasurementError naming the field of a malformed message: counted bad
+        msg = self._js_reader.parse(data)  # MeasurementError naming the field of a malformed message: counted bad
         self.joints.update(msg.names, msg.positions, msg.stamp_ns)  # a refused one: counted bad
 
     def _prior(self, data: bytes) -> None:
         self.stats.counts["received"] += 1
-        T, cov_ros, stamp_ns, frame = pose_cov_from_cdr(data)
+        T, cov_tool, stamp_ns, frame = self._out.parse_local(data)
         if frame != self.prefix + self.base_frame:
             raise MeasurementError(f"prior frame '{frame}' is not base_frame '{self.prefix}{self.base_frame}'")
-        cov_tool = lie.cov_ros_to_local(T, cov_ros)
         if self.online is not None:  # the static model's prior moved to the online effect estimate
             T, cov_tool = self.online.correct_prior(stamp_ns, T, cov_tool, self.base_frame, self.tool_frame)
         newest, topic = self.pipeline.buffer.newest, self.params["prior_topic"]
@@ -395,8 +394,9 @@ class FusionNode(Node):
                 self._publish(est.T_base_tool, est.cov_tool, ns if est.stamp == s else int(round(est.stamp * 1e9)))
 
     def _publish(self, T: np.ndarray, cov_tool: np.ndarray, stamp_ns: int) -> None:
-        self.pub.publish(self._out.serialize(T, lie.cov_local_to_ros(T, cov_tool), stamp_ns))
-        self.tf.publish(T, stamp_ns)
+        out = self._out
+        self.pub.publish(out.serialize_local(T, cov_tool, stamp_ns))
+        self.tf.publish_pose(out.fields[:7], stamp_ns)  # the message's position and quaternion
         self.stats.counts["published"] += 1
 
     def _sync_counts(self) -> None:
