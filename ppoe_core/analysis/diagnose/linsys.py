@@ -95,6 +95,7 @@ class LinearSystem:
     _reduced_cache: tuple[np.ndarray, np.ndarray, float, list[tuple], np.ndarray] | None = field(
         default=None, init=False, repr=False)
     _absorbed: np.ndarray | None = field(default=None, init=False, repr=False)
+    _term_index: np.ndarray | None = field(default=None, init=False, repr=False)
 
     @property
     def n_columns(self) -> int:
@@ -113,7 +114,7 @@ class LinearSystem:
         G``, the segments' eliminations) is shared, not computed again."""
         out = replace(self, e=np.asarray(e, dtype=float))
         self._gram()
-        out._gramG, out._schur_cache = self._gramG, self._schur()
+        out._gramG, out._schur_cache, out._term_index = self._gramG, self._schur(), self._term_index
         return out
 
     def subset(self, columns: np.ndarray, sizes: Sequence[int]) -> LinearSystem:
@@ -211,10 +212,20 @@ class LinearSystem:
         loc[tidx] = np.arange(tidx.size)
         e_v, G_v = self.e[tidx].copy(), self.G[tidx].copy()
         scored = np.ones(tidx.size, dtype=bool)
-        for term in terms:
-            ee = self._fold_segment(term, train, test, H, b, ee, e_v, G_v, loc, scored)
+        touched = np.bincount(self._term_of()[tidx] + 1, minlength=len(terms) + 1)[1:] > 0
+        for term, touch in zip(terms, touched):
+            if touch or term[3] is None:  # (a determined segment all in training stays as reduced)
+                ee = self._fold_segment(term, train, test, H, b, ee, e_v, G_v, loc, scored)
         keep = np.flatnonzero(scored)
         return Fold(H, b, ee, tidx[keep], e_v[keep], G_v[keep], self.unit[tidx[keep]])
+
+    def _term_of(self) -> np.ndarray:
+        """Per component (n,), the index of its segment in :meth:`_reduced`'s terms (-1: in none)."""
+        if self._term_index is None:
+            self._term_index = np.full(self.e.size, -1)
+            for i, t in enumerate(self._schur()[1]):
+                self._term_index[t[0]] = i
+        return self._term_index
 
     def _fold_segment(self, term: tuple, train: np.ndarray, test: np.ndarray, H: np.ndarray, b: np.ndarray,
                       ee: float, e_v: np.ndarray, G_v: np.ndarray, loc: np.ndarray, scored: np.ndarray) -> float:
