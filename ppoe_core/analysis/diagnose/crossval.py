@@ -193,7 +193,10 @@ class Linearised:
         bU, bc = b[:need.size], b[need.size:]
         S, g = H[need[:, None], need], bU
         if cols.size:
-            P = np.linalg.pinv(H[cols[:, None], cols])
+            key = ("pinv", *cols.tolist())
+            if key not in self._cache:  # one per model: every multi-component candidate of a round asks for it
+                self._cache[key] = np.linalg.pinv(H[cols[:, None], cols])
+            P = self._cache[key]
             HcU = H[cols[:, None], need]
             S = S - HcU.T @ P @ HcU
             g = bU - HcU.T @ (P @ bc)
