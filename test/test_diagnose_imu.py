@@ -193,3 +193,15 @@ def test_contacts_alone_name_a_joint_offset(robot):
     ci = res.to_json()["effects"][0]["ci"]["offset"]
     assert ci[0] <= 0.004 <= ci[1]
     assert diagnose(robot, Measurements(contacts=_contacts(robot, [], seed=51))).effects == []
+
+
+def test_concatenated_stops_name_their_joints_in_sorted_order(robot):
+    """``Stops.concat`` once built its joint and motion-context dicts in the iteration order of a set of joint names
+    (the strings' hashes, another order in every process): the Motoman diagnosis then differed from run to run in
+    the last digits (the sums over joints in that order), up to the order of rejected candidates."""
+    s = _tilted(robot, [None, None], n=4, seed=50)
+    assert len(s.q) > 3
+    assert list(s.q) == sorted(s.q)
+    for key in ("motion_sign", "joint_velocity"):
+        if key in s.context:
+            assert list(s.context[key]) == sorted(s.context[key])

@@ -183,9 +183,14 @@ def _mm3(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
 @njit(cache=True, inline="always")
 def _exp_blocks(w0: float, w1: float, w2: float, R: np.ndarray, V: np.ndarray) -> None:
     """``R = Exp(w) = I + A W + B W^2`` (Rodrigues) and ``V = J_l(w) = I + B W + C W^2`` into (3, 3) blocks."""
+    _exp_work(w0, w1, w2, R, V, np.empty((3, 3)), np.empty((3, 3)))
+
+
+@njit(cache=True, inline="always")
+def _exp_work(w0: float, w1: float, w2: float, R: np.ndarray, V: np.ndarray, W: np.ndarray, WW: np.ndarray) -> None:
+    """:func:`_exp_blocks` with the work blocks ``W``, ``WW`` (3, 3) given (a batch loop allocates them once: the
+    allocation cost more than the arithmetic)."""
     A, B, C = _abc(w0 * w0 + w1 * w1 + w2 * w2)
-    W = np.empty((3, 3))
-    WW = np.empty((3, 3))
     _hat_into(w0, w1, w2, W)
     _mm3(W, W, WW)
     for i in range(3):
@@ -198,8 +203,14 @@ def _exp_blocks(w0: float, w1: float, w2: float, R: np.ndarray, V: np.ndarray) -
 @njit(cache=True)
 def se3_exp_one(xi: np.ndarray, T: np.ndarray) -> None:
     """``T = Exp(xi)`` (paper eq. 3) for one twist ``[rho; theta]`` (6,) into ``T`` (4, 4)."""
-    V = np.empty((3, 3))
-    _exp_blocks(xi[3], xi[4], xi[5], T, V)
+    _se3_exp_work(xi, T, np.empty((3, 3, 3)))
+
+
+@njit(cache=True, inline="always")
+def _se3_exp_work(xi: np.ndarray, T: np.ndarray, work: np.ndarray) -> None:
+    """:func:`se3_exp_one` with its work blocks ``work`` (3, 3, 3) given."""
+    V = work[0]
+    _exp_work(xi[3], xi[4], xi[5], T, V, work[1], work[2])
     for i in range(3):
         T[i, 3] = V[i, 0] * xi[0] + V[i, 1] * xi[1] + V[i, 2] * xi[2]
         T[3, i] = 0.0
@@ -209,8 +220,9 @@ def se3_exp_one(xi: np.ndarray, T: np.ndarray) -> None:
 @njit(cache=True)
 def se3_exp_kernel(xi: np.ndarray, out: np.ndarray) -> None:
     """:func:`se3_exp_one` of twists ``xi`` (N, 6) into ``out`` (N, 4, 4)."""
+    work = np.empty((3, 3, 3))
     for n in range(xi.shape[0]):
-        se3_exp_one(xi[n], out[n])
+        _se3_exp_work(xi[n], out[n], work)
 
 
 @njit(cache=True)
@@ -300,6 +312,13 @@ def se3_log_kernel(T: np.ndarray, out: np.ndarray) -> None:
 @njit(cache=True)
 def _q_block(r0: float, r1: float, r2: float, w0: float, w1: float, w2: float, Q: np.ndarray) -> None:
     """Barfoot's ``Q(rho, theta)`` block of the SE(3) left Jacobian (eq. 7.86b); series below ``theta^2 < 1e-4``."""
+    _q_work(r0, r1, r2, w0, w1, w2, Q, np.empty((10, 3, 3)))
+
+
+@njit(cache=True, inline="always")
+def _q_work(r0: float, r1: float, r2: float, w0: float, w1: float, w2: float, Q: np.ndarray,
+            work: np.ndarray) -> None:
+    """:func:`_q_block` with its work blocks ``work`` (10, 3, 3) given."""
     t2 = w0 * w0 + w1 * w1 + w2 * w2
     if t2 < 1e-4:
         c1 = 1.0 / 6.0 - t2 / 120.0 + t2 * t2 / 5040.0
@@ -311,16 +330,8 @@ def _q_block(r0: float, r1: float, r2: float, w0: float, w1: float, w2: float, Q
         c1 = (t - s) / (t2 * t)
         c2 = (t2 + 2.0 * c - 2.0) / (2.0 * t2 * t2)
         c3 = (2.0 * t - 3.0 * s + t * c) / (2.0 * t2 * t2 * t)
-    P = np.empty((3, 3))
-    W = np.empty((3, 3))
-    WP = np.empty((3, 3))
-    PW = np.empty((3, 3))
-    WPW = np.empty((3, 3))
-    WW = np.empty((3, 3))
-    A1 = np.empty((3, 3))
-    A2 = np.empty((3, 3))
-    A3 = np.empty((3, 3))
-    A4 = np.empty((3, 3))
+    P, W, WP, PW, WPW, WW, A1, A2, A3, A4 = (work[0], work[1], work[2], work[3], work[4], work[5], work[6], work[7],
+                                             work[8], work[9])
     _hat_into(r0, r1, r2, P)
     _hat_into(w0, w1, w2, W)
     _mm3(W, P, WP)
@@ -351,11 +362,15 @@ def _upper_block_triangular(A: np.ndarray, B: np.ndarray, J: np.ndarray) -> None
 @njit(cache=True)
 def se3_left_jacobian_one(xi: np.ndarray, J: np.ndarray) -> None:
     """Left Jacobian of SE(3) ``[[J_l, Q], [0, J_l]](xi)`` into ``J`` (6, 6): ``Exp(xi + d) ~ Exp(J d) Exp(xi)``."""
-    R = np.empty((3, 3))
-    V = np.empty((3, 3))
-    Q = np.empty((3, 3))
-    _exp_blocks(xi[3], xi[4], xi[5], R, V)
-    _q_block(xi[0], xi[1], xi[2], xi[3], xi[4], xi[5], Q)
+    _se3_left_jacobian_work(xi, J, np.empty((15, 3, 3)))
+
+
+@njit(cache=True, inline="always")
+def _se3_left_jacobian_work(xi: np.ndarray, J: np.ndarray, work: np.ndarray) -> None:
+    """:func:`se3_left_jacobian_one` with its work blocks ``work`` (15, 3, 3) given."""
+    R, V, Q = work[0], work[1], work[2]
+    _exp_work(xi[3], xi[4], xi[5], R, V, work[3], work[4])
+    _q_work(xi[0], xi[1], xi[2], xi[3], xi[4], xi[5], Q, work[5:])
     _upper_block_triangular(V, Q, J)
 
 
@@ -390,8 +405,9 @@ def se3_right_jacobian_inv_one(xi: np.ndarray, J: np.ndarray) -> None:
 @njit(cache=True)
 def se3_left_jacobian_kernel(xi: np.ndarray, out: np.ndarray) -> None:
     """:func:`se3_left_jacobian_one` of twists ``xi`` (N, 6) into ``out`` (N, 6, 6)."""
+    work = np.empty((15, 3, 3))
     for n in range(xi.shape[0]):
-        se3_left_jacobian_one(xi[n], out[n])
+        _se3_left_jacobian_work(xi[n], out[n], work)
 
 
 @njit(cache=True)

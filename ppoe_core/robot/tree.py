@@ -5,7 +5,7 @@ Joint values may be corrected through eq. 16's hooks (``dq`` per joint, ``dxi`` 
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -21,6 +21,18 @@ GRAVITY = 9.80665
 # =============================================================================
 # Nominal kinematic tree (link poses and Jacobians with dq / dxi insertions)
 # =============================================================================
+
+
+class LinkPoses(dict):
+    """:meth:`KinematicTree.link_poses`' result (link -> ``T_root_link``) with what the Jacobians of the same
+    evaluation reuse: per joint the frame right after its origin (``origin``) and after its ``dxi`` insertion
+    (``inserted``), and the insertions' right Jacobians ``J_r(dxi)`` (``dxi_jacobians``, filled on first use)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.origin: dict[str, np.ndarray] = {}
+        self.inserted: dict[str, np.ndarray] = {}
+        self.dxi_jacobians: dict[str, np.ndarray] = {}
 
 
 class KinematicTree:
@@ -85,12 +97,16 @@ class KinematicTree:
     def link_poses(self, q: Mapping[str, Any], dq: Mapping[str, Any] | None = None,
                    dxi: Mapping[str, Any] | None = None,
                    links: Sequence[str] | None = None,
-                   dT: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+                   dT: Mapping[str, np.ndarray] | None = None,
+                   motions: dict[str, np.ndarray] | None = None) -> LinkPoses:
         """``T_root_link`` for every link (or the ancestors of ``links``), shape ``(..., 4, 4)``.
 
         Implements the mean of paper eq. 17 with eq. 16 links
         ``Exp(p_i) Exp(dxi_i) dT_i Exp(zeta_i (q_i + dq_i))``; ``dT`` (joint -> ``(..., 4, 4)``) are
         insertions given as transforms (the simulator's composed truth), identity where absent.
+        ``motions``: the caller's cache of the motions ``Exp(zeta_i q_i)`` of joints that no ``dq`` touches, for
+        callers that evaluate the same ``q`` (unchanged arrays) many times with different corrections (a fit); it
+        is filled on the first call and must be dropped when ``q`` changes.
         """
         dxi = dxi or {}
         dT = dT or {}
@@ -107,36 +123,54 @@ class KinematicTree:
                                     *[np.shape(v)[:-1] for v in dxi.values()],
                                     *[np.shape(v)[:-2] for v in dT.values()])
         eye = np.broadcast_to(np.eye(4), batch + (4, 4))
-        poses: dict[str, np.ndarray] = {self.root: eye}
+        poses = LinkPoses()
+        poses[self.root] = eye
         for jn in joints:
             j = self.robot.joints[jn]
-            T = poses[j.parent] @ j.origin
+            T = poses.origin[jn] = _times_constant(poses[j.parent], j.origin)
             if jn in dxi:
-                T = T @ lie.exp(np.asarray(dxi[jn], dtype=float))
+                T = poses.inserted[jn] = T @ lie.exp(np.asarray(dxi[jn], dtype=float))
             if jn in dT:
                 T = T @ dT[jn]
             if j.movable:
-                T = T @ self._motion(j, vals[jn])
+                T = T @ self._cached_motion(j, jn, vals[jn], dq, motions)
             poses[j.child] = T
         return poses
+
+    def _cached_motion(self, joint: Any, name: str, v: np.ndarray, dq: Mapping[str, Any] | None,
+                       motions: dict[str, np.ndarray] | None) -> np.ndarray:
+        """``Exp(zeta v)`` of ``joint``, from ``motions`` (:meth:`link_poses`) when no ``dq`` changes its value."""
+        if motions is None or (dq and (name in dq or (joint.mimic_root is not None and joint.mimic_root[0] in dq))):
+            return self._motion(joint, v)
+        M = motions.get(name)
+        if M is None:
+            M = motions[name] = self._motion(joint, v)
+        return M
 
     def joint_frames(self, poses: Mapping[str, np.ndarray], joint: str,
                      dxi: Mapping[str, Any] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(T_root_a, T_root_c)``: frame right after the joint's origin and its ``dxi``
         insertion (``Exp(p) Exp(dxi)``), and the child link frame after the motion."""
         j = self.robot.joints[joint]
-        T_a = poses[j.parent] @ j.origin
+        done = poses if isinstance(poses, LinkPoses) else None  # the same products, made by link_poses
         if dxi and joint in dxi:
-            T_a = T_a @ lie.exp(np.asarray(dxi[joint], dtype=float))
-        return T_a, poses[j.child]
+            if done is not None and joint in done.inserted:
+                return done.inserted[joint], poses[j.child]
+            T_a = _times_constant(poses[j.parent], j.origin) @ lie.exp(np.asarray(dxi[joint], dtype=float))
+            return T_a, poses[j.child]
+        if done is not None and joint in done.origin:
+            return done.origin[joint], poses[j.child]
+        return _times_constant(poses[j.parent], j.origin), poses[j.child]
 
     # -- Jacobians ---------------------------------------------------------------
     def frame_jacobian(self, q: Mapping[str, Any], link: str,
                        poses: Mapping[str, np.ndarray] | None = None,
                        dq: Mapping[str, Any] | None = None,
-                       dxi: Mapping[str, Any] | None = None
+                       dxi: Mapping[str, Any] | None = None,
+                       joints: Collection[str] | None = None
                        ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-        """Right-tangent Jacobians of ``T_root_link`` w.r.t. the eq. 16 insertions.
+        """Right-tangent Jacobians of ``T_root_link`` w.r.t. the eq. 16 insertions (of the path's ``joints`` only,
+        and the mimic joints driven by them, when given).
 
         Returns
         -------
@@ -160,10 +194,12 @@ class KinematicTree:
         J_dxi: dict[str, np.ndarray] = {}
         for jn in self.robot.path_from_root(link):
             j = self.robot.joints[jn]
+            if joints is not None and jn not in joints and (j.mimic_root is None or j.mimic_root[0] not in joints):
+                continue
             T_root_a, T_root_c = self.joint_frames(poses, jn, dxi)
             J_dxi[jn] = lie.adjoint(T_l_root @ T_root_a)
             if dxi and jn in dxi:
-                J_dxi[jn] = J_dxi[jn] @ lie.right_jacobian(np.asarray(dxi[jn], dtype=float))
+                J_dxi[jn] = J_dxi[jn] @ self._dxi_jacobian(poses, jn, dxi[jn])
             if j.movable:
                 col = np.einsum("...ij,j->...i", lie.adjoint(T_l_root @ T_root_c), j.twist)
                 if j.mimic_root is not None:
@@ -174,19 +210,29 @@ class KinematicTree:
                     J_dq[jn] = J_dq.get(jn, 0.0) + col
         return J_dq, J_dxi
 
+    @staticmethod
+    def _dxi_jacobian(poses: Mapping[str, np.ndarray], joint: str, dxi: Any) -> np.ndarray:
+        """``J_r(dxi)`` of ``joint``'s insertion (kept in ``poses`` when they are :class:`LinkPoses`)."""
+        cache = poses.dxi_jacobians if isinstance(poses, LinkPoses) else {}
+        if joint not in cache:
+            cache[joint] = lie.right_jacobian(np.asarray(dxi, dtype=float))
+        return cache[joint]
+
     def point_jacobian(self, q: Mapping[str, Any], link: str, point: Any,
                        poses: Mapping[str, np.ndarray] | None = None,
                        dq: Mapping[str, Any] | None = None,
-                       dxi: Mapping[str, Any] | None = None
+                       dxi: Mapping[str, Any] | None = None,
+                       frame: tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | None = None
                        ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Jacobians of the root-frame position of ``point`` (link coordinates, (3,)) on ``link``.
 
         Returns ``(J_dq: joint -> (..., 3), J_dxi: joint -> (..., 3, 6))``, derived from
-        :meth:`frame_jacobian` with ``d(T p)/d xi = R [I, -[p]_x]``.
+        :meth:`frame_jacobian` with ``d(T p)/d xi = R [I, -[p]_x]`` (``frame``: its result for these ``poses``,
+        when the caller has it).
         """
         if poses is None:
             poses = self.link_poses(q, dq, dxi, links=[link])
-        J_dq, J_dxi = self.frame_jacobian(q, link, poses, dq, dxi)
+        J_dq, J_dxi = frame if frame is not None else self.frame_jacobian(q, link, poses, dq, dxi)
         R = poses[link][..., :3, :3]
         p = np.asarray(point, dtype=float)
         B = np.concatenate([R, -R @ lie.hat3(p)], axis=-1)
@@ -229,6 +275,14 @@ class KinematicTree:
         M = np.broadcast_to(M, T.shape[:-2] + (3,))
         Rt = np.swapaxes(T[..., :3, :3], -1, -2)
         return np.einsum("...ij,...j->...i", Rt, F), np.einsum("...ij,...j->...i", Rt, M)
+
+
+def _times_constant(T: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``T @ M`` of poses ``T`` (..., 4, 4) and one matrix ``M`` (4, 4) as one matrix product of the stacked rows
+    (the same sums, one BLAS call instead of one per pose)."""
+    if T.ndim <= 2:
+        return T @ M
+    return (T.reshape(-1, 4) @ M).reshape(T.shape[:-2] + (4, 4))
 
 
 # =============================================================================

@@ -94,6 +94,8 @@ class ResidualBlock(ABC):
         self.score_mask = np.ones(n, dtype=bool) if score_mask is None else np.asarray(score_mask, dtype=bool)
         self._nominal: dict[str, np.ndarray] | None = None
         self._bases: dict[str, tuple[dict[str, np.ndarray], dict[str, np.ndarray]]] = {}
+        #: :meth:`KinematicTree.link_poses`' cache of the joint motions at ``q`` (the rows' joint values never change)
+        self.motions: dict[str, np.ndarray] = {}
 
     def __len__(self) -> int:
         return int(self.segment.size)
@@ -132,6 +134,18 @@ class ResidualBlock(ABC):
         shape = (len(self), next(iter(Jq.values())).shape[1] if Jq else (next(iter(Jx.values())).shape[1]
                                                                             if Jx else self.dim))
         return chain_columns(Jq, Jx, self.basis(effect), effect.n_params, shape)
+
+    def chain_joints(self, candidates: Sequence[Effect], pert: Mapping[str, np.ndarray], jnoise: Mapping[str, float],
+                     chain: bool) -> set[str] | None:
+        """The joints whose chain Jacobians :meth:`linearise` needs: those the ``candidates``' bases insert at and
+        the declared prior's (``pert``, ``jnoise``); None (all) with ``chain``."""
+        if chain:
+            return None
+        out = set(pert) | set(jnoise)
+        for c in candidates:
+            Bq, Bx = self.basis(c)
+            out.update(Bq, Bx)
+        return out
 
     @property
     def n_segments(self) -> int:

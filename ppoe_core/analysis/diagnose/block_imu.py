@@ -91,29 +91,23 @@ class ImuBlock(ResidualBlock):
     def _poses(self, effects: Sequence[Effect]) -> tuple[dict, dict, dict]:
         eff = [e for e in effects if not _measured_tilt(e)]
         dq, dxi = self.corrections(eff)
-        return self.tree.link_poses(self.q, dq, dxi, links=self.links), dq, dxi
+        return self.tree.link_poses(self.q, dq, dxi, links=self.links, motions=self.motions), dq, dxi
 
     def linearise(self, effects: Sequence[Effect], candidates: Sequence[Effect], pert: Mapping[str, np.ndarray],
                   jnoise: Mapping[str, float], chain: bool = False) -> Linearisation:
         poses, dq, dxi = self._poses(effects)
         n, K = len(self), self.K
-        r, N, S = np.empty((n, 2 * K)), np.zeros((n, 2 * K, 2 * K)), np.zeros((n, 2 * K, 2 * K))
+        N, S = np.zeros((n, 2 * K, 2 * K)), np.zeros((n, 2 * K, 2 * K))
         Jq: dict[str, np.ndarray] = {}
         Jx: dict[str, np.ndarray] = {}
         need = chain or bool(candidates) or bool(pert) or bool(jnoise)
-        nu = self.nu[self.segment]  # (n, 2K): placement tilt, then the mountings
-        w = np.zeros((n, 3))
-        w[:, :2] = -nu[:, :2]
-        Rw = lie.so3_exp(w)
-        g = Rw[:, :, 2]  # Exp(-w) z: the up direction in the tilted root frame
+        r, w, Rw, ups = self._tilts(poses)
+        joints = self.chain_joints(candidates, pert, jnoise, chain)
         # d Exp(-w) z / d w = Exp(-w) [z]x J_r(-w) (x, y columns: the tilt has no z part)
         dg = (Rw @ lie.hat3(np.array([0.0, 0.0, 1.0])) @ lie.so3_right_jacobian(w))[:, :, :2]
         for k, link in enumerate(self.links):
-            R = poses[link][:, :3, :3]
-            u = np.einsum("nji,nj->ni", R, g)  # R^T Exp(-w) z
+            R, u = poses[link][:, :3, :3], ups[k]
             sl = slice(2 * k, 2 * k + 2)
-            mount = nu[:, 2 + 2 * self._mount_slot(k):4 + 2 * self._mount_slot(k)] if k != self.ref else 0.0
-            r[:, sl] = np.column_stack([self.u_m[:, k, 1] - u[:, 1], -(self.u_m[:, k, 0] - u[:, 0])]) - mount
             S[:, sl, sl] = (self.sigma[k] / self.norm[:, k])[:, None, None] ** 2 * np.eye(2)
             A = np.zeros((n, 2, 3))  # d tilt / d phi (right perturbation of the link's rotation)
             A[:, 0, 0], A[:, 0, 2] = u[:, 2], -u[:, 0]
@@ -124,7 +118,7 @@ class ImuBlock(ResidualBlock):
                 c = 2 + 2 * self._mount_slot(k)
                 N[:, sl, c:c + 2] = np.eye(2)
             if need:
-                Fq, Fx = self.tree.frame_jacobian(self.q, link, poses, dq, dxi)
+                Fq, Fx = self.tree.frame_jacobian(self.q, link, poses, dq, dxi, joints)
                 for j, F in Fq.items():
                     Jq.setdefault(j, np.zeros((n, 2 * K)))[:, sl] = np.einsum("nij,nj->ni", A, F[:, 3:])
                 for j, F in Fx.items():
@@ -132,6 +126,29 @@ class ImuBlock(ResidualBlock):
         J = [np.zeros((n, 2 * K, c.n_params)) if _measured_tilt(c)
              else chain_columns(Jq, Jx, self.basis(c), c.n_params, (n, 2 * K)) for c in candidates]
         return Linearisation(r, J, N, S, prior_covariance(Jq, Jx, pert, jnoise, (n, 2 * K)), Jq=Jq)
+
+    def residual(self, effects: Sequence[Effect]) -> np.ndarray:
+        """:meth:`linearise`'s ``r`` alone (no Jacobians, nuisance columns or covariances: a refit's trial)."""
+        return self._tilts(self._poses(effects)[0])[0]
+
+    def _tilts(self, poses: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+        """Residual rows (n, 2K) at the link ``poses`` and the current placements, the placement tilts ``w`` (n, 3)
+        with ``Exp(-w)`` (n, 3, 3), and per sensor the predicted up direction ``u`` (n, 3) in its link frame."""
+        n, K = len(self), self.K
+        r = np.empty((n, 2 * K))
+        nu = self.nu[self.segment]  # (n, 2K): placement tilt, then the mountings
+        w = np.zeros((n, 3))
+        w[:, :2] = -nu[:, :2]
+        Rw = lie.so3_exp(w)
+        g = Rw[:, :, 2]  # Exp(-w) z: the up direction in the tilted root frame
+        ups = []
+        for k, link in enumerate(self.links):
+            u = np.einsum("nji,nj->ni", poses[link][:, :3, :3], g)  # R^T Exp(-w) z
+            sl = slice(2 * k, 2 * k + 2)
+            mount = nu[:, 2 + 2 * self._mount_slot(k):4 + 2 * self._mount_slot(k)] if k != self.ref else 0.0
+            r[:, sl] = np.column_stack([self.u_m[:, k, 1] - u[:, 1], -(self.u_m[:, k, 0] - u[:, 0])]) - mount
+            ups.append(u)
+        return r, w, Rw, ups
 
     def _mount_slot(self, k: int) -> int:
         """Index of accelerometer ``k``'s mounting among the non-reference ones."""

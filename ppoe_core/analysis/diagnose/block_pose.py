@@ -43,7 +43,7 @@ class PoseBlock(ResidualBlock):
 
     def _chain(self, effects: Sequence[Effect]) -> tuple:
         s = self.stops
-        x, R, poses, dq, dxi = predict_nominal(self.tree, s, (), self.corrections(effects))
+        x, R, poses, dq, dxi = predict_nominal(self.tree, s, (), self.corrections(effects), self.motions)
         assert R is not None and s.R_meas is not None
         Jq, Jx, Fq, Fx = chain_jacobians(self.tree, s, poses, dq, dxi)
         base_R = poses[s.base][..., :3, :3] if s.base and s.base != self.tree.root else None

@@ -135,17 +135,23 @@ class TrackerBlock(ResidualBlock):
     def linearise(self, effects: Sequence[Effect], candidates: Sequence[Effect], pert: Mapping[str, np.ndarray],
                   jnoise: Mapping[str, float], chain: bool = False) -> Linearisation:
         s = self.stops
-        x, _, poses, dq, dxi = predict_nominal(self.tree, s, (), self.corrections(effects))
+        x, _, poses, dq, dxi = predict_nominal(self.tree, s, (), self.corrections(effects), self.motions)
         n = len(s)
         z = self.measured_in_root()
         r = z - x
         need_chain = chain or bool(candidates) or bool(pert) or bool(jnoise)
-        Jq, Jx, _, _ = chain_jacobians(self.tree, s, poses, dq, dxi) if need_chain else ({}, {}, {}, {})
+        joints = self.chain_joints(candidates, pert, jnoise, chain)
+        Jq, Jx, _, _ = chain_jacobians(self.tree, s, poses, dq, dxi, joints) if need_chain else ({}, {}, {}, {})
         J = [chain_columns(Jq, Jx, self.basis(c), c.n_params, (n, 3)) for c in candidates]
         N = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), -lie.hat3(z)], axis=-1)
         S = s.sigma_rows()[:, None, None] ** 2 * np.eye(3)
         Q = prior_covariance(Jq, Jx, pert, jnoise, (n, 3))
         return Linearisation(r, J, N, S, Q, Jq=Jq)
+
+    def residual(self, effects: Sequence[Effect]) -> np.ndarray:
+        """:meth:`linearise`'s ``r`` alone (no Jacobians, nuisance columns or covariances: a refit's trial)."""
+        x = predict_nominal(self.tree, self.stops, (), self.corrections(effects), self.motions)[0]
+        return self.measured_in_root() - x
 
     def apply_nuisance(self, step: np.ndarray) -> None:
         self.T0 = self.T0 @ lie.exp(np.asarray(step, dtype=float).reshape(-1, 6))
@@ -157,7 +163,7 @@ class TrackerBlock(ResidualBlock):
         self.T0 = state.copy()
 
     def reset_nuisance(self, effects: Sequence[Effect]) -> None:
-        x = predict_nominal(self.tree, self.stops, (), self.corrections(effects))[0]
+        x = predict_nominal(self.tree, self.stops, (), self.corrections(effects), self.motions)[0]
         regs = kabsch_per_session(x, self.stops.p_meas, self.stops.session)
         for k, T in regs.items():
             self.T0[k] = T

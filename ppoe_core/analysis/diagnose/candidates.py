@@ -3,7 +3,7 @@ nominal prediction of its rows and their chain Jacobians."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -106,12 +106,14 @@ def _thermal(tree: KinematicTree, joint: str, context: Mapping) -> list[Effect]:
 
 
 def predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect],
-                    corrections: tuple[dict, dict] | None = None
+                    corrections: tuple[dict, dict] | None = None, motions: dict[str, np.ndarray] | None = None
                     ) -> tuple[np.ndarray, np.ndarray | None, dict, dict, dict]:
     """Prediction of the measured points (and tool rotations for poses) with the effects ``declared`` (or their
-    ``corrections`` ``(dq, dxi)`` if the caller has them); returns x0 (N,3), R0, poses, dq, dxi."""
+    ``corrections`` ``(dq, dxi)`` if the caller has them); returns x0 (N,3), R0, poses (of the measured links, the
+    base and their ancestors), dq, dxi.  ``motions``: :meth:`KinematicTree.link_poses`' cache for ``stops.q``."""
     dq, dxi = corrections if corrections is not None else sum_effect_corrections(declared, stops.q, stops.context)
-    poses = tree.link_poses(stops.q, dq, dxi)
+    links = [*stops.chain_links(), *([stops.base] if stops.base else [])]
+    poses = tree.link_poses(stops.q, dq, dxi, links=links, motions=motions)
     T = measured_link_poses(stops, poses)
     if stops.kind == "pose" and stops.base and stops.base != tree.root:
         T = lie.inverse(poses[stops.base]) @ T
@@ -136,8 +138,9 @@ def measured_link_poses(stops: Stops, poses: Mapping[str, np.ndarray]) -> np.nda
 
 
 def chain_jacobians(tree: KinematicTree, stops: Stops, poses: Mapping[str, np.ndarray], dq: Mapping,
-                    dxi: Mapping) -> tuple[dict, dict, dict, dict]:
-    """Jacobians of each row's measured point and link frame w.r.t. the eq. 16 insertions.
+                    dxi: Mapping, joints: Collection[str] | None = None) -> tuple[dict, dict, dict, dict]:
+    """Jacobians of each row's measured point and link frame w.r.t. the eq. 16 insertions (at ``joints`` only when
+    given: :meth:`KinematicTree.frame_jacobian`).
 
     Returns ``(Jq, Jx, Fq, Fx)`` as :meth:`KinematicTree.point_jacobian` (root-frame position, (N, 3)
     and (N, 3, 6)) and :meth:`KinematicTree.frame_jacobian` (tangent at the link, (N, 6) and
@@ -145,15 +148,18 @@ def chain_jacobians(tree: KinematicTree, stops: Stops, poses: Mapping[str, np.nd
     that link's path).
     """
     point = stops.point_rows()
+
+    def both(ln: str) -> tuple[dict, dict, dict, dict]:
+        frame = tree.frame_jacobian(stops.q, ln, poses, dq, dxi, joints)
+        return (*tree.point_jacobian(stops.q, ln, point, poses, dq, dxi, frame=frame), *frame)
+
     if stops.links is None:
-        return (*tree.point_jacobian(stops.q, stops.link, point, poses, dq, dxi),
-                *tree.frame_jacobian(stops.q, stops.link, poses, dq, dxi))
+        return both(stops.link)
     rows, n = stops.row_links(), len(stops)
     out: tuple[dict, dict, dict, dict] = ({}, {}, {}, {})
     for ln in stops.chain_links():
         m = rows == ln
-        parts = (*tree.point_jacobian(stops.q, ln, point, poses, dq, dxi),
-                 *tree.frame_jacobian(stops.q, ln, poses, dq, dxi))
+        parts = both(ln)
         for acc, part, tail in zip(out, parts, ((3,), (3, 6), (6,), (6, 6))):
             for k, v in part.items():
                 masked = np.where(m.reshape((n,) + (1,) * len(tail)), np.broadcast_to(v, (n, *tail)), 0.0)

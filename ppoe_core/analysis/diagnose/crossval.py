@@ -150,9 +150,9 @@ class Linearised:
         cols = self.columns(model)
         fixed, fv = self._fixed(cols)
         step = self.all.fit(cols, fixed, fv)
-        H = self.all.H[np.ix_(cols, cols)]
-        b = self.all.b[cols] - (self.all.H[np.ix_(cols, fixed)] @ fv if fixed.size else 0.0)
-        ee = self.all.ee - 2.0 * float(self.all.b[fixed] @ fv) + float(fv @ self.all.H[np.ix_(fixed, fixed)] @ fv) \
+        H = self.all.H[cols[:, None], cols]
+        b = self.all.b[cols] - (self.all.H[cols[:, None], fixed] @ fv if fixed.size else 0.0)
+        ee = self.all.ee - 2.0 * float(self.all.b[fixed] @ fv) + float(fv @ self.all.H[fixed[:, None], fixed] @ fv) \
             if fixed.size else self.all.ee
         ssr = max(ee - float(step @ b), 0.0)
         dof = max(self.sys.e.size - cols.size - self._n_nuisance(), 1)
@@ -170,10 +170,10 @@ class Linearised:
     def _ssr(self, model: Sequence[Term]) -> float:
         cols = self.columns(model)
         fixed, fv = self._fixed(cols)
-        b = self.all.b[cols] - (self.all.H[np.ix_(cols, fixed)] @ fv if fixed.size else 0.0)
-        ee = self.all.ee - 2.0 * float(self.all.b[fixed] @ fv) + float(fv @ self.all.H[np.ix_(fixed, fixed)] @ fv) \
+        b = self.all.b[cols] - (self.all.H[cols[:, None], fixed] @ fv if fixed.size else 0.0)
+        ee = self.all.ee - 2.0 * float(self.all.b[fixed] @ fv) + float(fv @ self.all.H[fixed[:, None], fixed] @ fv) \
             if fixed.size else self.all.ee
-        step = solve_scaled(self.all.H[np.ix_(cols, cols)], b)
+        step = solve_scaled(self.all.H[cols[:, None], cols], b)
         return max(ee - float(step @ b), 0.0)
 
     def added_ssr(self, model: Sequence[Term], terms: Sequence[Term]) -> np.ndarray:
@@ -189,19 +189,22 @@ class Linearised:
         if not need.size:
             return out
         idx = np.concatenate([need, cols])  # only the rows and columns the terms need (not all C x C)
-        b = self.all.b[idx] - (H[np.ix_(idx, fixed)] @ fv if fixed.size else 0.0)
+        b = self.all.b[idx] - (H[idx[:, None], fixed] @ fv if fixed.size else 0.0)
         bU, bc = b[:need.size], b[need.size:]
-        S, g = H[np.ix_(need, need)], bU
+        S, g = H[need[:, None], need], bU
         if cols.size:
-            P = np.linalg.pinv(H[np.ix_(cols, cols)])
-            HcU = H[np.ix_(cols, need)]
+            key = ("pinv", *cols.tolist())
+            if key not in self._cache:  # one per model: every multi-component candidate of a round asks for it
+                self._cache[key] = np.linalg.pinv(H[cols[:, None], cols])
+            P = self._cache[key]
+            HcU = H[cols[:, None], need]
             S = S - HcU.T @ P @ HcU
             g = bU - HcU.T @ (P @ bc)
         pos = {int(c): i for i, c in enumerate(need)}
         for k, c in enumerate(own):
             if c.size:
                 i = np.array([pos[int(x)] for x in c])
-                out[k] = base - float(g[i] @ solve_scaled(S[np.ix_(i, i)], g[i]))
+                out[k] = base - float(g[i] @ solve_scaled(S[i[:, None], i], g[i]))
         return out
 
     def _n_nuisance(self) -> int:
@@ -224,19 +227,19 @@ class Linearised:
         drifted near-dependent at a new linearisation (intrinsics k1 k2 k3 next to the camera poses) must not block
         every addition."""
         H = self.all.H
-        Hnn = H[np.ix_(n_cols, n_cols)]
+        Hnn = H[n_cols[:, None], n_cols]
         d = np.sqrt(np.maximum(np.diag(Hnn), 1e-300))
         M = Hnn / d[:, None] / d[None, :]
         if m_cols.size:
             key = ("model_basis", *m_cols.tolist())
             if key not in self._cache:  # one per model: every candidate of a round is checked against it
-                Hmm = H[np.ix_(m_cols, m_cols)]
+                Hmm = H[m_cols[:, None], m_cols]
                 dm = np.sqrt(np.maximum(np.diag(Hmm), 1e-300))
                 lam, V = np.linalg.eigh(Hmm / dm[:, None] / dm[None, :])
                 keep = lam > 1e-12 * max(float(lam[-1]), 1e-300)
                 self._cache[key] = V[:, keep] / np.sqrt(lam[keep]) / dm[:, None]  # W: W^T Hmm W = I
             W = self._cache[key]
-            R = W.T @ H[np.ix_(m_cols, n_cols)] / d[None, :]
+            R = W.T @ H[m_cols[:, None], n_cols] / d[None, :]
             r = R.shape[0]
             M = np.block([[np.eye(r), R], [R.T, M]])
         ev = np.linalg.eigvalsh(M)

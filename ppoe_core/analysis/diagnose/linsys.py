@@ -95,6 +95,7 @@ class LinearSystem:
     _reduced_cache: tuple[np.ndarray, np.ndarray, float, list[tuple], np.ndarray] | None = field(
         default=None, init=False, repr=False)
     _absorbed: np.ndarray | None = field(default=None, init=False, repr=False)
+    _term_index: np.ndarray | None = field(default=None, init=False, repr=False)
 
     @property
     def n_columns(self) -> int:
@@ -113,7 +114,7 @@ class LinearSystem:
         G``, the segments' eliminations) is shared, not computed again."""
         out = replace(self, e=np.asarray(e, dtype=float))
         self._gram()
-        out._gramG, out._schur_cache = self._gramG, self._schur()
+        out._gramG, out._schur_cache, out._term_index = self._gramG, self._schur(), self._term_index
         return out
 
     def subset(self, columns: np.ndarray, sizes: Sequence[int]) -> LinearSystem:
@@ -137,10 +138,10 @@ class LinearSystem:
                 for sid, pos in zip(ids, np.split(order, starts[1:]) if order.size else []):
                     rows, N = ns.idx[pos], ns.N[pos]
                     act = _active(N)
-                    if not _determined(N, act):
+                    A_inv = _nuisance_inverse(N, act)
+                    if A_inv is None:
                         terms.append((rows, N, act, None, None, None, k, int(sid)))
                         continue
-                    A_inv = _ginv(N, act)
                     M = N.T @ self.G[rows]
                     AM = A_inv @ M
                     H -= M.T @ AM
@@ -211,10 +212,20 @@ class LinearSystem:
         loc[tidx] = np.arange(tidx.size)
         e_v, G_v = self.e[tidx].copy(), self.G[tidx].copy()
         scored = np.ones(tidx.size, dtype=bool)
-        for term in terms:
-            ee = self._fold_segment(term, train, test, H, b, ee, e_v, G_v, loc, scored)
+        touched = np.bincount(self._term_of()[tidx] + 1, minlength=len(terms) + 1)[1:] > 0
+        for term, touch in zip(terms, touched):
+            if touch or term[3] is None:  # (a determined segment all in training stays as reduced)
+                ee = self._fold_segment(term, train, test, H, b, ee, e_v, G_v, loc, scored)
         keep = np.flatnonzero(scored)
         return Fold(H, b, ee, tidx[keep], e_v[keep], G_v[keep], self.unit[tidx[keep]])
+
+    def _term_of(self) -> np.ndarray:
+        """Per component (n,), the index of its segment in :meth:`_reduced`'s terms (-1: in none)."""
+        if self._term_index is None:
+            self._term_index = np.full(self.e.size, -1)
+            for i, t in enumerate(self._schur()[1]):
+                self._term_index[t[0]] = i
+        return self._term_index
 
     def _fold_segment(self, term: tuple, train: np.ndarray, test: np.ndarray, H: np.ndarray, b: np.ndarray,
                       ee: float, e_v: np.ndarray, G_v: np.ndarray, loc: np.ndarray, scored: np.ndarray) -> float:
@@ -237,7 +248,8 @@ class LinearSystem:
         H -= Go.T @ Go
         b -= Go.T @ eo
         ee -= float(eo @ eo)
-        if tr.any() and _determined(N[tr], act):
+        A2 = _nuisance_inverse(N[tr], act) if tr.any() else None
+        if A2 is not None:
             fit_rows, fit_N, out, training = rows[tr], N[tr], te, True
         else:
             if tr.any():  # its training part cannot determine the nuisance: it does not train
@@ -250,10 +262,10 @@ class LinearSystem:
             out = split if split.any() else te
             scored[loc[rows[te]]] = False
             fit_rows, fit_N, training = rows[reg], N[reg], False
-            if not te.any() or not _determined(fit_N, act):
+            A2 = _nuisance_inverse(fit_N, act) if te.any() else None
+            if A2 is None:
                 return ee
             scored[loc[rows[out]]] = True
-        A2 = _ginv(fit_N, act)
         M2, g2 = fit_N.T @ self.G[fit_rows], fit_N.T @ self.e[fit_rows]
         AM2, Ag2 = A2 @ M2, A2 @ g2
         if training:
@@ -278,10 +290,9 @@ class LinearSystem:
             for s in np.unique(ns.seg):
                 m = ns.seg == s
                 rows, Ns = ns.idx[m], ns.N[m]
-                act = _active(Ns)
-                if not _determined(Ns, act):
+                A_inv = _nuisance_inverse(Ns, _active(Ns))
+                if A_inv is None:
                     continue
-                A_inv = _ginv(Ns, act)
                 e_p[rows] -= Ns @ (A_inv @ (Ns.T @ self.e[rows]))
                 G_p[rows] -= Ns @ (A_inv @ (Ns.T @ self.G[rows]))
         return e_p, G_p
@@ -304,22 +315,22 @@ def _active(N: np.ndarray) -> np.ndarray:
     return norm > 1e-12 * max(float(norm.max(initial=0.0)), 1e-300)
 
 
-def _determined(N: np.ndarray, act: np.ndarray) -> bool:
-    """Whether nuisance rows ``N`` (m, k) determine the ``act`` columns (scaled information well conditioned)."""
+def _nuisance_inverse(N: np.ndarray, act: np.ndarray) -> np.ndarray | None:
+    """``(N^T N)^-1`` (k, k) on the ``act`` columns, zero elsewhere, if the nuisance rows ``N`` (m, k) determine
+    them (their scaled information well conditioned: smallest eigenvalue above :data:`MIN_NUISANCE_EIG` of the
+    largest), else None."""
     Na = N[:, act]
     if Na.shape[0] < Na.shape[1] or not act.any():
-        return bool(not act.any())
+        return np.zeros((N.shape[1], N.shape[1])) if not act.any() else None
     A = Na.T @ Na
     d = np.sqrt(np.maximum(np.diag(A), 1e-300))
     ev = np.linalg.eigvalsh(A / d[:, None] / d[None, :])
-    return bool(ev[0] > MIN_NUISANCE_EIG * max(ev[-1], 1e-300))
-
-
-def _ginv(N: np.ndarray, act: np.ndarray) -> np.ndarray:
-    """``(N^T N)^-1`` on the ``act`` columns, zero elsewhere (k, k)."""
+    if not ev[0] > MIN_NUISANCE_EIG * max(ev[-1], 1e-300):
+        return None
+    if act.all():
+        return np.linalg.inv(A)
     out = np.zeros((N.shape[1], N.shape[1]))
-    Na = N[:, act]
-    out[np.ix_(act, act)] = np.linalg.inv(Na.T @ Na)
+    out[np.ix_(act, act)] = np.linalg.inv(A)
     return out
 
 
@@ -343,8 +354,8 @@ class Fold:
         (``ridge``, ``scale``: :func:`solve_scaled`)."""
         b = self.b[cols]
         if fixed is not None and fixed.size:
-            b = b - self.H[np.ix_(cols, fixed)] @ fixed_values
-        return solve_scaled(self.H[np.ix_(cols, cols)], b, ridge, None if scale is None else scale[cols])
+            b = b - self.H[cols[:, None], fixed] @ fixed_values
+        return solve_scaled(self.H[cols[:, None], cols], b, ridge, None if scale is None else scale[cols])
 
     def heldout(self, cols: np.ndarray, dtheta: np.ndarray, fixed: np.ndarray | None = None,
                 fixed_values: np.ndarray | None = None) -> np.ndarray:
@@ -398,6 +409,14 @@ def solve_scaled_batch(H: np.ndarray, b: np.ndarray, ridge: float = 1e-10) -> np
         return np.zeros((F, 0))
     d = np.sqrt(np.maximum(np.einsum("kii->ki", H), 0.0))
     act = d > MIN_ACTIVE * np.maximum(d.max(axis=1, keepdims=True), 1e-300)
+    if act.all():  # (the common case: the masks below change nothing)
+        Hs = H / d[:, :, None] / d[:, None, :]
+        diag = np.einsum("kii->ki", Hs)
+        diag[...] = diag + ridge
+        try:
+            return np.linalg.solve(Hs, (b / d)[..., None])[..., 0] / d
+        except np.linalg.LinAlgError:
+            return np.stack([solve_scaled(H[k], b[k], ridge) for k in range(F)])
     da = np.where(act, d, 1.0)
     Hs = H / da[:, :, None] / da[:, None, :]
     mask = act[:, :, None] & act[:, None, :]

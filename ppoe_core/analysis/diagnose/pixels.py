@@ -302,7 +302,7 @@ def concat_pixel_obs(parts: Sequence[PixelObs]) -> PixelObs:
         g, names_g = p.row_groups()
         groups.append(g + len(gnames))
         gnames.extend(names_g)
-    names = set().union(*[p.q for p in parts])
+    names = sorted(set().union(*[p.q for p in parts]))  # a named order, not the strings' hashes
     tags = all(p.tag is not None for p in parts)
     return PixelObs(
         q={j: np.concatenate([p.q[j] for p in parts]) for j in names}, link=parts[0].link,

@@ -127,14 +127,14 @@ class Stops:
                           or p.sigma != first.sigma for p in parts[1:]))
         so = np.cumsum([0] + [len(p.session_names) for p in parts])
         go = np.cumsum([0] + [len(p.group_names) for p in parts])
-        joints = set.intersection(*[set(p.q) for p in parts])
+        joints = sorted(set.intersection(*[set(p.q) for p in parts]))  # a named order, not the strings' hashes
         ctx: dict[str, Any] = {}
         for key in ("time", "temperature", "gravity", "base_tilt"):
             if all(key in p.context for p in parts):
                 ctx[key] = np.concatenate([p.context[key] for p in parts])
         for key in ("motion_sign", "joint_velocity"):
             if all(key in p.context for p in parts):
-                names = set.intersection(*[set(p.context[key]) for p in parts])
+                names = sorted(set.intersection(*[set(p.context[key]) for p in parts]))
                 ctx[key] = {n: np.concatenate([p.context[key][n] for p in parts]) for n in names}
         return Stops(
             q={j: np.concatenate([p.q[j] for p in parts]) for j in joints},

@@ -64,6 +64,7 @@ class Catalogue:
         self.index = {e.key: i for i, e in enumerate(self.effects)}
         self.by_place = {(e.name, e.location): i for i, e in enumerate(self.effects)}
         self.chains = list(dict.fromkeys(chains))
+        self._zero: dict[Term, Effect] = {}
         self.cameras = dict(cameras or {})  # camera_extrinsics location (mount joint) -> camera optical frame
 
     def __len__(self) -> int:
@@ -94,8 +95,14 @@ class Catalogue:
 
     def effect(self, term: Term, values: np.ndarray | None = None) -> Effect:
         """The effect of ``term`` with ``values`` (of the candidate's full parameter vector; zeros if None)."""
+        if values is None:  # the zero-valued effect of a term: made once (the selection asks for it often)
+            if term not in self._zero:
+                self._zero[term] = self._effect(term, np.zeros(self.effects[term.cand].n_params))
+            return self._zero[term]
+        return self._effect(term, np.asarray(values, dtype=float))
+
+    def _effect(self, term: Term, vals: np.ndarray) -> Effect:
         e = self.effects[term.cand]
-        vals = np.zeros(e.n_params) if values is None else np.asarray(values, dtype=float)
         if len(term.comps) == e.n_params:
             return e.with_params(vals)
         comps = tuple(e.param_names[i] for i in term.comps)
