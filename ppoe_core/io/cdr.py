@@ -34,7 +34,8 @@ from ppoe_core.errors import MeasurementError
 
 __all__ = ["CDR_LE_HEADER", "SCHEMAS", "CdrError", "PARSE_ERRORS", "align", "read", "write", "check_end",
            "parse_fields", "parse_joint_state", "JointStateCdr", "joint_state_names_block", "PoseCovarianceWriter",
-           "tf_message", "as_bytes", "JointStateBlock", "joint_state_block"]
+           "tf_message", "as_bytes", "JointStateBlock", "joint_state_block", "JointStateLayout",
+           "joint_state_layout", "JointStateReader"]
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
@@ -316,21 +317,76 @@ def joint_state_names_block(data: bytes) -> tuple[int, bytes]:
     return count, bytes(data[start:_strings(data, pos, "name")[1]])
 
 
-class _Layout(NamedTuple):
-    """Where the fields of a ``JointState`` lie: a message of the same size and the same bytes but for the stamp and
-    the float64 values (same encapsulation, frame_id, names and value counts) has its fields there."""
+class JointStateLayout(NamedTuple):
+    """Where the fields of a ``JointState`` lie (:func:`joint_state_layout`): a message of the same size whose
+    length-prefixed fields (frame_id, the name count and each name, the position, velocity and effort counts) are
+    the same bytes at the same offsets has its stamp and float64 values at the same offsets.  The alignment padding
+    between fields is not compared: rclpy leaves it unset, and no field is read from it."""
 
     size: int
-    head: bytes  # encapsulation header
-    body: bytes  # from frame_id up to the position count included
+    segments: tuple[tuple[int, bytes], ...]  # (offset, bytes) of each length-prefixed field and value count
     frame: str
     names: tuple[str, ...]
     spans: tuple[tuple[int, int, int], ...]  # (count offset, data offset, count) of position, velocity, effort
     end: int
 
+    def matches(self, raw: bytes) -> bool:
+        """``raw`` is laid out as this (little-endian CDR, same size, same length-prefixed fields)."""
+        return (len(raw) == self.size and raw.startswith(_CDR_LE)
+                and all(raw.startswith(seg, at) for at, seg in self.segments))
 
-#: the layout of the last JointState read in full
-_last_layout: list[_Layout | None] = [None]
+    def positions(self, raw: bytes) -> np.ndarray:
+        """The positions of a matching ``raw`` (a read-only view of its bytes)."""
+        return _values(raw, self.spans[0])
+
+
+_CDR_LE = CDR_LE_HEADER[:2]  # what read checks: CDR, little endian
+
+
+def joint_state_layout(raw: bytes) -> JointStateLayout:
+    """The layout of a ``JointState`` read in full (every field, the trailing bytes not checked).
+
+    Raises
+    ------
+    CdrError, struct.error, UnicodeDecodeError, ValueError, IndexError
+        :data:`PARSE_ERRORS`: ``raw`` does not parse.
+    """
+    spans: list[tuple[int, int, int]] = []
+    values, end = read(_JOINT_STATE, raw, spans=spans)
+    segments, pos = [], 12
+    for k in range(2 + len(values[1])):  # frame_id, the name count, each name
+        pos = align(pos, 4)
+        n = 0 if k == 1 else _U32.unpack_from(raw, pos)[0]
+        segments.append((pos, bytes(raw[pos:pos + 4 + n])))
+        pos += 4 + n
+    segments += [(at, bytes(raw[at:at + 4])) for at, _, _ in spans]
+    return JointStateLayout(len(raw), tuple(segments), values[0][2], tuple(values[1]), tuple(spans), end)
+
+
+class JointStateReader:
+    """:func:`parse_joint_state` with the layout of the last message remembered (a publisher's messages share one):
+    a message laid out as the last one (:meth:`JointStateLayout.matches`) has its stamp and positions read at its
+    offsets, the same values; any other is parsed in full and its layout remembered."""
+
+    def __init__(self) -> None:
+        self.layout: JointStateLayout | None = None
+
+    def parse(self, raw: bytes) -> JointStateCdr:
+        """The :class:`JointStateCdr` of ``raw`` (the errors of :func:`parse_joint_state`)."""
+        lay = self.layout
+        if lay is not None and lay.matches(raw):
+            sec, nsec = _STAMP.unpack_from(raw, 4)
+            return JointStateCdr(sec * 1_000_000_000 + nsec, lay.frame, lay.names, lay.positions(raw))
+        msg = parse_joint_state(raw)
+        try:
+            self.layout = joint_state_layout(raw)
+        except PARSE_ERRORS:  # velocities or efforts unreadable: parse_joint_state does not read them
+            self.layout = None
+        return msg
+
+
+#: the layout of the last JointState the bag reader read in full
+_last_layout: list[JointStateLayout | None] = [None]
 
 
 def _values(raw: bytes, span: tuple[int, int, int]) -> np.ndarray:
@@ -339,19 +395,12 @@ def _values(raw: bytes, span: tuple[int, int, int]) -> np.ndarray:
 
 def _joint_state_fields(raw: bytes) -> tuple[Any, ...]:
     lay = _last_layout[0]
-    if lay is not None and len(raw) == lay.size and raw.startswith(lay.body, 12) and raw.startswith(lay.head):
-        p, v, e = lay.spans
-        if _U32.unpack_from(raw, v[0])[0] == v[2] and _U32.unpack_from(raw, e[0])[0] == e[2]:
-            check_end(raw, lay.end)
-            sec, nsec = _STAMP.unpack_from(raw, 4)
-            return (float(sec) + 1e-9 * float(nsec), lay.frame, lay.names, _values(raw, p), _values(raw, v),
-                    _values(raw, e))
-    spans: list[tuple[int, int, int]] = []
-    values, end = read(_JOINT_STATE, raw, spans=spans)
-    check_end(raw, end)
-    (sec, nsec, frame), *rest = values
-    _last_layout[0] = _Layout(len(raw), raw[:4], raw[12:spans[0][0] + 4], frame, values[1], tuple(spans), end)
-    return (float(sec) + 1e-9 * float(nsec), frame, *rest)
+    if lay is None or not lay.matches(raw):
+        lay = joint_state_layout(raw)
+        _last_layout[0] = lay
+    check_end(raw, lay.end)
+    sec, nsec = _STAMP.unpack_from(raw, 4)
+    return (float(sec) + 1e-9 * float(nsec), lay.frame, lay.names, *(_values(raw, sp) for sp in lay.spans))
 
 
 class JointStateBlock(NamedTuple):
@@ -386,10 +435,9 @@ def joint_state_block(raws: Sequence[bytes]) -> JointStateBlock | None:
         return None
     arr = np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), lay.size)
     first = arr[0]
-    body_end = lay.spans[0][0] + 4
-    ok = (arr[:, :4] == first[:4]).all(axis=1) & (arr[:, 12:body_end] == first[12:body_end]).all(axis=1)
-    for count_at, _, _ in lay.spans[1:]:
-        ok &= (arr[:, count_at:count_at + 4] == first[count_at:count_at + 4]).all(axis=1)
+    ok = (arr[:, :2] == first[:2]).all(axis=1)  # JointStateLayout.matches, for every message at once
+    for at, seg in lay.segments:
+        ok &= (arr[:, at:at + len(seg)] == first[at:at + len(seg)]).all(axis=1)
     if lay.size - lay.end > 8:  # check_end: more than 8 trailing bytes must be zeros
         ok &= ~arr[:, lay.end:].any(axis=1)
     if not ok.all():

@@ -20,7 +20,6 @@ from ppoe_core.lie.compiled import lie_kernels
 
 #: ``header.stamp`` (int32 sec, uint32 nanosec) right after the 4-byte CDR encapsulation
 _STAMP = struct.Struct("<iI")
-_U32 = struct.Struct("<I")
 
 #: The generated message classes' private fields, as the fast builder of :func:`pose_cov_stamped_msg` fills them
 _MSG_SLOTS = {
@@ -260,48 +259,7 @@ def _pose_fields() -> Any:
 _POSE_FIELDS: list[Any] = []
 
 
-class JointStateReader:
-    """:func:`ppoe_core.io.cdr.parse_joint_state` with the layout of the last message remembered: a message of the
-    same size whose frame_id, names and position count equal the last one's, byte for byte at the same offsets
-    (the padding between them is not compared: rclpy leaves it unset), has its stamp and positions at the same
-    offsets, and the same values (that parser reads nothing after the positions); any other is parsed in full, and
-    its layout remembered."""
-
-    def __init__(self) -> None:
-        # (size, (offset, bytes) of each length-prefixed field, frame_id, names, positions' offset, count)
-        self._layout: tuple[int, tuple[tuple[int, bytes], ...], str, tuple[str, ...], int, int] | None = None
-
-    def parse(self, raw: bytes) -> Any:
-        """The :class:`~ppoe_core.io.cdr.JointStateCdr` of ``raw`` (its errors: :class:`~ppoe_core.io.cdr.CdrError`)."""
-        from ppoe_core.io import cdr
-
-        lay = self._layout
-        if lay is not None and len(raw) == lay[0] and raw.startswith(_CDR_LE):
-            for at, seg in lay[1]:
-                if not raw.startswith(seg, at):
-                    break
-            else:
-                sec, nsec = _STAMP.unpack_from(raw, 4)
-                positions = np.frombuffer(raw, dtype="<f8", count=lay[5], offset=lay[4]) if lay[5] else _EMPTY
-                return cdr.JointStateCdr(sec * 1_000_000_000 + nsec, lay[2], lay[3], positions)
-        msg = cdr.parse_joint_state(raw)
-        spans: list[tuple[int, int, int]] = []
-        cdr.read(cdr.SCHEMAS["sensor_msgs/msg/JointState"], raw, 3, spans=spans)
-        at_count, at_data, count = spans[0]
-        segs, pos = [], 12
-        for _ in range(1 + 1 + len(msg.names)):  # frame_id, the name count, each name (then the position count)
-            pos = cdr.align(pos, 4)
-            n = 0 if len(segs) == 1 else _U32.unpack_from(raw, pos)[0]
-            segs.append((pos, raw[pos:pos + 4 + n]))
-            pos += 4 + n
-        segs.append((at_count, raw[at_count:at_count + 4]))
-        self._layout = (len(raw), tuple(segs), msg.frame_id, msg.names, at_data, count)
-        return msg
-
-
 _CDR_LE = b"\x00\x01"  # the bytes ppoe_core.io.cdr.read checks: CDR, little endian
-_EMPTY = np.zeros(0)
-_EMPTY.flags.writeable = False
 
 
 def wrench_to_numpy(msg: Any) -> np.ndarray:

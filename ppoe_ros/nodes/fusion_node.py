@@ -61,6 +61,7 @@ from std_msgs.msg import String
 
 from ppoe_core import lie
 from ppoe_core.errors import MeasurementError, ModelConfigError, PpoeError
+from ppoe_core.io.cdr import JointStateReader
 from ppoe_core.estimation.pipeline import (
     FUSION_SETTINGS, ContactMeasurement, Measurement, MeasurementOutcome, ModelUpdater, PriorSample, TagMeasurement,
     ToolUpdate, make_pipeline, make_updater, source_key,
@@ -69,7 +70,6 @@ from ppoe_core.model.joint_history import JointHistory
 from ppoe_core.estimation.source_updater import SourceUpdater
 from ppoe_core.robot.yaml_io import read_yaml_mapping
 from ppoe_ros.common.conversions import (
-    JointStateReader,
     PoseCovarianceCdr,
     pose_cov_from_msg,
     stamp_to_ns,
