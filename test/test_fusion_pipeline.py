@@ -794,10 +794,12 @@ def test_warm_pipeline_compiles_the_per_prior_kernels_in_a_fresh_process():
             "names = ('prior_passes', 'correction_ratio', 'fuse_one_kernel', 'run_breaks')\n"
             "from ppoe_core.estimation import pose_fields as pf\n"
             "assert not any(getattr(ck, n).signatures for n in names)\n"
-            "assert not pf.prior_from_fields.signatures and not pf.fields_from_pose.signatures\n"
+            "from ppoe_core.lie import kernels as lk\n"
+            "assert not pf.prior_from_fields.signatures and not lk.pose_cov_fields_into.signatures\n"
             "warm_pipeline()\n"
             "print(','.join(n for n in names if not getattr(ck, n).signatures))\n"
-            "print(','.join(n for n in ('prior_from_fields', 'fields_from_pose') if not getattr(pf, n).signatures))\n")
+            "print(','.join(n for n, m in (('prior_from_fields', pf), ('pose_cov_fields_into', lk))\n"
+            "               if not getattr(m, n).signatures))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "", f"not compiled by warm_pipeline: {out.stdout}"

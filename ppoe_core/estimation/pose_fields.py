@@ -1,13 +1,14 @@
-"""The fusion node's per-prior conversions, compiled: a pose message's 43 fields <-> a pose and its tool-frame
-covariance, one call each way.
+"""The fusion node's per-prior conversion, compiled: a pose message's 43 fields -> a pose and its tool-frame
+covariance, in one call (the other way is :func:`ppoe_core.lie.kernels.pose_cov_fields_into`, the one writer of
+these fields, shared with the kinematics node).
 
 The fields are what a ``geometry_msgs/PoseWithCovarianceStamped`` carries after its header (and what
 :class:`ppoe_core.io.cdr.PoseCovarianceWriter` keeps in its buffer): position ``x y z``, quaternion ``x y z w``, the
 covariance in the ROS convention (docs/conventions.md sec. 2) row-major; a ``tf2_msgs/TFMessage`` transform's 7
-doubles are their first 7.  Each function runs the same compiled pieces, in the same order, as the Python path it
-replaces (:func:`ppoe_ros.common.conversions.pose_cov_from_cdr` + :func:`ppoe_core.lie.cov_ros_to_local` in, and
-:func:`ppoe_core.lie.cov_local_to_ros` + :func:`ppoe_core.lie.kernels.pose_fields_one` out): the same floats
-(``test/test_fusion_node.py``), one dispatch instead of several numpy steps.
+doubles are their first 7.  :func:`prior_from_fields` runs the same compiled pieces, in the same order, as the
+Python path it replaces (:func:`ppoe_ros.common.conversions.pose_cov_from_cdr` +
+:func:`ppoe_core.lie.cov_ros_to_local`): the same floats (``test/test_fusion_node.py``), one dispatch instead of
+several numpy steps.
 """
 
 from __future__ import annotations
@@ -17,9 +18,9 @@ import math
 import numpy as np
 
 from ppoe_core.jit import njit
-from ppoe_core.lie.kernels import pose_from_quat_one, quat_into, rotate_covariance_into
+from ppoe_core.lie.kernels import pose_from_quat_one, rotate_covariance_into
 
-__all__ = ["FIELDS", "prior_from_fields", "fields_from_pose"]
+__all__ = ["FIELDS", "prior_from_fields"]
 
 #: doubles of a pose message after its header: position (3), quaternion x y z w (4), ROS covariance (36)
 FIELDS = 43
@@ -44,16 +45,3 @@ def prior_from_fields(v: np.ndarray, T: np.ndarray, cov_tool: np.ndarray) -> boo
             cov_ros[i, j] = v[7 + 6 * i + j]
     rotate_covariance_into(T, cov_ros, True, cov_tool, np.empty((3, 3)), np.empty((3, 3)))
     return True
-
-
-@njit(cache=True)
-def fields_from_pose(T: np.ndarray, cov_tool: np.ndarray, out: np.ndarray) -> None:
-    """The fields (43,) of ``T`` (4, 4) and ``cov_tool`` (6, 6, tangent space at ``T``) into ``out``: position, the
-    quaternion of :func:`~ppoe_core.lie.kernels.pose_fields_one` and ``B cov_tool B^T`` (ROS convention)."""
-    out[0], out[1], out[2] = T[0, 3], T[1, 3], T[2, 3]
-    quat_into(T[:3, :3], np.empty(4), out[3:7])
-    ros = np.empty((6, 6))
-    rotate_covariance_into(T, cov_tool, False, ros, np.empty((3, 3)), np.empty((3, 3)))
-    for i in range(6):
-        for j in range(6):
-            out[7 + 6 * i + j] = ros[i, j]

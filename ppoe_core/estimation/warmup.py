@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ppoe_core import lie
+from ppoe_core.lie.kernels import pose_cov_fields_into
 from ppoe_core.estimation import pose_fields
 from ppoe_core.estimation.corrections import CarriedCorrection, apply_carried_corrections
 from ppoe_core.estimation.direct_measurements import PointObservation
@@ -63,4 +64,4 @@ def warm_pipeline() -> None:
     fields[6] = 1.0
     pose_fields.prior_from_fields(fields, np.empty((4, 4)), np.empty((6, 6)))
     out = np.frombuffer(bytearray(4 + 8 * pose_fields.FIELDS), dtype="<f8", count=pose_fields.FIELDS, offset=4)
-    pose_fields.fields_from_pose(X, P, out)
+    pose_cov_fields_into(X, P, out)

@@ -27,7 +27,7 @@ from ppoe_core.jit import njit
 from ppoe_core.model.joint_history import NEVER_NS, JointHistory, fresh_vector, merge_into
 from ppoe_core.io import cdr
 from ppoe_core.io.cdr import PoseCovarianceWriter
-from ppoe_core.lie.kernels import quat_into, rotate_covariance_into
+from ppoe_core.lie.kernels import pose_cov_fields_into
 from ppoe_core.model.chain_kernel import FOURTH_WORK, fk_one
 
 __all__ = ["JointPoseFastPath", "joint_state_pose", "chain_pose_cdr", "MAX_LAYOUTS"]
@@ -140,13 +140,7 @@ def chain_pose_cdr(q: np.ndarray, motion_col: np.ndarray, mult: np.ndarray, off:
     for k in range(4):
         out_u8[4 + k] = (usec >> (8 * k)) & 0xFF
         out_u8[8 + k] = (nsec >> (8 * k)) & 0xFF
-    out_f8[0], out_f8[1], out_f8[2] = T[0, 3], T[1, 3], T[2, 3]
-    quat_into(T[:3, :3], np.empty(4), out_f8[3:7])
-    ros = np.empty((6, 6))
-    rotate_covariance_into(T, cov, False, ros, np.empty((3, 3)), np.empty((3, 3)))
-    for i in range(6):
-        for j in range(6):
-            out_f8[7 + 6 * i + j] = ros[i, j]
+    pose_cov_fields_into(T, cov, out_f8)
     return True
 
 

@@ -18,7 +18,8 @@ import numpy as np
 from ppoe_core.jit import njit
 
 __all__ = [
-    "quat_into", "quat_from_matrix_kernel", "quat_from_matrix_one", "pose_fields_one", "pose_from_quat_one",
+    "quat_into", "quat_from_matrix_kernel", "quat_from_matrix_one", "pose_fields_one", "pose_cov_fields_into",
+    "pose_from_quat_one",
     "matrix_from_quat_kernel", "rotate_covariance_into", "rotate_covariance_kernel", "rotate_covariance_one",
     "so3_exp_kernel", "so3_log_kernel", "so3_log_one", "so3_left_jacobian_kernel", "so3_left_jacobian_inv_kernel",
     "se3_exp_one", "se3_exp_kernel", "se3_log_one", "se3_log_kernel", "se3_left_jacobian_one",
@@ -81,6 +82,21 @@ def pose_fields_one(T: np.ndarray, out: np.ndarray) -> None:
     :func:`quat_from_matrix_kernel` (the same floats) and the translation."""
     quat_into(T[:3, :3], np.empty(4), out[:4])
     out[4], out[5], out[6] = T[0, 3], T[1, 3], T[2, 3]
+
+
+@njit(cache=True)
+def pose_cov_fields_into(T: np.ndarray, cov_tool: np.ndarray, out: np.ndarray) -> None:
+    """A ``geometry_msgs/PoseWithCovariance``'s 43 doubles of ``T`` (4, 4) and ``cov_tool`` (6, 6, the tangent space
+    at ``T``) into ``out`` (43,): position, the quaternion ``(x, y, z, w)`` of :func:`quat_from_matrix_kernel` and
+    the covariance in the ROS convention, ``B cov_tool B^T`` (docs/conventions.md sec. 2), row-major.  The one
+    writer of these fields: the kinematics node's per-message path and the fusion node's output both call it."""
+    out[0], out[1], out[2] = T[0, 3], T[1, 3], T[2, 3]
+    quat_into(T[:3, :3], np.empty(4), out[3:7])
+    ros = np.empty((6, 6))
+    rotate_covariance_into(T, cov_tool, False, ros, np.empty((3, 3)), np.empty((3, 3)))
+    for i in range(6):
+        for j in range(6):
+            out[7 + 6 * i + j] = ros[i, j]
 
 
 @njit(cache=True, inline="always")

@@ -211,9 +211,9 @@ class PoseCovarianceCdr:
 
     def serialize_local(self, T_parent_child: np.ndarray, cov_child: np.ndarray, stamp_ns: int) -> bytes:
         """:meth:`serialize` of ``lie.cov_local_to_ros(T_parent_child, cov_child)`` (the same bytes), the fields in
-        one compiled call (:func:`ppoe_core.estimation.pose_fields.fields_from_pose`)."""
-        _pose_fields().fields_from_pose(np.asarray(T_parent_child, dtype=np.float64),
-                                        np.asarray(cov_child, dtype=np.float64), self.fields)
+        one compiled call (:func:`ppoe_core.lie.kernels.pose_cov_fields_into`)."""
+        lie_kernels().pose_cov_fields_into(np.asarray(T_parent_child, dtype=np.float64),
+                                           np.asarray(cov_child, dtype=np.float64), self.fields)
         _STAMP.pack_into(self.writer.raw, 4, *divmod(int(stamp_ns), 1_000_000_000))  # header.stamp, as the writer
         return self.writer.message()
 
