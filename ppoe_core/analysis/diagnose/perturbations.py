@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ppoe_core.analysis.diagnose.block import ResidualBlock
 from ppoe_core.model.effects import Effect
@@ -58,7 +59,7 @@ TIE = 1e-3
 MAX_LOG_WIDTH = 50.0
 
 
-def axis_projectors(axis: Sequence[float]) -> dict[str, np.ndarray]:
+def axis_projectors(axis: ArrayLike) -> dict[str, np.ndarray]:
     """Projectors (6, 6) of the three axis classes of an insertion ``[rho; theta]`` for a joint axis ``axis`` (3,)
     (joint frame; unit length is enforced)."""
     u = np.asarray(axis, dtype=float)
@@ -78,7 +79,7 @@ def joint_axes(tree: KinematicTree, joints: Sequence[str] | None = None) -> dict
 
 
 def component_matrices(block: ResidualBlock, effects: Sequence[Effect],
-                       axes: Mapping[str, Sequence[float]]) -> dict[tuple[str, str], np.ndarray]:
+                       axes: Mapping[str, ArrayLike]) -> dict[tuple[str, str], np.ndarray]:
     """``J_j P_{j,c} J_j^T`` (n, d, d) of each joint in ``axes`` and axis class at the model ``effects``: the
     block's own first-order propagation of a unit covariance on that class (:meth:`ResidualBlock.linearise`'s
     ``Q``), so any measurement kind works; pairs the block does not see (all zero) are left out."""
@@ -129,7 +130,7 @@ class PerturbationFit:
     removed: list[tuple[str, str]] = field(default_factory=list)
     steps: list[str] = field(default_factory=list)
 
-    def covariances(self, axes: Mapping[str, Sequence[float]]) -> dict[str, np.ndarray]:
+    def covariances(self, axes: Mapping[str, ArrayLike]) -> dict[str, np.ndarray]:
         """joint -> ``Sigma_j`` (6, 6) (tangent right after the joint's origin, ``[rho; theta]``) for the joints
         with an axis in ``axes``; joints of no component are left out (exact)."""
         return sigma_from_components(self.components, axes)
@@ -141,7 +142,7 @@ class PerturbationFit:
 
 
 def sigma_from_components(components: Sequence[ComponentEstimate],
-                          axes: Mapping[str, Sequence[float]]) -> dict[str, np.ndarray]:
+                          axes: Mapping[str, ArrayLike]) -> dict[str, np.ndarray]:
     """``Sigma_j = sum_c lam_{g(j,c)} P_{j,c}`` per joint (module docstring)."""
     out: dict[str, np.ndarray] = {}
     for comp in components:
