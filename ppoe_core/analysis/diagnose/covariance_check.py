@@ -72,7 +72,7 @@ def check_covariance(r: np.ndarray, C: np.ndarray, regions: np.ndarray | None = 
     lim = {f"{p:g}": (float(chi2.ppf(p, d)), float(norm.ppf(0.5 + p / 2.0) ** 2)) for p in levels}
 
     def cover(m: np.ndarray) -> dict[str, float]:
-        return {k: float(np.mean(nees[m] <= v[0])) for k, v in lim.items()}
+        return {k: float(np.mean(nees[m] <= v[0])) if m.any() else float("nan") for k, v in lim.items()}
 
     every = np.ones(n, dtype=bool)
     out = CovarianceCheck(
