@@ -67,7 +67,7 @@ class LearnedPrior:
 
 
 def learn_block(block: ResidualBlock, effects: list[Effect], r: np.ndarray, S: np.ndarray,
-                axes: Mapping[str, np.ndarray], rows: np.ndarray | None = None) -> PerturbationFit:
+                axes: Mapping[str, np.ndarray | None], rows: np.ndarray | None = None) -> PerturbationFit:
     """:func:`learn_perturbations` of ``block``'s residual rows ``r`` (n, d) (``rows``: a subset mask)."""
     parts = component_matrices(block, effects, axes)
     m = np.ones(len(r), dtype=bool) if rows is None else rows
@@ -87,7 +87,8 @@ def learn_prior(run: Run, model: tuple[Any, ...]) -> LearnedPrior | None:
     effects = [*pr.declared, *run.effects]
     r = lin.sys.parts[idx].raw(lin.heldout_residual(model))
     rj = b.tree.robot.joints
-    axes = {j: np.asarray(rj[j].axis, dtype=float) for j in rj if rj[j].movable or j in pr.pert}
+    axes = {j: np.asarray(rj[j].axis, dtype=float) if rj[j].movable else None for j in rj
+            if rj[j].movable or j in pr.pert}
     parts = component_matrices(b, effects, axes)
     fit = learn_perturbations(r, st.S, parts)
     out = LearnedPrior(b.kind, fit, sigma_from_components(fit.components, axes))

@@ -10,7 +10,10 @@ and ``P_{j,c}`` the projector of one *axis class* ``c`` of that tangent:
 
 * ``axial``: rotation about the joint axis (``theta`` along ``u_j``; for a revolute joint the same as joint noise),
 * ``lateral``: rotation perpendicular to it (both perpendicular directions alike),
-* ``translation``: the three translations alike.
+* ``translation``: the three translations alike;
+
+and for a fixed joint (no axis; e.g. a mount plate with a declared perturbation) ``rot_x``, ``rot_y``, ``rot_z``
+(about its frame's axes) and ``translation``.
 
 A *component* ``g`` is one variance ``lam_g`` shared by one or more (joint, class) pairs: so ``Sigma_j = sum_c
 lam_{g(j,c)} P_{j,c}`` (6x6, right-after-origin tangent).  The variances are maximum-likelihood estimates
@@ -38,11 +41,13 @@ from ppoe_core.analysis.diagnose.block import ResidualBlock
 from ppoe_core.model.effects import Effect
 from ppoe_core.robot.tree import KinematicTree
 
-__all__ = ["AXIS_CLASSES", "ComponentEstimate", "PerturbationFit", "axis_projectors", "component_matrices",
-           "fit_components", "joint_axes", "learn_perturbations", "sigma_from_components"]
+__all__ = ["AXIS_CLASSES", "FIXED_CLASSES", "ComponentEstimate", "PerturbationFit", "axis_projectors",
+           "component_matrices", "fit_components", "joint_axes", "learn_perturbations", "sigma_from_components"]
 
 #: the axis classes of a joint's insertion (module docstring)
 AXIS_CLASSES = ("axial", "lateral", "translation")
+#: the classes of a fixed joint's insertion (no axis: a mount plate bends about its own frame's axes)
+FIXED_CLASSES = ("rot_x", "rot_y", "rot_z", "translation")
 #: two-sided normal quantile of the reported intervals (95 %)
 Z95 = 1.959963984540054
 #: lower bound of a variance relative to the scale of the data (log-parametrisation needs one; a component at it
@@ -59,9 +64,16 @@ TIE = 1e-3
 MAX_LOG_WIDTH = 50.0
 
 
-def axis_projectors(axis: ArrayLike) -> dict[str, np.ndarray]:
-    """Projectors (6, 6) of the three axis classes of an insertion ``[rho; theta]`` for a joint axis ``axis`` (3,)
-    (joint frame; unit length is enforced)."""
+def axis_projectors(axis: ArrayLike | None) -> dict[str, np.ndarray]:
+    """Projectors (6, 6) of the axis classes of an insertion ``[rho; theta]``: for a joint axis ``axis`` (3,) (joint
+    frame; unit length is enforced) :data:`AXIS_CLASSES`; for None (a fixed joint: no axis) :data:`FIXED_CLASSES`,
+    the rotations about the joint frame's x, y, z apart."""
+    if axis is None:
+        fixed = {c: np.zeros((6, 6)) for c in FIXED_CLASSES}
+        for k, c in enumerate(FIXED_CLASSES[:3]):
+            fixed[c][3 + k, 3 + k] = 1.0
+        fixed["translation"][:3, :3] = np.eye(3)
+        return fixed
     u = np.asarray(axis, dtype=float)
     u = u / max(float(np.linalg.norm(u)), 1e-300)
     out = {c: np.zeros((6, 6)) for c in AXIS_CLASSES}
@@ -79,7 +91,7 @@ def joint_axes(tree: KinematicTree, joints: Sequence[str] | None = None) -> dict
 
 
 def component_matrices(block: ResidualBlock, effects: Sequence[Effect],
-                       axes: Mapping[str, ArrayLike]) -> dict[tuple[str, str], np.ndarray]:
+                       axes: Mapping[str, ArrayLike | None]) -> dict[tuple[str, str], np.ndarray]:
     """``J_j P_{j,c} J_j^T`` (n, d, d) of each joint in ``axes`` and axis class at the model ``effects``: the
     block's own first-order propagation of a unit covariance on that class (:meth:`ResidualBlock.linearise`'s
     ``Q``), so any measurement kind works; pairs the block does not see (all zero) are left out."""
@@ -130,7 +142,7 @@ class PerturbationFit:
     removed: list[tuple[str, str]] = field(default_factory=list)
     steps: list[str] = field(default_factory=list)
 
-    def covariances(self, axes: Mapping[str, ArrayLike]) -> dict[str, np.ndarray]:
+    def covariances(self, axes: Mapping[str, ArrayLike | None]) -> dict[str, np.ndarray]:
         """joint -> ``Sigma_j`` (6, 6) (tangent right after the joint's origin, ``[rho; theta]``) for the joints
         with an axis in ``axes``; joints of no component are left out (exact)."""
         return sigma_from_components(self.components, axes)
@@ -142,7 +154,7 @@ class PerturbationFit:
 
 
 def sigma_from_components(components: Sequence[ComponentEstimate],
-                          axes: Mapping[str, ArrayLike]) -> dict[str, np.ndarray]:
+                          axes: Mapping[str, ArrayLike | None]) -> dict[str, np.ndarray]:
     """``Sigma_j = sum_c lam_{g(j,c)} P_{j,c}`` per joint (module docstring)."""
     out: dict[str, np.ndarray] = {}
     for comp in components:
@@ -310,7 +322,7 @@ def _best_move(r: np.ndarray, S: np.ndarray, struct: list[tuple[tuple[str, str],
         c = np.zeros(lam.size)
         c[g + 1] = 1.0
         trials.append((wald(c), struct[:g] + struct[g + 1:], np.delete(lam, g + 1), f"remove {_label(struct[g])}"))
-    for cls in AXIS_CLASSES:
+    for cls in dict.fromkeys(g[0][1] for g in struct):
         idx = sorted((g for g in range(len(struct)) if struct[g][0][1] == cls), key=lambda g: lam[g + 1])
         for g, h in zip(idx, idx[1:]):
             c = np.zeros(lam.size)
