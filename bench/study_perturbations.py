@@ -9,7 +9,8 @@ three choices (declared, one global scale, learned) and the truth.
 ``fusion``: simulated rover bags (config/robots/rover.*) whose true perturbations differ from the declared
 rover_model.yaml per joint and axis (:data:`ROVER_TRUTH`): a calibration bag with 6D ground-truth poses is
 diagnosed twice (plain: one global scale; ``--learn-perturbations``: learned), then a camera-tag bag of the same
-true robot is replayed with ``ppoe evaluate --perturbations`` for the declared / global / learned choices.  Bags
+true robot is replayed with ``ppoe evaluate --perturbations`` for the declared / global / learned choices and the
+truth.  Bags
 go to a temporary directory (``--keep DIR`` to keep them).
 ``hilti`` / ``motoman``: ``diagnose(..., learn_perturbations=True)`` on the shared measured datasets with a
 user-style declared prior (``--declared-rot`` rad on every movable joint's rotation, no translation): the
@@ -227,7 +228,7 @@ def study_fusion(work: Path, n_calib: int, n_fusion: int, seed: int) -> None:
             _table_json(lp["check"])
     print(_cli(["evaluate", str(work / "fusion"), "--model", str(declared), "--quiet", "--perturbations",
                 str(work / "diag_global" / "model_diagnosed.yaml"),
-                str(work / "diag_learned" / "model_diagnosed.yaml")]))
+                str(work / "diag_learned" / "model_diagnosed.yaml"), str(truth_model)]))
 
 
 def _table_json(check: dict) -> None:
