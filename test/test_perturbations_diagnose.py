@@ -79,3 +79,14 @@ def test_model_yaml_gets_the_learned_covariances(result, tmp_path):
     # j2 (axis y): its lateral variance sits on rot_x and rot_z
     s2 = np.asarray(doc["perturbations"]["j2"]["sigma"])
     assert s2[3] == pytest.approx(s2[5]) and s2[3] > 3e-3 > s2[4]
+
+
+def test_report_has_the_learned_section(result, tmp_path):
+    from ppoe_core.analysis.diagnose import write_report
+
+    paths = write_report(result, tmp_path, title="soft5")
+    md = paths["md"].read_text()
+    assert "## Learned perturbations" in md
+    assert "| j2 | lateral |" in md
+    for choice in ("declared", "global_scale", "learned"):
+        assert f"| {choice} |" in md

@@ -32,7 +32,7 @@ from ppoe_core.model.effects import Effect
 if TYPE_CHECKING:
     from ppoe_core.analysis.diagnose.engine import Run
 
-__all__ = ["LearnedPrior", "learn_prior", "learn_block", "CHOICES"]
+__all__ = ["CHOICES", "LearnedPrior", "learn_block", "learn_prior", "markdown_section", "write_into_model"]
 
 #: the three covariance choices compared (the declared, the declared times one global scale, the learned)
 CHOICES = ("declared", "global_scale", "learned")
@@ -155,3 +155,26 @@ def write_into_model(doc: Any, learned: LearnedPrior) -> list[str]:
             f"# sensor noise scale estimated beside them: {learned.fit.sensor_scale:.3g} (the sensor sigmas here "
             "are unchanged)" + (f"; joint_noise of {dropped} removed (the learned axial class holds it)"
                                 if dropped else "")]
+
+
+def markdown_section(learned: LearnedPrior | None) -> list[str]:
+    """The report's "Learned perturbations" section (none without ``--learn-perturbations``)."""
+    if learned is None:
+        return []
+    out = ["## Learned perturbations", "",
+           f"From the held-out {learned.block} residual at the diagnosed model (docs/covariance.md); 1-sigma per "
+           "direction of the axis class [rad or m], 95 % interval; sensor noise scale "
+           f"{learned.fit.sensor_scale:.3g} [{learned.fit.sensor_ci[0]:.3g}, {learned.fit.sensor_ci[1]:.3g}].", "",
+           "| joints | axis class | sigma | 95 % interval |", "|---|---|---|---|"]
+    for c in learned.fit.components:
+        lo, hi = c.to_json()["sigma_ci"]
+        out.append(f"| {', '.join(j for j, _ in c.members)} | {c.members[0][1]} | {c.sigma:.4g} | "
+                   f"[{lo:.4g}, {hi:.4g}] |")
+    out += ["", f"Held-out check ({learned.split}; each half predicted by what the other half gives):", "",
+            "| covariance | NEES | coverage 68 / 95 / 99 % | NEES per principal axis (small -> large) | "
+            "NEES per size region | log-likelihood / row |", "|---|---|---|---|---|---|"]
+    for k, ch in learned.check.items():
+        out.append(f"| {k} | {ch.nees:.3g} | " + " / ".join(f"{100 * v:.1f}" for v in ch.coverage.values())
+                   + " | " + " ".join(f"{v:.2f}" for v in ch.nees_per_axis) + " | "
+                   + " ".join(f"{v:.2f}" for v in ch.nees_per_region) + f" | {ch.loglik:.4g} |")
+    return out + [""]

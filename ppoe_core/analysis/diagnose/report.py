@@ -128,8 +128,11 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
     paths["json"].write_text(json.dumps(result.to_json(), indent=2), encoding="utf-8")
     plan = plan_calibration(result, declared)
     static_declared = [e.key for e in declared if e.name in STATIC_EFFECTS]
+    from ppoe_core.analysis.diagnose.learned_prior import markdown_section
+
     lines = (_md_head(result, title) + _md_effects(result) + _md_blocks(result)
-             + apply_section(result, plan, out, static_declared) + _md_test(result) + _md_steps(result) + _md_terms())
+             + markdown_section(result.learned_prior) + apply_section(result, plan, out, static_declared)
+             + _md_test(result) + _md_steps(result) + _md_terms())
     paths["md"].write_text("\n".join(lines) + "\n", encoding="utf-8")
     if not plot_blocks(result, paths["png"], title):
         paths.pop("png")
