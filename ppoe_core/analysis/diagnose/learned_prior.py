@@ -49,11 +49,19 @@ class LearnedPrior:
     covariances: dict[str, np.ndarray]
     check: dict[str, CovarianceCheck] = field(default_factory=dict)
     split: str = ""
+    #: the joints the block sees (candidates of the learning): the others keep their declared covariance
+    joints: list[str] = field(default_factory=list)
+
+    @property
+    def best(self) -> str:
+        """The choice with the highest held-out log-likelihood ("" without a check)."""
+        return max(self.check, key=lambda k: self.check[k].loglik) if self.check else ""
 
     def to_json(self) -> dict[str, Any]:
         return {"block": self.block, **self.fit.to_json(),
                 "covariances": {j: np.asarray(C).tolist() for j, C in self.covariances.items()},
-                "check_split": self.split, "check": {k: v.to_json() for k, v in self.check.items()}}
+                "joints": list(self.joints), "check_split": self.split,
+                "check": {k: v.to_json() for k, v in self.check.items()}, "best_heldout": self.best}
 
     def summary(self) -> str:
         """One line per choice: held-out NEES (3 or 6 when right), worst coverage error, log-likelihood."""
@@ -63,7 +71,8 @@ class LearnedPrior:
                          + "/".join(f"{100 * v:.1f}" for v in c.coverage.values())
                          + f", worst axis error {100 * c.worst_coverage_error():.1f} %, log-lik {c.loglik:.4g}")
         comps = ", ".join(f"{c.name} {c.sigma:.3g}" for c in self.fit.components)
-        return f"learned perturbations ({self.block}): {comps or 'none'}; held-out check: " + "; ".join(parts)
+        return (f"learned perturbations ({self.block}): {comps or 'none'}; held-out check: " + "; ".join(parts)
+                + (f"; best held-out log-likelihood: {self.best}" if self.best else ""))
 
 
 def learn_block(block: ResidualBlock, effects: list[Effect], r: np.ndarray, S: np.ndarray,
@@ -91,7 +100,8 @@ def learn_prior(run: Run, model: tuple[Any, ...]) -> LearnedPrior | None:
             if rj[j].movable or j in pr.pert}
     parts = component_matrices(b, effects, axes)
     fit = learn_perturbations(r, st.S, parts)
-    out = LearnedPrior(b.kind, fit, sigma_from_components(fit.components, axes))
+    out = LearnedPrior(b.kind, fit, sigma_from_components(fit.components, axes),
+                       joints=list(dict.fromkeys(j for j, _ in parts)))
     half, out.split = _halves(b, pr.units[idx])
     C = {k: np.full((len(r), b.dim, b.dim), np.nan) for k in CHOICES}
     for h in (0, 1):
@@ -124,13 +134,15 @@ DIAGONAL_TOL = 1e-9
 def write_into_model(doc: Any, learned: LearnedPrior) -> list[str]:
     """Put the learned covariances into a model document's ``perturbations`` (a ruamel round-trip mapping: other
     keys and comments stay): each learned joint's entry gets ``sigma`` (diagonal) or ``covariance``; declared
-    joints the learned model leaves out get zero sigmas (exact); ``joint_noise`` of the learned joints is removed
-    (the ``axial`` class holds it).  Returns the header lines saying so."""
+    joints the block sees that the learned model leaves out get zero sigmas (exact), joints it does not see keep
+    theirs; ``joint_noise`` of the joints it sees is removed (the ``axial`` class holds it).  Returns the header
+    lines saying so."""
     pert = doc.get("perturbations")
     if pert is None:
         doc["perturbations"] = pert = {}
+    seen = set(learned.joints) | set(learned.covariances)
     for jn in list(pert):
-        if jn not in learned.covariances:
+        if jn in seen and jn not in learned.covariances:
             entry = pert[jn]
             entry.pop("covariance", None)
             entry["sigma"] = [0.0] * 6
@@ -147,14 +159,16 @@ def write_into_model(doc: Any, learned: LearnedPrior) -> list[str]:
             entry.pop("sigma", None)
             entry["covariance"] = [[float(v) for v in row] for row in C]
     jn_sec = doc.get("joint_noise") or {}
-    dropped = [j for j in list(jn_sec) if j in learned.covariances]
+    dropped = [j for j in list(jn_sec) if j in seen]
     for j in dropped:
         del jn_sec[j]
     return [f"# perturbations learned from the held-out residual ({learned.block}; docs/covariance.md): "
             + ", ".join(f"{c.name} {c.sigma:.3g}" for c in learned.fit.components),
             f"# sensor noise scale estimated beside them: {learned.fit.sensor_scale:.3g} (the sensor sigmas here "
             "are unchanged)" + (f"; joint_noise of {dropped} removed (the learned axial class holds it)"
-                                if dropped else "")]
+                                if dropped else ""),
+            f"# held-out check: best log-likelihood {learned.best or 'not checked'} (diagnose.md, Learned "
+            "perturbations)"]
 
 
 def markdown_section(learned: LearnedPrior | None) -> list[str]:
@@ -170,7 +184,8 @@ def markdown_section(learned: LearnedPrior | None) -> list[str]:
         lo, hi = c.to_json()["sigma_ci"]
         out.append(f"| {', '.join(j for j, _ in c.members)} | {c.members[0][1]} | {c.sigma:.4g} | "
                    f"[{lo:.4g}, {hi:.4g}] |")
-    out += ["", f"Held-out check ({learned.split}; each half predicted by what the other half gives):", "",
+    out += ["", f"Held-out check ({learned.split}; each half predicted by what the other half gives; best "
+            f"log-likelihood: {learned.best or '-'}):", "",
             "| covariance | NEES | coverage 68 / 95 / 99 % | NEES per principal axis (small -> large) | "
             "NEES per size region | log-likelihood / row |", "|---|---|---|---|---|---|"]
     for k, ch in learned.check.items():

@@ -53,6 +53,8 @@ Z95 = 1.959963984540054
 #: lower bound of a variance relative to the scale of the data (log-parametrisation needs one; a component at it
 #: is removed by the parsimony rule)
 MIN_RELATIVE = 1e-8
+#: the sensor's lower bound, relative: C_n stays positive definite whatever the perturbation components span
+MIN_SENSOR = 1e-6
 #: Fisher-scoring iterations at most, and the fall of ``-2 log L`` per row below which it has converged
 MAX_ITER = 200
 CONVERGED = 1e-7
@@ -182,8 +184,13 @@ def fit_components(r: np.ndarray, S: np.ndarray, D: Sequence[np.ndarray], start:
     A = np.stack([S, *D]) if D else S[None]
     scale = np.array([max(_alone(r, Ag), 1e-300) for Ag in A])
     floor = scale * MIN_RELATIVE
+    floor[0] = scale[0] * MIN_SENSOR  # the sensor keeps every C_n regular
     lam = np.maximum(scale / len(A) if start is None else np.asarray(start, dtype=float), floor)
     cost, F, b = _score(r, A, lam)
+    if not np.isfinite(cost):  # a start numerically singular somewhere: from the even split instead
+        lam = np.maximum(scale / len(A), floor)
+        lam[0] = max(lam[0], scale[0])  # the sensor alone of the residual's size: S_n is regular
+        cost, F, b = _score(r, A, lam)
     for _ in range(max_iter):
         step = _newton_step(F, b, lam, floor, scale)
         for _half in range(20):
@@ -218,7 +225,10 @@ def _score(r: np.ndarray, A: np.ndarray, lam: np.ndarray) -> tuple[float, np.nda
     """``-2 log L`` (without the constant), the Fisher information ``F`` (in the variances) and ``b``
     (:func:`fit_components`) at ``lam``."""
     C = np.tensordot(lam, A, axes=1)
-    L = np.linalg.cholesky(C)
+    try:
+        L = np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:  # not positive definite to machine precision: no likelihood here
+        return float("inf"), np.zeros((len(A), len(A))), np.zeros(len(A))
     CiA = np.linalg.solve(C[None], A)  # (K+1, n, d, d): C^-1 A_g
     u = np.linalg.solve(C, r[..., None])[..., 0]
     cost = float(2.0 * np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1))) + np.einsum("ni,ni->", r, u))
