@@ -12,7 +12,6 @@ NEES, coverage and log-likelihood of the three are compared on all rows.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -27,12 +26,11 @@ from ppoe_core.analysis.diagnose.perturbations import (
     learn_perturbations,
     sigma_from_components,
 )
-from ppoe_core.model.effects import Effect
 
 if TYPE_CHECKING:
     from ppoe_core.analysis.diagnose.engine import Run
 
-__all__ = ["CHOICES", "LearnedPrior", "learn_block", "learn_prior", "markdown_section", "write_into_model"]
+__all__ = ["CHOICES", "LearnedPrior", "learn_prior", "markdown_section", "write_into_model"]
 
 #: the three covariance choices compared (the declared, the declared times one global scale, the learned)
 CHOICES = ("declared", "global_scale", "learned")
@@ -73,14 +71,6 @@ class LearnedPrior:
         comps = ", ".join(f"{c.name} {c.sigma:.3g}" for c in self.fit.components)
         return (f"learned perturbations ({self.block}): {comps or 'none'}; held-out check: " + "; ".join(parts)
                 + (f"; best held-out log-likelihood: {self.best}" if self.best else ""))
-
-
-def learn_block(block: ResidualBlock, effects: list[Effect], r: np.ndarray, S: np.ndarray,
-                axes: Mapping[str, np.ndarray | None], rows: np.ndarray | None = None) -> PerturbationFit:
-    """:func:`learn_perturbations` of ``block``'s residual rows ``r`` (n, d) (``rows``: a subset mask)."""
-    parts = component_matrices(block, effects, axes)
-    m = np.ones(len(r), dtype=bool) if rows is None else rows
-    return learn_perturbations(r[m], S[m], {k: v[m] for k, v in parts.items()})
 
 
 def learn_prior(run: Run, model: tuple[Any, ...]) -> LearnedPrior | None:

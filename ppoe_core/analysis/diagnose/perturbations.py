@@ -41,7 +41,7 @@ from ppoe_core.analysis.diagnose.block import ResidualBlock
 from ppoe_core.model.effects import Effect
 from ppoe_core.robot.tree import KinematicTree
 
-__all__ = ["AXIS_CLASSES", "FIXED_CLASSES", "ComponentEstimate", "PerturbationFit", "axis_projectors",
+__all__ = ["AXIS_CLASSES", "FIXED_CLASSES", "ComponentEstimate", "ComponentFit", "PerturbationFit", "axis_projectors",
            "component_matrices", "fit_components", "joint_axes", "learn_perturbations", "sigma_from_components"]
 
 #: the axis classes of a joint's insertion (module docstring)
@@ -167,14 +167,16 @@ def sigma_from_components(components: Sequence[ComponentEstimate],
 
 
 @dataclass
-class _Fit:
+class ComponentFit:
+    """One maximum-likelihood fit of a fixed structure (:func:`fit_components`)."""
+
     lam: np.ndarray  #: (K + 1,) sensor variance scale first
     cost: float  #: -2 log L (without the constant)
     fisher: np.ndarray  #: (K + 1, K + 1) Fisher information of log lam
 
 
 def fit_components(r: np.ndarray, S: np.ndarray, D: Sequence[np.ndarray], start: np.ndarray | None = None,
-                   max_iter: int = MAX_ITER) -> _Fit:
+                   max_iter: int = MAX_ITER) -> ComponentFit:
     """Maximum-likelihood ``a^2`` and ``lam_g`` of ``C_n = a^2 S_n + sum_g lam_g D_gn`` for rows ``r`` (n, d)
     (module docstring); ``S``, ``D[g]``: (n, d, d).  ``start``: a previous estimate (K + 1,) to refine.
 
@@ -206,7 +208,7 @@ def fit_components(r: np.ndarray, S: np.ndarray, D: Sequence[np.ndarray], start:
         if done:
             break
     fisher = F * np.outer(lam, lam)  # of log lam
-    return _Fit(lam, cost, fisher)
+    return ComponentFit(lam, cost, fisher)
 
 
 def _newton_step(F: np.ndarray, b: np.ndarray, lam: np.ndarray, floor: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -242,7 +244,7 @@ def _alone(r: np.ndarray, D: np.ndarray) -> float:
     return float(np.einsum("ni,ni->", r, r) / max(float(np.trace(D, axis1=-2, axis2=-1).sum()), 1e-300))
 
 
-def _intervals(fit: _Fit) -> list[tuple[float, float]]:
+def _intervals(fit: ComponentFit) -> list[tuple[float, float]]:
     """95 % intervals of each variance from the Fisher information of the log-variances (a singular direction
     gives [0, inf])."""
     try:
@@ -308,8 +310,8 @@ def learn_perturbations(r: np.ndarray, S: np.ndarray, parts: Mapping[tuple[str, 
                            fit.cost, n, removed, steps)
 
 
-def _best_move(r: np.ndarray, S: np.ndarray, struct: list[tuple[tuple[str, str], ...]], fit: _Fit,
-               mats: Any) -> tuple[list[tuple[tuple[str, str], ...]], _Fit, str] | None:
+def _best_move(r: np.ndarray, S: np.ndarray, struct: list[tuple[tuple[str, str], ...]], fit: ComponentFit,
+               mats: Any) -> tuple[list[tuple[tuple[str, str], ...]], ComponentFit, str] | None:
     """The cheapest simplification of ``struct``: remove one component, or merge two of the same class adjacent in
     the order of their variances.  Every move is scored by its Wald statistic at the current fit (``(c^T lam)^2 /
     c^T H^-1 c``, ``H = 2 F`` the expected Hessian of ``-2 log L`` in the variances); the :data:`REFIT_BEST`
