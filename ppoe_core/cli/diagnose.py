@@ -82,6 +82,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pixel-sigma", type=float_range(0.0, min_open=True), default=None,
                         help="declared pixel noise 1-sigma per axis [px] (default: the model's camera.pixel_sigma, "
                              "else 1; the fit estimates the actual noise)")
+    parser.add_argument("--learn-perturbations", action="store_true",
+                        help="learn the perturbation covariances per joint and axis from the held-out residual, "
+                             "write them into model_diagnosed.yaml and compare declared / one global scale / learned "
+                             "on held-out data (docs/covariance.md)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -132,7 +136,8 @@ def options(args: argparse.Namespace) -> Any:
     blocks = None if args.imu == "auto" else ["tracker", "pose", "pixels", "contact"]
     return DiagnoseOptions(folds=args.folds, cv=args.cv, min_t=args.min_t, min_gain=args.min_gain,
                            penalty=args.penalty, max_effects=args.max_effects, groups=not args.no_groups,
-                           effects=args.effects, loss=args.robust, blocks=blocks)
+                           effects=args.effects, loss=args.robust, blocks=blocks,
+                           learn_perturbations=args.learn_perturbations)
 
 
 def _write_calibrated(args: argparse.Namespace, done: Any) -> list[Path]:

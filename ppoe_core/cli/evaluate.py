@@ -12,7 +12,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -53,6 +56,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="stationing set for per-station tracker registration (bags with /dataset/stop roles)",
     )
     _add_fusion_options(parser)
+    parser.add_argument("--perturbations", nargs="+", default=[], metavar="MODEL.yaml",
+                        help="also replay with the perturbations / joint_noise of these model files (e.g. the "
+                             "model_diagnosed.yaml of `ppoe diagnose --learn-perturbations`) and print fused error "
+                             "and NEES per choice side by side (docs/covariance.md)")
+    parser.add_argument("--global-scale", type=float_range(0.0, min_open=True), default=None, metavar="K",
+                        help="also replay with the declared perturbation sigmas and joint noise times K")
     parser.add_argument("--online", action="store_true",
                         help="track drifting effects online (docs/online.md): tool error before / static / online, "
                              "online.json and online_parameters.png in --out")
@@ -141,6 +150,8 @@ def _run_offline(args: argparse.Namespace) -> int:
         estimate=args.estimate, sources=load_sources(args.fusion_params) if args.fusion_params else [],
         tag_windows=args.tag_windows,
     )
+    if args.perturbations or args.global_scale is not None:
+        return _compare(args, opts)
     ev = evaluate_bag(args.bag, args.model, opts)
     for note in ev.summary.get("bag_notes", []):
         print(f"ppoe evaluate: warning: {note}", file=sys.stderr)
@@ -152,6 +163,42 @@ def _run_offline(args: argparse.Namespace) -> int:
     else:
         print(markdown_report(ev))
     return 0
+
+
+def _compare(args: argparse.Namespace, opts: Any) -> int:
+    """``--perturbations`` / ``--global-scale``: the bag replayed per covariance choice, one table."""
+    from ppoe_core.analysis.evaluate.perturbation_compare import (
+        compare_perturbations,
+        comparison_json,
+        comparison_table,
+    )
+
+    evs = compare_perturbations(args.bag, args.model, args.perturbations, args.global_scale, opts)
+    doc = {"bag": args.bag, "model": args.model, "perturbation_comparison": comparison_json(evs)}
+    table = comparison_table(evs)
+    if args.out:
+        out = Path(args.out)
+        (out / "perturbations_comparison.md").write_text(table + "\n", encoding="utf-8")
+        (out / "perturbations_comparison.json").write_text(json.dumps(_finite(doc), allow_nan=False),
+                                                             encoding="utf-8")
+        _written(args, [out / "perturbations_comparison.md", out / "perturbations_comparison.json"])
+    if args.json:
+        json.dump(_finite(doc), sys.stdout, allow_nan=False)
+        sys.stdout.write("\n")
+    else:
+        print(table)
+    return 0
+
+
+def _finite(v: Any) -> Any:
+    """NaN / inf -> None (strict JSON)."""
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_finite(x) for x in v]
+    return v
 
 
 def _written(args: argparse.Namespace, paths: list) -> None:

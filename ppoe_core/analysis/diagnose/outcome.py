@@ -53,6 +53,10 @@ def build_result(run: Run, before: Linearised, insample_before: Sequence[np.ndar
         effects=reports, found=list(effects), blocks=blocks, steps=selection.steps,
         rejected=[{"candidate": k, "reason": v} for k, v in selection.rejected.items()], cv=mode, n_stops=n_stops,
         n_sessions=tracker.n_segments if tracker is not None else 0, n_poses=pr.n_units)
+    if options.learn_perturbations:  # docs/covariance.md
+        from ppoe_core.analysis.diagnose.learned_prior import learn_prior
+
+        res.learned_prior = learn_prior(run, selection.model)
     res.summary = summary(res)
     return res
 
@@ -167,4 +171,6 @@ def summary(res: DiagnoseResult) -> str:
                      + f" (predictable part {max(s.gain for s in sig):.0%} of the held-out residual), "
                      "outside the effect catalogue")
         lines.append(line)
+    if res.learned_prior is not None:
+        lines.append(res.learned_prior.summary())
     return "; ".join(lines[:1]) + ("\n" + "\n".join(lines[1:]) if len(lines) > 1 else "")

@@ -56,7 +56,12 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
         effects.append(entry)
     doc["effects"] = effects
     k = result.sigma_scale
-    if scale_sigmas and math.isfinite(k):
+    learned_lines: list[str] = []
+    if scale_sigmas and result.learned_prior is not None:  # --learn-perturbations: the learned ones, not k
+        from ppoe_core.analysis.diagnose.learned_prior import write_into_model
+
+        learned_lines = write_into_model(doc, result.learned_prior)
+    elif scale_sigmas and math.isfinite(k):
         pert = doc.get("perturbations") or {}
         if pert:
             for _jn, entry in pert.items():
@@ -71,9 +76,10 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
             doc["joint_noise"] = result.fitted_joint_noise
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
+    scaled = (f"# perturbation sigmas and joint noise scaled by {k:.4g}: the declared prior's scale as the data "
+              "estimate it.\n") if not learned_lines else "\n".join(learned_lines) + "\n"
     header = ("# Model updated by `ppoe diagnose`: effects found (with 95 % CIs) appended to `effects`,\n"
-              f"# perturbation sigmas and joint noise scaled by {k:.4g}: the declared prior's scale as the data "
-              "estimate it.\n"
+              + scaled
               + (f"# For robot_calibrated.urdf: the static effects {list(drop)} are left out here: the declared ones\n"
                  "# and the significant components of the found ones are folded into its joint origins (diagnose.md,\n"
                  "# section How to apply, lists the components left out).\n" if drop else ""))
@@ -122,8 +128,11 @@ def write_report(result: DiagnoseResult, out_dir: str | Path, title: str = "ppoe
     paths["json"].write_text(json.dumps(result.to_json(), indent=2), encoding="utf-8")
     plan = plan_calibration(result, declared)
     static_declared = [e.key for e in declared if e.name in STATIC_EFFECTS]
+    from ppoe_core.analysis.diagnose.learned_prior import markdown_section
+
     lines = (_md_head(result, title) + _md_effects(result) + _md_blocks(result)
-             + apply_section(result, plan, out, static_declared) + _md_test(result) + _md_steps(result) + _md_terms())
+             + markdown_section(result.learned_prior) + apply_section(result, plan, out, static_declared)
+             + _md_test(result) + _md_steps(result) + _md_terms())
     paths["md"].write_text("\n".join(lines) + "\n", encoding="utf-8")
     if not plot_blocks(result, paths["png"], title):
         paths.pop("png")

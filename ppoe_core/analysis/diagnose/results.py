@@ -49,6 +49,9 @@ class DiagnoseOptions:
         ``"linear"`` or ``"soft_l1"`` (robust, scale ``loss_scale`` in whitened units).
     blocks : list of str or None
         Measurement kinds to use (``tracker``, ``pose``, ``pixels``, ``imu``, ``contact``); None: all present.
+    learn_perturbations : bool
+        Learn the perturbation covariances from the held-out residual and check the three covariance choices
+        (:mod:`~ppoe_core.analysis.diagnose.learned_prior`); the result's ``learned_prior``.
     """
 
     folds: int = 5
@@ -68,6 +71,7 @@ class DiagnoseOptions:
     loss: str = "linear"
     loss_scale: float = 3.0
     blocks: list[str] | None = None
+    learn_perturbations: bool = False
 
 
 @dataclass
@@ -166,6 +170,8 @@ class DiagnoseResult:
     summary: str = ""
     test: dict[str, dict[str, Any]] | None = None
     fitted_joint_noise: dict[str, float] | None = None
+    #: :class:`~ppoe_core.analysis.diagnose.learned_prior.LearnedPrior` with ``learn_perturbations``
+    learned_prior: Any = None
 
     @property
     def chosen(self) -> list[Effect]:
@@ -231,6 +237,8 @@ class DiagnoseResult:
             out["test"] = self.test
         if self.fitted_joint_noise:
             out["fitted_joint_noise"] = self.fitted_joint_noise
+        if self.learned_prior is not None:
+            out["learned_perturbations"] = self.learned_prior.to_json()
         return _finite(out)
 
 
