@@ -139,7 +139,8 @@ def run(args: argparse.Namespace) -> int:
                         "reflectors")
     tree = KinematicTree(robot)
     declared = [effect_from_config(e, tree, f"{args.model}: effects[{i}]") for i, e in enumerate(model.effects)]
-    targets = target_effects(tree, [(d.name, d.location, d.components) for d in declared_specs(args.effects)])
+    chain = list(dict.fromkeys(j for t in model.trackers for j in robot.path_from_root(t.link)))
+    targets = target_effects(tree, [(d.name, d.location, d.components) for d in declared_specs(args.effects)], chain)
     given = None
     if args.given:
         from ppoe_core.analysis.diagnose.stops import Stops

@@ -264,9 +264,19 @@ def violations(tree: KinematicTree, q: Mapping[str, np.ndarray], c: Constraints)
             "line_of_sight": _line_of_sight(tree, poses, c, n), "tags_in_view": _tags_hidden(poses, c, n)}
 
 
+def _draw(rng: np.random.Generator, lo: float, hi: float, n: int, extremes: float) -> np.ndarray:
+    """``n`` uniform draws in ``[lo, hi]``, each replaced by ``lo`` or ``hi`` with probability ``extremes``."""
+    v = rng.uniform(lo, hi, n)
+    snap = rng.random(n) < extremes
+    return np.where(snap, np.where(rng.random(n) < 0.5, lo, hi), v)
+
+
 def sample_candidates(tree: KinematicTree, c: Constraints, count: int, rng: np.random.Generator,
-                      max_draws: int | None = None) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+                      max_draws: int | None = None, extremes: float = 0.0
+                      ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """``count`` random feasible configurations (joint -> (count,)) and, per constraint, how many draws it rejected.
+    ``extremes``: probability that a joint's draw is put at an end of its interval instead (D-optimal designs sit
+    at the ends of what the constraints allow; uniform draws in many joints rarely reach them).
 
     Raises
     ------
@@ -280,7 +290,7 @@ def sample_candidates(tree: KinematicTree, c: Constraints, count: int, rng: np.r
     drawn, have = 0, 0
     while have < count and drawn < max_draws:
         batch = min(max(2 * (count - have), 64), max_draws - drawn)
-        q = {jn: rng.uniform(lo, hi, batch) for jn, (lo, hi) in bounds.items()}
+        q = {jn: _draw(rng, lo, hi, batch, extremes) for jn, (lo, hi) in bounds.items()}
         v = violations(tree, q, c)
         ok = np.ones(batch, bool)
         for k, m in v.items():

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ppoe_core.analysis.diagnose.block_tracker import TrackerBlock
-from ppoe_core.analysis.diagnose.candidates import predict_nominal
+from ppoe_core.analysis.diagnose.candidates import chain_candidates, predict_nominal
 from ppoe_core.analysis.diagnose.noise import NoiseScales, whitening
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import ModelConfigError, PpoeError
@@ -34,12 +34,15 @@ from ppoe_core.model.effects import Effect, make_effect
 from ppoe_core.robot.tree import KinematicTree
 
 __all__ = ["Target", "PoseInformation", "target_effects", "pose_information", "planned_stops", "reduced_information",
-           "block_rows", "given_information",
+           "block_rows", "given_information", "check_identifiable", "ABSORBED",
            "UNPLANNABLE"]
 
 #: effects whose columns depend on the recording (motion history, time, temperature), not on the configuration
 #: alone: a pose design cannot plan them
 UNPLANNABLE = ("backlash", "time_offset", "thermal_growth")
+#: a parameter (or combination) keeping less than this share of its information once the registration is
+#: eliminated, over every candidate at once, is not identifiable
+ABSORBED = 1e-8
 
 
 @dataclass
@@ -55,9 +58,12 @@ class Target:
         return [f"{self.effect.name}@{self.effect.location}:{self.effect.param_names[i]}" for i in self.comps]
 
 
-def target_effects(tree: KinematicTree, entries: Sequence[tuple[str, str, Sequence[str]]]) -> list[Target]:
+def target_effects(tree: KinematicTree, entries: Sequence[tuple[str, str, Sequence[str]]],
+                   joints: Sequence[str] = ()) -> list[Target]:
     """The effects ``entries`` = ``(name, location, parameter names or [] for all)`` (``ppoe diagnose --effects``
-    vocabulary) as :class:`Target`.
+    vocabulary) as :class:`Target`; an effect the engine's catalogue offers on the measured chain (``joints``: the
+    joints on the path to the measured links) is taken from it (:func:`chain_candidates`: the same components as
+    ``ppoe diagnose --effects`` fits, e.g. a telescopic ``mount_bending``).
 
     Raises
     ------
@@ -65,6 +71,7 @@ def target_effects(tree: KinematicTree, entries: Sequence[tuple[str, str, Sequen
         An unknown effect, a location that is not a joint / link of the URDF, an unknown parameter, an effect a pose
         design cannot plan (:data:`UNPLANNABLE`); the message names the entry.
     """
+    offered = {(c.name, c.location): c for c in chain_candidates(tree, joints, {}, point=True)}
     out: list[Target] = []
     for k, (name, loc, comps) in enumerate(entries):
         where = f"effects[{k}] ({name}@{loc})"
@@ -74,7 +81,7 @@ def target_effects(tree: KinematicTree, entries: Sequence[tuple[str, str, Sequen
         if loc not in tree.robot.joints and loc not in tree.robot.links:
             raise ModelConfigError(f"{where}: location {loc!r} is neither a joint nor a link of the URDF")
         try:
-            e = make_effect(name, loc, tree)
+            e = offered.get((name, loc)) or make_effect(name, loc, tree)
         except PpoeError as exc:
             raise ModelConfigError(f"{where}: {exc}") from exc
         bad = [c for c in comps if c not in e.param_names]
@@ -151,7 +158,34 @@ def pose_information(tree: KinematicTree, trackers: Sequence, q: Mapping[str, np
     if dead:
         raise PpoeError(f"plan: {dead} move no measured point in any candidate configuration (not observable by "
                         "the model's trackers)")
+    check_identifiable(A.sum(0), B.sum(0), C.sum(0), scale, names)
     return PoseInformation(A, B, C, G, N, scale, sig)
+
+
+def check_identifiable(A: np.ndarray, B: np.ndarray, C: np.ndarray, scale: np.ndarray, names: Sequence[str]) -> None:
+    """Raise when the target parameters are not identifiable even from every candidate at once (``A``, ``B``,
+    ``C`` summed over the candidates): a parameter whose column the registration absorbs (its information
+    falls by more than :data:`ABSORBED` when the registration is eliminated), or a combination of parameters
+    no pose set can tell apart (smallest scaled eigenvalue below :data:`ABSORBED` of the largest).
+
+    Raises
+    ------
+    PpoeError
+        Naming the parameters.
+    """
+    H = reduced_information(A, B, C)
+    kept = np.diag(H) / np.maximum(np.diag(A), 1e-300)
+    bad = [names[i] for i in np.flatnonzero(kept < ABSORBED)]
+    if bad:
+        raise PpoeError(f"plan: {bad} cannot be told apart from the tracker registration in any pose (a rigid "
+                        "motion of the whole measured chain): drop them from --effects")
+    d = 1.0 / scale
+    w, V = np.linalg.eigh(H * d[:, None] * d[None, :])
+    if w[0] < ABSORBED * w[-1]:
+        v = np.abs(V[:, 0])
+        mix = [names[i] for i in np.flatnonzero(v > 0.2 * v.max())]
+        raise PpoeError(f"plan: {mix} cannot be told apart from each other (and the registration) in any pose of "
+                        "the feasible set: drop one of them from --effects or widen the constraints")
 
 
 def given_information(tree: KinematicTree, stops: Stops, targets: Sequence[Target],

@@ -1,6 +1,8 @@
 """``plan()``: the D-optimal poses for a set of target effects, their predicted CIs and the random baseline.
 
-1. Candidates: :func:`~ppoe_core.analysis.plan.constraints.sample_candidates` (random feasible configurations).
+1. Candidates: :func:`~ppoe_core.analysis.plan.constraints.sample_candidates` (random feasible configurations,
+   half of the joint values at an end of their interval: optimal designs sit there); a second, uniform, draw of
+   as many feasible configurations is the random baseline and the held-out poses.
 2. Information per candidate from the engine's tracker block (:mod:`information`), registration eliminated.
 3. Design: greedy + exchange on ``log det`` (:mod:`design`); with ``given`` data, its reduced information is a
    fixed part of every evaluation (its own registration).
@@ -39,12 +41,14 @@ Z95 = 1.96
 @dataclass
 class PlanOptions:
     """``n`` poses, ``candidates`` random feasible configurations to choose from, the RNG ``seed``, ``start``
-    configuration of the tour (joint -> value; missing: the first planned pose)."""
+    configuration of the tour (joint -> value; missing: the first planned pose); ``extremes``: candidates' share of
+    joints at an end of their interval (the random baselines are uniform draws)."""
 
     n: int = 30
     candidates: int = 2000
     seed: int = 0
     start: dict[str, float] = field(default_factory=dict)
+    extremes: float = 0.5  #: :func:`sample_candidates`' probability of a joint at an end of its interval
 
 
 @dataclass
@@ -79,9 +83,11 @@ def _safe_inv(H: np.ndarray) -> np.ndarray:
     return np.linalg.pinv(H / d[:, None] / d[None, :]) / d[:, None] / d[None, :]
 
 
-def predict(info: PoseInformation, idx: np.ndarray, base: np.ndarray | None = None) -> Prediction:
-    """:class:`Prediction` of the candidates ``idx`` (module docstring); the held-out error is averaged over every
-    candidate (random feasible poses)."""
+def predict(info: PoseInformation, idx: np.ndarray, base: np.ndarray | None = None,
+            heldout: PoseInformation | None = None) -> Prediction:
+    """:class:`Prediction` of the candidates ``idx`` of ``info`` (module docstring); the held-out error is averaged
+    over the poses of ``heldout`` (random feasible poses; default: every candidate of ``info``)."""
+    test = heldout if heldout is not None else info
     idx = np.asarray(idx, dtype=int)
     A, B, C = info.A[idx].sum(0), info.B[idx].sum(0), info.C[idx].sum(0)
     P, K = B.shape
@@ -90,9 +96,9 @@ def predict(info: PoseInformation, idx: np.ndarray, base: np.ndarray | None = No
     H = reduced_information(A, B, C) + (base if base is not None else 0.0)
     cov = cov_full[:P, :P]
     # held out: whitened rows times sigma back to metres; [G N] cov [G N]^T per component
-    GN = np.concatenate([info.G, info.N], axis=2) * info.sigma[..., None]
-    var = np.einsum("umi,ij,umj->um", GN, cov_full, GN) + info.sigma ** 2
-    R = max(info.G.shape[1] // 3, 1)
+    GN = np.concatenate([test.G, test.N], axis=2) * test.sigma[..., None]
+    var = np.einsum("umi,ij,umj->um", GN, cov_full, GN) + test.sigma ** 2
+    R = max(test.G.shape[1] // 3, 1)
     rms = float(np.sqrt(np.mean(var.reshape(var.shape[0], R, -1).sum(-1))))
     return Prediction(Z95 * np.sqrt(np.maximum(np.diag(cov), 0.0)), cov, rms,
                       observability_indices(H, info.scale, idx.size))
@@ -139,8 +145,10 @@ def plan(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], con
         raise PpoeError(f"plan: --n {options.n} poses is fewer than the {len(names)} target parameters "
                         f"({', '.join(names)})")
     rng = np.random.default_rng(options.seed)
-    q, rejected = sample_candidates(tree, constraints, options.candidates, rng)
+    q, rejected = sample_candidates(tree, constraints, options.candidates, rng, extremes=options.extremes)
     info = pose_information(tree, trackers, q, targets, declared)
+    q_rand, _ = sample_candidates(tree, constraints, options.candidates, rng)
+    rand = pose_information(tree, trackers, q_rand, targets, declared)
     d = design(info, options.n, given)
     joints = list(q)
     Q = np.stack([q[j][d.chosen] for j in joints], axis=1)
@@ -152,8 +160,8 @@ def plan(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], con
         notes.append("self-collision not checked: the URDF has no <collision> geometry")
     if constraints.skipped_meshes:
         notes.append(f"{constraints.skipped_meshes} collision meshes not modelled (spheres, cylinders, boxes only)")
-    return PlanResult({j: q[j][d.chosen] for j in joints}, names, predict(info, d.chosen, given),
-                      _random_baseline(info, options.n, rng, given), _random_baseline(info, 4 * options.n, rng, given),
+    return PlanResult({j: q[j][d.chosen] for j in joints}, names, predict(info, d.chosen, given, rand),
+                      _random_baseline(rand, options.n, rng, given), _random_baseline(rand, 4 * options.n, rng, given),
                       d, rejected, int(info.A.shape[0]), notes)
 
 
