@@ -175,7 +175,7 @@ def check_identifiable(A: np.ndarray, B: np.ndarray, C: np.ndarray, scale: np.nd
     """
     H = reduced_information(A, B, C)
     kept = np.diag(H) / np.maximum(np.diag(A), 1e-300)
-    bad = [names[i] for i in np.flatnonzero(kept < ABSORBED)]
+    bad = [names[int(i)] for i in np.flatnonzero(kept < ABSORBED)]
     if bad:
         raise PpoeError(f"plan: {bad} cannot be told apart from the tracker registration in any pose (a rigid "
                         "motion of the whole measured chain): drop them from --effects")
@@ -183,7 +183,7 @@ def check_identifiable(A: np.ndarray, B: np.ndarray, C: np.ndarray, scale: np.nd
     w, V = np.linalg.eigh(H * d[:, None] * d[None, :])
     if w[0] < ABSORBED * w[-1]:
         v = np.abs(V[:, 0])
-        mix = [names[i] for i in np.flatnonzero(v > 0.2 * v.max())]
+        mix = [names[int(i)] for i in np.flatnonzero(v > 0.2 * v.max())]
         raise PpoeError(f"plan: {mix} cannot be told apart from each other (and the registration) in any pose of "
                         "the feasible set: drop one of them from --effects or widen the constraints")
 
