@@ -10,7 +10,7 @@ Candidates are drawn uniformly inside each independent joint's limits shrunk by 
   other two; meshes are not modelled and counted), every pair of links not rigidly attached to each other nor
   neighbours through one movable joint must be ``clearance`` apart;
 * **tracker line of sight** (optional, ``tracker_at`` in the root frame): the segment from the tracker to each
-  reflector clears every capsule of the links not carrying that reflector;
+  reflector clears every capsule of the links not rigidly attached to that reflector's link;
 * **tags in view** (optional, with a camera's intrinsics): at least ``min_tags`` of the model's tags with their
   centre at least :data:`MIN_DEPTH` in front of the camera, their normal within ``max_view_angle`` of the line of
   sight and all four corners inside the image with a :data:`EDGE_MARGIN_PX` margin.
@@ -34,7 +34,7 @@ from ppoe_core.estimation.camera import project_points
 from ppoe_core.robot.tree import KinematicTree
 
 __all__ = ["Capsule", "CameraView", "Constraints", "collision_capsules", "violations", "sample_candidates",
-           "joint_bounds", "MIN_DEPTH", "EDGE_MARGIN_PX"]
+           "joint_bounds", "rigid_bodies", "segment_distance", "MIN_DEPTH", "EDGE_MARGIN_PX"]
 
 #: a tag nearer than this to the camera (along its optical axis) is not usable [m]
 MIN_DEPTH = 0.1
@@ -154,8 +154,8 @@ def collision_capsules(urdf_text: str) -> tuple[list[Capsule], int]:
     return out, meshes
 
 
-def _rigid_neighbours(tree: KinematicTree) -> set[frozenset[str]]:
-    """Pairs of links that may touch: rigidly attached (fixed joints) or neighbours through one movable joint."""
+def rigid_bodies(tree: KinematicTree) -> dict[str, str]:
+    """Link -> the first link of its rigid body (links joined by fixed joints are one body)."""
     robot = tree.robot
     group = {ln: ln for ln in robot.links}
 
@@ -167,12 +167,18 @@ def _rigid_neighbours(tree: KinematicTree) -> set[frozenset[str]]:
     for j in robot.joints.values():
         if not j.movable:
             group[find(j.child)] = find(j.parent)
-    near = {frozenset((find(j.parent), find(j.child))) for j in robot.joints.values()}
+    return {ln: find(ln) for ln in robot.links}
+
+
+def _rigid_neighbours(tree: KinematicTree) -> set[frozenset[str]]:
+    """Pairs of links that may touch: rigidly attached (fixed joints) or neighbours through one movable joint."""
+    robot = tree.robot
+    body = rigid_bodies(tree)
+    near = {frozenset((body[j.parent], body[j.child])) for j in robot.joints.values()}
     out = set()
     for a in robot.links:
         for b in robot.links:
-            ga, gb = find(a), find(b)
-            if ga == gb or frozenset((ga, gb)) in near:
+            if body[a] == body[b] or frozenset((body[a], body[b])) in near:
                 out.add(frozenset((a, b)))
     return out
 
@@ -213,10 +219,11 @@ def _line_of_sight(tree: KinematicTree, poses: Mapping[str, np.ndarray], c: Cons
     if c.tracker_at is None:
         return bad
     src = np.broadcast_to(np.asarray(c.tracker_at, dtype=float), (n, 3))
+    body = rigid_bodies(tree)
     for link, xyz in c.points:
         p = poses[link][..., :3, :3] @ xyz + poses[link][..., :3, 3]
         for cap in c.capsules:
-            if cap.link == link:
+            if body[cap.link] == body[link]:  # the reflector's own body carries it
                 continue
             bad |= segment_distance(src, p, *_world(poses, cap)) < cap.radius + c.clearance
     return bad
