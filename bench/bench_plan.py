@@ -60,6 +60,12 @@ STUDIES = {
     "humanoid19": Study("humanoid19", REPO / "config/robots/humanoid19_dh.yaml",
                         REPO / "config/robots/humanoid19_model.yaml", DATA / "_humanoid19.yaml",
                         DATA / "humanoid19_effects.yaml", 16, []),
+    # the pair random poses cannot separate: an elbow offset and the elbow's gravity compliance in a narrow workspace
+    "cobot6_pair": Study("cobot6_pair", REPO / "config/robots/cobot6_dh.yaml",
+                         REPO / "config/robots/cobot6_model.yaml", DATA / "_cobot6_pair.yaml",
+                         DATA / "cobot6_pair_effects.yaml", 12,
+                         ["--region", "shoulder_pan=-0.3:0.3", "shoulder_lift=-1.5:-1.2", "elbow=1.3:1.7",
+                          "wrist_1=-1.8:-1.4"]),
     "lift5": Study("lift5", DATA / "lift5_dh.yaml", DATA / "lift5_model.yaml", DATA / "_lift5.yaml",
                    DATA / "lift5_effects.yaml", 12, ["--box", "-3", "-3", "0.3", "3", "3", "3"]),
 }
@@ -117,9 +123,10 @@ def random_csv(study: Study, work: Path, n: int, seed: int) -> Path:
     return out
 
 
-def achieved(study: Study, work: Path, csv: Path, seed: int, tag: str) -> dict[str, float]:
+def achieved(study: Study, work: Path, csv: Path, seed: int, tag: str) -> dict[str, tuple[float, float]]:
     """Simulate the poses ``csv`` with the study's truth (noise seed ``seed``), diagnose with ``--effects``: the
-    achieved 95 % half-width of every parameter (``name@location:parameter``; inf when left out)."""
+    estimate and the achieved 95 % half-width of every parameter (``name@location:parameter``; missing when the
+    diagnosis left it out)."""
     from ppoe_core.sim.simulate import simulate
 
     scen = work / f"{tag}.yaml"
@@ -129,34 +136,35 @@ def achieved(study: Study, work: Path, csv: Path, seed: int, tag: str) -> dict[s
     simulate(scen, bag, overwrite=True)
     doc = json.loads(ppoe(["diagnose", str(bag), "--model", str(study.model), "--effects", str(study.effects),
                            "--json", "--quiet"]))
-    out: dict[str, float] = {}
+    out: dict[str, tuple[float, float]] = {}
     for e in doc.get("effects") or []:
         for p, (lo, hi) in (e.get("ci") or {}).items():
-            out[f"{e['name']}@{e['location']}:{p}"] = (float(hi) - float(lo)) / 2.0
+            out[f"{e['name']}@{e['location']}:{p}"] = (float(e["parameters"][p]), (float(hi) - float(lo)) / 2.0)
     return out
 
 
-def run_study(study: Study, repeats: int = 2, random_n: bool = True, work: Path = WORK) -> dict[str, Any]:
-    """One study (module docstring): per parameter the predicted and achieved half-widths and the ratios."""
+def run_study(study: Study, repeats: int = 2, sets: tuple[str, ...] = ("planned", "random_n", "random_4n"),
+              work: Path = WORK) -> dict[str, Any]:
+    """One study (module docstring): per parameter the predicted and achieved half-widths (mean over ``repeats``
+    bags of each pose set in ``sets``), the achieved estimates (``values``: the last bag's) and the ratios."""
     work = work / study.name
     work.mkdir(parents=True, exist_ok=True)
     plan_dir, doc, dt = plan_of(study, work)
     names = doc["parameters"]
-    sets: dict[str, list[dict[str, float]]] = {"planned": [], "random_4n": [], "random_n": []}
+    got: dict[str, list[dict[str, Any]]] = {k: [] for k in sets}
+    sizes = {"random_n": study.n, "random_4n": 4 * study.n}
     for r in range(repeats):
-        sets["planned"].append(achieved(study, work, plan_dir / "poses.csv", 100 + r, f"planned_{r}"))
-        sets["random_4n"].append(achieved(study, work, random_csv(study, work, 4 * study.n, 200 + r), 300 + r,
-                                          f"random4n_{r}"))
-        if random_n:
-            sets["random_n"].append(achieved(study, work, random_csv(study, work, study.n, 400 + r), 500 + r,
-                                             f"randomn_{r}"))
+        for k, key in enumerate(sets):
+            csv = plan_dir / "poses.csv" if key == "planned" else random_csv(study, work, sizes[key], 200 + 10 * r + k)
+            got[key].append(achieved(study, work, csv, 100 + 10 * r + k, f"{key}_{r}"))
 
     def mean(k: str, p: str) -> float:
-        v = [d.get(p, float("inf")) for d in sets[k]]
+        v = [d.get(p, (float("nan"), float("inf")))[1] for d in got.get(k, [])]
         return float(np.mean(v)) if v else float("nan")
 
     rows = {p: {"predicted": doc["planned"]["ci95"][p], "predicted_random_4n": doc["random_4n"]["ci95"][p],
-                "planned": mean("planned", p), "random_4n": mean("random_4n", p), "random_n": mean("random_n", p)}
+                **{k: mean(k, p) for k in ("planned", "random_n", "random_4n")},
+                "values": {k: got[k][-1].get(p, (float("nan"), float("inf")))[0] for k in sets}}
             for p in names}
     for r in rows.values():
         r["planned_over_random_4n"] = r["planned"] / r["random_4n"]
