@@ -64,3 +64,32 @@ def test_planned_poses_separate_what_random_poses_cannot(work: Path) -> None:
         assert abs(v) > h, (name, r)                          # zero outside the planned interval
         assert abs(v - truth[name]) <= h, (name, r)           # the truth inside
     assert any(abs(r["values"]["random_n"]) <= r["random_n"] for r in par.values()), par
+
+
+def test_diagnose_reports_achieved_next_to_planned(work: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``ppoe diagnose --planned plan.json``: key ``planned`` with planned, achieved (the effects' ``ci``) and the
+    ratio per planned parameter; a file that is no plan is a clear error."""
+    import json
+
+    from ppoe_ros.cli import main
+
+    study = bench.STUDIES["cobot6"]
+    base = work / "cobot6"
+    if not (base / "planned_0_bag").is_dir():
+        bench.run_study(study, repeats=1, sets=("planned",), work=work)
+    argv = ["diagnose", str(base / "planned_0_bag"), "--model", str(study.model), "--effects", str(study.effects),
+            "--quiet", "--json", "--planned"]
+    assert main([*argv, str(base / "plan" / "plan.json")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    cmp = doc["planned"]
+    assert set(cmp) == set(json.loads((base / "plan" / "plan.json").read_text())["parameters"])
+    for e in doc["effects"]:
+        for p, (lo, hi) in e["ci"].items():
+            r = cmp[f"{e['name']}@{e['location']}:{p}"]
+            assert r["achieved"] == pytest.approx((hi - lo) / 2)
+            assert r["ratio"] == pytest.approx(r["achieved"] / r["planned"])
+            assert abs(r["ratio"] - 1.0) <= PREDICTION_TOL
+    bad = work / "not_a_plan.json"
+    bad.write_text("{}")
+    assert main([*argv, str(bad)]) == 2
+    assert "not a ppoe plan plan.json" in capsys.readouterr().err

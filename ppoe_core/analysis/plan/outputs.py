@@ -15,7 +15,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +24,7 @@ import yaml
 
 from ppoe_core.analysis.plan.planner import PlanResult, summary
 
-__all__ = ["write_csv", "trajectory_message", "write_outputs", "plot_plan"]
+__all__ = ["write_csv", "trajectory_message", "write_outputs", "plot_plan", "compare_planned", "planned_lines"]
 
 
 def write_csv(path: Path, q: Mapping[str, np.ndarray]) -> None:
@@ -105,11 +105,36 @@ def write_outputs(out: Path, result: PlanResult, dwell: float, max_speed: float,
     return doc
 
 
-def planned_ci(doc: Mapping[str, Any]) -> dict[str, float]:
-    """``name@location:parameter`` -> planned 95 % half-width of a ``plan.json`` document."""
-    return {str(k): float(v) for k, v in (doc.get("planned") or {}).get("ci95", {}).items()}
+def compare_planned(diagnosed: Mapping[str, Any], plan_json: str | Path) -> dict[str, dict[str, float | None]]:
+    """Per planned parameter (``name@location:parameter``): the planned 95 % half-width of ``plan_json`` (``ppoe
+    plan``'s ``plan.json``), the achieved one of the diagnosis JSON ``diagnosed`` (``ppoe diagnose``'s effects'
+    ``ci``; None when the diagnosis does not report it) and achieved / planned (``ppoe diagnose --planned``).
+
+    Raises
+    ------
+    PpoeError
+        ``plan_json`` unreadable or not a plan.
+    """
+    from ppoe_core.errors import PpoeError
+
+    try:
+        plan = json.loads(Path(plan_json).read_text(encoding="utf-8"))
+        planned = {str(k): float(v) for k, v in plan["planned"]["ci95"].items()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise PpoeError(f"--planned {plan_json}: not a ppoe plan plan.json ({type(exc).__name__}: {exc})") from None
+    got: dict[str, float] = {}
+    for e in diagnosed.get("effects") or []:
+        for p, ci in (e.get("ci") or {}).items():
+            got[f"{e['name']}@{e['location']}:{p}"] = (float(ci[1]) - float(ci[0])) / 2.0
+    return {k: {"planned": v, "achieved": got.get(k), "ratio": got[k] / v if k in got and v > 0 else None}
+            for k, v in planned.items()}
 
 
-def names_of(doc: Mapping[str, Any]) -> Sequence[str]:
-    """The planned parameters of a ``plan.json`` document."""
-    return list(doc.get("parameters") or [])
+def planned_lines(cmp: Mapping[str, Mapping[str, float | None]]) -> list[str]:
+    """The text table of :func:`compare_planned`."""
+    out = ["", "Planned (ppoe plan) vs achieved 95 % half-widths:"]
+    for k, r in cmp.items():
+        a, q = r["achieved"], r["ratio"]
+        out.append(f"  {k:50s} planned {r['planned']:.3g}  achieved " + (f"{a:.3g}  ratio {q:.2f}" if a is not None
+                                                                          and q is not None else "not reported"))
+    return out
