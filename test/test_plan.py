@@ -282,3 +282,25 @@ def test_simulate_stops_csv_errors(tmp_path: Path) -> None:
     bad.write_text("j1,j2\n0,x\n")
     with pytest.raises(ScenarioError, match="line 2: not a number"):
         simulate(scen, tmp_path / "bag")
+
+
+def test_refinement_never_lowers_log_det_and_stays_feasible(cobot, info) -> None:
+    from ppoe_core.analysis.plan.refine import refine
+    _, tree, model = cobot
+    targets = target_effects(tree, [("joint_offset", "shoulder_lift", []), ("joint_offset", "elbow", []),
+                                    ("gravity_compliance", "elbow", [])])
+    c = Constraints(margin=0.2, points=[(t.link, t.xyz) for t in model.trackers],
+                    box=(np.array([-2.0, -2.0, 0.9]), np.array([2.0, 2.0, 3.0])))
+    d = design(info, 6)
+    joints = tree.robot.independent_joints
+    from ppoe_core.analysis.plan.constraints import sample_candidates
+    q, _ = sample_candidates(tree, c, 6, np.random.default_rng(4))
+    Q = np.stack([q[j] for j in joints], axis=1)
+    start = float(log_det(information_of(pose_information(tree, model.trackers, q, targets, (), info.scale),
+                                         np.arange(6)), info.scale))
+    ref = refine(tree, model.trackers, targets, (), c, Q, info.scale, None, np.random.default_rng(0))
+    assert ref.moved > 0 and ref.log_det > start
+    assert ref.log_det == pytest.approx(float(log_det(information_of(ref.info, np.arange(6)), info.scale)))
+    v = violations(tree, {j: ref.Q[:, i] for i, j in enumerate(ref.joints)}, c)
+    assert not any(m.any() for m in v.values())
+    assert d.chosen.size == 6

@@ -45,6 +45,7 @@ class Design:
     log_det: float
     passes: int
     exchanges: int
+    refined: int = 0  #: poses moved by the local refinement (:mod:`~ppoe_core.analysis.plan.refine`)
 
 
 def information_of(info: PoseInformation, idx: np.ndarray, base: np.ndarray | None = None) -> np.ndarray:

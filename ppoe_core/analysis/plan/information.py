@@ -139,9 +139,11 @@ def block_rows(block: TrackerBlock, targets: Sequence[Target], declared: Sequenc
 
 
 def pose_information(tree: KinematicTree, trackers: Sequence, q: Mapping[str, np.ndarray],
-                     targets: Sequence[Target], declared: Sequence[Effect] = ()) -> PoseInformation:
+                     targets: Sequence[Target], declared: Sequence[Effect] = (),
+                     scale: np.ndarray | None = None) -> PoseInformation:
     """:class:`PoseInformation` of the configurations ``q`` (joint -> (M,)) for the ``targets`` (module docstring:
-    the engine's tracker block, its Jacobians and whitening)."""
+    the engine's tracker block, its Jacobians and whitening).  ``scale``: the column scale of an earlier candidate
+    set (then these configurations are extra poses for it: no observability checks)."""
     M = len(next(iter(q.values())))
     block = TrackerBlock(tree, planned_stops(tree, trackers, q, declared), declared)
     if block.dropped:
@@ -152,6 +154,8 @@ def pose_information(tree: KinematicTree, trackers: Sequence, q: Mapping[str, np
     A = np.einsum("umi,umj->uij", G, G)
     B = np.einsum("umi,umk->uik", G, N)
     C = np.einsum("umk,uml->ukl", N, N)
+    if scale is not None:
+        return PoseInformation(A, B, C, G, N, scale, sig)
     scale = np.sqrt(np.mean(np.einsum("uii->ui", A), axis=0))
     names = [n for t in targets for n in t.names]
     dead = [names[i] for i in np.flatnonzero(scale <= 1e-12 * max(float(scale.max()), 1e-300))]

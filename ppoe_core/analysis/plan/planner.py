@@ -4,8 +4,8 @@
    half of the joint values at an end of their interval: optimal designs sit there); a second, uniform, draw of
    as many feasible configurations is the random baseline and the held-out poses.
 2. Information per candidate from the engine's tracker block (:mod:`information`), registration eliminated.
-3. Design: greedy + exchange on ``log det`` (:mod:`design`); with ``given`` data, its reduced information is a
-   fixed part of every evaluation (its own registration).
+3. Design: greedy + exchange on ``log det`` (:mod:`design`), then each pose refined locally (:mod:`refine`); with
+   ``given`` data, its reduced information is a fixed part of every evaluation (its own registration).
 4. Predictions: covariance ``I^-1`` of the target parameters (whitened with the declared sensor noise: what
    ``ppoe diagnose --effects`` reports when the model explains the data to the noise floor); 95 % half-widths
    ``1.96 sigma``; the predicted held-out error (RMS reflector distance at random feasible poses after the fit:
@@ -26,6 +26,7 @@ import numpy as np
 from ppoe_core.analysis.plan.constraints import Constraints, sample_candidates
 from ppoe_core.analysis.plan.design import Design, design, observability_indices
 from ppoe_core.analysis.plan.information import PoseInformation, Target, pose_information, reduced_information
+from ppoe_core.analysis.plan.refine import refine
 from ppoe_core.errors import PpoeError
 from ppoe_core.model.effects import Effect
 from ppoe_core.robot.tree import KinematicTree
@@ -49,6 +50,7 @@ class PlanOptions:
     seed: int = 0
     start: dict[str, float] = field(default_factory=dict)
     extremes: float = 0.5  #: :func:`sample_candidates`' probability of a joint at an end of its interval
+    refine: bool = True  #: move each planned pose to a better feasible configuration near it (:mod:`refine`)
 
 
 @dataclass
@@ -152,15 +154,19 @@ def plan(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], con
     d = design(info, options.n, given)
     joints = list(q)
     Q = np.stack([q[j][d.chosen] for j in joints], axis=1)
+    final, idx = info, d.chosen
+    if options.refine:
+        ref = refine(tree, trackers, targets, declared, constraints, Q, info.scale, given, rng)
+        Q, final, idx, d.log_det, d.refined = ref.Q, ref.info, np.arange(options.n), ref.log_det, ref.moved
     start = np.array([options.start.get(j, 0.0) for j in joints]) if options.start else None
     order = tour(Q, start)
-    d.chosen = d.chosen[order]
+    d.chosen, Q, idx = d.chosen[order], Q[order], idx[order]
     notes = []
     if not constraints.capsules:
         notes.append("self-collision not checked: the URDF has no <collision> geometry")
     if constraints.skipped_meshes:
         notes.append(f"{constraints.skipped_meshes} collision meshes not modelled (spheres, cylinders, boxes only)")
-    return PlanResult({j: q[j][d.chosen] for j in joints}, names, predict(info, d.chosen, given, rand),
+    return PlanResult({j: Q[:, i] for i, j in enumerate(joints)}, names, predict(final, idx, given, rand),
                       _random_baseline(rand, options.n, rng, given), _random_baseline(rand, 4 * options.n, rng, given),
                       d, rejected, int(info.A.shape[0]), notes)
 
@@ -175,5 +181,6 @@ def summary(result: PlanResult) -> dict[str, Any]:
             "planned": pred(result.planned), "random_n": pred(result.random_n),
             "random_4n": pred(result.random_4n),
             "design": {"log_det": result.design.log_det, "exchange_passes": result.design.passes,
-                       "exchanges": result.design.exchanges, "candidates": result.n_candidates},
+                       "exchanges": result.design.exchanges, "refined_moves": result.design.refined,
+                       "candidates": result.n_candidates},
             "rejected_draws": result.rejected, "notes": result.notes}
