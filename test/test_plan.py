@@ -304,3 +304,20 @@ def test_refinement_never_lowers_log_det_and_stays_feasible(cobot, info) -> None
     v = violations(tree, {j: ref.Q[:, i] for i, j in enumerate(ref.joints)}, c)
     assert not any(m.any() for m in v.values())
     assert d.chosen.size == 6
+
+
+def test_trajectory_yaml_builds_a_joint_trajectory_message(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``trajectory.yaml``'s fields are those of ``trajectory_msgs/JointTrajectory`` (the message builds from it)."""
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    out = tmp_path / "p"
+    code, _, err = _run(["plan", "--urdf", str(PLAN / "fold3.urdf"), "--model", str(PLAN / "fold3_model.yaml"),
+                         "--effects", "joint_offset@j2", "--n", "3", "--out", str(out), "--candidates", "50"], capsys)
+    assert code == 0, err
+    doc = yaml.safe_load((out / "trajectory.yaml").read_text())
+    assert set(doc) == set(JointTrajectory.get_fields_and_field_types())
+    msg = JointTrajectory(joint_names=doc["joint_names"], points=[
+        JointTrajectoryPoint(**{k: (Duration(**v) if k == "time_from_start" else v) for k, v in p.items()})
+        for p in doc["points"]])
+    assert len(msg.points) == 6 and msg.points[-1].time_from_start.sec >= 3
