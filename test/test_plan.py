@@ -321,3 +321,30 @@ def test_trajectory_yaml_builds_a_joint_trajectory_message(tmp_path: Path, capsy
         JointTrajectoryPoint(**{k: (Duration(**v) if k == "time_from_start" else v) for k, v in p.items()})
         for p in doc["points"]])
     assert len(msg.points) == 6 and msg.points[-1].time_from_start.sec >= 3
+
+
+def test_tag_pixels_add_information_with_the_camera_pose_eliminated(cobot) -> None:
+    """The same poses with the camera's tag pixels in the design: every predicted half-width tighter or equal (more
+    rows; the camera pose, a nuisance, only touches the pixel rows), the pixel rows zero where no tag is usable."""
+    from ppoe_core.analysis.plan.constraints import CameraView, sample_candidates
+    from ppoe_core.analysis.plan.information import PixelDesign
+    _, tree, model = cobot
+    cam_doc = yaml.safe_load((PLAN / "camera_info.yaml").read_text())
+    cam = CameraView(model.camera.frame, np.array(cam_doc["camera_matrix"]["data"]).reshape(3, 3),
+                     np.array(cam_doc["distortion_coefficients"]["data"]), 1920, 1200)
+    c = Constraints(camera=cam, tags=model.tags.items, region={"shoulder_pan": (-1.9, -0.5)},
+                    points=[(t.link, t.xyz) for t in model.trackers])
+    targets = target_effects(tree, [("joint_offset", "shoulder_lift", []), ("joint_offset", "elbow", []),
+                                    ("gravity_compliance", "elbow", [])])
+    q, _ = sample_candidates(tree, c, 40, np.random.default_rng(8))
+    plain = pose_information(tree, model.trackers, q, targets)
+    both = pose_information(tree, model.trackers, q, targets, (), plain.scale, PixelDesign(c, 0.25))
+    assert both.G.shape[1] == plain.G.shape[1] + 10 * len(model.tags.items) and both.N.shape[2] == 12
+    idx = np.arange(20)
+    a, b = predict(plain, idx), predict(both, idx)
+    assert np.all(b.ci95 <= a.ci95 * (1 + 1e-9)) and np.all(b.ci95 < 0.99 * a.ci95)
+    assert b.heldout_rms == pytest.approx(a.heldout_rms, rel=0.5)      # tracker components only
+    from ppoe_core.analysis.plan.constraints import tags_visible
+    vis = tags_visible(tree.link_poses(q), c, 40)
+    px = both.G[:, plain.G.shape[1]:].reshape(40, len(model.tags.items), 10, -1)
+    assert np.all((np.abs(px).sum(axis=(2, 3)) > 0) == vis)

@@ -93,3 +93,12 @@ def test_diagnose_reports_achieved_next_to_planned(work: Path, capsys: pytest.Ca
     bad.write_text("{}")
     assert main([*argv, str(bad)]) == 2
     assert "not a ppoe plan plan.json" in capsys.readouterr().err
+
+
+def test_prediction_with_tag_pixels_in_the_design(work: Path) -> None:
+    """cobot6 with the side camera: tracker and tag pixels in the design (the camera pose a nuisance, fitted by the
+    diagnosis too); every predicted half-width within 20 % of the achieved one."""
+    res = bench.run_study(bench.STUDIES["cobot6_camera"], repeats=1, sets=("planned",), work=work)
+    bench.print_study(res)
+    for name, r in res["parameters"].items():
+        assert abs(r["predicted"] / r["planned"] - 1.0) <= PREDICTION_TOL, (name, r)

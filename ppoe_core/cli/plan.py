@@ -57,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera-info", default=None, metavar="YAML",
                         help="ROS camera_info YAML of the model's camera: at least --min-tags tags in view")
     parser.add_argument("--min-tags", type=int_range(1), default=1, help="tags in view with --camera-info")
+    parser.add_argument("--pixels", choices=("design", "constraint"), default="design",
+                        help="with --camera-info: the tag pixels count in the design (camera pose a nuisance; "
+                             "default) or only constrain the poses")
     parser.add_argument("--max-view-angle", type=float_range(0.0, 90.0), default=60.0,
                         help="largest angle between a tag's normal and the line of sight [deg] (default 60)")
     parser.add_argument("--dwell", type=float_range(0.0), default=1.0, help="time at each pose [s] (default 1)")
@@ -148,7 +151,10 @@ def run(args: argparse.Namespace) -> int:
                               for i, b in enumerate(args.given)])
         given = given_information(tree, stops, targets, declared)
     result = plan(tree, model.trackers, targets, constraints_of(args, model),
-                  PlanOptions(n=args.n, candidates=args.candidates, seed=args.seed), declared, given)
+                  PlanOptions(n=args.n, candidates=args.candidates, seed=args.seed,
+                              pixel_sigma=model.camera.pixel_sigma if (model.camera and args.camera_info
+                                                                       and args.pixels == "design") else None),
+                  declared, given)
     doc = write_outputs(Path(args.out), result, args.dwell, args.max_speed, args.min_move,
                         {"urdf": str(args.urdf), "model": str(args.model), "given": list(args.given)})
     if args.json:

@@ -13,7 +13,8 @@ Candidates are drawn uniformly inside each independent joint's limits shrunk by 
   reflector clears every capsule of the links not rigidly attached to that reflector's link;
 * **tags in view** (optional, with a camera's intrinsics): at least ``min_tags`` of the model's tags with their
   centre at least :data:`MIN_DEPTH` in front of the camera, their normal within ``max_view_angle`` of the line of
-  sight and all four corners inside the image with a :data:`EDGE_MARGIN_PX` margin.
+  sight and all four corners of its quiet zone (:data:`QUIET_ZONE` times its size) inside the image with a
+  :data:`EDGE_MARGIN_PX` margin.
 
 :func:`violations` evaluates every constraint over a batch of configurations (the same function the tests call on
 every planned pose).
@@ -34,12 +35,15 @@ from ppoe_core.estimation.camera import project_points
 from ppoe_core.robot.tree import KinematicTree
 
 __all__ = ["Capsule", "CameraView", "Constraints", "collision_capsules", "violations", "sample_candidates",
-           "joint_bounds", "rigid_bodies", "segment_distance", "MIN_DEPTH", "EDGE_MARGIN_PX"]
+           "joint_bounds", "rigid_bodies", "tags_visible", "QUIET_ZONE", "segment_distance", "MIN_DEPTH",
+           "EDGE_MARGIN_PX"]
 
 #: a tag nearer than this to the camera (along its optical axis) is not usable [m]
 MIN_DEPTH = 0.1
 #: tag corners must be this far inside the image border [px]
 EDGE_MARGIN_PX = 10.0
+#: a detector needs the white border around the tag: this multiple of the tag's size must be in the image
+QUIET_ZONE = 1.25
 
 
 @dataclass(frozen=True)
@@ -229,18 +233,20 @@ def _line_of_sight(tree: KinematicTree, poses: Mapping[str, np.ndarray], c: Cons
     return bad
 
 
-def _tags_hidden(poses: Mapping[str, np.ndarray], c: Constraints, n: int) -> np.ndarray:
+def tags_visible(poses: Mapping[str, np.ndarray], c: Constraints, n: int) -> np.ndarray:
+    """(n, k) bool: tag ``c.tags[k]`` usable in configuration ``i`` (module docstring: in front, facing the camera
+    within ``max_view_angle``, the tag and its quiet zone (:data:`QUIET_ZONE` times its size) inside the image)."""
     cam = c.camera
     if cam is None or not c.tags:
-        return np.zeros(n, bool)
+        return np.zeros((n, 0), bool)
     T_cam_root = lie.inverse(poses[cam.frame])
-    seen = np.zeros(n, int)
+    out = np.zeros((n, len(c.tags)), bool)
     cos_max = math.cos(math.radians(c.max_view_angle))
-    for it in c.tags:
+    for k, it in enumerate(c.tags):
         T = T_cam_root @ poses[it.link] @ it.T_link_tag  # (n, 4, 4) tag in the optical frame
         t = T[:, :3, 3]
         facing = -(T[:, :3, 2] * t).sum(-1) / np.maximum(np.linalg.norm(t, axis=-1), 1e-12)
-        h = it.size / 2
+        h = QUIET_ZONE * it.size / 2
         corners = np.array([[-h, -h, 0], [h, -h, 0], [h, h, 0], [-h, h, 0]])
         P = np.einsum("nij,kj->nki", T[:, :3, :3], corners) + t[:, None, :]
         ok = (t[:, 2] >= MIN_DEPTH) & (facing >= cos_max) & np.all(P[..., 2] > 0.05, axis=1)
@@ -248,8 +254,14 @@ def _tags_hidden(poses: Mapping[str, np.ndarray], c: Constraints, n: int) -> np.
         m = EDGE_MARGIN_PX
         inside = np.all((uv[..., 0] > m) & (uv[..., 0] < cam.width - m) & (uv[..., 1] > m)
                         & (uv[..., 1] < cam.height - m), axis=1)
-        seen += ok & inside
-    return seen < c.min_tags
+        out[:, k] = ok & inside
+    return out
+
+
+def _tags_hidden(poses: Mapping[str, np.ndarray], c: Constraints, n: int) -> np.ndarray:
+    if c.camera is None or not c.tags:
+        return np.zeros(n, bool)
+    return tags_visible(poses, c, n).sum(axis=1) < c.min_tags
 
 
 def violations(tree: KinematicTree, q: Mapping[str, np.ndarray], c: Constraints) -> dict[str, np.ndarray]:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -34,7 +35,7 @@ from ppoe_core.model.effects import Effect, make_effect
 from ppoe_core.robot.tree import KinematicTree
 
 __all__ = ["Target", "PoseInformation", "target_effects", "pose_information", "planned_stops", "reduced_information",
-           "block_rows", "given_information", "check_identifiable", "ABSORBED",
+           "block_rows", "given_information", "PixelDesign", "check_identifiable", "ABSORBED",
            "UNPLANNABLE"]
 
 #: effects whose columns depend on the recording (motion history, time, temperature), not on the configuration
@@ -125,7 +126,17 @@ class PoseInformation:
     G: np.ndarray
     N: np.ndarray
     scale: np.ndarray
-    sigma: np.ndarray  #: (M, m) the declared 1-sigma of each component [m] (whitening undone for predictions)
+    sigma: np.ndarray  #: (M, m) the declared 1-sigma of each component [m or px] (whitening undone for predictions)
+    points: int = -1  #: the first ``points`` components are tracker points (3 per reflector; -1: all)
+
+
+@dataclass
+class PixelDesign:
+    """Tag pixels in the design (:mod:`~ppoe_core.analysis.plan.pixels`): the constraints that hold the camera and
+    the tags, and the pixel noise [px] (1-sigma per coordinate)."""
+
+    constraints: Any
+    sigma_px: float
 
 
 def block_rows(block: TrackerBlock, targets: Sequence[Target], declared: Sequence[Effect] = ()
@@ -140,10 +151,12 @@ def block_rows(block: TrackerBlock, targets: Sequence[Target], declared: Sequenc
 
 def pose_information(tree: KinematicTree, trackers: Sequence, q: Mapping[str, np.ndarray],
                      targets: Sequence[Target], declared: Sequence[Effect] = (),
-                     scale: np.ndarray | None = None) -> PoseInformation:
+                     scale: np.ndarray | None = None, pixels: PixelDesign | None = None) -> PoseInformation:
     """:class:`PoseInformation` of the configurations ``q`` (joint -> (M,)) for the ``targets`` (module docstring:
     the engine's tracker block, its Jacobians and whitening).  ``scale``: the column scale of an earlier candidate
-    set (then these configurations are extra poses for it: no observability checks)."""
+    set (then these configurations are extra poses for it: no observability checks).  ``pixels``: also one image
+    of the camera's usable tags per configuration (:mod:`~ppoe_core.analysis.plan.pixels`; the camera pose a
+    second nuisance)."""
     M = len(next(iter(q.values())))
     block = TrackerBlock(tree, planned_stops(tree, trackers, q, declared), declared)
     if block.dropped:
@@ -151,11 +164,19 @@ def pose_information(tree: KinematicTree, trackers: Sequence, q: Mapping[str, np
                         "non-collinear reflector positions)")
     Gr, Nr, sr = block_rows(block, targets, declared)
     G, N, sig = Gr.reshape(M, -1, Gr.shape[2]), Nr.reshape(M, -1, Nr.shape[2]), sr.reshape(M, -1)
+    points = G.shape[1]
+    if pixels is not None:
+        from ppoe_core.analysis.plan.pixels import pixel_rows
+        Gp, Np = pixel_rows(tree, pixels.constraints, q, targets, pixels.sigma_px, declared)
+        G = np.concatenate([G, Gp], axis=1)
+        N = np.concatenate([np.concatenate([N, np.zeros((M, N.shape[1], Np.shape[2]))], axis=2),
+                            np.concatenate([np.zeros((M, Np.shape[1], N.shape[2])), Np], axis=2)], axis=1)
+        sig = np.concatenate([sig, np.full((M, Np.shape[1]), float(pixels.sigma_px))], axis=1)
     A = np.einsum("umi,umj->uij", G, G)
     B = np.einsum("umi,umk->uik", G, N)
     C = np.einsum("umk,uml->ukl", N, N)
     if scale is not None:
-        return PoseInformation(A, B, C, G, N, scale, sig)
+        return PoseInformation(A, B, C, G, N, scale, sig, points)
     scale = np.sqrt(np.mean(np.einsum("uii->ui", A), axis=0))
     names = [n for t in targets for n in t.names]
     dead = [names[i] for i in np.flatnonzero(scale <= 1e-12 * max(float(scale.max()), 1e-300))]
@@ -163,7 +184,7 @@ def pose_information(tree: KinematicTree, trackers: Sequence, q: Mapping[str, np
         raise PpoeError(f"plan: {dead} move no measured point in any candidate configuration (not observable by "
                         "the model's trackers)")
     check_identifiable(A.sum(0), B.sum(0), C.sum(0), scale, names)
-    return PoseInformation(A, B, C, G, N, scale, sig)
+    return PoseInformation(A, B, C, G, N, scale, sig, points)
 
 
 def check_identifiable(A: np.ndarray, B: np.ndarray, C: np.ndarray, scale: np.ndarray, names: Sequence[str]) -> None:

@@ -25,7 +25,13 @@ import numpy as np
 
 from ppoe_core.analysis.plan.constraints import Constraints, sample_candidates
 from ppoe_core.analysis.plan.design import Design, design, observability_indices
-from ppoe_core.analysis.plan.information import PoseInformation, Target, pose_information, reduced_information
+from ppoe_core.analysis.plan.information import (
+    PixelDesign,
+    PoseInformation,
+    Target,
+    pose_information,
+    reduced_information,
+)
 from ppoe_core.analysis.plan.refine import refine
 from ppoe_core.errors import PpoeError
 from ppoe_core.model.effects import Effect
@@ -51,6 +57,7 @@ class PlanOptions:
     start: dict[str, float] = field(default_factory=dict)
     extremes: float = 0.5  #: :func:`sample_candidates`' probability of a joint at an end of its interval
     refine: bool = True  #: move each planned pose to a better feasible configuration near it (:mod:`refine`)
+    pixel_sigma: float | None = None  #: with a camera in the constraints: its tag pixels in the design [px]
 
 
 @dataclass
@@ -98,9 +105,10 @@ def predict(info: PoseInformation, idx: np.ndarray, base: np.ndarray | None = No
     H = reduced_information(A, B, C) + (base if base is not None else 0.0)
     cov = cov_full[:P, :P]
     # held out: whitened rows times sigma back to metres; [G N] cov [G N]^T per component
-    GN = np.concatenate([test.G, test.N], axis=2) * test.sigma[..., None]
-    var = np.einsum("umi,ij,umj->um", GN, cov_full, GN) + test.sigma ** 2
-    R = max(test.G.shape[1] // 3, 1)
+    m = test.points if test.points >= 0 else test.G.shape[1]  # tracker components only
+    GN = np.concatenate([test.G[:, :m], test.N[:, :m]], axis=2) * test.sigma[:, :m, None]
+    var = np.einsum("umi,ij,umj->um", GN, cov_full, GN) + test.sigma[:, :m] ** 2
+    R = max(m // 3, 1)
     rms = float(np.sqrt(np.mean(var.reshape(var.shape[0], R, -1).sum(-1))))
     return Prediction(Z95 * np.sqrt(np.maximum(np.diag(cov), 0.0)), cov, rms,
                       observability_indices(H, info.scale, idx.size))
@@ -148,15 +156,16 @@ def plan(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], con
                         f"({', '.join(names)})")
     rng = np.random.default_rng(options.seed)
     q, rejected = sample_candidates(tree, constraints, options.candidates, rng, extremes=options.extremes)
-    info = pose_information(tree, trackers, q, targets, declared)
+    px = PixelDesign(constraints, options.pixel_sigma) if options.pixel_sigma and constraints.camera else None
+    info = pose_information(tree, trackers, q, targets, declared, pixels=px)
     q_rand, _ = sample_candidates(tree, constraints, options.candidates, rng)
-    rand = pose_information(tree, trackers, q_rand, targets, declared)
+    rand = pose_information(tree, trackers, q_rand, targets, declared, pixels=px)
     d = design(info, options.n, given)
     joints = list(q)
     Q = np.stack([q[j][d.chosen] for j in joints], axis=1)
     final, idx = info, d.chosen
     if options.refine:
-        ref = refine(tree, trackers, targets, declared, constraints, Q, info.scale, given, rng)
+        ref = refine(tree, trackers, targets, declared, constraints, Q, info.scale, given, rng, pixels=px)
         Q, final, idx, d.log_det, d.refined = ref.Q, ref.info, np.arange(options.n), ref.log_det, ref.moved
     start = np.array([options.start.get(j, 0.0) for j in joints]) if options.start else None
     order = tour(Q, start)

@@ -17,7 +17,13 @@ import numpy as np
 
 from ppoe_core.analysis.plan.constraints import Constraints, joint_bounds, violations
 from ppoe_core.analysis.plan.design import EXCHANGE_TOL, log_det
-from ppoe_core.analysis.plan.information import PoseInformation, Target, pose_information, reduced_information
+from ppoe_core.analysis.plan.information import (
+    PixelDesign,
+    PoseInformation,
+    Target,
+    pose_information,
+    reduced_information,
+)
 from ppoe_core.model.effects import Effect
 from ppoe_core.robot.tree import KinematicTree
 
@@ -50,14 +56,15 @@ def _score(A: np.ndarray, B: np.ndarray, C: np.ndarray, base: np.ndarray | None,
 
 def refine(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], declared: Sequence[Effect],
            constraints: Constraints, Q: np.ndarray, scale: np.ndarray, base: np.ndarray | None,
-           rng: np.random.Generator, rounds: int = ROUNDS) -> Refined:
-    """Refine the poses ``Q`` (N, J; joints in :func:`joint_bounds` order) (module docstring)."""
+           rng: np.random.Generator, rounds: int = ROUNDS, pixels: PixelDesign | None = None) -> Refined:
+    """Refine the poses ``Q`` (N, J; joints in :func:`joint_bounds` order) (module docstring); ``pixels``: as
+    :func:`pose_information`."""
     bounds = joint_bounds(tree, constraints)
     joints = list(bounds)
     lo, hi = np.array([bounds[j][0] for j in joints]), np.array([bounds[j][1] for j in joints])
     Q = np.array(Q, dtype=float)
     n = Q.shape[0]
-    cur = pose_information(tree, trackers, {j: Q[:, i] for i, j in enumerate(joints)}, targets, declared, scale)
+    cur = pose_information(tree, trackers, {j: Q[:, i] for i, j in enumerate(joints)}, targets, declared, scale, pixels)
     A, B, C = cur.A.copy(), cur.B.copy(), cur.C.copy()
     best = float(_score(A.sum(0), B.sum(0), C.sum(0), base, scale))
     moved = 0
@@ -68,7 +75,7 @@ def refine(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], d
         ok = ~np.any(np.stack(list(violations(tree, q, constraints).values())), axis=0).reshape(n, PER_POSE)
         if not ok.any():
             continue
-        new = pose_information(tree, trackers, q, targets, declared, scale)
+        new = pose_information(tree, trackers, q, targets, declared, scale, pixels)
         nA, nB, nC = (x.reshape(n, PER_POSE, *x.shape[1:]) for x in (new.A, new.B, new.C))
         for k in range(n):
             rest = [x.sum(0) - x[k] for x in (A, B, C)]
@@ -77,5 +84,6 @@ def refine(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], d
             if sc[v] > best + EXCHANGE_TOL:
                 best, moved = float(sc[v]), moved + 1
                 Q[k], A[k], B[k], C[k] = P[k, v], nA[k, v], nB[k, v], nC[k, v]
-    info = pose_information(tree, trackers, {j: Q[:, i] for i, j in enumerate(joints)}, targets, declared, scale)
+    q_end = {j: Q[:, i] for i, j in enumerate(joints)}
+    info = pose_information(tree, trackers, q_end, targets, declared, scale, pixels)
     return Refined(Q, joints, info, best, moved)
