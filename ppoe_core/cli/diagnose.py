@@ -45,6 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--effects", nargs="+", default=None, metavar="NAME@LOCATION",
                         help="fit this set (e.g. joint_offset@joint_2 'link_error@joint_5[x,y]') instead of "
                              "selecting; CIs and test scores as usual")
+    parser.add_argument("--planned", default=None, metavar="PLAN.json",
+                        help="ppoe plan's plan.json: report the achieved 95 %% half-widths next to the planned ones "
+                             "(JSON key 'planned')")
     parser.add_argument("--accept-partial", action="store_true",
                         help="use what can be read of a damaged bag (default: refuse it, naming per topic "
                              "what was lost)")
@@ -121,11 +124,18 @@ def _run(args: argparse.Namespace, tick: Any) -> int:
         model_out = write_model_yaml(args.model, res, Path(args.out) / "model_diagnosed.yaml")
         calibrated = _write_calibrated(args, done)
         print("wrote " + ", ".join(str(p) for p in [*paths.values(), model_out, *calibrated]), file=sys.stderr)
+    doc = res.to_json()
+    if args.planned:  # ppoe plan's predicted intervals next to the achieved ones
+        from ppoe_core.analysis.plan.outputs import compare_planned
+        doc["planned"] = compare_planned(doc, args.planned)
     if args.json:
-        json.dump(res.to_json(), sys.stdout)
+        json.dump(doc, sys.stdout)
         sys.stdout.write("\n")
     else:
         print(paths["md"].read_text() if paths else res.summary)
+        if args.planned:
+            from ppoe_core.analysis.plan.outputs import planned_lines
+            print("\n".join(planned_lines(doc["planned"])))
     return 0
 
 

@@ -85,7 +85,9 @@ trajectory:
     - {joints: {joint_1: 0.3}, dwell: 0.5}
     # contact: {press_joint: JOINT, force: 10.0, approach: 0.15}: solve press_joint so the true
     # tool point presses the true plane with `force` [N]; an approach stop `approach` [rad|m] away is added.
-  random_stops:            # optional, appended after `stops` [none]
+  stops_csv: poses.csv     # optional, appended after `stops`: one stop per row of a CSV whose header names joints
+                           # (the `ppoe fk --batch` / `ppoe plan` poses.csv format; path relative to this file) [none]
+  random_stops:            # optional, appended after `stops` and `stops_csv` [none]
     count: 20              # number of stops
     around: {}             # centre configuration (name: value); joints not listed come from `start`
     spread: 0.2            # uniform +- spread per joint [rad|m], or a mapping joint -> spread
@@ -181,6 +183,9 @@ def read_scenario_raw(path: str | os.PathLike, depth: int = 0) -> dict[str, Any]
     if isinstance(rob, Mapping):
         raw["robot"] = {k: str((p.parent / str(v)).resolve()) if k in ("urdf", "dh", "model") else v
                         for k, v in rob.items()}
+    tr = raw.get("trajectory")
+    if isinstance(tr, Mapping) and tr.get("stops_csv") is not None:  # relative to the file that names it
+        raw["trajectory"] = {**tr, "stops_csv": str((p.parent / str(tr["stops_csv"])).resolve())}
     base = raw.pop("extends", None)
     if base is None:
         return raw

@@ -8,6 +8,7 @@ contact) attributes from the scenario's ``trajectory`` and ``sensors`` sections.
 
 from __future__ import annotations
 
+import csv
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -84,6 +85,8 @@ class SimConfig:
                 raise ScenarioError(f"{key_location(P, 'trajectory')}: give either smooth or stops/random_stops")
             return
         self.stops = [self._parse_stop(i, s) for i, s in enumerate(tr.get("stops") or [])]
+        if tr.get("stops_csv") is not None:
+            self.stops.extend(Stop({**self.start, **q}, self.dwell) for q in self._csv_stops(str(tr["stops_csv"])))
         self.random_cfg: Any = None
         if tr.get("random_stops") is not None:
             self.random_cfg = self._parse_random_stops(tr["random_stops"])
@@ -111,6 +114,31 @@ class SimConfig:
                 "approach": check_number(c, "approach", 0.15, P, f"trajectory.stops[{i}].contact"),
             }
         return Stop(q, check_number(s, "dwell", self.dwell, P, f"trajectory.stops[{i}]", minimum=0.0), c)
+
+    def _csv_stops(self, path: str) -> list[dict[str, float]]:
+        """``trajectory.stops_csv``: one configuration per row, the header names independent joints."""
+        where = f"{key_location(self.path, 'trajectory.stops_csv')}: {path}"
+        try:
+            with open(path, newline="", encoding="utf-8") as f:
+                rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+        except OSError as exc:
+            raise ScenarioError(f"{where}: cannot read ({exc.strerror})") from None
+        if len(rows) < 2:
+            raise ScenarioError(f"{where}: needs a header of joint names and at least one row")
+        head = [h.strip() for h in rows[0]]
+        bad = [h for h in head if h not in self.joints]
+        if bad:
+            raise ScenarioError(f"{where}: line 1: {bad} are not independent joints of the URDF")
+        out = []
+        for i, r in enumerate(rows[1:], start=2):
+            try:
+                v = [float(c) for c in r]
+            except ValueError:
+                raise ScenarioError(f"{where}: line {i}: not a number in {r}") from None
+            if len(v) != len(head) or not all(np.isfinite(v)):
+                raise ScenarioError(f"{where}: line {i}: {len(v)} values for {len(head)} joints, or not finite")
+            out.append(dict(zip(head, v)))
+        return out
 
     def _parse_random_stops(self, raw: Any) -> dict[str, Any]:
         """``trajectory.random_stops``: count, centre and spread per joint, visibility and height constraints."""

@@ -95,7 +95,7 @@ class _Sim(SimConfig):
         self.dt_js = self.true.effect_param("time_offset", "dt")
         self.joints = self.robot.independent_joints
         self._parse_trajectory(check_keys(raw.get("trajectory"), (
-            "joint_rate", "dwell", "settle", "move_time", "extra_joints", "start", "stops", "random_stops",
+            "joint_rate", "dwell", "settle", "move_time", "extra_joints", "start", "stops", "stops_csv", "random_stops",
             "smooth"), self.path, "trajectory"))
         self._parse_sensors()
         self.encoder_noise = self._parse_encoder_noise(truth.get("encoder_noise", 0.0))

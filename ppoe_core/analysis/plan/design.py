@@ -1,0 +1,152 @@
+"""D-optimal pose design by greedy forward selection and exchange over a candidate set.
+
+Criterion: ``log det I(S)`` of the target parameters with the nuisances (registration) eliminated
+(:func:`~ppoe_core.analysis.plan.information.reduced_information`), on columns scaled to unit RMS over the
+candidates (the argmax does not depend on the scaling: ``det D I D = det D^2 det I``; the scaling only makes the
+small ridge that carries the first, rank-deficient steps act alike on every parameter).
+
+Method: the candidates are random configurations that pass every constraint (:mod:`constraints`); the design is
+built greedily (each step adds the candidate that raises ``log det`` most) and then improved by exchange passes
+(each planned pose in turn is replaced by the best candidate if that raises ``log det`` by more than
+:data:`EXCHANGE_TOL`; Cook and Nachtsheim's modified Fedorov exchange), until a pass changes nothing.  Why not a
+convex relaxation (weights on the candidates, ``max log det sum w_u I_u``): the nuisance elimination makes the
+information a Schur complement (concave, but no longer a weighted sum), the relaxation's weights must be rounded to
+N distinct poses (the rounding loses the guarantee at small N, the case here: N a few times the parameter count),
+and the exchange works on exactly N poses, keeps a fixed given data set as a constant part of the information
+(``--given``), and costs a few batched ``P x P`` determinants per step.  Every evaluation is exact (no rank-one
+update drift); a step evaluates all candidates at once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ppoe_core.analysis.plan.information import PoseInformation, reduced_information
+from ppoe_core.errors import PpoeError
+
+__all__ = ["Design", "design", "information_of", "log_det", "observability_indices", "EXCHANGE_TOL"]
+
+#: an exchange is taken when it raises ``log det`` by more than this (relative improvement of the determinant)
+EXCHANGE_TOL = 1e-6
+#: ridge on the scaled information (unit RMS columns): carries the first greedy steps, negligible after
+RIDGE = 1e-8
+#: at most this many exchange passes (each pass tries every planned pose once)
+MAX_PASSES = 10
+
+
+@dataclass
+class Design:
+    """The chosen candidate indices (in design order), ``log det`` of the scaled reduced information, the number of
+    exchange passes and of exchanges taken."""
+
+    chosen: np.ndarray
+    log_det: float
+    passes: int
+    exchanges: int
+    refined: int = 0  #: poses moved by the local refinement (:mod:`~ppoe_core.analysis.plan.refine`)
+
+
+def information_of(info: PoseInformation, idx: np.ndarray, base: np.ndarray | None = None) -> np.ndarray:
+    """Reduced information (P, P) of the candidates ``idx`` (one registration), plus ``base`` (given data's)."""
+    idx = np.asarray(idx, dtype=int)
+    out = reduced_information(info.A[idx].sum(0), info.B[idx].sum(0), info.C[idx].sum(0))
+    return out if base is None else out + base
+
+
+def log_det(H: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """``log det(D H D + ridge I)``, ``D = diag(1/scale)``, over leading batch axes of ``H`` (..., P, P)."""
+    d = 1.0 / scale
+    Hs = H * d[:, None] * d[None, :] + RIDGE * np.eye(scale.size)
+    sign, ld = np.linalg.slogdet(Hs)
+    return np.where(sign > 0, ld, -np.inf)
+
+
+class _Sums:
+    """Running sums of the design's ``A``, ``B``, ``C`` and the evaluation of one more candidate each."""
+
+    def __init__(self, info: PoseInformation, base: np.ndarray | None) -> None:
+        self.info = info
+        P, K = info.B.shape[1:]
+        self.A, self.B, self.C = np.zeros((P, P)), np.zeros((P, K)), np.zeros((K, K))
+        self.base = np.zeros((P, P)) if base is None else base
+
+    def add(self, u: int, sign: float = 1.0) -> None:
+        self.A = self.A + sign * self.info.A[u]
+        self.B = self.B + sign * self.info.B[u]
+        self.C = self.C + sign * self.info.C[u]
+
+    def with_each(self) -> np.ndarray:
+        """``log det`` of the design plus each candidate (M,)."""
+        i = self.info
+        H = reduced_information(self.A + i.A, self.B + i.B, self.C + i.C) + self.base
+        return log_det(H, i.scale)
+
+    def current(self) -> float:
+        return float(log_det(reduced_information(self.A, self.B, self.C) + self.base, self.info.scale))
+
+
+def design(info: PoseInformation, n: int, base: np.ndarray | None = None, max_passes: int = MAX_PASSES) -> Design:
+    """Choose ``n`` distinct candidates maximising ``log det`` (module docstring); ``base``: information already
+    there (``--given`` data, its own registration eliminated).
+
+    Raises
+    ------
+    PpoeError
+        Fewer candidates than ``n``.
+    """
+    M = info.A.shape[0]
+    if M < n:
+        raise PpoeError(f"plan: only {M} feasible candidate configurations for {n} poses (relax the constraints or "
+                        "draw more candidates)")
+    sums = _Sums(info, base)
+    taken = np.zeros(M, bool)
+    chosen: list[int] = []
+    for _ in range(n):
+        score = np.where(taken, -np.inf, sums.with_each())
+        u = int(np.argmax(score))
+        chosen.append(u)
+        taken[u] = True
+        sums.add(u)
+    best = sums.current()
+    passes = exchanges = 0
+    for passes in range(1, max_passes + 1):  # noqa: B007 - the count is returned
+        changed = False
+        for k in range(n):
+            u = chosen[k]
+            sums.add(u, -1.0)
+            taken[u] = False
+            score = np.where(taken, -np.inf, sums.with_each())
+            v = int(np.argmax(score))
+            if v != u and score[v] > best + EXCHANGE_TOL:
+                best, changed, exchanges = float(score[v]), True, exchanges + 1
+                chosen[k] = v
+            sums.add(chosen[k])
+            taken[chosen[k]] = True
+        if not changed:
+            break
+    return Design(np.array(chosen, dtype=int), float(sums.current()), passes, exchanges)
+
+
+def observability_indices(H: np.ndarray, scale: np.ndarray, n_poses: int) -> dict[str, float]:
+    """Sun and Hollerbach's observability indices O1..O5 and the condition number of the reduced information ``H``
+    (P, P) of ``n_poses`` poses, on columns scaled by ``scale`` (the singular values ``s_i`` of the scaled, whitened
+    identification Jacobian with the nuisances projected out are ``sqrt(eig(D H D))``):
+
+    * O1 = ``(s_1 ... s_L)^(1/L) / sqrt(n_poses)`` (D-optimality, Borm and Menq)
+    * O2 = ``s_L / s_1`` (inverse condition number, Driels and Pathre)
+    * O3 = ``s_L`` (E-optimality, Nahvi et al.)
+    * O4 = ``s_L^2 / s_1`` (noise amplification index, Nahvi and Hollerbach)
+    * O5 = ``1 / (1/s_1 + ... + 1/s_L)`` (A-optimality-like, Sun and Hollerbach)
+    """
+    d = 1.0 / scale
+    ev = np.linalg.eigvalsh(H * d[:, None] * d[None, :])
+    s = np.sqrt(np.clip(ev, 0.0, None))[::-1]
+    L = s.size
+    with np.errstate(divide="ignore"):
+        o1 = float(np.exp(np.mean(np.log(s))) / np.sqrt(max(n_poses, 1))) if s[-1] > 0 else 0.0
+        o5 = float(1.0 / np.sum(1.0 / s)) if s[-1] > 0 else 0.0
+    return {"O1": o1, "O2": float(s[-1] / s[0]) if s[0] > 0 else 0.0, "O3": float(s[-1]),
+            "O4": float(s[-1] ** 2 / s[0]) if s[0] > 0 else 0.0, "O5": o5,
+            "condition_number": float(s[0] / s[-1]) if s[-1] > 0 else float("inf"), "n_parameters": float(L)}
