@@ -1,0 +1,154 @@
+"""What a bag shows about the robot's sensors, for ``ppoe init`` (:class:`~ppoe_core.robot.model_init.BagFacts`).
+
+* reflector topics ``/ground_truth/point[/<name>]`` and the link that carries each: the link whose motion explains
+  the points best (:func:`reflector_links`: for every link, the rigid tracker registration and the reflector's
+  position in the link are fitted to the points by alternating least squares; the smallest residual wins, among
+  equal ones the link deepest in the tree);
+* the camera's optical frame (``/camera/camera_info`` ``frame_id``), the IMUs' frames (``/imu/<name>``);
+* tag ids from ``/tag_bearing/observations`` or from a detection pass over a few images (:data:`TAG_IMAGES`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ppoe_core.errors import BagError
+from ppoe_core.model.context import sample_series
+from ppoe_core.robot.model_init import BagFacts
+from ppoe_core.robot.robot_model import Robot
+from ppoe_core.robot.tree import KinematicTree
+
+__all__ = ["bag_facts", "bag_urdf", "joints_at", "reflector_links", "ReflectorFit", "fit_reflector",
+           "TAG_IMAGES", "TIE_RATIO"]
+
+#: images decoded to find tag ids (spread over the bag): enough to see every tag of a short calibration recording
+#: once, few enough to take a second or two
+TAG_IMAGES = 12
+#: alternating least-squares rounds of the reflector fit (registration <-> position in the link); the fit's
+#: residual settles within a few rounds on the robots we tried, 30 leaves a margin
+FIT_ROUNDS = 30
+#: links whose residual is within this factor of the best one explain the points equally (e.g. a flange and the
+#: tool fixed to it): the deepest of them is named
+TIE_RATIO = 1.05
+#: fewer points than this cannot fix a rigid registration (6) and a reflector position (3)
+MIN_POINTS = 4
+
+
+def bag_urdf(path: str | Path) -> str:
+    """The bag's ``/robot_description``; raises :class:`BagError` naming the bag if it has none."""
+    from ppoe_core.io.bagio import read_bag
+
+    return read_bag(path, topics=["/robot_description"], load_images=False).require_robot_description()
+
+
+def joints_at(data: Any, robot: Robot, stamps: np.ndarray) -> dict[str, np.ndarray]:
+    """Independent joint values (N,) at ``stamps`` from the bag's ``/joint_states`` (sampled as diagnose does,
+    :func:`ppoe_core.model.context.sample_series`); joints the bag never lists are 0 (the caller says so)."""
+    js = data.joint_states
+    order = np.argsort(js.stamps, kind="stable")
+    out = {}
+    for jn in robot.independent_joints:
+        if jn in js.names:
+            col = js.positions[order, js.names.index(jn)]
+            good = np.isfinite(col)
+            out[jn] = sample_series(js.stamps[order][good], col[good], stamps)
+        else:
+            out[jn] = np.zeros(stamps.shape)
+    return out
+
+
+class ReflectorFit:
+    """One link's fit of the points: ``rms`` residual [m], reflector ``xyz`` in the link [m], registration
+    ``R``, ``t`` (tracker <- root)."""
+
+    def __init__(self, rms: float, xyz: np.ndarray, R: np.ndarray, t: np.ndarray) -> None:
+        self.rms, self.xyz, self.R, self.t = rms, xyz, R, t
+
+
+def _kabsch(P: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation ``R`` and translation ``t`` minimising ``|R P + t - M|`` (rows are points)."""
+    cp, cm = P.mean(0), M.mean(0)
+    U, _, Vt = np.linalg.svd((P - cp).T @ (M - cm))
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, cm - R @ cp
+
+
+def fit_reflector(T_root_link: np.ndarray, meas: np.ndarray) -> ReflectorFit:
+    """Fit ``meas_i = R (R_i xyz + t_i) + t`` (``T_root_link`` (N,4,4), ``meas`` (N,3) in the tracker frame)."""
+    Ri, ti = T_root_link[:, :3, :3], T_root_link[:, :3, 3]
+    xyz = np.zeros(3)
+    R, t = np.eye(3), np.zeros(3)
+    for _ in range(FIT_ROUNDS):
+        R, t = _kabsch(Ri @ xyz + ti, meas)
+        back = (meas - t) @ R - ti                     # R^T (m_i - t) - t_i = R_i xyz
+        xyz = np.linalg.lstsq(Ri.reshape(-1, 3), back.reshape(-1), rcond=None)[0]
+    res = (Ri @ xyz + ti) @ R.T + t - meas
+    return ReflectorFit(float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))), xyz, R, t)
+
+
+def reflector_links(data: Any, robot: Robot) -> dict[str, tuple[str | None, tuple[float, float, float], str]]:
+    """Reflector topic -> (the link whose motion explains its points, reflector position there [m], how found)."""
+    series = dict(data.ground_truth_points)
+    if len(data.ground_truth_point):
+        series["/ground_truth/point"] = data.ground_truth_point
+    tree = KinematicTree(robot)
+    candidates = [ln for ln in robot.links if any(robot.joints[j].movable for j in robot.path_from_root(ln))]
+    out: dict[str, tuple[str | None, tuple[float, float, float], str]] = {}
+    for topic, s in sorted(series.items()):
+        good = np.all(np.isfinite(s.p), axis=1)
+        if good.sum() < MIN_POINTS or not candidates:
+            out[topic] = (None, (0.0, 0.0, 0.0), f"only {int(good.sum())} points")
+            continue
+        poses = tree.link_poses(joints_at(data, robot, s.stamps[good]), links=candidates)
+        fits = {ln: fit_reflector(np.asarray(poses[ln]), s.p[good]) for ln in candidates}
+        best = min(f.rms for f in fits.values())
+        tied = [ln for ln in candidates if fits[ln].rms <= best * TIE_RATIO + 1e-9]
+        link = max(tied, key=lambda ln: len(robot.path_from_root(ln)))
+        second = min((f.rms for ln, f in fits.items() if ln not in tied), default=float("nan"))
+        how = (f"its motion fits {int(good.sum())} points to {best * 1e3:.2f} mm RMS"
+               + (f"; next other link {second * 1e3:.1f} mm" if np.isfinite(second) else ""))
+        xyz = fits[link].xyz
+        out[topic] = (link, (round(float(xyz[0]), 4), round(float(xyz[1]), 4), round(float(xyz[2]), 4)), how)
+    return out
+
+
+def _tag_ids(data: Any) -> tuple[list[int], str]:
+    """Tag ids of the observations, else of a detection pass over :data:`TAG_IMAGES` images."""
+    obs = data.tag_observations
+    if len(obs):
+        return sorted({int(i) for i in obs.ids}), "from /tag_bearing/observations"
+    imgs = data.images
+    if not len(imgs):
+        return [], ""
+    from ppoe_core.sensing.tags import detect_tags
+
+    picks = np.unique(np.linspace(0, len(imgs) - 1, min(TAG_IMAGES, len(imgs))).round().astype(int))
+    ids: set[int] = set()
+    for i in picks:
+        try:
+            ids |= {d.id for d in detect_tags(imgs.decode(int(i), grey=True))}
+        except BagError:
+            continue
+    note = f"tag36h11 detections in {len(picks)} of {len(imgs)} images of {imgs.topic}"
+    return sorted(ids), note if ids else f"no tag36h11 tag found in {len(picks)} of {len(imgs)} images"
+
+
+def bag_facts(path: str | Path, robot: Robot) -> BagFacts:
+    """Reflectors and their links, camera frame, IMU frames and tag ids of a contract bag."""
+    from ppoe_core.io.bagio import read_bag
+
+    data = read_bag(path, load_images=True)
+    facts = BagFacts(path=str(path))
+    if data.ground_truth_points or len(data.ground_truth_point):
+        if len(data.joint_states) == 0:
+            raise BagError(f"bag {path}: tracker points but no /joint_states: the reflector's link cannot be found")
+        facts.reflectors = reflector_links(data, robot)
+    if len(data.camera_info):
+        facts.camera_frame = data.camera_info.frame_ids[0]
+    facts.imus = {name: s.frame_ids[0] for name, s in data.imus.items() if s.frame_ids}
+    facts.tag_ids, facts.tag_note = _tag_ids(data)
+    return facts
