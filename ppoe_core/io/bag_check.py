@@ -177,8 +177,12 @@ def _topic_rows(out: _Rows, data: Any, cfg: Any) -> None:
         out.add(t.topic, f"{n} points" if n else "absent", f"points of the reflector on {t.link} (trackers)",
                 "ok" if n else "FAIL")
     for topic in sorted(set(refl) - declared):
-        out.add(topic, f"{len(refl[topic])} points", "an entry in the model's trackers (diagnose refuses "
-                "undeclared reflectors; `ppoe init --bag` guesses one)", "FAIL")
+        if declared or topic != TOPIC_GT_POINT:
+            out.add(topic, f"{len(refl[topic])} points", "an entry in the model's trackers (diagnose refuses "
+                    "undeclared reflectors; `ppoe init --bag` guesses one)", "FAIL")
+        else:
+            out.add(topic, f"{len(refl[topic])} points", "a trackers entry, or --tool LINK on the command line "
+                    "(`ppoe init --bag` guesses the entry)", "warn")
     if len(data.ground_truth_pose):
         out.add("/ground_truth/pose", f"{len(data.ground_truth_pose)} poses", "optional (6D tool poses)")
     _sensor_topic_rows(out, data, cfg)
