@@ -258,7 +258,8 @@ def _frame_rows(out: _Rows, data: Any, robot: Robot, cfg: Any) -> None:
             if fid not in robot.links:
                 out.add(f"frame {fid}", f"{what} frame_id, not a link of the URDF", "a URDF link", "FAIL")
             elif what == "camera_info" and cfg.camera is not None and fid != cfg.camera.frame:
-                out.add(f"frame {fid}", "camera_info frame_id", f"camera.frame {cfg.camera.frame}", "FAIL")
+                out.add(f"frame {fid}", "camera_info frame_id of another camera than the model's (its data unused)",
+                        f"camera.frame {cfg.camera.frame}", "warn")
             elif what.startswith("/imu/") and what[5:] in cfg.imus and cfg.imus[what[5:]].link != fid:
                 out.add(f"frame {fid}", f"{what} frame_id", f"imus.{what[5:]}.link {cfg.imus[what[5:]].link}", "FAIL")
             else:
@@ -283,7 +284,8 @@ def _time_rows(out: _Rows, data: Any, rows: np.ndarray) -> None:
     problems = [f"{zero} zero stamps"] * bool(zero) + [f"{back} joint states stamped before the previous"] * bool(back)
     problems += [f"{outside} measurements outside the joint states' span"] * bool(outside)
     if problems:
-        out.add("stamps", "; ".join(problems), "increasing stamps on one clock", "FAIL" if zero or outside else "warn")
+        out.add("stamps", "; ".join(problems), "increasing stamps on one clock (diagnose drops measurements "
+                "outside the joint states)", "FAIL" if zero else "warn")
     else:
         out.add("stamps", "increasing, measurements inside the joint states", "increasing stamps on one clock")
 
@@ -373,18 +375,20 @@ def _stop_rows(out: _Rows, data: Any, robot: Robot, cfg: Any, stamps: np.ndarray
 def _identifiable_rows(out: _Rows, robot: Robot, q: dict[str, np.ndarray], joints: list[str],
                        share: dict[str, float]) -> None:
     good = []
+    moves = {jn: float(np.ptp(q[jn])) if len(q[jn]) else 0.0 for jn in joints}
+    rev = {jn: robot.joints[jn].type in ("revolute", "continuous") for jn in joints}
+    # the first joint that moves turns every point about one fixed axis: its offset is always a rigid motion
+    first = next((jn for jn in joints if not rev[jn] or np.degrees(moves[jn]) >= MIN_RANGE_DEG), None)
     for jn in joints:
-        rev = robot.joints[jn].type in ("revolute", "continuous")
-        moves = float(np.ptp(q[jn])) if len(q[jn]) else 0.0
-        small = rev and np.degrees(moves) < MIN_RANGE_DEG
-        why = f"{jn} never moves more than {MIN_RANGE_DEG:g}° (range {np.degrees(moves):.1f}°)"
+        small = rev[jn] and np.degrees(moves[jn]) < MIN_RANGE_DEG
+        why = f"{jn} never moves more than {MIN_RANGE_DEG:g}° (range {np.degrees(moves[jn]):.1f}°)"
         if jn in share and share[jn] < MIN_SIGNATURE:
-            text = (f"a {jn} offset cannot be told from the tracker registration: "
-                    + (why if small else f"its motion of the reflector is a rigid motion of the tracker "
-                       f"({share[jn]:.0%} left); diagnose leaves it out"))
-            out.add(f"joint_offset@{jn}", text, "an identifiable effect", "warn" if small else "ok")
+            cause = (why if small else "as the first joint that moves it turns every point about one fixed axis"
+                     if jn == first else f"with these poses it moves the points almost rigidly ({share[jn]:.0%} left)")
+            text = f"{jn}'s zero offset cannot be told from the tracker registration: {cause}; diagnose cannot name it"
+            out.add(f"joint_offset@{jn}", text, "an identifiable effect", "ok" if jn == first and not small else "warn")
         elif small:
-            out.add(f"joint_offset@{jn}", f"a {jn} offset cannot be told from a link_error at {jn}: {why}",
+            out.add(f"joint_offset@{jn}", f"{jn}'s zero offset cannot be told from a link_error at {jn}: {why}",
                     "an identifiable effect", "warn")
         else:
             good.append(jn)

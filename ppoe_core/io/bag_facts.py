@@ -112,7 +112,8 @@ def reflector_links(data: Any, robot: Robot) -> dict[str, tuple[str | None, tupl
         how = (f"its motion fits {int(good.sum())} points to {best * 1e3:.2f} mm RMS"
                + (f"; next other link {second * 1e3:.1f} mm" if np.isfinite(second) else ""))
         xyz = fits[link].xyz
-        out[topic] = (link, (round(float(xyz[0]), 4), round(float(xyz[1]), 4), round(float(xyz[2]), 4)), how)
+        out[topic] = (link, (round(float(xyz[0]), 4) + 0.0, round(float(xyz[1]), 4) + 0.0,
+                             round(float(xyz[2]), 4) + 0.0), how)   # + 0.0: no "-0"
     return out
 
 
@@ -147,8 +148,10 @@ def bag_facts(path: str | Path, robot: Robot) -> BagFacts:
         if len(data.joint_states) == 0:
             raise BagError(f"bag {path}: tracker points but no /joint_states: the reflector's link cannot be found")
         facts.reflectors = reflector_links(data, robot)
-    if len(data.camera_info):
-        facts.camera_frame = data.camera_info.frame_ids[0]
+    if len(data.camera_info):  # the camera with the most messages; the others named
+        ids, counts = np.unique(data.camera_info.frame_ids, return_counts=True)
+        ranked = [str(ids[i]) for i in np.argsort(-counts, kind="stable")]
+        facts.camera_frame, facts.other_cameras = ranked[0], ranked[1:]
     facts.imus = {name: s.frame_ids[0] for name, s in data.imus.items() if s.frame_ids}
     facts.tag_ids, facts.tag_note = _tag_ids(data)
     return facts

@@ -63,7 +63,9 @@ class BagFacts:
     reflectors : dict[str, tuple[str | None, tuple[float, float, float], str]]
         Reflector topic -> (link that carries it or None, reflector position in that link [m], how it was found).
     camera_frame : str | None
-        ``header.frame_id`` of ``/camera/camera_info``.
+        ``header.frame_id`` of ``/camera/camera_info`` (the one with the most messages).
+    other_cameras : list[str]
+        Further ``camera_info`` frame ids (the model YAML holds one camera).
     imus : dict[str, str]
         IMU name (``/imu/<name>``) -> ``header.frame_id``.
     tag_ids : list[int]
@@ -75,6 +77,7 @@ class BagFacts:
     path: str
     reflectors: dict[str, tuple[str | None, tuple[float, float, float], str]] = field(default_factory=dict)
     camera_frame: str | None = None
+    other_cameras: list[str] = field(default_factory=list)
     imus: dict[str, str] = field(default_factory=dict)
     tag_ids: list[int] = field(default_factory=list)
     tag_note: str = ""
@@ -243,6 +246,9 @@ def _sensor_lines(robot: Robot, guess: ModelGuess, facts: BagFacts) -> list[str]
         out += _tracker_lines(facts)
     if facts.camera_frame:
         out += ["", "# camera: the camera of /camera/camera_info."]
+        if facts.other_cameras:
+            out += [f"# (camera_info also names {', '.join(facts.other_cameras)}: the model holds one camera; this is "
+                    "the one with the most messages)"]
         if facts.camera_frame in robot.links:
             out += ["camera:",
                     f"  frame: {facts.camera_frame}   # URDF link of the optical frame (z forward, x right, y down), "
