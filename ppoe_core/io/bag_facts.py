@@ -33,6 +33,8 @@ FIT_ROUNDS = 30
 #: links whose residual is within this factor of the best one explain the points equally (e.g. a flange and the
 #: tool fixed to it): the deepest of them is named
 TIE_RATIO = 1.05
+#: a next link fitting within this factor of the best one is named as hardly worse (the choice is then weak)
+AMBIGUOUS = 1.5
 #: fewer points than this cannot fix a rigid registration (6) and a reflector position (3)
 MIN_POINTS = 4
 
@@ -108,9 +110,11 @@ def reflector_links(data: Any, robot: Robot) -> dict[str, tuple[str | None, tupl
         best = min(f.rms for f in fits.values())
         tied = [ln for ln in candidates if fits[ln].rms <= best * TIE_RATIO + 1e-9]
         link = max(tied, key=lambda ln: len(robot.path_from_root(ln)))
-        second = min((f.rms for ln, f in fits.items() if ln not in tied), default=float("nan"))
+        others = sorted((f.rms, ln) for ln, f in fits.items() if ln not in tied)
         how = (f"its motion fits {int(good.sum())} points to {best * 1e3:.2f} mm RMS"
-               + (f"; next other link {second * 1e3:.1f} mm" if np.isfinite(second) else ""))
+               + (f"; next: {others[0][1]} {others[0][0] * 1e3:.2f} mm" if others else "")
+               + ("; hardly better: the poses may not turn the tool enough to tell them apart"
+                  if others and others[0][0] < AMBIGUOUS * best else ""))
         xyz = fits[link].xyz
         out[topic] = (link, (round(float(xyz[0]), 4) + 0.0, round(float(xyz[1]), 4) + 0.0,
                              round(float(xyz[2]), 4) + 0.0), how)   # + 0.0: no "-0"
