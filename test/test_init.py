@@ -209,3 +209,25 @@ def test_motoman_dataset_urdf(tmp_path, capsys):
     assert main(["diagnose", str(bag), "--model", str(out), "--json", "--quiet"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["residual_after"] < res["residual_before"]
+
+
+@pytest.mark.datasets
+def test_hilti_dataset_urdf(tmp_path):
+    """The Hilti stationing robot: 15 total-station set-ups (one registration each), two tilt sensors."""
+    d = DATASETS / "hilti_stationing"
+    if not (d / "pallet.yaml").exists():
+        pytest.skip(f"Hilti dataset not found in {d} (set PPOE_DATASETS)")
+    bag = tmp_path / "pallet"
+    assert main(["import", "hilti", str(d / "pallet.yaml"), "--out", str(bag)]) == 0
+    out = tmp_path / "model.yaml"
+    assert main(["init", "--bag", str(bag), "--out", str(out)]) == 0
+    from ppoe_core.io.bag_check import check_bags
+    from ppoe_core.io.bag_facts import bag_urdf
+
+    robot = parse_urdf(bag_urdf(bag), text_source="hilti")
+    cfg = load_model_config(out, robot)
+    assert [t.link for t in cfg.trackers] == ["prism"]     # the dataset's own model: tracker.link prism
+    np.testing.assert_allclose(cfg.trackers[0].xyz, 0.0, atol=0.005)
+    assert {n: i.link for n, i in cfg.imus.items()} == {"base": "tilt_sensor_base",
+                                                         "column_tip": "tilt_sensor_column_tip"}
+    assert check_bags([str(bag)], str(out)).exit_code < 2

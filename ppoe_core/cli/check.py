@@ -44,7 +44,12 @@ def print_failures(command: str, bags: list[str], model: str) -> None:
     """The check's FAIL lines on stderr, before ``command`` starts (nothing when the bags pass)."""
     from ppoe_core.io.bag_check import check_bags
 
-    fails = check_bags(bags, model).failures()
+    try:
+        fails = check_bags(bags, model).failures()
+    except Exception as exc:  # noqa: BLE001 -- the check must never stop the command it precedes; said, not hidden
+        print(f"ppoe {command}: check: not run ({type(exc).__name__}: {exc}); `ppoe check` names the problem",
+              file=sys.stderr)
+        return
     for r in fails:
         print(f"ppoe {command}: check: {r.bag}: {r.item}: {r.holds} (the model needs: {r.needs})", file=sys.stderr)
     if fails:

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import PpoeError
-from ppoe_core.io.bag_facts import joints_at
+from ppoe_core.io.bag_facts import joints_at, sessions_at
 from ppoe_core.io.messages import TOPIC_GT_POINT, TOPIC_JOINT_STATES
 from ppoe_core.robot.robot_model import Robot
 
@@ -267,10 +267,18 @@ def _frame_rows(out: _Rows, data: Any, robot: Robot, cfg: Any) -> None:
 
 
 def _measurement_stamps(data: Any) -> np.ndarray:
-    parts = [s.stamps for s in _reflectors(data).values()]
-    if not parts and len(data.ground_truth_pose):
-        parts = [data.ground_truth_pose.stamps]
-    return np.sort(np.concatenate(parts)) if parts else np.zeros(0)
+    return _measurements(data)[0]
+
+
+def _measurements(data: Any) -> tuple[np.ndarray, list[str]]:
+    """Stamps (sorted) and frame ids of every tracker point (else every ground-truth pose)."""
+    series = list(_reflectors(data).values()) or ([data.ground_truth_pose] if len(data.ground_truth_pose) else [])
+    if not series:
+        return np.zeros(0), []
+    stamps = np.concatenate([s.stamps for s in series])
+    frames = [f for s in series for f in s.frame_ids]
+    order = np.argsort(stamps, kind="stable")
+    return stamps[order], [frames[i] for i in order]
 
 
 def _time_rows(out: _Rows, data: Any, rows: np.ndarray) -> None:
@@ -323,10 +331,11 @@ def _distinct(q: dict[str, np.ndarray], joints: list[str]) -> int:
 
 
 def offset_identifiability(robot: Robot, q: dict[str, np.ndarray], links: list[str],
-                           points: list[np.ndarray]) -> dict[str, float]:
+                           points: list[np.ndarray], session: np.ndarray | None = None) -> dict[str, float]:
     """Joint -> share (0..1) of its zero offset's signature on the reflector points that a rigid motion of the
     tracker registration cannot explain: ``|c - A A^+ c| / |c|`` with ``c`` (3N,) the points' root-frame motion per
-    radian (or metre) of the offset and ``A`` (3N, 6) the registration's small motions ``[I, -[p_i]x]``."""
+    radian (or metre) of the offset and ``A`` (3N, 6 S) the small motions ``[I, -[p_i]x]`` of each of the S
+    registrations (``session`` (N,) int of every pose, default one)."""
     from ppoe_core import lie
     from ppoe_core.robot.tree import KinematicTree
 
@@ -337,7 +346,10 @@ def offset_identifiability(robot: Robot, q: dict[str, np.ndarray], links: list[s
         poses = tree.link_poses(q, links=[link])
         T = np.asarray(poses[link])
         p = T[:, :3, :3] @ xyz + T[:, :3, 3]
-        regs.append(np.concatenate([np.broadcast_to(np.eye(3), (len(p), 3, 3)), -lie.hat3(p)], axis=2).reshape(-1, 6))
+        small = np.concatenate([np.broadcast_to(np.eye(3), (len(p), 3, 3)), -lie.hat3(p)], axis=2)   # (N, 3, 6)
+        sess = np.zeros(len(p), dtype=int) if session is None else np.asarray(session)
+        onehot = (sess[:, None] == np.unique(sess)[None, :]).astype(float)                    # (N, S)
+        regs.append(np.einsum("nij,ns->nisj", small, onehot).reshape(3 * len(p), -1))
         J_dq, _ = tree.point_jacobian(q, link, xyz, poses=poses)
         for jn, J in J_dq.items():
             cols.setdefault(jn, []).append(np.asarray(J).reshape(-1))
@@ -358,6 +370,7 @@ def _stop_rows(out: _Rows, data: Any, robot: Robot, cfg: Any, stamps: np.ndarray
     joints = _chain_joints(robot, links)
     still = static_rows(data, joints, stamps)
     q = joints_at(data, robot, stamps[still])
+    frames = [f for f, k in zip(_measurements(data)[1], still) if k]
     n_stops = _distinct(q, joints)
     out.add("stops", f"{n_stops} stops at rest ({int(still.sum())} of {len(stamps)} measurements)",
             f">= {MIN_STOPS} stops, measured at rest", "ok" if n_stops >= MIN_STOPS else "FAIL")
@@ -368,7 +381,8 @@ def _stop_rows(out: _Rows, data: Any, robot: Robot, cfg: Any, stamps: np.ndarray
     if refl and not used and links:  # undeclared reflectors: as if on the tool (their row above says FAIL)
         used = [(links[0], np.zeros(3))]
     if used:
-        share = offset_identifiability(robot, q, [u[0] for u in used], [u[1] for u in used])
+        session = sessions_at(data.path, data, stamps[still], frames)
+        share = offset_identifiability(robot, q, [u[0] for u in used], [u[1] for u in used], session)
     _identifiable_rows(out, robot, q, joints, share)
 
 
@@ -384,7 +398,8 @@ def _identifiable_rows(out: _Rows, robot: Robot, q: dict[str, np.ndarray], joint
         why = f"{jn} never moves more than {MIN_RANGE_DEG:g}° (range {np.degrees(moves[jn]):.1f}°)"
         if jn in share and share[jn] < MIN_SIGNATURE:
             cause = (why if small else "as the first joint that moves it turns every point about one fixed axis"
-                     if jn == first else f"with these poses it moves the points almost rigidly ({share[jn]:.0%} left)")
+                     if jn == first else f"its effect on the points is almost a rigid motion ({share[jn]:.0%} left: "
+                     "poses that turn the joints before it more, unless its axis parallels theirs)")
             text = f"{jn}'s zero offset cannot be told from the tracker registration: {cause}; diagnose cannot name it"
             out.add(f"joint_offset@{jn}", text, "an identifiable effect", "ok" if jn == first and not small else "warn")
         elif small:

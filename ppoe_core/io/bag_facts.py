@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ from ppoe_core.robot.model_init import BagFacts
 from ppoe_core.robot.robot_model import Robot
 from ppoe_core.robot.tree import KinematicTree
 
-__all__ = ["bag_facts", "bag_urdf", "joints_at", "reflector_links", "ReflectorFit", "fit_reflector",
+__all__ = ["bag_facts", "bag_urdf", "joints_at", "reflector_links", "ReflectorFit", "fit_reflector", "sessions_at",
            "TAG_IMAGES", "TIE_RATIO"]
 
 #: images decoded to find tag ids (spread over the bag): enough to see every tag of a short calibration recording
@@ -35,6 +36,8 @@ FIT_ROUNDS = 30
 TIE_RATIO = 1.05
 #: a next link fitting within this factor of the best one is named as hardly worse (the choice is then weak)
 AMBIGUOUS = 1.5
+#: among links that explain the points equally, one named like a reflector is preferred, then the deepest
+REFLECTOR_NAME = re.compile(r"prism|reflector|retro|smr|marker|tracker|target|^lr\d", re.IGNORECASE)
 #: fewer points than this cannot fix a rigid registration (6) and a reflector position (3)
 MIN_POINTS = 4
 
@@ -79,17 +82,37 @@ def _kabsch(P: np.ndarray, M: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, cm - R @ cp
 
 
-def fit_reflector(T_root_link: np.ndarray, meas: np.ndarray) -> ReflectorFit:
-    """Fit ``meas_i = R (R_i xyz + t_i) + t`` (``T_root_link`` (N,4,4), ``meas`` (N,3) in the tracker frame)."""
+def fit_reflector(T_root_link: np.ndarray, meas: np.ndarray, session: np.ndarray | None = None) -> ReflectorFit:
+    """Fit ``meas_i = R_s (R_i xyz + t_i) + t_s`` (``T_root_link`` (N,4,4), ``meas`` (N,3) in the tracker frame,
+    one registration ``R_s, t_s`` per ``session`` (N,) int, default one); ``R``, ``t`` of the result: session 0."""
     Ri, ti = T_root_link[:, :3, :3], T_root_link[:, :3, 3]
+    sess = np.zeros(len(meas), dtype=int) if session is None else np.asarray(session)
+    groups = [np.flatnonzero(sess == k) for k in np.unique(sess)]
     xyz = np.zeros(3)
-    R, t = np.eye(3), np.zeros(3)
+    R, t = np.broadcast_to(np.eye(3), (len(meas), 3, 3)).copy(), np.zeros((len(meas), 3))
     for _ in range(FIT_ROUNDS):
-        R, t = _kabsch(Ri @ xyz + ti, meas)
-        back = (meas - t) @ R - ti                     # R^T (m_i - t) - t_i = R_i xyz
+        for g in groups:
+            R[g], t[g] = _kabsch(Ri[g] @ xyz + ti[g], meas[g])
+        back = np.einsum("nji,nj->ni", R, meas - t) - ti           # R_s^T (m_i - t_s) - t_i = R_i xyz
         xyz = np.linalg.lstsq(Ri.reshape(-1, 3), back.reshape(-1), rcond=None)[0]
-    res = (Ri @ xyz + ti) @ R.T + t - meas
-    return ReflectorFit(float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))), xyz, R, t)
+    res = np.einsum("nij,nj->ni", R, Ri @ xyz + ti) + t - meas
+    return ReflectorFit(float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))), xyz, R[0], t[0])
+
+
+def sessions_at(path: str | Path, data: Any, stamps: np.ndarray, frame_ids: list[str]) -> np.ndarray:
+    """(N,) registration session of each measurement: its ``header.frame_id`` and, in a bag with importer
+    metadata ``/dataset/stop``, its station (the last stop description before it), as ``ppoe diagnose`` splits
+    them."""
+    from ppoe_core.io.stops import STOP_TOPIC, read_stop_info
+
+    keys = list(frame_ids)
+    info = read_stop_info(str(path)) if STOP_TOPIC in data.topics else []
+    if info:
+        t_info = np.array([t for t, _ in info])
+        k = np.clip(np.searchsorted(t_info, stamps, side="right") - 1, 0, len(info) - 1)
+        keys = [f"{f}:{info[i][1].get('station', '?')}" for f, i in zip(keys, k)]
+    names = list(dict.fromkeys(keys))
+    return np.array([names.index(key) for key in keys], dtype=int)
 
 
 def reflector_links(data: Any, robot: Robot) -> dict[str, tuple[str | None, tuple[float, float, float], str]]:
@@ -106,10 +129,11 @@ def reflector_links(data: Any, robot: Robot) -> dict[str, tuple[str | None, tupl
             out[topic] = (None, (0.0, 0.0, 0.0), f"only {int(good.sum())} points")
             continue
         poses = tree.link_poses(joints_at(data, robot, s.stamps[good]), links=candidates)
-        fits = {ln: fit_reflector(np.asarray(poses[ln]), s.p[good]) for ln in candidates}
+        sess = sessions_at(data.path, data, s.stamps[good], [f for f, g in zip(s.frame_ids, good) if g])
+        fits = {ln: fit_reflector(np.asarray(poses[ln]), s.p[good], sess) for ln in candidates}
         best = min(f.rms for f in fits.values())
         tied = [ln for ln in candidates if fits[ln].rms <= best * TIE_RATIO + 1e-9]
-        link = max(tied, key=lambda ln: len(robot.path_from_root(ln)))
+        link = max(tied, key=lambda ln: (bool(REFLECTOR_NAME.search(ln)), len(robot.path_from_root(ln))))
         others = sorted((f.rms, ln) for ln, f in fits.items() if ln not in tied)
         how = (f"its motion fits {int(good.sum())} points to {best * 1e3:.2f} mm RMS"
                + (f"; next: {others[0][1]} {others[0][0] * 1e3:.2f} mm" if others else "")
