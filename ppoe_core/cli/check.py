@@ -41,11 +41,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def print_failures(command: str, bags: list[str], model: str) -> None:
-    """The check's FAIL lines on stderr, before ``command`` starts (nothing when the bags pass)."""
+    """The check's FAIL lines that matter to ``command`` on stderr, before it starts (nothing when the bags pass;
+    an unreadable bag, a missing URDF or a model that does not load the command says itself, in its own line)."""
     from ppoe_core.io.bag_check import check_bags
 
     try:
-        fails = check_bags(bags, model).failures()
+        fails = check_bags(bags, model).failures(command)
     except Exception as exc:  # noqa: BLE001 -- the check must never stop the command it precedes; said, not hidden
         print(f"ppoe {command}: check: not run ({type(exc).__name__}: {exc}); `ppoe check` names the problem",
               file=sys.stderr)

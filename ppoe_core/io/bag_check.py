@@ -58,13 +58,16 @@ VERDICTS = ("ok", "warn", "FAIL")
 @dataclass(frozen=True)
 class CheckRow:
     """One line of the table: ``bag`` (directory name), ``item``, what the bag ``holds``, what the model ``needs``,
-    ``verdict`` (``ok`` / ``warn`` / ``FAIL``)."""
+    ``verdict`` (``ok`` / ``warn`` / ``FAIL``), and ``scope``: the commands it matters to (``all``; ``diagnose``:
+    its static stops; ``check``: what diagnose and evaluate refuse themselves, in one line -- an unreadable bag,
+    no URDF, a model that does not load)."""
 
     bag: str
     item: str
     holds: str
     needs: str
     verdict: str
+    scope: str = "all"
 
 
 @dataclass
@@ -78,9 +81,9 @@ class CheckReport:
         """0 all ok, 1 warnings only, 2 at least one failure."""
         return max((VERDICTS.index(r.verdict) for r in self.rows), default=0)
 
-    def failures(self) -> list[CheckRow]:
-        """The FAIL rows."""
-        return [r for r in self.rows if r.verdict == "FAIL"]
+    def failures(self, command: str | None = None) -> list[CheckRow]:
+        """The FAIL rows (those that matter to ``command``, ``diagnose`` or ``evaluate``, if given)."""
+        return [r for r in self.rows if r.verdict == "FAIL" and (command is None or r.scope in ("all", command))]
 
     def markdown(self) -> str:
         """The table (markdown)."""
@@ -104,8 +107,8 @@ class _Rows:
     def __init__(self, bag: str) -> None:
         self.bag, self.rows = bag, []  # type: str, list[CheckRow]
 
-    def add(self, item: str, holds: str, needs: str, verdict: str = "ok") -> None:
-        self.rows.append(CheckRow(self.bag, item, holds.replace("|", "/"), needs.replace("|", "/"), verdict))
+    def add(self, item: str, holds: str, needs: str, verdict: str = "ok", scope: str = "all") -> None:
+        self.rows.append(CheckRow(self.bag, item, holds.replace("|", "/"), needs.replace("|", "/"), verdict, scope))
 
 
 def _names(items: Any, at_most: int = 6) -> str:
@@ -130,10 +133,10 @@ def _check_one(bag: str, model: str) -> list[CheckRow]:
     try:
         data = read_bag(bag, load_images=False)
     except PpoeError as exc:
-        out.add("bag", f"unreadable: {exc}", "a rosbag2 directory (mcap or sqlite3)", "FAIL")
+        out.add("bag", f"unreadable: {exc}", "a rosbag2 directory (mcap or sqlite3)", "FAIL", "check")
         return out.rows
     if not data.robot_description:
-        out.add("/robot_description", "absent", "the URDF, once, first (CONTRACT.md sec. 3)", "FAIL")
+        out.add("/robot_description", "absent", "the URDF, once, first (CONTRACT.md sec. 3)", "FAIL", "check")
         return out.rows
     try:
         robot = parse_urdf(data.robot_description, text_source=f"{bag} /robot_description")
@@ -142,7 +145,7 @@ def _check_one(bag: str, model: str) -> list[CheckRow]:
         cfg = load_model_config(model, robot)
         out.add("model", f"{Path(model).name} loads against this URDF", "joints and links of the URDF")
     except PpoeError as exc:
-        out.add("model", str(exc), "joints and links of the bag's URDF", "FAIL")
+        out.add("model", str(exc), "joints and links of the bag's URDF", "FAIL", "check")
         return out.rows
     _topic_rows(out, data, cfg)
     needed = _needed_links(robot, cfg)
@@ -373,7 +376,8 @@ def _stop_rows(out: _Rows, data: Any, robot: Robot, cfg: Any, stamps: np.ndarray
     frames = [f for f, k in zip(_measurements(data)[1], still) if k]
     n_stops = _distinct(q, joints)
     out.add("stops", f"{n_stops} stops at rest ({int(still.sum())} of {len(stamps)} measurements)",
-            f">= {MIN_STOPS} stops, measured at rest", "ok" if n_stops >= MIN_STOPS else "FAIL")
+            f">= {MIN_STOPS} stops, measured at rest (ppoe diagnose)", "ok" if n_stops >= MIN_STOPS else "FAIL",
+            "diagnose")
     if n_stops < 2:
         return
     share = {}
