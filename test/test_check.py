@@ -166,7 +166,7 @@ def test_identifiability_against_a_direct_count(tmp_path):
     assert static_rows(data, JOINTS, stamps).all()
     moving = read_bag(write_bag(tmp_path / "moving", n=10, moving=True), load_images=False)
     assert not static_rows(moving, JOINTS, moving.ground_truth_point.stamps).any()
-    from ppoe_core.io.bag_facts import joints_at
+    from ppoe_core.io.bag_joints import joints_at
 
     q = joints_at(data, ROBOT, stamps)
     share = offset_identifiability(ROBOT, q, ["tool0"], [XYZ])

@@ -82,7 +82,7 @@ def test_dual_arm_lists_the_other_hand(tmp_path):
 
 def _simulate(tmp: Path, scenario: str) -> Path:
     bag = tmp / Path(scenario).stem
-    assert main(["simulate", str(DATA / scenario), "--out", str(bag), "--truth", "none"]) == 0
+    assert main(["simulate", str(DATA / scenario), "--out", str(bag), "--truth", "none"]) == 0   # DATA / abs = abs
     return bag
 
 
@@ -108,11 +108,33 @@ def test_mobile_manipulator_bag_guesses(tmp_path, capsys):
     assert {n: i.link for n, i in cfg.imus.items()} == {"deck": "deck_imu"}
     text = out.read_text()
     assert "mast_camera_joint" in cfg.perturbations and GUESS in _line(text, "mast_camera_joint:")
-    assert re.search(r"#     - \{id: 6, link: gripper_tcp", text)      # the tag seen, to be completed by hand
+    # the tag seen (truth: id 6 on gripper_tcp at [-0.03, 0, -0.05], 4 cm), commented out: its rpy is the user's
+    tag = re.search(r"#     - \{id: 6, link: gripper_tcp, size: ([0-9.]+), xyz: \[([^\]]+)\]", text)
+    assert tag is not None, text
+    np.testing.assert_allclose([float(v) for v in tag.group(2).split(",")], [-0.03, 0.0, -0.05], atol=0.003)
     for key in ("link: gripper_tcp", "xyz:", "pixel_sigma:"):
         assert GUESS in _line(text, key), key
     res = _diagnose_runs(bag, out, capsys)
     assert res["residual_after"] <= res["residual_before"]
+
+
+def test_tag_links_from_images(tmp_path, capsys):
+    """Without tag observations the tags are detected in the images: link, centre and size as in the truth."""
+    import yaml
+
+    sc = yaml.safe_load((DATA / "mobile_scenario.yaml").read_text())
+    sc["robot"] = {"dh": str(DATA / "mobile_dh.yaml"), "model": str(DATA / "mobile_sim_model.yaml")}
+    sc["camera"] = {"format": "png", "rate": 2.0}
+    sc["trajectory"]["random_stops"]["count"] = 8
+    (tmp_path / "png.yaml").write_text(yaml.safe_dump(sc))
+    bag = _simulate(tmp_path, str(tmp_path / "png.yaml"))
+    out = tmp_path / "model.yaml"
+    assert main(["init", "--urdf", str(_urdf(tmp_path, "mobile")), "--bag", str(bag), "--out", str(out)]) == 0
+    tag = re.search(r"#     - \{id: 6, link: gripper_tcp, size: ([0-9.]+), xyz: \[([^\]]+)\]", out.read_text())
+    assert tag is not None, out.read_text()
+    np.testing.assert_allclose([float(v) for v in tag.group(2).split(",")], [-0.03, 0.0, -0.05], atol=0.003)
+    assert float(tag.group(1)) == pytest.approx(0.04, abs=0.005)
+    assert "tag36h11 detections in 8 of 8 images" in out.read_text()
 
 
 def test_dual_arm_torso_bag_guesses_both_hands(tmp_path, capsys):

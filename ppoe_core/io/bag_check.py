@@ -29,7 +29,8 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import PpoeError
-from ppoe_core.io.bag_facts import joints_at, sessions_at
+from ppoe_core.io.bag_facts import sessions_at
+from ppoe_core.io.bag_joints import joints_at
 from ppoe_core.io.messages import TOPIC_GT_POINT, TOPIC_JOINT_STATES
 from ppoe_core.robot.robot_model import Robot
 

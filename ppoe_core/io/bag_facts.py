@@ -5,7 +5,7 @@
   position in the link are fitted to the points by alternating least squares; the smallest residual wins, among
   equal ones the link deepest in the tree);
 * the camera's optical frame (``/camera/camera_info`` ``frame_id``), the IMUs' frames (``/imu/<name>``);
-* tag ids from ``/tag_bearing/observations`` or from a detection pass over a few images (:data:`TAG_IMAGES`).
+* the tags seen and the links carrying them (:mod:`ppoe_core.io.tag_facts`).
 """
 
 from __future__ import annotations
@@ -17,17 +17,15 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import BagError
-from ppoe_core.model.context import sample_series
+from ppoe_core.io.bag_joints import joints_at
+from ppoe_core.io.tag_facts import tag_guesses, tag_sightings
 from ppoe_core.robot.model_init import BagFacts
 from ppoe_core.robot.robot_model import Robot
 from ppoe_core.robot.tree import KinematicTree
 
-__all__ = ["bag_facts", "bag_urdf", "joints_at", "reflector_links", "ReflectorFit", "fit_reflector", "sessions_at",
-           "TAG_IMAGES", "TIE_RATIO"]
+__all__ = ["bag_facts", "bag_urdf", "reflector_links", "ReflectorFit", "fit_reflector", "sessions_at",
+           "TIE_RATIO"]
 
-#: images decoded to find tag ids (spread over the bag): enough to see every tag of a short calibration recording
-#: once, few enough to take a second or two
-TAG_IMAGES = 12
 #: alternating least-squares rounds of the reflector fit (registration <-> position in the link); the fit's
 #: residual settles within a few rounds on the robots we tried, 30 leaves a margin
 FIT_ROUNDS = 30
@@ -47,22 +45,6 @@ def bag_urdf(path: str | Path) -> str:
     from ppoe_core.io.bagio import read_bag
 
     return read_bag(path, topics=["/robot_description"], load_images=False).require_robot_description()
-
-
-def joints_at(data: Any, robot: Robot, stamps: np.ndarray) -> dict[str, np.ndarray]:
-    """Independent joint values (N,) at ``stamps`` from the bag's ``/joint_states`` (sampled as diagnose does,
-    :func:`ppoe_core.model.context.sample_series`); joints the bag never lists are 0 (the caller says so)."""
-    js = data.joint_states
-    order = np.argsort(js.stamps, kind="stable")
-    out = {}
-    for jn in robot.independent_joints:
-        if jn in js.names:
-            col = js.positions[order, js.names.index(jn)]
-            good = np.isfinite(col)
-            out[jn] = sample_series(js.stamps[order][good], col[good], stamps)
-        else:
-            out[jn] = np.zeros(stamps.shape)
-    return out
 
 
 class ReflectorFit:
@@ -145,29 +127,8 @@ def reflector_links(data: Any, robot: Robot) -> dict[str, tuple[str | None, tupl
     return out
 
 
-def _tag_ids(data: Any) -> tuple[list[int], str]:
-    """Tag ids of the observations, else of a detection pass over :data:`TAG_IMAGES` images."""
-    obs = data.tag_observations
-    if len(obs):
-        return sorted({int(i) for i in obs.ids}), "from /tag_bearing/observations"
-    imgs = data.images
-    if not len(imgs):
-        return [], ""
-    from ppoe_core.sensing.tags import detect_tags
-
-    picks = np.unique(np.linspace(0, len(imgs) - 1, min(TAG_IMAGES, len(imgs))).round().astype(int))
-    ids: set[int] = set()
-    for i in picks:
-        try:
-            ids |= {d.id for d in detect_tags(imgs.decode(int(i), grey=True))}
-        except BagError:
-            continue
-    note = f"tag36h11 detections in {len(picks)} of {len(imgs)} images of {imgs.topic}"
-    return sorted(ids), note if ids else f"no tag36h11 tag found in {len(picks)} of {len(imgs)} images"
-
-
 def bag_facts(path: str | Path, robot: Robot) -> BagFacts:
-    """Reflectors and their links, camera frame, IMU frames and tag ids of a contract bag."""
+    """Reflectors and their links, camera frame, IMU frames, tags and their links of a contract bag."""
     from ppoe_core.io.bagio import read_bag
 
     data = read_bag(path, load_images=True)
@@ -181,5 +142,8 @@ def bag_facts(path: str | Path, robot: Robot) -> BagFacts:
         ranked = [str(ids[i]) for i in np.argsort(-counts, kind="stable")]
         facts.camera_frame, facts.other_cameras = ranked[0], ranked[1:]
     facts.imus = {name: s.frame_ids[0] for name, s in data.imus.items() if s.frame_ids}
-    facts.tag_ids, facts.tag_note = _tag_ids(data)
+    sightings, facts.tag_note = tag_sightings(data)
+    if data.images and not sightings:
+        facts.tag_note = f"no tag36h11 tag found ({facts.tag_note})"
+    facts.tags = {t: (g.link, g.xyz, g.size, g.how) for t, g in tag_guesses(data, robot, sightings).items()}
     return facts

@@ -68,10 +68,10 @@ class BagFacts:
         Further ``camera_info`` frame ids (the model YAML holds one camera).
     imus : dict[str, str]
         IMU name (``/imu/<name>``) -> ``header.frame_id``.
-    tag_ids : list[int]
-        Tag ids seen (``/tag_bearing/observations`` or a detection pass over a few images).
+    tags : dict[int, tuple[str | None, tuple[float, float, float], float | None, str]]
+        Tag id -> (link that carries it or None, centre in that link [m], edge size [m] or None, how found).
     tag_note : str
-        How the tag ids were found (or why not).
+        How the tags were seen (observations or images), or why none was.
     """
 
     path: str
@@ -79,7 +79,7 @@ class BagFacts:
     camera_frame: str | None = None
     other_cameras: list[str] = field(default_factory=list)
     imus: dict[str, str] = field(default_factory=dict)
-    tag_ids: list[int] = field(default_factory=list)
+    tags: dict[int, tuple[str | None, tuple[float, float, float], float | None, str]] = field(default_factory=dict)
     tag_note: str = ""
 
 
@@ -240,6 +240,19 @@ def _tracker_lines(facts: BagFacts) -> list[str]:
     return out
 
 
+def _tag_lines(guess: ModelGuess, facts: BagFacts) -> list[str]:
+    out = ["", f"# tags: the tags seen ({facts.tag_note}), each on the link whose motion explains where it was seen,",
+           "# its centre there (xyz [m]) and its size (black-square edge [m]) from its apparent size. Its orientation",
+           "# on the link (rpy [rad], z = the face's outward normal) cannot be seen from centres: set it, then",
+           "# uncomment the section (tag family: tag36h11 unless yours differs).",
+           "# tags:", "#   family: tag36h11", "#   items:"]
+    for tag, (link, xyz, size, how) in sorted(facts.tags.items()):
+        size_text = f"{size:g}" if size else "0.04"
+        out.append(f"#     - {{id: {tag}, link: {link or guess.tool}, size: {size_text}, xyz: {_vec(xyz)}, "
+                   f"rpy: [0, 0, 0]}}   # {how} {GUESS}")
+    return out
+
+
 def _sensor_lines(robot: Robot, guess: ModelGuess, facts: BagFacts) -> list[str]:
     out: list[str] = []
     if facts.reflectors:
@@ -258,13 +271,8 @@ def _sensor_lines(robot: Robot, guess: ModelGuess, facts: BagFacts) -> list[str]
             out += [f"# camera_info's frame_id '{facts.camera_frame}' is not a link of the URDF: add the camera's",
                     "# frames to the URDF (ppoe check names this too), then:",
                     f"# camera: {{frame: {facts.camera_frame}, pixel_sigma: 0.5}}"]
-    if facts.tag_ids:
-        out += ["", f"# tags: ids seen in the bag ({facts.tag_note}). Each needs the link it is fixed to, its size",
-                "# (black-square edge [m]) and its pose on the link (xyz [m], rpy [rad]); none can be guessed from the",
-                "# bag alone, so they are listed here, commented out:",
-                "# tags:", "#   family: tag36h11", "#   items:"]
-        out += [f"#     - {{id: {i}, link: {guess.tool}, size: 0.04, xyz: [0, 0, 0], rpy: [0, 0, 0]}}   {GUESS}"
-                for i in facts.tag_ids]
+    if facts.tags:
+        out += _tag_lines(guess, facts)
     elif facts.tag_note:
         out += ["", f"# tags: {facts.tag_note}"]
     if facts.imus:
@@ -307,6 +315,5 @@ def summary_lines(guess: ModelGuess) -> list[str]:
         if facts.camera_frame:
             out.append(f"camera: {facts.camera_frame}")
         out += [f"imu {n}: {f}" for n, f in sorted(facts.imus.items())]
-        if facts.tag_ids or facts.tag_note:
-            out.append(f"tags: {facts.tag_ids} ({facts.tag_note})")
+        out += [f"tag {t}: link {v[0]} ({v[3]})" for t, v in sorted(facts.tags.items())]
     return out
