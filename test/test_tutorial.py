@@ -3,8 +3,8 @@
 Every ```bash block after a ``<!-- tutorial -->`` marker (``<!-- tutorial: exit N -->``: the block must end with
 exit code N) runs in order, in one empty folder, with ``ppoe`` = ``python -m ppoe_ros.cli`` of this repository
 (the README's user-API test extracts its block the same way: test/test_user_api.py).  A ```text block after an
-``<!-- output -->`` marker quotes the previous command block's output (stdout and stderr): its table rows and
-summary lines must be printed as quoted.  Then what the tutorial claims is checked on the files it made.
+``<!-- output -->`` marker quotes the previous command block's output (stdout and stderr, one stream): its table
+rows and summary lines must be printed as quoted.  Then what the tutorial claims is checked on the files it made.
 
 ``python test/test_tutorial.py --write`` runs the blocks and writes their outputs into the doc's output blocks.
 """
@@ -54,13 +54,13 @@ def run_block(block: Block, cwd: Path) -> subprocess.CompletedProcess:
     """Run one block with bash -e in ``cwd``; ``ppoe`` is this repository's CLI."""
     prelude = f'set -e\nppoe() {{ "{sys.executable}" -m ppoe_ros.cli "$@"; }}\n'
     env = dict(os.environ, PYTHONPATH=f"{REPO}{os.pathsep}{os.environ.get('PYTHONPATH', '')}", COLUMNS="200")
-    return subprocess.run(["bash", "-c", prelude + block.script], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=BLOCK_TIMEOUT)
+    return subprocess.run(["bash", "-c", prelude + block.script], cwd=cwd, env=env, stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, text=True, timeout=BLOCK_TIMEOUT)
 
 
 def printed(proc: subprocess.CompletedProcess) -> str:
-    """stdout, then stderr (the order the doc quotes them in)."""
-    return proc.stdout + proc.stderr
+    """What the block printed, stdout and stderr as a terminal shows them (one stream)."""
+    return proc.stdout
 
 
 @pytest.fixture(scope="module")
