@@ -108,6 +108,8 @@ def test_mobile_manipulator_bag_guesses(tmp_path, capsys):
     assert {n: i.link for n, i in cfg.imus.items()} == {"deck": "deck_imu"}
     text = out.read_text()
     assert "mast_camera_joint" in cfg.perturbations and GUESS in _line(text, "mast_camera_joint:")
+    # the mast moves the camera: its joints get a prior too, marked
+    assert {"mast_lift", "mast_pan", "mast_tilt"} <= set(cfg.perturbations) and GUESS in _line(text, "mast_pan:")
     # the tag seen (truth: id 6 on gripper_tcp at [-0.03, 0, -0.05], 4 cm), commented out: its rpy is the user's
     tag = re.search(r"#     - \{id: 6, link: gripper_tcp, size: ([0-9.]+), xyz: \[([^\]]+)\]", text)
     assert tag is not None, text

@@ -179,6 +179,15 @@ def guess_model(robot: Robot, facts: BagFacts | None = None) -> ModelGuess:
                 for jn in robot.path_from_root(link):
                     if jn not in chain and jn not in extra:
                         extra[jn] = f"on the chain of the reflector {topic}"
+        sensors = {f"the IMU {n}": f for n, f in facts.imus.items()}
+        if facts.camera_frame:
+            sensors["the camera"] = facts.camera_frame
+        for what, frame in sensors.items():
+            if frame not in robot.links:
+                continue
+            for jn in robot.path_from_root(frame):
+                if robot.joints[jn].movable and jn not in chain and jn not in extra:
+                    extra[jn] = f"on the chain of {what}"
         if facts.camera_frame and facts.camera_frame in robot.links:
             mount = camera_mount_joint(robot, facts.camera_frame)
             if mount is not None and mount not in chain:
