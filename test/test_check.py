@@ -171,3 +171,15 @@ def test_identifiability_against_a_direct_count(tmp_path):
     q = joints_at(data, ROBOT, stamps)
     share = offset_identifiability(ROBOT, q, ["tool0"], [XYZ])
     assert share["joint_1"] < 1e-6 and share["joint_3"] > 0.2
+
+
+def test_a_model_without_tool_or_trackers_still_counts_stops(tmp_path):
+    """ind6 has two leaves (tool0, the camera): no default tool; the stops are counted over every joint."""
+    bag = write_bag(tmp_path / "bare", n=8)
+    model = tmp_path / "bare.yaml"
+    model.write_text("effects: []\n")
+    report = check_bags([str(bag)], str(model))
+    rows = rows_of(report)
+    assert rows["stops"].startswith("8 stops at rest (8 of 8")
+    assert rows_of(report, "warn") == {"/ground_truth/point": "8 points"}    # diagnose then needs --tool
+    assert report.exit_code == 1

@@ -329,9 +329,9 @@ def static_rows(data: Any, joints: list[str], stamps: np.ndarray) -> np.ndarray:
 def _distinct(q: dict[str, np.ndarray], joints: list[str]) -> int:
     """Number of stops: runs of consecutive rows whose joint values stay within :data:`SAME_STOP`."""
     if not joints or not len(q[joints[0]]):
-        return int(bool(joints)) and 0
+        return 0
     Q = np.stack([q[j] for j in joints], axis=1)
-    return 1 + int(np.sum(np.max(np.abs(np.diff(Q, axis=0)), axis=1) > SAME_STOP)) if len(Q) else 0
+    return 1 + int(np.sum(np.max(np.abs(np.diff(Q, axis=0)), axis=1) > SAME_STOP))
 
 
 def offset_identifiability(robot: Robot, q: dict[str, np.ndarray], links: list[str],
@@ -371,7 +371,8 @@ def offset_identifiability(robot: Robot, q: dict[str, np.ndarray], links: list[s
 def _stop_rows(out: _Rows, data: Any, robot: Robot, cfg: Any, stamps: np.ndarray, needed: list[str]) -> None:
     refl = _reflectors(data)
     links = [t.link for t in cfg.trackers if t.topic in refl] or ([cfg.frames.tool] if cfg.frames.tool else [])
-    joints = _chain_joints(robot, links)
+    # the joints that move the measured links; without a tool or tracker link, every joint the bag has
+    joints = _chain_joints(robot, links) or [j for j in robot.independent_joints if j in data.joint_states.names]
     still = static_rows(data, joints, stamps)
     q = joints_at(data, robot, stamps[still])
     frames = [f for f, k in zip(_measurements(data)[1], still) if k]
