@@ -229,6 +229,10 @@ def test_motoman_dataset_urdf(tmp_path, capsys):
               and not robot.joints[j].movable}
     assert "LR1" in rigid and tracker.link in rigid, tracker.link
     assert cfg.camera is not None and GUESS in _line(out.read_text(), "tool:")
+    from ppoe_core.io.bag_check import check_bags
+
+    report = check_bags([str(bag)], str(out))
+    assert report.exit_code < 2 and any(r.item == "/dataset/stop" for r in report.rows), report.markdown()
     capsys.readouterr()
     assert main(["diagnose", str(bag), "--model", str(out), "--json", "--quiet"]) == 0
     res = json.loads(capsys.readouterr().out)

@@ -32,6 +32,7 @@ from ppoe_core.errors import PpoeError
 from ppoe_core.io.bag_facts import sessions_at
 from ppoe_core.io.bag_joints import joints_at
 from ppoe_core.io.messages import TOPIC_GT_POINT, TOPIC_JOINT_STATES
+from ppoe_core.io.stops import STOP_TOPIC
 from ppoe_core.robot.robot_model import Robot
 
 __all__ = ["CheckRow", "CheckReport", "check_bags", "static_rows", "offset_identifiability", "MIN_RANGE_DEG",
@@ -190,6 +191,11 @@ def _topic_rows(out: _Rows, data: Any, cfg: Any) -> None:
     if len(data.ground_truth_pose):
         out.add("/ground_truth/pose", f"{len(data.ground_truth_pose)} poses", "optional (6D tool poses)")
     _sensor_topic_rows(out, data, cfg)
+    if STOP_TOPIC in data.topics:
+        out.add(STOP_TOPIC, f"{data.topics[STOP_TOPIC][1]} stop descriptions", "optional: stations and stop roles")
+    other = [f"{t} ({data.topics[t][1]})" for t in sorted(data.unknown_topics) if t in data.topics and t != STOP_TOPIC]
+    if other:
+        out.add("other topics", _names(other), "not used by the model (ignored)")
     if not (refl or len(data.ground_truth_pose) or data.imus or len(data.tag_observations) or len(data.images)):
         out.add("measurements", "no tracker points, poses, images, tag observations or IMUs",
                 "something to diagnose against", "FAIL")
