@@ -19,7 +19,7 @@ import numpy as np
 from ppoe_core.errors import BagError
 from ppoe_core.io.bag_joints import joints_at
 from ppoe_core.io.tag_facts import tag_guesses, tag_sightings
-from ppoe_core.robot.model_init import BagFacts
+from ppoe_core.robot.model_init import BagFacts, tie_key
 from ppoe_core.robot.robot_model import Robot
 from ppoe_core.robot.tree import KinematicTree
 
@@ -34,7 +34,7 @@ FIT_ROUNDS = 30
 TIE_RATIO = 1.05
 #: a next link fitting within this factor of the best one is named as hardly worse (the choice is then weak)
 AMBIGUOUS = 1.5
-#: among links that explain the points equally, one named like a reflector is preferred, then the deepest
+#: among links that explain the points equally, one named like a reflector is preferred (model_init.tie_key)
 REFLECTOR_NAME = re.compile(r"prism|reflector|retro|smr|marker|tracker|target|^lr\d", re.IGNORECASE)
 #: fewer points than this cannot fix a rigid registration (6) and a reflector position (3)
 MIN_POINTS = 4
@@ -115,7 +115,7 @@ def reflector_links(data: Any, robot: Robot) -> dict[str, tuple[str | None, tupl
         fits = {ln: fit_reflector(np.asarray(poses[ln]), s.p[good], sess) for ln in candidates}
         best = min(f.rms for f in fits.values())
         tied = [ln for ln in candidates if fits[ln].rms <= best * TIE_RATIO + 1e-9]
-        link = max(tied, key=lambda ln: (bool(REFLECTOR_NAME.search(ln)), len(robot.path_from_root(ln))))
+        link = max(tied, key=lambda ln: tie_key(robot, ln, REFLECTOR_NAME))
         others = sorted((f.rms, ln) for ln, f in fits.items() if ln not in tied)
         how = (f"its motion fits {int(good.sum())} points to {best * 1e3:.2f} mm RMS"
                + (f"; next: {others[0][1]} {others[0][0] * 1e3:.2f} mm" if others else "")
@@ -142,6 +142,8 @@ def bag_facts(path: str | Path, robot: Robot) -> BagFacts:
         ranked = [str(ids[i]) for i in np.argsort(-counts, kind="stable")]
         facts.camera_frame, facts.other_cameras = ranked[0], ranked[1:]
     facts.imus = {name: s.frame_ids[0] for name, s in data.imus.items() if s.frame_ids}
+    if len(data.ground_truth_pose):
+        facts.pose_frame = data.ground_truth_pose.frame_ids[0]
     sightings, facts.tag_note = tag_sightings(data)
     if data.images and not sightings:
         facts.tag_note = f"no tag36h11 tag found ({facts.tag_note})"

@@ -19,6 +19,7 @@ import numpy as np
 
 from ppoe_core.errors import BagError
 from ppoe_core.io.bag_joints import joints_at
+from ppoe_core.robot.model_init import tie_key
 from ppoe_core.robot.robot_model import Robot
 from ppoe_core.robot.tree import KinematicTree
 
@@ -31,7 +32,7 @@ TAG_IMAGES = 24
 MIN_SIGHTINGS = 3
 #: links within this factor of the best residual explain the sightings equally (a tag link and its parent)
 TIE_RATIO = 1.05
-#: among equal links one named like a tag is preferred, then the deepest
+#: among equal links one named like a tag is preferred (:func:`ppoe_core.robot.model_init.tie_key`)
 TAG_NAME = re.compile(r"tag|marker|aruco|april|fiducial|^mk\d", re.IGNORECASE)
 
 
@@ -146,7 +147,7 @@ def tag_guesses(data: Any, robot: Robot, sightings: dict[int, TagSightings]) -> 
             out[tag] = TagGuess(None, (0.0, 0.0, 0.0), None, "no link puts it in front of the camera")
             continue
         tied = [ln for ln, f in fits.items() if f[1] <= best * TIE_RATIO + 1e-12]
-        link = max(tied, key=lambda ln: (bool(TAG_NAME.search(ln)), len(robot.path_from_root(ln))))
+        link = max(tied, key=lambda ln: tie_key(robot, ln, TAG_NAME))
         x, rms, depth = fits[link]
         others = sorted((f[1], ln) for ln, f in fits.items() if ln not in tied)
         how = (f"{len(s.stamps)} sightings fit to {rms * 1e3:.2f} mrad RMS"

@@ -33,6 +33,7 @@ __all__ = [
     "guess_model",
     "model_yaml",
     "summary_lines",
+    "tie_key",
 ]
 
 #: link names that say "tool": tool, tool0, tcp, flange, ee, ee_link, end_effector (as words of the name)
@@ -66,6 +67,8 @@ class BagFacts:
         ``header.frame_id`` of ``/camera/camera_info`` (the one with the most messages).
     other_cameras : list[str]
         Further ``camera_info`` frame ids (the model YAML holds one camera).
+    pose_frame : str | None
+        ``header.frame_id`` of ``/ground_truth/pose`` (the frame its tool poses are given in).
     imus : dict[str, str]
         IMU name (``/imu/<name>``) -> ``header.frame_id``.
     tags : dict[int, tuple[str | None, tuple[float, float, float], float | None, str]]
@@ -78,6 +81,7 @@ class BagFacts:
     reflectors: dict[str, tuple[str | None, tuple[float, float, float], str]] = field(default_factory=dict)
     camera_frame: str | None = None
     other_cameras: list[str] = field(default_factory=list)
+    pose_frame: str | None = None
     imus: dict[str, str] = field(default_factory=dict)
     tags: dict[int, tuple[str | None, tuple[float, float, float], float | None, str]] = field(default_factory=dict)
     tag_note: str = ""
@@ -94,7 +98,7 @@ class ModelGuess:
     alternatives : list[str]
         Other leaves (possible tools), longest chain first.
     chain : list[str]
-        Joints from ``base`` to ``tool`` (fixed included), base first.
+        Joints between ``base`` and ``tool`` (fixed included; :meth:`Robot.chain`: up from ``base``, then down).
     extra_joints : dict[str, str]
         Further joints given a prior (e.g. a camera mount or another reflector's chain) -> why.
     facts : BagFacts | None
@@ -158,6 +162,15 @@ def guess_frames(robot: Robot) -> tuple[str, str, list[str]]:
     return robot.root, tool, [ln for ln in leaves if ln != tool]
 
 
+def tie_key(robot: Robot, link: str, name: re.Pattern) -> tuple[bool, bool, int, int]:
+    """Order of links that explain a sensor equally (rigidly joined, or joined by a joint that did not move): a
+    name like the sensor's, a tool-like name (:data:`TOOL_NAME`), fewer movable joints
+    above it (not a finger that happened to rest), then deeper."""
+    path = robot.path_from_root(link)
+    return (bool(name.search(link)), bool(TOOL_NAME.search(link)), -sum(robot.joints[j].movable for j in path),
+            len(path))
+
+
 def camera_mount_joint(robot: Robot, frame: str) -> str | None:
     """The topmost fixed joint of the run of fixed joints above ``frame`` (the camera stand rather than the optical
     rotation), or None when ``frame`` hangs directly on a movable joint or is the root."""
@@ -171,7 +184,10 @@ def camera_mount_joint(robot: Robot, frame: str) -> str | None:
 def guess_model(robot: Robot, facts: BagFacts | None = None) -> ModelGuess:
     """Frames, chain and extra prior joints of ``robot`` (and what ``facts`` of a bag add)."""
     base, tool, alternatives = guess_frames(robot)
-    chain = robot.path_from_root(tool)
+    if facts is not None and facts.pose_frame in robot.links and facts.pose_frame != tool:
+        base = str(facts.pose_frame)   # /ground_truth/pose relates its frame_id to the tool
+    up, down = robot.chain(base, tool)
+    chain = [*up, *down]
     extra: dict[str, str] = {}
     if facts is not None:
         for topic, (link, _, _) in facts.reflectors.items():
@@ -228,7 +244,9 @@ def _frames_lines(guess: ModelGuess) -> list[str]:
     alt = ", ".join(guess.alternatives[:8]) + (" ..." if len(guess.alternatives) > 8 else "")
     out = ["", "# frames: reference and target frames of ppoe fk, evaluate, diagnose and the nodes (URDF links).",
            "frames:",
-           "  base: " + guess.base + "   # reference frame; default: the URDF root link (guessed: the root)",
+           "  base: " + guess.base + "   # reference frame; default: the URDF root link"
+           + (" (guessed: the root)" if guess.facts is None or guess.facts.pose_frame != guess.base
+              else f" (guessed: /ground_truth/pose's frame_id) {GUESS}"),
            "  tool: " + guess.tool + f"   # target frame: the leaf at the end of the longest chain {GUESS}"]
     if guess.alternatives:
         out.append(f"  # other leaves that could be the tool: {alt}")
