@@ -118,15 +118,16 @@ def _names(items: Any, at_most: int = 6) -> str:
     return ", ".join(items[:at_most]) + (f" (+{len(items) - at_most} more)" if len(items) > at_most else "")
 
 
-def check_bags(bags: list[str], model: str) -> CheckReport:
-    """Check every bag against the model YAML ``model`` (see the module docstring)."""
+def check_bags(bags: list[str], model: str, identifiability: bool = True) -> CheckReport:
+    """Check every bag against the model YAML ``model`` (see the module docstring); ``identifiability=False``
+    skips the identifiability rows (warnings only, and the slowest part: what diagnose / evaluate skip)."""
     report = CheckReport()
     for bag in bags:
-        report.rows += _check_one(bag, model)
+        report.rows += _check_one(bag, model, identifiability)
     return report
 
 
-def _check_one(bag: str, model: str) -> list[CheckRow]:
+def _check_one(bag: str, model: str, identifiability: bool) -> list[CheckRow]:
     from ppoe_core.io.bagio import read_bag
     from ppoe_core.robot.config import load_model_config
     from ppoe_core.robot.urdf import parse_urdf
@@ -156,7 +157,7 @@ def _check_one(bag: str, model: str) -> list[CheckRow]:
     rows = _measurement_stamps(data)
     _time_rows(out, data, rows)
     if rows.size and len(data.joint_states):
-        _stop_rows(out, data, robot, cfg, rows, needed)
+        _stop_rows(out, data, robot, cfg, rows, identifiability)
     return out.rows
 
 
@@ -374,7 +375,7 @@ def offset_identifiability(robot: Robot, q: dict[str, np.ndarray], links: list[s
     return out
 
 
-def _stop_rows(out: _Rows, data: Any, robot: Robot, cfg: Any, stamps: np.ndarray, needed: list[str]) -> None:
+def _stop_rows(out: _Rows, data: Any, robot: Robot, cfg: Any, stamps: np.ndarray, identifiability: bool) -> None:
     refl = _reflectors(data)
     links = [t.link for t in cfg.trackers if t.topic in refl] or ([cfg.frames.tool] if cfg.frames.tool else [])
     # the joints that move the measured links; without a tool or tracker link, every joint the bag has
@@ -386,7 +387,7 @@ def _stop_rows(out: _Rows, data: Any, robot: Robot, cfg: Any, stamps: np.ndarray
     out.add("stops", f"{n_stops} stops at rest ({int(still.sum())} of {len(stamps)} measurements)",
             f">= {MIN_STOPS} stops, measured at rest (ppoe diagnose)", "ok" if n_stops >= MIN_STOPS else "FAIL",
             "diagnose")
-    if n_stops < 2:
+    if n_stops < 2 or not identifiability:
         return
     share = {}
     used = [(t.link, np.asarray(t.xyz, float)) for t in cfg.trackers if t.topic in refl]
