@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import BagError
-from ppoe_core.io.bag_joints import joints_at
+from ppoe_core.io.bag_joints import joints_at, moved_joints
 from ppoe_core.io.tag_facts import tag_guesses, tag_sightings
 from ppoe_core.robot.model_init import BagFacts, tie_key
 from ppoe_core.robot.robot_model import Robot
@@ -110,12 +110,14 @@ def reflector_links(data: Any, robot: Robot) -> dict[str, tuple[str | None, tupl
         if good.sum() < MIN_POINTS or not candidates:
             out[topic] = (None, (0.0, 0.0, 0.0), f"only {int(good.sum())} points")
             continue
-        poses = tree.link_poses(joints_at(data, robot, s.stamps[good]), links=candidates)
+        q = joints_at(data, robot, s.stamps[good])
+        poses = tree.link_poses(q, links=candidates)
         sess = sessions_at(data.path, data, s.stamps[good], [f for f, g in zip(s.frame_ids, good) if g])
         fits = {ln: fit_reflector(np.asarray(poses[ln]), s.p[good], sess) for ln in candidates}
         best = min(f.rms for f in fits.values())
         tied = [ln for ln in candidates if fits[ln].rms <= best * TIE_RATIO + 1e-9]
-        link = max(tied, key=lambda ln: tie_key(robot, ln, REFLECTOR_NAME))
+        moved = moved_joints(q)
+        link = max(tied, key=lambda ln: tie_key(robot, ln, REFLECTOR_NAME, moved))
         others = sorted((f.rms, ln) for ln, f in fits.items() if ln not in tied)
         how = (f"its motion fits {int(good.sum())} points to {best * 1e3:.2f} mm RMS"
                + (f"; next: {others[0][1]} {others[0][0] * 1e3:.2f} mm" if others else "")

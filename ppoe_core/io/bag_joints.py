@@ -10,7 +10,11 @@ import numpy as np
 from ppoe_core.model.context import sample_series
 from ppoe_core.robot.robot_model import Robot
 
-__all__ = ["joints_at"]
+__all__ = ["joints_at", "moved_joints", "MOVED"]
+
+#: a joint whose values span less than this [rad or m] did not move (1 mrad: above encoder noise, below any pose
+#: change that matters)
+MOVED = 1e-3
 
 
 def joints_at(data: Any, robot: Robot, stamps: np.ndarray) -> dict[str, np.ndarray]:
@@ -25,3 +29,8 @@ def joints_at(data: Any, robot: Robot, stamps: np.ndarray) -> dict[str, np.ndarr
         good = np.isfinite(col)
         out[jn] = sample_series(js.stamps[order][good], col[good], stamps)
     return out
+
+
+def moved_joints(q: dict[str, np.ndarray]) -> set[str]:
+    """The joints of ``q`` (name -> values) whose values span more than :data:`MOVED`."""
+    return {j for j, v in q.items() if v.size and float(np.nanmax(v) - np.nanmin(v)) > MOVED}

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.errors import BagError
-from ppoe_core.io.bag_joints import joints_at
+from ppoe_core.io.bag_joints import joints_at, moved_joints
 from ppoe_core.robot.model_init import tie_key
 from ppoe_core.robot.robot_model import Robot
 from ppoe_core.robot.tree import KinematicTree
@@ -139,7 +139,8 @@ def tag_guesses(data: Any, robot: Robot, sightings: dict[int, TagSightings]) -> 
                    else f"seen {len(s.stamps)} times")
             out[tag] = TagGuess(None, (0.0, 0.0, 0.0), None, why)
             continue
-        poses = tree.link_poses(joints_at(data, robot, s.stamps), links=[*links, s.frame])
+        q = joints_at(data, robot, s.stamps)
+        poses = tree.link_poses(q, links=[*links, s.frame])
         T_cam_root = np.linalg.inv(np.asarray(poses[s.frame]))
         fits = {ln: fit_tag_point(T_cam_root @ np.asarray(poses[ln]), s.centre) for ln in links if ln != s.frame}
         best = min(f[1] for f in fits.values())
@@ -147,7 +148,8 @@ def tag_guesses(data: Any, robot: Robot, sightings: dict[int, TagSightings]) -> 
             out[tag] = TagGuess(None, (0.0, 0.0, 0.0), None, "no link puts it in front of the camera")
             continue
         tied = [ln for ln, f in fits.items() if f[1] <= best * TIE_RATIO + 1e-12]
-        link = max(tied, key=lambda ln: tie_key(robot, ln, TAG_NAME))
+        moved = moved_joints(q)
+        link = max(tied, key=lambda ln: tie_key(robot, ln, TAG_NAME, moved))
         x, rms, depth = fits[link]
         others = sorted((f[1], ln) for ln, f in fits.items() if ln not in tied)
         how = (f"{len(s.stamps)} sightings fit to {rms * 1e3:.2f} mrad RMS"

@@ -13,7 +13,7 @@ on the joint that mounts it), ``imus`` from ``/imu/<name>`` frames and the ids o
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 
 from ppoe_core.robot.robot_model import Robot
@@ -162,12 +162,13 @@ def guess_frames(robot: Robot) -> tuple[str, str, list[str]]:
     return robot.root, tool, [ln for ln in leaves if ln != tool]
 
 
-def tie_key(robot: Robot, link: str, name: re.Pattern) -> tuple[bool, bool, int, int]:
-    """Order of links that explain a sensor equally (rigidly joined, or joined by a joint that did not move): a
-    name like the sensor's, a tool-like name (:data:`TOOL_NAME`), fewer movable joints
-    above it (not a finger that happened to rest), then deeper."""
+def tie_key(robot: Robot, link: str, name: re.Pattern, moved: Collection[str]) -> tuple[bool, bool, int, int, int]:
+    """Order of links that explain a sensor equally (rigidly joined, or joined by joints that hardly moved): a name
+    like the sensor's, a tool-like name (:data:`TOOL_NAME`), more of the joints that ``moved`` in the data above it
+    (the sensor rides after them), fewer resting movable joints (not a finger that happened to rest), deeper."""
     path = robot.path_from_root(link)
-    return (bool(name.search(link)), bool(TOOL_NAME.search(link)), -sum(robot.joints[j].movable for j in path),
+    resting = sum(robot.joints[j].movable and j not in moved for j in path)
+    return (bool(name.search(link)), bool(TOOL_NAME.search(link)), sum(j in moved for j in path), -resting,
             len(path))
 
 
