@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ppoe_core.cli.check import print_failures
 from ppoe_core.cli.checks import check_diagnose_inputs, float_range, int_range
 
 __all__ = ["add_arguments", "run"]
@@ -109,6 +110,7 @@ def _run(args: argparse.Namespace, tick: Any) -> int:
     from ppoe_core.cli.output import prepare_out_dir
 
     check_diagnose_inputs(args)  # every bag before the fit: readable, not twice, one robot (cli/checks.py)
+    print_failures("diagnose", [*args.bags, *args.test], args.model)  # ppoe check's FAIL lines first (cli/check.py)
     if args.out:  # checked before the run, not after it
         prepare_out_dir(args.out)
     done = diagnose_bags(args.bags, args.model, args.test, options(args), LoadOptions(

@@ -19,6 +19,7 @@ from typing import Any
 
 import yaml
 
+from ppoe_core.cli.check import print_failures
 from ppoe_core.cli.checks import check_online_entries, float_range, int_range
 from ppoe_core.errors import ModelConfigError
 
@@ -112,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
     from ppoe_core.cli.output import prepare_out_dir, release_out_dir
 
     online = bool(args.online or args.online_config or args.truth)
+    print_failures("evaluate", [args.bag], args.model)  # ppoe check's FAIL lines first (cli/check.py)
     if args.out:  # checked before the run, not after it
         prepare_out_dir(args.out, kind="evaluate --online" if online else "evaluate")
     try:

@@ -22,6 +22,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("ppoe_core.cli.evaluate", "replay a bag offline: FK vs PPOE-fused vs naive-fused error"),
     "diagnose": ("ppoe_core.cli.diagnose", "find systematic effects the model lacks and add them"),
     "plan": ("ppoe_core.cli.plan", "choose calibration poses before recording (D-optimal, predicted CIs)"),
+    "init": ("ppoe_core.cli.init", "write a first, commented model YAML from a URDF (and a bag)"),
+    "check": ("ppoe_core.cli.check", "compare bags with a model: topics, joints, frames, stops, identifiable effects"),
     "urdf": ("ppoe_core.cli.urdf", "make a URDF (from-dh: from a Denavit-Hartenberg table)"),
     "import": ("ppoe_core.cli.importer", "turn measured datasets (hilti, motoman, csv) into contract bags"),
     "play": ("ppoe_ros.cli.play", "publish a recorded bag onto live ROS 2 topics"),
