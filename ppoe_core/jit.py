@@ -28,6 +28,7 @@ from __future__ import annotations
 import functools
 import logging
 import sys
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -43,6 +44,10 @@ _BOUND: dict[str, str] = {}
 _AOT: dict[str, Callable[..., Any]] = {}
 #: modules being bound now (a module holding kernels of a module that holds kernels of it)
 _BINDING: set[str] = set()
+#: held while a module is bound: another thread's first call of one of its kernels waits for the binding to end
+#: (it read ``_BINDING`` and went on before ``_BOUND`` was set: a KeyError in evaluate's tag threads); re-entrant,
+#: because binding a module binds the modules whose kernels it holds, in the same thread
+_BIND_LOCK = threading.RLock()
 #: set once the compile log is attached to numba
 _WATCHING: list[bool] = []
 #: module name -> {global name: Kernel} as first seen (the globals are then replaced by their bindings)
@@ -115,7 +120,7 @@ def bound(kernel: Any) -> Callable[..., Any]:
     module = kernel.py_func.__module__
     if module not in _BOUND:
         bind(module)
-    if _BOUND[module] == "aot" and kernel.key in _AOT:
+    if _BOUND.get(module) == "aot" and kernel.key in _AOT:
         return _AOT[kernel.key]
     return kernel.jit()
 
@@ -124,16 +129,17 @@ def bind(module: str, jit: bool = False) -> None:
     """Bind the kernels held by ``module`` (module docstring): to the ahead-of-time functions where there are some
     and ``jit`` is False (the others stay :class:`Kernel` objects until called), else to numba dispatchers (the
     modules whose kernels it holds first)."""
-    held = _held(module)
-    aot = not jit and any(k.key in _AOT for k in held.values())
-    mode = "aot" if aot else "jit"
-    if module in _BINDING or _BOUND.get(module) == mode or _BOUND.get(module) == "jit":
-        return
-    _BINDING.add(module)
-    try:
-        _bind(module, aot)
-    finally:
-        _BINDING.discard(module)
+    with _BIND_LOCK:
+        held = _held(module)
+        aot = not jit and any(k.key in _AOT for k in held.values())
+        mode = "aot" if aot else "jit"
+        if module in _BINDING or _BOUND.get(module) == mode or _BOUND.get(module) == "jit":
+            return
+        _BINDING.add(module)
+        try:
+            _bind(module, aot)
+        finally:
+            _BINDING.discard(module)
 
 
 def _held(module: str) -> dict[str, Kernel]:
