@@ -241,7 +241,10 @@ class Problem:
                 b.set_nuisance_state(st)
             if kept and self.loss == "linear":  # the kept Jacobian is off here: linearise at this point
                 sys, kept = self.system(effects, effects, rewhiten=False), False
+                # the cost of this point in the new linearisation: the nuisances' linear best depends on their
+                # Jacobian, so the kept one's cost is not what the fresh trials are to be compared with
                 full = sys.full()
+                cost = full.ee
                 continue
             lam = max(10.0 * lam, 1e-3)
             if lam > 1e8:
