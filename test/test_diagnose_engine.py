@@ -165,6 +165,29 @@ def test_batched_segments_equal_the_dense_fit_with_an_inactive_column_and_an_und
     assert full.ee - float(th @ full.b) == pytest.approx(float(np.sum((e - A @ x) ** 2)), rel=1e-9)
 
 
+def test_a_refit_at_its_minimum_takes_no_step(robot):
+    """A refit started at its minimum stops at once: the undamped step is below the tolerance, so no trial is
+    evaluated and the values stay exactly as they were (the solver's stopping rule, solver._small; before it, that
+    step was taken and evaluated)."""
+    truth = [make_effect("gravity_compliance", "joint_2", robot, [3e-4]),
+             make_effect("link_error", "joint_5", robot, [0.004, -0.003, 0.002, 0.02, -0.015, 0.01])]
+    tree = KinematicTree(robot)
+    pr = Problem([TrackerBlock(tree, _synthetic(robot, truth, n=120, sessions=3, seed=5))])
+    start = [make_effect("gravity_compliance", "joint_2", robot, [0.0]),
+             make_effect("link_error", "joint_5", robot, np.zeros(6))]
+    pr.system(start, start)  # the whitening
+    fit = pr.refit(start)
+    assert fit.converged and fit.iterations > 1
+    for _ in range(5):  # (a refit that stopped on a negligible cost change may still take a step next time)
+        prev, fit = fit, pr.refit(fit.effects)
+        if fit.iterations == 1:
+            break
+    assert fit.converged and fit.iterations == 1
+    for a, b in zip(prev.effects, fit.effects):
+        np.testing.assert_array_equal(a.params, b.params)
+    np.testing.assert_allclose(fit.effects[0].params, [3e-4], rtol=0.1)
+
+
 def test_confidence_intervals_cover_monte_carlo(robot):
     """Seeded Monte Carlo of the one covariance routine (mount bending, 60 stops, registration eliminated): the
     95 % intervals cover the truth about 95 % of the time, in both kinds (s^2 H^-1 and the pose-clustered
