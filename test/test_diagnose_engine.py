@@ -131,6 +131,63 @@ def test_schur_fold_equals_the_dense_fit_and_held_out_protocol():
         assert r[i] == pytest.approx(sys.e[j] - sys.G[j] @ th - N[j] @ nu3)
 
 
+def test_batched_segments_equal_the_dense_fit_with_an_inactive_column_and_an_undetermined_segment():
+    """The segments' eliminations, batched per nuisance set (:class:`SegmentBatch`), give the dense least squares
+    with a nuisance per segment: a segment whose second nuisance column is zero (a placement's tilt fixed by
+    definition) keeps only its first; a segment with fewer components than nuisances is not determined (its
+    components fit the effects alone, no nuisance); the nuisance step of a fit is each segment's least squares of
+    its residual."""
+    rng = np.random.default_rng(7)
+    sys, seg, N = _random_system(rng, n_seg=5, m=10, C=3, k=2)
+    N[seg == 1, 1] = 0.0  # inactive column in segment 1
+    few = np.flatnonzero(seg == 4)[1:]  # segment 4 keeps one component: 2 nuisances undetermined
+    keep = np.setdiff1d(np.arange(seg.size), few)
+    e, G, N, seg = sys.e[keep], sys.G[keep], N[keep], seg[keep]
+    n = seg.size
+    sys = LinearSystem(e, G, sys.cols, np.arange(n) // 3, (n - 1) // 3 + 1, np.zeros(n, dtype=int),
+                       np.ones(n, dtype=bool), np.ones(n, dtype=bool), [NuisanceSet(np.arange(n), N, seg, 0, 5)])
+    cols = np.arange(3)
+    th = sys.full().fit(cols, ridge=0.0)
+    blocks = [np.where((seg == s)[:, None], N, 0.0)[:, [0] if s == 1 else [0, 1]] for s in range(4)]
+    A = np.concatenate([G, *blocks], axis=1)
+    x = np.linalg.lstsq(A, e, rcond=None)[0]
+    np.testing.assert_allclose(th, x[:3], rtol=1e-8)
+    step = sys.nuisance_step(th, cols)[0]
+    r = e - G @ th
+    for s in range(4):
+        m = seg == s
+        Ns = N[m][:, :1] if s == 1 else N[m]
+        want = np.linalg.lstsq(Ns, r[m], rcond=None)[0]
+        np.testing.assert_allclose(step[s, :want.size], want, rtol=1e-8, atol=1e-12)
+    assert step[1, 1] == 0.0 and np.all(step[4] == 0.0)
+    # the reduced cost: the dense residual's sum of squares
+    full = sys.full()
+    assert full.ee - float(th @ full.b) == pytest.approx(float(np.sum((e - A @ x) ** 2)), rel=1e-9)
+
+
+def test_a_refit_at_its_minimum_takes_no_step(robot):
+    """A refit started at its minimum stops at once: the undamped step is below the tolerance, so no trial is
+    evaluated and the values stay exactly as they were (the solver's stopping rule, solver._small; before it, that
+    step was taken and evaluated)."""
+    truth = [make_effect("gravity_compliance", "joint_2", robot, [3e-4]),
+             make_effect("link_error", "joint_5", robot, [0.004, -0.003, 0.002, 0.02, -0.015, 0.01])]
+    tree = KinematicTree(robot)
+    pr = Problem([TrackerBlock(tree, _synthetic(robot, truth, n=120, sessions=3, seed=5))])
+    start = [make_effect("gravity_compliance", "joint_2", robot, [0.0]),
+             make_effect("link_error", "joint_5", robot, np.zeros(6))]
+    pr.system(start, start)  # the whitening
+    fit = pr.refit(start)
+    assert fit.converged and fit.iterations > 1
+    for _ in range(5):  # (a refit that stopped on a negligible cost change may still take a step next time)
+        prev, fit = fit, pr.refit(fit.effects)
+        if fit.iterations == 1:
+            break
+    assert fit.converged and fit.iterations == 1
+    for a, b in zip(prev.effects, fit.effects):
+        np.testing.assert_array_equal(a.params, b.params)
+    np.testing.assert_allclose(fit.effects[0].params, [3e-4], rtol=0.1)
+
+
 def test_confidence_intervals_cover_monte_carlo(robot):
     """Seeded Monte Carlo of the one covariance routine (mount bending, 60 stops, registration eliminated): the
     95 % intervals cover the truth about 95 % of the time, in both kinds (s^2 H^-1 and the pose-clustered

@@ -26,6 +26,17 @@ __all__ = ["assign_folds", "Linearised", "Identifiability"]
 _NONE, _NONE_F = np.zeros(0, dtype=int), np.zeros(0)
 
 
+def _scaled_quotient(h: np.ndarray, g: np.ndarray, ridge: float = 1e-10) -> np.ndarray:
+    """:func:`~ppoe_core.analysis.diagnose.linsys.solve_scaled` of many one-column systems ``h x = g`` (h, g: (m,))
+    at once, the same arithmetic elementwise: ``x = (g / d) / (h / d / d + ridge) / d`` with ``d = sqrt(h)``, 0
+    where ``h`` is not positive (no information)."""
+    d = np.sqrt(np.maximum(h, 0.0))
+    act = d > 0.0
+    da = np.where(act, d, 1.0)
+    x = (g / da) / (h / da / da + ridge) / da
+    return np.where(act, x, 0.0)
+
+
 def assign_folds(unit_group: np.ndarray, mode: str, folds: int, seed: int) -> tuple[str, np.ndarray]:
     """Fold of every unit: ``mode`` ``auto`` (``groups`` with >= 3 groups, else ``stops``), ``groups`` (one fold per
     group) or ``stops`` (``folds`` seeded folds over the units of each group).  Returns the mode used and the fold
@@ -148,17 +159,43 @@ class Linearised:
         """All-data linear fit: the model's values (current + step, in column order), their covariance
         ``s^2 H^-1`` and ``s^2`` (reduced SSR per degree of freedom)."""
         cols = self.columns(model)
+        step, s2 = self._fit_step(cols)
+        H = self.all.H[cols[:, None], cols]
+        cov = s2 * np.linalg.pinv(H) if cols.size else np.zeros((0, 0))
+        return self.theta[cols] + step, cov, s2
+
+    def term_fit(self, model: Sequence[Term], term: Term) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`fit` of ``model`` plus ``term``, of ``term``'s components only: their values and standard
+        deviations (the variance from the Schur complement of ``model``'s information, whose inverse is computed
+        once per model)."""
+        m_cols, t_cols = self.columns(model), self.columns([term])
+        cols = np.concatenate([m_cols, t_cols])
+        step, s2 = self._fit_step(cols)
+        H = self.all.H
+        S = H[t_cols[:, None], t_cols]
+        if m_cols.size:
+            HmT = H[m_cols[:, None], t_cols]
+            S = S - HmT.T @ self._model_pinv(m_cols) @ HmT
+        var = s2 * np.diag(np.linalg.pinv(S))
+        return (self.theta[cols] + step)[m_cols.size:], np.sqrt(np.maximum(var, 0.0))
+
+    def _fit_step(self, cols: np.ndarray) -> tuple[np.ndarray, float]:
+        """The all-data step on ``cols`` (the other columns' values undone) and ``s^2``."""
         fixed, fv = self._fixed(cols)
         step = self.all.fit(cols, fixed, fv)
-        H = self.all.H[cols[:, None], cols]
         b = self.all.b[cols] - (self.all.H[cols[:, None], fixed] @ fv if fixed.size else 0.0)
         ee = self.all.ee - 2.0 * float(self.all.b[fixed] @ fv) + float(fv @ self.all.H[fixed[:, None], fixed] @ fv) \
             if fixed.size else self.all.ee
         ssr = max(ee - float(step @ b), 0.0)
         dof = max(self.sys.e.size - cols.size - self._n_nuisance(), 1)
-        s2 = ssr / dof
-        cov = s2 * np.linalg.pinv(H) if cols.size else np.zeros((0, 0))
-        return self.theta[cols] + step, cov, s2
+        return step, ssr / dof
+
+    def _model_pinv(self, cols: np.ndarray) -> np.ndarray:
+        """``pinv`` of the information of the columns ``cols`` (cached per model)."""
+        key = ("pinv", *cols.tolist())
+        if key not in self._cache:  # one per model: every candidate of a round asks for it
+            self._cache[key] = np.linalg.pinv(self.all.H[cols[:, None], cols])
+        return self._cache[key]
 
     def ssr(self, model: Sequence[Term]) -> float:
         """In-sample reduced sum of squares of ``model`` (screening; cached per model)."""
@@ -184,7 +221,9 @@ class Linearised:
         H = self.all.H
         base = self.ssr(model)
         out = np.full(len(terms), base)
-        own = [np.setdiff1d(self.columns([t]), cols) for t in terms]
+        in_model = np.zeros(H.shape[0], dtype=bool)
+        in_model[cols] = True
+        own = [np.unique(c[~in_model[c]]) for c in (self.columns([t]) for t in terms)]
         need = np.unique(np.concatenate(own)) if own else np.zeros(0, dtype=int)
         if not need.size:
             return out
@@ -193,17 +232,19 @@ class Linearised:
         bU, bc = b[:need.size], b[need.size:]
         S, g = H[need[:, None], need], bU
         if cols.size:
-            key = ("pinv", *cols.tolist())
-            if key not in self._cache:  # one per model: every multi-component candidate of a round asks for it
-                self._cache[key] = np.linalg.pinv(H[cols[:, None], cols])
-            P = self._cache[key]
+            P = self._model_pinv(cols)
             HcU = H[cols[:, None], need]
             S = S - HcU.T @ P @ HcU
             g = bU - HcU.T @ (P @ bc)
-        pos = {int(c): i for i, c in enumerate(need)}
+        pos = np.zeros(H.shape[0], dtype=int)
+        pos[need] = np.arange(need.size)
+        one = np.array([c.size == 1 for c in own], dtype=bool)
+        if one.any():  # one new column: solve_scaled's arithmetic elementwise
+            i = pos[np.array([c[0] for c, o in zip(own, one) if o], dtype=int)]
+            out[one] = base - g[i] * _scaled_quotient(np.diag(S)[i], g[i])
         for k, c in enumerate(own):
-            if c.size:
-                i = np.array([pos[int(x)] for x in c])
+            if c.size > 1:
+                i = pos[c]
                 out[k] = base - float(g[i] @ solve_scaled(S[i[:, None], i], g[i]))
         return out
 
@@ -240,8 +281,11 @@ class Linearised:
                 self._cache[key] = V[:, keep] / np.sqrt(lam[keep]) / dm[:, None]  # W: W^T Hmm W = I
             W = self._cache[key]
             R = W.T @ H[m_cols[:, None], n_cols] / d[None, :]
-            r = R.shape[0]
-            M = np.block([[np.eye(r), R], [R.T, M]])
+            r, p = R.shape
+            full = np.zeros((r + p, r + p))
+            full[np.arange(r), np.arange(r)] = 1.0
+            full[:r, r:], full[r:, :r], full[r:, r:] = R, R.T, M
+            M = full
         ev = np.linalg.eigvalsh(M)
         return float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
 

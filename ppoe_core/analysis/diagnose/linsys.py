@@ -22,8 +22,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy import sparse
 
-__all__ = ["NuisanceSet", "BlockPart", "LinearSystem", "Fold", "FoldStack", "solve_scaled"]
+__all__ = ["NuisanceSet", "SegmentBatch", "BlockPart", "LinearSystem", "Fold", "FoldStack", "solve_scaled"]
 
 #: a segment's nuisance is determined when its information's smallest scaled eigenvalue exceeds this
 MIN_NUISANCE_EIG = 1e-9
@@ -62,6 +63,79 @@ class BlockPart:
 
 
 @dataclass
+class SegmentBatch:
+    """The segments of one :class:`NuisanceSet`, their eliminations batched: segment ids ``ids`` (S,), each one's
+    positions ``pos`` in the set, the sparse map ``P`` (S k, n) of a system vector to every segment's ``N_s^T v_s``,
+    per segment the active nuisance columns ``act`` (S, k), whether it is determined ``det`` (S,), ``A_s^-1`` (S, k,
+    k; zero where not determined), ``M_s = N_s^T G_s`` (S, k, C) and ``A_s^-1 M_s``."""
+
+    set_index: int
+    ids: np.ndarray
+    pos: list[np.ndarray]
+    P: sparse.csr_matrix
+    act: np.ndarray
+    det: np.ndarray
+    A_inv: np.ndarray
+    M: np.ndarray
+    AM: np.ndarray
+
+    @classmethod
+    def build(cls, ns: NuisanceSet, set_index: int, G: np.ndarray) -> SegmentBatch:
+        """The batch of ``ns`` with the system's columns ``G`` (n, C)."""
+        k = ns.N.shape[1]
+        order = np.argsort(ns.seg, kind="stable")
+        ids, starts = np.unique(ns.seg[order], return_index=True)
+        S = ids.size
+        pos = np.split(order, starts[1:]) if order.size else []
+        slot = np.repeat(np.arange(S), np.diff(np.append(starts, order.size)))  # segment slot of each sorted row
+        Ns = ns.N[order]
+        P = sparse.csr_matrix((Ns.reshape(-1), ((slot[:, None] * k + np.arange(k)).reshape(-1),
+                                                 np.repeat(ns.idx[order], k))), shape=(S * k, G.shape[0]))
+        A = np.add.reduceat(Ns[:, :, None] * Ns[:, None, :], starts, axis=0) if S else np.zeros((0, k, k))
+        norm = np.sqrt(np.maximum(np.einsum("sii->si", A), 0.0))
+        act = norm > 1e-12 * np.maximum(norm.max(axis=1, keepdims=True), 1e-300)
+        A_inv, det = _nuisance_inverses(A, act, np.diff(np.append(starts, order.size)), [ns.N[p] for p in pos])
+        M = np.asarray(P @ G).reshape(S, k, G.shape[1])
+        return cls(set_index, ids, pos, P, act, det, A_inv, M, A_inv @ M)
+
+    def project(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per segment ``g_s = N_s^T v_s`` (S, k) and ``A_s^-1 g_s`` (zero where not determined) of a system vector
+        ``v`` (n,)."""
+        g = np.asarray(self.P @ v).reshape(self.ids.size, -1)
+        return g, np.einsum("sij,sj->si", self.A_inv, g)
+
+
+def _flat(M: np.ndarray) -> np.ndarray:
+    """(S, k, C) -> (S k, C) (also when empty)."""
+    return M.reshape(M.shape[0] * M.shape[1], M.shape[2])
+
+
+def _nuisance_inverses(A: np.ndarray, act: np.ndarray, counts: np.ndarray, Ns: Sequence[np.ndarray]
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_nuisance_inverse` of every segment's information ``A`` (S, k, k) with active columns ``act`` (S, k)
+    and ``counts`` rows: the inverses (zero where not determined) and which are determined (the segments with all
+    columns active batched; the others, and any that fails, one by one from their rows ``Ns``)."""
+    S, k = act.shape
+    A_inv, det = np.zeros((S, k, k)), np.zeros(S, dtype=bool)
+    full = act.all(axis=1) & (counts >= k)
+    if full.any():
+        Af = A[full]
+        d = np.sqrt(np.maximum(np.einsum("sii->si", Af), 1e-300))
+        ev = np.linalg.eigvalsh(Af / d[:, :, None] / d[:, None, :])
+        ok = ev[:, 0] > MIN_NUISANCE_EIG * np.maximum(ev[:, -1], 1e-300)
+        idx = np.flatnonzero(full)
+        if ok.any():
+            A_inv[idx[ok]] = np.linalg.inv(Af[ok])
+            det[idx[ok]] = True
+        full[idx[~ok]] = True  # not determined: the one-by-one check would say the same
+    for s in np.flatnonzero(~full).tolist():
+        inv = _nuisance_inverse(Ns[s], act[s])
+        if inv is not None:
+            A_inv[s], det[s] = inv, True
+    return A_inv, det
+
+
+@dataclass
 class LinearSystem:
     """Whitened components of all blocks (module docstring).
 
@@ -91,7 +165,8 @@ class LinearSystem:
     parts: list[BlockPart] = field(default_factory=list)
     _gramG: np.ndarray | None = field(default=None, init=False, repr=False)
     _gram_cache: tuple[np.ndarray, np.ndarray, float] | None = field(default=None, init=False, repr=False)
-    _schur_cache: tuple[np.ndarray, list[tuple], np.ndarray] | None = field(default=None, init=False, repr=False)
+    _schur_cache: tuple[np.ndarray, list[tuple], np.ndarray, list[SegmentBatch]] | None = field(
+        default=None, init=False, repr=False)
     _reduced_cache: tuple[np.ndarray, np.ndarray, float, list[tuple], np.ndarray] | None = field(
         default=None, init=False, repr=False)
     _absorbed: np.ndarray | None = field(default=None, init=False, repr=False)
@@ -123,33 +198,32 @@ class LinearSystem:
         return LinearSystem(self.e, self.G[:, columns], [slice(int(a), int(b)) for a, b in zip(ends[:-1], ends[1:])],
                             self.unit, self.n_units, self.group, self.reg, self.score, self.nuisances, self.parts)
 
-    def _schur(self) -> tuple[np.ndarray, list[tuple], np.ndarray]:
+    def _schur(self) -> tuple[np.ndarray, list[tuple], np.ndarray, list[SegmentBatch]]:
         """What the nuisance elimination needs that does not depend on the residual: ``G^T G - sum_s M_s^T A_s^-1
         M_s``, per segment ``(components, N, active columns, A^-1 (None: not determined), M, A^-1 M, nuisance set,
-        segment id)``, and the mask of components in a segment (computed once)."""
+        segment id)``, the mask of components in a segment and the segments of each nuisance set batched
+        (:class:`SegmentBatch`; computed once)."""
         if self._schur_cache is None:
             if self._gramG is None:
                 self._gramG = self.G.T @ self.G
             H = self._gramG.copy()
             terms: list[tuple] = []
-            for k, ns in enumerate(self.nuisances):
-                order = np.argsort(ns.seg, kind="stable")
-                ids, starts = np.unique(ns.seg[order], return_index=True)
-                for sid, pos in zip(ids, np.split(order, starts[1:]) if order.size else []):
+            batches = [SegmentBatch.build(ns, k, self.G) for k, ns in enumerate(self.nuisances)]
+            for bt in batches:
+                if bt.det.any():
+                    Md, AMd = bt.M[bt.det], bt.AM[bt.det]
+                    H -= _flat(Md).T @ _flat(AMd)
+                ns = self.nuisances[bt.set_index]
+                for s, (sid, pos) in enumerate(zip(bt.ids, bt.pos)):
                     rows, N = ns.idx[pos], ns.N[pos]
-                    act = _active(N)
-                    A_inv = _nuisance_inverse(N, act)
-                    if A_inv is None:
-                        terms.append((rows, N, act, None, None, None, k, int(sid)))
-                        continue
-                    M = N.T @ self.G[rows]
-                    AM = A_inv @ M
-                    H -= M.T @ AM
-                    terms.append((rows, N, act, A_inv, M, AM, k, int(sid)))
+                    if not bt.det[s]:
+                        terms.append((rows, N, bt.act[s], None, None, None, bt.set_index, int(sid)))
+                    else:
+                        terms.append((rows, N, bt.act[s], bt.A_inv[s], bt.M[s], bt.AM[s], bt.set_index, int(sid)))
             in_seg = np.zeros(self.e.size, dtype=bool)
             for t in terms:
                 in_seg[t[0]] = True
-            self._schur_cache = (H, terms, in_seg)
+            self._schur_cache = (H, terms, in_seg, batches)
         return self._schur_cache
 
     def _reduced(self) -> tuple[np.ndarray, np.ndarray, float, list[tuple], np.ndarray]:
@@ -158,18 +232,24 @@ class LinearSystem:
         fold only corrects the segments it touches)."""
         if self._reduced_cache is None:
             _, gb, gee = self._gram()
-            H, sterms, in_seg = self._schur()
+            H, sterms, in_seg, batches = self._schur()
             b, ee = gb.copy(), gee
+            gs: list[np.ndarray] = []
+            Ags: list[np.ndarray] = []
+            for bt in batches:
+                g, Ag = bt.project(self.e)
+                if bt.det.any():
+                    Md = bt.M[bt.det]
+                    b -= _flat(Md).T @ Ag[bt.det].reshape(-1)
+                    ee -= float(np.sum(g[bt.det] * Ag[bt.det]))
+                gs.extend(g)
+                Ags.extend(Ag)
             terms: list[tuple] = []
-            for rows, N, act, A_inv, M, AM, _, _ in sterms:
+            for (rows, N, act, A_inv, M, AM, _, _), g, Ag in zip(sterms, gs, Ags):
                 if A_inv is None:
                     terms.append((rows, N, act, None, None, None, None, None))
-                    continue
-                g = N.T @ self.e[rows]
-                Ag = A_inv @ g
-                b -= M.T @ Ag
-                ee -= float(g @ Ag)
-                terms.append((rows, N, act, A_inv, M, g, AM, Ag))
+                else:
+                    terms.append((rows, N, act, A_inv, M, g, AM, Ag))
             self._reduced_cache = (H, b, ee, terms, in_seg)
         return self._reduced_cache
 
@@ -302,9 +382,9 @@ class LinearSystem:
         ``columns`` (all components)."""
         r = self.e - self.G[:, columns] @ dtheta
         steps = [np.zeros((ns.n_segments, ns.N.shape[1])) for ns in self.nuisances]
-        for rows, N, _act, A_inv, _M, _AM, k, sid in self._schur()[1]:
-            if A_inv is not None:
-                steps[k][sid] = A_inv @ (N.T @ r[rows])
+        for bt in self._schur()[3]:
+            _, Ag = bt.project(r)
+            steps[bt.set_index][bt.ids[bt.det]] = Ag[bt.det]
         return {ns.block: st for ns, st in zip(self.nuisances, steps)}
 
 

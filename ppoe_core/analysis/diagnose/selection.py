@@ -129,6 +129,8 @@ class Selector:
         self.allowed: set[int] | None = None  #: forward candidates of the current phase (None: all)
         self._lin: Linearised | None = None
         self._variance: dict[tuple[Term, ...], float] = {}
+        #: :meth:`admissible` per (model, term) at the current linearisation: the term and the reasons it records
+        self._admissible: dict[tuple, tuple[Term | None, dict[str, str], dict[str, str]]] = {}
 
     @property
     def lin(self) -> Linearised | None:
@@ -136,7 +138,7 @@ class Selector:
 
     @lin.setter
     def lin(self, value: Linearised | None) -> None:
-        self._lin, self._variance = value, {}
+        self._lin, self._variance, self._admissible = value, {}, {}
 
     # -- scoring --------------------------------------------------------------------------------------
     def kappa(self, d: np.ndarray) -> float:
@@ -184,15 +186,34 @@ class Selector:
     def admissible(self, model: tuple[Term, ...], term: Term, record: bool = True) -> Term | None:
         """``term`` reduced to what can be identified with ``model`` (components taken one by one, those that
         explain the most in-sample first, each kept if still identifiable: of a far camera's nearly equivalent
-        shift and turn, the one the data show) and physically signed; None (reason recorded) if nothing is left."""
+        shift and turn, the one the data show) and physically signed; None (reason recorded) if nothing is left.
+        Computed once per model and term at a linearisation (the selection asks again for the same ones: the
+        backward pass after each step, the next round's additions)."""
+        key = (tuple(model), term)
+        if key not in self._admissible:
+            saved = self.rejected
+            self.rejected = {}
+            try:
+                notes: dict[str, str] = {}
+                out = self._reduce(model, term, notes)
+            finally:
+                signed, self.rejected = self.rejected, saved
+            self._admissible[key] = (out, notes, signed)
+        out, notes, signed = self._admissible[key]
+        if record:
+            self.rejected.update(notes)
+        self.rejected.update(signed)  # (the sign check records its reason either way)
+        return out
+
+    def _reduce(self, model: tuple[Term, ...], term: Term, notes: dict[str, str]) -> Term | None:
+        """:meth:`admissible` computed; the reasons of a term left out go to ``notes``."""
         assert self.lin is not None
         o = self.options
         key = self.catalogue.describe(term)
         idf = self.lin.identifiable(model, [term], o.max_condition, o.max_absorbed)
         if not idf.ok:
             if len(term.comps) == 1 or "act" in idf.reason:
-                if record:
-                    self.rejected[key] = idf.reason
+                notes[key] = idf.reason
                 return None
             keep: list[int] = []
             singles = [Term(term.cand, (c,)) for c in term.comps]  # the components that explain most go first
@@ -202,8 +223,7 @@ class Selector:
                 if self.lin.identifiable(model, [trial], o.max_condition, o.max_absorbed).ok:
                     keep.append(c)
             if not keep:
-                if record:
-                    self.rejected[key] = idf.reason
+                notes[key] = idf.reason
                 return None
             term = Term(term.cand, tuple(sorted(keep)))
         return self._signed(model, term)
@@ -214,11 +234,9 @@ class Selector:
         eff = self.catalogue.effect(term)
         if not eff.nonnegative:
             return term
-        values, cov, _ = self.lin.fit([*model, term])
-        k0 = self.catalogue.n_params(model)
-        sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        values, sd = self.lin.term_fit(model, term)
         bad = [c for i, c in enumerate(term.comps)
-               if eff.param_names[i] in eff.nonnegative and values[k0 + i] + 1.96 * sd[k0 + i] < 0.0]
+               if eff.param_names[i] in eff.nonnegative and values[i] + 1.96 * sd[i] < 0.0]
         if not bad:
             return term
         keep = tuple(c for c in term.comps if c not in bad)

@@ -220,6 +220,9 @@ class Problem:
             if lam:
                 H[np.diag_indices_from(H)] *= 1.0 + lam
             step = solve_scaled(H, full.b)
+            if not lam and step.size and _small(step, full.H):
+                converged = True  # the undamped step is below the tolerance: evaluating it would change nothing
+                break
             saved = [b.nuisance_state() for b in self.blocks]
             for i, d in sys.nuisance_step(step, np.arange(step.size)).items():
                 self.blocks[i].apply_nuisance(d)
@@ -229,8 +232,7 @@ class Problem:
             cost_t = full_t.ee
             gain = (cost - cost_t) / max(cost, 1e-300)
             if gain >= -REL_COST_TOL:  # not worse (up to rounding): take it
-                sd = np.sqrt(np.maximum(np.diag(np.linalg.pinv(full.H)), 1e-300)) if step.size else step
-                small = bool(np.all(np.abs(step) <= STEP_TOL * sd + 1e-15)) or gain <= REL_COST_TOL
+                small = gain <= REL_COST_TOL or ((bool(lam) or not step.size) and _small(step, full.H))
                 effects, sys, full, cost = trial, sys_t, full_t, cost_t
                 lam, kept = (lam / 10.0 if lam > 1e-6 else 0.0), True
                 if small:
@@ -241,12 +243,23 @@ class Problem:
                 b.set_nuisance_state(st)
             if kept and self.loss == "linear":  # the kept Jacobian is off here: linearise at this point
                 sys, kept = self.system(effects, effects, rewhiten=False), False
+                # the cost of this point in the new linearisation: the nuisances' linear best depends on their
+                # Jacobian, so the kept one's cost is not what the fresh trials are to be compared with
                 full = sys.full()
+                cost = full.ee
                 continue
             lam = max(10.0 * lam, 1e-3)
             if lam > 1e8:
                 break
         return Refit(effects, cost, iterations, converged)
+
+
+def _small(step: np.ndarray, H: np.ndarray) -> bool:
+    """Whether every parameter step is below :data:`STEP_TOL` of its standard deviation (``H``: the information)."""
+    if not step.size:
+        return True
+    sd = np.sqrt(np.maximum(np.diag(np.linalg.pinv(H)), 1e-300))
+    return bool(np.all(np.abs(step) <= STEP_TOL * sd + 1e-15))
 
 
 def _stepped(effects: Sequence[Effect], step: np.ndarray) -> list[Effect]:
