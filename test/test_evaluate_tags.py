@@ -1,4 +1,4 @@
-"""``ppoe evaluate``'s tag measurements made on worker threads started before the forward kinematics
+"""``ppoe evaluate``'s tag measurements made by worker processes (or threads) started before the replay
 (``TagStream``), and the garbage collector paused during an evaluation."""
 
 from __future__ import annotations
@@ -30,13 +30,13 @@ def _data(frames: list[np.ndarray], stamps: list[float], camera_frame: str = "ca
 MODEL = SimpleNamespace(config=SimpleNamespace(tags=SimpleNamespace(family="tag36h11")))
 
 
-@pytest.mark.parametrize("workers", [1, 2])
-def test_tag_stream_equals_one_loop_over_the_images(workers):
+@pytest.mark.parametrize("workers,processes", [(1, True), (2, True), (2, False)])
+def test_tag_stream_equals_one_loop_over_the_images(workers, processes):
     frames = _frames(10)
     stamps = [1.0, 1.5, 1.25, 2.0, 2.0, 3.0, 2.5, 4.0, 4.5, 5.0]
     seq, counts = tag_measurements(_data(frames, stamps), MODEL, "bag", workers=1)
     assert counts["images"] == 10 and 0 < counts["images_without_tags"] < 10 and len(seq) < 10
-    stream = TagStream(_data(frames, stamps), MODEL, "bag", workers=workers)
+    stream = TagStream(_data(frames, stamps), MODEL, "bag", workers=workers, processes=processes)
     try:
         assert stream.stamps == stamps
         late = stream.get(6)  # the images up to 6 are read in order
