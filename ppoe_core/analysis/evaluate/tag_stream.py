@@ -41,7 +41,7 @@ def _camera_lookup(data: Any, effects: Any = ()) -> Callable[[str, float], tuple
 
 def load_image_kernels() -> None:
     """Load the compiled kernels the image workers call (PNG unfiltering, the edge fit) in this process: a worker
-    process forked before they are loaded loads them from numba's cache itself, at every evaluation."""
+    process forked before they are loaded loads them from the compile cache itself, at every evaluation."""
     from ppoe_core.io.png_kernel import unfilter_sub
     from ppoe_core.sensing.tags import refine_edges
 
