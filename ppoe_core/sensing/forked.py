@@ -13,14 +13,16 @@ hundred bytes per image) come back pickled through one pipe per worker; image ``
 from __future__ import annotations
 
 import multiprocessing as mp
+import sys
 from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
 from typing import Any
 
 __all__ = ["FORK_AVAILABLE", "ForkedResults"]
 
-#: the fork start method exists here (Linux, macOS); elsewhere the caller uses threads
-FORK_AVAILABLE = "fork" in mp.get_all_start_methods()
+#: forking is used on Linux only (macOS has ``fork`` but its system libraries are not safe in a forked child:
+#: Python's default there is ``spawn``); elsewhere the caller uses threads
+FORK_AVAILABLE = sys.platform.startswith("linux") and "fork" in mp.get_all_start_methods()
 #: seconds a worker may take to stop after :meth:`ForkedResults.close` before it is killed
 _STOP_TIMEOUT_S = 2.0
 
