@@ -8,7 +8,9 @@ rendered, ``/ground_truth/pose`` at ``--gt-rate``.  Then runs the full offline r
 on every image, the PPOE and the naive fusion pipelines, scoring) and, as the baselines measured
 in the same run, only reading the bag (:func:`ppoe_core.io.bagio.read_bag`); then the replay with the tags detected
 in windows the forward kinematics predicts (``--tag-windows``, ``EvaluateOptions(tag_windows=True)``; ``windows_*``
-lines: its speed-up over the default and whether both summaries are equal).
+lines: its speed-up over the default and whether both summaries are equal); then the default replay with the images
+on two threads instead of two worker processes (``EvaluateOptions(image_processes=False)``, third, so warm too:
+``processes_*`` lines, the processes' speed-up over it, and ``threads_same_summary``).
 
 Prints ``name: value unit`` lines, among them ``joint_states_per_s`` and
 ``bag_seconds_per_wall_second`` (wall clock), and the same per second of process CPU time
@@ -137,7 +139,11 @@ def main(argv: list[str] | None = None) -> int:
         t0, c0 = time.perf_counter(), _cpu()
         windows = evaluate_bag(bag, model, EvaluateOptions(progress=False, tag_windows=True))
         t_win, c_win = time.perf_counter() - t0, _cpu() - c0
+        t0, c0 = time.perf_counter(), _cpu()
+        threads = evaluate_bag(bag, model, EvaluateOptions(progress=False, image_processes=False))
+        t_thr, c_thr = time.perf_counter() - t0, _cpu() - c0
         same = _scores(windows.summary) == _scores(ev.summary)
+        same_threads = _scores(threads.summary) == _scores(ev.summary)
         s = ev.summary
         counts = s["methods"]["ppoe"]["measurements"]["counts"]
         print(f"bag_duration: {span:.1f} s")
@@ -162,6 +168,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"windows_speedup_wall: {t_eval / t_win:.2f} x")
         print(f"windows_speedup_cpu: {c_eval / c_win:.2f} x")
         print(f"windows_same_summary: {same}")
+        print(f"evaluate_threads_time: {t_thr:.2f} s")  # third replay: the images on threads, not processes
+        print(f"evaluate_threads_cpu_time: {c_thr:.2f} s")
+        print(f"processes_speedup_wall: {t_thr / t_eval:.2f} x")
+        print(f"processes_speedup_cpu: {c_thr / c_eval:.2f} x")
+        print(f"threads_same_summary: {same_threads}")
         fk, pp = s["methods"]["fk"]["lateral"], s["methods"]["ppoe"]["lateral"]
         print(f"fk_lateral_mean: {1e3 * fk['mean']:.2f} mm")
         print(f"ppoe_lateral_mean: {1e3 * pp['mean']:.2f} mm")

@@ -181,7 +181,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     # the images' tags are detected on worker threads from here on (in windows predicted from the priors' joint
     # states), while the rest is set up
     tags = TagStream(data, model, bag, refine=str(fs["corner_refinement"]),
-                     priors=(pri.stamps, pri.Q) if opt.tag_windows else None)
+                     priors=(pri.stamps, pri.Q) if opt.tag_windows else None, processes=opt.image_processes)
     try:
         contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
         src_meas, src_counts = source_measurements(data, model, opt.sources, bag)
