@@ -81,7 +81,7 @@ class TagStream:
         self._dets: Any = None
         self._camera: Any = None
         self.stamps: list[float] = []
-        #: per detected image (in the order done), True if the windows predicted from ``priors`` gave its tags
+        #: per detected image (in image order), True if the windows predicted from ``priors`` gave its tags
         #: (:func:`ppoe_core.sensing.tag_rows.detect_tags_windowed`), False for the whole image
         self.windowed: list[bool] = []
         cams = _camera_lookup(data, getattr(model, "effects", None) or ())  # no effects: camera_info as recorded
@@ -141,7 +141,7 @@ class TagStream:
         if processes and FORK_AVAILABLE and workers > 1 and len(imgs) > 1:
             load_image_kernels()
             self._dets = ForkedResults(one, len(imgs), workers)
-        else:  # threads: the rows are made by the consumer, and by the workers only here
+        else:  # threads (the rows made on them too: 0.11 ms per image holding the GIL), or the caller alone
             self._dets = ImageDetections(one, len(imgs), workers, len(imgs))
 
     def get(self, k: int) -> Any:
