@@ -83,6 +83,7 @@ setup(
         "matplotlib>=3.7",
         "ruamel.yaml>=0.18",
         "numba>=0.59",
+        "isal>=1.6",  # ISA-L inflate of PNG images (ppoe_core/io/png.py; zlib without it, twice the time)
     ],
     extras_require={
         "ros": [

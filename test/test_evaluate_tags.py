@@ -1,4 +1,4 @@
-"""``ppoe evaluate``'s tag measurements made on worker threads started before the forward kinematics
+"""``ppoe evaluate``'s tag measurements made by worker processes (or threads) started before the replay
 (``TagStream``), and the garbage collector paused during an evaluation."""
 
 from __future__ import annotations
@@ -30,13 +30,13 @@ def _data(frames: list[np.ndarray], stamps: list[float], camera_frame: str = "ca
 MODEL = SimpleNamespace(config=SimpleNamespace(tags=SimpleNamespace(family="tag36h11")))
 
 
-@pytest.mark.parametrize("workers", [1, 2])
-def test_tag_stream_equals_one_loop_over_the_images(workers):
+@pytest.mark.parametrize("workers,processes", [(1, True), (2, True), (2, False)])
+def test_tag_stream_equals_one_loop_over_the_images(workers, processes):
     frames = _frames(10)
     stamps = [1.0, 1.5, 1.25, 2.0, 2.0, 3.0, 2.5, 4.0, 4.5, 5.0]
     seq, counts = tag_measurements(_data(frames, stamps), MODEL, "bag", workers=1)
     assert counts["images"] == 10 and 0 < counts["images_without_tags"] < 10 and len(seq) < 10
-    stream = TagStream(_data(frames, stamps), MODEL, "bag", workers=workers)
+    stream = TagStream(_data(frames, stamps), MODEL, "bag", workers=workers, processes=processes)
     try:
         assert stream.stamps == stamps
         late = stream.get(6)  # the images up to 6 are read in order
@@ -81,3 +81,41 @@ def test_evaluate_pauses_the_garbage_collector_and_restores_it():
         assert not gc.isenabled()  # left as the caller had it
     finally:
         gc.enable()
+
+
+class _Tags(SimpleNamespace):
+    """A TagStream stand-in: slot k's measurement or None, counting the reads."""
+
+    def get(self, k):
+        self.reads.append(k)
+        return self.items[k]
+
+
+def test_measurement_slots_are_the_sorted_measurements_taken_when_asked():
+    from ppoe_core.analysis.evaluate.replay import MeasurementSlots
+
+    m = [SimpleNamespace(stamp=t, name=n) for t, n in [(2.0, "a"), (1.0, "b"), (2.0, "c"), (0.5, "d")]]
+    tags = _Tags(stamps=[2.0, 1.0, 3.0, 2.0], items=[m[0], m[1], None, m[2]], reads=[])
+    others = [m[3], SimpleNamespace(stamp=2.0, name="e")]
+    slots = MeasurementSlots(tags, others)
+    assert tags.reads == [] and len(slots) == 6  # nothing taken before it is asked for
+    np.testing.assert_array_equal(slots.stamps, [0.5, 1.0, 2.0, 2.0, 2.0, 3.0])
+    assert slots.get(5) is None and tags.reads == [2]
+    expected = sorted([x for x in tags.items if x is not None] + others, key=lambda x: x.stamp)
+    assert [x.name for x in slots.resolved()] == [x.name for x in expected] == ["d", "b", "a", "c", "e"]
+
+
+def test_a_prior_run_goes_on_across_slots_without_a_measurement():
+    from ppoe_core.analysis.evaluate.replay import MeasurementSlots, _prior_run
+
+    tags = _Tags(stamps=[1.0, 2.0, 3.0, 4.0], items=[None, None, SimpleNamespace(stamp=3.0), None], reads=[])
+    slots = MeasurementSlots(tags, [])
+    # events: p0 p1 s0 p2 s1 p3 s2 p4 s3 gt0 p5
+    k_ev = np.array([0, 0, 1, 0, 1, 0, 1, 0, 1, 2, 0])
+    i_ev = np.array([0, 1, 0, 2, 1, 3, 2, 4, 3, 0, 5])
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], (k_ev == 0).astype(np.int8), [0]])))
+    run_end = dict(zip(edges[0::2].tolist(), edges[1::2].tolist()))
+    idx, e = _prior_run(0, run_end, k_ev, i_ev, slots)
+    assert idx.tolist() == [0, 1, 2, 3] and e == 6  # slot 2 has a measurement: the run stops before it
+    idx, e = _prior_run(7, run_end, k_ev, i_ev, slots)
+    assert idx.tolist() == [4] and e == 8  # the empty slot 3 is followed by ground truth, not a prior

@@ -30,11 +30,13 @@ ROSDEP_KEYS = {
     "numba": "python3-numba",
     "matplotlib": "python3-matplotlib",
     "rosbags": "python3-rosbags-pip",
+    "isal": "python3-isal",
 }
 
 #: imported top-level module -> pip requirement name in setup.py install_requires (ROS packages come from ROS)
 PIP_NAMES = {"numpy": "numpy", "scipy": "scipy", "yaml": "PyYAML", "ruamel": "ruamel.yaml",
-             "cv2": "opencv-python-headless", "numba": "numba", "matplotlib": "matplotlib", "rosbags": "rosbags"}
+             "cv2": "opencv-python-headless", "numba": "numba", "matplotlib": "matplotlib", "rosbags": "rosbags",
+             "isal": "isal"}
 
 #: optional imports (each inside ``try: ... except ImportError`` or inside the one function that needs it), not
 #: required by package.xml / setup.py

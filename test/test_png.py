@@ -3,12 +3,14 @@ for every other PNG and for damaged bytes; never an image where OpenCV refuses t
 
 from __future__ import annotations
 
+import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from ppoe_core.io.bagio import read_bag
+from ppoe_core.io import png
 from ppoe_core.io.png import decode_png
 
 cv2 = pytest.importorskip("cv2")
@@ -89,7 +91,29 @@ def test_other_pngs_and_other_formats_are_left_to_opencv() -> None:
     assert decode_png(b"") is None and decode_png(b"\x89PNG\r\n\x1a\n") is None
 
 
-def test_damaged_bytes_never_decode_differently_from_opencv() -> None:
+@pytest.fixture(params=["installed", "zlib"])
+def inflate(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """The inflate :func:`decode_png` uses: the installed one (ISA-L's) or Python's ``zlib`` (the fallback)."""
+    if request.param == "zlib":
+        monkeypatch.setattr(png, "_decompressobj", zlib.decompressobj)
+    return str(request.param)
+
+
+def test_isal_inflates_when_installed() -> None:
+    isal = pytest.importorskip("isal")
+    assert png.INFLATE == "isal" and isal is not None
+
+
+def test_isal_and_zlib_inflate_the_same_pixels(monkeypatch: pytest.MonkeyPatch) -> None:
+    data = [d for bag in ("table1_exp1", "effect_camera_extrinsics")
+            for d in read_bag(REPO / "bags" / bag, topics=["/camera/image_raw/compressed"]).images.data]
+    fast = [decode_png(d) for d in data]
+    monkeypatch.setattr(png, "_decompressobj", zlib.decompressobj)
+    slow = [decode_png(d) for d in data]
+    assert len(fast) >= 30 and all(a is not None and b is not None and np.array_equal(a, b) for a, b in zip(fast, slow))
+
+
+def test_damaged_bytes_never_decode_differently_from_opencv(inflate: str) -> None:
     rng = np.random.default_rng(5)
     data = cv2.imencode(".png", _image(rng, 12, 17, 1))[1].tobytes()
     assert decode_png(data) is not None

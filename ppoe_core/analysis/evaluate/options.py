@@ -150,6 +150,10 @@ class EvaluateOptions:
         used where the windows cannot promise that; ``ppoe evaluate --tag-windows``). Off by default: every image
         whole, as the tag node does, so tags of ids the model does not know are still counted in
         ``unknown_tag_points`` and a tag far from where a badly wrong model puts it is still found.
+    image_processes : bool
+        Decode the images and detect their tags in two worker processes forked for the evaluation (default, on
+        Linux: :class:`ppoe_core.sensing.forked.ForkedResults`), else on two threads of this process; the same
+        results (``bench/bench_evaluate.py`` times both).
     """
 
     base: str | None = None
@@ -164,6 +168,7 @@ class EvaluateOptions:
     estimate: str | None = None
     sources: list[SourceConfig] = field(default_factory=list)
     tag_windows: bool = False
+    image_processes: bool = True
 
     def fusion_settings(self) -> dict[str, Any]:
         """:data:`EVALUATE_SETTINGS` updated with :attr:`fusion`.

@@ -181,17 +181,17 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     # the images' tags are detected on worker threads from here on (in windows predicted from the priors' joint
     # states), while the rest is set up
     tags = TagStream(data, model, bag, refine=str(fs["corner_refinement"]),
-                     priors=(pri.stamps, pri.Q) if opt.tag_windows else None)
+                     priors=(pri.stamps, pri.Q) if opt.tag_windows else None, processes=opt.image_processes)
     try:
         contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
         src_meas, src_counts = source_measurements(data, model, opt.sources, bag)
         pipes, updaters = _pipelines(model, base, tool, fs, pri.cov_naive)
         gt_stamps = data.ground_truth_pose.stamps if kind == "pose" else data.ground_truth_point.stamps
-        # every image before the replay: detection threads beside the (pure Python) replay would wait for the GIL
-        # and make it wait, which cost more than the overlap saved (measured on a quiet machine: 3.3-3.5 s against
-        # 2.7 s for the 10-minute bench bag)
-        meas = sorted(tags.measurements() + contact_meas + src_meas, key=lambda m: m.stamp)
-        run = _replay(pri, meas, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
+        # the images' tags are taken as the replay reaches their stamps, while the worker processes detect the
+        # later ones (threads would wait for the GIL beside the pure-Python replay, and make it wait)
+        slots = MeasurementSlots(tags, contact_meas + src_meas)
+        run = _replay(pri, slots, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
+        meas = slots.resolved()
     finally:
         tags.close()
     tag_counts = tags.counts
@@ -397,13 +397,41 @@ class ReplayRun:
                 self.errors[name].append(o.error)
 
 
-def _replay(pri: _Priors, meas: list[Any], gt_stamps: np.ndarray, pipes: dict[str, Any], updaters: dict[str, Any],
-            n_joints: int, progress: bool) -> ReplayRun:
-    """Priors, measurements and ground-truth stamps in time order through the pipelines (as the nodes see them)."""
+class MeasurementSlots:
+    """The measurements of a replay in time order (stable: equal stamps in the order given), each taken when asked:
+    the tag slots of a :class:`TagStream` (image ``k``'s measurement, or None for an image without tags, waits for
+    its detection) first, then ``others`` (contact planes, sources: made already).  ``stamps``: per slot, in order.
+    """
+
+    def __init__(self, tags: TagStream, others: list[Any]) -> None:
+        stamps = np.array(list(tags.stamps) + [m.stamp for m in others], dtype=float)
+        self._order = np.argsort(stamps, kind="stable")
+        self.stamps = stamps[self._order]
+        self._tags, self._others, self._n_tags = tags, others, len(tags.stamps)
+
+    def __len__(self) -> int:
+        return int(self.stamps.shape[0])
+
+    def get(self, j: int) -> Any:
+        """The measurement of slot ``j`` (time order), None for an image without tags."""
+        s = int(self._order[j])
+        return self._tags.get(s) if s < self._n_tags else self._others[s - self._n_tags]
+
+    def resolved(self) -> list[Any]:
+        """Every measurement (None slots left out), in time order: ``sorted(tags + others, key=stamp)``."""
+        return [m for m in map(self.get, range(len(self))) if m is not None]
+
+
+def _replay(pri: _Priors, slots: MeasurementSlots, gt_stamps: np.ndarray, pipes: dict[str, Any],
+            updaters: dict[str, Any], n_joints: int, progress: bool) -> ReplayRun:
+    """Priors, measurements and ground-truth stamps in time order through the pipelines (as the nodes see them).
+
+    A slot without a measurement (an image without tags) is skipped: the priors before and after it go through
+    ``add_priors`` as one run, as if the slot were not there."""
     # events: (stamp, kind rank, index); priors first, then measurements, then ground truth
-    ev_t = np.concatenate([pri.stamps, [m.stamp for m in meas], gt_stamps])
-    ev_k = np.concatenate([np.zeros(len(pri.stamps), int), np.ones(len(meas), int), np.full(len(gt_stamps), 2)])
-    ev_i = np.concatenate([np.arange(len(pri.stamps)), np.arange(len(meas)), np.arange(len(gt_stamps))])
+    ev_t = np.concatenate([pri.stamps, slots.stamps, gt_stamps])
+    ev_k = np.concatenate([np.zeros(len(pri.stamps), int), np.ones(len(slots), int), np.full(len(gt_stamps), 2)])
+    ev_i = np.concatenate([np.arange(len(pri.stamps)), np.arange(len(slots)), np.arange(len(gt_stamps))])
     ev = np.lexsort((ev_i, ev_k, ev_t))
     n_gt = len(gt_stamps)
     run = ReplayRun({m: np.full((n_gt, 4, 4), np.nan) for m in METHODS},
@@ -418,12 +446,14 @@ def _replay(pri: _Priors, meas: list[Any], gt_stamps: np.ndarray, pipes: dict[st
     while e < len(ev):
         k, i = int(k_ev[e]), int(i_ev[e])
         if k == 0:
-            f = run_end[e]
-            _add_prior_run(run, pri, i_ev[e:f], pipes, updaters)
-            e = f
+            idx, e = _prior_run(e, run_end, k_ev, i_ev, slots)
+            _add_prior_run(run, pri, idx, pipes, updaters)
         elif k == 1:
+            m = slots.get(i)
             for name, pipe in pipes.items():
-                o = pipe.add_measurement(meas[i])
+                if m is None:
+                    break
+                o = pipe.add_measurement(m)
                 if o.status != "pending":
                     run.record(name, [o], updaters[name].tags)
             e += 1
@@ -437,6 +467,23 @@ def _replay(pri: _Priors, meas: list[Any], gt_stamps: np.ndarray, pipes: dict[st
         run.record(name, pipe.flush(), updaters[name].tags)
     bar.close()
     return run
+
+
+def _prior_run(e: int, run_end: dict[int, int], k_ev: np.ndarray, i_ev: np.ndarray,
+               slots: MeasurementSlots) -> tuple[np.ndarray, int]:
+    """The prior indices of the run of prior events starting at event ``e``, joined across measurement slots without
+    a measurement, and the event after them."""
+    f = run_end[e]
+    parts = [i_ev[e:f]]
+    while True:
+        g = f
+        while g < len(k_ev) and k_ev[g] == 1 and slots.get(int(i_ev[g])) is None:
+            g += 1
+        if g == f or g >= len(k_ev) or k_ev[g] != 0:
+            break
+        f = run_end[g]
+        parts.append(i_ev[g:f])
+    return (parts[0] if len(parts) == 1 else np.concatenate(parts)), f
 
 
 def _add_prior_run(run: ReplayRun, pri: _Priors, idx: np.ndarray, pipes: dict[str, Any],

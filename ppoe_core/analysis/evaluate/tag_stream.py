@@ -1,5 +1,5 @@
-"""Tag measurements of ``ppoe evaluate``: recorded observations, or tag detections on the bag's images made on
-worker threads started early (:class:`TagStream`)."""
+"""Tag measurements of ``ppoe evaluate``: recorded observations, or tag detections on the bag's images made by
+worker processes started early (:class:`TagStream`)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from ppoe_core.errors import BagError
 
 __all__ = ["IMAGE_WORKERS", "TagStream", "tag_measurements"]
 
-#: threads decoding images and detecting tags (two, or one on a single core)
+#: worker processes (or threads) decoding images and detecting tags (two, or one on a single core)
 IMAGE_WORKERS = min(2, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
@@ -39,17 +39,31 @@ def _camera_lookup(data: Any, effects: Any = ()) -> Callable[[str, float], tuple
     return lookup
 
 
+def load_image_kernels() -> None:
+    """Load the compiled kernels the image workers call (PNG unfiltering, the edge fit) in this process: a worker
+    process forked before they are loaded loads them from the compile cache itself, at every evaluation."""
+    from ppoe_core.io.png_kernel import unfilter_sub
+    from ppoe_core.sensing.tags import refine_edges
+
+    unfilter_sub(np.frombuffer(bytes(2), dtype=np.uint8).reshape(1, 2), 1)  # read-only rows, as decode_png's
+    grey = np.full((16, 16), 255, dtype=np.uint8)
+    grey[4:12, 4:12] = 0
+    refine_edges(grey, np.array([[4.0, 4.0], [11.0, 4.0], [11.0, 11.0], [4.0, 11.0]]), 4, passes=1)
+
+
 class TagStream:
     """The tag measurements of a bag, one slot per recorded ``/tag_bearing/observations`` message or per camera
     image (``stamps``), :meth:`get` the measurement of a slot (None: no tag point).
 
     Recorded observations are used as they are (made at once).  Otherwise the images are decoded and their tags
     detected (``ppoe_core.sensing.tags.detect_tags``, as the tag node; its rows by
-    :func:`ppoe_core.sensing.tag_rows.rows_from_detections`) on ``workers`` threads, started here and running
-    while the caller does other work (``ppoe evaluate``: the set-up of the replay); the images are handed out in
-    image order, with the first error (no camera_info, an image that does not decode) at its image, as one loop over
-    the images would.  ``counts``: tag_messages, tag_points, images, images_without_tags (complete once every
-    slot was read).  Call :meth:`close` at the end (stops the threads).
+    :func:`ppoe_core.sensing.tag_rows.rows_from_detections`) by ``workers`` processes forked here
+    (:class:`ppoe_core.sensing.forked.ForkedResults`; ``processes`` False, or no ``fork`` on this platform: threads,
+    :class:`ppoe_core.sensing.tag_rows.ImageDetections`; one worker: in the caller's thread, when asked), running
+    while the caller does other work (``ppoe evaluate``: the replay); the images are handed out in image order, with
+    the first error (no camera_info, an image that does not decode) at its image, as one loop over the images would.
+    ``counts``: tag_messages, tag_points, images, images_without_tags (complete once every slot was read).  Call
+    :meth:`close` at the end (stops the workers).
 
     ``priors``: ``(stamps, Q)`` of the forward kinematics' joint states (``model.joint_names`` order): the model's
     tags are then looked for in windows around their predicted corners
@@ -59,16 +73,15 @@ class TagStream:
     """
 
     def __init__(self, data: Any, model: Any, bag: str, refine: str = "subpix", workers: int = IMAGE_WORKERS,
-                 priors: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 priors: tuple[np.ndarray, np.ndarray] | None = None, processes: bool = True) -> None:
         from ppoe_core.estimation.pipeline import Measurement, TagMeasurement, source_key
 
         self.counts = {"tag_messages": 0, "tag_points": 0, "images": 0, "images_without_tags": 0}
         self._out: list[Any] = []
         self._dets: Any = None
-        self._rows: Any = None
         self._camera: Any = None
         self.stamps: list[float] = []
-        #: per detected image (in the order done), True if the windows predicted from ``priors`` gave its tags
+        #: per detected image (in image order), True if the windows predicted from ``priors`` gave its tags
         #: (:func:`ppoe_core.sensing.tag_rows.detect_tags_windowed`), False for the whole image
         self.windowed: list[bool] = []
         cams = _camera_lookup(data, getattr(model, "effects", None) or ())  # no effects: camera_info as recorded
@@ -92,11 +105,12 @@ class TagStream:
         if len(imgs) == 0 or model.config.tags is None:
             return
         self.stamps = [float(t) for t in imgs.stamps]
-        self._start(cams, model, refine, workers, bag, priors)
+        self._start(cams, model, refine, workers, bag, priors, processes)
 
     def _start(self, cams: Callable[[str, float], Any], model: Any, refine: str, workers: int, bag: str,
-               priors: tuple[np.ndarray, np.ndarray] | None) -> None:
+               priors: tuple[np.ndarray, np.ndarray] | None, processes: bool) -> None:
         from ppoe_core.analysis.evaluate.tag_prediction import predicted_windows
+        from ppoe_core.sensing.forked import FORK_AVAILABLE, ForkedResults
         from ppoe_core.sensing.tag_rows import ImageDetections, detect_tags_windowed, rows_from_detections
 
         imgs = self._imgs
@@ -108,10 +122,6 @@ class TagStream:
                                f"{imgs.frame_ids[i]!r}")
             return KD
 
-        def decode(i: int) -> np.ndarray:
-            camera(i)  # its error first, as for an image that does not decode
-            return imgs.decode(i)
-
         def known_camera(i: int) -> tuple[np.ndarray, np.ndarray] | None:
             return cams(imgs.frame_ids[i], self.stamps[i])
 
@@ -122,15 +132,17 @@ class TagStream:
             windows = predicted_windows(model, imgs.frame_ids, np.asarray(self.stamps), known_camera, *priors)
             ids = [item.id for item in model.config.tags.items]
 
-        def one(i: int) -> list[Any]:
-            dets, windowed = detect_tags_windowed(decode(i), windows[i], family, refine, ids)
-            self.windowed.append(windowed)
-            return dets
+        def one(i: int) -> tuple[np.ndarray, bool]:
+            K, D = camera(i)  # its error first, as for an image that does not decode
+            dets, windowed = detect_tags_windowed(imgs.decode(i), windows[i], family, refine, ids)
+            return rows_from_detections(dets, K, D)[0], windowed  # = observe_tags(imgs.decode(i), K, D, family, ...)
 
-        self._rows = rows_from_detections
         self._camera = camera
-        # the rows are made here, not on the workers: the less Python (GIL) they run, the less the replay waits
-        self._dets = ImageDetections(one, len(imgs), workers, len(imgs))
+        if processes and FORK_AVAILABLE and workers > 1 and len(imgs) > 1:
+            load_image_kernels()
+            self._dets = ForkedResults(one, len(imgs), workers)
+        else:  # threads (the rows made on them too: 0.11 ms per image holding the GIL), or the caller alone
+            self._dets = ImageDetections(one, len(imgs), workers, len(imgs))
 
     def get(self, k: int) -> Any:
         """The measurement of slot ``k`` (None: an image without tags); reads the images up to ``k`` in order."""
@@ -142,9 +154,9 @@ class TagStream:
         from ppoe_core.estimation.pipeline import Measurement, TagMeasurement, source_key
 
         self.counts["images"] += 1
-        dets = next(self._dets)
+        rows, windowed = next(self._dets)
+        self.windowed.append(windowed)
         K, D = self._camera(i)
-        rows = self._rows(dets, K, D)[0]  # = observe_tags(imgs.decode(i), K, D, family, ...)
         self.counts["tag_messages"] += 1
         if rows.shape[0] == 0:
             self.counts["images_without_tags"] += 1
@@ -162,7 +174,7 @@ class TagStream:
         return [m for m in self._out if m is not None]
 
     def close(self) -> None:
-        """Stop the detection threads."""
+        """Stop the detection workers."""
         if self._dets is not None:
             self._dets.close()
 
