@@ -7,8 +7,9 @@ constraints (uniform); each pose set becomes a bag (``ppoe simulate``, the study
 ``trajectory.stops_csv``) and is diagnosed with the declared set (``ppoe diagnose --effects``; with the camera also
 its pose, the plan's nuisance).  Printed per target parameter: the predicted 95 % half-width of the plan, the
 achieved ones (planned, random N, random 4N; mean over ``--repeats`` bags, each with its own noise and, for random
-sets, its own draw) and the ratios planned / random 4N (Must-show: <= 1) and predicted / achieved (Must-show:
-within 20 %).
+sets, its own draw) and the ratios planned / random 4N (Must-show: <= 1), predicted / achieved (Must-show:
+within 20 %) and the information bound / predicted random 4N (``plan.json`` ``information_bound``: above 1, no N
+poses of the pool can be as tight as 4N random ones for that parameter).
 
 ``--timing``: planning 30 poses for the 6-axis arm (6 target parameters, 2000 candidates) on one core, with the
 same-run baseline of drawing 30 random feasible poses and scoring them (their predicted CIs).
@@ -171,6 +172,7 @@ def run_study(study: Study, repeats: int = 2, sets: tuple[str, ...] = ("planned"
         return float(np.mean(v)) if v else float("nan")
 
     rows = {p: {"predicted": doc["planned"]["ci95"][p], "predicted_random_4n": doc["random_4n"]["ci95"][p],
+                "bound_over_random_4n": doc["information_bound"]["over_random_4n"][p],
                 **{k: mean(k, p) for k in ("planned", "random_n", "random_4n")},
                 "values": {k: got[k][-1].get(p, (float("nan"), float("inf")))[0] for k in sets}}
             for p in names}
@@ -186,10 +188,11 @@ def print_study(res: dict[str, Any]) -> None:
     print(f"\n== {res['robot']}: N = {n} planned vs {n} and {4 * n} random feasible poses "
           f"(mean of {res['repeats']} bags each; plan {res['plan_seconds']:.1f} s)")
     print(f"{'parameter':48s} {'pred':>9s} {'planned':>9s} {'rand N':>9s} {'rand 4N':>9s} {'pl/4N':>6s} "
-          f"{'pred/ach':>8s}")
+          f"{'pred/ach':>8s} {'bnd/4N':>6s}")
     for p, r in res["parameters"].items():
         print(f"{p:48s} {r['predicted']:9.3g} {r['planned']:9.3g} {r['random_n']:9.3g} {r['random_4n']:9.3g} "
-              f"{r['planned_over_random_4n']:6.2f} {r['predicted_over_achieved']:8.2f}")
+              f"{r['planned_over_random_4n']:6.2f} {r['predicted_over_achieved']:8.2f} "
+              f"{r['bound_over_random_4n']:6.2f}")
     ind, rnd = res["indices"], res["indices_random_n"]
     print("indices planned:  " + " ".join(f"{k}={v:.3g}" for k, v in ind.items()))
     print("indices random N: " + " ".join(f"{k}={v:.3g}" for k, v in rnd.items()))

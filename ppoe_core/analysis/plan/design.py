@@ -163,7 +163,8 @@ def minimax(info: PoseInformation, chosen: np.ndarray, ref_var: np.ndarray, base
     """Second stage: exchange passes from the D-optimal ``chosen`` minimising the worst relative variance
     (:func:`relative_variance`, reference ``ref_var``) while ``log det`` stays within ``P log(min_efficiency)`` of
     the start's (a constrained minimax design); an exchange is taken when it lowers the criterion by more than
-    :data:`EXCHANGE_TOL` (relative)."""
+    :data:`EXCHANGE_TOL` (relative).  A start whose every variance is already at most the reference is kept (the
+    goal is met; the D-optimum is the better design for everything else, e.g. separating a pair)."""
     M, P = info.A.shape[0], info.A.shape[1]
     sums = _Sums(info, base)
     picked = [int(u) for u in chosen]
@@ -172,7 +173,10 @@ def minimax(info: PoseInformation, chosen: np.ndarray, ref_var: np.ndarray, base
         sums.add(u)
         taken[u] = True
     floor = sums.current() + P * np.log(min_efficiency)
-    best = float(relative_variance(reduced_information(sums.A, sums.B, sums.C) + sums.base, info.scale, ref_var))
+    H0 = reduced_information(sums.A, sums.B, sums.C) + sums.base
+    if np.all(np.diag(np.linalg.pinv(H0)) <= ref_var):
+        return Design(np.array(picked, dtype=int), float(sums.current()), 0, 0)
+    best = float(relative_variance(H0, info.scale, ref_var))
     passes = exchanges = 0
     for passes in range(1, max_passes + 1):  # noqa: B007 - the count is returned
         changed = False

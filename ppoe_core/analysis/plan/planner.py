@@ -59,7 +59,7 @@ class PlanOptions:
     extremes: float = 0.5  #: :func:`sample_candidates`' probability of a joint at an end of its interval
     refine: bool = True  #: move each planned pose to a better feasible configuration near it (:mod:`refine`)
     pixel_sigma: float | None = None  #: with a camera in the constraints: its tag pixels in the design [px]
-    minimax: bool = True  #: second stage: the worst CI relative to 4N random poses' (:func:`design.minimax`)
+    minimax: bool = False  #: second stage: the worst CI relative to 4N random poses' (:func:`design.minimax`)
 
 
 @dataclass
@@ -202,8 +202,6 @@ def plan(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], con
     info = pose_information(tree, trackers, q, targets, declared, pixels=px)
     q_rand, _ = sample_candidates(tree, constraints, options.candidates, rng)
     rand = pose_information(tree, trackers, q_rand, targets, declared, pixels=px)
-    random_n = _random_baseline(rand, options.n, rng, given)
-    random_4n = _random_baseline(rand, 4 * options.n, rng, given)
     d = design(info, options.n, given)
     joints = list(q)
     Q = np.stack([q[j][d.chosen] for j in joints], axis=1)
@@ -211,6 +209,8 @@ def plan(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], con
     if options.refine:
         ref = refine(tree, trackers, targets, declared, constraints, Q, info.scale, given, rng, pixels=px)
         Q, final, idx, d.log_det, d.refined = ref.Q, ref.info, np.arange(options.n), ref.log_det, ref.moved
+    random_n = _random_baseline(rand, options.n, rng, given)  # after the refinement: its draws as in round 1
+    random_4n = _random_baseline(rand, 4 * options.n, rng, given)
     pool = _pool(info, final) if final is not info else info
     bound = information_bound(_pool(pool, rand), options.n, given)  # over every configuration the plan has seen
     if options.minimax:
