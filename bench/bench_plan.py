@@ -7,13 +7,15 @@ constraints (uniform); each pose set becomes a bag (``ppoe simulate``, the study
 ``trajectory.stops_csv``) and is diagnosed with the declared set (``ppoe diagnose --effects``; with the camera also
 its pose, the plan's nuisance).  Printed per target parameter: the predicted 95 % half-width of the plan, the
 achieved ones (planned, random N, random 4N; mean over ``--repeats`` bags, each with its own noise and, for random
-sets, its own draw) and the ratios planned / random 4N (Must-show: <= 1) and predicted / achieved (Must-show:
-within 20 %).
+sets, its own draw) and the ratios planned / random 4N (Must-show: <= 1), predicted / achieved (Must-show:
+within 20 %) and the information bound / predicted random 4N (``plan.json`` ``information_bound``: above 1, no N
+poses of the pool can be as tight as 4N random ones for that parameter).
 
 ``--timing``: planning 30 poses for the 6-axis arm (6 target parameters, 2000 candidates) on one core, with the
 same-run baseline of drawing 30 random feasible poses and scoring them (their predicted CIs).
 
-Usage: ``python bench/bench_plan.py [--only cobot6 ...] [--repeats 2] [--timing] [--json OUT]``.
+Usage: ``python bench/bench_plan.py [--only cobot6 ...] [--repeats 2] [--criterion d|minimax] [--timing]
+[--json OUT]``.
 """
 
 from __future__ import annotations
@@ -98,13 +100,17 @@ def urdf_of(study: Study, work: Path) -> Path:
     return out
 
 
+#: ``ppoe plan --criterion`` of the studies (``--criterion`` of this script)
+CRITERION = ["d"]
+
+
 def plan_of(study: Study, work: Path, seed: int = 0) -> tuple[Path, dict[str, Any], float]:
-    """``ppoe plan`` of a study: its output directory, ``plan.json`` and the time [s]."""
+    """``ppoe plan`` of a study (:data:`CRITERION`): its output directory, ``plan.json`` and the time [s]."""
     out = work / "plan"
     t0 = time.perf_counter()
     doc = json.loads(ppoe(["plan", "--urdf", str(urdf_of(study, work)), "--model", str(study.model), "--effects",
                            str(study.effects), "--n", str(study.n), "--out", str(out), "--seed", str(seed),
-                           "--json", *study.plan_args]))
+                           "--json", "--criterion", CRITERION[0], *study.plan_args]))
     return out, doc, time.perf_counter() - t0
 
 
@@ -171,6 +177,7 @@ def run_study(study: Study, repeats: int = 2, sets: tuple[str, ...] = ("planned"
         return float(np.mean(v)) if v else float("nan")
 
     rows = {p: {"predicted": doc["planned"]["ci95"][p], "predicted_random_4n": doc["random_4n"]["ci95"][p],
+                "bound_over_random_4n": doc["information_bound"]["over_random_4n"][p],
                 **{k: mean(k, p) for k in ("planned", "random_n", "random_4n")},
                 "values": {k: got[k][-1].get(p, (float("nan"), float("inf")))[0] for k in sets}}
             for p in names}
@@ -186,10 +193,11 @@ def print_study(res: dict[str, Any]) -> None:
     print(f"\n== {res['robot']}: N = {n} planned vs {n} and {4 * n} random feasible poses "
           f"(mean of {res['repeats']} bags each; plan {res['plan_seconds']:.1f} s)")
     print(f"{'parameter':48s} {'pred':>9s} {'planned':>9s} {'rand N':>9s} {'rand 4N':>9s} {'pl/4N':>6s} "
-          f"{'pred/ach':>8s}")
+          f"{'pred/ach':>8s} {'bnd/4N':>6s}")
     for p, r in res["parameters"].items():
         print(f"{p:48s} {r['predicted']:9.3g} {r['planned']:9.3g} {r['random_n']:9.3g} {r['random_4n']:9.3g} "
-              f"{r['planned_over_random_4n']:6.2f} {r['predicted_over_achieved']:8.2f}")
+              f"{r['planned_over_random_4n']:6.2f} {r['predicted_over_achieved']:8.2f} "
+              f"{r['bound_over_random_4n']:6.2f}")
     ind, rnd = res["indices"], res["indices_random_n"]
     print("indices planned:  " + " ".join(f"{k}={v:.3g}" for k, v in ind.items()))
     print("indices random N: " + " ".join(f"{k}={v:.3g}" for k, v in rnd.items()))
@@ -218,11 +226,15 @@ def timing(work: Path = WORK) -> dict[str, float]:
     plan(tree, model.trackers, targets, c, PlanOptions(n=30, candidates=2000))
     t_plan = time.perf_counter() - t0
     t0 = time.perf_counter()
+    plan(tree, model.trackers, targets, c, PlanOptions(n=30, candidates=2000, minimax=True))
+    t_minimax = time.perf_counter() - t0
+    t0 = time.perf_counter()
     q, _ = sample_candidates(tree, c, 30, np.random.default_rng(1))
     info = pose_information(tree, model.trackers, q, targets)
     predict(info, np.arange(30))
     t_rand = time.perf_counter() - t0
-    return {"plan_30_seconds": t_plan, "random_30_seconds": t_rand, "ratio": t_plan / t_rand}
+    return {"plan_30_seconds": t_plan, "plan_30_minimax_seconds": t_minimax, "random_30_seconds": t_rand,
+            "ratio": t_plan / t_rand}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -231,13 +243,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--timing", action="store_true", help="only the timing line")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--criterion", choices=("d", "minimax"), default="d", help="ppoe plan --criterion")
     a = ap.parse_args(argv)
+    CRITERION[0] = a.criterion
     out: dict[str, Any] = {}
     if a.timing:
         t = timing()
         print(f"plan 30 poses, 6-axis arm, 6 parameters, 2000 candidates: {t['plan_30_seconds']:.2f} s "
               f"(target <= 10 s); baseline 30 random feasible poses drawn and scored: {t['random_30_seconds']:.3f} s;"
-              f" ratio {t['ratio']:.1f}")
+              f" ratio {t['ratio']:.1f}; with --criterion minimax {t['plan_30_minimax_seconds']:.2f} s")
         out["timing"] = t
     else:
         for name in a.only:

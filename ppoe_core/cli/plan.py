@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--candidates", type=int_range(10), default=2000,
                         help="random feasible configurations to choose from (default 2000)")
     parser.add_argument("--seed", type=int_range(0), default=0, help="RNG seed (default 0)")
+    parser.add_argument("--criterion", choices=("d", "minimax"), default="d",
+                        help="d (default): D-optimal (log det); minimax: then exchanges lowering the worst CI relative "
+                             "to 4N random poses' with the D-efficiency kept >= 0.9 (docs/plan.md)")
     parser.add_argument("--margin", type=float_range(0.0), default=0.05,
                         help="distance kept from every joint limit [rad or m] (default 0.05)")
     parser.add_argument("--region", nargs="+", default=[], metavar="JOINT=LO:HI",
@@ -152,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
         given = given_information(tree, stops, targets, declared)
     result = plan(tree, model.trackers, targets, constraints_of(args, model),
                   PlanOptions(n=args.n, candidates=args.candidates, seed=args.seed,
+                              minimax=args.criterion == "minimax",
                               pixel_sigma=model.camera.pixel_sigma if (model.camera and args.camera_info
                                                                        and args.pixels == "design") else None),
                   declared, given)

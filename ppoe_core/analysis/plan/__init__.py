@@ -5,7 +5,8 @@
   registration (nuisance) eliminated by a Schur complement;
 * :mod:`constraints`: random feasible candidates (joint limits with a margin, workspace box, self-collision
   capsules from the URDF, tracker line of sight, tags in the camera's view);
-* :mod:`design`: greedy forward selection + exchange on ``log det`` (D-optimality), Sun and Hollerbach's O1..O5;
+* :mod:`design`: greedy forward selection + exchange on ``log det`` (D-optimality), then a constrained minimax
+  exchange (worst CI relative to 4N random poses', D-efficiency kept), Sun and Hollerbach's O1..O5;
 * :mod:`planner`: :func:`plan` (design, predicted CIs and held-out error, random baselines, execution order);
 * :mod:`outputs`: ``poses.csv``, ``trajectory.yaml`` (``trajectory_msgs/JointTrajectory``), ``plan.json``,
   ``plan.png``.

@@ -26,7 +26,8 @@ import numpy as np
 from ppoe_core.analysis.plan.information import PoseInformation, reduced_information
 from ppoe_core.errors import PpoeError
 
-__all__ = ["Design", "design", "information_of", "log_det", "observability_indices", "EXCHANGE_TOL"]
+__all__ = ["Design", "design", "information_of", "log_det", "observability_indices", "EXCHANGE_TOL", "minimax",
+           "relative_variance", "MIN_D_EFFICIENCY", "SOFT_MAX_POWER"]
 
 #: an exchange is taken when it raises ``log det`` by more than this (relative improvement of the determinant)
 EXCHANGE_TOL = 1e-6
@@ -34,6 +35,12 @@ EXCHANGE_TOL = 1e-6
 RIDGE = 1e-8
 #: at most this many exchange passes (each pass tries every planned pose once)
 MAX_PASSES = 10
+#: second stage (:func:`minimax`): the D-efficiency ``exp((log det - log det_D) / P)`` w.r.t. the D-optimal design
+#: is kept at least this (the named D criterion stays within 10 % per parameter of its optimum)
+MIN_D_EFFICIENCY = 0.9
+#: second stage's soft maximum ``(mean r_k^p)^(1/p)`` of the relative variances: large enough that the worst
+#: parameter dominates, finite so that an exchange helping the second worst is still seen
+SOFT_MAX_POWER = 16.0
 
 
 @dataclass
@@ -46,6 +53,7 @@ class Design:
     passes: int
     exchanges: int
     refined: int = 0  #: poses moved by the local refinement (:mod:`~ppoe_core.analysis.plan.refine`)
+    minimax_exchanges: int = 0  #: exchanges taken by the second, minimax stage (:func:`minimax`)
 
 
 def information_of(info: PoseInformation, idx: np.ndarray, base: np.ndarray | None = None) -> np.ndarray:
@@ -82,6 +90,11 @@ class _Sums:
         i = self.info
         H = reduced_information(self.A + i.A, self.B + i.B, self.C + i.C) + self.base
         return log_det(H, i.scale)
+
+    def each_information(self) -> np.ndarray:
+        """Reduced information (M, P, P) of the design plus each candidate."""
+        i = self.info
+        return reduced_information(self.A + i.A, self.B + i.B, self.C + i.C) + self.base
 
     def current(self) -> float:
         return float(log_det(reduced_information(self.A, self.B, self.C) + self.base, self.info.scale))
@@ -127,6 +140,62 @@ def design(info: PoseInformation, n: int, base: np.ndarray | None = None, max_pa
         if not changed:
             break
     return Design(np.array(chosen, dtype=int), float(sums.current()), passes, exchanges)
+
+
+def relative_variance(H: np.ndarray, scale: np.ndarray, ref_var: np.ndarray) -> np.ndarray:
+    """Soft maximum over the parameters of ``r_k = (H^-1)_kk / ref_var_k`` (:data:`SOFT_MAX_POWER`), over leading
+    batch axes of ``H`` (..., P, P); ``ref_var`` (P,) the reference variances (the 4N-random median's)."""
+    d = 1.0 / scale
+    Hs = H * d[:, None] * d[None, :] + RIDGE * np.eye(scale.size)
+    try:
+        var = np.diagonal(np.linalg.inv(Hs), axis1=-2, axis2=-1) * d**2
+    except np.linalg.LinAlgError:
+        return np.full(H.shape[:-2], np.inf)
+    r = np.where(var > 0, var / ref_var, np.inf)
+    top = r.max(-1, keepdims=True)
+    with np.errstate(invalid="ignore"):
+        soft = top[..., 0] * np.mean((r / top) ** SOFT_MAX_POWER, axis=-1) ** (1.0 / SOFT_MAX_POWER)
+    return np.where(np.isfinite(top[..., 0]), soft, np.inf)
+
+
+def minimax(info: PoseInformation, chosen: np.ndarray, ref_var: np.ndarray, base: np.ndarray | None = None,
+            min_efficiency: float = MIN_D_EFFICIENCY, max_passes: int = MAX_PASSES) -> Design:
+    """Second stage: exchange passes from the D-optimal ``chosen`` minimising the worst relative variance
+    (:func:`relative_variance`, reference ``ref_var``) while ``log det`` stays within ``P log(min_efficiency)`` of
+    the start's (a constrained minimax design); an exchange is taken when it lowers the criterion by more than
+    :data:`EXCHANGE_TOL` (relative).  A start whose every variance is already at most the reference is kept (the
+    goal is met; the D-optimum is the better design for everything else, e.g. separating a pair)."""
+    M, P = info.A.shape[0], info.A.shape[1]
+    sums = _Sums(info, base)
+    picked = [int(u) for u in chosen]
+    taken = np.zeros(M, bool)
+    for u in picked:
+        sums.add(u)
+        taken[u] = True
+    floor = sums.current() + P * np.log(min_efficiency)
+    H0 = reduced_information(sums.A, sums.B, sums.C) + sums.base
+    if np.all(np.diag(np.linalg.pinv(H0)) <= ref_var):
+        return Design(np.array(picked, dtype=int), float(sums.current()), 0, 0)
+    best = float(relative_variance(H0, info.scale, ref_var))
+    passes = exchanges = 0
+    for passes in range(1, max_passes + 1):  # noqa: B007 - the count is returned
+        changed = False
+        for k in range(len(picked)):
+            u = picked[k]
+            sums.add(u, -1.0)
+            taken[u] = False
+            H = sums.each_information()
+            ok = ~taken & (log_det(H, info.scale) >= floor)
+            score = np.where(ok, relative_variance(H, info.scale, ref_var), np.inf)
+            v = int(np.argmin(score))
+            if v != u and score[v] < best * (1.0 - EXCHANGE_TOL):
+                best, changed, exchanges = float(score[v]), True, exchanges + 1
+                picked[k] = v
+            sums.add(picked[k])
+            taken[picked[k]] = True
+        if not changed:
+            break
+    return Design(np.array(picked, dtype=int), float(sums.current()), passes, exchanges)
 
 
 def observability_indices(H: np.ndarray, scale: np.ndarray, n_poses: int) -> dict[str, float]:

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.analysis.plan.constraints import Constraints, sample_candidates
-from ppoe_core.analysis.plan.design import Design, design, observability_indices
+from ppoe_core.analysis.plan.design import Design, design, minimax, observability_indices
 from ppoe_core.analysis.plan.information import (
     PixelDesign,
     PoseInformation,
@@ -37,7 +37,8 @@ from ppoe_core.errors import PpoeError
 from ppoe_core.model.effects import Effect
 from ppoe_core.robot.tree import KinematicTree
 
-__all__ = ["PlanOptions", "PlanResult", "Prediction", "plan", "predict", "tour", "RANDOM_REPEATS", "Z95"]
+__all__ = ["PlanOptions", "PlanResult", "Prediction", "plan", "predict", "tour", "information_bound", "RANDOM_REPEATS",
+           "Z95"]
 
 #: random baselines: median over this many draws
 RANDOM_REPEATS = 20
@@ -58,6 +59,7 @@ class PlanOptions:
     extremes: float = 0.5  #: :func:`sample_candidates`' probability of a joint at an end of its interval
     refine: bool = True  #: move each planned pose to a better feasible configuration near it (:mod:`refine`)
     pixel_sigma: float | None = None  #: with a camera in the constraints: its tag pixels in the design [px]
+    minimax: bool = False  #: second stage: the worst CI relative to 4N random poses' (:func:`design.minimax`)
 
 
 @dataclass
@@ -85,6 +87,8 @@ class PlanResult:
     rejected: dict[str, int]
     n_candidates: int
     notes: list[str] = field(default_factory=list)
+    #: (P,) :func:`information_bound` over the candidates, the random draw and the refined poses
+    bound_ci95: np.ndarray | None = None
 
 
 def _safe_inv(H: np.ndarray) -> np.ndarray:
@@ -124,6 +128,44 @@ def _random_baseline(info: PoseInformation, n: int, rng: np.random.Generator,
     mid = preds[int(np.argsort(o1)[len(o1) // 2])]
     return Prediction(np.median(np.stack([p.ci95 for p in preds]), axis=0), mid.cov,
                       float(np.median([p.heldout_rms for p in preds])), mid.indices)
+
+
+def _pool(a: PoseInformation, b: PoseInformation) -> PoseInformation:
+    """The candidates of ``a`` followed by those of ``b`` (same parameters, scale and components)."""
+    def cat(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.concatenate([x, y])
+
+    return PoseInformation(cat(a.A, b.A), cat(a.B, b.B), cat(a.C, b.C), cat(a.G, b.G), cat(a.N, b.N), a.scale,
+                           cat(a.sigma, b.sigma), a.points)
+
+
+def information_bound(info: PoseInformation, n: int, base: np.ndarray | None = None) -> np.ndarray:
+    """Smallest 95 % half-width (P,) any ``n`` of the poses of ``info`` can give each parameter: with the others
+    and the registration eliminated the information of parameter ``k`` is at most ``sum_S A_u,kk`` (eliminating
+    nuisances only removes information), so ``var_k >= 1 / (sum of the n largest A_u,kk (+ base_kk))``.  A
+    parameter whose bound is wider than a reference cannot be made as tight as the reference by choosing poses from
+    ``info``, whatever the criterion."""
+    a = np.sort(np.diagonal(info.A, axis1=1, axis2=2), axis=0)[::-1][:n].sum(0)
+    a = a + (np.diag(base) if base is not None else 0.0)
+    with np.errstate(divide="ignore"):
+        return np.asarray(Z95 / np.sqrt(a))
+
+
+def _minimax_stage(info: PoseInformation, q: dict[str, np.ndarray], joints: list[str], d: Design, Q: np.ndarray,
+                   final: PoseInformation, reference: Prediction, given: np.ndarray | None
+                   ) -> tuple[Design, np.ndarray, PoseInformation, np.ndarray]:
+    """Second stage (:func:`~ppoe_core.analysis.plan.design.minimax`) from the (refined) D-optimal poses ``Q`` over
+    the candidates plus those poses; reference: the 4N-random median half-widths.  Returns the design (``chosen``:
+    indices into the pool), its poses, the pool and the indices."""
+    Qc = np.stack([q[j] for j in joints], axis=1)
+    if final is info:  # not refined: the D-optimal poses are candidates
+        pool, Qpool, start = info, Qc, d.chosen
+    else:
+        pool, Qpool = _pool(info, final), np.concatenate([Qc, Q])
+        start = info.A.shape[0] + np.arange(Q.shape[0])
+    mm = minimax(pool, start, (reference.ci95 / Z95) ** 2, given)
+    d.chosen, d.log_det, d.minimax_exchanges = mm.chosen, mm.log_det, mm.exchanges
+    return d, Qpool[mm.chosen], pool, mm.chosen
 
 
 def tour(Q: np.ndarray, start: np.ndarray | None) -> np.ndarray:
@@ -167,6 +209,12 @@ def plan(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], con
     if options.refine:
         ref = refine(tree, trackers, targets, declared, constraints, Q, info.scale, given, rng, pixels=px)
         Q, final, idx, d.log_det, d.refined = ref.Q, ref.info, np.arange(options.n), ref.log_det, ref.moved
+    random_n = _random_baseline(rand, options.n, rng, given)  # after the refinement: its draws as in round 1
+    random_4n = _random_baseline(rand, 4 * options.n, rng, given)
+    pool = _pool(info, final) if final is not info else info
+    bound = information_bound(_pool(pool, rand), options.n, given)  # over every configuration the plan has seen
+    if options.minimax:
+        d, Q, final, idx = _minimax_stage(info, q, joints, d, Q, final, random_4n, given)
     start = np.array([options.start.get(j, 0.0) for j in joints]) if options.start else None
     order = tour(Q, start)
     d.chosen, Q, idx = d.chosen[order], Q[order], idx[order]
@@ -176,8 +224,7 @@ def plan(tree: KinematicTree, trackers: Sequence, targets: Sequence[Target], con
     if constraints.skipped_meshes:
         notes.append(f"{constraints.skipped_meshes} collision meshes not modelled (spheres, cylinders, boxes only)")
     return PlanResult({j: Q[:, i] for i, j in enumerate(joints)}, names, predict(final, idx, given, rand),
-                      _random_baseline(rand, options.n, rng, given), _random_baseline(rand, 4 * options.n, rng, given),
-                      d, rejected, int(info.A.shape[0]), notes)
+                      random_n, random_4n, d, rejected, int(info.A.shape[0]), notes, bound)
 
 
 def summary(result: PlanResult) -> dict[str, Any]:
@@ -191,5 +238,10 @@ def summary(result: PlanResult) -> dict[str, Any]:
             "random_4n": pred(result.random_4n),
             "design": {"log_det": result.design.log_det, "exchange_passes": result.design.passes,
                        "exchanges": result.design.exchanges, "refined_moves": result.design.refined,
+                       "minimax_exchanges": result.design.minimax_exchanges,
                        "candidates": result.n_candidates},
+            "information_bound": ({} if result.bound_ci95 is None else
+                                  {"ci95": dict(zip(result.names, result.bound_ci95.tolist())),
+                                   "over_random_4n": dict(zip(result.names,
+                                                              (result.bound_ci95 / result.random_4n.ci95).tolist()))}),
             "rejected_draws": result.rejected, "notes": result.notes}
