@@ -78,10 +78,10 @@ def tutorial(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[tuple
 def test_doc_has_the_steps():
     text = DOC.read_text(encoding="utf-8")
     scripts = "\n".join(b.script for b in blocks(text))
-    for command in ("ppoe urdf from-dh", "ppoe init", "ppoe simulate", "ppoe check", "ppoe diagnose",
-                    "ppoe evaluate", "--urdf shelf_diagnosis/robot_calibrated.urdf"):
+    for command in ("ppoe urdf from-dh", "ppoe init", "ppoe plan", "stops_csv: shelf_plan/poses.csv",
+                    "ppoe simulate", "ppoe check", "ppoe diagnose", "ppoe evaluate",
+                    "--urdf shelf_diagnosis/robot_calibrated.urdf"):
         assert command in scripts, command
-    assert "PPOE PLAN STEP" in text            # the marked place for `ppoe plan`
 
 
 def test_quoted_output_is_what_the_commands_print(tutorial):
@@ -111,6 +111,11 @@ def test_what_the_tutorial_claims(tutorial):
     assert ("joint_offset", "j3") in found, res["effects"]
     lo, hi = found[("joint_offset", "j3")]["ci"]["offset"]
     assert lo <= 0.006 <= hi
+    # the recording was made at the planned stops, and its interval is tighter than 30 random stops' predicted one
+    plan = json.loads((cwd / "shelf_plan" / "plan.json").read_text())
+    assert all(len(v) == 30 for v in plan["poses"].values())
+    assert len((cwd / "shelf_plan" / "poses.csv").read_text().splitlines()) == 31   # the header, 30 stops
+    assert (hi - lo) / 2 < plan["random_n"]["ci95"]["joint_offset@j3:offset"], (lo, hi, plan["random_n"])
     # the calibrated URDF scores better on the other recording
     rms = [float(v) for v in re.findall(r"forward kinematics \| \d+ \| [0-9.]+ ± [0-9.]+ \(rms ([0-9.]+)",
                                         printed(done[-1][1]))]

@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
     from ppoe_core.analysis.diagnose.engine import declared_specs
     from ppoe_core.analysis.diagnose.load_stops import stops_from_bag
     from ppoe_core.analysis.plan.information import given_information, target_effects
-    from ppoe_core.analysis.plan.outputs import write_outputs
+    from ppoe_core.analysis.plan.outputs import design_table, write_outputs
     from ppoe_core.analysis.plan.planner import PlanOptions, plan
     from ppoe_core.errors import PpoeError
     from ppoe_core.model.effects import effect_from_config
@@ -167,5 +167,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"wrote {args.out}/poses.csv, trajectory.yaml, plan.json" + (", plan.png" if doc["plot"] else "")
               + f": {args.n} poses, {len(result.names)} parameters, condition number "
-              f"{result.planned.indices['condition_number']:.3g}")
+              f"{result.planned.indices['condition_number']:.3g}; predicted 95 % half-widths [rad or m]:")
+        print("\n".join(design_table(doc)))
     return 0

@@ -24,7 +24,8 @@ import yaml
 
 from ppoe_core.analysis.plan.planner import PlanResult, summary
 
-__all__ = ["write_csv", "trajectory_message", "write_outputs", "plot_plan", "compare_planned", "planned_lines"]
+__all__ = ["write_csv", "trajectory_message", "write_outputs", "plot_plan", "compare_planned", "planned_lines",
+           "design_table"]
 
 
 def write_csv(path: Path, q: Mapping[str, np.ndarray]) -> None:
@@ -137,4 +138,19 @@ def planned_lines(cmp: Mapping[str, Mapping[str, float | None]]) -> list[str]:
         a, q = r["achieved"], r["ratio"]
         out.append(f"  {k:50s} planned {r['planned']:.3g}  achieved " + (f"{a:.3g}  ratio {q:.2f}" if a is not None
                                                                           and q is not None else "not reported"))
+    return out
+
+
+def design_table(doc: Mapping[str, Any]) -> list[str]:
+    """The text table ``ppoe plan`` prints from its ``plan.json`` document ``doc``: per target parameter the
+    predicted 95 % half-width of the planned poses, of as many and of four times as many random feasible poses
+    (medians of the draws), and the planned / 4 n random ratio; then the predicted held-out error of each."""
+    n = int(doc["n"])
+    head = f"| parameter | planned ({n}) | {n} random | {4 * n} random | planned / {4 * n} random |"
+    out = [head, "|---|---|---|---|---|"]
+    planned, one, four = (doc[k]["ci95"] for k in ("planned", "random_n", "random_4n"))
+    for k, v in planned.items():
+        out.append(f"| {k} | {v:.3g} | {one[k]:.3g} | {four[k]:.3g} | {v / four[k]:.2f} |")
+    rms = [doc[k]["heldout_rms"] for k in ("planned", "random_n", "random_4n")]
+    out.append(f"| predicted held-out error [m] | {rms[0]:.3g} | {rms[1]:.3g} | {rms[2]:.3g} | |")
     return out
