@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -169,6 +168,7 @@ def _run_offline(args: argparse.Namespace) -> int:
 
 def _compare(args: argparse.Namespace, opts: Any) -> int:
     """``--perturbations`` / ``--global-scale``: the bag replayed per covariance choice, one table."""
+    from ppoe_core.analysis.diagnose.results import finite_json
     from ppoe_core.analysis.evaluate.perturbation_compare import (
         compare_perturbations,
         comparison_json,
@@ -181,26 +181,15 @@ def _compare(args: argparse.Namespace, opts: Any) -> int:
     if args.out:
         out = Path(args.out)
         (out / "perturbations_comparison.md").write_text(table + "\n", encoding="utf-8")
-        (out / "perturbations_comparison.json").write_text(json.dumps(_finite(doc), allow_nan=False),
+        (out / "perturbations_comparison.json").write_text(json.dumps(finite_json(doc), allow_nan=False),
                                                              encoding="utf-8")
         _written(args, [out / "perturbations_comparison.md", out / "perturbations_comparison.json"])
     if args.json:
-        json.dump(_finite(doc), sys.stdout, allow_nan=False)
+        json.dump(finite_json(doc), sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
     else:
         print(table)
     return 0
-
-
-def _finite(v: Any) -> Any:
-    """NaN / inf -> None (strict JSON)."""
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    if isinstance(v, dict):
-        return {k: _finite(x) for k, x in v.items()}
-    if isinstance(v, list):
-        return [_finite(x) for x in v]
-    return v
 
 
 def _written(args: argparse.Namespace, paths: list) -> None:

@@ -10,7 +10,7 @@ from typing import Any
 from ppoe_core.analysis.diagnose.selection import SelectionOptions
 from ppoe_core.model.effects import Effect
 
-__all__ = ["DiagnoseOptions", "EffectReport", "BlockReport", "StructureTest", "DiagnoseResult"]
+__all__ = ["DiagnoseOptions", "EffectReport", "BlockReport", "StructureTest", "DiagnoseResult", "finite_json"]
 
 
 @dataclass
@@ -239,15 +239,15 @@ class DiagnoseResult:
             out["fitted_joint_noise"] = self.fitted_joint_noise
         if self.learned_prior is not None:
             out["learned_perturbations"] = self.learned_prior.to_json()
-        return _finite(out)
+        return finite_json(out)
 
 
-def _finite(v: Any) -> Any:
-    """NaN / inf -> None (strict JSON)."""
+def finite_json(v: Any) -> Any:
+    """``v`` (nested dicts and lists) with every NaN / inf float as None: strict JSON (``allow_nan=False``)."""
     if isinstance(v, float) and not math.isfinite(v):
         return None
     if isinstance(v, dict):
-        return {k: _finite(x) for k, x in v.items()}
+        return {k: finite_json(x) for k, x in v.items()}
     if isinstance(v, list):
-        return [_finite(x) for x in v]
+        return [finite_json(x) for x in v]
     return v
