@@ -210,7 +210,7 @@ def test_init_refuses_what_it_did_not_write_and_bad_input(tmp_path, capsys):
 def test_motoman_dataset_urdf(tmp_path, capsys):
     d = DATASETS / "motoman_leica"
     if not (d / "leica_right_hand_6x6x6_dataset.mat").exists():
-        pytest.skip(f"Motoman dataset not found in {d} (set PPOE_DATASETS)")
+        pytest.fail(f"Motoman dataset not found in {d} (set PPOE_DATASETS)")
     bag = tmp_path / "motoman"
     assert main(["import", "motoman", str(d / "leica_right_hand_6x6x6_dataset.mat"), "--model-yaml",
                  str(d / "model.yaml"), "--out", str(bag), "--ppoe-model", str(tmp_path / "imported.yaml")]) == 0
@@ -244,7 +244,7 @@ def test_hilti_dataset_urdf(tmp_path):
     """The Hilti stationing robot: 15 total-station set-ups (one registration each), two tilt sensors."""
     d = DATASETS / "hilti_stationing"
     if not (d / "pallet.yaml").exists():
-        pytest.skip(f"Hilti dataset not found in {d} (set PPOE_DATASETS)")
+        pytest.fail(f"Hilti dataset not found in {d} (set PPOE_DATASETS)")
     bag = tmp_path / "pallet"
     assert main(["import", "hilti", str(d / "pallet.yaml"), "--out", str(bag)]) == 0
     out = tmp_path / "model.yaml"
