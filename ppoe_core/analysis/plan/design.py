@@ -19,6 +19,7 @@ update drift); a step evaluates all candidates at once.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -100,6 +101,33 @@ class _Sums:
         return float(log_det(reduced_information(self.A, self.B, self.C) + self.base, self.info.scale))
 
 
+def _exchange_passes(sums: _Sums, picked: list[int], taken: np.ndarray, best: float,
+                    score: Callable[[_Sums, np.ndarray], np.ndarray], better: Callable[[float, float], bool],
+                    max_passes: int) -> tuple[float, int, int]:
+    """The exchange passes of :func:`design` and :func:`minimax` (Cook and Nachtsheim's modified Fedorov exchange):
+    each planned pose in turn is taken out and replaced by the candidate of the highest ``score(sums, free)``
+    ((M,), higher is better, ``-inf`` where not allowed; ``free`` marks the candidates not in the design) when
+    ``better(score, best)``; until a pass changes nothing or ``max_passes``.  ``picked``, ``taken`` and ``sums`` are
+    updated in place.  Returns the criterion's final value, the passes and the exchanges taken."""
+    passes = exchanges = 0
+    for passes in range(1, max_passes + 1):  # noqa: B007 - the count is returned
+        changed = False
+        for k in range(len(picked)):
+            u = picked[k]
+            sums.add(u, -1.0)
+            taken[u] = False
+            s = score(sums, ~taken)
+            v = int(np.argmax(s))
+            if v != u and better(float(s[v]), best):
+                best, changed, exchanges = float(s[v]), True, exchanges + 1
+                picked[k] = v
+            sums.add(picked[k])
+            taken[picked[k]] = True
+        if not changed:
+            break
+    return best, passes, exchanges
+
+
 def design(info: PoseInformation, n: int, base: np.ndarray | None = None, max_passes: int = MAX_PASSES) -> Design:
     """Choose ``n`` distinct candidates maximising ``log det`` (module docstring); ``base``: information already
     there (``--given`` data, its own registration eliminated).
@@ -122,23 +150,9 @@ def design(info: PoseInformation, n: int, base: np.ndarray | None = None, max_pa
         chosen.append(u)
         taken[u] = True
         sums.add(u)
-    best = sums.current()
-    passes = exchanges = 0
-    for passes in range(1, max_passes + 1):  # noqa: B007 - the count is returned
-        changed = False
-        for k in range(n):
-            u = chosen[k]
-            sums.add(u, -1.0)
-            taken[u] = False
-            score = np.where(taken, -np.inf, sums.with_each())
-            v = int(np.argmax(score))
-            if v != u and score[v] > best + EXCHANGE_TOL:
-                best, changed, exchanges = float(score[v]), True, exchanges + 1
-                chosen[k] = v
-            sums.add(chosen[k])
-            taken[chosen[k]] = True
-        if not changed:
-            break
+    _, passes, exchanges = _exchange_passes(
+        sums, chosen, taken, sums.current(), lambda h, free: np.where(free, h.with_each(), -np.inf),
+        lambda new, best: new > best + EXCHANGE_TOL, max_passes)
     return Design(np.array(chosen, dtype=int), float(sums.current()), passes, exchanges)
 
 
@@ -176,25 +190,17 @@ def minimax(info: PoseInformation, chosen: np.ndarray, ref_var: np.ndarray, base
     H0 = reduced_information(sums.A, sums.B, sums.C) + sums.base
     if np.all(np.diag(np.linalg.pinv(H0)) <= ref_var):
         return Design(np.array(picked, dtype=int), float(sums.current()), 0, 0)
-    best = float(relative_variance(H0, info.scale, ref_var))
-    passes = exchanges = 0
-    for passes in range(1, max_passes + 1):  # noqa: B007 - the count is returned
-        changed = False
-        for k in range(len(picked)):
-            u = picked[k]
-            sums.add(u, -1.0)
-            taken[u] = False
-            H = sums.each_information()
-            ok = ~taken & (log_det(H, info.scale) >= floor)
-            score = np.where(ok, relative_variance(H, info.scale, ref_var), np.inf)
-            v = int(np.argmin(score))
-            if v != u and score[v] < best * (1.0 - EXCHANGE_TOL):
-                best, changed, exchanges = float(score[v]), True, exchanges + 1
-                picked[k] = v
-            sums.add(picked[k])
-            taken[picked[k]] = True
-        if not changed:
-            break
+
+    def score(h: _Sums, free: np.ndarray) -> np.ndarray:
+        H = h.each_information()
+        ok = free & (log_det(H, info.scale) >= floor)
+        return np.where(ok, -relative_variance(H, info.scale, ref_var), -np.inf)
+
+    # the criterion is negated (higher is better): lowering it by more than EXCHANGE_TOL relative is
+    # ``-new > -best * (1 - EXCHANGE_TOL)``
+    _, passes, exchanges = _exchange_passes(
+        sums, picked, taken, -float(relative_variance(H0, info.scale, ref_var)), score,
+        lambda new, best: new > best * (1.0 - EXCHANGE_TOL), max_passes)
     return Design(np.array(picked, dtype=int), float(sums.current()), passes, exchanges)
 
 
