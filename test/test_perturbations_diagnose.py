@@ -106,6 +106,30 @@ def test_joints_the_block_does_not_see_keep_their_declared_covariance(result, tm
     assert lp.best == "learned"
 
 
+@pytest.mark.parametrize("best", ["global_scale", "declared"])
+def test_learned_covariances_are_not_written_when_the_check_prefers_another(result, tmp_path, best):
+    """The held-out check decides: when the declared prior (scaled, or as it is) predicts the held-out rows
+    better than the learned covariances, the YAML keeps the declared sigmas and its header says why."""
+    import dataclasses
+
+    src = tmp_path / "model.yaml"
+    src.write_text(MODEL_YAML)
+    lp = result.learned_prior
+    top = max(c.loglik for c in lp.check.values())
+    check = {name: dataclasses.replace(c, loglik=top + 1.0 if name == best else c.loglik)
+             for name, c in lp.check.items()}
+    res = type(result)(**{**result.__dict__, "learned_prior": dataclasses.replace(lp, check=check)})
+    assert res.learned_prior.best == best
+    text = write_model_yaml(src, res, tmp_path / "out.yaml").read_text()
+    assert f"learned covariances are NOT written: the held-out check's best log-likelihood is '{best}'" in text
+    assert "perturbations learned from the held-out residual" not in text
+    doc = YAML(typ="safe").load(text)
+    k = result.sigma_scale if best == "global_scale" else 1.0
+    for jn in ("j1", "j2", "j5"):
+        np.testing.assert_allclose(doc["perturbations"][jn]["sigma"],
+                                   k * np.array([0.0002, 0.0002, 0.0002, 0.001, 0.001, 0.001]), rtol=1e-12)
+
+
 def test_cli_on_a_shipped_tracker_bag():
     """A tracker bag of the arm7 (few stops, mount plate dominant): this start was numerically singular once."""
     import contextlib

@@ -55,31 +55,26 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
         entry["ci"] = {k: [float(a), float(b)] for k, (a, b) in e.ci.items()}
         effects.append(entry)
     doc["effects"] = effects
-    k = result.sigma_scale
-    learned_lines: list[str] = []
-    if scale_sigmas and result.learned_prior is not None:  # --learn-perturbations: the learned ones, not k
+    k, learned = result.sigma_scale, result.learned_prior
+    written = ""
+    if scale_sigmas and learned is not None and learned.best in ("learned", ""):
+        # --learn-perturbations: the learned covariances, when the held-out check does not prefer another choice
         from ppoe_core.analysis.diagnose.learned_prior import write_into_model
 
-        learned_lines = write_into_model(doc, result.learned_prior)
-    elif scale_sigmas and math.isfinite(k):
-        pert = doc.get("perturbations") or {}
-        if pert:
-            for _jn, entry in pert.items():
-                if "sigma" in entry:
-                    entry["sigma"] = [float(v * k) for v in entry["sigma"]]
-                if "covariance" in entry:
-                    entry["covariance"] = [[float(v * k * k) for v in row] for row in entry["covariance"]]
-            jn_sec = doc.get("joint_noise") or {}
-            for jn in list(jn_sec):
-                jn_sec[jn] = float(jn_sec[jn] * k)
-        elif not doc.get("joint_noise") and result.fitted_joint_noise:
-            doc["joint_noise"] = result.fitted_joint_noise
+        written = "\n".join(write_into_model(doc, learned)) + "\n"
+    elif scale_sigmas and (learned is None or learned.best == "global_scale") and math.isfinite(k):
+        _scale_prior(doc, result, k)
+        written = (f"# perturbation sigmas and joint noise scaled by {k:.4g}: the declared prior's scale as the data "
+                   "estimate it.\n")
+    if scale_sigmas and learned is not None and learned.best not in ("learned", ""):
+        kept = "the declared sigmas scaled, above" if written else "the declared sigmas kept"
+        written += ("# --learn-perturbations: the learned covariances are NOT written: the held-out check's best "
+                    f"log-likelihood is '{learned.best}'\n# ({kept}; diagnose.md, Learned perturbations, has the "
+                    "learned ones).\n")
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    scaled = (f"# perturbation sigmas and joint noise scaled by {k:.4g}: the declared prior's scale as the data "
-              "estimate it.\n") if not learned_lines else "\n".join(learned_lines) + "\n"
     header = ("# Model updated by `ppoe diagnose`: effects found (with 95 % CIs) appended to `effects`,\n"
-              + scaled
+              + written
               + (f"# For robot_calibrated.urdf: the static effects {list(drop)} are left out here: the declared ones\n"
                  "# and the significant components of the found ones are folded into its joint origins (diagnose.md,\n"
                  "# section How to apply, lists the components left out).\n" if drop else ""))
@@ -87,6 +82,23 @@ def write_model_yaml(model_yaml: str | Path | Mapping | None, result: DiagnoseRe
     rt.dump(doc, buf)
     out_path.write_text(header + buf.getvalue(), encoding="utf-8")
     return out_path
+
+
+def _scale_prior(doc: Any, result: DiagnoseResult, k: float) -> None:
+    """Scale the document's perturbation sigmas / covariances and joint noise by ``k`` (the NEES fit); with no
+    perturbations and no joint noise declared, write the fitted joint noise."""
+    pert = doc.get("perturbations") or {}
+    if pert:
+        for _jn, entry in pert.items():
+            if "sigma" in entry:
+                entry["sigma"] = [float(v * k) for v in entry["sigma"]]
+            if "covariance" in entry:
+                entry["covariance"] = [[float(v * k * k) for v in row] for row in entry["covariance"]]
+        jn_sec = doc.get("joint_noise") or {}
+        for jn in list(jn_sec):
+            jn_sec[jn] = float(jn_sec[jn] * k)
+    elif not doc.get("joint_noise") and result.fitted_joint_noise:
+        doc["joint_noise"] = result.fitted_joint_noise
 
 
 #: the one name of the quantity in the effects table (docs/diagnose_report.md uses the same words)
