@@ -30,7 +30,6 @@ ROSDEP_KEYS = {
     "numba": "python3-numba",
     "matplotlib": "python3-matplotlib",
     "rosbags": "python3-rosbags-pip",
-    "isal": "python3-isal",
 }
 
 #: imported top-level module -> pip requirement name in setup.py install_requires (ROS packages come from ROS)
@@ -41,7 +40,9 @@ PIP_NAMES = {"numpy": "numpy", "scipy": "scipy", "yaml": "PyYAML", "ruamel": "ru
 #: optional imports (each inside ``try: ... except ImportError`` or inside the one function that needs it), not
 #: required by package.xml / setup.py
 OPTIONAL = {"gtsam": "diagnose's GTSAM cross-check (ppoe_core/analysis/diagnose/joint_gtsam.py)",
-            "xacro": "a .xacro urdf in launch/ppoe.launch.py (listed in package.xml all the same)"}
+            "xacro": "a .xacro urdf in launch/ppoe.launch.py (listed in package.xml all the same)",
+            "isal": "ISA-L inflate of PNG images (ppoe_core/io/png.py; zlib without it): in setup.py for pip users, "
+                    "not in package.xml (no verified rosdep key; an unknown key fails `rosdep install`)"}
 
 #: package.xml keys that are not imports: executables the launch file starts, and lifecycle_msgs, which
 #: rclpy.lifecycle (ppoe_ros/common/lifecycle.py) needs at run time
