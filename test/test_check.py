@@ -33,11 +33,13 @@ MODEL = """trackers:
 
 
 def write_bag(path: Path, *, n: int = 12, rename: dict[str, str] | None = None, camera_frame: str | None = None,
-              moving: bool = False, frozen: tuple[str, ...] = (), description: bool = True, seed: int = 3) -> Path:
+              moving: bool = False, frozen: tuple[str, ...] = (), description: bool = True, seed: int = 3,
+              encoder_noise: float = 0.0) -> Path:
     """A contract bag of ind6: per stop 0.3 s of joint states at 100 Hz, then one tracker point (and camera_info).
 
     ``moving``: the joints never rest (a sinusoid; points every 0.5 s); ``frozen``: these joints stay at 0.2 rad;
-    ``rename``: joint names as the bag publishes them."""
+    ``rename``: joint names as the bag publishes them; ``encoder_noise``: white noise on every joint-state sample
+    [rad], also at rest."""
     rng = np.random.default_rng(seed)
     tree = KinematicTree(ROBOT)
     names = [(rename or {}).get(j, j) for j in JOINTS]
@@ -51,7 +53,7 @@ def write_bag(path: Path, *, n: int = 12, rename: dict[str, str] | None = None, 
             for i in range(30 if not moving else 50):
                 t = t0 + 0.01 * i * (1 if not moving else 2)
                 q = q0 if not moving else 0.5 * np.sin(0.7 * t + np.arange(len(JOINTS)))
-                bag.write_joint_state(t, names, q)
+                bag.write_joint_state(t, names, q + encoder_noise * rng.standard_normal(len(JOINTS)))
             t_meas = t0 + 0.25
             q = q0 if not moving else 0.5 * np.sin(0.7 * t_meas + np.arange(len(JOINTS)))
             T = tree.link_poses(dict(zip(JOINTS, q)), links=["tool0"])["tool0"]
@@ -166,6 +168,13 @@ def test_identifiability_against_a_direct_count(tmp_path):
     assert static_rows(data, JOINTS, stamps).all()
     moving = read_bag(write_bag(tmp_path / "moving", n=10, moving=True), load_images=False)
     assert not static_rows(moving, JOINTS, moving.ground_truth_point.stamps).any()
+    # a noisy encoder at rest (0.1 mrad white noise on every sample: 2-4 mrad/s of apparent spread over 0.1-0.2 s)
+    # is still at rest; the same noise on a moving robot is still motion
+    noisy = read_bag(write_bag(tmp_path / "noisy", n=10, encoder_noise=1e-4), load_images=False)
+    assert static_rows(noisy, JOINTS, noisy.ground_truth_point.stamps).all()
+    noisy_moving = read_bag(write_bag(tmp_path / "noisy_moving", n=10, moving=True, encoder_noise=1e-4),
+                            load_images=False)
+    assert not static_rows(noisy_moving, JOINTS, noisy_moving.ground_truth_point.stamps).any()
     from ppoe_core.io.bag_joints import joints_at
 
     q = joints_at(data, ROBOT, stamps)
