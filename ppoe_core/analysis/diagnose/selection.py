@@ -23,6 +23,10 @@ parameter (``U`` scored poses; a BIC-like price).
   than ``kappa`` per parameter saved) and the held-out losses are not significant in any block (paired t or
   signed-rank z of the per-pose losses below :data:`BACKWARD_T`).  Backward moves are linear at the point of the
   last refit (the next accepted step refits them).
+* **Exchanges**, once no forward move qualifies: the backward pass once more, with the *exchange* of a term for one
+  of its rivals (the single additions that scored within ``kappa`` of it, one parameter's price, in the step that
+  added it: at that step's noise scale the two were not told apart, at the final residual they may be), taken
+  when it lowers ``L`` by more than rounding (:data:`EXCHANGE_MIN`); after a change the forward steps go on.
 * **Stop** when no forward move qualifies (``max_effects`` optionally caps the number of terms).
 * **Phases**: first the sensors' own effects only (camera extrinsics and intrinsics, tag placement, a sensor's time
   offset: the model of a measurement, before any arm effect is asked to explain what a sensor's own error does),
@@ -58,6 +62,12 @@ BACKWARD_T = 2.0
 NESTED_T = 3.0
 #: iterations of the backward pass at one linearisation (each removes or simplifies one term)
 MAX_BACKWARD = 200
+#: at most this many rivals of an added term are kept for the exchange moves (the closest first)
+MAX_RIVALS = 4
+#: an exchange is taken only when it lowers ``L`` by more than this: two equivalent terms (a base tilt and the
+#: same turn of the first mount) score equal up to rounding, and :meth:`Selector.best` breaks such ties (to 1e-6)
+#: by fewer parameters, then by catalogue order; an exchange must not undo that
+EXCHANGE_MIN = 1e-6
 
 
 class Refitter(Protocol):
@@ -131,6 +141,10 @@ class Selector:
         self._variance: dict[tuple[Term, ...], float] = {}
         #: :meth:`admissible` per (model, term) at the current linearisation: the term and the reasons it records
         self._admissible: dict[tuple, tuple[Term | None, dict[str, str], dict[str, str]]] = {}
+        #: candidate index of an added term -> its rivals (:meth:`note_rivals`), for the exchange moves
+        self.rivals: dict[int, list[Term]] = {}
+        #: whether the backward pass tries exchanges (only once the forward steps are done, :func:`select`)
+        self.exchanging = False
 
     @property
     def lin(self) -> Linearised | None:
@@ -212,8 +226,8 @@ class Selector:
         key = self.catalogue.describe(term)
         idf = self.lin.identifiable(model, [term], o.max_condition, o.max_absorbed)
         if not idf.ok:
-            if len(term.comps) == 1 or "act" in idf.reason:
-                notes[key] = idf.reason
+            if len(term.comps) == 1 or "act" in idf.reason or not self.catalogue.splittable(term):
+                notes[key] = idf.reason  # (a term whose parameters are not components enters whole or not at all)
                 return None
             keep: list[int] = []
             singles = [Term(term.cand, (c,)) for c in term.comps]  # the components that explain most go first
@@ -356,14 +370,41 @@ class Selector:
             return rival  # the backward pass then keeps of the mount's six components those the data need
         return best
 
+    def note_rivals(self, best: Move, moves: Sequence[Move], model: tuple[Term, ...], kappa: float) -> None:
+        """Keep the rivals of the single addition ``best`` (from ``model``): the other single additions whose
+        ``delta_L`` came within ``kappa`` of it (at most :data:`MAX_RIVALS`, the closest first)."""
+        def added(m: Move) -> Term | None:
+            new = [t for t in m.model if t not in model]
+            return new[0] if m.action == "add" and len(new) == 1 else None
+
+        term = added(best)
+        if term is None:
+            return
+        close = sorted((m for m in moves if m is not best and m.delta_L <= best.delta_L + kappa and added(m)),
+                       key=lambda m: m.delta_L)
+        self.rivals[term.cand] = [t for t in (added(m) for m in close[:MAX_RIVALS]) if t is not None]
+
+    def exchanges(self, model: tuple[Term, ...], t: Term, rest: tuple[Term, ...]) -> list[Move]:
+        """``t`` exchanged for each of its rivals (:meth:`note_rivals`) not in the model, scored."""
+        held = {x.cand for x in model}
+        out = []
+        for r in self.rivals.get(t.cand, []):
+            r2 = None if r.cand in held else self.admissible(rest, r)
+            if r2 is not None:
+                out.append(self.score(model, model_key([*rest, r2]), "exchange",
+                                      f"{self.catalogue.describe(t)} -> {self.catalogue.describe(r2)}"))
+        return out
+
     # -- backward -------------------------------------------------------------------------------------
     def backward_moves(self, model: tuple[Term, ...]) -> list[Move]:
-        """Removals, nested simplifications and simpler replacements of every term, scored."""
+        """Removals, nested simplifications, simpler replacements and exchanges of every term, scored."""
         moves = []
         for t in model:
             rest = tuple(x for x in model if x != t)
             label = self.catalogue.describe(t)
             moves.append(self.score(model, rest, "remove", label))
+            if self.exchanging:
+                moves.extend(self.exchanges(model, t, rest))
             for s in self.catalogue.simpler(t):
                 if s.cand != t.cand and any(x.cand == s.cand for x in rest):
                     continue
@@ -407,11 +448,15 @@ class Selector:
         """Backward moves at the current linearisation until none lowers ``L`` (module docstring)."""
         changed = False
         for _ in range(MAX_BACKWARD):
-            moves = [m for m in self.backward_moves(model) if m.delta_L <= 0.0 and -max(m.t_min, m.z_min) < BACKWARD_T]
+            moves = [m for m in self.backward_moves(model) if m.delta_L <= 0.0 and -max(m.t_min, m.z_min) < BACKWARD_T
+                     and (m.action != "exchange" or m.delta_L < -EXCHANGE_MIN)]
             if not moves:
                 break
             best = min(moves, key=lambda m: (m.delta_L, self.catalogue.n_params(m.model)))
             self.steps.append(best.record())
+            if best.action == "exchange":  # the term given up becomes a rival of the one taken
+                (old,), (new,) = set(model) - set(best.model), set(best.model) - set(model)
+                self.rivals[new.cand] = [old, *(r for r in self.rivals.get(old.cand, []) if r.cand != new.cand)]
             model, changed = best.model, True
         return model, changed
 
@@ -430,6 +475,11 @@ def select(catalogue: Catalogue, refitter: Refitter, options: SelectionOptions,
             continue
         sel.allowed = allowed
         model = _forward(sel, model, phase)
+    sel.exchanging = True  # the terms that entered ahead of an equal rival, judged at the final residual
+    model, changed = sel.backward(model)
+    if changed:
+        sel.visited.add(model)
+        model = _forward(sel, _settle(sel, model), "all")
     return Selection(model, sel.steps, sel.rejected, d_before, sel.lin.heldout(model))
 
 
@@ -449,6 +499,7 @@ def _forward(sel: Selector, model: tuple[Term, ...], phase: str) -> tuple[Term, 
                 sel.steps.append({**best.record(), "accepted": False, "phase": phase})
             break
         sel.steps.append({**best.record(), "accepted": True, "phase": phase})
+        sel.note_rivals(best, moves, model, sel.kappa(d0))
         model = best.model
         sel.visited.add(model)
         model = _settle(sel, model)

@@ -116,6 +116,11 @@ class Catalogue:
     def describe(self, term: Term) -> str:
         return self.effect(term).key
 
+    def splittable(self, term: Term) -> bool:
+        """Whether a subset of ``term``'s parameters is itself an effect (``components``: a twist, the bending or
+        lateral axes, the intrinsics); a ``base_tilt`` or a thermal growth enters whole or not at all."""
+        return bool(self.effects[term.cand].all_components)
+
     def simpler(self, term: Term) -> list[Term]:
         """Terms nested in ``term`` with fewer parameters: one parameter less (an intrinsics level less; of a level
         with unidentifiable parameters pruned, the level below and each of its extra parameters less), and
@@ -131,7 +136,7 @@ class Catalogue:
                 if names not in (set(lv) for lv in INTRINSIC_LEVELS):
                     out.extend(Term(term.cand, tuple(c for c in term.comps if c != k)) for k in term.comps
                                if e.param_names[k] not in level and len(names) - 1 > len(level))
-        elif len(term.comps) > 1 and e.all_components:
+        elif len(term.comps) > 1 and self.splittable(term):
             out.extend(Term(term.cand, tuple(c for c in term.comps if c != k)) for k in term.comps)
         if e.name == "link_error":
             j = self.by_place.get(("joint_offset", e.location))
