@@ -70,12 +70,12 @@ def test_a_term_is_exchanged_for_its_better_rival(tmp_path):
     from conftest import REPO
 
     path = REPO / "bench" / "bench_engine_scenarios.py"
-    spec = importlib.util.spec_from_file_location("bench_engine_scenarios", path)
+    name = "bench_engine_scenarios_selection"  # a copy of its own: its SETS gets one more set
+    spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
-    bench = sys.modules.get("bench_engine_scenarios") or importlib.util.module_from_spec(spec)
-    if "bench_engine_scenarios" not in sys.modules:
-        sys.modules["bench_engine_scenarios"] = bench
-        spec.loader.exec_module(bench)
+    bench = importlib.util.module_from_spec(spec)
+    sys.modules[name] = bench
+    spec.loader.exec_module(bench)
     bench.SETS["selection"] = REPO / "test" / "data" / "selection"
     row = bench.run("selection", "lateral_alias", tmp_path)
     assert row.verdict.named and not row.verdict.extra, (row.verdict.missing, row.verdict.extra)
