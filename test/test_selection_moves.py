@@ -1,10 +1,10 @@
 """Moves of the one selection routine (``ppoe_core/analysis/diagnose/selection.py``).
 
 **Exchanges.** A term that entered ahead of an equal rival is exchanged for it when, at the final residual, the
-rival explains the held-out data better (penalised ``L`` lower): on panda7 (``test/data/selection``) a sideways
-bend of j4 ties at the first step with j3's torsion, which explains almost the same error with one parameter fewer.
-Without the exchange the diagnosis named ``gravity_compliance@j3`` (0.0963 mm held out against a 0.0866 mm noise
-floor); with it, ``lateral_compliance@j4`` (0.0878 mm).
+rival explains the held-out data better (penalised ``L`` lower): on panda7 (``test/data/selection``, the robot in
+``bench/scenarios_holdout/robots``) a sideways bend of j4 ties at the first step with j3's torsion, which explains
+almost the same error with one parameter fewer. Without the exchange the diagnosis named ``gravity_compliance@j3``
+(0.0963 mm held out against a 0.0866 mm noise floor); with it, ``lateral_compliance@j4`` (0.0878 mm).
 
 **Splitting.** A term is split into parameter subsets only where a subset is itself an effect.
 
