@@ -539,7 +539,9 @@ def _add_prior_run(run: ReplayRun, pri: _Priors, idx: np.ndarray, pipes: dict[st
     """Priors ``idx`` (consecutive events) through every pipeline: ``add_priors``, the calls ``add_prior(...,
     validated=True, estimate=False)`` one by one would make (estimates are read at ground-truth stamps only)."""
     a, b = int(idx[0]), int(idx[-1]) + 1
-    sel: Any = slice(a, b) if b - a == len(idx) and bool(np.all(np.diff(idx) == 1)) else idx
+    # the prior indices of a run increase (events in stamp order, priors sorted by stamp): consecutive iff they span
+    # exactly len(idx) indices
+    sel: Any = slice(a, b) if b - a == len(idx) else idx
     for name, pipe in pipes.items():
         cov = pri.cov_all[sel] if name == "ppoe" else pri.cov_naive
         outs = pipe.add_priors(pri.stamps[sel], pri.T_all[sel], cov, pri.Q[sel], validated=True)
