@@ -545,7 +545,8 @@ def _add_prior_run(run: ReplayRun, pri: _Priors, idx: np.ndarray, pipes: dict[st
     for name, pipe in pipes.items():
         cov = pri.cov_all[sel] if name == "ppoe" else pri.cov_naive
         outs = pipe.add_priors(pri.stamps[sel], pri.T_all[sel], cov, pri.Q[sel], validated=True)
-        run.record(name, outs, updaters[name].tags)
+        if outs:  # (almost always empty: a pending measurement made ready)
+            run.record(name, outs, updaters[name].tags)
 
 
 def _at_ground_truth(run: ReplayRun, pri: _Priors, t: float, i: int, pipes: dict[str, Any],
