@@ -115,10 +115,10 @@ def test_a_prior_run_goes_on_across_slots_without_a_measurement():
     i_ev = np.array([0, 1, 0, 2, 1, 3, 2, 4, 3, 0, 5])
     edges = np.flatnonzero(np.diff(np.concatenate([[0], (k_ev == 0).astype(np.int8), [0]])))
     run_end = dict(zip(edges[0::2].tolist(), edges[1::2].tolist()))
-    idx, e = _prior_run(0, run_end, k_ev, i_ev, slots)
-    assert idx.tolist() == [0, 1, 2, 3] and e == 6  # slot 2 has a measurement: the run stops before it
-    idx, e = _prior_run(7, run_end, k_ev, i_ev, slots)
-    assert idx.tolist() == [4] and e == 8  # the empty slot 3 is followed by ground truth, not a prior
+    k_list, i_list = k_ev.tolist(), i_ev.tolist()
+    assert _prior_run(0, run_end, k_list, i_list, slots) == (0, 4, 6)  # slot 2 has a measurement: the run stops before
+    assert _prior_run(7, run_end, k_list, i_list, slots) == (4, 5, 8)  # the empty slot 3 is followed by ground truth
+    assert _prior_run(10, run_end, k_list, i_list, slots) == (5, 6, 11)  # the last event
 
 
 REPO_BAGS = __import__("pathlib").Path(__file__).resolve().parents[1] / "bags"

@@ -490,12 +490,13 @@ def _replay(pri: _Priors, slots: MeasurementSlots, gt_stamps: np.ndarray, pipes:
     # runs of consecutive priors (no measurement or ground truth between them) go through add_priors at once
     edges = np.flatnonzero(np.diff(np.concatenate([[0], (k_ev == 0).astype(np.int8), [0]])))
     run_end = dict(zip(edges[0::2].tolist(), edges[1::2].tolist()))
+    k_list, i_list = k_ev.tolist(), i_ev.tolist()  # Python ints: the loop indexes them one by one
     e, tick = 0, 0
     while e < len(ev):
-        k, i = int(k_ev[e]), int(i_ev[e])
+        k, i = k_list[e], i_list[e]
         if k == 0:
-            idx, e = _prior_run(e, run_end, k_ev, i_ev, slots)
-            _add_prior_run(run, pri, idx, pipes, updaters)
+            a, b, e = _prior_run(e, run_end, k_list, i_list, slots)
+            _add_prior_run(run, pri, a, b, pipes, updaters)
         elif k == 1:
             m = slots.get(i)
             for name, pipe in pipes.items():
@@ -517,31 +518,29 @@ def _replay(pri: _Priors, slots: MeasurementSlots, gt_stamps: np.ndarray, pipes:
     return run
 
 
-def _prior_run(e: int, run_end: dict[int, int], k_ev: np.ndarray, i_ev: np.ndarray,
-               slots: MeasurementSlots) -> tuple[np.ndarray, int]:
-    """The prior indices of the run of prior events starting at event ``e``, joined across measurement slots without
-    a measurement, and the event after them."""
+def _prior_run(e: int, run_end: dict[int, int], k_ev: Sequence[int], i_ev: Sequence[int],
+               slots: MeasurementSlots) -> tuple[int, int, int]:
+    """The run of prior events starting at event ``e``, joined across measurement slots without a measurement:
+    ``(a, b, f)``, its priors ``a .. b - 1`` and the event ``f`` after them.  (The prior events' indices are 0, 1, ...
+    in event order, the events being in stamp order and the priors sorted by stamp: a span of events holds a range.)"""
     f = run_end[e]
-    parts = [i_ev[e:f]]
+    n = len(k_ev)
     while True:
         g = f
-        while g < len(k_ev) and k_ev[g] == 1 and slots.get(int(i_ev[g])) is None:
+        while g < n and k_ev[g] == 1 and slots.get(i_ev[g]) is None:
             g += 1
-        if g == f or g >= len(k_ev) or k_ev[g] != 0:
+        if g == f or g >= n or k_ev[g] != 0:
             break
         f = run_end[g]
-        parts.append(i_ev[g:f])
-    return (parts[0] if len(parts) == 1 else np.concatenate(parts)), f
+    return i_ev[e], i_ev[f - 1] + 1, f
 
 
-def _add_prior_run(run: ReplayRun, pri: _Priors, idx: np.ndarray, pipes: dict[str, Any],
+def _add_prior_run(run: ReplayRun, pri: _Priors, a: int, b: int, pipes: dict[str, Any],
                    updaters: dict[str, Any]) -> None:
-    """Priors ``idx`` (consecutive events) through every pipeline: ``add_priors``, the calls ``add_prior(...,
-    validated=True, estimate=False)`` one by one would make (estimates are read at ground-truth stamps only)."""
-    a, b = int(idx[0]), int(idx[-1]) + 1
-    # the prior indices of a run increase (events in stamp order, priors sorted by stamp): consecutive iff they span
-    # exactly len(idx) indices
-    sel: Any = slice(a, b) if b - a == len(idx) else idx
+    """Priors ``a .. b - 1`` (a run of prior events) through every pipeline: ``add_priors``, the calls
+    ``add_prior(..., validated=True, estimate=False)`` one by one would make (estimates are read at ground-truth
+    stamps only)."""
+    sel = slice(a, b)
     for name, pipe in pipes.items():
         cov = pri.cov_all[sel] if name == "ppoe" else pri.cov_naive
         outs = pipe.add_priors(pri.stamps[sel], pri.T_all[sel], cov, pri.Q[sel], validated=True)
