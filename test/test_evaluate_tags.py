@@ -115,7 +115,123 @@ def test_a_prior_run_goes_on_across_slots_without_a_measurement():
     i_ev = np.array([0, 1, 0, 2, 1, 3, 2, 4, 3, 0, 5])
     edges = np.flatnonzero(np.diff(np.concatenate([[0], (k_ev == 0).astype(np.int8), [0]])))
     run_end = dict(zip(edges[0::2].tolist(), edges[1::2].tolist()))
-    idx, e = _prior_run(0, run_end, k_ev, i_ev, slots)
-    assert idx.tolist() == [0, 1, 2, 3] and e == 6  # slot 2 has a measurement: the run stops before it
-    idx, e = _prior_run(7, run_end, k_ev, i_ev, slots)
-    assert idx.tolist() == [4] and e == 8  # the empty slot 3 is followed by ground truth, not a prior
+    k_list, i_list = k_ev.tolist(), i_ev.tolist()
+    assert _prior_run(0, run_end, k_list, i_list, slots) == (0, 4, 6)  # slot 2 has a measurement: the run stops before
+    assert _prior_run(7, run_end, k_list, i_list, slots) == (4, 5, 8)  # the empty slot 3 is followed by ground truth
+    assert _prior_run(10, run_end, k_list, i_list, slots) == (5, 6, 11)  # the last event
+
+
+REPO_BAGS = __import__("pathlib").Path(__file__).resolve().parents[1] / "bags"
+ARM7_MODEL = REPO_BAGS.parent / "config" / "robots" / "arm7_model.yaml"
+
+
+def _same_series(a, b, where="data"):
+    """Every field of two BagData (dataclasses, dicts, lists, arrays) equal, bit for bit."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(a):
+        assert type(a) is type(b), where
+        for f in dataclasses.fields(a):
+            _same_series(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
+    elif isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            _same_series(a[k], b[k], f"{where}[{k!r}]")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same_series(x, y, f"{where}[{i}]")
+    elif isinstance(a, np.ndarray):
+        np.testing.assert_array_equal(a, b, err_msg=where)
+        assert a.dtype == b.dtype, where
+    else:
+        assert a == b, where
+
+
+def test_read_bag_reads_the_first_topics_first_and_gives_the_same_data():
+    from ppoe_core.analysis.evaluate.replay import TAG_INPUT_TOPICS
+    from ppoe_core.io.bagio import read_bag
+
+    bag = REPO_BAGS / "effect_camera_extrinsics"
+    seen = {}
+
+    def early(data):
+        seen.update(images=len(data.images), camera_info=len(data.camera_info), urdf=bool(data.robot_description),
+                    joint_states=len(data.joint_states), gt=len(data.ground_truth_pose), obj=data)
+
+    phased = read_bag(bag, first=TAG_INPUT_TOPICS, on_first=early)
+    whole = read_bag(bag)
+    assert seen["obj"] is phased  # the same object, completed after the call
+    assert seen["images"] == len(whole.images) > 0 and seen["camera_info"] == len(whole.camera_info) > 0
+    assert seen["urdf"] and seen["joint_states"] == 0 and seen["gt"] == 0 < len(whole.ground_truth_pose)
+    _same_series(phased, whole)
+
+
+def test_evaluate_starts_the_image_workers_before_the_joint_states_are_read(monkeypatch):
+    from ppoe_core.analysis.evaluate import EvaluateOptions, evaluate_bag
+    from ppoe_core.analysis.evaluate import replay
+
+    made = []
+
+    class Recording(TagStream):
+        def __init__(self, data, *args, **kwargs):
+            made.append((len(data.joint_states), len(data.images), kwargs.get("priors")))
+            super().__init__(data, *args, **kwargs)
+
+    monkeypatch.setattr(replay, "TagStream", Recording)
+    bag = REPO_BAGS / "effect_camera_extrinsics"
+    ev = evaluate_bag(bag, ARM7_MODEL, EvaluateOptions(progress=False))
+    assert len(made) == 1 and made[0][0] == 0 and made[0][1] == ev.summary["measurements"]["images"] > 0
+    assert made[0][2] is None
+    made.clear()
+    evaluate_bag(bag, ARM7_MODEL, EvaluateOptions(progress=False, tag_windows=True))  # needs the priors: after them
+    assert len(made) == 1 and made[0][0] > 0 and made[0][2] is not None
+
+
+def test_early_tags_start_again_when_the_bag_is_read_again_record_by_record(monkeypatch):
+    """A damaged file read again record by record gives another BagData than the early phase saw: the stream made
+    on the first is closed and a new one made on the data returned."""
+    from ppoe_core.analysis.evaluate import EvaluateOptions
+    from ppoe_core.analysis.evaluate import replay
+
+    streams = []
+
+    class Fake:
+        def __init__(self, data, *args, **kwargs):
+            self.data, self.closed = data, False
+            streams.append(self)
+
+        def close(self):
+            self.closed = True
+
+    seen = SimpleNamespace(images="early", require_robot_description=lambda: "urdf")
+    final = SimpleNamespace(images="rescued", require_robot_description=lambda: "urdf")
+
+    def fake_read_bag(path, *, accept_partial, first, on_first):
+        on_first(seen)
+        return final
+
+    monkeypatch.setattr(replay, "TagStream", Fake)
+    monkeypatch.setattr(replay, "_load_model", lambda *a, **k: "model")
+    monkeypatch.setattr("ppoe_core.io.bagio.read_bag", fake_read_bag)
+    early = replay._EarlyTags("bag", "model.yaml", EvaluateOptions(progress=False))
+    assert early.read() is final
+    assert [s.data.images for s in streams] == ["early", "rescued"] and streams[0].closed and not streams[1].closed
+    assert early.tags is streams[1] and early.model == "model"
+    early.close()
+    assert streams[1].closed
+
+
+def test_evaluate_of_a_bag_read_record_by_record_is_the_same(tmp_path):
+    """Without metadata.yaml the bag is read record by record (no early phase): the same scores, with a note."""
+    import shutil
+
+    from ppoe_core.analysis.evaluate import EvaluateOptions, evaluate_bag
+
+    bag = tmp_path / "bag"
+    shutil.copytree(REPO_BAGS / "effect_camera_extrinsics", bag)
+    ref = evaluate_bag(bag, ARM7_MODEL, EvaluateOptions(progress=False)).summary
+    (bag / "metadata.yaml").unlink()
+    got = evaluate_bag(bag, ARM7_MODEL, EvaluateOptions(progress=False)).summary
+    assert got.pop("bag_notes") and "bag_notes" not in ref
+    assert {k: v for k, v in got.items() if k != "wall_time_s"} == {k: v for k, v in ref.items() if k != "wall_time_s"}

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -133,7 +133,8 @@ def iter_raw(path: str | Path, topics: Iterable[str] | None = None, *, scanned: 
 
 
 def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_images: bool = True,
-             accept_partial: bool = False) -> BagData:
+             accept_partial: bool = False, first: Iterable[str] = (),
+             on_first: Callable[[BagData], None] | None = None) -> BagData:
     """Read a contract bag into numpy arrays.
 
     Parameters
@@ -149,6 +150,13 @@ def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_imag
         says, or a file that stops being readable) instead of raising; :attr:`BagData.notes`
         then says per topic what was lost.  An unfinished recording (no footer or metadata) is
         always read record by record, with a note.
+    first, on_first
+        Read the topics ``first`` before the others and call ``on_first(data)`` with the ``BagData`` holding only
+        them, complete, before the rest is read into the same object (``ppoe evaluate`` starts its image workers
+        there, while the joint states are read).  Each topic's series are the same as in one pass (a topic's
+        messages are read in the same order either way).  Not called for a file read record by record (an
+        unfinished recording); a damaged file read again that way returns another ``BagData`` than the one
+        ``on_first`` saw.
 
     Returns
     -------
@@ -162,7 +170,8 @@ def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_imag
     """
     reader = _open_reader(path)
     try:
-        data, parse, status = _read_with(reader, path, topics, load_images)
+        phases = None if on_first is None or isinstance(reader, RecoveredMcap) else (set(first), on_first)
+        data, parse, status = _read_with(reader, path, topics, load_images, phases)
     finally:
         reader.close()
     if (status.problem() or lost_messages(path, parse, status)) and not isinstance(reader, RecoveredMcap):
@@ -178,10 +187,12 @@ def read_bag(path: str | Path, *, topics: Iterable[str] | None = None, load_imag
     return data
 
 
-def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None,
-               load_images: bool) -> tuple[BagData, list[Any], ReadStatus]:
+def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None, load_images: bool,
+               phases: tuple[set[str], Callable[[BagData], None]] | None = None
+               ) -> tuple[BagData, list[Any], ReadStatus]:
     """Parse the wanted contract topics of an open reader; returns the data, the parsed connections
-    and what was read."""
+    and what was read.  ``phases``: the topics read first and the function called with the data once they are
+    (:func:`read_bag`'s ``first`` and ``on_first``)."""
     data = BagData(path=str(path))
     conns = list(reader.connections)
     for c in conns:
@@ -204,13 +215,14 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None,
     kinds = {c.topic: row_kind(c.topic, c.msgtype) for c in parse if c.topic != TOPIC_ROBOT_DESCRIPTION}
     # /joint_states (most of a bag's messages) kept raw and read at once at the end where all share one layout
     held: dict[str, list[tuple[Any, int, Any]]] = {t: [] for t, kind in kinds.items() if kind is JOINT_STATE_KIND}
-    for conn, _, raw in _messages(reader, parse, status):
-        topic = conn.topic
-        k = status.counts[topic] - 1
-        if topic in held:
-            held[topic].append((conn, k, raw))
-            continue
-        _add_message(data, acc, status, conn, k, raw, kinds.get(topic), load_images)
+    if phases is not None:
+        early = [c for c in parse if c.topic in phases[0]]
+        _read_messages(data, acc, status, reader, early, held, kinds, load_images)
+        finish(data, acc)
+        acc = {}
+        phases[1](data)
+        parse_rest = [c for c in parse if c.topic not in phases[0]]
+    _read_messages(data, acc, status, reader, parse if phases is None else parse_rest, held, kinds, load_images)
     for topic, msgs in held.items():
         block = _joint_state_block([raw for _, _, raw in msgs])
         if block is not None:
@@ -220,6 +232,19 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None,
             _add_message(data, acc, status, conn, k, raw, kinds[topic], load_images)
     finish(data, acc)
     return data, parse, status
+
+
+def _read_messages(data: BagData, acc: dict[str, list[Any]], status: ReadStatus, reader: Any, conns: list[Any],
+                   held: dict[str, list[tuple[Any, int, Any]]], kinds: dict[str, RowKind],
+                   load_images: bool) -> None:
+    """The messages of ``conns`` in log order as rows of ``acc``; the topics of ``held`` kept raw there."""
+    for conn, _, raw in _messages(reader, conns, status):
+        topic = conn.topic
+        k = status.counts[topic] - 1
+        if topic in held:
+            held[topic].append((conn, k, raw))
+            continue
+        _add_message(data, acc, status, conn, k, raw, kinds.get(topic), load_images)
 
 
 def _joint_state_block(raws: list[Any]) -> JointStateBlock | None:

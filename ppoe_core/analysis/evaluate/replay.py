@@ -21,6 +21,9 @@ from ppoe_core.analysis.evaluate.scoring import score_points, score_poses
 from ppoe_core.analysis.evaluate.sources import measurement_dim, source_measurements
 from ppoe_core.analysis.evaluate.tag_stream import TagStream
 from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
+from ppoe_core.io.messages import (
+    TOPIC_CAMERA_INFO, TOPIC_COMPRESSED_IMAGE, TOPIC_IMAGE, TOPIC_ROBOT_DESCRIPTION, TOPIC_TAG_OBSERVATIONS,
+)
 from ppoe_core.io.progress import ProgressBar
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
 from ppoe_core.model.context import batch_context
@@ -125,6 +128,11 @@ def contact_measurements(
     return out, counts
 
 
+#: the topics the tag measurements need (with the model): read before the others, so that the images' workers start
+#: while the rest of the bag is read
+TAG_INPUT_TOPICS = (TOPIC_ROBOT_DESCRIPTION, TOPIC_CAMERA_INFO, TOPIC_COMPRESSED_IMAGE, TOPIC_IMAGE,
+                    TOPIC_TAG_OBSERVATIONS)
+
 _NO_MEASUREMENTS = (  # (a configured source without messages is an error before)
     "no tag observations, images, contact planes or wrenches in contact in the bag: only forward kinematics scored"
 )
@@ -141,6 +149,49 @@ def _gc_paused() -> Iterator[None]:
     finally:
         if enabled:
             gc.enable()
+
+
+class _EarlyTags:
+    """The bag read with the tags' inputs first (:func:`ppoe_core.io.reader.read_bag`'s ``first``): the model is
+    loaded and, unless the tags are looked for in predicted windows, the images' :class:`TagStream` started as soon
+    as the images, camera infos and ``/robot_description`` are read, so that its worker processes detect while the
+    joint states and the rest are read.  :meth:`close` stops the stream."""
+
+    def __init__(self, bag: str, model_yaml: str | Path, opt: EvaluateOptions) -> None:
+        self.bag, self.model_yaml, self.opt = bag, model_yaml, opt
+        self.model: Any = None
+        self.fs: dict[str, Any] = {}
+        self.tags: TagStream | None = None
+        self._images: Any = None
+
+    def read(self) -> Any:
+        """The bag's data, with :attr:`model`, :attr:`fs` (fusion settings) and :attr:`tags` (None: start it after
+        the priors)."""
+        from ppoe_core.io.bagio import read_bag
+
+        data = read_bag(self.bag, accept_partial=self.opt.accept_partial, first=TAG_INPUT_TOPICS,
+                        on_first=self._start)
+        if self.model is None:  # read record by record (no early phase)
+            self._start(data)
+        elif self.tags is not None and data.images is not self._images:  # a damaged file read again: start anew
+            self.tags.close()
+            self.tags = None
+            self._start(data)
+        return data
+
+    def _start(self, data: Any) -> None:
+        opt = self.opt
+        self.model = _load_model(data.require_robot_description(), self.model_yaml, self.bag, opt.urdf)
+        self.fs = opt.fusion_settings()
+        if not opt.tag_windows:
+            self._images = data.images
+            self.tags = TagStream(data, self.model, self.bag, refine=str(self.fs["corner_refinement"]),
+                                  processes=opt.image_processes)
+
+    def close(self) -> None:
+        """Stop the tag stream's workers (if started)."""
+        if self.tags is not None:
+            self.tags.close()
 
 
 @_gc_paused()
@@ -166,23 +217,20 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
     ModelConfigError, UnknownFrameError
         Bad model YAML or frame names.
     """
-    from ppoe_core.io.bagio import read_bag
-
     opt = options or EvaluateOptions()
     bag = str(bag)
     t_start = time.perf_counter()
-    data = read_bag(bag, accept_partial=opt.accept_partial)
-    model = _load_model(data.require_robot_description(), model_yaml, bag, opt.urdf)
-    base, tool, kind = _check_inputs(data, model, model_yaml, opt, bag)
-    sensors = {base, tool, *data.camera_info.frame_ids, *data.tag_observations.frame_ids}
-    fs = opt.fusion_settings()
-    pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml,
-                     required_joints(model, sensors), data.temperatures)
-    # the images' tags are detected on worker threads from here on (in windows predicted from the priors' joint
-    # states), while the rest is set up
-    tags = TagStream(data, model, bag, refine=str(fs["corner_refinement"]),
-                     priors=(pri.stamps, pri.Q) if opt.tag_windows else None, processes=opt.image_processes)
+    early = _EarlyTags(bag, model_yaml, opt)
     try:
+        data = early.read()
+        model, fs, tags = early.model, early.fs, early.tags
+        base, tool, kind = _check_inputs(data, model, model_yaml, opt, bag)
+        sensors = {base, tool, *data.camera_info.frame_ids, *data.tag_observations.frame_ids}
+        pri = _fk_priors(data.joint_states, model, base, tool, opt.order, bag, model_yaml,
+                         required_joints(model, sensors), data.temperatures)
+        if tags is None:  # in windows predicted from the priors' joint states: detected from here on
+            tags = early.tags = TagStream(data, model, bag, refine=str(fs["corner_refinement"]),
+                                          priors=(pri.stamps, pri.Q), processes=opt.image_processes)
         contact_meas, contact_counts = contact_measurements(data, model, model_yaml, fs)
         src_meas, src_counts = source_measurements(data, model, opt.sources, bag)
         pipes, updaters = _pipelines(model, base, tool, fs, pri.cov_naive)
@@ -193,7 +241,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         run = _replay(pri, slots, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
         meas = slots.resolved()
     finally:
-        tags.close()
+        early.close()
     tag_counts = tags.counts
 
     have = np.all(np.isfinite(run.est_T["fk"].reshape(len(gt_stamps), -1)), axis=1)
@@ -442,12 +490,13 @@ def _replay(pri: _Priors, slots: MeasurementSlots, gt_stamps: np.ndarray, pipes:
     # runs of consecutive priors (no measurement or ground truth between them) go through add_priors at once
     edges = np.flatnonzero(np.diff(np.concatenate([[0], (k_ev == 0).astype(np.int8), [0]])))
     run_end = dict(zip(edges[0::2].tolist(), edges[1::2].tolist()))
+    k_list, i_list = k_ev.tolist(), i_ev.tolist()  # Python ints: the loop indexes them one by one
     e, tick = 0, 0
     while e < len(ev):
-        k, i = int(k_ev[e]), int(i_ev[e])
+        k, i = k_list[e], i_list[e]
         if k == 0:
-            idx, e = _prior_run(e, run_end, k_ev, i_ev, slots)
-            _add_prior_run(run, pri, idx, pipes, updaters)
+            a, b, e = _prior_run(e, run_end, k_list, i_list, slots)
+            _add_prior_run(run, pri, a, b, pipes, updaters)
         elif k == 1:
             m = slots.get(i)
             for name, pipe in pipes.items():
@@ -469,33 +518,34 @@ def _replay(pri: _Priors, slots: MeasurementSlots, gt_stamps: np.ndarray, pipes:
     return run
 
 
-def _prior_run(e: int, run_end: dict[int, int], k_ev: np.ndarray, i_ev: np.ndarray,
-               slots: MeasurementSlots) -> tuple[np.ndarray, int]:
-    """The prior indices of the run of prior events starting at event ``e``, joined across measurement slots without
-    a measurement, and the event after them."""
+def _prior_run(e: int, run_end: dict[int, int], k_ev: Sequence[int], i_ev: Sequence[int],
+               slots: MeasurementSlots) -> tuple[int, int, int]:
+    """The run of prior events starting at event ``e``, joined across measurement slots without a measurement:
+    ``(a, b, f)``, its priors ``a .. b - 1`` and the event ``f`` after them.  (The prior events' indices are 0, 1, ...
+    in event order, the events being in stamp order and the priors sorted by stamp: a span of events holds a range.)"""
     f = run_end[e]
-    parts = [i_ev[e:f]]
+    n = len(k_ev)
     while True:
         g = f
-        while g < len(k_ev) and k_ev[g] == 1 and slots.get(int(i_ev[g])) is None:
+        while g < n and k_ev[g] == 1 and slots.get(i_ev[g]) is None:
             g += 1
-        if g == f or g >= len(k_ev) or k_ev[g] != 0:
+        if g == f or g >= n or k_ev[g] != 0:
             break
         f = run_end[g]
-        parts.append(i_ev[g:f])
-    return (parts[0] if len(parts) == 1 else np.concatenate(parts)), f
+    return i_ev[e], i_ev[f - 1] + 1, f
 
 
-def _add_prior_run(run: ReplayRun, pri: _Priors, idx: np.ndarray, pipes: dict[str, Any],
+def _add_prior_run(run: ReplayRun, pri: _Priors, a: int, b: int, pipes: dict[str, Any],
                    updaters: dict[str, Any]) -> None:
-    """Priors ``idx`` (consecutive events) through every pipeline: ``add_priors``, the calls ``add_prior(...,
-    validated=True, estimate=False)`` one by one would make (estimates are read at ground-truth stamps only)."""
-    a, b = int(idx[0]), int(idx[-1]) + 1
-    sel: Any = slice(a, b) if b - a == len(idx) and bool(np.all(np.diff(idx) == 1)) else idx
+    """Priors ``a .. b - 1`` (a run of prior events) through every pipeline: ``add_priors``, the calls
+    ``add_prior(..., validated=True, estimate=False)`` one by one would make (estimates are read at ground-truth
+    stamps only)."""
+    sel = slice(a, b)
     for name, pipe in pipes.items():
         cov = pri.cov_all[sel] if name == "ppoe" else pri.cov_naive
         outs = pipe.add_priors(pri.stamps[sel], pri.T_all[sel], cov, pri.Q[sel], validated=True)
-        run.record(name, outs, updaters[name].tags)
+        if outs:  # (almost always empty: a pending measurement made ready)
+            run.record(name, outs, updaters[name].tags)
 
 
 def _at_ground_truth(run: ReplayRun, pri: _Priors, t: float, i: int, pipes: dict[str, Any],
