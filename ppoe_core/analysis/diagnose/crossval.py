@@ -95,7 +95,7 @@ class Linearised:
         self.sys, self.catalogue, self.theta = sys, catalogue, np.asarray(theta, dtype=float)
         n_folds = int(unit_fold.max()) + 1 if unit_fold.size else 0
         comp_fold = unit_fold[sys.unit]
-        self.folds: list[Fold] = [sys.fold(comp_fold != f) for f in range(n_folds)]
+        self.folds: list[Fold] = sys.folds(comp_fold, n_folds)
         self.stack = FoldStack(self.folds)
         self.all = sys.full()
         self.raw_diag = np.einsum("ij,ij->j", sys.G, sys.G)
