@@ -48,3 +48,37 @@ def test_all_folds_at_once_equal_the_folds_one_by_one(by: str) -> None:
         _same(a, b)
     _same(sys.full(), fresh.full())
     assert any(f.idx.size < (comp_fold == k).sum() for k, f in enumerate(one))  # some rows only register
+
+
+def test_the_condition_of_one_new_column_next_to_a_model_is_its_eigenvalue_ratio() -> None:
+    """The identifiability condition number of one new column (closed form) equals the eigenvalue ratio of the
+    scaled information ``[[I, R], [R^T, 1]]`` of an orthonormal basis of the model and the column; next to a
+    one-column model it is ``(1 + |rho|) / (1 - |rho|)`` with ``rho`` the columns' correlation; two new columns
+    (the eigenvalue path) agree with the same matrix."""
+    from ppoe_core.analysis.diagnose.crossval import Linearised
+    from ppoe_core.analysis.diagnose.terms import Term
+
+    rng = np.random.default_rng(3)
+    n, C = 60, 6
+    G = rng.normal(size=(n, C)) * np.array([1.0, 1e3, 1e-2, 1.0, 5.0, 1.0])  # columns of very different sizes
+    G[:, 5] = 0.98 * G[:, 0] / 1.0 + 0.2 * rng.normal(size=n)  # nearly the first column
+    sys = LinearSystem(rng.normal(size=n), G, [slice(i, i + 1) for i in range(C)], np.arange(n), n,
+                       np.zeros(n, dtype=int), np.ones(n, dtype=bool), np.ones(n, dtype=bool))
+    lin = Linearised(sys, None, np.zeros(C), np.arange(n) % 3)  # type: ignore[arg-type]
+    H = G.T @ G
+
+    def reference(model: list[int], new: list[int]) -> float:
+        Q, _ = np.linalg.qr(G[:, model] / np.linalg.norm(G[:, model], axis=0))
+        N = G[:, new] / np.linalg.norm(G[:, new], axis=0)
+        R = Q.T @ N
+        r = len(model)
+        M = np.block([[np.eye(r), R], [R.T, N.T @ N]])
+        ev = np.linalg.eigvalsh(M)
+        return float(ev[-1] / ev[0])
+
+    rho = H[0, 5] / np.sqrt(H[0, 0] * H[5, 5])
+    one = lin.identifiable([Term(0, (0,))], [Term(5, (0,))], 1e12, 1.0).condition
+    assert one == pytest.approx((1 + abs(rho)) / (1 - abs(rho)), rel=1e-9)
+    for model, new in (([0, 1, 2], [5]), ([1, 2, 3, 4], [5]), ([1, 2], [0, 5])):
+        got = lin.identifiable([Term(c, (0,)) for c in model], [Term(c, (0,)) for c in new], 1e12, 1.0).condition
+        assert got == pytest.approx(reference(model, new), rel=1e-7)
