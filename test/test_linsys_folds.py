@@ -82,3 +82,9 @@ def test_the_condition_of_one_new_column_next_to_a_model_is_its_eigenvalue_ratio
     for model, new in (([0, 1, 2], [5]), ([1, 2, 3, 4], [5]), ([1, 2], [0, 5])):
         got = lin.identifiable([Term(c, (0,)) for c in model], [Term(c, (0,)) for c in new], 1e12, 1.0).condition
         assert got == pytest.approx(reference(model, new), rel=1e-7)
+    # a new column whose reduced information rounded below zero (all of it absorbed) scales to a huge entry: the
+    # closed form says "not identifiable" (inf) as the eigenvalues did, without overflowing
+    H2 = sys.G.T @ sys.G
+    H2[5, 5] = -1e-20
+    lin.all.H[...] = H2
+    assert lin._condition(np.array([0, 1]), np.array([5])) == np.inf

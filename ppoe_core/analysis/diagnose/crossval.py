@@ -283,10 +283,10 @@ class Linearised:
             R = W.T @ H[m_cols[:, None], n_cols] / d[None, :]
             r, p = R.shape
             if p == 1 and r:  # [[I, R], [R^T, m]]: eigenvalues 1 (r - 1 times) and those of [[1, |R|], [|R|, m]]
-                m, rho2 = float(M[0, 0]), float(R[:, 0] @ R[:, 0])
-                half, root = (1.0 + m) / 2.0, math.sqrt(((1.0 - m) / 2.0) ** 2 + rho2)
-                ev2 = [half - root, half + root, *([1.0] if r > 1 else [])]
-                return max(ev2) / min(ev2) if min(ev2) > 0 else math.inf
+                m, rho = float(M[0, 0]), float(np.linalg.norm(R[:, 0]))
+                half, root = 0.5 + 0.5 * m, math.hypot(0.5 - 0.5 * m, rho)  # (no overflow: a reduced information
+                ev2 = [half - root, half + root, *([1.0] if r > 1 else [])]  # rounded below zero scales to huge m)
+                return max(ev2) / min(ev2) if min(ev2) > 0 and math.isfinite(max(ev2)) else math.inf
             full = np.zeros((r + p, r + p))
             full[np.arange(r), np.arange(r)] = 1.0
             full[:r, r:], full[r:, :r], full[r:, r:] = R, R.T, M
