@@ -110,6 +110,8 @@ class Linearised:
         self._any_value = bool(self._nonzero.any())
         self._cache: dict[tuple, np.ndarray] = {}
         self._idf: dict[tuple, Identifiability] = {}
+        #: the linearisation where every effect is zero (None: this is it): a new term must be identifiable there too
+        self.nominal: Linearised | None = None
 
     def columns(self, model: Sequence[Term]) -> np.ndarray:
         """Column indices of a model's terms (in term order)."""
@@ -307,4 +309,10 @@ class Linearised:
         if cond > max_condition:
             return Identifiability(False, cond, absorbed,
                                    f"not separable from the effects already chosen (condition {cond:.2g})")
+        if self.nominal is not None and not self.nominal.identifiable((), new, max_condition, max_absorbed).ok:
+            # a direction the measurements cannot see where the effects are zero, which other parameters' values
+            # only seem to make visible (a link_error's rotation about the axis through a reflector becomes a shift
+            # of it next to a translation: Exp([rho, omega]) moves by V(omega) rho): not a property of the robot
+            return Identifiability(False, math.inf, absorbed, "not identifiable where the effects are zero (seen "
+                                   "only through the values of other parameters)")
         return Identifiability(True, cond, absorbed)
