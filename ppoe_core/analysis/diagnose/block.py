@@ -26,9 +26,13 @@ from typing import Any
 import numpy as np
 
 from ppoe_core.model.effects import Effect
-from ppoe_core.robot.tree import KinematicTree
+from ppoe_core.robot.tree import KinematicTree, LinkPoses
 
 __all__ = ["Linearisation", "ResidualBlock", "chain_columns", "prior_covariance"]
+
+#: corrected chains a block keeps (a refit evaluates a trial, then linearises or re-estimates the noise at the last
+#: accepted point, or at the one before a rejected trial: the same poses again)
+CHAIN_CACHE = 4
 
 
 @dataclass
@@ -96,6 +100,7 @@ class ResidualBlock(ABC):
         self._bases: dict[str, tuple[dict[str, np.ndarray], dict[str, np.ndarray]]] = {}
         #: :meth:`KinematicTree.link_poses`' cache of the joint motions at ``q`` (the rows' joint values never change)
         self.motions: dict[str, np.ndarray] = {}
+        self._chain_last: list[tuple[tuple, tuple[LinkPoses, dict, dict]]] = []
 
     def __len__(self) -> int:
         return int(self.segment.size)
@@ -128,6 +133,24 @@ class ResidualBlock(ABC):
             for k, v in Bx.items():
                 dxi[k] = dxi.get(k, 0.0) + v @ e.params
         return dq, dxi
+
+    def pose_links(self) -> list[str] | None:
+        """The links whose poses :meth:`chain` gives (None: the block does not use it)."""
+        return None
+
+    def chain(self, effects: Sequence[Effect]) -> tuple[LinkPoses, dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """The link poses of :meth:`pose_links` on the chain corrected by ``effects`` and the corrections ``(dq,
+        dxi)`` (:meth:`corrections`), kept for the last :data:`CHAIN_CACHE` models (effects and values)."""
+        key = tuple((e.key, tuple(sorted(e.options().items())), np.asarray(e.params, dtype=float).tobytes())
+                    for e in effects if not e.sensor)
+        for k, (ck, out) in enumerate(self._chain_last):
+            if ck == key:
+                self._chain_last.insert(0, self._chain_last.pop(k))
+                return out
+        dq, dxi = self.corrections(effects)
+        out = (self.tree.link_poses(self.q, dq, dxi, links=self.pose_links(), motions=self.motions), dq, dxi)
+        self._chain_last = [(key, out), *self._chain_last[:CHAIN_CACHE - 1]]
+        return out
 
     def columns(self, Jq: Mapping[str, np.ndarray], Jx: Mapping[str, np.ndarray], effect: Effect) -> np.ndarray:
         """:func:`chain_columns` of ``effect`` with its cached basis."""

@@ -90,8 +90,10 @@ class ImuBlock(ResidualBlock):
 
     def _poses(self, effects: Sequence[Effect]) -> tuple[dict, dict, dict]:
         eff = [e for e in effects if not _measured_tilt(e)]
-        dq, dxi = self.corrections(eff)
-        return self.tree.link_poses(self.q, dq, dxi, links=self.links, motions=self.motions), dq, dxi
+        return self.chain(eff)
+
+    def pose_links(self) -> list[str]:
+        return list(self.links)
 
     def linearise(self, effects: Sequence[Effect], candidates: Sequence[Effect], pert: Mapping[str, np.ndarray],
                   jnoise: Mapping[str, float], chain: bool = False) -> Linearisation:

@@ -15,7 +15,7 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.analysis.diagnose.block import Linearisation, ResidualBlock, chain_columns, prior_covariance
 from ppoe_core.analysis.diagnose.block_tracker import configuration_columns, time_columns
-from ppoe_core.analysis.diagnose.candidates import candidate_effects, chain_jacobians, predict_nominal
+from ppoe_core.analysis.diagnose.candidates import candidate_effects, chain_jacobians, pose_links, predict_nominal
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import MeasurementError
 from ppoe_core.model.effects import Effect
@@ -43,7 +43,8 @@ class PoseBlock(ResidualBlock):
 
     def _chain(self, effects: Sequence[Effect]) -> tuple:
         s = self.stops
-        x, R, poses, dq, dxi = predict_nominal(self.tree, s, (), self.corrections(effects), self.motions)
+        poses, dq, dxi = self.chain(effects)
+        x, R, *_ = predict_nominal(self.tree, s, (), (dq, dxi), poses=poses)
         assert R is not None and s.R_meas is not None
         Jq, Jx, Fq, Fx = chain_jacobians(self.tree, s, poses, dq, dxi)
         base_R = poses[s.base][..., :3, :3] if s.base and s.base != self.tree.root else None
@@ -75,6 +76,9 @@ class PoseBlock(ResidualBlock):
         S[:, 3:, 3:] = s.sigma_rot ** 2 * np.eye(3)
         Q = prior_covariance(Jq, Jx, pert, jnoise, (n, 6))
         return Linearisation(r, J, np.zeros((n, 6, 0)), S, Q, Jq=Jq)
+
+    def pose_links(self) -> list[str]:
+        return pose_links(self.stops)
 
     def candidates(self) -> list[Effect]:
         return candidate_effects(self.tree, self.stops)

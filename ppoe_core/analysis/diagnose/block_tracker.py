@@ -17,7 +17,7 @@ import numpy as np
 
 from ppoe_core import lie
 from ppoe_core.analysis.diagnose.block import Linearisation, ResidualBlock, chain_columns, prior_covariance
-from ppoe_core.analysis.diagnose.candidates import candidate_effects, chain_jacobians, predict_nominal
+from ppoe_core.analysis.diagnose.candidates import candidate_effects, chain_jacobians, pose_links, predict_nominal
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import MeasurementError
 from ppoe_core.model.effects import Effect
@@ -135,7 +135,8 @@ class TrackerBlock(ResidualBlock):
     def linearise(self, effects: Sequence[Effect], candidates: Sequence[Effect], pert: Mapping[str, np.ndarray],
                   jnoise: Mapping[str, float], chain: bool = False) -> Linearisation:
         s = self.stops
-        x, _, poses, dq, dxi = predict_nominal(self.tree, s, (), self.corrections(effects), self.motions)
+        poses, dq, dxi = self.chain(effects)
+        x = predict_nominal(self.tree, s, (), (dq, dxi), poses=poses)[0]
         n = len(s)
         z = self.measured_in_root()
         r = z - x
@@ -150,7 +151,8 @@ class TrackerBlock(ResidualBlock):
 
     def residual(self, effects: Sequence[Effect]) -> np.ndarray:
         """:meth:`linearise`'s ``r`` alone (no Jacobians, nuisance columns or covariances: a refit's trial)."""
-        x = predict_nominal(self.tree, self.stops, (), self.corrections(effects), self.motions)[0]
+        poses, dq, dxi = self.chain(effects)
+        x = predict_nominal(self.tree, self.stops, (), (dq, dxi), poses=poses)[0]
         return self.measured_in_root() - x
 
     def apply_nuisance(self, step: np.ndarray) -> None:
@@ -167,6 +169,9 @@ class TrackerBlock(ResidualBlock):
         regs = kabsch_per_session(x, self.stops.p_meas, self.stops.session)
         for k, T in regs.items():
             self.T0[k] = T
+
+    def pose_links(self) -> list[str]:
+        return pose_links(self.stops)
 
     def candidates(self) -> list[Effect]:
         return candidate_effects(self.tree, self.stops)

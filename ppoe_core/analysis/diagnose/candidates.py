@@ -11,7 +11,7 @@ import numpy as np
 from ppoe_core import lie
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.model.effects import Effect, make_effect, sum_effect_corrections
-from ppoe_core.robot.tree import KinematicTree
+from ppoe_core.robot.tree import KinematicTree, LinkPoses
 
 _BENDING_EXTENSION = ("compliance_x", "compliance_y", "extension_x", "extension_y")
 
@@ -106,19 +106,26 @@ def _thermal(tree: KinematicTree, joint: str, context: Mapping) -> list[Effect]:
 
 
 def predict_nominal(tree: KinematicTree, stops: Stops, declared: Sequence[Effect],
-                    corrections: tuple[dict, dict] | None = None, motions: dict[str, np.ndarray] | None = None
-                    ) -> tuple[np.ndarray, np.ndarray | None, dict, dict, dict]:
+                    corrections: tuple[dict, dict] | None = None, motions: dict[str, np.ndarray] | None = None,
+                    poses: LinkPoses | None = None) -> tuple[np.ndarray, np.ndarray | None, dict, dict, dict]:
     """Prediction of the measured points (and tool rotations for poses) with the effects ``declared`` (or their
     ``corrections`` ``(dq, dxi)`` if the caller has them); returns x0 (N,3), R0, poses (of the measured links, the
-    base and their ancestors), dq, dxi.  ``motions``: :meth:`KinematicTree.link_poses`' cache for ``stops.q``."""
+    base and their ancestors: :func:`pose_links`), dq, dxi.  ``motions``: :meth:`KinematicTree.link_poses`' cache
+    for ``stops.q``; ``poses``: those link poses at these corrections, if the caller has them."""
     dq, dxi = corrections if corrections is not None else sum_effect_corrections(declared, stops.q, stops.context)
-    links = [*stops.chain_links(), *([stops.base] if stops.base else [])]
-    poses = tree.link_poses(stops.q, dq, dxi, links=links, motions=motions)
+    if poses is None:
+        poses = tree.link_poses(stops.q, dq, dxi, links=pose_links(stops), motions=motions)
     T = measured_link_poses(stops, poses)
     if stops.kind == "pose" and stops.base and stops.base != tree.root:
         T = lie.inverse(poses[stops.base]) @ T
     x0 = np.einsum("nij,nj->ni", T[:, :3, :3], stops.point_rows()) + T[:, :3, 3]
     return x0, (T[..., :3, :3] if stops.kind == "pose" else None), poses, dq, dxi
+
+
+def pose_links(stops: Stops) -> list[str]:
+    """The links whose poses :func:`predict_nominal` needs: the measured links and the base (with their
+    ancestors)."""
+    return [*stops.chain_links(), *([stops.base] if stops.base else [])]
 
 
 def row_link_poses(poses: Mapping[str, np.ndarray], link: str, links: np.ndarray | None, n: int) -> np.ndarray:

@@ -95,7 +95,7 @@ class Linearised:
         self.sys, self.catalogue, self.theta = sys, catalogue, np.asarray(theta, dtype=float)
         n_folds = int(unit_fold.max()) + 1 if unit_fold.size else 0
         comp_fold = unit_fold[sys.unit]
-        self.folds: list[Fold] = [sys.fold(comp_fold != f) for f in range(n_folds)]
+        self.folds: list[Fold] = sys.folds(comp_fold, n_folds)
         self.stack = FoldStack(self.folds)
         self.all = sys.full()
         self.raw_diag = np.einsum("ij,ij->j", sys.G, sys.G)
@@ -110,6 +110,8 @@ class Linearised:
         self._any_value = bool(self._nonzero.any())
         self._cache: dict[tuple, np.ndarray] = {}
         self._idf: dict[tuple, Identifiability] = {}
+        #: the linearisation where every effect is zero (None: this is it): a new term must be identifiable there too
+        self.nominal: Linearised | None = None
 
     def columns(self, model: Sequence[Term]) -> np.ndarray:
         """Column indices of a model's terms (in term order)."""
@@ -282,6 +284,11 @@ class Linearised:
             W = self._cache[key]
             R = W.T @ H[m_cols[:, None], n_cols] / d[None, :]
             r, p = R.shape
+            if p == 1 and r:  # [[I, R], [R^T, m]]: eigenvalues 1 (r - 1 times) and those of [[1, |R|], [|R|, m]]
+                m, rho = float(M[0, 0]), float(np.linalg.norm(R[:, 0]))
+                half, root = 0.5 + 0.5 * m, math.hypot(0.5 - 0.5 * m, rho)  # (no overflow: a reduced information
+                ev2 = [half - root, half + root, *([1.0] if r > 1 else [])]  # rounded below zero scales to huge m)
+                return max(ev2) / min(ev2) if min(ev2) > 0 and math.isfinite(max(ev2)) else math.inf
             full = np.zeros((r + p, r + p))
             full[np.arange(r), np.arange(r)] = 1.0
             full[:r, r:], full[r:, :r], full[r:, r:] = R, R.T, M
@@ -302,4 +309,10 @@ class Linearised:
         if cond > max_condition:
             return Identifiability(False, cond, absorbed,
                                    f"not separable from the effects already chosen (condition {cond:.2g})")
+        if self.nominal is not None and not self.nominal.identifiable((), new, max_condition, max_absorbed).ok:
+            # a direction the measurements cannot see where the effects are zero, which other parameters' values
+            # only seem to make visible (a link_error's rotation about the axis through a reflector becomes a shift
+            # of it next to a translation: Exp([rho, omega]) moves by V(omega) rho): not a property of the robot
+            return Identifiability(False, math.inf, absorbed, "not identifiable where the effects are zero (seen "
+                                   "only through the values of other parameters)")
         return Identifiability(True, cond, absorbed)

@@ -42,7 +42,7 @@ from ppoe_core.model.effects import Effect, make_effect
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
-__all__ = ["Measurements", "build_blocks", "diagnose"]
+__all__ = ["Measurements", "Run", "build_blocks", "catalogue_of", "diagnose"]
 
 #: an accelerometer block needs at least this many rows at rest
 MIN_IMU_ROWS = 6
@@ -97,6 +97,7 @@ class Run:
         self.effects: list[Effect] = []
         self.model: tuple[Term, ...] = ()
         self.lin: Linearised | None = None
+        self.nominal: Linearised | None = None  #: the first linearisation with every effect zero
         self.noise_cost: float | None = None
         self.lin_whitening = -1  #: the problem's whitening that ``lin`` was computed in
         self.lin_model: tuple[Term, ...] | None = None  #: the model ``lin`` was computed at
@@ -129,6 +130,9 @@ class Run:
                  for c, e in enumerate(self.catalogue.effects)]
         theta = np.concatenate(parts) if parts else np.zeros(0)
         self.lin = Linearised(sys, self.catalogue, theta, self.unit_fold)
+        self.lin.nominal = self.nominal
+        if self.nominal is None and not np.any(theta):
+            self.nominal = self.lin  #: every effect zero: where a term's own identifiability is judged too
         self.lin_whitening = self.problem.whitening_count
         self.lin_model, self.refitted = model, False
         self.noise_cost = self.lin.ssr(model)  # the cost in the new whitening
@@ -187,7 +191,7 @@ def _effect_of(tree: KinematicTree, name: str, loc: str, **options: str) -> Effe
         raise type(exc)(f"--effects {name}@{loc}: {exc}") from None
 
 
-def _catalogue(tree: KinematicTree, blocks: Sequence[ResidualBlock], options: DiagnoseOptions,
+def catalogue_of(tree: KinematicTree, blocks: Sequence[ResidualBlock], options: DiagnoseOptions,
                declared: Sequence[Effect] = ()) -> Catalogue:
     """Candidates of every block (``options.candidates`` prefixes filter), ``declared`` ones (``--effects``), the
     measured chains and the cameras."""
@@ -310,7 +314,7 @@ def diagnose(robot: Robot, data: Measurements | Stops, declared: Sequence[Effect
     blocks = build_blocks(tree, data, declared, options)
     problem = Problem(blocks, declared, perturbation_cov, joint_noise, options.loss, options.loss_scale)
     entries = declared_specs(options.effects or [])
-    catalogue = _catalogue(tree, blocks, options, _declared_effects(tree, blocks, entries))
+    catalogue = catalogue_of(tree, blocks, options, _declared_effects(tree, blocks, entries))
     unit_group = np.zeros(problem.n_units, dtype=int)
     for g, u in zip(problem.groups, problem.units):
         unit_group[u] = g

@@ -273,29 +273,57 @@ class LinearSystem:
             self._absorbed = out
         return self._absorbed
 
-    def fold(self, train: np.ndarray) -> Fold:
+    def folds(self, comp_fold: np.ndarray, n_folds: int) -> list[Fold]:
+        """:meth:`fold` of every fold (``comp_fold``: each component's fold, 0..``n_folds``-1; the training part of
+        fold ``f`` is every other fold), their held-out components' Gram matrices computed once: ``G^T G`` is their
+        sum (when not computed yet), and each fold takes its own out of the all-components information in one step
+        (not segment by segment)."""
+        tests = [np.flatnonzero(comp_fold == f) for f in range(n_folds)]
+        grams = []
+        for tidx in tests:
+            Gt, et = self.G[tidx], self.e[tidx]
+            grams.append((tidx, Gt, Gt.T @ Gt, Gt.T @ et, float(et @ et)))
+        if self._gramG is None and grams:
+            self._gramG = sum((g[2] for g in grams[1:]), grams[0][2].copy())
+        return [self.fold(comp_fold != f, held=grams[f]) for f in range(n_folds)]
+
+    def fold(self, train: np.ndarray, held: tuple | None = None) -> Fold:
         """:class:`Fold` with training components ``train`` (n,) bool; the others are held out.  A segment whose
-        training components cannot determine its nuisance does not train (it is scored as a held-out segment)."""
+        training components cannot determine its nuisance does not train (it is scored as a held-out segment).
+        ``held``: the held-out components' ``(indices, G, G^T G, G^T e, e^T e)`` (:meth:`folds`)."""
         test = ~train
         H0, b0, ee0, terms, in_seg = self._reduced()
         if not test.any():
             return Fold(H0, b0, ee0, np.zeros(0, dtype=int), np.zeros(0), np.zeros((0, self.G.shape[1])),
                         np.zeros(0, dtype=int))
         H, b, ee = H0.copy(), b0.copy(), ee0
-        free_out = np.flatnonzero(~train & ~in_seg)
-        Go, eo = self.G[free_out], self.e[free_out]
-        H -= Go.T @ Go
-        b -= Go.T @ eo
-        ee -= float(eo @ eo)
         tidx = np.flatnonzero(test)
+        touched = np.bincount(self._term_of()[tidx] + 1, minlength=len(terms) + 1)[1:] > 0
+        if held is None:
+            free_out = np.flatnonzero(~train & ~in_seg)
+            Go, eo = self.G[free_out], self.e[free_out]
+            H -= Go.T @ Go
+            b -= Go.T @ eo
+            ee -= float(eo @ eo)
+            G_v = self.G[tidx].copy()
+        else:  # every held-out component at once, and the touched segments' reductions undone at once
+            _, G_v, Hh, bh, eeh = held
+            H -= Hh
+            b -= bh
+            ee -= eeh
+            undo = [t for t, touch in zip(terms, touched) if touch and t[3] is not None]
+            if undo:
+                M, AM = np.concatenate([t[4] for t in undo]), np.concatenate([t[6] for t in undo])
+                H += M.T @ AM
+                b += M.T @ np.concatenate([t[7] for t in undo])
+                ee += float(sum(t[5] @ t[7] for t in undo))
         loc = np.full(self.e.size, -1)
         loc[tidx] = np.arange(tidx.size)
-        e_v, G_v = self.e[tidx].copy(), self.G[tidx].copy()
+        e_v = self.e[tidx].copy()
         scored = np.ones(tidx.size, dtype=bool)
-        touched = np.bincount(self._term_of()[tidx] + 1, minlength=len(terms) + 1)[1:] > 0
         for term, touch in zip(terms, touched):
             if touch or term[3] is None:  # (a determined segment all in training stays as reduced)
-                ee = self._fold_segment(term, train, test, H, b, ee, e_v, G_v, loc, scored)
+                ee = self._fold_segment(term, train, test, H, b, ee, e_v, G_v, loc, scored, held is None)
         keep = np.flatnonzero(scored)
         return Fold(H, b, ee, tidx[keep], e_v[keep], G_v[keep], self.unit[tidx[keep]])
 
@@ -308,26 +336,29 @@ class LinearSystem:
         return self._term_index
 
     def _fold_segment(self, term: tuple, train: np.ndarray, test: np.ndarray, H: np.ndarray, b: np.ndarray,
-                      ee: float, e_v: np.ndarray, G_v: np.ndarray, loc: np.ndarray, scored: np.ndarray) -> float:
+                      ee: float, e_v: np.ndarray, G_v: np.ndarray, loc: np.ndarray, scored: np.ndarray,
+                      take_out: bool = True) -> float:
         """One segment in a fold (in place on ``H``, ``b``; returns ``e^T e``): kept as reduced when all its
-        components train; else its reduction and its held-out components are taken out of the training system,
-        its training part (if it determines the nuisance) eliminated again, and its held-out components adjusted:
-        by that training part, or, without one, by the segment's ``reg`` test components, scored on the others
-        (``score`` and not ``reg``; every test component of the segment when it has no such split)."""
+        components train; else its reduction and its held-out components are taken out of the training system
+        (here, or by the caller: ``take_out`` False), its training part (if it determines the nuisance) eliminated
+        again, and its held-out components adjusted: by that training part, or, without one, by the segment's
+        ``reg`` test components, scored on the others (``score`` and not ``reg``; every test component of the
+        segment when it has no such split)."""
         rows, N, act, A_inv, M, g, AM, Ag = term
         tr = train[rows]
         if A_inv is not None and tr.all():
             return ee
         te = test[rows]
-        if A_inv is not None:  # undo the all-components reduction of this segment
-            H += M.T @ AM
-            b += M.T @ Ag
-            ee += float(g @ Ag)
-        out_rows = rows[~tr]
-        Go, eo = self.G[out_rows], self.e[out_rows]
-        H -= Go.T @ Go
-        b -= Go.T @ eo
-        ee -= float(eo @ eo)
+        if take_out:
+            if A_inv is not None:  # undo the all-components reduction of this segment
+                H += M.T @ AM
+                b += M.T @ Ag
+                ee += float(g @ Ag)
+            out_rows = rows[~tr]
+            Go, eo = self.G[out_rows], self.e[out_rows]
+            H -= Go.T @ Go
+            b -= Go.T @ eo
+            ee -= float(eo @ eo)
         A2 = _nuisance_inverse(N[tr], act) if tr.any() else None
         if A2 is not None:
             fit_rows, fit_N, out, training = rows[tr], N[tr], te, True

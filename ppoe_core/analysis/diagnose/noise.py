@@ -11,6 +11,7 @@ data hold no random perturbation at all), a sensor whose residual is ten times i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,18 +50,11 @@ def estimate_scales(r: np.ndarray, S: np.ndarray, Q: np.ndarray, dof_fraction: f
         return start or NoiseScales()
     has_q = bool(np.any(np.abs(Q) > 0))
     D = [S, Q] if has_q else [S]
-    base = np.array([_scale_of(r, Dj, 1.0) for Dj in D])
+    f, s_scale = _likelihood(r, S, Q if has_q else None)
+    base = np.array([s_scale if s_scale is not None else _scale_of(r, S, 1.0)]
+                    + ([_scale_of(r, Q, 1.0)] if has_q else []))
     lo = np.log(np.maximum(base, 1e-300) * MIN_SCALE ** 2)
     hi = np.log(np.maximum(base, 1e-300) * 1e2)
-
-    def f(x: np.ndarray) -> tuple[float, np.ndarray]:
-        lam = np.exp(x)
-        C = sum(l_ * Dj for l_, Dj in zip(lam, D))
-        Ci = np.linalg.inv(C)
-        u = np.einsum("nij,nj->ni", Ci, r)
-        val = float(np.sum(np.linalg.slogdet(C)[1]) + np.einsum("ni,ni->", r, u))
-        grad = np.array([np.einsum("nij,nji->", Ci, Dj) - np.einsum("ni,nij,nj->", u, Dj, u) for Dj in D]) * lam
-        return val, grad
 
     # the likelihood is not convex in the two scales (one of them alone may explain the residual): start from each
     # extreme and between, keep the best
@@ -74,6 +68,53 @@ def estimate_scales(r: np.ndarray, S: np.ndarray, Q: np.ndarray, dof_fraction: f
     if has_q and f(np.array([np.log(base[0]), lo[1]]))[0] - float(best.fun) < np.log(r.shape[0]):
         return NoiseScales(a=float(np.sqrt(base[0])), k=0.0)  # the prior's share is not needed (BIC)
     return NoiseScales(a=float(np.sqrt(lam[0])), k=float(np.sqrt(lam[1])) if has_q else 0.0)
+
+
+def _likelihood(r: np.ndarray, S: np.ndarray, Q: np.ndarray | None
+                ) -> tuple[Callable[[np.ndarray], tuple[float, np.ndarray]], float | None]:
+    """``-2 log L`` of :func:`estimate_scales` and its gradient as a function of ``log [a^2, k^2]`` (``[log a^2]``
+    without ``Q``), and :func:`_scale_of` ``S`` (None: not computed).  ``S`` and ``Q`` are diagonalised together
+    once (``S = L L^T``, ``L^-1 Q L^-T = U diag(mu) U^T``): then ``C = L U diag(a^2 + k^2 mu) U^T L^T`` and every
+    evaluation is elementwise; a singular ``S`` keeps the direct inverse per evaluation."""
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        return _likelihood_direct(r, [S] if Q is None else [S, Q]), None
+    Li = np.linalg.inv(L)
+    logdet_s = 2.0 * float(np.sum(np.log(np.einsum("nii->ni", L))))
+    if Q is None:
+        mu, t2 = np.zeros_like(r), np.einsum("nij,nj->ni", Li, r) ** 2
+    else:
+        mu, U = np.linalg.eigh(Li @ Q @ np.swapaxes(Li, -1, -2))
+        t2 = np.einsum("nji,njk,nk->ni", U, Li, r) ** 2
+    s_scale = float(np.mean(np.sum(t2, axis=1))) / r.shape[1]  # mean r^T S^-1 r / d
+    mu, t2 = mu.reshape(-1), t2.reshape(-1)
+
+    def f(x: np.ndarray) -> tuple[float, np.ndarray]:
+        lam = np.exp(x)
+        c = lam[0] + lam[1] * mu if lam.size > 1 else np.full_like(mu, lam[0])  # C's eigenvalues, whitened by S
+        inv = 1.0 / c
+        w = inv - t2 * inv * inv  # d/dc of log c + t2 / c
+        val = logdet_s + float(np.sum(np.log(c)) + np.sum(t2 * inv))
+        grad = np.array([np.sum(w), *([float(np.sum(w * mu))] if lam.size > 1 else [])]) * lam
+        return val, grad
+
+    return f, s_scale
+
+
+def _likelihood_direct(r: np.ndarray, D: list[np.ndarray]) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:
+    """:func:`_likelihood` with an inverse of ``C`` per row and evaluation (a singular sensor covariance)."""
+
+    def f(x: np.ndarray) -> tuple[float, np.ndarray]:
+        lam = np.exp(x)
+        C = sum(l_ * Dj for l_, Dj in zip(lam, D))
+        Ci = np.linalg.inv(C)
+        u = np.einsum("nij,nj->ni", Ci, r)
+        val = float(np.sum(np.linalg.slogdet(C)[1]) + np.einsum("ni,ni->", r, u))
+        grad = np.array([np.einsum("nij,nji->", Ci, Dj) - np.einsum("ni,nij,nj->", u, Dj, u) for Dj in D]) * lam
+        return val, grad
+
+    return f
 
 
 def _scale_of(r: np.ndarray, D: np.ndarray, dof_fraction: float) -> float:

@@ -114,10 +114,13 @@ class Problem:
         with the columns of ``candidates``.  ``rewhiten``: recompute the whitening from the blocks' noise scales
         and the prior at this point (else keep the last one)."""
         model = [*self.declared, *effects]
-        parts: dict[str, list[np.ndarray]] = {k: [] for k in ("e", "G", "unit", "group", "reg", "score")}
+        parts: dict[str, list[np.ndarray]] = {k: [] for k in ("e", "unit", "group", "reg", "score")}
         nuisances, partsb, offset = [], [], 0
         if rewhiten or any(st.W is None for st in self.state):
             self.whitening_count += 1
+        sizes = [c.n_params for c in candidates]
+        ends = np.cumsum([0, *sizes])
+        G = np.empty((sum(len(b) * b.dim for b in self.blocks), int(ends[-1])))  # every block's rows written in
         for i, (b, st, unit) in enumerate(zip(self.blocks, self.state, self.units)):
             fresh = rewhiten or st.W is None
             lin = b.linearise(model, candidates, self.pert if fresh else {}, self.jnoise if fresh else {})
@@ -131,8 +134,8 @@ class Problem:
             w = self._robust_weights(np.einsum("nij,nj->ni", W, lin.r))
             Wr = W * w[:, None, None]
             parts["e"].append(np.einsum("nij,nj->ni", Wr, lin.r).reshape(-1))
-            parts["G"].append((Wr @ np.concatenate(lin.J, axis=2)).reshape(n * d, -1)
-                              if lin.J else np.zeros((n * d, 0)))
+            if lin.J:
+                np.matmul(Wr, np.concatenate(lin.J, axis=2), out=G[offset:offset + n * d].reshape(n, d, -1))
             parts["unit"].append(np.repeat(unit, d))
             parts["group"].append(np.repeat(self.groups[i], d))
             parts["reg"].append(np.repeat(b.reg_mask, d))
@@ -145,11 +148,8 @@ class Problem:
                                              b.n_segments))
             partsb.append(BlockPart(i, offset, offset + n * d, d, Wr))
             offset += n * d
-        sizes = [c.n_params for c in candidates]
-        ends = np.cumsum([0, *sizes])
         cols = [slice(int(ends[i]), int(ends[i + 1])) for i in range(len(sizes))]
-        cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in parts.items() if k != "G"}
-        G = np.concatenate(parts["G"]) if parts["G"] else np.zeros((0, int(ends[-1])))
+        cat = {k: np.concatenate(v) if v else np.zeros(0) for k, v in parts.items()}
         return LinearSystem(cat["e"], G, cols, cat["unit"].astype(int), self.n_units, cat["group"].astype(int),
                             cat["reg"].astype(bool), cat["score"].astype(bool), nuisances, partsb)
 
