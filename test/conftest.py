@@ -8,8 +8,11 @@ conftest, no ``__init__.py``), so test modules use the plain names::
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import pytest
@@ -24,6 +27,17 @@ BAGS = REPO / "bags"                   # shipped simulated bags
 DATA = REPO / "test" / "data"          # small test-only robots
 DATASETS = Path(os.environ.get("PPOE_DATASETS", REPO.parent / "shared" / "datasets"))   # measured data
 
+
+
+def load_script(path: Path, name: str) -> ModuleType:
+    """A script or bench file (not a package module) loaded as module ``name``, registered in ``sys.modules``
+    (dataclasses look their module up there)."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None, path
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
 
 def pose_from(t, w) -> np.ndarray:
     """Pose ``(4, 4)`` with translation ``t`` (3,) and rotation ``so3_exp(w)`` (not ``lie.exp`` of a twist)."""

@@ -29,13 +29,9 @@ import sys
 from collections.abc import Callable
 
 import pytest
-from conftest import REPO
+from conftest import REPO, load_script
 
-_spec = importlib.util.spec_from_file_location("gen_architecture", REPO / "scripts" / "gen_architecture.py")
-assert _spec is not None and _spec.loader is not None
-gen = importlib.util.module_from_spec(_spec)
-sys.modules["gen_architecture"] = gen
-_spec.loader.exec_module(gen)
+gen = load_script(REPO / "scripts" / "gen_architecture.py", "gen_architecture")
 
 MAX_MODULE_LINES = 600
 MAX_FUNCTION_LINES = 60

@@ -4,20 +4,16 @@ import in a fresh interpreter with an empty environment, and a skip on the secon
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 import sysconfig
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+from conftest import REPO, load_script
 
 SCRIPT = REPO / "scripts" / "build_tf2_msgs.py"
-_spec = importlib.util.spec_from_file_location("build_tf2_msgs", SCRIPT)
-assert _spec is not None and _spec.loader is not None
-build = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(build)
+build = load_script(SCRIPT, "build_tf2_msgs")
 
 BUILT = (Path(sys.prefix) / "share" / "tf2_msgs" / "msg" / "TFMessage.json").is_file()
 

@@ -15,21 +15,15 @@ are unchanged).
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import os
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import REPO
+from conftest import REPO, load_script
 
-_spec = importlib.util.spec_from_file_location("bench_engine_scenarios", REPO / "bench" / "bench_engine_scenarios.py")
-assert _spec is not None and _spec.loader is not None
-bench = importlib.util.module_from_spec(_spec)
-sys.modules["bench_engine_scenarios"] = bench
-_spec.loader.exec_module(bench)
+bench = load_script(REPO / "bench" / "bench_engine_scenarios.py", "bench_engine_scenarios")
 
 from ppoe_core.io.bagio import read_bag  # noqa: E402
 from ppoe_core.robot.config import load_model_config  # noqa: E402

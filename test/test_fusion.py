@@ -355,16 +355,9 @@ def test_tracker_point_and_chained_accelerometer_fused_consistently():
 
 # --------------------------------------------------------------------------- study scripts
 def _load_script(name):
-    import importlib.util
-    import sys
-    from pathlib import Path
+    from conftest import REPO, load_script
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"_h3_{name}", path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up there
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(REPO / "scripts" / f"{name}.py", f"_h3_{name}")
 
 
 def test_table1_study_configurations_meet_their_criteria_and_fusion_helps():

@@ -6,19 +6,13 @@ planning, simulating and diagnosing a study)."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO
+from conftest import REPO, load_script
 
-_spec = importlib.util.spec_from_file_location("bench_plan", REPO / "bench" / "bench_plan.py")
-assert _spec is not None and _spec.loader is not None
-bench = importlib.util.module_from_spec(_spec)
-sys.modules["bench_plan"] = bench
-_spec.loader.exec_module(bench)
+bench = load_script(REPO / "bench" / "bench_plan.py", "bench_plan")
 
 #: the achieved half-width of one bag of 12 poses (36 residuals) scatters by about 13 % (chi-square with ~27 degrees
 #: of freedom); a parameter the plan predicts tighter by this much is measured tighter (mean of two bags)

@@ -64,18 +64,10 @@ def test_a_subset_is_built_exactly_where_the_term_is_splittable(catalogue):
 
 def test_a_term_is_exchanged_for_its_better_rival(tmp_path):
     """Diagnosed through the scenario bench (one implementation of making the bag, diagnosing and judging)."""
-    import importlib.util
-    import sys
+    from conftest import REPO, load_script
 
-    from conftest import REPO
-
-    path = REPO / "bench" / "bench_engine_scenarios.py"
-    name = "bench_engine_scenarios_selection"  # a copy of its own: its SETS gets one more set
-    spec = importlib.util.spec_from_file_location(name, path)
-    assert spec is not None and spec.loader is not None
-    bench = importlib.util.module_from_spec(spec)
-    sys.modules[name] = bench
-    spec.loader.exec_module(bench)
+    # a copy of its own: its SETS gets one more set (test_engine_scenarios parametrizes over the module's)
+    bench = load_script(REPO / "bench" / "bench_engine_scenarios.py", "bench_engine_scenarios_selection")
     bench.SETS["selection"] = REPO / "test" / "data" / "selection"
     row = bench.run("selection", "lateral_alias", tmp_path)
     assert row.verdict.named and not row.verdict.extra, (row.verdict.missing, row.verdict.extra)
