@@ -175,6 +175,15 @@ def test_identifiability_against_a_direct_count(tmp_path):
     noisy_moving = read_bag(write_bag(tmp_path / "noisy_moving", n=10, moving=True, encoder_noise=1e-4),
                             load_images=False)
     assert not static_rows(noisy_moving, JOINTS, noisy_moving.ground_truth_point.stamps).any()
+    # diagnose's stops carry the same rest test: its accelerometer rows are not all dropped on a noisy encoder
+    # (they were, by the raw joint velocity's noise: 0.1 mrad at 100 Hz is about 10 mrad/s)
+    from ppoe_core.analysis.diagnose.block_imu import at_rest
+    from ppoe_core.analysis.diagnose.load_stops import stops_from_bag
+
+    stops = stops_from_bag(tmp_path / "noisy", ROBOT, tracker_link="tool0", tracker_xyz=XYZ)
+    assert at_rest(stops).all() and stops.subset(np.arange(3)).context["at_rest"].all()
+    moving_stops = stops_from_bag(tmp_path / "noisy_moving", ROBOT, tracker_link="tool0", tracker_xyz=XYZ)
+    assert not at_rest(moving_stops).any()
     from ppoe_core.io.bag_joints import joints_at
 
     q = joints_at(data, ROBOT, stamps)

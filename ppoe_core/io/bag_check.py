@@ -33,21 +33,15 @@ from ppoe_core.io.bag_facts import sessions_at
 from ppoe_core.io.bag_joints import joints_at
 from ppoe_core.io.messages import TOPIC_GT_POINT, TOPIC_JOINT_STATES
 from ppoe_core.io.stops import STOP_TOPIC
-from ppoe_core.model.context import NOISE_BANDS, motion_band
+from ppoe_core.model.context import at_rest
 from ppoe_core.robot.robot_model import Robot
 
 __all__ = ["CheckRow", "CheckReport", "check_bags", "static_rows", "offset_identifiability", "MIN_RANGE_DEG",
-           "REST_SPEED", "MIN_STOPS", "MIN_SIGNATURE", "MIN_RATE"]
+           "MIN_STOPS", "MIN_SIGNATURE", "MIN_RATE"]
 
 #: a joint offset differs from a fixed rotation of its link only through the joint's own motion: below 3 deg
 #: (sin 3 deg = 0.052) of motion that difference is about 5 % of the offset's effect (the issue's rule of thumb)
 MIN_RANGE_DEG = 3.0
-#: a measurement is static when no needed joint turns faster than this [rad/s or m/s]: 1 mrad/s moves a 1 m arm's
-#: tool by 1 mm/s, below a tracker's noise during a measurement of a few tenths of a second
-REST_SPEED = 0.001
-#: the spread of a resting joint's samples that encoder noise alone explains, in noise sigmas (the range of up to
-#: about 100 Gaussian samples exceeds 6 sigma in under 1 % of windows): only the spread beyond it counts as motion
-REST_JITTER_SIGMAS = 6.0
 #: diagnose needs at least 6 measured stops (ppoe_core.analysis.diagnose.engine.check_stops)
 MIN_STOPS = 6
 #: static measurements whose joint values differ by less than this [rad or m] are one stop
@@ -314,31 +308,13 @@ def _time_rows(out: _Rows, data: Any, rows: np.ndarray) -> None:
 
 
 def static_rows(data: Any, joints: list[str], stamps: np.ndarray) -> np.ndarray:
-    """(N,) bool: at each stamp no joint of ``joints`` moves faster than :data:`REST_SPEED`.
-
-    The speed is the spread of the joint values within 0.1 s of the stamp, less what the joint's encoder noise
-    explains (:data:`REST_JITTER_SIGMAS`), over that time; where no joint state is
-    that close (a static dataset: a burst, then the measurements) the last three joint states before the stamp."""
+    """(N,) bool: at each stamp no joint of ``joints`` moves faster than :data:`ppoe_core.model.context.REST_SPEED`
+    (:func:`ppoe_core.model.context.at_rest`, the rest test diagnose's accelerometer rows use too)."""
     js = data.joint_states
     order = np.argsort(js.stamps, kind="stable")
-    t = js.stamps[order]
     cols = [js.names.index(j) for j in joints if j in js.names]
-    q = js.positions[order][:, cols] if cols else np.zeros((len(t), 0))
-    # each joint's encoder noise (the motion dead band's estimate, ppoe_core.model.context); noise-free: ~2e-6
-    jitter = REST_JITTER_SIGMAS * np.nan_to_num(motion_band(q) / NOISE_BANDS, nan=0.0) if q.shape[1] else 0.0
-    out = np.zeros(stamps.shape, dtype=bool)
-    for k, s in enumerate(stamps):
-        sel = np.flatnonzero(np.abs(t - s) <= 0.1)
-        if sel.size < 2:
-            i = int(np.searchsorted(t, s, side="right"))
-            sel = np.arange(max(i - 3, 0), i)
-        if sel.size < 2:
-            continue
-        span = max(float(t[sel[-1]] - t[sel[0]]), 1e-3)
-        spread = np.nanmax(q[sel], axis=0) - np.nanmin(q[sel], axis=0) if q.shape[1] else np.zeros(1)
-        moved = np.maximum(np.nan_to_num(spread, nan=0.0) - jitter, 0.0)
-        out[k] = bool(np.all(moved / span <= REST_SPEED))
-    return out
+    q = js.positions[order][:, cols] if cols else np.zeros((len(order), 0))
+    return at_rest(js.stamps[order], q, stamps)
 
 
 def _distinct(q: dict[str, np.ndarray], joints: list[str]) -> int:

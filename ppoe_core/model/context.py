@@ -19,13 +19,21 @@ import numpy as np
 
 from ppoe_core.errors import ModelConfigError
 
-__all__ = ["LiveContext", "batch_context", "follow", "motion_band", "motion_signs", "needed_context", "sample_series",
-           "temperature_at"]
+__all__ = ["LiveContext", "REST_SPEED", "at_rest", "batch_context", "follow", "motion_band", "motion_signs",
+           "needed_context", "sample_series", "temperature_at"]
 
 #: Half-width of the dead band [rad or m] a joint must leave to count as moving (no noise: a change this small).
 MOTION_THRESHOLD = 1e-5
 #: the dead band of a noisy encoder, in its noise sigmas (jitter at rest stays inside it)
 NOISE_BANDS = 5.0
+#: a joint rests when it turns slower than this [rad/s or m/s]: 1 mrad/s moves a 1 m arm's tool by 1 mm/s, below a
+#: tracker's noise during a measurement of a few tenths of a second (and an accelerometer then reads gravity alone)
+REST_SPEED = 1e-3
+#: the spread of a resting joint's samples that encoder noise alone explains, in noise sigmas (the range of up to
+#: about 100 Gaussian samples exceeds 6 sigma in under 1 % of windows): only the spread beyond it counts as motion
+REST_JITTER_SIGMAS = 6.0
+#: half-width [s] of the window of joint samples the rest test looks at around a time
+REST_WINDOW = 0.1
 
 
 def motion_signs(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray,
@@ -77,6 +85,31 @@ def motion_band(positions: np.ndarray, threshold: float = MOTION_THRESHOLD) -> n
     noise = np.quantile(d2, 0.1, axis=0) / (0.126 * np.sqrt(6.0))
     return np.maximum(threshold, NOISE_BANDS * noise)
 
+
+def at_rest(stamps: np.ndarray, positions: np.ndarray, at: np.ndarray, rest_speed: float = REST_SPEED) -> np.ndarray:
+    """(N,) bool: at each time ``at`` no joint moves faster than ``rest_speed``.
+
+    The speed is the spread of the joint values (``positions`` (M, J) at ``stamps`` (M,), increasing) within
+    :data:`REST_WINDOW` of the time, less what each joint's encoder noise explains (:data:`REST_JITTER_SIGMAS` times
+    the noise :func:`motion_band` estimates; noise-free: about 2e-6), over that time; where no joint state is that
+    close (a static dataset: a burst, then the measurements) the last three joint states before it.  NaN values
+    (a joint a message lacks) are ignored."""
+    J = positions.shape[1]
+    jitter = REST_JITTER_SIGMAS * np.nan_to_num(motion_band(positions) / NOISE_BANDS, nan=0.0) if J else 0.0
+    out = np.zeros(np.shape(at), dtype=bool)
+    for k, s in enumerate(np.asarray(at, dtype=float)):
+        sel = np.flatnonzero(np.abs(stamps - s) <= REST_WINDOW)
+        if sel.size < 2:
+            i = int(np.searchsorted(stamps, s, side="right"))
+            sel = np.arange(max(i - 3, 0), i)
+        if sel.size < 2:
+            continue
+        span = max(float(stamps[sel[-1]] - stamps[sel[0]]), 1e-3)
+        with np.errstate(invalid="ignore"):
+            spread = np.nanmax(positions[sel], axis=0) - np.nanmin(positions[sel], axis=0) if J else np.zeros(1)
+        moved = np.maximum(np.nan_to_num(spread, nan=0.0) - jitter, 0.0)
+        out[k] = bool(np.all(moved / span <= rest_speed))
+    return out
 
 def sample_series(t: np.ndarray, v: np.ndarray, at: np.ndarray) -> np.ndarray:
     """Values of a series (times ``t`` (M,) increasing, values ``v`` (M,)) at times ``at``: linear interpolation

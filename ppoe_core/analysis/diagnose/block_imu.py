@@ -28,6 +28,7 @@ from ppoe_core.analysis.diagnose.block_tracker import configuration_columns, tim
 from ppoe_core.analysis.diagnose.candidates import carried_mass
 from ppoe_core.analysis.diagnose.stops import Stops
 from ppoe_core.errors import MeasurementError
+from ppoe_core.model.context import REST_SPEED
 from ppoe_core.model.effects import Effect, make_effect
 from ppoe_core.robot.tree import KinematicTree
 
@@ -37,13 +38,13 @@ __all__ = ["ImuBlock", "DEFAULT_IMU_SIGMA", "at_rest"]
 DEFAULT_IMU_SIGMA = 4e-4
 
 
-#: an accelerometer measures gravity only at rest: rows where a joint moves faster than this [rad/s or m/s] are left
-#: out (their specific force holds the motion's acceleration)
-REST_SPEED = 1e-3
-
-
 def at_rest(stops: Stops) -> np.ndarray:
-    """Rows (N,) where no joint moves faster than :data:`REST_SPEED` (context ``joint_velocity``; all without it)."""
+    """Rows (N,) where no joint moves faster than :data:`~ppoe_core.model.context.REST_SPEED` (an accelerometer
+    measures gravity only at rest: elsewhere its specific force holds the motion's acceleration): context
+    ``at_rest`` (:func:`ppoe_core.model.context.at_rest`, encoder noise taken off) where the stops carry it, else the
+    context ``joint_velocity``; all rows without either."""
+    if "at_rest" in stops.context:
+        return np.asarray(stops.context["at_rest"], dtype=bool)
     vel = stops.context.get("joint_velocity") or {}
     if not vel:
         return np.ones(len(stops), dtype=bool)

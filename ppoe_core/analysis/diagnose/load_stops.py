@@ -15,7 +15,7 @@ import numpy as np
 
 from ppoe_core.analysis.diagnose.stops import Stops, base_tilt_context
 from ppoe_core.errors import BagError, ModelConfigError, PpoeError, PpoeWarning
-from ppoe_core.model.context import motion_band, motion_signs, sample_series, temperature_at
+from ppoe_core.model.context import at_rest, motion_band, motion_signs, sample_series, temperature_at
 from ppoe_core.robot.tree import KinematicTree
 from ppoe_core.robot.urdf import Robot
 
@@ -264,7 +264,7 @@ def _joint_context(js: Any, robot: Robot, links: Sequence[str], stamps: np.ndarr
     P = np.column_stack(pos_cols) if pos_cols else np.zeros((len(t_js), 0))
     signs = motion_signs(t_js, P, stamps, motion_band(P)) if pos_cols else np.zeros((len(stamps), 0))
     ctx = {"time": stamps - t_js[0], "motion_sign": {j: signs[:, i] for i, j in enumerate(jnames)},
-           "joint_velocity": vel}
+           "joint_velocity": vel, "at_rest": at_rest(t_js, P, stamps)}
     return q, ctx
 
 

@@ -129,7 +129,7 @@ class Stops:
         go = np.cumsum([0] + [len(p.group_names) for p in parts])
         joints = sorted(set.intersection(*[set(p.q) for p in parts]))  # a named order, not the strings' hashes
         ctx: dict[str, Any] = {}
-        for key in ("time", "temperature", "gravity", "base_tilt"):
+        for key in ("time", "temperature", "gravity", "base_tilt", "at_rest"):
             if all(key in p.context for p in parts):
                 ctx[key] = np.concatenate([p.context[key] for p in parts])
         for key in ("motion_sign", "joint_velocity"):
