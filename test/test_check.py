@@ -176,7 +176,7 @@ def test_identifiability_against_a_direct_count(tmp_path):
                             load_images=False)
     assert not static_rows(noisy_moving, JOINTS, noisy_moving.ground_truth_point.stamps).any()
     # diagnose's stops carry the same rest test: its accelerometer rows are not all dropped on a noisy encoder
-    # (they were, by the raw joint velocity's noise: 0.1 mrad at 100 Hz is about 10 mrad/s)
+    # (they were, by the raw joint velocity's noise: 0.1 mrad at 100 Hz is about 7 mrad/s in a central difference)
     from ppoe_core.analysis.diagnose.block_imu import at_rest
     from ppoe_core.analysis.diagnose.load_stops import stops_from_bag
 
