@@ -68,10 +68,10 @@ def detect_tags_in_windows(image: np.ndarray, windows: Sequence[TagWindow], dict
     img = np.asarray(image)
     if img.dtype != np.uint8 or img.ndim != 2 or img.size == 0:
         return None
-    full_detector, d = opencv_detector(dictionary, refine)
+    h, w = img.shape
+    full_detector, d = opencv_detector(dictionary, refine, max(h, w))
     full_params = full_detector.getDetectorParameters()
     detector, params, known = _window_detector(dictionary, full_detector, tuple(sorted({int(i) for i in ids})))
-    h, w = img.shape
     n_min = int(full_params.minMarkerPerimeterRate * max(h, w))  # OpenCV's bounds in pixels for the full image
     n_max = int(full_params.maxMarkerPerimeterRate * max(h, w))
     corners: list[np.ndarray] = []

@@ -38,6 +38,8 @@ __all__ = [
     "tag_points_local",
     "detect_tags",
     "opencv_detector",
+    "min_perimeter_rate",
+    "MIN_PX_PER_CELL",
     "detections_from_corners",
     "refine_edges",
     "EDGE_PASSES",
@@ -160,14 +162,35 @@ def refine_edges(grey: np.ndarray, corners: np.ndarray, n_cells: int, passes: in
 
 _per_thread = threading.local()
 
+#: OpenCV's default lower bound on a candidate's perimeter, as a fraction of the image's larger side
+_OPENCV_MIN_PERIMETER_RATE = 0.03
+#: pixels per cell below which a tag's bits are not sampled (less than one pixel per cell: below the image's
+#: Nyquist limit).  Candidates with a smaller black square are dropped before identification, which is most of
+#: ``detectMarkers``' time on them (rendered 640x480 images: 2.05 -> 1.44 ms per image, every tag still found).
+#: ``cv2.aruco`` itself decodes no 36h11 tag below about 1.4 px per cell (``test/test_tags_min_size.py``), so the
+#: bound loses none; OpenCV's own default (3 % of the larger image side: 4.8 px per side on 640 px) is kept where
+#: it is the stricter one (images wider than about 1070 px).
+MIN_PX_PER_CELL = 1.0
 
-def opencv_detector(dictionary: str, refine: str) -> tuple[Any, Any]:
-    """The ``cv2.aruco.ArucoDetector`` of a dictionary and corner refinement (the one :func:`detect_tags` uses), and
-    the dictionary; made once per thread (a detector is not shared between threads)."""
+
+def min_perimeter_rate(d: Any, image_side: int) -> float:
+    """``minMarkerPerimeterRate`` for a dictionary ``d`` and an image whose larger side is ``image_side`` [px]:
+    a black square of at least :data:`MIN_PX_PER_CELL` pixels per cell (``markerSize + 2`` cells across), and at
+    least OpenCV's default rate (``image_side`` 0: the default alone)."""
+    if image_side <= 0:
+        return _OPENCV_MIN_PERIMETER_RATE
+    cells = int(d.markerSize) + 2
+    return max(_OPENCV_MIN_PERIMETER_RATE, 4.0 * cells * MIN_PX_PER_CELL / float(image_side))
+
+
+def opencv_detector(dictionary: str, refine: str, image_side: int = 0) -> tuple[Any, Any]:
+    """The ``cv2.aruco.ArucoDetector`` of a dictionary and corner refinement (the one :func:`detect_tags` uses) for
+    images whose larger side is ``image_side`` pixels (its minimum candidate size, :func:`min_perimeter_rate`; 0:
+    OpenCV's default), and the dictionary; made once per thread (a detector is not shared between threads)."""
     import cv2
 
     cache = _per_thread.__dict__.setdefault("detectors", {})
-    hit = cache.get((dictionary, refine))
+    hit = cache.get((dictionary, refine, image_side))
     if hit is not None:
         return hit
     methods = {
@@ -179,13 +202,14 @@ def opencv_detector(dictionary: str, refine: str) -> tuple[Any, Any]:
     }
     if refine not in methods:
         raise MeasurementError(f"detect_tags: refine must be one of {sorted(methods)}, got {refine!r}")
+    d = aruco_dictionary(dictionary)
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = methods[refine]
     params.cornerRefinementWinSize = 3
     params.cornerRefinementMinAccuracy = 0.01
     params.cornerRefinementMaxIterations = 50
-    d = aruco_dictionary(dictionary)
-    hit = cache[(dictionary, refine)] = (cv2.aruco.ArucoDetector(d, params), d)
+    params.minMarkerPerimeterRate = min_perimeter_rate(d, image_side)
+    hit = cache[(dictionary, refine, image_side)] = (cv2.aruco.ArucoDetector(d, params), d)
     return hit
 
 
@@ -221,7 +245,7 @@ def detect_tags(image: np.ndarray, dictionary: str = "tag36h11", refine: str = "
                                f"got {img.dtype} {img.shape}")
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    detector, d = opencv_detector(dictionary, refine)
+    detector, d = opencv_detector(dictionary, refine, max(img.shape[:2]))
     corners, ids, _ = detector.detectMarkers(img)
     if ids is None:
         return []
