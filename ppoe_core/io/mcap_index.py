@@ -173,10 +173,6 @@ class McapIndex:
                                       self._len[idx].tolist()):
             yield cmap[cid], stamp, raw[off:off + n]
 
-    def count(self, connections: Sequence[Any]) -> int:
-        """How many messages :meth:`messages` yields for ``connections``."""
-        return int(self._select(connections)[0].shape[0])
-
     def rows(self, connections: Sequence[Any]) -> np.ndarray | None:
         """The data of the messages of ``connections`` in order as the rows of one (N, size) uint8 array (a copy),
         or None when there are none or they differ in length."""
