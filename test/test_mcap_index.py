@@ -18,11 +18,15 @@ from rosbags.rosbag2 import Reader
 
 import ppoe_core.io.mcap_index as mcap_index
 import ppoe_core.io.reader as reader_module
+from ppoe_core.errors import BagError
+from ppoe_core.io import cdr
 from ppoe_core.io.bagio import BagWriter, read_bag
+from ppoe_core.io.messages import T_POINT, T_POSE, T_WRENCH
 from ppoe_core.io.mcap_index import index_messages
 
 SHIPPED = sorted(p.parent for p in BAGS.glob("*/metadata.yaml"))
-_TOPICS = ("/joint_states", "/ground_truth/pose", "/wrench", "/camera/camera_info", "/camera/image_raw/compressed")
+_TOPICS = ("/joint_states", "/ground_truth/pose", "/wrench", "/camera/camera_info", "/camera/image_raw/compressed",
+           "/ground_truth/point")
 _NAMES = ["joint_1", "joint_2", "joint_3"]
 
 
@@ -39,10 +43,12 @@ def _requests(conns: list[Any]) -> list[list[Any]]:
 def _tangled_bag(path: Path, uniform: bool = True) -> tuple[Path, list[float]]:
     """Seven chunks of randomly interleaved contract messages whose stamps (= log times) come from a few values:
     out of order inside a chunk, equal across channels and chunks, chunk time ranges overlapping.  ``uniform``
-    False: one joint state lists a fourth joint (the joint states no longer share one layout).  Returns the bag
-    and the stamps in writing order."""
+    False: one joint state lists a fourth joint (the joint states no longer share one layout), one pose, wrench and
+    point each has another frame (their blocks are read message by message).  Returns the bag and the stamps in
+    writing order."""
     rng = np.random.default_rng(7)
-    stamps = []
+    stamps: list[float] = []
+    written: list[str] = []
     K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
     with BagWriter(path) as bag:
         bag.write_robot_description((REPO / "config" / "robots" / "planar3.urdf").read_text(), 1.0)
@@ -52,14 +58,19 @@ def _tangled_bag(path: Path, uniform: bool = True) -> tuple[Path, list[float]]:
                 topic = _TOPICS[int(rng.integers(0, len(_TOPICS)))]
                 stamps.append(t)
                 if topic == "/joint_states":
-                    extra = not uniform and len(stamps) == 40
+                    extra = int(not uniform and chunk == 2 and "joint_4" not in written)
+                    written += ["joint_4"] * extra
                     bag.write_joint_state(t, _NAMES + ["joint_4"] * extra, rng.normal(size=3 + extra))
                 elif topic == "/ground_truth/pose":
                     T = np.eye(4)
+                    T[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0] * [1, 1, -1]
                     T[:3, 3] = rng.normal(size=3)
-                    bag.write_ground_truth_pose(t, "base_link", T)
+                    bag.write_ground_truth_pose(t, "base_link" if uniform or chunk != 3 else "world", T)
                 elif topic == "/wrench":
-                    bag.write_wrench(t, "tool", rng.normal(size=3), rng.normal(size=3))
+                    bag.write_wrench(t, "tool" if uniform or chunk != 4 else "flange", rng.normal(size=3),
+                                     rng.normal(size=3))
+                elif topic == "/ground_truth/point":
+                    bag.write_ground_truth_point(t, "tracker" if uniform or chunk != 5 else "leica", rng.normal(size=3))
                 elif topic == "/camera/camera_info":
                     bag.write_camera_info(t, "camera", 640, 480, K, [0.01, 0, 0, 0, 0])
                 else:
@@ -131,6 +142,10 @@ def test_read_bag_is_the_same_with_and_without_the_index(tmp_path: Path, monkeyp
     used: list[Any] = []
     real = reader_module.index_messages
     monkeypatch.setattr(reader_module, "index_messages", lambda r, c: used.append(real(r, c)) or used[-1])
+    blocks: list[tuple[str, bool]] = []
+    real_block = reader_module.header_rows_block
+    monkeypatch.setattr(reader_module, "header_rows_block",
+                        lambda t, rows: blocks.append((t, real_block(t, rows) is not None)) or real_block(t, rows))
     first = ("/robot_description", "/camera/camera_info", "/camera/image_raw/compressed")
     for kw in ({}, {"load_images": False}, {"first": first}):
         seen: dict[bool, tuple[int, int]] = {}
@@ -148,6 +163,31 @@ def test_read_bag_is_the_same_with_and_without_the_index(tmp_path: Path, monkeyp
     data = results[True]
     assert len(data.joint_states) > 20 and len(data.images) > 5 and len(data.ground_truth_pose) > 5
     assert ("joint_4" in data.joint_states.names) == (not uniform)
+    assert len(data.wrench) > 5 and len(data.ground_truth_point) > 5
+    # the index's pass read pose, wrench and point at once (one frame each), or tried and read them one by one
+    assert sorted(set(blocks)) == sorted((t, uniform) for t in (T_POSE, T_POINT, T_WRENCH))
+
+
+def test_a_bad_message_is_the_same_error_with_and_without_the_index(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A ground-truth pose with a zero quaternion among good ones: the same error, naming the same message."""
+    bag = tmp_path / "bag"
+    with BagWriter(bag) as w:
+        w.write_robot_description((REPO / "config" / "robots" / "planar3.urdf").read_text(), 0.5)
+        for k in range(30):
+            w.write_joint_state(1.0 + 0.01 * k, _NAMES, np.full(3, 0.1 * k))
+            T = np.eye(4)
+            T[0, 3] = k
+            w.write_ground_truth_pose(1.0 + 0.01 * k, "base_link", T)
+        w.write_raw("/ground_truth/pose", T_POSE, 1_400_000_000, cdr.write(cdr.SCHEMAS[T_POSE],
+                                                                            [(1_400_000_000, "base_link"), [0.0] * 7]))
+    errors = []
+    for on in (True, False):
+        monkeypatch.setattr(mcap_index, "USE_INDEX", on)
+        with pytest.raises(BagError, match="message 30: invalid quaternion") as exc:
+            read_bag(bag)
+        errors.append(str(exc.value))
+    assert errors[0] == errors[1]
 
 
 @pytest.mark.parametrize("bag", [BAGS / "effect_camera_extrinsics", BAGS / "contact"], ids=["images", "wrench"])

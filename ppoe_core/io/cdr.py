@@ -35,7 +35,7 @@ from ppoe_core.errors import MeasurementError
 __all__ = ["CDR_LE_HEADER", "SCHEMAS", "CdrError", "PARSE_ERRORS", "align", "read", "write", "check_end",
            "parse_fields", "parse_joint_state", "JointStateCdr", "joint_state_names_block", "PoseCovarianceWriter",
            "tf_message", "as_bytes", "JointStateBlock", "joint_state_block", "joint_state_rows_block",
-           "JointStateLayout", "joint_state_layout", "JointStateReader"]
+           "JointStateLayout", "joint_state_layout", "JointStateReader", "HeaderBlock", "header_rows_block"]
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
@@ -467,6 +467,47 @@ def joint_state_rows_block(arr: np.ndarray) -> JointStateBlock | None:
     values = [np.ascontiguousarray(arr[:, at:at + 8 * n]).view("<f8") if n else np.zeros((n_msg, 0))
               for _, at, n in lay.spans]
     return JointStateBlock(sec + 1e-9 * nsec, lay.frame, lay.names, *values)
+
+
+class HeaderBlock(NamedTuple):
+    """Messages of a header and float64 fields (``PoseStamped``, ``PointStamped``, ``WrenchStamped``,
+    ``PoseWithCovarianceStamped``) read at once (:func:`header_rows_block`): ``stamps`` (N,) [s], ``frame`` (every
+    message's ``header.frame_id``), ``values`` (N, k): each message's float64 fields in a row."""
+
+    stamps: np.ndarray
+    frame: str
+    values: np.ndarray
+
+
+def header_rows_block(msgtype: str, arr: np.ndarray) -> HeaderBlock | None:
+    """Messages of ``msgtype`` (a schema of a header and float64 fields) of one size, the rows of ``arr`` (N, size)
+    uint8, at once: the first parsed (:func:`parse_fields`), the others compared with it where :func:`parse_fields`
+    reads anything but numbers (encapsulation, frame_id, more than 8 trailing bytes being zeros); their stamps and
+    values read from the array (the same numbers, bit for bit, as :func:`parse_fields` gives); None when a row
+    differs or the schema is not of this form.
+
+    Raises
+    ------
+    CdrError, struct.error, UnicodeDecodeError, ValueError, IndexError
+        The first message does not parse (:data:`PARSE_ERRORS`).
+    """
+    schema = SCHEMAS[msgtype]
+    if not arr.shape[0] or schema[0] != HEADER or not all(isinstance(k, int) for k in schema[1:]):
+        return None
+    first = arr[0].tobytes()
+    values, end = read(schema, first)
+    check_end(first, end)
+    frame_end = 16 + _U32.unpack_from(first, 12)[0]
+    cols = np.r_[0:2, 12:frame_end]
+    ok = (arr[:, cols] == arr[0, cols]).all(axis=1)
+    if arr.shape[1] - end > 8:
+        ok &= ~arr[:, end:].any(axis=1)
+    if not ok.all():
+        return None
+    start, n = align(frame_end, 8), sum(schema[1:])  # n float64 in a row: each field is whole float64 words
+    sec = np.ascontiguousarray(arr[:, 4:8]).view("<i4")[:, 0].astype(np.float64)
+    nsec = np.ascontiguousarray(arr[:, 8:12]).view("<u4")[:, 0].astype(np.float64)
+    return HeaderBlock(sec + 1e-9 * nsec, values[0][2], np.ascontiguousarray(arr[:, start:start + 8 * n]).view("<f8"))
 
 
 def parse_fields(msgtype: str, raw: bytes) -> tuple[Any, ...]:

@@ -7,11 +7,15 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from ppoe_core.errors import BagError
-from ppoe_core.io.cdr import PARSE_ERRORS, JointStateBlock, as_bytes, joint_state_block, joint_state_rows_block
+from ppoe_core.io.cdr import (
+    PARSE_ERRORS, JointStateBlock, as_bytes, header_rows_block, joint_state_block, joint_state_rows_block,
+)
 from ppoe_core.io.mcap_index import McapIndex, index_messages
 from ppoe_core.io.messages import T_POSE_COV, TOPIC_ROBOT_DESCRIPTION, deserialize, typestore
 from ppoe_core.io.recovery import RecoveredMcap, ReadStatus, account, lost_messages, recording_in_progress
-from ppoe_core.io.rows import JOINT_STATE_KIND, RowKind, expected_type, finish, finish_joint_state_block, row_kind
+from ppoe_core.io.rows import (
+    JOINT_STATE_KIND, RowKind, block_topic, expected_type, finish, finish_block, finish_joint_state_block, row_kind,
+)
 from ppoe_core.io.series import BagData, RawMessage
 
 
@@ -217,19 +221,16 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None, load
     # /joint_states (most of a bag's messages) kept raw and read at once at the end where all share one layout
     held: dict[str, list[tuple[Any, int, Any]]] = {t: [] for t, kind in kinds.items() if kind is JOINT_STATE_KIND}
     index = None if isinstance(reader, RecoveredMcap) else index_messages(reader, parse)
-    source = reader if index is None else index
-    if index is not None:  # the held topics are read from the index at the end
-        parse_now = [c for c in parse if c.topic not in held]
-    else:
-        parse_now = parse
+    source: Any = reader if index is None else index
+    parse_now = parse if index is None else [c for c in parse if c.topic not in held]  # held: from the index
     if phases is not None:
-        early = [c for c in parse_now if c.topic in phases[0]]
+        early = _blocks(data, status, index, [c for c in parse_now if c.topic in phases[0]])
         _read_messages(data, acc, status, source, early, held, kinds, load_images)
         finish(data, acc)
         acc = {}
         phases[1](data)
         parse_now = [c for c in parse_now if c.topic not in phases[0]]
-    _read_messages(data, acc, status, source, parse_now, held, kinds, load_images)
+    _read_messages(data, acc, status, source, _blocks(data, status, index, parse_now), held, kinds, load_images)
     for topic, msgs in held.items():
         if index is not None:
             _held_from_index(data, acc, status, index, [c for c in parse if c.topic == topic], kinds, load_images)
@@ -242,6 +243,27 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None, load
             _add_message(data, acc, status, conn, k, raw, kinds[topic], load_images)
     finish(data, acc)
     return data, parse, status
+
+
+def _blocks(data: BagData, status: ReadStatus, index: McapIndex | None, conns: list[Any]) -> list[Any]:
+    """Read the :func:`~ppoe_core.io.rows.block_topic` topics of ``conns`` at once from the index where their
+    messages allow it (:func:`ppoe_core.io.cdr.header_rows_block`, :func:`~ppoe_core.io.rows.finish_block`: the
+    same series as one by one, and no message of theirs would raise); returns the connections left to read one by
+    one."""
+    if index is None:
+        return conns
+    done = set()
+    for topic in dict.fromkeys(c.topic for c in conns if block_topic(c.topic)):
+        mine = [c for c in conns if c.topic == topic]
+        rows = index.rows(mine)
+        try:
+            block = None if rows is None else header_rows_block(mine[0].msgtype, rows)
+        except PARSE_ERRORS:
+            block = None
+        if block is not None and finish_block(data, topic, block):
+            status.counts[topic] = status.counts.get(topic, 0) + block.stamps.shape[0]
+            done.add(topic)
+    return [c for c in conns if c.topic not in done]
 
 
 def _held_from_index(data: BagData, acc: dict[str, list[Any]], status: ReadStatus, index: McapIndex,
