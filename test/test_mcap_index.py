@@ -205,11 +205,13 @@ def _chunk_records(chunk: Any) -> tuple[int, int]:
 
 def _damage(bag: Path, how: str) -> None:
     """Damage the third chunk: a wrong CRC, the right CRC (not damage: rosbags then checks it), the first Message
-    record's length running past the chunk, or its time range in the summary's chunk index starting 1 ns after its
-    first messages (which rosbags then skips)."""
+    record's length running past the chunk, its time range in the summary's chunk index starting 1 ns after its
+    first messages (which rosbags then skips), or its joint states not counted in the chunk index (rosbags then
+    reads them only when other topics are asked for with them)."""
     (mcap,) = bag.glob("*.mcap")
     with Reader(bag) as r:
         chunk = r.storage.storages[0].chunks[2]
+        (channel,) = [c.id for c in r.storage.storages[0].connections if c.topic == "/joint_states"]
     buf = bytearray(mcap.read_bytes())
     start, size = _chunk_records(chunk)
     crc_at = chunk.chunk_start_offset + 9 + 24
@@ -217,10 +219,16 @@ def _damage(bag: Path, how: str) -> None:
         struct.pack_into("<I", buf, crc_at, zlib.crc32(buf[start:start + size]) ^ 1)
     elif how == "good_crc":
         struct.pack_into("<I", buf, crc_at, zlib.crc32(buf[start:start + size]))
-    elif how == "narrow_range":
+    elif how in ("narrow_range", "uncounted"):
         key = struct.pack("<QQQ", chunk.message_start_time, chunk.message_end_time, chunk.chunk_start_offset)
         at = buf.rindex(key)  # the chunk index record in the summary
-        struct.pack_into("<Q", buf, at, chunk.message_start_time + 1)
+        if how == "narrow_range":
+            struct.pack_into("<Q", buf, at, chunk.message_start_time + 1)
+        else:  # its message index offsets name channel 999 instead of /joint_states': not counted there
+            (n,) = struct.unpack_from("<I", buf, at + 32)
+            entries = [at + 36 + 10 * k for k in range(n // 10)]
+            (pos,) = [e for e in entries if struct.unpack_from("<H", buf, e)[0] == channel]
+            struct.pack_into("<H", buf, pos, 999)
     else:
         pos = start
         while buf[pos] != 0x05:
@@ -229,7 +237,7 @@ def _damage(bag: Path, how: str) -> None:
     mcap.write_bytes(bytes(buf))
 
 
-@pytest.mark.parametrize("how", ["bad_crc", "record_past_chunk", "good_crc", "narrow_range"])
+@pytest.mark.parametrize("how", ["bad_crc", "record_past_chunk", "good_crc", "narrow_range", "uncounted"])
 def test_a_damaged_chunk_keeps_the_rosbags_reader(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, how: str) -> None:
     """A chunk rosbags refuses (its CRC, a record that does not fit) makes the index refuse the bag, so it is read
     as before (the same messages up to the damage, the same notes); a correct non-zero CRC is checked and passes;
@@ -245,10 +253,18 @@ def test_a_damaged_chunk_keeps_the_rosbags_reader(tmp_path: Path, monkeypatch: p
                 assert _messages(index, request) == _messages(r, request)
         else:
             assert index is None
-            with pytest.raises(Exception, match="checksum" if how == "bad_crc" else "."):
-                _messages(r, conns)
-    ref = read_bag(bag, accept_partial=True)
-    monkeypatch.setattr(mcap_index, "USE_INDEX", False)
-    old = read_bag(bag, accept_partial=True)
-    _assert_same(ref, old)
-    assert bool(ref.notes) == (how != "good_crc")  # narrow_range: metadata.yaml counts the skipped messages
+            if how == "uncounted":
+                alone = _messages(r, [c for c in conns if c.topic == "/joint_states"])
+                assert 0 < len(alone) < len([m for m in _messages(r, conns) if m[0] == "/joint_states"])
+            else:
+                with pytest.raises(Exception, match="checksum" if how == "bad_crc" else "."):
+                    _messages(r, conns)
+    first = ("/robot_description", "/camera/camera_info", "/camera/image_raw/compressed")
+    for kw in ({}, {"first": first, "on_first": lambda d: None}):
+        ref = read_bag(bag, accept_partial=True, **kw)
+        monkeypatch.setattr(mcap_index, "USE_INDEX", False)
+        old = read_bag(bag, accept_partial=True, **kw)
+        monkeypatch.setattr(mcap_index, "USE_INDEX", True)
+        _assert_same(ref, old)
+        # narrow_range, uncounted: metadata.yaml counts messages rosbags skips
+        assert bool(ref.notes) == (how not in ("good_crc", "uncounted")), ref.notes

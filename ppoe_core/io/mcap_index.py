@@ -103,6 +103,16 @@ def _chunk_bytes(mm: Any, chunk: Any) -> Any:
     return decompress(mm[start:start + chunk.compressed_size], chunk.compression, chunk.uncompressed_size, crc)
 
 
+def _check_counts(chunks: Sequence[Any], chan: np.ndarray, seg: np.ndarray, wanted: set[int]) -> None:
+    """Every wanted channel with a message in a chunk is counted in that chunk's index (``rosbags`` reads a chunk
+    only for the channels its index counts): then a topic's messages do not depend on which other topics are
+    asked for with it, as :class:`McapIndex`'s users assume."""
+    pairs = np.unique(seg * 65536 + chan)
+    for s, cid in zip((pairs // 65536).tolist(), (pairs % 65536).tolist()):
+        if cid in wanted and not chunks[s].channel_count.get(cid, 0):
+            raise _NotIndexable(f"chunk {chunks[s].chunk_start_offset}: channel {cid} not in its index")
+
+
 class McapIndex:
     """Every Message record of the chunks ``rosbags`` reads for ``connections``; :meth:`messages` and :meth:`rows`
     give a request's messages in ``rosbags``' order.
@@ -147,6 +157,7 @@ class McapIndex:
             raise _NotIndexable(f"chunk {chunks[-1 - status].chunk_start_offset} is not a whole number of records")
         if log_time.shape[0] and int(log_time.max()) > _MAX_TIME:
             raise _NotIndexable("a log time beyond int64")
+        _check_counts(chunks, chan, seg, wanted)
         self._chan, self._time, self._seg = chan, log_time.astype(np.int64), seg
         self._chunks = chunks
         t0 = np.array([c.message_start_time for c in chunks], dtype=np.int64)  # OverflowError beyond int64
