@@ -6,7 +6,9 @@ Python, sorts each chunk's messages by log time (stably) and merges the chunks w
 chunk offset)``: about 6 us per message, most of ``read_bag``'s time on a long bag (67205 messages of the 600 s
 ``bench/bench_evaluate.py`` bag: 0.3 s).  :class:`McapIndex` reads the same chunks (from the same chunk index of the
 file's summary, the same bytes of the file), applies the same checks (chunk size, the chunk CRC when it is not zero,
-every record inside its chunk, a Message record at least as long as its header), finds every Message record with
+every record inside its chunk, a Message record at least as long as its header) and one more (every channel with a
+message in a chunk is counted in that chunk's index, so that a topic's messages do not depend on which topics are
+asked for with it: the reader asks per phase and per topic), finds every Message record with
 :func:`ppoe_core.io.mcap_kernel.scan_messages` and orders a request's messages by a stable sort on ``(log time,
 chunk offset, record position)``: the same messages, in the same order, with the same bytes
 (``test/test_mcap_index.py`` compares both on every shipped bag and on bags with many small chunks).
