@@ -197,7 +197,9 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None, load
                ) -> tuple[BagData, list[Any], ReadStatus]:
     """Parse the wanted contract topics of an open reader; returns the data, the parsed connections
     and what was read.  ``phases``: the topics read first and the function called with the data once they are
-    (:func:`read_bag`'s ``first`` and ``on_first``)."""
+    (:func:`read_bag`'s ``first`` and ``on_first``).  A single chunked mcap file is read through its message index
+    (:mod:`ppoe_core.io.mcap_index`: the messages ``rosbags`` yields, in its order), the joint states and the
+    fixed-layout topics at once where they allow it (:func:`_blocks`); any other bag through ``reader``."""
     data = BagData(path=str(path))
     conns = list(reader.connections)
     for c in conns:
