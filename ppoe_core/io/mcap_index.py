@@ -71,7 +71,7 @@ def _storage(reader: Any) -> Any:
     return storage
 
 
-def channel_map(storage_connections: Sequence[Any], connections: Sequence[Any]) -> dict[int, Any]:
+def _channel_map(storage_connections: Sequence[Any], connections: Sequence[Any]) -> dict[int, Any]:
     """Channel id of the mcap file -> the directory's connection that ``rosbags`` yields for it (its rule: the
     first of ``connections`` with the same topic, type, serialisation and QoS, and a compatible type hash)."""
     out = {}
@@ -137,7 +137,7 @@ class McapIndex:
 
         storage = _storage(reader)
         self._storage_connections = list(storage.connections)
-        wanted = set(channel_map(self._storage_connections, connections))
+        wanted = set(_channel_map(self._storage_connections, connections))
         chunks = [c for c in storage.chunks if any(c.channel_count.get(cid, 0) for cid in wanted)]
         if len({c.chunk_start_offset for c in chunks}) != len(chunks):
             raise _NotIndexable("two chunk index records of one chunk")
@@ -169,7 +169,7 @@ class McapIndex:
 
     def _select(self, connections: Sequence[Any]) -> tuple[np.ndarray, dict[int, Any]]:
         """Indices of the messages of ``connections`` in ``rosbags``' order, and channel id -> connection."""
-        cmap = channel_map(self._storage_connections, connections)
+        cmap = _channel_map(self._storage_connections, connections)
         wanted = np.array(sorted(cmap), dtype=np.int64)
         use_chunk = np.array([any(c.channel_count.get(cid, 0) for cid in cmap) for c in self._chunks], dtype=bool)
         mask = np.isin(self._chan, wanted) & use_chunk[self._seg] & self._in_range
