@@ -34,8 +34,8 @@ from ppoe_core.errors import MeasurementError
 
 __all__ = ["CDR_LE_HEADER", "SCHEMAS", "CdrError", "PARSE_ERRORS", "align", "read", "write", "check_end",
            "parse_fields", "parse_joint_state", "JointStateCdr", "joint_state_names_block", "PoseCovarianceWriter",
-           "tf_message", "as_bytes", "JointStateBlock", "joint_state_block", "JointStateLayout",
-           "joint_state_layout", "JointStateReader"]
+           "tf_message", "as_bytes", "JointStateBlock", "joint_state_block", "joint_state_rows_block",
+           "JointStateLayout", "joint_state_layout", "JointStateReader", "HeaderBlock", "header_rows_block"]
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
@@ -416,11 +416,8 @@ class JointStateBlock(NamedTuple):
 
 
 def joint_state_block(raws: Sequence[bytes]) -> JointStateBlock | None:
-    """Every message of ``raws`` at once, when all are laid out as the first: the first read in full
-    (:func:`parse_fields`), then the others compared with it as :func:`parse_fields` compares a message with the
-    previous layout (same size, encapsulation, frame_id, names and value counts, trailing bytes) in one numpy
-    operation, and their stamps and values read from one array (the same numbers, bit for bit, as message by
-    message); None when one differs (read them one by one then).
+    """Every message of ``raws`` at once, when all are laid out as the first: :func:`joint_state_rows_block` of
+    their bytes as rows (None also when they differ in size).
 
     Raises
     ------
@@ -433,20 +430,84 @@ def joint_state_block(raws: Sequence[bytes]) -> JointStateBlock | None:
     lay = _last_layout[0]
     if lay is None or any(len(r) != lay.size for r in raws):
         return None
-    arr = np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), lay.size)
-    first = arr[0]
-    ok = (arr[:, :2] == first[:2]).all(axis=1)  # JointStateLayout.matches, for every message at once
-    for at, seg in lay.segments:
-        ok &= (arr[:, at:at + len(seg)] == first[at:at + len(seg)]).all(axis=1)
+    return joint_state_rows_block(np.frombuffer(b"".join(raws), dtype=np.uint8).reshape(len(raws), lay.size))
+
+
+def joint_state_rows_block(arr: np.ndarray) -> JointStateBlock | None:
+    """``JointState`` messages of one size, the rows of ``arr`` (N, size) uint8, at once when all are laid out as
+    the first: the first read in full (:func:`parse_fields`), then the others compared with it as
+    :func:`parse_fields` compares a message with the previous layout (same size, encapsulation, frame_id, names and
+    value counts, trailing bytes) in one numpy operation, and their stamps and values read from the array (the same
+    numbers, bit for bit, as message by message); None when one differs (read them one by one then).
+
+    Raises
+    ------
+    CdrError, struct.error, UnicodeDecodeError, ValueError, IndexError
+        The first message does not parse (:data:`PARSE_ERRORS`).
+    """
+    if not arr.shape[0]:
+        return None
+    _joint_state_fields(arr[0].tobytes())  # the layout of the first message (or raises)
+    lay = _last_layout[0]
+    if lay is None or lay.size != arr.shape[1]:
+        return None
+    # JointStateLayout.matches for every message at once: the compared bytes (encapsulation and segments) of each
+    # row, padded to whole uint64 with byte 0 again, compared 8 at a time with the first row's
+    cols = np.concatenate([np.arange(2)] + [np.arange(at, at + len(seg)) for at, seg in lay.segments])
+    words = np.ascontiguousarray(np.take(arr, np.concatenate([cols, np.zeros(-cols.shape[0] % 8, dtype=cols.dtype)]),
+                                         axis=1)).view("<u8")
+    ok = ~(words != words[0]).any(axis=1)
     if lay.size - lay.end > 8:  # check_end: more than 8 trailing bytes must be zeros
         ok &= ~arr[:, lay.end:].any(axis=1)
     if not ok.all():
         return None
+    n_msg = arr.shape[0]
     sec = np.ascontiguousarray(arr[:, 4:8]).view("<i4")[:, 0].astype(np.float64)
     nsec = np.ascontiguousarray(arr[:, 8:12]).view("<u4")[:, 0].astype(np.float64)
-    values = [np.ascontiguousarray(arr[:, at:at + 8 * n]).view("<f8") if n else np.zeros((len(raws), 0))
+    values = [np.ascontiguousarray(arr[:, at:at + 8 * n]).view("<f8") if n else np.zeros((n_msg, 0))
               for _, at, n in lay.spans]
     return JointStateBlock(sec + 1e-9 * nsec, lay.frame, lay.names, *values)
+
+
+class HeaderBlock(NamedTuple):
+    """Messages of a header and float64 fields (``PoseStamped``, ``PointStamped``, ``WrenchStamped``,
+    ``PoseWithCovarianceStamped``) read at once (:func:`header_rows_block`): ``stamps`` (N,) [s], ``frame`` (every
+    message's ``header.frame_id``), ``values`` (N, k): each message's float64 fields in a row."""
+
+    stamps: np.ndarray
+    frame: str
+    values: np.ndarray
+
+
+def header_rows_block(msgtype: str, arr: np.ndarray) -> HeaderBlock | None:
+    """Messages of ``msgtype`` (a schema of a header and float64 fields) of one size, the rows of ``arr`` (N, size)
+    uint8, at once: the first parsed (:func:`parse_fields`), the others compared with it where :func:`parse_fields`
+    reads anything but numbers (encapsulation, frame_id, more than 8 trailing bytes being zeros); their stamps and
+    values read from the array (the same numbers, bit for bit, as :func:`parse_fields` gives); None when a row
+    differs or the schema is not of this form.
+
+    Raises
+    ------
+    CdrError, struct.error, UnicodeDecodeError, ValueError, IndexError
+        The first message does not parse (:data:`PARSE_ERRORS`).
+    """
+    schema = SCHEMAS[msgtype]
+    if not arr.shape[0] or schema[0] != HEADER or not all(isinstance(k, int) for k in schema[1:]):
+        return None
+    first = arr[0].tobytes()
+    values, end = read(schema, first)
+    check_end(first, end)
+    frame_end = 16 + _U32.unpack_from(first, 12)[0]
+    cols = np.r_[0:2, 12:frame_end]
+    ok = (arr[:, cols] == arr[0, cols]).all(axis=1)
+    if arr.shape[1] - end > 8:
+        ok &= ~arr[:, end:].any(axis=1)
+    if not ok.all():
+        return None
+    start, n = align(frame_end, 8), sum(schema[1:])  # n float64 in a row: each field is whole float64 words
+    sec = np.ascontiguousarray(arr[:, 4:8]).view("<i4")[:, 0].astype(np.float64)
+    nsec = np.ascontiguousarray(arr[:, 8:12]).view("<u4")[:, 0].astype(np.float64)
+    return HeaderBlock(sec + 1e-9 * nsec, values[0][2], np.ascontiguousarray(arr[:, start:start + 8 * n]).view("<f8"))
 
 
 def parse_fields(msgtype: str, raw: bytes) -> tuple[Any, ...]:

@@ -7,10 +7,15 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from ppoe_core.errors import BagError
-from ppoe_core.io.cdr import PARSE_ERRORS, JointStateBlock, as_bytes, joint_state_block
+from ppoe_core.io.cdr import (
+    PARSE_ERRORS, JointStateBlock, as_bytes, header_rows_block, joint_state_block, joint_state_rows_block,
+)
+from ppoe_core.io.mcap_index import McapIndex, index_messages
 from ppoe_core.io.messages import T_POSE_COV, TOPIC_ROBOT_DESCRIPTION, deserialize, typestore
 from ppoe_core.io.recovery import RecoveredMcap, ReadStatus, account, lost_messages, recording_in_progress
-from ppoe_core.io.rows import JOINT_STATE_KIND, RowKind, expected_type, finish, finish_joint_state_block, row_kind
+from ppoe_core.io.rows import (
+    JOINT_STATE_KIND, RowKind, block_topic, expected_type, finish, finish_block, finish_joint_state_block, row_kind,
+)
 from ppoe_core.io.series import BagData, RawMessage
 
 
@@ -192,7 +197,9 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None, load
                ) -> tuple[BagData, list[Any], ReadStatus]:
     """Parse the wanted contract topics of an open reader; returns the data, the parsed connections
     and what was read.  ``phases``: the topics read first and the function called with the data once they are
-    (:func:`read_bag`'s ``first`` and ``on_first``)."""
+    (:func:`read_bag`'s ``first`` and ``on_first``).  A single chunked mcap file is read through its message index
+    (:mod:`ppoe_core.io.mcap_index`: the messages ``rosbags`` yields, in its order), the joint states and the
+    fixed-layout topics at once where they allow it (:func:`_blocks`); any other bag through ``reader``."""
     data = BagData(path=str(path))
     conns = list(reader.connections)
     for c in conns:
@@ -215,15 +222,21 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None, load
     kinds = {c.topic: row_kind(c.topic, c.msgtype) for c in parse if c.topic != TOPIC_ROBOT_DESCRIPTION}
     # /joint_states (most of a bag's messages) kept raw and read at once at the end where all share one layout
     held: dict[str, list[tuple[Any, int, Any]]] = {t: [] for t, kind in kinds.items() if kind is JOINT_STATE_KIND}
+    index = None if isinstance(reader, RecoveredMcap) else index_messages(reader, parse)
+    source: Any = reader if index is None else index
+    parse_now = parse if index is None else [c for c in parse if c.topic not in held]  # held: from the index
     if phases is not None:
-        early = [c for c in parse if c.topic in phases[0]]
-        _read_messages(data, acc, status, reader, early, held, kinds, load_images)
+        early = _blocks(data, status, index, [c for c in parse_now if c.topic in phases[0]])
+        _read_messages(data, acc, status, source, early, held, kinds, load_images)
         finish(data, acc)
         acc = {}
         phases[1](data)
-        parse_rest = [c for c in parse if c.topic not in phases[0]]
-    _read_messages(data, acc, status, reader, parse if phases is None else parse_rest, held, kinds, load_images)
+        parse_now = [c for c in parse_now if c.topic not in phases[0]]
+    _read_messages(data, acc, status, source, _blocks(data, status, index, parse_now), held, kinds, load_images)
     for topic, msgs in held.items():
+        if index is not None:
+            _held_from_index(data, acc, status, index, [c for c in parse if c.topic == topic], kinds, load_images)
+            continue
         block = _joint_state_block([raw for _, _, raw in msgs])
         if block is not None:
             finish_joint_state_block(data, topic, block)
@@ -232,6 +245,44 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None, load
             _add_message(data, acc, status, conn, k, raw, kinds[topic], load_images)
     finish(data, acc)
     return data, parse, status
+
+
+def _blocks(data: BagData, status: ReadStatus, index: McapIndex | None, conns: list[Any]) -> list[Any]:
+    """Read the :func:`~ppoe_core.io.rows.block_topic` topics of ``conns`` at once from the index where their
+    messages allow it (:func:`ppoe_core.io.cdr.header_rows_block`, :func:`~ppoe_core.io.rows.finish_block`: the
+    same series as one by one, and no message of theirs would raise); returns the connections left to read one by
+    one."""
+    if index is None:
+        return conns
+    done = set()
+    for topic in dict.fromkeys(c.topic for c in conns if block_topic(c.topic)):
+        mine = [c for c in conns if c.topic == topic]
+        rows = index.rows(mine)
+        try:
+            block = None if rows is None else header_rows_block(mine[0].msgtype, rows)
+        except PARSE_ERRORS:
+            block = None
+        if block is not None and finish_block(data, topic, block):
+            status.counts[topic] = status.counts.get(topic, 0) + block.stamps.shape[0]
+            done.add(topic)
+    return [c for c in conns if c.topic not in done]
+
+
+def _held_from_index(data: BagData, acc: dict[str, list[Any]], status: ReadStatus, index: McapIndex,
+                     conns: list[Any], kinds: dict[str, RowKind], load_images: bool) -> None:
+    """One held topic's messages (``conns``) from the index: at once when they share one layout
+    (:func:`ppoe_core.io.cdr.joint_state_rows_block`), else one by one as any other topic."""
+    topic = conns[0].topic
+    rows = index.rows(conns)
+    try:
+        block = None if rows is None else joint_state_rows_block(rows)
+    except PARSE_ERRORS:
+        block = None
+    if block is None:
+        _read_messages(data, acc, status, index, conns, {}, kinds, load_images)
+        return
+    status.counts[topic] = status.counts.get(topic, 0) + block.stamps.shape[0]
+    finish_joint_state_block(data, topic, block)
 
 
 def _read_messages(data: BagData, acc: dict[str, list[Any]], status: ReadStatus, reader: Any, conns: list[Any],

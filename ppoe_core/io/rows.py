@@ -30,7 +30,7 @@ from ppoe_core.io.series import (
 )
 
 __all__ = ["RowKind", "row_kind", "finish", "expected_type", "named", "tag_rows_from_cloud", "JOINT_STATE_KIND",
-           "finish_joint_state_block"]
+           "finish_joint_state_block", "block_topic", "finish_block"]
 
 
 def expected_type(topic: str) -> str | None:
@@ -395,6 +395,54 @@ def finish_joint_state_block(data: BagData, topic: str, block: cdr.JointStateBlo
     pos, vel, eff = (A.copy() if A.shape[1] else np.full((N, n), np.nan)
                      for A in (block.positions, block.velocities, block.effort))
     data.joint_states = JointStates(block.stamps.copy(), list(block.names), pos, vel, eff)
+
+
+def _pose_block(data: BagData, topic: str, block: cdr.HeaderBlock) -> bool:
+    """``/ground_truth/pose`` of a block: the poses :func:`_pose_to_T` makes (the same rule for a zero or non-finite
+    quaternion, then the same compiled rotation, :func:`ppoe_core.lie.so3.matrix_from_quat`)."""
+    from ppoe_core.lie.so3 import matrix_from_quat
+
+    v = block.values
+    x, y, z, w = v[:, 3], v[:, 4], v[:, 5], v[:, 6]
+    valid = np.isfinite(v[:, 3:7]).all(axis=1) & ~(np.sqrt(x * x + y * y + z * z + w * w) < 1e-9)
+    if not valid.all():  # message by message, for the error naming the first
+        return False
+    N = v.shape[0]
+    T = np.zeros((N, 4, 4))
+    T[:, :3, :3] = matrix_from_quat(v[:, 3:7])
+    T[:, :3, 3] = v[:, :3]
+    T[:, 3, 3] = 1.0
+    data.ground_truth_pose = PoseSeries(block.stamps, [block.frame] * N, T)
+    return True
+
+
+def _wrench_block(data: BagData, topic: str, block: cdr.HeaderBlock) -> bool:
+    N = block.values.shape[0]
+    data.wrench = Wrenches(block.stamps, [block.frame] * N, block.values[:, :3].copy(), block.values[:, 3:6].copy())
+    return True
+
+
+def _point_block(data: BagData, topic: str, block: cdr.HeaderBlock) -> bool:
+    data.ground_truth_point = PointSeries(block.stamps, [block.frame] * block.values.shape[0], block.values.copy())
+    return True
+
+
+#: topics whose messages the reader may read at once (:func:`finish_block`)
+_BLOCK_FINISHERS: dict[str, Callable[[BagData, str, cdr.HeaderBlock], bool]] = {
+    TOPIC_GT_POSE: _pose_block, TOPIC_WRENCH: _wrench_block, TOPIC_GT_POINT: _point_block,
+}
+
+
+def block_topic(topic: str) -> bool:
+    """The messages of ``topic`` can be read at once (:func:`ppoe_core.io.cdr.header_rows_block`,
+    :func:`finish_block`)."""
+    return topic in _BLOCK_FINISHERS
+
+
+def finish_block(data: BagData, topic: str, block: cdr.HeaderBlock) -> bool:
+    """The series of a :func:`block_topic` from its messages read at once: what :func:`finish` makes of their rows
+    one by one; False (nothing set) where a message's row would raise (read them one by one then)."""
+    return _BLOCK_FINISHERS[topic](data, topic, block)
 
 
 def finish(data: BagData, acc: dict[str, list[Any]]) -> None:
