@@ -135,8 +135,8 @@ def refine_edges(grey: np.ndarray, corners: np.ndarray, n_cells: int, passes: in
     dark-to-light gradient; a total-least-squares line is fitted to those points and the
     corners are the intersections of consecutive lines.  Corners that move by more than one
     cell, or edges with too few valid profiles, keep the input values.  Each pass starts from the
-    previous pass's corners (:data:`EDGE_PASSES`); a pass is one compiled call
-    (:func:`ppoe_core.sensing.edge_kernel.edge_pass`).
+    previous pass's corners (:data:`EDGE_PASSES`); all passes are one compiled call
+    (:func:`ppoe_core.sensing.edge_kernel.edge_fit`).
 
     Parameters
     ----------
@@ -151,12 +151,11 @@ def refine_edges(grey: np.ndarray, corners: np.ndarray, n_cells: int, passes: in
     -------
     (4, 2) refined corners.
     """
-    from ppoe_core.sensing.edge_kernel import edge_pass
+    from ppoe_core.sensing.edge_kernel import edge_fit
 
     c = np.array(corners, dtype=np.float64)
     img = np.ascontiguousarray(grey, dtype=np.uint8)
-    for _ in range(passes):
-        edge_pass(img, c, int(n_cells), _EDGE_PROFILES, _EDGE_STEP, _EDGE_WINDOW, c)
+    edge_fit(img, c, int(n_cells), int(passes), _EDGE_PROFILES, _EDGE_STEP, _EDGE_WINDOW, c)
     return c
 
 
