@@ -168,11 +168,11 @@ def fuse_one_kernel(T: np.ndarray, P: np.ndarray, T_rel: np.ndarray, dt_abs: flo
 
 
 @njit(cache=True)
-def held_queries_checks(t: np.ndarray, T: np.ndarray, tq: np.ndarray, nb: np.ndarray, has_newest: bool,
-                        newest: float) -> int:
+def held_queries_checks(t: np.ndarray, T: np.ndarray, tq: np.ndarray, nb: np.ndarray, rows: np.ndarray, n_out: int,
+                        has_newest: bool, newest: float) -> int:
     """The conditions of :func:`held_queries_kernel`: 0 if they hold, -1 if the data are not in order (stamps
     increasing, finite, newer than the buffer's ``newest``; every query not older than the newest prior before it),
-    -2 if ``nb`` is not non-decreasing in 0..N."""
+    -2 if ``nb`` is not non-decreasing in 0..N or a row not in 0..n_out - 1."""
     n = t.shape[0]
     for k in range(n):
         if not math.isfinite(t[k]) or (k > 0 and not t[k] > t[k - 1]) or not _finite(T[k]):
@@ -182,7 +182,7 @@ def held_queries_checks(t: np.ndarray, T: np.ndarray, tq: np.ndarray, nb: np.nda
     prev = 0
     for j in range(tq.shape[0]):
         b = nb[j]
-        if b < prev or b > n:
+        if b < prev or b > n or not 0 <= rows[j] < n_out:
             return -2
         prev = b
         if not math.isfinite(tq[j]) or (b > 0 and not tq[j] >= t[b - 1]) or (b == 0 and has_newest
@@ -226,7 +226,7 @@ def held_queries_kernel(t: np.ndarray, T: np.ndarray, P: np.ndarray, p_step: int
     int
         1 if the correction was dropped, else 0; -1 / -2 as :func:`held_queries_checks` (nothing done).
     """
-    status = held_queries_checks(t, T, tq, nb, has_newest, newest)
+    status = held_queries_checks(t, T, tq, nb, rows, found.shape[0], has_newest, newest)
     if status < 0:
         return status
     n, m, nq = t.shape[0], tq.shape[0], q_anchor.shape[0]

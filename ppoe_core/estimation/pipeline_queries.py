@@ -110,37 +110,45 @@ def priors_and_queries(pipe: Any, stamps: Array, T_base_tool: Array, cov_tool: A
     Q = None if joints is None else c(joints, dtype=np.float64)
     if Q is not None and not (Q.ndim == 2 and Q.shape[0] == n):
         Q = Q.reshape(n, -1)
-    tq = np.asarray(query_stamps, dtype=np.float64).reshape(-1)
-    nb = np.asarray(n_before, dtype=np.int64).reshape(-1)
-    rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+    tq, nb, rows = c(query_stamps, dtype=np.float64), c(n_before, dtype=np.int64), c(rows, dtype=np.int64)
     m = tq.shape[0]
-    if nb.shape != (m,) or rows.shape != (m,) or (m and not 0 <= rows.min() <= rows.max() < out.found.shape[0]):
+    if tq.shape != (m,) or nb.shape != (m,) or rows.shape != (m,):
         raise ValueError(f"priors_and_queries: {m} queries need {m} counts n_before and {m} rows of out")
     outcomes: list[MeasurementOutcome] = []
-    fast = batched and validated and type(pipe.policy) is CorrectionPolicy
     k = j = 0
-    one_cov = cov.ndim == 2
-    while True:
-        if fast and not pipe.pending and len(pipe.corrections) <= 1:
-            if _compiled(pipe, t[k:], T[k:], cov if one_cov else cov[k:], None if Q is None else Q[k:], tq[j:],
-                         nb[j:] - k, out, rows[j:]):
-                return outcomes
-            fast = False  # not in order: the calls one by one
-        if j == m:
-            break
-        b = int(nb[j])
-        if b < k or b > n:
-            raise ValueError(f"priors_and_queries: n_before must be non-decreasing counts in 0..{n}")
-        if b > k:
-            outcomes += pipe.add_priors(t[k:b], T[k:b], cov if one_cov else cov[k:b], None if Q is None else Q[k:b],
-                                        validated=validated)
-            k = b
-        _query(pipe, float(tq[j]), flush_margin, out, int(rows[j]), outcomes)
-        j += 1
+    if batched and validated and type(pipe.policy) is CorrectionPolicy:
+        while True:
+            if not pipe.pending and len(pipe.corrections) <= 1:
+                if _compiled(pipe, t[k:], T[k:], cov if cov.ndim == 2 else cov[k:], None if Q is None else Q[k:],
+                             tq[j:], nb[j:] - k, out, rows[j:]):
+                    return outcomes
+                break  # not in order: the calls one by one
+            if j == m:
+                break
+            k = _step(pipe, t, T, cov, Q, k, float(tq[j]), int(nb[j]), out, int(rows[j]), validated, flush_margin,
+                      outcomes)
+            j += 1
+    if m and not 0 <= rows.min() <= rows.max() < out.found.shape[0]:
+        raise ValueError(f"priors_and_queries: rows {rows.tolist()} are not rows of out ({out.found.shape[0]})")
+    for jj in range(j, m):
+        k = _step(pipe, t, T, cov, Q, k, float(tq[jj]), int(nb[jj]), out, int(rows[jj]), validated, flush_margin,
+                  outcomes)
     if k < n:
-        outcomes += pipe.add_priors(t[k:], T[k:], cov if one_cov else cov[k:], None if Q is None else Q[k:],
+        outcomes += pipe.add_priors(t[k:], T[k:], cov if cov.ndim == 2 else cov[k:], None if Q is None else Q[k:],
                                     validated=validated)
     return outcomes
+
+
+def _step(pipe: Any, t: Array, T: Array, cov: Array, Q: Array | None, k: int, tq: float, b: int, out: QueryEstimates,
+          r: int, validated: bool, flush_margin: float | None, outcomes: list[MeasurementOutcome]) -> int:
+    """One query the reference way: ``add_priors`` of priors ``k .. b - 1``, then :func:`_query`; returns ``b``."""
+    if b < k or b > t.shape[0]:
+        raise ValueError(f"priors_and_queries: n_before must be non-decreasing counts in 0..{t.shape[0]}")
+    if b > k:
+        outcomes += pipe.add_priors(t[k:b], T[k:b], cov if cov.ndim == 2 else cov[k:b], None if Q is None else Q[k:b],
+                                    validated=validated)
+    _query(pipe, tq, flush_margin, out, r, outcomes)
+    return b
 
 
 def _query(pipe: Any, t: float, flush_margin: float | None, out: QueryEstimates, r: int,
@@ -164,21 +172,19 @@ def _compiled(pipe: Any, t: Array, T: Array, cov: Array, Q: Array | None, tq: Ar
     """The rest of :func:`priors_and_queries` in one compiled call
     (:func:`ppoe_core.estimation.correction_kernels.held_queries_kernel`), with the buffer's appends, the count and
     the drop of the correction; False (nothing done) if the data are not in the order it needs."""
-    n = t.shape[0]
+    buf = pipe.buffer
     nj = 0 if Q is None else Q.shape[1]
-    latest = pipe.buffer.latest() if (nb.shape[0] and nb[0] == 0) else None
-    if latest is None:
-        T_l, P_l, q_l = np.eye(4), np.eye(6), np.zeros(nj)  # (stand-ins, unused)
-    else:
-        q_l = latest.joints
-        if (Q is None) != (q_l is None) or (q_l is not None and q_l.shape != (nj,)):
+    T_l, P_l, q_l = _EYE4, _EYE6, _NONE if Q is None else np.zeros(nj)  # (stand-ins when the buffer's is not held)
+    if nb.shape[0] and nb[0] == 0 and buf.newest is not None:
+        latest = buf.latest()
+        q = latest.joints
+        if (Q is None) != (q is None) or (q is not None and q.shape != (nj,)):
             return False  # joints unlike the run's: the reference decides
         T_l, P_l = np.ascontiguousarray(latest.T_base_tool), np.ascontiguousarray(latest.cov_tool)
-        q_l = np.zeros(0) if q_l is None else np.ascontiguousarray(q_l)
-    Qk = np.zeros((n, 0)) if Q is None else Q
-    corr = next(iter(pipe.corrections.values())) if pipe.corrections else None
+        q_l = _NONE if q is None else np.ascontiguousarray(q)
     pol = pipe.policy
-    qa, T_rel, T_rel_l, H, R, z, anchor = np.zeros(0), T, T_l, np.zeros((0, 6)), np.zeros(0), np.zeros(0), 0.0
+    corr = next(iter(pipe.corrections.values())) if pipe.corrections else None
+    qa, T_rel, T_rel_l, H, R, z, anchor = _NONE, T, T_l, _NO_ROWS, _NONE, _NONE, 0.0
     if corr is not None:
         H, R, z, anchor = corr.H, corr.R, corr.z, corr.anchor.stamp
         q_a = corr.anchor.joints
@@ -186,15 +192,20 @@ def _compiled(pipe: Any, t: Array, T: Array, cov: Array, Q: Array | None, tq: Ar
             qa = q_a
         if pol.tool_translation > 0.0 or pol.tool_rotation > 0.0:
             T_rel, T_rel_l = corr.T_anchor_inv @ T, corr.T_anchor_inv @ T_l  # numpy's products, as fuse takes them
-    pq = out.prior_joints if out.prior_joints is not None else np.zeros((out.found.shape[0], nj))
-    P3 = np.ascontiguousarray(cov.reshape(1, 6, 6) if cov.ndim == 2 else cov)
+    if out.prior_joints is not None:
+        pq = out.prior_joints
+    else:
+        pq = np.zeros((out.found.shape[0], nj))
+    newest = buf.newest
     status = correction_kernels().held_queries_kernel(
-        t, T, P3, 0 if cov.ndim == 2 else 1, Qk, tq, nb, rows, pipe.buffer.newest is not None,
-        pipe.buffer.newest or 0.0, T_l, P_l, q_l, pipe.buffer.max_hold, corr is not None, anchor, qa, T_rel, T_rel_l,
+        t, T, cov.reshape(1, 6, 6) if cov.ndim == 2 else cov, 0 if cov.ndim == 2 else 1,
+        _no_joints(t.shape[0]) if Q is None else Q, tq, nb, rows, newest is not None,
+        0.0 if newest is None else newest, T_l, P_l, q_l, buf.max_hold, corr is not None, anchor, qa, T_rel, T_rel_l,
         pol.timeout, pol.joint_motion, pol.tool_translation, pol.tool_rotation, pol.decay == "linear", H, R, z,
         out.found, out.T_base_tool, out.cov_tool, out.prior_T, out.prior_cov, pq)
     if status == -2:
-        raise ValueError(f"priors_and_queries: n_before must be non-decreasing counts in 0..{n}")
+        raise ValueError(f"priors_and_queries: n_before must be non-decreasing counts in 0..{t.shape[0]} and rows "
+                         f"rows of out ({out.found.shape[0]})")
     if status < 0:
         return False
     if status == 1:
@@ -202,3 +213,12 @@ def _compiled(pipe: Any, t: Array, T: Array, cov: Array, Q: Array | None, tq: Ar
         pipe.counts["corrections_dropped"] += 1
     pipe.append_run(t, T, cov, Q)
     return True
+
+
+#: stand-ins of what the compiled call does not read (never written)
+_EYE4, _EYE6, _NONE, _NO_ROWS = np.eye(4), np.eye(6), np.zeros(0), np.zeros((0, 6))
+
+
+def _no_joints(n: int) -> Array:
+    """Joint positions of ``n`` priors without joints: (n, 0)."""
+    return np.zeros((n, 0))
