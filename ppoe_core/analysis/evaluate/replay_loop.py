@@ -36,13 +36,19 @@ class ReplayRun:
     nis: dict[str, list[tuple[float, int]]]
     outcomes: dict[str, dict[str, int]]
     errors: dict[str, list[str]]
+    #: the last measurement recorded, the tag ids it was counted with and its dimension (the pipelines record the
+    #: same measurement in turn, with the same tags)
+    _dim: tuple[Any, Any, int] = (None, None, 0)
 
     def record(self, name: str, outs: Sequence[Any], known_tags: Any) -> None:
         """Count measurement outcomes; NIS with its dimension; the first 20 errors."""
         for o in outs:
             self.outcomes[name][o.status] = self.outcomes[name].get(o.status, 0) + 1
             if o.status in ("accepted", "rejected") and math.isfinite(o.nis):
-                self.nis[name].append((o.nis, measurement_dim(o.measurement.payload, known_tags)))
+                m, last = o.measurement, self._dim
+                if not (last[0] is m and (last[1] is known_tags or last[1].keys() == known_tags.keys())):
+                    self._dim = last = (m, known_tags, measurement_dim(m.payload, known_tags))
+                self.nis[name].append((o.nis, last[2]))
             if o.status == "bad" and len(self.errors[name]) < 20:
                 self.errors[name].append(o.error)
 
