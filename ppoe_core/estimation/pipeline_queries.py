@@ -6,7 +6,7 @@ priors and answer those queries, one Python call each (``add_priors`` of the pri
 order (the reference, ``batched=False``) or, where nothing else can happen (no pending measurement, at most one
 carried correction, the default :class:`~ppoe_core.estimation.corrections.CorrectionPolicy`, validated priors with
 increasing stamps newer than the buffer and queries not older than the newest prior before them), answers the
-rest of the interval in one compiled call (:func:`ppoe_core.estimation.correction_kernels.fuse_held_kernel`): the
+rest of the interval in one compiled call (:func:`ppoe_core.estimation.correction_kernels.held_queries_kernel`): the
 same expiry checks at the same priors and queries, the same drops and counts, the same floats.
 """
 
@@ -21,7 +21,6 @@ from ppoe_core.estimation.corrections import CorrectionPolicy, MeasurementOutcom
 from ppoe_core.estimation.prior_buffer import Array
 
 __all__ = ["QueryEstimates", "priors_and_queries"]
-
 
 
 @dataclass
