@@ -105,22 +105,6 @@ def test_measurement_slots_are_the_sorted_measurements_taken_when_asked():
     assert [x.name for x in slots.resolved()] == [x.name for x in expected] == ["d", "b", "a", "c", "e"]
 
 
-def test_a_prior_run_goes_on_across_slots_without_a_measurement():
-    from ppoe_core.analysis.evaluate.replay import MeasurementSlots, _prior_run
-
-    tags = _Tags(stamps=[1.0, 2.0, 3.0, 4.0], items=[None, None, SimpleNamespace(stamp=3.0), None], reads=[])
-    slots = MeasurementSlots(tags, [])
-    # events: p0 p1 s0 p2 s1 p3 s2 p4 s3 gt0 p5
-    k_ev = np.array([0, 0, 1, 0, 1, 0, 1, 0, 1, 2, 0])
-    i_ev = np.array([0, 1, 0, 2, 1, 3, 2, 4, 3, 0, 5])
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], (k_ev == 0).astype(np.int8), [0]])))
-    run_end = dict(zip(edges[0::2].tolist(), edges[1::2].tolist()))
-    k_list, i_list = k_ev.tolist(), i_ev.tolist()
-    assert _prior_run(0, run_end, k_list, i_list, slots) == (0, 4, 6)  # slot 2 has a measurement: the run stops before
-    assert _prior_run(7, run_end, k_list, i_list, slots) == (4, 5, 8)  # the empty slot 3 is followed by ground truth
-    assert _prior_run(10, run_end, k_list, i_list, slots) == (5, 6, 11)  # the last event
-
-
 REPO_BAGS = __import__("pathlib").Path(__file__).resolve().parents[1] / "bags"
 ARM7_MODEL = REPO_BAGS.parent / "config" / "robots" / "arm7_model.yaml"
 

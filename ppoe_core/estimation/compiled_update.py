@@ -23,6 +23,7 @@ Linearisation = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]
 _NONE_3 = np.eye(3)
 _NONE_5 = np.zeros(5)
 _NONE_PTS = np.zeros((1, 3))
+_NONE_R, _NONE_H, _NONE_M = np.zeros(0), np.zeros((0, 6)), np.zeros((0, 0))
 
 
 def run_update(X0: Any, P0: Any, z: np.ndarray, model: Any, R: np.ndarray, spec: CompiledModel | None,
@@ -52,7 +53,7 @@ def run_update(X0: Any, P0: Any, z: np.ndarray, model: Any, R: np.ndarray, spec:
         kind, G, pts, K, D, pixel, extra, min_depth = k.KIND_EXTERNAL, X0, _NONE_PTS, _NONE_3, _NONE_5, False, \
             False, 0.0
         zv = np.zeros(m)
-    r, H, M = np.zeros(m), np.zeros((m, 6)), np.zeros((m, R.shape[0]))
+    r, H, M = _NONE_R, _NONE_H, _NONE_M  # (the first call reads no linearisation)
     while True:
         status = k.update_kernel(kind, X0, P0, zv, R, G, pts, K, D, pixel, extra, min_depth, max_iterations,
                                  step_tolerance, gate, transport, want_cost, buf, iout, r, H, M)

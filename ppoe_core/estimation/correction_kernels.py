@@ -16,7 +16,7 @@ from ppoe_core.lie.kernels import (
 
 __all__ = [
     "apply_corrections_kernel", "correction_ratio", "first_expiry", "from_update_kernel", "fuse_one_kernel",
-    "prior_passes", "run_breaks",
+    "held_queries_checks", "held_queries_kernel", "prior_passes", "run_breaks",
 ]
 
 
@@ -165,6 +165,111 @@ def fuse_one_kernel(T: np.ndarray, P: np.ndarray, T_rel: np.ndarray, dt_abs: flo
         Rw[i] = R[i] / w
     _apply_into(T, P, H, Rw, z, T_out, cov_out)
     return w
+
+
+@njit(cache=True)
+def held_queries_checks(t: np.ndarray, T: np.ndarray, tq: np.ndarray, nb: np.ndarray, rows: np.ndarray, n_out: int,
+                        has_newest: bool, newest: float) -> int:
+    """The conditions of :func:`held_queries_kernel`: 0 if they hold, -1 if the data are not in order (stamps
+    increasing, finite, newer than the buffer's ``newest``; every query not older than the newest prior before it),
+    -2 if ``nb`` is not non-decreasing in 0..N or a row not in 0..n_out - 1."""
+    n = t.shape[0]
+    for k in range(n):
+        if not math.isfinite(t[k]) or (k > 0 and not t[k] > t[k - 1]) or not _finite(T[k]):
+            return -1
+    if n > 0 and has_newest and not t[0] > newest:
+        return -1
+    prev = 0
+    for j in range(tq.shape[0]):
+        b = nb[j]
+        if b < prev or b > n or not 0 <= rows[j] < n_out:
+            return -2
+        prev = b
+        if not math.isfinite(tq[j]) or (b > 0 and not tq[j] >= t[b - 1]) or (b == 0 and has_newest
+                                                                              and not tq[j] >= newest):
+            return -1
+    return 0
+
+
+@njit(cache=True)
+def held_queries_kernel(t: np.ndarray, T: np.ndarray, P: np.ndarray, p_step: int, Q: np.ndarray, tq: np.ndarray,
+                        nb: np.ndarray, rows: np.ndarray, has_newest: bool, newest: float, T_l: np.ndarray,
+                        P_l: np.ndarray, q_l: np.ndarray, max_hold: float, has_corr: bool, anchor_stamp: float,
+                        q_anchor: np.ndarray, T_rel: np.ndarray, T_rel_l: np.ndarray, timeout: float,
+                        joint_motion: float, tool_translation: float, tool_rotation: float, linear: bool,
+                        H: np.ndarray, R: np.ndarray, z: np.ndarray, found: np.ndarray, T_out: np.ndarray,
+                        cov_out: np.ndarray, prior_T: np.ndarray, prior_cov: np.ndarray, prior_q: np.ndarray) -> int:
+    """A run of priors and the queries between them, in their order, with at most one carried correction: query
+    ``j`` comes after the first ``nb[j]`` priors and holds the newest prior before it (``lookup_hold``: found if
+    at most ``max_hold`` older; the buffer's newest ``(newest, T_l, P_l, q_l)`` before the first prior).  A prior
+    drops the correction as :func:`first_expiry`; a found query gets its prior with the correction applied as
+    :func:`fuse_one_kernel` (weight from ``|tq[j] - anchor_stamp|``) or, at weight 0 or with none, the prior itself;
+    a query at weight 0 not older than the anchor drops it too.  Outputs at row ``rows[j]``: ``found``, the fused
+    ``T_out``, ``cov_out`` and the prior ``prior_T``, ``prior_cov``, ``prior_q``.
+
+    Parameters
+    ----------
+    t, T, P, Q : ndarray, shapes (N,), (N, 4, 4), (N or 1, 6, 6), (N, n)
+        The priors (tool-frame covariance of prior ``k``: ``P[k * p_step]``).
+    tq, nb, rows : ndarray, shape (M,)
+        Query stamps [s], priors before each, output rows.
+    q_anchor : ndarray, shape (n,) or (0,)
+        The anchor's joints; empty: no joint ratio.
+    T_rel, T_rel_l : ndarray, shape (N, 4, 4), (4, 4)
+        ``T_anchor^-1 T`` of every prior and of the buffer's newest (numpy's products; any values when the tool
+        ratios are off).
+    H, R, z : ndarray
+        The correction (:class:`ppoe_core.estimation.corrections.CarriedCorrection`), if ``has_corr``.
+
+    Returns
+    -------
+    int
+        1 if the correction was dropped, else 0; -1 / -2 as :func:`held_queries_checks` (nothing done).
+    """
+    status = held_queries_checks(t, T, tq, nb, rows, found.shape[0], has_newest, newest)
+    if status < 0:
+        return status
+    n, m, nq = t.shape[0], tq.shape[0], q_anchor.shape[0]
+    Rw = np.empty(R.shape[0])
+    alive = has_corr
+    k = 0
+    for j in range(m + 1):
+        end = nb[j] if j < m else n
+        while alive and k < end:
+            if t[k] >= anchor_stamp and _ratio(abs(t[k] - anchor_stamp), Q[k, :nq], q_anchor, T_rel[k], timeout,
+                                               joint_motion, tool_translation, tool_rotation) >= 1.0:
+                alive = False
+            k += 1
+        if j == m:
+            break
+        b = nb[j]
+        if b > 0:
+            t_h, T_h, P_h, q_h = t[b - 1], T[b - 1], P[(b - 1) * p_step], Q[b - 1]
+        elif has_newest:
+            t_h, T_h, P_h, q_h = newest, T_l, P_l, q_l
+        else:
+            continue  # an empty buffer
+        if not tq[j] - t_h <= max_hold:
+            continue
+        r = rows[j]
+        found[r] = True
+        prior_T[r, :, :] = T_h
+        prior_cov[r, :, :] = P_h
+        prior_q[r, :] = q_h
+        if alive:
+            ratio = _ratio(abs(tq[j] - anchor_stamp), q_h[:nq], q_anchor, T_rel[b - 1] if b > 0 else T_rel_l,
+                           timeout, joint_motion, tool_translation, tool_rotation)
+            if ratio < 1.0:
+                w = 1.0 - ratio if linear else 1.0
+                for i in range(R.shape[0]):
+                    Rw[i] = R[i] / w
+                _apply_into(T_h, P_h, H, Rw, z, T_out[r], cov_out[r])
+                continue
+            if tq[j] >= anchor_stamp:
+                alive = False
+        T_out[r, :, :] = T_h
+        cov_out[r, :, :] = P_h
+    return 1 if has_corr and not alive else 0
 
 
 @njit(cache=True)

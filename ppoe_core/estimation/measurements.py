@@ -55,6 +55,7 @@ calls them once per iteration.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -163,14 +164,14 @@ class TagBearingModel(MeasurementModel):
         pts = np.asarray(points_tool, dtype=float)
         if pts.ndim != 2 or pts.shape[1] != 3 or pts.shape[0] == 0:
             raise MeasurementError(f"{name}: points_tool must have shape (n, 3), got {pts.shape}")
-        if not np.all(np.isfinite(pts)):
+        if not np.isfinite(pts).all():
             raise MeasurementError(f"{name}: points_tool contains NaN/inf")
         if mode not in ("pixel", "normalized"):
             raise MeasurementError(f"{name}: mode must be 'pixel' or 'normalized', not {mode!r}")
         K = np.asarray(K, dtype=float)
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise MeasurementError(f"{name}: K must be a finite 3x3 matrix with fx, fy > 0, got {K.tolist()}")
-        if not (np.isfinite(pixel_sigma) and pixel_sigma > 0):
+        if not (math.isfinite(pixel_sigma) and pixel_sigma > 0):
             raise CovarianceError(f"{name}: pixel_sigma must be > 0, got {pixel_sigma}")
         self.points_tool = pts
         self.K = K
@@ -199,8 +200,8 @@ class TagBearingModel(MeasurementModel):
         # cost more than the update at 30 images/s)
         size = 2 * n + (6 if self.has_camera_noise else 0)
         self.noise_cov = np.zeros((size, size))
-        diag = np.arange(2 * n)
-        self.noise_cov[diag, diag] = np.tile(var, n)  # [var_x, var_y] per point
+        diag = self.noise_cov.reshape(-1)[::size + 1]  # a view of the diagonal
+        diag[0:2 * n:2], diag[1:2 * n:2] = var  # [var_x, var_y] per point
         if self.has_camera_noise:
             self.noise_cov[2 * n:, 2 * n:] = check_noise_covariance(cov_camera, 6, f"{name}: cov_camera")
         self.noise_checked = True  # built from checked blocks

@@ -50,6 +50,7 @@ from ppoe_core.estimation.corrections import (
     ToolUpdate, correction_kernels, symmetric, apply_carried_corrections,
 )
 from ppoe_core.model.stamp_policy import StampResetPolicy
+from ppoe_core.estimation.pipeline_queries import QueryEstimates, priors_and_queries
 from ppoe_core.estimation.prior_buffer import Array, LookupStatus, PriorBuffer, PriorSample
 from ppoe_core.estimation.updater import (
     FUSION_SETTINGS, ContactMeasurement, ModelUpdater, TagMeasurement, make_updater,
@@ -59,7 +60,7 @@ __all__ = [
     "PriorSample", "PriorBuffer", "LookupStatus", "Measurement", "ToolUpdate", "MeasurementUpdater", "CorrectionPolicy",
     "CarriedCorrection", "FusedEstimate", "MeasurementOutcome", "FusionPipeline", "TagMeasurement",
     "ContactMeasurement", "ModelUpdater", "COUNT_KEYS", "apply_carried_corrections", "FUSION_SETTINGS", "make_pipeline",
-    "make_updater", "source_key",
+    "make_updater", "source_key", "QueryEstimates",
 ]
 
 
@@ -244,15 +245,32 @@ class FusionPipeline:
     def _add_run(self, t: Array, T: Array, cov: Array, Q: Array | None) -> None:
         """:meth:`add_priors` of priors with increasing stamps newer than the buffer, finite poses, checked
         covariances and no pending measurement: only the expiry check and the buffer's appends happen."""
-        self.counts["priors"] += len(t)
         for source, corr in list(self.corrections.items()):
             if self._first_expiry(corr, t, T, Q) >= 0:
                 del self.corrections[source]
                 self.counts["corrections_dropped"] += 1
+        self.append_run(t, T, cov, Q)
+
+    def append_run(self, t: Array, T: Array, cov: Array, Q: Array | None) -> None:
+        """The buffer's appends and the prior count of a run of :meth:`add_priors` whose expiry checks the caller has
+        made (increasing stamps newer than the buffer, finite poses, checked covariances, nothing pending)."""
+        if not len(t):
+            return
+        self.counts["priors"] += len(t)
         # what the appends leave in the buffer: the priors not older than the last one minus its duration
         ts = t.tolist()
         k = bisect.bisect_left(ts, ts[-1] - self.buffer.duration)
         self.buffer.append_arrays(ts[k:], T[k:], cov if cov.ndim == 2 else cov[k:], None if Q is None else Q[k:])
+
+    def priors_and_queries(self, stamps: Array, T_base_tool: Array, cov_tool: Array, joints: Array | None,
+                           query_stamps: Array, n_before: Array, out: QueryEstimates, rows: Array, *,
+                           validated: bool = False, flush_margin: float | None = None) -> list[MeasurementOutcome]:
+        """Priors and fused-estimate queries in their order (query ``j`` after the first ``n_before[j]`` priors, into
+        row ``rows[j]`` of ``out``): the calls :meth:`add_priors`, :meth:`flush` (``flush_margin``),
+        ``buffer.lookup_hold`` and :meth:`fuse` would make, mostly in one compiled call
+        (:func:`ppoe_core.estimation.pipeline_queries.priors_and_queries`, which documents the arguments)."""
+        return priors_and_queries(self, stamps, T_base_tool, cov_tool, joints, query_stamps, n_before, out, rows,
+                                  validated=validated, flush_margin=flush_margin)
 
     def _first_expiry(self, corr: CarriedCorrection, t: Array, T: Array, Q: Array | None) -> int:
         """Index of the first prior of a run at which ``corr`` expires (as :meth:`_active_corrections`), -1 if

@@ -49,7 +49,8 @@ class PriorSample:
 class _Run:
     """Priors appended at once (:meth:`PriorBuffer.append_arrays`), made into :class:`PriorSample` objects only when
     the buffer hands one out (an offline replay reads a few of them): the same stamps and array views as samples
-    made at once."""
+    made at once.  The buffer holds the run itself in the place of each of its priors and finds the prior by its
+    stamp (increasing within a run)."""
 
     __slots__ = ("stamps", "T", "cov", "joints")
 
@@ -106,8 +107,8 @@ class PriorBuffer:
         self.max_gap = float(max_gap)
         self.max_hold = float(max_hold)
         self._stamps: list[float] = []
-        # PriorSample, or (run, index) of a prior of a run not yet made into one (_get makes and keeps it)
-        self._samples: list[PriorSample | tuple[_Run, int]] = []
+        # PriorSample, or the run of a prior not yet made into one (_get makes and keeps it)
+        self._samples: list[PriorSample | _Run] = []
 
     def __len__(self) -> int:
         return len(self._samples)
@@ -132,9 +133,8 @@ class PriorBuffer:
 
     def _get(self, i: int) -> PriorSample:
         s = self._samples[i]
-        if type(s) is tuple:
-            s = s[0].sample(s[1])
-            self._samples[i] = s
+        if type(s) is _Run:
+            s = self._samples[i] = s.sample(bisect.bisect_left(s.stamps, self._stamps[i]))
         return s  # type: ignore[return-value]
 
     def clear(self) -> None:
@@ -181,7 +181,7 @@ class PriorBuffer:
         if not stamps:
             return
         self._stamps.extend(stamps)
-        self._samples.extend(zip(repeat(_Run(stamps, T, cov, joints)), range(len(stamps))))
+        self._samples.extend(repeat(_Run(stamps, T, cov, joints), len(stamps)))
         cutoff = self._stamps[-1] - self.duration
         if self._stamps[0] < cutoff:
             k = bisect.bisect_left(self._stamps, cutoff)

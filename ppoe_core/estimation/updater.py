@@ -76,6 +76,17 @@ def _check_unique_rows(ids: Array, corners: Array, where: str) -> None:
         raise MeasurementError(f"{where}: duplicated observation rows ({dup}); the whole image is refused")
 
 
+_LABELS: dict[tuple[int, int], str] = {}
+
+
+def _label(tid: int, corner: int) -> str:
+    """``"tag <id> corner <c>"`` (made once per pair)."""
+    s = _LABELS.get((tid, corner))
+    if s is None:
+        s = _LABELS[(tid, corner)] = f"tag {tid} corner {corner}"
+    return s
+
+
 def _focal_from_points(uv: Array, xy: Array, where: str) -> tuple[float, float]:
     """Least-squares fit ``u = fx x + cx``, ``v = fy y + cy`` (distortion neglected)."""
     out = []
@@ -158,6 +169,7 @@ class ModelUpdater:
         self.contact = getattr(cfg, "contact", None)
         #: tag points ignored because their id is not in the model YAML
         self.unknown_tag_points = 0
+        self._rigid_tags: dict[int, tuple[Any, Any, Array]] = {}  # tag id -> (item, model, points in the tool frame)
 
     def _joints(self, prior: PriorSample | None) -> dict[str, float]:
         if prior is None or prior.joints is None:
@@ -186,7 +198,7 @@ class ModelUpdater:
         xy = np.asarray(p.xy, dtype=np.float64).reshape(-1, 2)
         if not (ids.shape[0] == corners.shape[0] == xy.shape[0]):
             raise MeasurementError(f"{where}: ids, corners and xy differ in length")
-        if not np.all(np.isfinite(xy)):
+        if not np.isfinite(xy).all():
             raise MeasurementError(f"{where}: NaN/inf in the normalised coordinates")
         _check_unique_rows(ids, corners, where)
         fx, fy = p.fx, p.fy
@@ -197,7 +209,7 @@ class ModelUpdater:
         pts, keep, labels = self._tag_points_tool(ids, corners, joints, where)
         if self.camera_covariance:
             T_base_cam, cov_cam = self.model.fk(joints, self.base_frame, p.camera_frame)
-            if float(np.max(np.abs(cov_cam))) == 0.0:
+            if not cov_cam.any():  # exactly zero (NaN counts as non-zero, as max |cov| == 0 would)
                 cov_cam = None
         else:
             T_base_cam, cov_cam = self.model.fk_mean(joints, self.base_frame, p.camera_frame), None
@@ -220,8 +232,6 @@ class ModelUpdater:
         self, ids: Array, corners: Array, joints: Any, where: str
     ) -> tuple[list[Array], list[int], list[str]]:
         """Tag points (centre 0, corners 1..4) in the tool frame for the observed rows the model knows."""
-        from ppoe_core.estimation import measurements as mm
-
         pts, keep, labels = [], [], []
         T_tool_link: dict[str, Array] = {}
         tag_pts: dict[int, Array] = {}  # centre and corners of each tag in the tool frame
@@ -234,18 +244,32 @@ class ModelUpdater:
                 raise MeasurementError(f"{where}: tag {tid} has corner index {c}, expected 0..4")
             if (c == 0 and not self.use_centre) or (c > 0 and not self.use_corners):
                 continue
-            if tid not in tag_pts:
-                if item.link not in T_tool_link:
-                    T_tool_link[item.link] = self.model.fk_mean(joints, self.tool_frame, item.link)
-                tag_pts[tid] = mm.tag_points(item.size, T_tool_link[item.link] @ item.T_link_tag)
-            pts.append(tag_pts[tid][c])
+            p = tag_pts.get(tid)
+            if p is None:
+                p = tag_pts[tid] = self._tag_points(tid, item, joints, T_tool_link)
+            pts.append(p[c])
             keep.append(i)
-            labels.append(f"tag {tid} corner {c}")
+            labels.append(_label(tid, c))
         if not pts:
             raise MeasurementError(
                 f"{where}: no point of a tag configured in the model YAML (ids {sorted(set(ids.tolist()))})"
             )
         return pts, keep, labels
+
+    def _tag_points(self, tid: int, item: Any, joints: Any, T_tool_link: dict[str, Array]) -> Array:
+        """Centre and corners (5, 3) of tag ``item`` in the tool frame at ``joints``; kept for a tag whose link is
+        fixed to the tool (no joint between them and no effects: the same at every configuration)."""
+        from ppoe_core.estimation import measurements as mm
+
+        kept = self._rigid_tags.get(tid)
+        if kept is not None and kept[0] is item and kept[1] is self.model:
+            return kept[2]
+        if item.link not in T_tool_link:
+            T_tool_link[item.link] = self.model.fk_mean(joints, self.tool_frame, item.link)
+        p = mm.tag_points(item.size, T_tool_link[item.link] @ item.T_link_tag)
+        if not self.model.effects and not self.model.chain_joints(self.tool_frame, item.link):
+            self._rigid_tags[tid] = (item, self.model, p)
+        return p
 
     def _build_contact(self, p: ContactMeasurement, joints: Any, where: str) -> tuple[Any, Array]:
         """Contact plane model (plane from the chain, tool point on the contact link) and ``z = 0``."""

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import gc
-import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,17 +13,16 @@ from typing import Any
 import numpy as np
 
 from ppoe_core import lie
-from ppoe_core.analysis.evaluate.metrics import (METHODS)
 from ppoe_core.analysis.evaluate.options import EvaluateOptions, Evaluation
 from ppoe_core.analysis.evaluate.inputs import JOINT_MAX_AGE_S, joint_matrix, recorded_estimate, required_joints
 from ppoe_core.analysis.evaluate.scoring import score_points, score_poses
-from ppoe_core.analysis.evaluate.sources import measurement_dim, source_measurements
+from ppoe_core.analysis.evaluate.replay_loop import MeasurementSlots, ReplayRun, replay_events
+from ppoe_core.analysis.evaluate.sources import source_measurements
 from ppoe_core.analysis.evaluate.tag_stream import TagStream
 from ppoe_core.errors import BagError, JointValueError, ModelConfigError, PpoeError, UnknownJointError
 from ppoe_core.io.messages import (
     TOPIC_CAMERA_INFO, TOPIC_COMPRESSED_IMAGE, TOPIC_IMAGE, TOPIC_ROBOT_DESCRIPTION, TOPIC_TAG_OBSERVATIONS,
 )
-from ppoe_core.io.progress import ProgressBar
 from ppoe_core.estimation.pipeline import FUSION_SETTINGS
 from ppoe_core.model.context import batch_context
 
@@ -238,7 +236,7 @@ def evaluate_bag(bag: str | Path, model_yaml: str | Path, options: EvaluateOptio
         # the images' tags are taken as the replay reaches their stamps, while the worker processes detect the
         # later ones (threads would wait for the GIL beside the pure-Python replay, and make it wait)
         slots = MeasurementSlots(tags, contact_meas + src_meas)
-        run = _replay(pri, slots, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
+        run = replay_events(pri, slots, gt_stamps, pipes, updaters, len(model.joint_names), opt.progress)
         meas = slots.resolved()
     finally:
         early.close()
@@ -421,150 +419,6 @@ def _pipelines(model: Any, base: str, tool: str, fs: dict[str, Any],
         except (TypeError, ValueError) as exc:
             raise ModelConfigError(f"fusion settings: {exc}") from None
     return pipes, updaters
-
-
-@dataclass
-class ReplayRun:
-    """What the replay gives per method (``fk``, ``ppoe``, ``naive``) at every ground-truth stamp (NaN where no
-    prior): tool pose and covariance (tool frame), the joints of the prior, and the measurement outcomes."""
-
-    est_T: dict[str, np.ndarray]
-    est_cov: dict[str, np.ndarray]
-    gt_joints: np.ndarray
-    nis: dict[str, list[tuple[float, int]]]
-    outcomes: dict[str, dict[str, int]]
-    errors: dict[str, list[str]]
-
-    def record(self, name: str, outs: Sequence[Any], known_tags: Any) -> None:
-        """Count measurement outcomes; NIS with its dimension; the first 20 errors."""
-        for o in outs:
-            self.outcomes[name][o.status] = self.outcomes[name].get(o.status, 0) + 1
-            if o.status in ("accepted", "rejected") and math.isfinite(o.nis):
-                self.nis[name].append((o.nis, measurement_dim(o.measurement.payload, known_tags)))
-            if o.status == "bad" and len(self.errors[name]) < 20:
-                self.errors[name].append(o.error)
-
-
-class MeasurementSlots:
-    """The measurements of a replay in time order (stable: equal stamps in the order given), each taken when asked:
-    the tag slots of a :class:`TagStream` (image ``k``'s measurement, or None for an image without tags, waits for
-    its detection) first, then ``others`` (contact planes, sources: made already).  ``stamps``: per slot, in order.
-    """
-
-    def __init__(self, tags: TagStream, others: list[Any]) -> None:
-        stamps = np.array(list(tags.stamps) + [m.stamp for m in others], dtype=float)
-        self._order = np.argsort(stamps, kind="stable")
-        self.stamps = stamps[self._order]
-        self._tags, self._others, self._n_tags = tags, others, len(tags.stamps)
-
-    def __len__(self) -> int:
-        return int(self.stamps.shape[0])
-
-    def get(self, j: int) -> Any:
-        """The measurement of slot ``j`` (time order), None for an image without tags."""
-        s = int(self._order[j])
-        return self._tags.get(s) if s < self._n_tags else self._others[s - self._n_tags]
-
-    def resolved(self) -> list[Any]:
-        """Every measurement (None slots left out), in time order: ``sorted(tags + others, key=stamp)``."""
-        return [m for m in map(self.get, range(len(self))) if m is not None]
-
-
-def _replay(pri: _Priors, slots: MeasurementSlots, gt_stamps: np.ndarray, pipes: dict[str, Any],
-            updaters: dict[str, Any], n_joints: int, progress: bool) -> ReplayRun:
-    """Priors, measurements and ground-truth stamps in time order through the pipelines (as the nodes see them).
-
-    A slot without a measurement (an image without tags) is skipped: the priors before and after it go through
-    ``add_priors`` as one run, as if the slot were not there."""
-    # events: (stamp, kind rank, index); priors first, then measurements, then ground truth
-    ev_t = np.concatenate([pri.stamps, slots.stamps, gt_stamps])
-    ev_k = np.concatenate([np.zeros(len(pri.stamps), int), np.ones(len(slots), int), np.full(len(gt_stamps), 2)])
-    ev_i = np.concatenate([np.arange(len(pri.stamps)), np.arange(len(slots)), np.arange(len(gt_stamps))])
-    ev = np.lexsort((ev_i, ev_k, ev_t))
-    n_gt = len(gt_stamps)
-    run = ReplayRun({m: np.full((n_gt, 4, 4), np.nan) for m in METHODS},
-                    {m: np.full((n_gt, 6, 6), np.nan) for m in METHODS}, np.full((n_gt, n_joints), np.nan),
-                    {m: [] for m in pipes}, {m: {} for m in pipes}, {m: [] for m in pipes})
-    bar = ProgressBar(len(ev), progress)
-    k_ev, i_ev = ev_k[ev], ev_i[ev]
-    # runs of consecutive priors (no measurement or ground truth between them) go through add_priors at once
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], (k_ev == 0).astype(np.int8), [0]])))
-    run_end = dict(zip(edges[0::2].tolist(), edges[1::2].tolist()))
-    k_list, i_list = k_ev.tolist(), i_ev.tolist()  # Python ints: the loop indexes them one by one
-    e, tick = 0, 0
-    while e < len(ev):
-        k, i = k_list[e], i_list[e]
-        if k == 0:
-            a, b, e = _prior_run(e, run_end, k_list, i_list, slots)
-            _add_prior_run(run, pri, a, b, pipes, updaters)
-        elif k == 1:
-            m = slots.get(i)
-            for name, pipe in pipes.items():
-                if m is None:
-                    break
-                o = pipe.add_measurement(m)
-                if o.status != "pending":
-                    run.record(name, [o], updaters[name].tags)
-            e += 1
-        else:
-            _at_ground_truth(run, pri, float(gt_stamps[i]), i, pipes, updaters)
-            e += 1
-        if e >= tick:
-            bar.update(e)
-            tick = e + 256
-    for name, pipe in pipes.items():
-        run.record(name, pipe.flush(), updaters[name].tags)
-    bar.close()
-    return run
-
-
-def _prior_run(e: int, run_end: dict[int, int], k_ev: Sequence[int], i_ev: Sequence[int],
-               slots: MeasurementSlots) -> tuple[int, int, int]:
-    """The run of prior events starting at event ``e``, joined across measurement slots without a measurement:
-    ``(a, b, f)``, its priors ``a .. b - 1`` and the event ``f`` after them.  (The prior events' indices are 0, 1, ...
-    in event order, the events being in stamp order and the priors sorted by stamp: a span of events holds a range.)"""
-    f = run_end[e]
-    n = len(k_ev)
-    while True:
-        g = f
-        while g < n and k_ev[g] == 1 and slots.get(i_ev[g]) is None:
-            g += 1
-        if g == f or g >= n or k_ev[g] != 0:
-            break
-        f = run_end[g]
-    return i_ev[e], i_ev[f - 1] + 1, f
-
-
-def _add_prior_run(run: ReplayRun, pri: _Priors, a: int, b: int, pipes: dict[str, Any],
-                   updaters: dict[str, Any]) -> None:
-    """Priors ``a .. b - 1`` (a run of prior events) through every pipeline: ``add_priors``, the calls
-    ``add_prior(..., validated=True, estimate=False)`` one by one would make (estimates are read at ground-truth
-    stamps only)."""
-    sel = slice(a, b)
-    for name, pipe in pipes.items():
-        cov = pri.cov_all[sel] if name == "ppoe" else pri.cov_naive
-        outs = pipe.add_priors(pri.stamps[sel], pri.T_all[sel], cov, pri.Q[sel], validated=True)
-        if outs:  # (almost always empty: a pending measurement made ready)
-            run.record(name, outs, updaters[name].tags)
-
-
-def _at_ground_truth(run: ReplayRun, pri: _Priors, t: float, i: int, pipes: dict[str, Any],
-                     updaters: dict[str, Any]) -> None:
-    """Estimates of every method at ground-truth sample ``i`` (stamp ``t``)."""
-    for name, pipe in pipes.items():
-        if pipe.pending:  # stamps near 1.7e9 s resolve ~0.24 us in float64: 1 us margin
-            run.record(name, pipe.flush(older_than=t + 1e-6), updaters[name].tags)
-        status, prior = pipe.buffer.lookup_hold(t)
-        if prior is None:
-            continue
-        fused = pipe.fuse(prior)
-        run.est_T[name][i], run.est_cov[name][i] = fused.T_base_tool, fused.cov_tool
-        if name == "ppoe":
-            run.est_T["fk"][i], run.est_cov["fk"][i] = prior.T_base_tool, prior.cov_tool
-            run.gt_joints[i] = prior.joints
-    if not pipes:  # no fusion at all: FK from the nearest joint state
-        j = int(np.clip(np.searchsorted(pri.stamps, t, side="right") - 1, 0, len(pri.stamps) - 1))
-        run.est_T["fk"][i], run.est_cov["fk"][i], run.gt_joints[i] = pri.T_all[j], pri.cov_all[j], pri.Q[j]
 
 
 def _measurement_summary(summary: dict[str, Any], run: ReplayRun, pipes: dict[str, Any], updaters: dict[str, Any],
