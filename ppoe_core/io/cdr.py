@@ -35,7 +35,8 @@ from ppoe_core.errors import MeasurementError
 __all__ = ["CDR_LE_HEADER", "SCHEMAS", "CdrError", "PARSE_ERRORS", "align", "read", "write", "check_end",
            "parse_fields", "parse_joint_state", "JointStateCdr", "joint_state_names_block", "PoseCovarianceWriter",
            "tf_message", "as_bytes", "JointStateBlock", "joint_state_block", "joint_state_rows_block",
-           "JointStateLayout", "joint_state_layout", "JointStateReader", "HeaderBlock", "header_rows_block"]
+           "JointStateLayout", "joint_state_layout", "JointStateReader", "HeaderBlock", "header_rows_block",
+           "restamped_stamps"]
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
@@ -467,6 +468,20 @@ def joint_state_rows_block(arr: np.ndarray) -> JointStateBlock | None:
     values = [np.ascontiguousarray(arr[:, at:at + 8 * n]).view("<f8") if n else np.zeros((n_msg, 0))
               for _, at, n in lay.spans]
     return JointStateBlock(sec + 1e-9 * nsec, lay.frame, lay.names, *values)
+
+
+def restamped_stamps(arr: np.ndarray) -> np.ndarray | None:
+    """The stamps [s] of messages that are one message restamped: the rows of ``arr`` (N, size) uint8, messages that
+    start with a ``std_msgs/Header``, equal to the first row but for the header's stamp (bytes 4-12: ``int32 sec,
+    uint32 nanosec``); the same numbers as :func:`ppoe_core.io.messages.stamp_seconds` of each message.  None when
+    another byte differs (or there are no rows)."""
+    if not arr.shape[0] or arr.shape[1] < 12:
+        return None
+    if (arr[:, :4] != arr[0, :4]).any() or (arr[:, 12:] != arr[0, 12:]).any():
+        return None
+    sec = np.ascontiguousarray(arr[:, 4:8]).view("<i4")[:, 0].astype(np.float64)
+    nsec = np.ascontiguousarray(arr[:, 8:12]).view("<u4")[:, 0].astype(np.float64)
+    return sec + 1e-9 * nsec
 
 
 class HeaderBlock(NamedTuple):
