@@ -8,7 +8,7 @@ from typing import Any, NamedTuple
 
 from ppoe_core.errors import BagError
 from ppoe_core.io.cdr import (
-    PARSE_ERRORS, JointStateBlock, as_bytes, header_rows_block, joint_state_block, joint_state_rows_block,
+    PARSE_ERRORS, JointStateBlock, as_bytes, header_rows_block, joint_state_block, joint_state_block_at,
 )
 from ppoe_core.io.mcap_index import McapIndex, index_messages
 from ppoe_core.io.messages import T_POSE_COV, TOPIC_ROBOT_DESCRIPTION, deserialize, typestore
@@ -279,11 +279,11 @@ def _blocks(data: BagData, status: ReadStatus, index: McapIndex | None, conns: l
 def _held_from_index(data: BagData, acc: dict[str, list[Any]], status: ReadStatus, index: McapIndex,
                      conns: list[Any], kinds: dict[str, RowKind], load_images: bool) -> None:
     """One held topic's messages (``conns``) from the index: at once when they share one layout
-    (:func:`ppoe_core.io.cdr.joint_state_rows_block`), else one by one as any other topic."""
+    (:func:`ppoe_core.io.cdr.joint_state_block_at`), else one by one as any other topic."""
     topic = conns[0].topic
-    rows = index.rows(conns)
+    found = index.spans(conns)
     try:
-        block = None if rows is None else joint_state_rows_block(rows)
+        block = None if found is None else joint_state_block_at(*found)
     except PARSE_ERRORS:
         block = None
     if block is None:
