@@ -35,7 +35,8 @@ from ppoe_core.errors import MeasurementError
 __all__ = ["CDR_LE_HEADER", "SCHEMAS", "CdrError", "PARSE_ERRORS", "align", "read", "write", "check_end",
            "parse_fields", "parse_joint_state", "JointStateCdr", "joint_state_names_block", "PoseCovarianceWriter",
            "tf_message", "as_bytes", "JointStateBlock", "joint_state_block", "joint_state_rows_block",
-           "JointStateLayout", "joint_state_layout", "JointStateReader", "HeaderBlock", "header_rows_block"]
+           "joint_state_block_at", "JointStateLayout", "joint_state_layout", "JointStateReader", "HeaderBlock",
+           "header_rows_block", "restamped_stamps"]
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
@@ -435,38 +436,66 @@ def joint_state_block(raws: Sequence[bytes]) -> JointStateBlock | None:
 
 def joint_state_rows_block(arr: np.ndarray) -> JointStateBlock | None:
     """``JointState`` messages of one size, the rows of ``arr`` (N, size) uint8, at once when all are laid out as
-    the first: the first read in full (:func:`parse_fields`), then the others compared with it as
-    :func:`parse_fields` compares a message with the previous layout (same size, encapsulation, frame_id, names and
-    value counts, trailing bytes) in one numpy operation, and their stamps and values read from the array (the same
-    numbers, bit for bit, as message by message); None when one differs (read them one by one then).
+    the first: :func:`joint_state_block_at` of the rows.
 
     Raises
     ------
     CdrError, struct.error, UnicodeDecodeError, ValueError, IndexError
         The first message does not parse (:data:`PARSE_ERRORS`).
     """
-    if not arr.shape[0]:
+    n_msg, size = arr.shape
+    return joint_state_block_at(np.ascontiguousarray(arr).reshape(-1), np.arange(n_msg, dtype=np.int64) * size, size)
+
+
+def joint_state_block_at(buf: np.ndarray, offsets: np.ndarray, size: int) -> JointStateBlock | None:
+    """``JointState`` messages ``buf[offsets[i]:offsets[i] + size]`` (uint8) at once when all are laid out as the
+    first: the first read in full (:func:`parse_fields`), then the others compared with it as :func:`parse_fields`
+    compares a message with the previous layout (same size, encapsulation, frame_id, names and value counts,
+    trailing bytes) and their stamps and values copied out (:func:`ppoe_core.io.mcap_kernel.gather_layout`, one
+    compiled pass: the same numbers, bit for bit, as message by message); None when one differs (read them one by
+    one then).
+
+    Raises
+    ------
+    CdrError, struct.error, UnicodeDecodeError, ValueError, IndexError
+        The first message does not parse (:data:`PARSE_ERRORS`).
+    """
+    from ppoe_core.io.mcap_kernel import gather_layout
+
+    n_msg = offsets.shape[0]
+    if not n_msg:
         return None
-    _joint_state_fields(arr[0].tobytes())  # the layout of the first message (or raises)
+    first = buf[offsets[0]:offsets[0] + size].tobytes()
+    _joint_state_fields(first)  # the layout of the first message (or raises)
     lay = _last_layout[0]
-    if lay is None or lay.size != arr.shape[1]:
+    if lay is None or lay.size != size or len(first) != size:
         return None
-    # JointStateLayout.matches for every message at once: the compared bytes (encapsulation and segments) of each
-    # row, padded to whole uint64 with byte 0 again, compared 8 at a time with the first row's
+    # JointStateLayout.matches for every message: the encapsulation and the segments compared with the first's
     cols = np.concatenate([np.arange(2)] + [np.arange(at, at + len(seg)) for at, seg in lay.segments])
-    words = np.ascontiguousarray(np.take(arr, np.concatenate([cols, np.zeros(-cols.shape[0] % 8, dtype=cols.dtype)]),
-                                         axis=1)).view("<u8")
-    ok = ~(words != words[0]).any(axis=1)
-    if lay.size - lay.end > 8:  # check_end: more than 8 trailing bytes must be zeros
-        ok &= ~arr[:, lay.end:].any(axis=1)
-    if not ok.all():
+    zero_from = lay.end if lay.size - lay.end > 8 else size  # check_end: more than 8 trailing bytes must be zeros
+    pieces = [(4, 8)] + [(at, 8 * n) for _, at, n in lay.spans]  # the stamp, positions, velocities, efforts
+    outs = [np.empty((n_msg, width), dtype=np.uint8) for _, width in pieces]
+    if not gather_layout(buf, offsets.astype(np.int64), np.frombuffer(first, dtype=np.uint8), cols.astype(np.int64),
+                         zero_from, np.array([at for at, _ in pieces], dtype=np.int64), *outs):
         return None
-    n_msg = arr.shape[0]
+    sec = outs[0].view("<i4")[:, 0].astype(np.float64)
+    nsec = outs[0].view("<u4")[:, 1].astype(np.float64)
+    values = [out.view("<f8") if n else np.zeros((n_msg, 0)) for out, (_, _, n) in zip(outs[1:], lay.spans)]
+    return JointStateBlock(sec + 1e-9 * nsec, lay.frame, lay.names, *values)
+
+
+def restamped_stamps(arr: np.ndarray) -> np.ndarray | None:
+    """The stamps [s] of messages that are one message restamped: the rows of ``arr`` (N, size) uint8, messages that
+    start with a ``std_msgs/Header``, equal to the first row but for the header's stamp (bytes 4-12: ``int32 sec,
+    uint32 nanosec``); the same numbers as :func:`ppoe_core.io.messages.stamp_seconds` of each message.  None when
+    another byte differs (or there are no rows)."""
+    if not arr.shape[0] or arr.shape[1] < 12:
+        return None
+    if (arr[:, :4] != arr[0, :4]).any() or (arr[:, 12:] != arr[0, 12:]).any():
+        return None
     sec = np.ascontiguousarray(arr[:, 4:8]).view("<i4")[:, 0].astype(np.float64)
     nsec = np.ascontiguousarray(arr[:, 8:12]).view("<u4")[:, 0].astype(np.float64)
-    values = [np.ascontiguousarray(arr[:, at:at + 8 * n]).view("<f8") if n else np.zeros((n_msg, 0))
-              for _, at, n in lay.spans]
-    return JointStateBlock(sec + 1e-9 * nsec, lay.frame, lay.names, *values)
+    return sec + 1e-9 * nsec
 
 
 class HeaderBlock(NamedTuple):

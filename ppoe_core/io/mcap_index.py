@@ -191,13 +191,20 @@ class McapIndex:
         or None when there are none or they differ in length."""
         from ppoe_core.io.mcap_kernel import gather_rows
 
+        found = self.spans(connections)
+        return None if found is None else gather_rows(*found)
+
+    def spans(self, connections: Sequence[Any]) -> tuple[np.ndarray, np.ndarray, int] | None:
+        """Where the data of the messages of ``connections`` is, in order: ``(buf, offsets, size)``, message ``i``
+        being ``buf[offsets[i]:offsets[i] + size]`` (``buf`` uint8, read-only: the file or its decompressed chunks);
+        None when there are none or they differ in length."""
         idx = self._select(connections)[0]
         if not idx.shape[0]:
             return None
         lengths = self._len[idx]
         if (lengths != lengths[0]).any():
             return None
-        return gather_rows(self._buf, self._off[idx], int(lengths[0]))
+        return self._buf, self._off[idx], int(lengths[0])
 
     def close(self) -> None:
         """Nothing to release: the file mapping is closed when the last view of it goes."""

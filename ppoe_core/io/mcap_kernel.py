@@ -1,5 +1,6 @@
 """Compiled (numba) walks over MCAP records for :mod:`ppoe_core.io.mcap_index`: the Message records of chunks
-(:func:`scan_messages`) and a block of equally long messages copied into one array (:func:`gather_rows`).
+(:func:`scan_messages`), a block of equally long messages copied into one array (:func:`gather_rows`), or checked
+against a first message and only some of their bytes copied (:func:`gather_layout`).
 
 MCAP record: ``opcode u8, length u64, body``; a Message body is ``channel_id u16, sequence u32, log_time u64,
 publish_time u64, data`` (little endian).  Declared with :func:`ppoe_core.jit.njit`: numba is imported on the first
@@ -12,7 +13,7 @@ import numpy as np
 
 from ppoe_core.jit import njit
 
-__all__ = ["scan_messages", "gather_rows", "MESSAGE_OP", "MESSAGE_HEADER"]
+__all__ = ["scan_messages", "gather_rows", "gather_layout", "MESSAGE_OP", "MESSAGE_HEADER"]
 
 #: opcode of a Message record
 MESSAGE_OP = 0x05
@@ -101,3 +102,44 @@ def gather_rows(buf: np.ndarray, offsets: np.ndarray, size: int) -> np.ndarray:
     for i in range(offsets.shape[0]):
         out[i, :] = buf[offsets[i]:offsets[i] + size]
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _copy_piece(buf: np.ndarray, src: int, out: np.ndarray, i: int) -> None:
+    for b in range(out.shape[1]):
+        out[i, b] = buf[src + b]
+
+
+@njit(cache=True, nogil=True)
+def gather_layout(buf: np.ndarray, offsets: np.ndarray, first: np.ndarray, cols: np.ndarray, zero_from: int,
+                  starts: np.ndarray, out0: np.ndarray, out1: np.ndarray, out2: np.ndarray, out3: np.ndarray) -> bool:
+    """Messages ``buf[offsets[i]:offsets[i] + S]`` (S = ``first.shape[0]``) laid out as ``first``: False as soon as one
+    differs from ``first`` at a byte of ``cols`` or has a byte other than 0 at ``zero_from`` or after; else each
+    message's bytes ``starts[k]`` on copied into row ``i`` of ``out<k>`` (N, width_k) uint8, and True.
+
+    Parameters
+    ----------
+    buf : ndarray, uint8, shape (B,)
+    offsets : ndarray, int64, shape (N,)
+    first : ndarray, uint8, shape (S,)
+    cols : ndarray, int64
+        The byte positions compared with ``first``.
+    zero_from : int
+        The first of the bytes that must be 0 (S: none).
+    starts : ndarray, int64, shape (4,)
+    out0, out1, out2, out3 : ndarray, uint8, shape (N, width_k)
+    """
+    size = first.shape[0]
+    for i in range(offsets.shape[0]):
+        o = offsets[i]
+        for c in cols:
+            if buf[o + c] != first[c]:
+                return False
+        for b in range(zero_from, size):
+            if buf[o + b] != 0:
+                return False
+        _copy_piece(buf, o + starts[0], out0, i)
+        _copy_piece(buf, o + starts[1], out1, i)
+        _copy_piece(buf, o + starts[2], out2, i)
+        _copy_piece(buf, o + starts[3], out3, i)
+    return True

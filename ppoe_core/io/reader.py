@@ -8,13 +8,14 @@ from typing import Any, NamedTuple
 
 from ppoe_core.errors import BagError
 from ppoe_core.io.cdr import (
-    PARSE_ERRORS, JointStateBlock, as_bytes, header_rows_block, joint_state_block, joint_state_rows_block,
+    PARSE_ERRORS, JointStateBlock, as_bytes, header_rows_block, joint_state_block, joint_state_block_at,
 )
 from ppoe_core.io.mcap_index import McapIndex, index_messages
 from ppoe_core.io.messages import T_POSE_COV, TOPIC_ROBOT_DESCRIPTION, deserialize, typestore
 from ppoe_core.io.recovery import RecoveredMcap, ReadStatus, account, lost_messages, recording_in_progress
 from ppoe_core.io.rows import (
-    JOINT_STATE_KIND, RowKind, block_topic, expected_type, finish, finish_block, finish_joint_state_block, row_kind,
+    JOINT_STATE_KIND, RowKind, block_topic, expected_type, finish, finish_block, finish_joint_state_block,
+    finish_restamped, restamped_topic, row_kind,
 )
 from ppoe_core.io.series import BagData, RawMessage
 
@@ -226,13 +227,14 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None, load
     source: Any = reader if index is None else index
     parse_now = parse if index is None else [c for c in parse if c.topic not in held]  # held: from the index
     if phases is not None:
-        early = _blocks(data, status, index, [c for c in parse_now if c.topic in phases[0]])
+        early = _blocks(data, status, index, [c for c in parse_now if c.topic in phases[0]], load_images)
         _read_messages(data, acc, status, source, early, held, kinds, load_images)
         finish(data, acc)
         acc = {}
         phases[1](data)
         parse_now = [c for c in parse_now if c.topic not in phases[0]]
-    _read_messages(data, acc, status, source, _blocks(data, status, index, parse_now), held, kinds, load_images)
+    _read_messages(data, acc, status, source, _blocks(data, status, index, parse_now, load_images), held, kinds,
+                   load_images)
     for topic, msgs in held.items():
         if index is not None:
             _held_from_index(data, acc, status, index, [c for c in parse if c.topic == topic], kinds, load_images)
@@ -247,17 +249,23 @@ def _read_with(reader: Any, path: str | Path, topics: Iterable[str] | None, load
     return data, parse, status
 
 
-def _blocks(data: BagData, status: ReadStatus, index: McapIndex | None, conns: list[Any]) -> list[Any]:
-    """Read the :func:`~ppoe_core.io.rows.block_topic` topics of ``conns`` at once from the index where their
-    messages allow it (:func:`ppoe_core.io.cdr.header_rows_block`, :func:`~ppoe_core.io.rows.finish_block`: the
-    same series as one by one, and no message of theirs would raise); returns the connections left to read one by
-    one."""
+def _blocks(data: BagData, status: ReadStatus, index: McapIndex | None, conns: list[Any],
+            load_images: bool) -> list[Any]:
+    """Read the :func:`~ppoe_core.io.rows.block_topic` and :func:`~ppoe_core.io.rows.restamped_topic` topics of
+    ``conns`` at once from the index where their messages allow it (:func:`ppoe_core.io.cdr.header_rows_block`,
+    :func:`~ppoe_core.io.rows.finish_block`, :func:`~ppoe_core.io.rows.finish_restamped`: the same series as one by
+    one, and no message of theirs would raise or be rejected); returns the connections left to read one by one."""
     if index is None:
         return conns
     done = set()
-    for topic in dict.fromkeys(c.topic for c in conns if block_topic(c.topic)):
+    for topic in dict.fromkeys(c.topic for c in conns if block_topic(c.topic) or restamped_topic(c.topic)):
         mine = [c for c in conns if c.topic == topic]
         rows = index.rows(mine)
+        if restamped_topic(topic):
+            if rows is not None and finish_restamped(data, topic, mine[0].msgtype, rows, load_images):
+                status.counts[topic] = status.counts.get(topic, 0) + rows.shape[0]
+                done.add(topic)
+            continue
         try:
             block = None if rows is None else header_rows_block(mine[0].msgtype, rows)
         except PARSE_ERRORS:
@@ -271,11 +279,11 @@ def _blocks(data: BagData, status: ReadStatus, index: McapIndex | None, conns: l
 def _held_from_index(data: BagData, acc: dict[str, list[Any]], status: ReadStatus, index: McapIndex,
                      conns: list[Any], kinds: dict[str, RowKind], load_images: bool) -> None:
     """One held topic's messages (``conns``) from the index: at once when they share one layout
-    (:func:`ppoe_core.io.cdr.joint_state_rows_block`), else one by one as any other topic."""
+    (:func:`ppoe_core.io.cdr.joint_state_block_at`), else one by one as any other topic."""
     topic = conns[0].topic
-    rows = index.rows(conns)
+    found = index.spans(conns)
     try:
-        block = None if rows is None else joint_state_rows_block(rows)
+        block = None if found is None else joint_state_block_at(*found)
     except PARSE_ERRORS:
         block = None
     if block is None:

@@ -22,7 +22,7 @@ from ppoe_core.io import cdr
 from ppoe_core.io.messages import (
     IMU_TOPIC_PREFIX, T_COMPRESSED_IMAGE, T_JOINT_STATE, T_POINT, T_POSE, T_POSE_COV, T_TEMPERATURE, T_WRENCH,
     TAG_OBSERVATION_FIELDS, TOPIC_CAMERA_INFO, TOPIC_COMPRESSED_IMAGE, TOPIC_GT_POINT, TOPIC_GT_POSE, TOPIC_IMAGE,
-    TOPIC_JOINT_STATES, TOPIC_TAG_OBSERVATIONS, TOPIC_TEMPERATURE, TOPIC_WRENCH, stamp_seconds,
+    TOPIC_JOINT_STATES, TOPIC_TAG_OBSERVATIONS, TOPIC_TEMPERATURE, TOPIC_WRENCH, deserialize, stamp_seconds,
 )
 from ppoe_core.io.series import (
     BagData, CameraInfos, Images, ImuSeries, JointStates, PointSeries, PoseCovSeries, PoseSeries, TagObservationRows,
@@ -30,7 +30,7 @@ from ppoe_core.io.series import (
 )
 
 __all__ = ["RowKind", "row_kind", "finish", "expected_type", "named", "tag_rows_from_cloud", "JOINT_STATE_KIND",
-           "finish_joint_state_block", "block_topic", "finish_block"]
+           "finish_joint_state_block", "block_topic", "finish_block", "restamped_topic", "finish_restamped"]
 
 
 def expected_type(topic: str) -> str | None:
@@ -443,6 +443,34 @@ def finish_block(data: BagData, topic: str, block: cdr.HeaderBlock) -> bool:
     """The series of a :func:`block_topic` from its messages read at once: what :func:`finish` makes of their rows
     one by one; False (nothing set) where a message's row would raise (read them one by one then)."""
     return _BLOCK_FINISHERS[topic](data, topic, block)
+
+
+#: typed topics whose messages are usually one message restamped (a camera's calibration), read at once where they are
+_RESTAMPED = {TOPIC_CAMERA_INFO}
+
+
+def restamped_topic(topic: str) -> bool:
+    """The messages of ``topic`` may be read at once where they are one message restamped (:func:`finish_restamped`)."""
+    return topic in _RESTAMPED
+
+
+def finish_restamped(data: BagData, topic: str, msgtype: str, arr: np.ndarray, load_images: bool) -> bool:
+    """The series of a :func:`restamped_topic` from its messages, the rows of ``arr`` (N, size) uint8, where they are
+    the first message restamped (:func:`ppoe_core.io.cdr.restamped_stamps`): the first deserialised and its row built
+    as one by one, every other row the same with its own stamp (their bytes deserialise to the same fields): what
+    :func:`finish` makes of their rows one by one.  False (nothing set) where other bytes differ, or the first message
+    would be rejected or its row raise: read them one by one then (the same rejections and errors)."""
+    stamps = cdr.restamped_stamps(arr)
+    if stamps is None:
+        return False
+    kind = row_kind(topic, msgtype)
+    try:
+        msg = deserialize(arr[0].tobytes(), msgtype, topic=topic)
+        row = kind.build(kind.fields(msg), topic, 0, load_images)
+    except Exception:  # noqa: BLE001 - one by one gives the rejection or the error, in the reader's order
+        return False
+    finish(data, {topic: [(stamp, *row[1:]) for stamp in stamps.tolist()]})
+    return True
 
 
 def finish(data: BagData, acc: dict[str, list[Any]]) -> None:
