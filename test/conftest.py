@@ -13,6 +13,7 @@ import os
 import sys
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import pytest
@@ -38,6 +39,29 @@ def load_script(path: Path, name: str) -> ModuleType:
     sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def assert_same_data(a: Any, b: Any, where: str = "data") -> None:
+    """Two ``BagData`` (or any nest of dataclasses, dicts, lists and arrays) equal field by field: the same types,
+    arrays of the same dtype, shape and bytes, other values ``==`` (``where`` names the field in a failure)."""
+    import dataclasses
+
+    assert type(a) is type(b), where
+    if dataclasses.is_dataclass(a):
+        for f in dataclasses.fields(a):
+            assert_same_data(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
+    elif isinstance(a, np.ndarray):
+        assert (a.dtype, a.shape, a.tobytes()) == (b.dtype, b.shape, b.tobytes()), where
+    elif isinstance(a, dict):
+        assert list(a) == list(b), where
+        for k in a:
+            assert_same_data(a[k], b[k], f"{where}[{k!r}]")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same_data(x, y, f"{where}[{i}]")
+    else:
+        assert a == b, where
 
 def pose_from(t, w) -> np.ndarray:
     """Pose ``(4, 4)`` with translation ``t`` (3,) and rotation ``so3_exp(w)`` (not ``lie.exp`` of a twist)."""

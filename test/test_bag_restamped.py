@@ -5,14 +5,13 @@ of :func:`ppoe_core.io.cdr.restamped_stamps` are :func:`ppoe_core.io.messages.st
 
 from __future__ import annotations
 
-import dataclasses
 import struct
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from conftest import REPO
+from conftest import REPO, assert_same_data
 
 import ppoe_core.io.mcap_index as mcap_index
 import ppoe_core.io.reader as reader_module
@@ -25,25 +24,6 @@ K = np.array([[500.0, 0.0, 320.5], [0.0, 501.0, 240.25], [0.0, 0.0, 1.0]])
 #: stamps [s]: fractions that are not whole nanoseconds in binary, up to the last second of int32
 STAMPS = [0.0, 0.1, 0.3, 1.0 / 3.0, 7.000000001, 12.5, 99.99, 1234567.891, 2.0**31 - 1.5]
 
-
-def _assert_same(a: Any, b: Any, where: str = "data") -> None:
-    """Equal field by field: arrays of the same dtype, shape and bytes, containers of equal items, same types."""
-    assert type(a) is type(b), where
-    if dataclasses.is_dataclass(a):
-        for f in dataclasses.fields(a):
-            _assert_same(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
-    elif isinstance(a, np.ndarray):
-        assert (a.dtype, a.shape, a.tobytes()) == (b.dtype, b.shape, b.tobytes()), where
-    elif isinstance(a, dict):
-        assert list(a) == list(b), where
-        for k in a:
-            _assert_same(a[k], b[k], f"{where}[{k!r}]")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
-            _assert_same(x, y, f"{where}[{i}]")
-    else:
-        assert a == b, where
 
 
 def _bag(path: Path, change: str = "", damaged: bool = False) -> Path:
@@ -101,7 +81,7 @@ def _both(path: Path, monkeypatch: pytest.MonkeyPatch, **kw: Any) -> tuple[Any, 
 def test_calibrations_read_at_once_equal_those_read_one_by_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                                 change: str) -> None:
     at_once, one_by_one, answers = _both(_bag(tmp_path / "bag", change), monkeypatch)
-    _assert_same(at_once, one_by_one)
+    assert_same_data(at_once, one_by_one)
     assert answers == [change == ""]  # restamped: read at once; else message by message
     assert len(at_once.camera_info) == len(STAMPS)
     assert at_once.camera_info.stamps.tolist() == [float(s) for s in one_by_one.camera_info.stamps]
@@ -110,7 +90,7 @@ def test_calibrations_read_at_once_equal_those_read_one_by_one(tmp_path: Path, m
 def test_damaged_calibrations_are_rejected_as_one_by_one(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = _bag(tmp_path / "bag", damaged=True)
     at_once, one_by_one, answers = _both(path, monkeypatch, accept_partial=True)
-    _assert_same(at_once, one_by_one)
+    assert_same_data(at_once, one_by_one)
     assert answers == [False] and len(at_once.camera_info) == 0
     assert any(TOPIC_CAMERA_INFO in note for note in at_once.notes)
     with pytest.raises(BagError, match="camera_info"):

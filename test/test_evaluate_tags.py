@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from conftest import assert_same_data
 from test_tags import _frames
 
 from ppoe_core.analysis.evaluate.tag_stream import TagStream, tag_measurements
@@ -109,28 +110,6 @@ REPO_BAGS = __import__("pathlib").Path(__file__).resolve().parents[1] / "bags"
 ARM7_MODEL = REPO_BAGS.parent / "config" / "robots" / "arm7_model.yaml"
 
 
-def _same_series(a, b, where="data"):
-    """Every field of two BagData (dataclasses, dicts, lists, arrays) equal, bit for bit."""
-    import dataclasses
-
-    if dataclasses.is_dataclass(a):
-        assert type(a) is type(b), where
-        for f in dataclasses.fields(a):
-            _same_series(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
-    elif isinstance(a, dict):
-        assert a.keys() == b.keys(), where
-        for k in a:
-            _same_series(a[k], b[k], f"{where}[{k!r}]")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
-            _same_series(x, y, f"{where}[{i}]")
-    elif isinstance(a, np.ndarray):
-        np.testing.assert_array_equal(a, b, err_msg=where)
-        assert a.dtype == b.dtype, where
-    else:
-        assert a == b, where
-
 
 def test_read_bag_reads_the_first_topics_first_and_gives_the_same_data():
     from ppoe_core.analysis.evaluate.replay import TAG_INPUT_TOPICS
@@ -148,7 +127,7 @@ def test_read_bag_reads_the_first_topics_first_and_gives_the_same_data():
     assert seen["obj"] is phased  # the same object, completed after the call
     assert seen["images"] == len(whole.images) > 0 and seen["camera_info"] == len(whole.camera_info) > 0
     assert seen["urdf"] and seen["joint_states"] == 0 and seen["gt"] == 0 < len(whole.ground_truth_pose)
-    _same_series(phased, whole)
+    assert_same_data(phased, whole)
 
 
 def test_evaluate_starts_the_image_workers_before_the_joint_states_are_read(monkeypatch):

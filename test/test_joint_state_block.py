@@ -62,8 +62,7 @@ def test_shipped_joint_states_at_once_as_before(bag: Path) -> None:
     with Reader(bag) as r:
         conns = [c for c in r.connections if c.msgtype == T_JOINT_STATE]
         raws = [bytes(d) for _, _, d in r.messages(connections=conns)]
-    if not raws or len({len(x) for x in raws}) != 1:
-        pytest.skip("no joint states of one size")
+    assert raws and len({len(x) for x in raws}) == 1, f"{bag.name}: the shipped joint states share one layout"
     arr = _rows(raws)
     got = cdr.joint_state_rows_block(arr)
     assert got is not None and got.stamps.shape[0] == len(raws)

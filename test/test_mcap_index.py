@@ -5,7 +5,6 @@ with the index on and off; a damaged chunk (bad CRC, a record running out of its
 
 from __future__ import annotations
 
-import dataclasses
 import struct
 import zlib
 from pathlib import Path
@@ -13,7 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from conftest import BAGS, REPO
+from conftest import BAGS, REPO, assert_same_data
 from rosbags.rosbag2 import Reader
 
 import ppoe_core.io.mcap_index as mcap_index
@@ -84,25 +83,6 @@ def tangled(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _tangled_bag(tmp_path_factory.mktemp("tangled") / "bag")[0]
 
 
-def _assert_same(a: Any, b: Any, where: str = "data") -> None:
-    """Equal field by field: arrays of the same dtype, shape and bytes, containers of equal items, same types."""
-    assert type(a) is type(b), where
-    if dataclasses.is_dataclass(a):
-        for f in dataclasses.fields(a):
-            _assert_same(getattr(a, f.name), getattr(b, f.name), f"{where}.{f.name}")
-    elif isinstance(a, np.ndarray):
-        assert (a.dtype, a.shape, a.tobytes()) == (b.dtype, b.shape, b.tobytes()), where
-    elif isinstance(a, dict):
-        assert list(a) == list(b), where
-        for k in a:
-            _assert_same(a[k], b[k], f"{where}[{k!r}]")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
-            _assert_same(x, y, f"{where}[{i}]")
-    else:
-        assert a == b, where
-
 
 @pytest.mark.parametrize("bag", SHIPPED, ids=[p.name for p in SHIPPED])
 def test_index_yields_what_rosbags_yields_on_every_shipped_bag(bag: Path) -> None:
@@ -157,7 +137,7 @@ def test_read_bag_is_the_same_with_and_without_the_index(tmp_path: Path, monkeyp
                 seen[on] = (len(d.images), len(d.joint_states))
 
             results[on] = read_bag(bag, **kw, on_first=early if "first" in kw else None)
-        _assert_same(results[True], results[False])
+        assert_same_data(results[True], results[False])
         assert seen.get(True) == seen.get(False)
     assert len(used) == 6 and all(u is not None for u in used[::2]) and all(u is None for u in used[1::2])
     data = results[True]
@@ -195,7 +175,7 @@ def test_read_bag_is_the_same_with_and_without_the_index_on_shipped_bags(bag: Pa
                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     ref = read_bag(bag)
     monkeypatch.setattr(mcap_index, "USE_INDEX", False)
-    _assert_same(ref, read_bag(bag))
+    assert_same_data(ref, read_bag(bag))
 
 
 def _chunk_records(chunk: Any) -> tuple[int, int]:
@@ -265,6 +245,6 @@ def test_a_damaged_chunk_keeps_the_rosbags_reader(tmp_path: Path, monkeypatch: p
         monkeypatch.setattr(mcap_index, "USE_INDEX", False)
         old = read_bag(bag, accept_partial=True, **kw)
         monkeypatch.setattr(mcap_index, "USE_INDEX", True)
-        _assert_same(ref, old)
+        assert_same_data(ref, old)
         # narrow_range, uncounted: metadata.yaml counts messages rosbags skips
         assert bool(ref.notes) == (how not in ("good_crc", "uncounted")), ref.notes
