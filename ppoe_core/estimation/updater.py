@@ -3,6 +3,7 @@ LG-EKF."""
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -76,15 +77,10 @@ def _check_unique_rows(ids: Array, corners: Array, where: str) -> None:
         raise MeasurementError(f"{where}: duplicated observation rows ({dup}); the whole image is refused")
 
 
-_LABELS: dict[tuple[int, int], str] = {}
-
-
+@functools.cache
 def _label(tid: int, corner: int) -> str:
     """``"tag <id> corner <c>"`` (made once per pair)."""
-    s = _LABELS.get((tid, corner))
-    if s is None:
-        s = _LABELS[(tid, corner)] = f"tag {tid} corner {corner}"
-    return s
+    return f"tag {tid} corner {corner}"
 
 
 def _focal_from_points(uv: Array, xy: Array, where: str) -> tuple[float, float]:

@@ -36,7 +36,7 @@ __all__ = ["CDR_LE_HEADER", "SCHEMAS", "CdrError", "PARSE_ERRORS", "align", "rea
            "parse_fields", "parse_joint_state", "JointStateCdr", "joint_state_names_block", "PoseCovarianceWriter",
            "tf_message", "as_bytes", "JointStateBlock", "joint_state_block", "joint_state_rows_block",
            "joint_state_block_at", "JointStateLayout", "joint_state_layout", "JointStateReader", "HeaderBlock",
-           "header_rows_block", "restamped_stamps"]
+           "header_rows_block", "restamped_stamps", "header_stamps"]
 
 CDR_LE_HEADER = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
@@ -478,10 +478,17 @@ def joint_state_block_at(buf: np.ndarray, offsets: np.ndarray, size: int) -> Joi
     if not gather_layout(buf, offsets.astype(np.int64), np.frombuffer(first, dtype=np.uint8), cols.astype(np.int64),
                          zero_from, np.array([at for at, _ in pieces], dtype=np.int64), *outs):
         return None
-    sec = outs[0].view("<i4")[:, 0].astype(np.float64)
-    nsec = outs[0].view("<u4")[:, 1].astype(np.float64)
     values = [out.view("<f8") if n else np.zeros((n_msg, 0)) for out, (_, _, n) in zip(outs[1:], lay.spans)]
-    return JointStateBlock(sec + 1e-9 * nsec, lay.frame, lay.names, *values)
+    return JointStateBlock(header_stamps(outs[0], 0), lay.frame, lay.names, *values)
+
+
+def header_stamps(arr: np.ndarray, at: int = 4) -> np.ndarray:
+    """Stamps [s] of messages, the rows of ``arr`` (N, size) uint8, whose ``builtin_interfaces/Time`` (``int32 sec,
+    uint32 nanosec``) starts at byte ``at`` (4: a ``std_msgs/Header`` after the encapsulation): ``sec + 1e-9 nanosec``,
+    the same numbers as :func:`ppoe_core.io.messages.stamp_seconds` of each message."""
+    sec = np.ascontiguousarray(arr[:, at:at + 4]).view("<i4")[:, 0].astype(np.float64)
+    nsec = np.ascontiguousarray(arr[:, at + 4:at + 8]).view("<u4")[:, 0].astype(np.float64)
+    return sec + 1e-9 * nsec
 
 
 def restamped_stamps(arr: np.ndarray) -> np.ndarray | None:
@@ -493,9 +500,7 @@ def restamped_stamps(arr: np.ndarray) -> np.ndarray | None:
         return None
     if (arr[:, :4] != arr[0, :4]).any() or (arr[:, 12:] != arr[0, 12:]).any():
         return None
-    sec = np.ascontiguousarray(arr[:, 4:8]).view("<i4")[:, 0].astype(np.float64)
-    nsec = np.ascontiguousarray(arr[:, 8:12]).view("<u4")[:, 0].astype(np.float64)
-    return sec + 1e-9 * nsec
+    return header_stamps(arr)
 
 
 class HeaderBlock(NamedTuple):
@@ -534,9 +539,7 @@ def header_rows_block(msgtype: str, arr: np.ndarray) -> HeaderBlock | None:
     if not ok.all():
         return None
     start, n = align(frame_end, 8), sum(schema[1:])  # n float64 in a row: each field is whole float64 words
-    sec = np.ascontiguousarray(arr[:, 4:8]).view("<i4")[:, 0].astype(np.float64)
-    nsec = np.ascontiguousarray(arr[:, 8:12]).view("<u4")[:, 0].astype(np.float64)
-    return HeaderBlock(sec + 1e-9 * nsec, values[0][2], np.ascontiguousarray(arr[:, start:start + 8 * n]).view("<f8"))
+    return HeaderBlock(header_stamps(arr), values[0][2], np.ascontiguousarray(arr[:, start:start + 8 * n]).view("<f8"))
 
 
 def parse_fields(msgtype: str, raw: bytes) -> tuple[Any, ...]:

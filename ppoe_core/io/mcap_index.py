@@ -205,6 +205,3 @@ class McapIndex:
         if (lengths != lengths[0]).any():
             return None
         return self._buf, self._off[idx], int(lengths[0])
-
-    def close(self) -> None:
-        """Nothing to release: the file mapping is closed when the last view of it goes."""

@@ -53,11 +53,15 @@ def named(topic: str, prefix: str) -> bool:
     return topic.startswith(prefix + "/") and len(topic) > len(prefix) + 1
 
 
+#: a pose message's quaternion shorter than this is refused (no rotation to normalise)
+_MIN_QUAT_NORM = 1e-9
+
+
 def _pose_to_T(v: tuple[float, ...]) -> np.ndarray:
     """``(px, py, pz, qx, qy, qz, qw)`` -> (4, 4); ValueError for a zero or non-finite quaternion."""
     x, y, z, w = (float(c) for c in v[3:7])
     if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z) and math.isfinite(w)) \
-            or math.sqrt(x * x + y * y + z * z + w * w) < 1e-9:
+            or math.sqrt(x * x + y * y + z * z + w * w) < _MIN_QUAT_NORM:
         raise ValueError(f"invalid quaternion {np.array(v[3:7])}")
     T = np.empty((4, 4))
     lie_kernels().pose_from_quat_one(x, y, z, w, float(v[0]), float(v[1]), float(v[2]), T)  # lie.matrix_from_quat's
@@ -400,19 +404,16 @@ def finish_joint_state_block(data: BagData, topic: str, block: cdr.JointStateBlo
 def _pose_block(data: BagData, topic: str, block: cdr.HeaderBlock) -> bool:
     """``/ground_truth/pose`` of a block: the poses :func:`_pose_to_T` makes (the same rule for a zero or non-finite
     quaternion, then the same compiled rotation, :func:`ppoe_core.lie.so3.matrix_from_quat`)."""
+    from ppoe_core.lie.se3 import from_rt
     from ppoe_core.lie.so3 import matrix_from_quat
 
     v = block.values
     x, y, z, w = v[:, 3], v[:, 4], v[:, 5], v[:, 6]
-    valid = np.isfinite(v[:, 3:7]).all(axis=1) & ~(np.sqrt(x * x + y * y + z * z + w * w) < 1e-9)
+    valid = np.isfinite(v[:, 3:7]).all(axis=1) & ~(np.sqrt(x * x + y * y + z * z + w * w) < _MIN_QUAT_NORM)
     if not valid.all():  # message by message, for the error naming the first
         return False
-    N = v.shape[0]
-    T = np.zeros((N, 4, 4))
-    T[:, :3, :3] = matrix_from_quat(v[:, 3:7])
-    T[:, :3, 3] = v[:, :3]
-    T[:, 3, 3] = 1.0
-    data.ground_truth_pose = PoseSeries(block.stamps, [block.frame] * N, T)
+    T = from_rt(matrix_from_quat(v[:, 3:7]), v[:, :3])
+    data.ground_truth_pose = PoseSeries(block.stamps, [block.frame] * v.shape[0], T)
     return True
 
 
